@@ -1,0 +1,135 @@
+"""Small helpers for the typed, documented config dataclasses of every layer.
+
+Each config field is declared with :func:`option`, which records a description and the
+allowed range or choices in the field metadata. From that single declaration we get
+validation (:func:`validate`), flattening to ``section.name`` keys for YAML and ROS
+parameters (:func:`flatten`, :func:`update_from_flat`) and the ROS parameter descriptors
+(built in ``cgags_ros.ros``). Pure Python: the core may import it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Mapping
+
+from .errors import InvalidConfigError
+
+
+def option(default: Any, description: str, *, low: float | None = None,
+           high: float | None = None, choices: tuple | None = None,
+           allow_none: bool = False) -> Any:
+    """A dataclass field with a description and a valid range (inclusive) or set of choices."""
+    meta = {"description": description, "low": low, "high": high,
+            "choices": choices, "allow_none": allow_none}
+    return dataclasses.field(default=default, metadata=meta)
+
+
+def _check_field(owner: str, f: dataclasses.Field, value: Any) -> Any:
+    meta = f.metadata
+    name = f"{owner}{f.name}"
+    if value is None:
+        if meta.get("allow_none"):
+            return None
+        raise InvalidConfigError(f"{name} must not be None")
+    default = f.default
+    if isinstance(default, bool) or (default is None and isinstance(value, bool)):
+        if not isinstance(value, bool):
+            raise InvalidConfigError(f"{name} must be true or false, got {value!r}")
+        return value
+    if isinstance(default, int) and not isinstance(default, bool):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or float(value) != int(value):
+            raise InvalidConfigError(f"{name} must be an integer, got {value!r}")
+        value = int(value)
+    elif isinstance(default, float) or (default is None and isinstance(value, (int, float))):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise InvalidConfigError(f"{name} must be a number, got {value!r}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise InvalidConfigError(f"{name} must be finite, got {value!r}")
+    elif isinstance(default, str):
+        if not isinstance(value, str):
+            raise InvalidConfigError(f"{name} must be a string, got {value!r}")
+    low, high, choices = meta.get("low"), meta.get("high"), meta.get("choices")
+    if low is not None and value < low:
+        raise InvalidConfigError(f"{name} = {value!r} is below its minimum {low}")
+    if high is not None and value > high:
+        raise InvalidConfigError(f"{name} = {value!r} is above its maximum {high}")
+    if choices is not None and value not in choices:
+        raise InvalidConfigError(f"{name} = {value!r} is not one of {', '.join(map(str, choices))}")
+    return value
+
+
+def validate(cfg: Any, _prefix: str = "") -> Any:
+    """Check (and coerce ints/floats of) every field in place; raise InvalidConfigError."""
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(value):
+            validate(value, f"{_prefix}{f.name}.")
+        else:
+            setattr(cfg, f.name, _check_field(_prefix, f, value))
+    post = getattr(cfg, "check", None)
+    if callable(post):
+        post()
+    return cfg
+
+
+def flatten(cfg: Any, _prefix: str = "") -> dict[str, Any]:
+    """``{'core.preference_length': 20, 'voxel_size': 0.05, ...}`` for YAML and ROS params."""
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(value):
+            out.update(flatten(value, f"{_prefix}{f.name}."))
+        else:
+            out[f"{_prefix}{f.name}"] = value
+    return out
+
+
+def describe(cls_or_cfg: Any, _prefix: str = "") -> dict[str, dict[str, Any]]:
+    """Flattened field metadata: ``{key: {description, low, high, choices, default}}``."""
+    cfg = cls_or_cfg() if isinstance(cls_or_cfg, type) else cls_or_cfg
+    out: dict[str, dict[str, Any]] = {}
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(value):
+            out.update(describe(value, f"{_prefix}{f.name}."))
+        else:
+            out[f"{_prefix}{f.name}"] = dict(f.metadata, default=value)
+    return out
+
+
+def update_from_flat(cfg: Any, values: Mapping[str, Any]) -> Any:
+    """Return a validated copy of ``cfg`` with flat keys (or nested dicts) applied.
+
+    Unknown keys raise InvalidConfigError naming the key, so a typo never passes silently.
+    """
+    new = _deepcopy(cfg)
+    for key, value in _flatten_mapping(values).items():
+        target = new
+        parts = key.split(".")
+        for part in parts[:-1]:
+            if not hasattr(target, part) or not dataclasses.is_dataclass(getattr(target, part)):
+                raise InvalidConfigError(f"unknown configuration key {key!r}")
+            target = getattr(target, part)
+        names = {f.name for f in dataclasses.fields(target)}
+        if parts[-1] not in names or dataclasses.is_dataclass(getattr(target, parts[-1])):
+            raise InvalidConfigError(f"unknown configuration key {key!r}")
+        setattr(target, parts[-1], value)
+    return validate(new)
+
+
+def _flatten_mapping(values: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        if isinstance(value, Mapping):
+            out.update(_flatten_mapping(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def _deepcopy(cfg: Any) -> Any:
+    changes = {f.name: _deepcopy(getattr(cfg, f.name))
+               for f in dataclasses.fields(cfg) if dataclasses.is_dataclass(getattr(cfg, f.name))}
+    return dataclasses.replace(cfg, **changes)

@@ -1,0 +1,41 @@
+"""Configuration of the point-cloud front end (downsampling, normals, FPFH, matching) and of
+the optional refinement. Every radius is a multiple of the voxel size, so one number tunes it.
+No Open3D import here: the node reads these to declare its parameters."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from ..configutil import option
+
+
+@dataclasses.dataclass
+class FrontEndConfig:
+    normal_radius_factor: float = option(
+        2.0, "Normal estimation radius in voxel sizes.", low=0.1, high=100.0)
+    normal_max_nn: int = option(30, "Maximum neighbours for normal estimation.", low=3, high=1000)
+    fpfh_radius_factor: float = option(
+        5.0, "FPFH feature radius in voxel sizes.", low=0.5, high=100.0)
+    fpfh_max_nn: int = option(100, "Maximum neighbours for FPFH.", low=5, high=5000)
+    mutual_filter: bool = option(True, "Keep only mutual nearest neighbours in FPFH space.")
+    ratio_test: float = option(
+        1.0, "Lowe ratio test on FPFH distances (1.0 disables).", low=0.1, high=1.0)
+    max_correspondences: int = option(
+        5000, "Keep at most this many correspondences (best descriptor distance first); "
+        "0 keeps all.", low=0)
+    min_points: int = option(
+        10, "Fewer points than this after downsampling is rejected as an empty cloud.", low=3)
+
+
+@dataclasses.dataclass
+class RefineConfig:
+    method: str = option(
+        "point_to_plane", "Refinement after the global estimate: 'none', 'point_to_plane' "
+        "(Open3D ICP) or 'gicp' (small_gicp).", choices=("none", "point_to_plane", "gicp"))
+    max_correspondence_distance_factor: float = option(
+        1.5, "Refinement correspondence distance in voxel sizes.", low=0.01, high=100.0)
+    max_iterations: int = option(50, "Refinement iterations.", low=1, high=10000)
+    min_fitness: float = option(
+        0.0, "After refinement, a fitness (share of source points with a target point within "
+        "the refinement distance) below this marks the result invalid. 0 disables.",
+        low=0.0, high=1.0)

@@ -1,0 +1,105 @@
+"""Configuration of the registration core.
+
+Values marked "paper" are the paper's parameter table (METHOD.md). Options marked
+"INFERRED" are reconstruction choices the paper does not state; their defaults were picked
+by the ablation in ``bench/ablation_core.py`` (results in ``docs/ablation.md``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from ..configutil import option
+from ..errors import InvalidConfigError
+
+
+@dataclasses.dataclass
+class CoreConfig:
+    # --- thresholds (paper: tau = 6 pr, delta = 10 pr) -----------------------------------
+    inlier_threshold_factor: float = option(
+        6.0, "Inlier threshold tau in units of the point resolution pr (paper: 6).", low=1e-6)
+    compatibility_threshold_factor: float = option(
+        10.0, "Compatibility threshold delta in units of pr (paper: 10).", low=1e-6)
+    compatibility_to_inlier_ratio: float = option(
+        10.0 / 6.0, "delta / tau when only an inlier threshold (no resolution) is given "
+        "(the paper's 10/6).", low=1e-3)
+
+    # --- compatibility graph (INFERRED) --------------------------------------------------
+    compatibility: str = option(
+        "binary", "INFERRED. 'binary': edge when | |p_i-p_j| - |q_i-q_j| | < delta. 'soft': "
+        "same edges, sampled with weight 1 - (d_ij/delta)^2.",
+        choices=("binary", "soft"))
+    min_pair_distance_factor: float = option(
+        0.0, "INFERRED. Drop graph edges whose source pair is closer than this many tau "
+        "(short edges constrain rotation poorly). 0 keeps all.", low=0.0)
+
+    # --- minimal compatible subsets (INFERRED) -------------------------------------------
+    edge_sampling: str = option(
+        "uniform", "INFERRED. How the compatible edge (i, j) is drawn: 'uniform' over all edges "
+        "(paper reading), or 'common_neighbours' weighting each edge by the number of common "
+        "neighbours of i and j (second-order compatibility).",
+        choices=("uniform", "common_neighbours"))
+    vertex_sampling: str = option(
+        "uniform", "INFERRED. How k is drawn from N(i) ∩ N(j): 'uniform', or 'degree' "
+        "(proportional to k's degree).", choices=("uniform", "degree"))
+    min_triangle_area_factor: float = option(
+        0.5, "INFERRED. Reject near-collinear triples whose source triangle area is below "
+        "factor * tau^2. 0 disables.", low=0.0)
+
+    # --- hypothesis scoring ----------------------------------------------------------------
+    score: str = option(
+        "inlier_count", "Hypothesis score: 'inlier_count' (paper) or 'truncated' "
+        "(MSAC: sum of max(0, 1 - r^2/tau^2)).", choices=("inlier_count", "truncated"))
+    batch_size: int = option(
+        256, "Hypotheses generated and scored per vectorized batch.", low=1, high=100000)
+
+    # --- preference-based accelerated guided sampling -------------------------------------
+    guided_sampling: bool = option(
+        True, "Use preference-based accelerated guided sampling after stage one.")
+    preference_length: int = option(
+        20, "b: length of each correspondence's preference list (paper: 20).", low=1, high=1000)
+    xi: float = option(
+        1e-6, "xi: floor added to kernel sampling weights (paper: 1e-6).", low=0.0)
+    max_up: int = option(
+        3, "max_up (paper: 3). See max_up_mode.", low=0, high=1000)
+    max_up_mode: str = option(
+        "preference_refreshes", "INFERRED meaning of max_up: 'preference_refreshes' "
+        "(recompute the kernel at most max_up times), 'best_updates' (stop guiding after "
+        "max_up improvements of the best model), or 'local_refits' (max_up least-squares "
+        "re-fits per new best model).",
+        choices=("preference_refreshes", "best_updates", "local_refits"))
+    guided_start: str = option(
+        "stage_one_confidence", "INFERRED. When guided sampling starts: "
+        "'after_b_hypotheses' (as soon as b hypotheses exist) or 'stage_one_confidence' "
+        "(when the P1 bound for compatible sampling is met).",
+        choices=("after_b_hypotheses", "stage_one_confidence"))
+    kernel_subset: int = option(
+        1500, "Correspondences (top by preference-kernel support) kept for guided sampling; "
+        "bounds the N x M kernel. 0 keeps all.", low=0)
+
+    # --- stopping ----------------------------------------------------------------------------
+    max_iterations: int = option(
+        100000, "Hard cap on generated hypotheses (paper: 1e5).", low=1, high=10**8)
+    min_iterations: int = option(
+        0, "Hypotheses generated before any adaptive stop.", low=0)
+    p1: float = option(0.99, "Confidence P1 of the compatible-sampling stage (paper: 0.99).",
+                       low=0.0, high=0.999999)
+    p2: float = option(0.99, "Confidence P2 of the guided stage (paper: 0.99).",
+                       low=0.0, high=0.999999)
+    stopping: str = option(
+        "adaptive", "INFERRED. 'adaptive': RANSAC bound log(1-P)/log(1-w) per stage with w "
+        "estimated from the best model's inliers inside the compatibility graph; 'fixed': "
+        "always max_iterations.", choices=("adaptive", "fixed"))
+
+    # --- final re-fit and validity ------------------------------------------------------------
+    refit: str = option(
+        "iterative", "INFERRED. Final least-squares re-fit on the best model's inliers: "
+        "'iterative' (repeat while the inlier set changes), 'once', or 'none'.",
+        choices=("iterative", "once", "none"))
+    refit_iterations: int = option(10, "Maximum iterative re-fits.", low=1, high=1000)
+    min_inliers: int = option(
+        6, "An estimate with fewer inliers is reported valid=False.", low=3)
+
+    def check(self) -> None:
+        if self.guided_sampling and self.preference_length < 1:
+            raise InvalidConfigError("preference_length must be >= 1 with guided sampling")

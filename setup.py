@@ -1,0 +1,32 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "cgags_ros"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "bench"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", glob("config/*.yaml")),
+        ("share/" + package_name + "/launch", glob("launch/*.py")),
+    ],
+    install_requires=["setuptools", "numpy", "scipy", "PyYAML"],
+    zip_safe=True,
+    maintainer="cgags_ros maintainers",
+    maintainer_email="maintainers@cgags-ros.invalid",
+    description="Global point cloud registration (compatibility graph + accelerated guided sampling) for ROS 2",
+    license="MIT",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            "register_node = cgags_ros.register_node:main",
+            "cgags-register = cgags_ros.tools.register_cli:main",
+            "cgags-replay = cgags_ros.tools.replay:main",
+            "cgags-demo = cgags_ros.tools.demo:main",
+        ],
+    },
+)
