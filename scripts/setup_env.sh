@@ -17,7 +17,7 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   "$venv/bin/python" -m pip install --quiet --upgrade pip
   "$venv/bin/python" -m pip install --quiet -r "$root/requirements.txt" \
       -r "$root/requirements-ros.txt" -r "$root/requirements-dev.txt"
-  "$venv/bin/python" -m pip install --quiet --no-deps --no-build-isolation -e "$root"
+  "$venv/bin/python" -m pip install --quiet --no-deps -e "$root"
   echo "$want" > "$stamp"
 else
   echo "[setup] virtual environment $venv is up to date"

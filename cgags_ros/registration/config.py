@@ -35,13 +35,20 @@ class CoreConfig:
 
     # --- minimal compatible subsets (INFERRED) -------------------------------------------
     edge_sampling: str = option(
-        "uniform", "INFERRED. How the compatible edge (i, j) is drawn: 'uniform' over all edges "
-        "(paper reading), or 'common_neighbours' weighting each edge by the number of common "
-        "neighbours of i and j (second-order compatibility).",
-        choices=("uniform", "common_neighbours"))
+        "tournament", "INFERRED. How the compatible edge (i, j) is drawn: 'uniform' over all edges "
+        "(the paper's reading: favours high-degree vertices), or 'tournament': the edge with "
+        "the most common neighbours |N(i) ∩ N(j)| among edge_tournament uniform draws "
+        "(second-order compatibility).", choices=("uniform", "tournament"))
+    edge_tournament: int = option(
+        16, "Uniform edge draws per selected edge with edge_sampling='tournament'.", low=1, high=4096)
     vertex_sampling: str = option(
-        "uniform", "INFERRED. How k is drawn from N(i) ∩ N(j): 'uniform', or 'degree' "
-        "(proportional to k's degree).", choices=("uniform", "degree"))
+        "tournament", "INFERRED. How k is drawn from N(i) ∩ N(j): 'uniform', 'degree' "
+        "(proportional to k's degree), or 'tournament': the k with the largest support "
+        "|N(i) ∩ N(j) ∩ N(k)| among vertex_tournament uniform draws.",
+        choices=("uniform", "degree", "tournament"))
+    vertex_tournament: int = option(
+        8, "Uniform vertex draws per selected vertex with vertex_sampling='tournament'.",
+        low=1, high=4096)
     min_triangle_area_factor: float = option(
         0.5, "INFERRED. Reject near-collinear triples whose source triangle area is below "
         "factor * tau^2. 0 disables.", low=0.0)
@@ -51,7 +58,15 @@ class CoreConfig:
         "inlier_count", "Hypothesis score: 'inlier_count' (paper) or 'truncated' "
         "(MSAC: sum of max(0, 1 - r^2/tau^2)).", choices=("inlier_count", "truncated"))
     batch_size: int = option(
-        256, "Hypotheses generated and scored per vectorized batch.", low=1, high=100000)
+        512, "Largest number of hypotheses generated and scored per vectorized batch (batches "
+        "start small and double, so easy problems stop early).", low=1, high=100000)
+    prescreen: bool = option(
+        True, "INFERRED (speed). Score each hypothesis first on its sample's common "
+        "neighbourhood {i,j,k} ∪ N(i)∩N(j)∩N(k), then score only the best exact_per_batch "
+        "of each batch on all N. False scores every hypothesis on all N.")
+    exact_per_batch: int = option(
+        16, "Hypotheses per batch scored on all N (and fed to the preference lists) when "
+        "prescreen is on.", low=1, high=100000)
 
     # --- preference-based accelerated guided sampling -------------------------------------
     guided_sampling: bool = option(
@@ -73,13 +88,22 @@ class CoreConfig:
         "'after_b_hypotheses' (as soon as b hypotheses exist) or 'stage_one_confidence' "
         "(when the P1 bound for compatible sampling is met).",
         choices=("after_b_hypotheses", "stage_one_confidence"))
+    guided_seed: str = option(
+        "best_inliers", "INFERRED. Where guided sampling draws its seed i: 'best_inliers' "
+        "(uniformly from the current best model's inliers, as in AGS's use of the best "
+        "hypothesis) or 'kernel' (proportional to the kernel support sum_j K(i, j) over "
+        "compatible j).", choices=("best_inliers", "kernel"))
     kernel_subset: int = option(
-        1500, "Correspondences (top by preference-kernel support) kept for guided sampling; "
+        400, "Correspondences (top by preference-kernel support) kept for guided sampling; "
         "bounds the N x M kernel. 0 keeps all.", low=0)
 
     # --- stopping ----------------------------------------------------------------------------
     max_iterations: int = option(
         100000, "Hard cap on generated hypotheses (paper: 1e5).", low=1, high=10**8)
+    time_budget: float = option(
+        0.0, "Seconds after which sampling stops and the best model so far is used (the "
+        "result then says stopped_by='time_budget'). 0: no limit, only max_iterations.",
+        low=0.0)
     min_iterations: int = option(
         0, "Hypotheses generated before any adaptive stop.", low=0)
     p1: float = option(0.99, "Confidence P1 of the compatible-sampling stage (paper: 0.99).",
@@ -91,12 +115,22 @@ class CoreConfig:
         "estimated from the best model's inliers inside the compatibility graph; 'fixed': "
         "always max_iterations.", choices=("adaptive", "fixed"))
 
+    stage_one_estimate: str = option(
+        "observed", "INFERRED. Estimate of w1 (all-inlier probability of one stage-one sample) "
+        "for the P1 bound: 'analytic' (uniform edge and vertex sampling, from the best "
+        "model's inlier subgraph) or 'observed' (the larger of that and the share of drawn "
+        "samples inside the best inlier set).", choices=("analytic", "observed"))
+
     # --- final re-fit and validity ------------------------------------------------------------
     refit: str = option(
         "iterative", "INFERRED. Final least-squares re-fit on the best model's inliers: "
         "'iterative' (repeat while the inlier set changes), 'once', or 'none'.",
         choices=("iterative", "once", "none"))
     refit_iterations: int = option(10, "Maximum iterative re-fits.", low=1, high=1000)
+    distinct_ratio: float = option(
+        1.3, "A result is significant (search may stop, result may be valid) only if its "
+        "inlier count is at least this times that of the best distinct alternative "
+        "hypothesis (sharing under half its inliers), and above the chance level.", low=1.0)
     min_inliers: int = option(
         6, "An estimate with fewer inliers is reported valid=False.", low=3)
 

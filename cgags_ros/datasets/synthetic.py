@@ -1,0 +1,127 @@
+"""Synthetic putative correspondences built from a real scanned model (numpy/scipy only).
+
+Used by the core's tests, the core benchmark and the ablation. Convention everywhere:
+``dst = R @ src + t`` for inliers (source -> target), units of the model (the Stanford
+bunny model is unit-scaled by :func:`unit_scale`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from ..errors import InvalidInputError
+
+DEFAULT_SHARED_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+BUNNY_MODEL = "objects/teaser/bun_zipper_res3.ply"
+
+
+def shared_data_dir() -> Path:
+    """``../shared/data`` relative to the repository root (override with CGAGS_DATA_DIR)."""
+    import os
+
+    return Path(os.environ.get("CGAGS_DATA_DIR", DEFAULT_SHARED_DATA))
+
+
+def read_ascii_ply_vertices(path: str | Path) -> np.ndarray:
+    """x, y, z of the ``vertex`` element of an ASCII PLY file (other elements ignored)."""
+    path = Path(path)
+    with open(path, "r", encoding="ascii", errors="replace") as f:
+        if f.readline().strip() != "ply":
+            raise InvalidInputError(f"{path} is not a PLY file")
+        n_vertex, props, in_vertex, fmt = None, [], False, None
+        for line in f:
+            tok = line.split()
+            if not tok:
+                continue
+            if tok[0] == "format":
+                fmt = tok[1]
+            elif tok[0] == "element":
+                in_vertex = tok[1] == "vertex"
+                if in_vertex:
+                    n_vertex = int(tok[2])
+            elif tok[0] == "property" and in_vertex:
+                props.append(tok[-1])
+            elif tok[0] == "end_header":
+                break
+        if fmt != "ascii" or n_vertex is None or not {"x", "y", "z"} <= set(props):
+            raise InvalidInputError(f"{path}: need an ascii PLY with vertex x, y, z")
+        rows = [f.readline().split() for _ in range(n_vertex)]
+    data = np.asarray(rows, dtype=np.float64)
+    return data[:, [props.index("x"), props.index("y"), props.index("z")]]
+
+
+def unit_scale(points: np.ndarray) -> np.ndarray:
+    """Centre the points and scale them so the largest bounding-box extent is 1."""
+    centred = points - points.mean(axis=0)
+    return centred / np.ptp(centred, axis=0).max()
+
+
+def load_bunny(data_dir: str | Path | None = None) -> np.ndarray:
+    """The Stanford bunny model (1889 points), unit-scaled."""
+    return unit_scale(read_ascii_ply_vertices(Path(data_dir or shared_data_dir()) / BUNNY_MODEL))
+
+
+def mean_nn_distance(points: np.ndarray) -> float:
+    """Point resolution pr: mean distance from each point to its nearest neighbour."""
+    d, _ = cKDTree(points).query(points, k=2)
+    return float(np.mean(d[:, 1]))
+
+
+def random_transform(rng: np.random.Generator, max_translation: float = 1.0) -> np.ndarray:
+    """Uniformly random rotation (any angle) and a translation in [-t, t]^3."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.random(random_state=rng).as_matrix()
+    T[:3, 3] = rng.uniform(-max_translation, max_translation, 3)
+    return T
+
+
+@dataclasses.dataclass
+class SyntheticProblem:
+    src: np.ndarray
+    dst: np.ndarray
+    transform: np.ndarray  # ground truth, src -> dst
+    inlier_mask: np.ndarray
+    noise_sigma: float
+
+
+def make_correspondences(model: np.ndarray, n: int, outlier_ratio: float, *,
+                         noise_sigma: float = 0.01, rng: np.random.Generator | int = 0,
+                         outliers: str = "uniform",
+                         transform: np.ndarray | None = None) -> SyntheticProblem:
+    """N putative correspondences of which round((1 - outlier_ratio) N) are inliers.
+
+    Inliers: ``src`` a model point, ``dst = R src + t + N(0, sigma^2 I)``.
+    Outliers (``outliers``): ``'uniform'`` puts ``dst`` uniformly in the bounding box of the
+    transformed model (TEASER++'s protocol); ``'surface'`` puts it on another transformed
+    model point plus noise, like a wrong feature match (harder: outliers are structured).
+    Rows are shuffled so inliers are not first.
+    """
+    rng = np.random.default_rng(rng)
+    n_in = int(round((1.0 - outlier_ratio) * n))
+    n_out = n - n_in
+    T = random_transform(rng) if transform is None else np.asarray(transform, dtype=float)
+    R, t = T[:3, :3], T[:3, 3]
+    moved = model @ R.T + t
+
+    idx_in = rng.choice(len(model), n_in, replace=n_in > len(model))
+    src = np.empty((n, 3))
+    dst = np.empty((n, 3))
+    src[:n_in] = model[idx_in]
+    dst[:n_in] = moved[idx_in] + rng.normal(0.0, noise_sigma, (n_in, 3))
+    src[n_in:] = model[rng.integers(0, len(model), n_out)]
+    if outliers == "uniform":
+        lo, hi = moved.min(axis=0), moved.max(axis=0)
+        dst[n_in:] = rng.uniform(lo, hi, (n_out, 3))
+    elif outliers == "surface":
+        dst[n_in:] = moved[rng.integers(0, len(model), n_out)] + rng.normal(0.0, noise_sigma, (n_out, 3))
+    else:
+        raise ValueError(f"outliers must be 'uniform' or 'surface', got {outliers!r}")
+    mask = np.zeros(n, dtype=bool)
+    mask[:n_in] = True
+    perm = rng.permutation(n)
+    return SyntheticProblem(src[perm], dst[perm], T, mask[perm], noise_sigma)

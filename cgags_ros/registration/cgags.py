@@ -1,0 +1,425 @@
+"""Algorithm 1: compatibility graph + accelerated guided sampling (Remote Sensing 2024, 16, 2789).
+
+Read :func:`register_correspondences` top to bottom: it is the paper's algorithm, each step
+named as in the paper. ``_Search`` holds the sampling state shared by the two stages.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from contextlib import contextmanager
+
+import numpy as np
+from scipy.stats import poisson
+
+from .. import configutil
+from ..errors import DegenerateCorrespondencesError, InvalidInputError
+from .compatibility import CompatibilityGraph, build_compatibility_graph
+from .config import CoreConfig
+from .hypotheses import (fit_triples, refit, residual_matrix, score_in_common_neighbourhood,
+                         score_values)
+from .preference import PreferenceLists
+from .result import RegistrationResult
+from .rigid import to_matrix
+from .sampling import (sample_common_vertex, sample_edges, sample_guided, tournament,
+                       triangle_areas)
+from .stopping import compatible_sample_inlier_probability, empirical_inlier_probability, ransac_bound
+
+_MIN_BATCH = 32
+_CHANCE_PER_BATCH = 2  # hypotheses per batch scored exactly whatever their pre-score
+
+
+def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
+                             resolution: float | None = None, config: CoreConfig | None = None,
+                             seed: int = 0) -> RegistrationResult:
+    """Estimate the rigid transform mapping ``src`` onto ``dst`` from putative correspondences.
+
+    Args:
+        src, dst: (N, 3) arrays in metres; row i of each is one putative correspondence
+            (most may be wrong).
+        inlier_threshold: tau in metres. Default: ``inlier_threshold_factor * resolution``.
+        resolution: point resolution pr in metres (mean nearest-neighbour distance of the
+            clouds the keypoints come from). With only ``resolution``, tau = 6 pr and the
+            compatibility threshold delta = 10 pr, as in the paper.
+        config: :class:`CoreConfig`; defaults are the paper's parameters.
+        seed: random seed; the result is deterministic for a given seed.
+
+    Returns:
+        :class:`RegistrationResult` with ``transform`` (source -> target), ``inliers``,
+        ``valid``/``reason``, and per-stage ``stats``/``timings``.
+
+    Raises:
+        InvalidInputError: wrong shapes, mismatched rows, NaN/Inf, missing thresholds.
+        DegenerateCorrespondencesError: fewer than 3 correspondences, or all source or all
+            target points identical or collinear (a rigid transform is then undetermined).
+    """
+    start = time.perf_counter()
+    cfg = configutil.validate(dataclasses.replace(config) if config else CoreConfig())
+    src, dst = _check_correspondences(src, dst)
+    tau, delta = _thresholds(cfg, inlier_threshold, resolution)
+    result = RegistrationResult(num_correspondences=len(src), inlier_threshold=tau,
+                                compatibility_threshold=delta)
+    timer = _StageTimer(result.timings)
+
+    # 1. Compatibility graph (rigid length consistency, delta).
+    with timer("compatibility_graph"):
+        graph = build_compatibility_graph(src, dst, delta, cfg.min_pair_distance_factor * tau)
+    result.stats.update(graph_edges=graph.num_edges, graph_density=graph.density)
+    if graph.num_edges == 0:
+        return _finish(result, start, reason=(
+            f"no two correspondences are length-consistent within delta={delta:.4g} m: "
+            "they are all outliers, or the thresholds are too small for the noise"))
+
+    search = _Search(src, dst, graph, cfg, tau, delta, np.random.default_rng(seed))
+    # 2-3. Minimal compatible subsets (edge + common-neighbour vertex) until the P1 bound.
+    with timer("compatible_sampling"):
+        search.compatible_stage()
+    # 4-5. Preference-based accelerated guided sampling until the P2 bound.
+    if cfg.guided_sampling and search.best_inliers is not None:
+        with timer("guided_sampling"):
+            search.guided_stage()
+    result.num_hypotheses = search.num_hypotheses
+    result.stats.update(search.stats)
+    if search.best_inliers is None:
+        return _finish(result, start, reason=(
+            "no compatible triangle of correspondences was found: the compatibility graph "
+            "has edges but no 3-cliques (too few inliers or thresholds too small)"))
+
+    # 6. Final least-squares re-fit on the inliers of the best hypothesis.
+    with timer("refit"):
+        T, inliers = search.best_T, search.best_inliers
+        if cfg.refit != "none":
+            iters = cfg.refit_iterations if cfg.refit == "iterative" else 1
+            T, inliers, done = refit(src, dst, T, tau, iters)
+            result.stats["refits"] = done
+    result.transform, result.inliers = T, inliers
+    chance, runner_up = search.chance_level(), search.runner_up(inliers)
+    result.stats.update(chance_level=chance, runner_up=runner_up)
+    reason = _validity_reason(src, inliers, cfg, tau)
+    if not reason and not search.significant(inliers):
+        reason = (f"the best consensus ({len(inliers)} inliers) does not stand out: chance "
+                  f"level {chance}, best distinct alternative {runner_up} (x{cfg.distinct_ratio}"
+                  " required); no rigid motion is clearly supported")
+    return _finish(result, start, reason=reason)
+
+
+class _Search:
+    """Sampling state: best hypothesis, preference lists, counters."""
+
+    def __init__(self, src, dst, graph: CompatibilityGraph, cfg: CoreConfig, tau: float,
+                 delta: float, rng: np.random.Generator):
+        self.src, self.dst, self.graph, self.cfg = src, dst, graph, cfg
+        self.tau, self.delta, self.rng = tau, delta, rng
+        self.num_hypotheses = 0
+        self.best_score = -np.inf
+        self.best_T = np.eye(4)
+        self.best_inliers: np.ndarray | None = None
+        self.best_mask = np.zeros(graph.n, dtype=bool)
+        self.improvements = 0
+        self.preference = PreferenceLists(graph.n, cfg.preference_length)
+        self.vertex_weights = graph.degree.astype(np.float64) if cfg.vertex_sampling == "degree" else None
+        self.sampled: list[np.ndarray] = []  # stage-one triples, to estimate w1 empirically
+        self.chance_counts: list[int] = []  # extra inliers of unselected hypotheses
+        self.num_exact = 0
+        self.start = time.perf_counter()
+        self.top_models: list[tuple[int, np.ndarray]] = []
+        self.stats = {"compatible_samples": 0, "guided_samples": 0, "rejected_collinear": 0,
+                      "empty_common_neighbourhood": 0, "kernel_refreshes": 0,
+                      "best_updates": 0, "stage_one_bound": float("inf"),
+                      "stage_two_bound": float("inf"), "stopped_by": "max_iterations"}
+
+    # --- stage one ------------------------------------------------------------------------
+    def compatible_stage(self) -> None:
+        cfg = self.cfg
+        w1 = 0.0
+        n1 = 0
+        batch = _MIN_BATCH
+        while self.num_hypotheses < cfg.max_iterations and not self.out_of_time():
+            batch = min(batch, cfg.max_iterations - self.num_hypotheses)
+            triples = self.minimal_compatible_subsets(batch)
+            n1 += batch
+            self.stats["compatible_samples"] += batch
+            if self.evaluate(triples):
+                w1 = self._stage_one_inlier_probability()
+            bound = ransac_bound(cfg.p1, w1)
+            self.stats["stage_one_bound"] = bound
+            self.stats["stage_one_w"] = w1
+            if (cfg.stopping == "adaptive" and n1 >= max(bound, cfg.min_iterations)
+                    and self.significant()):
+                self.stats["stopped_by"] = "p1_bound"
+                break
+            if (cfg.guided_sampling and cfg.guided_start == "after_b_hypotheses"
+                    and self.preference.num_hypotheses >= cfg.preference_length
+                    and self.best_inliers is not None):
+                break
+            if cfg.stopping == "fixed" and cfg.guided_sampling and n1 >= bound:
+                break
+            batch = min(2 * batch, cfg.batch_size)
+        self.w1 = w1
+
+    def _stage_one_inlier_probability(self) -> float:
+        """w1: probability that one stage-one sample is all-inlier, taking the best model's
+        inliers as the inlier set. The larger of the analytic value for uniform edge and
+        vertex sampling and the observed share of all stage-one samples drawn so far that
+        lie inside the set (which also covers the tournament samplers)."""
+        analytic = compatible_sample_inlier_probability(self.graph, self.best_inliers, self.rng)
+        if self.cfg.stage_one_estimate == "analytic":
+            return analytic
+        observed = empirical_inlier_probability(self.sampled, self.best_mask)
+        return max(analytic, observed)
+
+    def minimal_compatible_subsets(self, count: int) -> np.ndarray:
+        """Triples (i, j, k): a compatible edge (graph edge sampling), then a vertex k in
+        N(i) ∩ N(j) (graph vertex sampling), each uniform or by tournament (see config)."""
+        cfg = self.cfg
+        s = cfg.edge_tournament if cfg.edge_sampling == "tournament" else 1
+        i, j = sample_edges(self.graph, self.rng, count * s, src=self.src, dst=self.dst,
+                            delta=self.delta, soft=cfg.compatibility == "soft")
+        if s > 1:
+            i, j = tournament(self.graph, (i, j), count, s)
+        v = cfg.vertex_tournament if cfg.vertex_sampling == "tournament" else 1
+        ii, jj = np.repeat(i, v), np.repeat(j, v)
+        k, ok = sample_common_vertex(self.graph, self.rng, ii, jj, weights=self.vertex_weights)
+        if v > 1:
+            k, ok = tournament(self.graph, (ii, jj, k), count, v, ok)
+        self.stats["empty_common_neighbourhood"] += int((~ok).sum())
+        triples = np.stack([i, j, k], axis=1)[ok]
+        self.sampled.append(triples)
+        return self._keep_non_collinear(triples)
+
+    def _keep_non_collinear(self, triples: np.ndarray) -> np.ndarray:
+        min_area = self.cfg.min_triangle_area_factor * self.tau ** 2
+        if min_area <= 0 or len(triples) == 0:
+            return triples
+        i, j, k = triples.T
+        ok = (triangle_areas(self.src, i, j, k) >= min_area) & (triangle_areas(self.dst, i, j, k) >= min_area)
+        self.stats["rejected_collinear"] += int((~ok).sum())
+        return triples[ok]
+
+    # --- hypotheses -------------------------------------------------------------------------
+    def evaluate(self, triples: np.ndarray) -> bool:
+        """Fit and score a batch of triples; update best model and preference lists.
+        Returns True when the best model improved."""
+        if len(triples) == 0:
+            return False
+        cfg = self.cfg
+        R, t = fit_triples(self.src, self.dst, *triples.T)
+        self.num_hypotheses += len(triples)
+        if cfg.prescreen and len(triples) > cfg.exact_per_batch:
+            # Two cheap filters before exact scoring: the triple's common-neighbour count
+            # (an upper bound on its restricted score), then the restricted score itself.
+            cand = np.arange(len(triples))
+            if len(triples) > 4 * cfg.exact_per_batch:
+                support = np.bitwise_count(self.graph.common(*triples.T)).sum(axis=1, dtype=np.int64)
+                cand = np.argpartition(-support, 4 * cfg.exact_per_batch - 1)[: 4 * cfg.exact_per_batch]
+            pre = score_in_common_neighbourhood(self.graph, self.src, self.dst, R[cand], t[cand],
+                                                triples[cand], self.tau, cfg.score)
+            top = cand[np.argpartition(-pre, cfg.exact_per_batch - 1)[: cfg.exact_per_batch]]
+            # Triples arrive in random order: the first ones are unselected hypotheses.
+            top = np.concatenate([np.arange(_CHANCE_PER_BATCH), top])
+            R, t = R[top], t[top]
+        res = residual_matrix(self.src, self.dst, R, t)
+        # Random hypotheses' inlier counts measure the chance consensus level.
+        self.chance_counts.extend(np.maximum((res[:_CHANCE_PER_BATCH] <= self.tau).sum(axis=1) - 3, 0))
+        self.num_exact += len(res)
+        if cfg.guided_sampling:
+            self.preference.update(res)
+        scores = score_values(res, self.tau, cfg.score).sum(axis=1)
+        self._remember_top_models(res)
+        best = int(np.argmax(scores))
+        if scores[best] <= self.best_score:
+            return False
+        self.best_score = float(scores[best])
+        self.best_T = to_matrix(R[best], t[best])
+        if cfg.max_up_mode == "local_refits" and cfg.max_up > 0:
+            T, _, _ = refit(self.src, self.dst, self.best_T, self.tau, cfg.max_up)
+            self.best_T = T
+            res_best = np.linalg.norm(self.src @ T[:3, :3].T + T[:3, 3] - self.dst, axis=1)
+            self.best_score = float(score_values(res_best, self.tau, cfg.score).sum())
+            self.best_inliers = np.flatnonzero(res_best <= self.tau)
+        else:
+            self.best_inliers = np.flatnonzero(res[best] <= self.tau)
+        self.best_mask[:] = False
+        self.best_mask[self.best_inliers] = True
+        self.improvements += 1
+        self.stats["best_updates"] += 1
+        return True
+
+    def chance_level(self) -> int:
+        """Non-randomness bound (as in PROSAC): the inlier count that a wrong hypothesis
+        reaches by chance with probability below 1 - P1 among the exactly scored ones.
+
+        Chance inliers of a wrong hypothesis are ~ Poisson(lambda); lambda is estimated
+        from the share of zero counts among hypotheses scored without pre-selection (robust
+        to the few of them that happen to be near the true motion), with a +3 pseudo-count
+        so that a handful of samples cannot make a small consensus look significant.
+        """
+        counts = np.asarray(self.chance_counts)
+        zeros = float((counts == 0).sum()) if len(counts) else 0.0
+        lam = -np.log(max(zeros, 1.0) / (len(counts) + 3.0))
+        alpha = (1.0 - self.cfg.p1) / max(self.num_exact, 1)
+        return 3 + int(poisson.isf(alpha, lam)) + 1
+
+    def runner_up(self, inliers: np.ndarray) -> int:
+        """Largest consensus among scored hypotheses that share under half of their inliers
+        with ``inliers``: a real motion stands well above every distinct alternative."""
+        best = 0
+        for count, members in self.top_models:
+            if count > best and np.isin(members, inliers).mean() < 0.5:
+                best = count
+        return best
+
+    def significant(self, inliers: np.ndarray | None = None) -> bool:
+        inliers = self.best_inliers if inliers is None else inliers
+        if inliers is None or len(inliers) < self.chance_level():
+            return False
+        return len(inliers) >= self.cfg.distinct_ratio * self.runner_up(inliers)
+
+    def out_of_time(self) -> bool:
+        if self.cfg.time_budget > 0 and time.perf_counter() - self.start > self.cfg.time_budget:
+            self.stats["stopped_by"] = "time_budget"
+            return True
+        return False
+
+    def _remember_top_models(self, res: np.ndarray) -> None:
+        """Keep the inlier sets of the 32 largest consensus sets seen (for runner_up)."""
+        counts = (res <= self.tau).sum(axis=1)
+        floor = self.top_models[-1][0] if len(self.top_models) >= 32 else -1
+        for e in np.flatnonzero(counts > floor):
+            self.top_models.append((int(counts[e]), np.flatnonzero(res[e] <= self.tau)))
+        self.top_models.sort(key=lambda m: -m[0])
+        del self.top_models[32:]
+
+    # --- stage two --------------------------------------------------------------------------
+    def guided_stage(self) -> None:
+        cfg = self.cfg
+        members, kernel, adjacency, seed_w = self._kernel()
+        refreshes = 1
+        start_improvements = self.improvements
+        n2 = hits = 0
+        batch = _MIN_BATCH
+        while self.num_hypotheses < cfg.max_iterations and not self.out_of_time():
+            batch = min(batch, cfg.max_iterations - self.num_hypotheses)
+            li, lj, lk, ok = sample_guided(self.rng, kernel, adjacency, seed_w, batch, cfg.xi)
+            triples = self._keep_non_collinear(np.stack([members[li], members[lj], members[lk]], 1)[ok])
+            self.stats["guided_samples"] += batch
+            improved = self.evaluate(triples)
+            if improved:
+                n2 = hits = 0
+                updates = self.improvements - start_improvements
+                if cfg.max_up_mode == "best_updates" and updates >= cfg.max_up:
+                    self.stats["stopped_by"] = "max_up_best_updates"
+                    break
+                if cfg.max_up_mode != "preference_refreshes" or refreshes <= cfg.max_up:
+                    members, kernel, adjacency, seed_w = self._kernel()
+                    refreshes += 1
+            else:
+                n2 += batch
+                hits += int(self.best_mask[triples].all(axis=1).sum()) if len(triples) else 0
+            self.stats["guided_hits"], self.stats["guided_n"] = hits, n2
+            w2 = max(hits / n2 if n2 else 0.0, getattr(self, "w1", 0.0))
+            bound = ransac_bound(cfg.p2, w2)
+            self.stats["stage_two_bound"] = bound
+            self.stats["stage_two_w"] = w2
+            if (cfg.stopping == "adaptive" and n2 >= max(bound, cfg.min_iterations)
+                    and self.significant()):
+                self.stats["stopped_by"] = "p2_bound"
+                break
+            batch = min(2 * batch, cfg.batch_size)
+        self.stats["kernel_refreshes"] = refreshes
+
+    def _kernel(self):
+        """Members (the M correspondences guided sampling draws from), their intersection
+        kernel K, compatibility adjacency and seed weights."""
+        cfg, n = self.cfg, self.graph.n
+        if cfg.kernel_subset == 0 or n <= cfg.kernel_subset:
+            members = np.arange(n)
+        else:
+            order = np.argsort(self.preference.quality(), kind="stable")
+            members = np.union1d(order[: cfg.kernel_subset], self.best_inliers)
+        kernel = self.preference.kernel(members)
+        adjacency = self.graph.rows(members)[:, members]
+        if cfg.guided_seed == "best_inliers":
+            seed_w = np.isin(members, self.best_inliers).astype(np.float64)
+        else:
+            seed_w = (kernel * adjacency).sum(axis=1) + cfg.xi
+        return members, kernel, adjacency, seed_w
+
+
+# --- helpers ------------------------------------------------------------------------------------
+def _check_correspondences(src, dst) -> tuple[np.ndarray, np.ndarray]:
+    try:
+        src = np.asarray(src, dtype=np.float64)
+        dst = np.asarray(dst, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"correspondences must be numeric (N, 3) arrays: {exc}") from exc
+    for name, a in (("src", src), ("dst", dst)):
+        if a.ndim != 2 or a.shape[1] != 3:
+            raise InvalidInputError(f"{name} must have shape (N, 3), got {a.shape}")
+    if len(src) != len(dst):
+        raise InvalidInputError(
+            f"src and dst must have the same number of rows (one correspondence per row), "
+            f"got {len(src)} and {len(dst)}")
+    bad = ~(np.isfinite(src).all(axis=1) & np.isfinite(dst).all(axis=1))
+    if bad.any():
+        rows = np.flatnonzero(bad)
+        raise InvalidInputError(
+            f"{len(rows)} correspondence(s) contain NaN or Inf (first rows: {rows[:5].tolist()}); "
+            "drop non-finite points before matching")
+    if len(src) < 3:
+        raise DegenerateCorrespondencesError(
+            f"need at least 3 correspondences for a rigid transform, got {len(src)}")
+    for name, a in (("source", src), ("target", dst)):
+        s = np.linalg.svd(a - a.mean(axis=0), compute_uv=False)
+        if s[0] <= 1e-12 * max(1.0, np.abs(a).max()):
+            raise DegenerateCorrespondencesError(f"all {name} points are identical")
+        if s[1] <= 1e-9 * s[0]:
+            raise DegenerateCorrespondencesError(
+                f"all {name} points are collinear: the rotation about their line is undetermined")
+    return src, dst
+
+
+def _thresholds(cfg: CoreConfig, tau: float | None, pr: float | None) -> tuple[float, float]:
+    for name, v in (("inlier_threshold", tau), ("resolution", pr)):
+        if v is not None and not (np.isfinite(v) and v > 0):
+            raise InvalidInputError(f"{name} must be a positive finite number of metres, got {v!r}")
+    if tau is None and pr is None:
+        raise InvalidInputError(
+            "give inlier_threshold (metres) or resolution (the point resolution pr in metres)")
+    if tau is None:
+        tau = cfg.inlier_threshold_factor * pr
+    delta = cfg.compatibility_threshold_factor * pr if pr is not None else cfg.compatibility_to_inlier_ratio * tau
+    return float(tau), float(delta)
+
+
+def _validity_reason(src: np.ndarray, inliers: np.ndarray, cfg: CoreConfig, tau: float) -> str:
+    if len(inliers) < cfg.min_inliers:
+        return (f"only {len(inliers)} inliers (< min_inliers={cfg.min_inliers}): no rigid "
+                "motion is supported by enough correspondences")
+    pts = src[inliers]
+    s = np.linalg.svd(pts - pts.mean(axis=0), compute_uv=False)
+    # RMS spread orthogonal to the main axis below tau: the inliers are (nearly) collinear.
+    if s[1] / np.sqrt(len(pts)) < tau:
+        return "the inliers are nearly collinear: the rotation about their line is undetermined"
+    return ""
+
+
+def _finish(result: RegistrationResult, start: float, reason: str) -> RegistrationResult:
+    result.valid = not reason
+    result.reason = reason
+    result.timings["total"] = time.perf_counter() - start
+    return result
+
+
+class _StageTimer:
+    def __init__(self, timings: dict):
+        self.timings = timings
+
+    @contextmanager
+    def __call__(self, name: str):
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0

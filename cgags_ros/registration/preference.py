@@ -1,0 +1,48 @@
+"""Preference lists and the intersection kernel (Multi-GS / AGS style).
+
+Each correspondence keeps the b hypotheses under which its residual is smallest (its
+preference list T_i, "top-b residual ranks"). Two inliers of the same rigid motion prefer
+the same good hypotheses, so the kernel K(i, j) = |T_i ∩ T_j| / b is high between inliers
+and low elsewhere; guided sampling draws partners in proportion to it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import sparse
+
+
+class PreferenceLists:
+    def __init__(self, n: int, b: int):
+        self.b = b
+        self.residuals = np.full((n, b), np.inf, dtype=np.float32)
+        self.ids = np.full((n, b), -1, dtype=np.int64)
+        self.num_hypotheses = 0
+
+    def update(self, residuals: np.ndarray) -> None:
+        """Merge the residual rows (E, N) of E new hypotheses (ids assigned in order)."""
+        e = len(residuals)
+        if e == 0:
+            return
+        new_ids = np.arange(self.num_hypotheses, self.num_hypotheses + e)
+        self.num_hypotheses += e
+        res = np.concatenate([self.residuals, residuals.T.astype(np.float32)], axis=1)
+        ids = np.concatenate([self.ids, np.broadcast_to(new_ids, (res.shape[0], e))], axis=1)
+        keep = np.argpartition(res, self.b - 1, axis=1)[:, : self.b]
+        self.residuals = np.take_along_axis(res, keep, axis=1)
+        self.ids = np.take_along_axis(ids, keep, axis=1)
+
+    def quality(self) -> np.ndarray:
+        """Median residual over each correspondence's list (inf until the list is full)."""
+        return np.median(self.residuals, axis=1)
+
+    def kernel(self, members: np.ndarray) -> np.ndarray:
+        """Dense intersection kernel K (M, M) float32 among ``members``; diagonal zeroed."""
+        ids = self.ids[members]
+        valid = ids >= 0
+        indptr = np.concatenate([[0], np.cumsum(valid.sum(axis=1))])
+        S = sparse.csr_matrix((np.ones(int(valid.sum()), dtype=np.float32), ids[valid], indptr),
+                              shape=(len(members), max(self.num_hypotheses, 1)))
+        K = (S @ S.T).toarray().astype(np.float32) / self.b
+        np.fill_diagonal(K, 0.0)
+        return K

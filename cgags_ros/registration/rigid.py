@@ -1,0 +1,50 @@
+"""Closed-form rigid transforms (Kabsch / Arun / Horn) for single sets and batches."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def kabsch_batch(P: np.ndarray, Q: np.ndarray,
+                 W: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(Weighted) least-squares rotations and translations with ``Q ≈ R @ P + t`` per item.
+
+    Args:
+        P, Q: (B, K, 3) corresponding point sets (K >= 3).
+        W: optional (B, K) non-negative weights.
+    Returns:
+        R (B, 3, 3) proper rotations (det +1), t (B, 3).
+    """
+    if W is None:
+        W = np.ones(P.shape[:2])
+    W = W / W.sum(axis=1, keepdims=True)
+    cp = np.einsum("bk,bki->bi", W, P)[:, None, :]
+    cq = np.einsum("bk,bki->bi", W, Q)[:, None, :]
+    H = np.einsum("bk,bki,bkj->bij", W, P - cp, Q - cq)
+    U, _, Vt = np.linalg.svd(H)
+    # Reflection fix: flip the last singular vector where det(V U^T) < 0.
+    d = np.sign(np.linalg.det(np.einsum("bji,bkj->bik", Vt, U)))
+    d[d == 0] = 1.0
+    Vt = Vt.copy()
+    Vt[:, 2, :] *= d[:, None]
+    R = np.einsum("bji,bkj->bik", Vt, U)
+    t = cq[:, 0, :] - np.einsum("bij,bj->bi", R, cp[:, 0, :])
+    return R, t
+
+
+def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """4x4 (weighted) least-squares rigid transform mapping ``src`` (K, 3) onto ``dst``."""
+    R, t = kabsch_batch(src[None], dst[None], None if weights is None else weights[None])
+    return to_matrix(R[0], t[0])
+
+
+def to_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def residuals(T: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Euclidean residuals ``||dst_i - (R src_i + t)||`` (same units as the points)."""
+    return np.linalg.norm(src @ T[:3, :3].T + T[:3, 3] - dst, axis=1)

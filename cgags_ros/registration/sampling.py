@@ -1,0 +1,122 @@
+"""Minimal compatible subsets: graph edge sampling, graph vertex sampling, guided sampling.
+
+A minimal subset is a triple (i, j, k) of correspondences: a compatible edge (i, j) and a
+vertex k compatible with both (k in N(i) ∩ N(j)). Sampling only triangles of the
+compatibility graph discards most outlier-contaminated triples before any model is fitted.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .compatibility import CompatibilityGraph, length_consistency
+
+
+def weighted_choice_rows(weights: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """One index per row of ``weights`` (B, M), with probability proportional to the row.
+
+    Returns the indices and a mask of rows whose total weight was positive.
+    """
+    cum = np.cumsum(weights, axis=1, dtype=np.float64)
+    total = cum[:, -1]
+    ok = total > 0
+    u = rng.random(len(weights)) * total
+    idx = np.argmax(cum > u[:, None], axis=1)
+    return idx, ok
+
+
+def _uniform_member(rows_packed: np.ndarray, n: int, rng: np.random.Generator,
+                    weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Exact draw of one set bit per packed row (optionally weighted per column)."""
+    rows = np.unpackbits(rows_packed, axis=1, count=n, bitorder="little")
+    w = rows.astype(np.float64) if weights is None else rows * weights[None, :]
+    return weighted_choice_rows(w, rng)
+
+
+def sample_edges(graph: CompatibilityGraph, rng: np.random.Generator, count: int, *,
+                 src: np.ndarray, dst: np.ndarray, delta: float, soft: bool,
+                 tries: int = 24) -> tuple[np.ndarray, np.ndarray]:
+    """Draw ``count`` edges (i, j) uniformly from E (graph edge sampling).
+
+    Uniform over edges equals: i with probability deg(i) / 2|E|, then j uniform in N(i).
+    j is found by rejection (cheap when the graph is dense), with an exact fallback for the
+    rows where all tries missed. With ``soft`` compatibility an edge is kept with
+    probability 1 - (d_ij / delta)^2, so nearly-incompatible edges are drawn less often.
+    """
+    p = graph.degree / graph.degree.sum()
+    i = rng.choice(graph.n, size=count, p=p)
+    cand = rng.integers(0, graph.n, size=(count, tries))
+    hit = graph.has_edge(np.repeat(i[:, None], tries, 1), cand)
+    if soft:
+        d = length_consistency(src, dst, i[:, None], cand)
+        hit &= rng.random(d.shape) < 1.0 - (d / delta) ** 2
+    found = hit.any(axis=1)
+    j = cand[np.arange(count), np.argmax(hit, axis=1)]
+    miss = np.flatnonzero(~found)
+    if len(miss):
+        j[miss], _ = _uniform_member(graph.packed[i[miss]], graph.n, rng)
+    return i, j
+
+
+def sample_common_vertex(graph: CompatibilityGraph, rng: np.random.Generator, i: np.ndarray,
+                         j: np.ndarray, *, weights: np.ndarray | None = None,
+                         tries: int = 48) -> tuple[np.ndarray, np.ndarray]:
+    """Draw k from N(i) ∩ N(j) (graph vertex sampling), uniformly or by ``weights``.
+
+    Returns k and a mask of pairs with a non-empty common neighbourhood (others must be
+    resampled by the caller).
+    """
+    count = len(i)
+    cand = rng.integers(0, graph.n, size=(count, tries))
+    hit = graph.has_edge(np.repeat(i[:, None], tries, 1), cand)
+    hit &= graph.has_edge(np.repeat(j[:, None], tries, 1), cand)
+    if weights is not None:
+        hit &= rng.random(cand.shape) < weights[cand] / weights.max()
+    found = hit.any(axis=1)
+    k = cand[np.arange(count), np.argmax(hit, axis=1)]
+    ok = found.copy()
+    miss = np.flatnonzero(~found)
+    if len(miss):
+        k[miss], ok[miss] = _uniform_member(graph.common(i[miss], j[miss]), graph.n, rng, weights)
+    return k, ok
+
+
+def sample_guided(rng: np.random.Generator, kernel: np.ndarray, adjacency: np.ndarray,
+                  seed_weights: np.ndarray, count: int, xi: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Preference-guided triples on a subset of M correspondences (local indices).
+
+    Seed i with probability proportional to ``seed_weights``; then j in N(i) with
+    probability proportional to K(i, j) + xi; then k in N(i) ∩ N(j) proportional to
+    K(i, k) K(j, k) + xi. ``adjacency`` (M, M) bool has no self loops, so i, j, k differ.
+    """
+    m = len(seed_weights)
+    i = rng.choice(m, size=count, p=seed_weights / seed_weights.sum())
+    wj = (kernel[i] + xi) * adjacency[i]
+    j, ok_j = weighted_choice_rows(wj, rng)
+    wk = (kernel[i] * kernel[j] + xi) * (adjacency[i] & adjacency[j])
+    k, ok_k = weighted_choice_rows(wk, rng)
+    return i, j, k, ok_j & ok_k
+
+
+def triangle_areas(points: np.ndarray, i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """Areas of the triangles (p_i, p_j, p_k)."""
+    return 0.5 * np.linalg.norm(np.cross(points[j] - points[i], points[k] - points[i]), axis=1)
+
+
+def tournament(graph: CompatibilityGraph, members: tuple[np.ndarray, ...], count: int,
+               size: int, ok: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+    """Keep, of each group of ``size`` consecutive candidates, the one whose members have the
+    most common neighbours (second/third-order compatibility: inliers share the other
+    inliers as neighbours, outliers only chance ones).
+
+    ``members`` are index arrays of length count * size (an edge (i, j) or a triple
+    (i, j, k)); ``ok`` marks valid candidates. Returns the winners' arrays, and their ``ok``
+    mask when ``ok`` was given.
+    """
+    support = np.bitwise_count(graph.common(*members)).sum(axis=1, dtype=np.int64)
+    if ok is not None:
+        support = np.where(ok, support, -1)
+    pick = np.argmax(support.reshape(count, size), axis=1) + np.arange(count) * size
+    winners = tuple(m[pick] for m in members)
+    return winners if ok is None else (winners[-1], ok[pick])

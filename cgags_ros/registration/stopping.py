@@ -1,0 +1,55 @@
+"""Adaptive stopping: the RANSAC bound, per sampling stage."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .compatibility import CompatibilityGraph
+
+
+def ransac_bound(confidence: float, w: float) -> float:
+    """Samples needed to draw at least one all-inlier sample with probability ``confidence``
+    when a single sample is all-inlier with probability ``w``: log(1 - P) / log(1 - w)."""
+    if w <= 0.0:
+        return math.inf
+    if w >= 1.0:
+        return 1.0
+    return math.log(1.0 - confidence) / math.log1p(-w)
+
+
+def compatible_sample_inlier_probability(graph: CompatibilityGraph, inliers: np.ndarray,
+                                         rng: np.random.Generator, pairs: int = 64) -> float:
+    """Probability that one compatible-stage sample (edge uniform over E, then a uniform
+    common neighbour) is all-inlier, taking ``inliers`` as the inlier set.
+
+    P(edge inside I) = |E(I)| / |E|; P(k in I | edge inside I) is averaged over up to
+    ``pairs`` random inlier edges as |N(i) ∩ N(j) ∩ I| / |N(i) ∩ N(j)|.
+    """
+    n_in = len(inliers)
+    if n_in < 3 or graph.num_edges == 0:
+        return 0.0
+    rows = graph.rows(inliers)[:, inliers]
+    e_in = int(rows.sum() // 2)
+    if e_in == 0:
+        return 0.0
+    a, b = np.nonzero(np.triu(rows))
+    pick = rng.choice(len(a), size=min(pairs, len(a)), replace=False)
+    i, j = inliers[a[pick]], inliers[b[pick]]
+    common = graph.common(i, j)
+    total = np.bitwise_count(common).sum(axis=1)
+    mask = np.zeros(graph.n, dtype=bool)
+    mask[inliers] = True
+    inside = (np.unpackbits(common, axis=1, count=graph.n, bitorder="little").view(bool) & mask).sum(axis=1)
+    ratio = np.where(total > 0, inside / np.maximum(total, 1), 0.0)
+    return float(e_in / graph.num_edges * ratio.mean())
+
+
+def empirical_inlier_probability(samples: list[np.ndarray], inlier_mask: np.ndarray) -> float:
+    """Share of the drawn triples (list of (B, 3) arrays) whose members are all inliers."""
+    drawn = sum(len(s) for s in samples)
+    if drawn == 0:
+        return 0.0
+    hits = sum(int(inlier_mask[s].all(axis=1).sum()) for s in samples if len(s))
+    return hits / drawn

@@ -1,0 +1,15 @@
+"""Shared fixtures. Real data comes from ../shared/data (read-only, never copied here)."""
+
+from pathlib import Path
+
+import pytest
+
+from cgags_ros.datasets.synthetic import shared_data_dir
+
+
+@pytest.fixture(scope="session")
+def data_dir() -> Path:
+    path = shared_data_dir()
+    if not (path / "README.md").exists():
+        pytest.fail(f"shared test data not found at {path}; set CGAGS_DATA_DIR")
+    return path

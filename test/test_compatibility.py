@@ -1,0 +1,63 @@
+import numpy as np
+from scipy.spatial.distance import cdist
+
+from cgags_ros.registration.compatibility import build_compatibility_graph, length_consistency
+
+
+def _problem(n=300, seed=0):
+    rng = np.random.default_rng(seed)
+    src = rng.uniform(-1, 1, (n, 3))
+    dst = src.copy()
+    out = rng.random(n) < 0.7
+    dst[out] = rng.uniform(-1, 1, (out.sum(), 3))
+    return src, dst, ~out
+
+
+def test_graph_matches_brute_force_definition():
+    src, dst, _ = _problem()
+    delta = 0.1
+    g = build_compatibility_graph(src, dst, delta)
+    expected = np.abs(cdist(src, src) - cdist(dst, dst)) < delta
+    np.fill_diagonal(expected, False)
+    dense = g.rows(np.arange(g.n))
+    # float32 arithmetic may flip pairs lying within 1e-5 of the threshold only
+    d = np.abs(cdist(src, src) - cdist(dst, dst))
+    differ = dense != expected
+    assert np.all(np.abs(d[differ] - delta) < 1e-5)
+    assert np.array_equal(dense, dense.T)
+    assert not dense.diagonal().any()
+    assert np.array_equal(g.degree, dense.sum(axis=1))
+    assert g.num_edges == dense.sum() // 2
+
+
+def test_inliers_form_a_clique():
+    src, dst, inl = _problem(seed=3)
+    g = build_compatibility_graph(src, dst, 1e-6)
+    idx = np.flatnonzero(inl)
+    assert g.count_edges_within(idx) == len(idx) * (len(idx) - 1) // 2
+
+
+def test_min_pair_distance_drops_short_edges():
+    src, dst, _ = _problem(seed=4)
+    g = build_compatibility_graph(src, dst, 0.1, min_pair_distance=0.5)
+    dense = g.rows(np.arange(g.n))
+    assert np.all(cdist(src, src)[dense] >= 0.5 - 1e-6)
+
+
+def test_edge_queries_and_common_neighbourhood():
+    src, dst, _ = _problem(n=200, seed=5)
+    g = build_compatibility_graph(src, dst, 0.2)
+    dense = g.rows(np.arange(g.n))
+    rng = np.random.default_rng(0)
+    i, j = rng.integers(0, 200, 500), rng.integers(0, 200, 500)
+    assert np.array_equal(g.has_edge(i, j), dense[i, j])
+    common = np.unpackbits(g.common(i[:10], j[:10]), axis=1, count=200, bitorder="little").astype(bool)
+    assert np.array_equal(common, dense[i[:10]] & dense[j[:10]])
+    d = length_consistency(src, dst, i, j)
+    assert np.allclose(d, np.abs(np.linalg.norm(src[i] - src[j], axis=1) - np.linalg.norm(dst[i] - dst[j], axis=1)))
+
+
+def test_memory_is_bit_packed():
+    src, dst, _ = _problem(n=1000, seed=6)
+    g = build_compatibility_graph(src, dst, 0.1)
+    assert g.packed.nbytes == 1000 * 125

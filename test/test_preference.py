@@ -1,0 +1,24 @@
+import numpy as np
+
+from cgags_ros.registration.preference import PreferenceLists
+
+
+def test_lists_keep_the_b_smallest_residuals():
+    rng = np.random.default_rng(0)
+    pref = PreferenceLists(n=50, b=5)
+    all_res = rng.random((40, 50)).astype(np.float32)
+    for chunk in np.array_split(all_res, 7):
+        pref.update(chunk)
+    expected = np.sort(np.argsort(all_res, axis=0)[:5].T, axis=1)
+    assert np.array_equal(np.sort(pref.ids, axis=1), expected)
+    assert np.allclose(np.sort(pref.residuals, axis=1), np.sort(all_res, axis=0)[:5].T)
+
+
+def test_intersection_kernel():
+    pref = PreferenceLists(n=3, b=4)
+    pref.ids = np.array([[0, 1, 2, 3], [2, 3, 4, 5], [6, 7, 8, 9]])
+    pref.residuals = np.zeros((3, 4), dtype=np.float32)
+    pref.num_hypotheses = 10
+    K = pref.kernel(np.arange(3))
+    assert np.allclose(K, [[0, 0.5, 0], [0.5, 0, 0], [0, 0, 0]])
+    assert np.allclose(pref.kernel(np.array([0, 1])), [[0, 0.5], [0.5, 0]])

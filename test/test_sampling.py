@@ -1,0 +1,104 @@
+import numpy as np
+
+from cgags_ros.registration.compatibility import CompatibilityGraph
+from cgags_ros.registration.sampling import (sample_common_vertex, sample_edges, sample_guided,
+                                             tournament, weighted_choice_rows)
+
+
+def _graph(dense: np.ndarray) -> CompatibilityGraph:
+    dense = dense | dense.T
+    np.fill_diagonal(dense, False)
+    return CompatibilityGraph(np.packbits(dense, axis=1, bitorder="little"), len(dense))
+
+
+def _random_graph(n=60, p=0.2, seed=0):
+    rng = np.random.default_rng(seed)
+    return _graph(np.triu(rng.random((n, n)) < p, 1))
+
+
+def test_edges_are_edges_and_uniform_over_E():
+    g = _random_graph()
+    dense = g.rows(np.arange(g.n))
+    rng = np.random.default_rng(1)
+    pts = np.zeros((g.n, 3))
+    i, j = sample_edges(g, rng, 200000, src=pts, dst=pts, delta=1.0, soft=False)
+    assert dense[i, j].all()
+    # undirected edge frequencies: uniform over E within sampling noise
+    key = np.minimum(i, j) * g.n + np.maximum(i, j)
+    counts = np.bincount(key, minlength=g.n * g.n)[np.flatnonzero(np.triu(dense).ravel())]
+    expected = 200000 / g.num_edges
+    assert abs(counts.mean() - expected) < 1e-9 + 0.01 * expected
+    assert counts.std() < 4 * np.sqrt(expected)  # binomial spread, no systematic bias
+    assert counts.min() > 0
+
+
+def test_sparse_rows_use_the_exact_fallback():
+    dense = np.zeros((500, 500), dtype=bool)
+    dense[0, 1] = dense[1, 2] = dense[0, 2] = True  # one triangle in a large empty graph
+    g = _graph(dense)
+    rng = np.random.default_rng(2)
+    pts = np.zeros((500, 3))
+    i, j = sample_edges(g, rng, 100, src=pts, dst=pts, delta=1.0, soft=False)
+    assert set(np.unique(np.concatenate([i, j]))) <= {0, 1, 2}
+    k, ok = sample_common_vertex(g, rng, i, j)
+    assert ok.all()
+    assert np.all((k != i) & (k != j) & np.isin(k, [0, 1, 2]))
+
+
+def test_common_vertex_reports_empty_neighbourhoods():
+    dense = np.zeros((50, 50), dtype=bool)
+    dense[0, 1] = True
+    g = _graph(dense)
+    k, ok = sample_common_vertex(g, np.random.default_rng(0), np.array([0]), np.array([1]))
+    assert not ok[0]
+
+
+def test_common_vertex_is_in_both_neighbourhoods():
+    g = _random_graph(n=200, p=0.3, seed=3)
+    dense = g.rows(np.arange(g.n))
+    rng = np.random.default_rng(4)
+    pts = np.zeros((g.n, 3))
+    i, j = sample_edges(g, rng, 2000, src=pts, dst=pts, delta=1.0, soft=False)
+    k, ok = sample_common_vertex(g, rng, i, j)
+    assert ok.mean() > 0.9
+    assert dense[i[ok], k[ok]].all() and dense[j[ok], k[ok]].all()
+
+
+def test_tournament_keeps_the_best_supported_candidate():
+    g = _random_graph(n=100, p=0.3, seed=5)
+    rng = np.random.default_rng(6)
+    i = rng.integers(0, 100, 40)
+    j = rng.integers(0, 100, 40)
+    wi, wj = tournament(g, (i, j), 10, 4)
+    support = np.bitwise_count(g.common(i, j)).sum(axis=1).reshape(10, 4)
+    won = np.bitwise_count(g.common(wi, wj)).sum(axis=1)
+    assert np.array_equal(won, support.max(axis=1))
+
+
+def test_weighted_choice_follows_weights():
+    rng = np.random.default_rng(7)
+    w = np.tile(np.array([[0.0, 1.0, 3.0, 0.0]]), (40000, 1))
+    idx, ok = weighted_choice_rows(w, rng)
+    assert ok.all()
+    freq = np.bincount(idx, minlength=4) / len(idx)
+    assert freq[0] == 0 and freq[3] == 0
+    assert abs(freq[2] - 0.75) < 0.01
+    _, ok = weighted_choice_rows(np.zeros((3, 4)), rng)
+    assert not ok.any()
+
+
+def test_guided_sampling_prefers_high_kernel_partners():
+    m = 30
+    adjacency = np.ones((m, m), dtype=bool)
+    np.fill_diagonal(adjacency, False)
+    kernel = np.zeros((m, m), dtype=np.float32)
+    group = np.arange(5)
+    kernel[np.ix_(group, group)] = 0.8
+    np.fill_diagonal(kernel, 0)
+    seeds = np.zeros(m)
+    seeds[group] = 1
+    i, j, k, ok = sample_guided(np.random.default_rng(8), kernel, adjacency, seeds, 5000, 1e-6)
+    assert ok.all()
+    assert np.isin(i, group).all()
+    assert np.isin(j, group).mean() > 0.99 and np.isin(k, group).mean() > 0.99
+    assert np.all((i != j) & (j != k) & (i != k))
