@@ -32,6 +32,24 @@ class CompatibilityGraph:
         self.degree = np.bitwise_count(packed).sum(axis=1, dtype=np.int64)
         self.num_edges = int(self.degree.sum() // 2)
 
+    _MAX_LIST_ENTRIES = 40_000_000  # int32 neighbour lists up to 160 MB
+
+    def neighbour_lists(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """CSR neighbour lists (indptr, indices), built once; None if they would exceed
+        the memory cap (then samplers fall back to rejection on the bit matrix)."""
+        if not hasattr(self, "_csr"):
+            if 2 * self.num_edges > self._MAX_LIST_ENTRIES:
+                self._csr = None
+            else:
+                indptr = np.concatenate([[0], np.cumsum(self.degree)])
+                indices = np.empty(indptr[-1], dtype=np.int32)
+                block = max(1, (1 << 22) // max(self.n, 1))
+                for start in range(0, self.n, block):
+                    _, cols = np.nonzero(self.rows(np.arange(start, min(self.n, start + block))))
+                    indices[indptr[start]:indptr[min(self.n, start + block)]] = cols
+                self._csr = (indptr, indices)
+        return self._csr
+
     @property
     def density(self) -> float:
         return 2.0 * self.num_edges / max(self.n * (self.n - 1), 1)

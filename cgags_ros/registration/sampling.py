@@ -29,8 +29,17 @@ def _uniform_member(rows_packed: np.ndarray, n: int, rng: np.random.Generator,
                     weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Exact draw of one set bit per packed row (optionally weighted per column)."""
     rows = np.unpackbits(rows_packed, axis=1, count=n, bitorder="little")
-    w = rows.astype(np.float64) if weights is None else rows * weights[None, :]
-    return weighted_choice_rows(w, rng)
+    if weights is not None:
+        return weighted_choice_rows(rows * weights[None, :], rng)
+    # Uniform: pick a random position among each row's set bits (no cumulative sums).
+    r, c = np.nonzero(rows)
+    counts = np.bincount(r, minlength=len(rows))
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    ok = counts > 0
+    pick = starts + np.floor(rng.random(len(rows)) * counts).astype(np.int64)
+    idx = np.zeros(len(rows), dtype=np.int64)
+    idx[ok] = c[pick[ok]]
+    return idx, ok
 
 
 def sample_edges(graph: CompatibilityGraph, rng: np.random.Generator, count: int, *,
@@ -43,13 +52,35 @@ def sample_edges(graph: CompatibilityGraph, rng: np.random.Generator, count: int
     rows where all tries missed. With ``soft`` compatibility an edge is kept with
     probability 1 - (d_ij / delta)^2, so nearly-incompatible edges are drawn less often.
     """
-    p = graph.degree / graph.degree.sum()
-    i = rng.choice(graph.n, size=count, p=p)
+    csr = graph.neighbour_lists()
+    i = np.empty(count, dtype=np.int64)
+    j = np.empty(count, dtype=np.int64)
+    filled = 0
+    while filled < count:  # more than one round only with soft compatibility
+        need = count - filled
+        if csr is not None:  # uniform over directed adjacency entries = uniform over E
+            e = rng.integers(0, len(csr[1]), need)
+            ii = np.searchsorted(csr[0], e, side="right") - 1
+            jj = csr[1][e].astype(np.int64)
+        else:
+            ii, jj = _edges_by_rejection(graph, rng, need, tries)
+        if soft:
+            d = length_consistency(src, dst, ii, jj)
+            keep = rng.random(need) < 1.0 - (d / delta) ** 2
+            ii, jj = ii[keep], jj[keep]
+        i[filled:filled + len(ii)] = ii
+        j[filled:filled + len(jj)] = jj
+        filled += len(ii)
+    return i, j
+
+
+def _edges_by_rejection(graph: CompatibilityGraph, rng: np.random.Generator, count: int,
+                        tries: int) -> tuple[np.ndarray, np.ndarray]:
+    """i with probability deg(i) / 2|E|, then j uniform in N(i) by rejection on the bit
+    matrix, with an exact fallback for rows where all tries missed."""
+    i = rng.choice(graph.n, size=count, p=graph.degree / graph.degree.sum())
     cand = rng.integers(0, graph.n, size=(count, tries))
     hit = graph.has_edge(np.repeat(i[:, None], tries, 1), cand)
-    if soft:
-        d = length_consistency(src, dst, i[:, None], cand)
-        hit &= rng.random(d.shape) < 1.0 - (d / delta) ** 2
     found = hit.any(axis=1)
     j = cand[np.arange(count), np.argmax(hit, axis=1)]
     miss = np.flatnonzero(~found)
@@ -67,9 +98,15 @@ def sample_common_vertex(graph: CompatibilityGraph, rng: np.random.Generator, i:
     resampled by the caller).
     """
     count = len(i)
-    cand = rng.integers(0, graph.n, size=(count, tries))
-    hit = graph.has_edge(np.repeat(i[:, None], tries, 1), cand)
-    hit &= graph.has_edge(np.repeat(j[:, None], tries, 1), cand)
+    csr = graph.neighbour_lists()
+    if csr is not None:  # candidates from N(i): only the edge to j remains to be tested
+        offset = np.floor(rng.random((count, tries)) * graph.degree[i][:, None]).astype(np.int64)
+        cand = csr[1][csr[0][i][:, None] + offset].astype(np.int64)
+        hit = graph.has_edge(np.repeat(j[:, None], tries, 1), cand)
+    else:
+        cand = rng.integers(0, graph.n, size=(count, tries))
+        hit = graph.has_edge(np.repeat(i[:, None], tries, 1), cand)
+        hit &= graph.has_edge(np.repeat(j[:, None], tries, 1), cand)
     if weights is not None:
         hit &= rng.random(cand.shape) < weights[cand] / weights.max()
     found = hit.any(axis=1)
