@@ -157,3 +157,12 @@ def test_twenty_thousand_correspondences_stay_under_1gb(bunny):
     tracemalloc.stop()
     assert peak < 1 << 30, f"peak {peak / 2**20:.0f} MiB"
     _check_recovery(prob, res)
+
+
+def test_nearly_collinear_correspondences_end_quickly_and_invalid():
+    rng = np.random.default_rng(3)
+    line = np.outer(rng.uniform(0, 1, 2000), [1.0, 0.5, 0.2]) + rng.normal(0, 1e-4, (2000, 3))
+    res = register_correspondences(line, line + [0.1, 0, 0], inlier_threshold=0.01, seed=0)
+    assert not res.valid
+    assert "collinear" in res.reason
+    assert res.timings["total"] < 30

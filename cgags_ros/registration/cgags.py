@@ -27,6 +27,7 @@ from .sampling import (sample_common_vertex, sample_edges, sample_guided, tourna
 from .stopping import compatible_sample_inlier_probability, empirical_inlier_probability, ransac_bound
 
 _MIN_BATCH = 32
+_GIVE_UP_DRAWS = 4096  # draws without a single usable (non-collinear) triangle: give up
 _CHANCE_PER_BATCH = 2  # hypotheses per batch scored exactly whatever their pre-score
 
 
@@ -82,6 +83,10 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
     result.num_hypotheses = search.num_hypotheses
     result.stats.update(search.stats)
     if search.best_inliers is None:
+        if search.stats["rejected_collinear"]:
+            return _finish(result, start, reason=(
+                "every compatible triangle of correspondences is nearly collinear: the scene "
+                "(or its matched keypoints) is a line, and the rotation about it is undetermined"))
         return _finish(result, start, reason=(
             "no compatible triangle of correspondences was found: the compatibility graph "
             "has edges but no 3-cliques (too few inliers or thresholds too small)"))
@@ -111,7 +116,8 @@ class _Search:
                  delta: float, rng: np.random.Generator):
         self.src, self.dst, self.graph, self.cfg = src, dst, graph, cfg
         self.tau, self.delta, self.rng = tau, delta, rng
-        self.num_hypotheses = 0
+        self.num_hypotheses = 0  # fitted and scored
+        self.num_drawn = 0  # sampled, including triples rejected before fitting (the cap)
         self.best_score = -np.inf
         self.best_T = np.eye(4)
         self.best_inliers: np.ndarray | None = None
@@ -135,9 +141,13 @@ class _Search:
         w1 = 0.0
         n1 = 0
         batch = _MIN_BATCH
-        while self.num_hypotheses < cfg.max_iterations and not self.out_of_time():
-            batch = min(batch, cfg.max_iterations - self.num_hypotheses)
+        while self.num_drawn < cfg.max_iterations and not self.out_of_time():
+            batch = min(batch, cfg.max_iterations - self.num_drawn)
+            self.num_drawn += batch
             triples = self.minimal_compatible_subsets(batch)
+            if self.num_hypotheses == 0 and self.num_drawn >= _GIVE_UP_DRAWS:
+                self.stats["stopped_by"] = "no_usable_triangle"
+                break
             n1 += batch
             self.stats["compatible_samples"] += batch
             if self.evaluate(triples):
@@ -299,8 +309,9 @@ class _Search:
         start_improvements = self.improvements
         n2 = hits = 0
         batch = _MIN_BATCH
-        while self.num_hypotheses < cfg.max_iterations and not self.out_of_time():
-            batch = min(batch, cfg.max_iterations - self.num_hypotheses)
+        while self.num_drawn < cfg.max_iterations and not self.out_of_time():
+            batch = min(batch, cfg.max_iterations - self.num_drawn)
+            self.num_drawn += batch
             li, lj, lk, ok = sample_guided(self.rng, kernel, adjacency, seed_w, batch, cfg.xi)
             triples = self._keep_non_collinear(np.stack([members[li], members[lj], members[lk]], 1)[ok])
             self.stats["guided_samples"] += batch

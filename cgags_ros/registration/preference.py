@@ -12,6 +12,9 @@ import numpy as np
 from scipy import sparse
 
 
+_DENSE_LIMIT = 2_000_000  # members x distinct hypotheses for the dense kernel product
+
+
 class PreferenceLists:
     def __init__(self, n: int, b: int):
         self.b = b
@@ -40,9 +43,17 @@ class PreferenceLists:
         """Dense intersection kernel K (M, M) float32 among ``members``; diagonal zeroed."""
         ids = self.ids[members]
         valid = ids >= 0
-        indptr = np.concatenate([[0], np.cumsum(valid.sum(axis=1))])
-        S = sparse.csr_matrix((np.ones(int(valid.sum()), dtype=np.float32), ids[valid], indptr),
-                              shape=(len(members), max(self.num_hypotheses, 1)))
-        K = (S @ S.T).toarray().astype(np.float32) / self.b
+        # Only hypotheses present in some list matter: renumber them 0..H'-1.
+        used, cols = np.unique(ids[valid], return_inverse=True)
+        if len(used) * len(members) <= _DENSE_LIMIT:  # few distinct hypotheses: BLAS
+            S = np.zeros((len(members), max(len(used), 1)), dtype=np.float32)
+            S[np.nonzero(valid)[0], cols] = 1.0
+            K = S @ S.T
+        else:
+            indptr = np.concatenate([[0], np.cumsum(valid.sum(axis=1))])
+            S = sparse.csr_matrix((np.ones(len(cols), dtype=np.float32), cols, indptr),
+                                  shape=(len(members), len(used)))
+            K = (S @ S.T).toarray().astype(np.float32)
+        K /= self.b
         np.fill_diagonal(K, 0.0)
         return K
