@@ -19,3 +19,19 @@ class DegenerateCorrespondencesError(CgagsError):
 
 class InvalidConfigError(CgagsError, ValueError):
     """A configuration value is out of range or of the wrong type."""
+
+
+class MalformedCloudError(InvalidInputError):
+    """A PointCloud2 message cannot be decoded (missing x/y/z, inconsistent sizes, unsupported
+    datatypes). The message names the field or size that is wrong."""
+
+
+class BagError(CgagsError):
+    """A rosbag2 file or directory cannot be read (missing, not a bag, unreadable storage)."""
+
+
+class BagTopicError(BagError, KeyError):
+    """A requested topic is not in the bag; the message lists the topics that are."""
+
+    def __str__(self) -> str:  # KeyError would otherwise quote the message
+        return str(self.args[0]) if self.args else ""

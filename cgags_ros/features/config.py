@@ -14,6 +14,11 @@ class FrontEndConfig:
     normal_radius_factor: float = option(
         2.0, "Normal estimation radius in voxel sizes.", low=0.1, high=100.0)
     normal_max_nn: int = option(30, "Maximum neighbours for normal estimation.", low=3, high=1000)
+    normal_orientation: str = option(
+        "origin", "Normal sign (FPFH depends on it): 'centroid' points normals towards the "
+        "cloud's centroid (frame-independent), 'origin' towards the frame origin (the sensor "
+        "for raw scans in the sensor frame), 'none' keeps PCA's arbitrary, frame-dependent sign.",
+        choices=("centroid", "origin", "none"))
     fpfh_radius_factor: float = option(
         5.0, "FPFH feature radius in voxel sizes.", low=0.5, high=100.0)
     fpfh_max_nn: int = option(100, "Maximum neighbours for FPFH.", low=5, high=5000)
@@ -25,6 +30,10 @@ class FrontEndConfig:
         "0 keeps all.", low=0)
     min_points: int = option(
         10, "Fewer points than this after downsampling is rejected as an empty cloud.", low=3)
+    inlier_threshold: float = option(
+        0.0, "Inlier threshold tau in metres handed to the core; 0 derives it from the point "
+        "resolution pr (mean nearest-neighbour distance of the downsampled clouds) as "
+        "core.inlier_threshold_factor * pr.", low=0.0)
 
 
 @dataclasses.dataclass
@@ -39,3 +48,14 @@ class RefineConfig:
         0.0, "After refinement, a fitness (share of source points with a target point within "
         "the refinement distance) below this marks the result invalid. 0 disables.",
         low=0.0, high=1.0)
+    significance: float = option(
+        0.01, "Chance-inlier gate: the estimate is invalid unless its inlier count is above "
+        "what the best of the generated hypotheses would reach with probability "
+        "`significance` if every correspondence were an outlier (Poisson model of the "
+        "correspondences that fall within tau of the estimate by chance). 0 disables.",
+        low=0.0, high=1.0)
+    min_observability: float = option(
+        0.02, "Degeneracy gate: smallest / largest eigenvalue of the point-to-plane "
+        "information matrix over the overlapping points (rotation scaled by the overlap's "
+        "radius). Planes, lines, spheres and cylinders leave some motion unconstrained and "
+        "give ~0; the estimate is then invalid. 0 disables.", low=0.0, high=1.0)

@@ -1,0 +1,236 @@
+"""rosbag2 (MCAP) input and output without ROS, through ``rosbags``.
+
+A thin adapter: it turns a bag into small records in log-time order and stops there; the
+conversion to numpy is ``cgags_ros.ros.conversions`` (duck-typed, so it accepts the
+rosbags messages yielded here).
+
+Accepted paths: a rosbag2 directory (with ``metadata.yaml``) or a single ``.mcap`` file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any, Iterable, Iterator
+
+import numpy as np
+
+from ..errors import BagError, BagTopicError, InvalidInputError
+
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+
+
+@dataclasses.dataclass(frozen=True)
+class BagRecord:
+    """One message of a bag.
+
+    Attributes:
+        topic: topic name as recorded (e.g. ``/source_cloud``).
+        msgtype: ROS type name (``sensor_msgs/msg/PointCloud2``).
+        log_time_ns: time the message was recorded, integer nanoseconds.
+        stamp_ns: ``header.stamp`` in nanoseconds, or None when the message has no header
+            or could not be deserialized.
+        frame_id: ``header.frame_id`` ('' when unknown).
+        msg: the deserialized rosbags message, or None for a broken message.
+        error: '' for a good message; otherwise why it could not be deserialized.
+    """
+
+    topic: str
+    msgtype: str
+    log_time_ns: int
+    stamp_ns: int | None
+    frame_id: str
+    msg: Any
+    error: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return not self.error
+
+
+@dataclasses.dataclass(frozen=True)
+class TopicInfo:
+    name: str
+    msgtype: str
+    count: int
+
+
+def _check_path(path: str | Path) -> Path:
+    path = Path(path)
+    if not path.exists():
+        raise BagError(f"bag {path} does not exist")
+    if path.is_dir():
+        if not (path / "metadata.yaml").exists():
+            raise BagError(f"{path} is a directory without metadata.yaml, so not a rosbag2 bag; "
+                           "pass the bag directory or its .mcap file")
+    elif path.suffix not in (".mcap", ".db3"):
+        raise BagError(f"{path} is not a rosbag2 bag (expected a bag directory or a .mcap file)")
+    return path
+
+
+class BagReader:
+    """Reads a rosbag2 bag; use as a context manager.
+
+    ``messages()`` yields :class:`BagRecord` in log-time order. A message that fails to
+    deserialize is yielded as a record with ``msg=None`` and ``error`` set, and counted in
+    ``num_errors``, so one corrupt message never ends a replay.
+    """
+
+    def __init__(self, path: str | Path):
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+
+        self.path = _check_path(path)
+        self.num_errors = 0
+        try:
+            # Jazzy types back up bags (e.g. sqlite3) that carry no message definitions.
+            self._reader = AnyReader([self.path],
+                                     default_typestore=get_typestore(Stores.ROS2_JAZZY))
+        except Exception as exc:
+            raise BagError(f"cannot read bag {self.path}: {exc}") from exc
+
+    def __enter__(self) -> "BagReader":
+        self.open()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def open(self) -> None:
+        try:
+            self._reader.open()
+        except Exception as exc:  # rosbags raises several unrelated types for bad files
+            raise BagError(f"cannot read bag {self.path}: {exc}") from exc
+
+    def close(self) -> None:
+        if self._reader.stack is not None:
+            self._reader.close()
+
+    @property
+    def topics(self) -> dict[str, TopicInfo]:
+        out: dict[str, TopicInfo] = {}
+        for c in self._reader.connections:
+            prev = out.get(c.topic)
+            count = c.msgcount + (prev.count if prev else 0)
+            out[c.topic] = TopicInfo(c.topic, c.msgtype, count)
+        return out
+
+    def messages(self, topics: Iterable[str] | None = None) -> Iterator[BagRecord]:
+        """Records of the given topics (all topics when None), in log-time order.
+
+        Topic names may be given with or without the leading '/'.
+        Raises BagTopicError when a requested topic is not in the bag.
+        """
+        available = self.topics
+        connections = self._reader.connections
+        if topics is not None:
+            wanted = set()
+            for name in topics:
+                key = name if name in available else "/" + name.lstrip("/")
+                if key not in available:
+                    raise BagTopicError(
+                        f"topic {name!r} is not in {self.path}; it has: "
+                        f"{', '.join(f'{t} ({i.msgtype})' for t, i in sorted(available.items()))}")
+                wanted.add(key)
+            connections = [c for c in connections if c.topic in wanted]
+        return self._iterate(connections)  # not a generator itself: topic errors raise now
+
+    def _iterate(self, connections: list) -> Iterator[BagRecord]:
+        try:
+            for conn, log_time, raw in self._reader.messages(connections=connections):
+                yield self._record(conn, int(log_time), raw)
+        except Exception as exc:  # storage-level corruption: stop with a typed error
+            raise BagError(f"cannot read messages from {self.path}: {exc}") from exc
+
+    def _record(self, conn: Any, log_time: int, raw: Any) -> BagRecord:
+        try:
+            msg = self._reader.deserialize(raw, conn.msgtype)
+        except Exception as exc:  # noqa: BLE001 - a broken message becomes an error record
+            self.num_errors += 1
+            return BagRecord(conn.topic, conn.msgtype, log_time, None, "", None,
+                             f"cannot deserialize {conn.msgtype} ({len(raw)} bytes): "
+                             f"{type(exc).__name__}: {exc}")
+        header = getattr(msg, "header", None)
+        stamp_ns = None
+        frame_id = ""
+        if header is not None:
+            stamp_ns = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+            frame_id = str(header.frame_id)
+        return BagRecord(conn.topic, conn.msgtype, log_time, stamp_ns, frame_id, msg)
+
+
+def list_topics(path: str | Path) -> dict[str, TopicInfo]:
+    """``{topic: TopicInfo(name, msgtype, count)}`` of a bag."""
+    with BagReader(path) as reader:
+        return reader.topics
+
+
+def read_messages(path: str | Path, topics: Iterable[str] | None = None) -> Iterator[BagRecord]:
+    """Records of a bag in log-time order (see :meth:`BagReader.messages`).
+
+    Path and topic errors raise here, not at the first ``next()``; the bag is closed when
+    the iterator is exhausted or garbage-collected.
+    """
+    reader = BagReader(path)
+    reader.open()
+    try:
+        records = reader.messages(topics)
+    except BaseException:
+        reader.close()
+        raise
+
+    def _closing() -> Iterator[BagRecord]:
+        try:
+            yield from records
+        finally:
+            reader.close()
+
+    return _closing()
+
+
+def write_poses_mcap(path: str | Path, records: Iterable[tuple[int, str, np.ndarray]], *,
+                     topic: str = "/pose") -> int:
+    """Write ``geometry_msgs/msg/PoseStamped`` messages to a new rosbag2 MCAP bag directory.
+
+    Args:
+        path: bag directory to create (must not exist; rosbags never overwrites).
+        records: ``(stamp_ns, frame_id, T)`` with ``T`` a 4x4 transform whose pose is
+            written (the pose of the source frame in ``frame_id``); the stamp is used as
+            both header stamp and log time.
+        topic: output topic.
+
+    Returns the number of messages written. The bag is readable by rosbags and playable
+    with ``ros2 bag play`` (rosbag2 version 9 metadata, CDR, MCAP storage).
+    """
+    from rosbags.rosbag2 import Writer
+    from rosbags.rosbag2.enums import StoragePlugin
+    from rosbags.typesys import Stores, get_typestore
+
+    from ..ros.conversions import matrix_to_quaternion
+
+    path = Path(path)
+    if path.exists():
+        raise BagError(f"{path} exists already; rosbags writes new bags only")
+    store = get_typestore(Stores.ROS2_JAZZY)
+    PoseStamped = store.types[POSE_STAMPED]
+    Header = store.types["std_msgs/msg/Header"]
+    Time = store.types["builtin_interfaces/msg/Time"]
+    Pose = store.types["geometry_msgs/msg/Pose"]
+    Point = store.types["geometry_msgs/msg/Point"]
+    Quaternion = store.types["geometry_msgs/msg/Quaternion"]
+    count = 0
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conn = writer.add_connection(topic, POSE_STAMPED, typestore=store)
+        for stamp_ns, frame_id, T in records:
+            T = np.asarray(T, dtype=np.float64)
+            if T.shape != (4, 4) or not np.isfinite(T).all():
+                raise InvalidInputError(f"pose at {stamp_ns} ns is not a finite 4x4 transform")
+            sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+            qx, qy, qz, qw = (float(v) for v in matrix_to_quaternion(T[:3, :3]))
+            msg = PoseStamped(
+                header=Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=str(frame_id)),
+                pose=Pose(position=Point(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
+                          orientation=Quaternion(x=qx, y=qy, z=qz, w=qw)))
+            writer.write(conn, int(stamp_ns), store.serialize_cdr(msg, POSE_STAMPED))
+            count += 1
+    return count

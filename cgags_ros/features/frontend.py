@@ -1,0 +1,195 @@
+"""Point-cloud front end: clean, voxel-downsample, normals, FPFH, putative correspondences.
+
+Open3D is used here (and only in ``cgags_ros.features``), never in the registration core.
+All lengths are metres; every radius is a multiple of the voxel size ``v``. Arrays are
+numpy at every boundary; each cloud stays in its own frame (nothing is transformed here).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+from ..errors import EmptyCloudError, InvalidInputError
+from .config import FrontEndConfig
+
+
+@dataclasses.dataclass
+class CloudFeatures:
+    """One downsampled cloud and what the front end computed on it (cloud's own frame).
+
+    Attributes:
+        points: (M, 3) voxel centroids, metres.
+        normals: (M, 3) unit normals (sign arbitrary: PCA gives no orientation).
+        descriptors: (M, 33) FPFH histograms.
+        resolution: pr, the mean nearest-neighbour distance of ``points``, metres.
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    descriptors: np.ndarray
+    resolution: float
+
+
+@dataclasses.dataclass
+class Correspondences:
+    """Putative matches: ``source[i]`` (source frame) <-> ``target[i]`` (target frame).
+
+    ``source_index``/``target_index`` index the downsampled clouds; ``distance`` is the FPFH
+    descriptor distance, ascending (best first).
+    """
+
+    source_index: np.ndarray
+    target_index: np.ndarray
+    distance: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.source_index)
+
+
+def finite_points(points: np.ndarray, name: str = "cloud") -> np.ndarray:
+    """(N, 3) float64 copy of ``points`` without non-finite rows.
+
+    Raises InvalidInputError for a wrong shape or non-numeric data and EmptyCloudError
+    when no finite point is left.
+    """
+    try:
+        pts = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"{name}: points are not numeric ({exc})") from exc
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InvalidInputError(f"{name}: expected an (N, 3) array of x, y, z in metres, "
+                                f"got shape {pts.shape}")
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if len(pts) == 0:
+        raise EmptyCloudError(f"{name}: no finite points (got {len(points)} rows, all "
+                              "empty or NaN/inf); check the sensor driver or the file")
+    return pts
+
+
+def downsample(points: np.ndarray, voxel_size: float, min_points: int,
+               name: str = "cloud") -> np.ndarray:
+    """Voxel-grid centroids (metres). EmptyCloudError when fewer than ``min_points`` remain."""
+    down = np.asarray(_o3d_cloud(points).voxel_down_sample(voxel_size).points)
+    if len(down) < min_points:
+        raise EmptyCloudError(
+            f"{name}: only {len(down)} point(s) left after {voxel_size:g} m voxel downsampling "
+            f"(need frontend.min_points = {min_points}); lower the voxel size or check that "
+            "the cloud is not a single repeated point")
+    return down
+
+
+def estimate_normals(points: np.ndarray, voxel_size: float,
+                     config: FrontEndConfig) -> np.ndarray:
+    """Unit PCA normals from neighbours within ``normal_radius_factor * v``, oriented per
+    ``normal_orientation`` (PCA's own sign changes with the frame, and FPFH with it)."""
+    cloud = _o3d_cloud(points)
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(
+        radius=config.normal_radius_factor * voxel_size, max_nn=config.normal_max_nn))
+    normals = np.asarray(cloud.normals).copy()
+    if config.normal_orientation == "none":
+        return normals
+    viewpoint = points.mean(axis=0) if config.normal_orientation == "centroid" else np.zeros(3)
+    flip = np.einsum("ij,ij->i", normals, viewpoint - points) < 0
+    normals[flip] *= -1.0
+    return normals
+
+
+def compute_fpfh(points: np.ndarray, normals: np.ndarray, voxel_size: float,
+                 config: FrontEndConfig) -> np.ndarray:
+    """(M, 33) FPFH descriptors with radius ``fpfh_radius_factor * v``."""
+    cloud = _o3d_cloud(points, normals)
+    feature = o3d.pipelines.registration.compute_fpfh_feature(
+        cloud, o3d.geometry.KDTreeSearchParamHybrid(
+            radius=config.fpfh_radius_factor * voxel_size, max_nn=config.fpfh_max_nn))
+    return np.asarray(feature.data).T.copy()
+
+
+def point_resolution(points: np.ndarray) -> float:
+    """pr: mean distance from each point to its nearest other point, metres."""
+    if len(points) < 2:
+        return 0.0
+    d, _ = cKDTree(points).query(points, k=2)
+    return float(np.mean(d[:, 1]))
+
+
+def extract_features(points: np.ndarray, voxel_size: float, config: FrontEndConfig,
+                     name: str = "cloud",
+                     timings: dict[str, float] | None = None) -> CloudFeatures:
+    """finite points -> downsample -> normals -> FPFH; adds stage seconds to ``timings``."""
+    timings = {} if timings is None else timings
+    with timed(timings, "downsample"):
+        down = downsample(finite_points(points, name), voxel_size, config.min_points, name)
+    with timed(timings, "normals"):
+        normals = estimate_normals(down, voxel_size, config)
+    with timed(timings, "fpfh"):
+        descriptors = compute_fpfh(down, normals, voxel_size, config)
+    return CloudFeatures(down, normals, descriptors, point_resolution(down))
+
+
+def match_features(source: np.ndarray, target: np.ndarray,
+                   config: FrontEndConfig) -> Correspondences:
+    """Nearest neighbours in descriptor space, source -> target, best first.
+
+    Keeps only mutual nearest neighbours (``mutual_filter``), then Lowe's ratio test
+    (``ratio_test`` < 1), then at most ``max_correspondences`` by descriptor distance.
+    Descriptors that are all zero (no neighbours within the FPFH radius) never match:
+    they would all be identical and pair up at random.
+    """
+    src_ok = np.flatnonzero(_informative(source))
+    dst_ok = np.flatnonzero(_informative(target))
+    if len(src_ok) == 0 or len(dst_ok) == 0:
+        return _empty_correspondences()
+    k = 2 if config.ratio_test < 1.0 and len(dst_ok) > 1 else 1
+    dist, nn = cKDTree(target[dst_ok]).query(source[src_ok], k=k)
+    dist, nn = dist.reshape(len(src_ok), k), nn.reshape(len(src_ok), k)
+    keep = np.ones(len(src_ok), dtype=bool)
+    if config.mutual_filter:
+        _, back = cKDTree(source[src_ok]).query(target[dst_ok], k=1)
+        keep &= back[nn[:, 0]] == np.arange(len(src_ok))
+    if k == 2:
+        # Lowe: a match is distinctive when its best distance is clearly below the second.
+        keep &= dist[:, 0] < config.ratio_test * dist[:, 1]
+    return _best(src_ok[keep], dst_ok[nn[keep, 0]], dist[keep, 0], config.max_correspondences)
+
+
+def _informative(descriptors: np.ndarray) -> np.ndarray:
+    return np.isfinite(descriptors).all(axis=1) & (np.abs(descriptors).sum(axis=1) > 0)
+
+
+def _best(src: np.ndarray, dst: np.ndarray, dist: np.ndarray, cap: int) -> Correspondences:
+    order = np.argsort(dist, kind="stable")
+    if cap > 0:
+        order = order[:cap]
+    return Correspondences(src[order].astype(np.int64), dst[order].astype(np.int64),
+                           dist[order])
+
+
+def _empty_correspondences() -> Correspondences:
+    empty = np.zeros(0, dtype=np.int64)
+    return Correspondences(empty, empty.copy(), np.zeros(0))
+
+
+def _o3d_cloud(points: np.ndarray, normals: np.ndarray | None = None) -> o3d.geometry.PointCloud:
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    if normals is not None:
+        cloud.normals = o3d.utility.Vector3dVector(normals)
+    return cloud
+
+
+class timed:
+    """``with timed(timings, 'stage'):`` adds the block's wall time (s) to timings[stage]."""
+
+    def __init__(self, timings: dict[str, float], stage: str) -> None:
+        self.timings, self.stage = timings, stage
+
+    def __enter__(self) -> None:
+        self.start = time.perf_counter()
+
+    def __exit__(self, *exc) -> None:
+        elapsed = time.perf_counter() - self.start
+        self.timings[self.stage] = self.timings.get(self.stage, 0.0) + elapsed
