@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 
 from cgags_ros.registration.compatibility import CompatibilityGraph
 from cgags_ros.registration.sampling import (sample_common_vertex, sample_edges, sample_guided,
@@ -16,12 +17,14 @@ def _random_graph(n=60, p=0.2, seed=0):
     return _graph(np.triu(rng.random((n, n)) < p, 1))
 
 
-def test_edges_are_edges_and_uniform_over_E():
+@pytest.mark.parametrize("lists", [False, True])
+def test_edges_are_edges_and_uniform_over_E(lists):
     g = _random_graph()
     dense = g.rows(np.arange(g.n))
     rng = np.random.default_rng(1)
     pts = np.zeros((g.n, 3))
-    i, j = sample_edges(g, rng, 200000, src=pts, dst=pts, delta=1.0, soft=False)
+    csr = g.neighbour_lists() if lists else None
+    i, j = sample_edges(g, rng, 200000, src=pts, dst=pts, delta=1.0, soft=False, csr=csr)
     assert dense[i, j].all()
     # undirected edge frequencies: uniform over E within sampling noise
     key = np.minimum(i, j) * g.n + np.maximum(i, j)
@@ -53,13 +56,15 @@ def test_common_vertex_reports_empty_neighbourhoods():
     assert not ok[0]
 
 
-def test_common_vertex_is_in_both_neighbourhoods():
+@pytest.mark.parametrize("lists", [False, True])
+def test_common_vertex_is_in_both_neighbourhoods(lists):
     g = _random_graph(n=200, p=0.3, seed=3)
     dense = g.rows(np.arange(g.n))
     rng = np.random.default_rng(4)
     pts = np.zeros((g.n, 3))
-    i, j = sample_edges(g, rng, 2000, src=pts, dst=pts, delta=1.0, soft=False)
-    k, ok = sample_common_vertex(g, rng, i, j)
+    csr = g.neighbour_lists() if lists else None
+    i, j = sample_edges(g, rng, 2000, src=pts, dst=pts, delta=1.0, soft=False, csr=csr)
+    k, ok = sample_common_vertex(g, rng, i, j, csr=csr)
     assert ok.mean() > 0.9
     assert dense[i[ok], k[ok]].all() and dense[j[ok], k[ok]].all()
 

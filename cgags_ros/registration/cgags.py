@@ -27,6 +27,7 @@ from .sampling import (sample_common_vertex, sample_edges, sample_guided, tourna
 from .stopping import compatible_sample_inlier_probability, empirical_inlier_probability, ransac_bound
 
 _MIN_BATCH = 32
+_LISTS_AFTER_DRAWS = 2048  # build CSR neighbour lists once this many triples were drawn
 _GIVE_UP_DRAWS = 4096  # draws without a single usable (non-collinear) triangle: give up
 _CHANCE_PER_BATCH = 2  # hypotheses per batch scored exactly whatever their pre-score
 
@@ -184,13 +185,17 @@ class _Search:
         N(i) ∩ N(j) (graph vertex sampling), each uniform or by tournament (see config)."""
         cfg = self.cfg
         s = cfg.edge_tournament if cfg.edge_sampling == "tournament" else 1
+        # Neighbour lists make draws O(1) but cost about one graph build: only worth it
+        # once the search turns out to be long.
+        csr = self.graph.neighbour_lists() if self.num_drawn > _LISTS_AFTER_DRAWS else None
         i, j = sample_edges(self.graph, self.rng, count * s, src=self.src, dst=self.dst,
-                            delta=self.delta, soft=cfg.compatibility == "soft")
+                            delta=self.delta, soft=cfg.compatibility == "soft", csr=csr)
         if s > 1:
             i, j = tournament(self.graph, (i, j), count, s)
         v = cfg.vertex_tournament if cfg.vertex_sampling == "tournament" else 1
         ii, jj = np.repeat(i, v), np.repeat(j, v)
-        k, ok = sample_common_vertex(self.graph, self.rng, ii, jj, weights=self.vertex_weights)
+        k, ok = sample_common_vertex(self.graph, self.rng, ii, jj, weights=self.vertex_weights,
+                                     csr=csr)
         if v > 1:
             k, ok = tournament(self.graph, (ii, jj, k), count, v, ok)
         self.stats["empty_common_neighbourhood"] += int((~ok).sum())

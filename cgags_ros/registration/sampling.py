@@ -44,6 +44,7 @@ def _uniform_member(rows_packed: np.ndarray, n: int, rng: np.random.Generator,
 
 def sample_edges(graph: CompatibilityGraph, rng: np.random.Generator, count: int, *,
                  src: np.ndarray, dst: np.ndarray, delta: float, soft: bool,
+                 csr: tuple[np.ndarray, np.ndarray] | None = None,
                  tries: int = 24) -> tuple[np.ndarray, np.ndarray]:
     """Draw ``count`` edges (i, j) uniformly from E (graph edge sampling).
 
@@ -52,7 +53,6 @@ def sample_edges(graph: CompatibilityGraph, rng: np.random.Generator, count: int
     rows where all tries missed. With ``soft`` compatibility an edge is kept with
     probability 1 - (d_ij / delta)^2, so nearly-incompatible edges are drawn less often.
     """
-    csr = graph.neighbour_lists()
     i = np.empty(count, dtype=np.int64)
     j = np.empty(count, dtype=np.int64)
     filled = 0
@@ -91,6 +91,7 @@ def _edges_by_rejection(graph: CompatibilityGraph, rng: np.random.Generator, cou
 
 def sample_common_vertex(graph: CompatibilityGraph, rng: np.random.Generator, i: np.ndarray,
                          j: np.ndarray, *, weights: np.ndarray | None = None,
+                         csr: tuple[np.ndarray, np.ndarray] | None = None,
                          tries: int = 48) -> tuple[np.ndarray, np.ndarray]:
     """Draw k from N(i) ∩ N(j) (graph vertex sampling), uniformly or by ``weights``.
 
@@ -98,7 +99,6 @@ def sample_common_vertex(graph: CompatibilityGraph, rng: np.random.Generator, i:
     resampled by the caller).
     """
     count = len(i)
-    csr = graph.neighbour_lists()
     if csr is not None:  # candidates from N(i): only the edge to j remains to be tested
         offset = np.floor(rng.random((count, tries)) * graph.degree[i][:, None]).astype(np.int64)
         cand = csr[1][csr[0][i][:, None] + offset].astype(np.int64)
