@@ -105,7 +105,7 @@ def update_from_flat(cfg: Any, values: Mapping[str, Any]) -> Any:
     Unknown keys raise InvalidConfigError naming the key, so a typo never passes silently.
     """
     new = _deepcopy(cfg)
-    for key, value in _flatten_mapping(values).items():
+    for key, value in flatten_mapping(values).items():
         target = new
         parts = key.split(".")
         for part in parts[:-1]:
@@ -119,11 +119,12 @@ def update_from_flat(cfg: Any, values: Mapping[str, Any]) -> Any:
     return validate(new)
 
 
-def _flatten_mapping(values: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+def flatten_mapping(values: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested mapping -> flat ``a.b.c`` keys (the inverse layout of a YAML section)."""
     out: dict[str, Any] = {}
     for key, value in values.items():
         if isinstance(value, Mapping):
-            out.update(_flatten_mapping(value, f"{prefix}{key}."))
+            out.update(flatten_mapping(value, f"{prefix}{key}."))
         else:
             out[f"{prefix}{key}"] = value
     return out

@@ -80,6 +80,15 @@ class Pairer:
         max_waiting_targets: synchronized mode only, targets kept while unmatched (>= 1).
     """
 
+    @classmethod
+    def from_config(cls, cfg, queue_depth: int | None = None) -> "Pairer":
+        """The Pairer described by a :class:`~cgags_ros.node_config.NodeConfig` (the node
+        and the replay tool both build theirs here); ``queue_depth`` overrides cfg's."""
+        return cls(cfg.pairing_mode, slop=cfg.sync_slop,
+                   queue_depth=queue_depth or cfg.queue_depth,
+                   max_waiting_sources=cfg.max_waiting_sources,
+                   max_waiting_targets=cfg.max_waiting_targets)
+
     def __init__(self, mode: str = "latest_target", *, slop: float = 0.05,
                  queue_depth: int = 2, max_waiting_sources: int = 1,
                  max_waiting_targets: int = 10):

@@ -244,9 +244,7 @@ class RegisterNode(Node):
             self._register = _load_pipeline()
         self._lock = threading.Lock()  # guards configs and statistics
         cfg = self._node_cfg
-        self._pairer = Pairer(cfg.pairing_mode, slop=cfg.sync_slop, queue_depth=cfg.queue_depth,
-                              max_waiting_sources=cfg.max_waiting_sources,
-                              max_waiting_targets=cfg.max_waiting_targets)
+        self._pairer = Pairer.from_config(cfg)
         self._rejected: collections.Counter[str] = collections.Counter()
         self._counts: collections.Counter[str] = collections.Counter()
         self._last: dict[str, Any] = {}

@@ -29,9 +29,10 @@ from typing import Any
 
 import numpy as np
 
+from ..pairing import Pairer
 from ..ros.conversions import pose_to_transform, stamp_to_ns
 from .replay import (BagContents, CloudMessage, ReplayError, ReplayOptions, finish_report,
-                     iter_pairs, load_contents, make_pairer, make_row, note_pairing_drops,
+                     iter_pairs, load_contents, make_row, note_pairing_drops,
                      resolve_configs, start_report)
 from .report import BagReport, PairRow
 
@@ -145,7 +146,7 @@ def replay_live(opts: ReplayOptions) -> BagReport:
     pipe, node_cfg, params, how = resolve_configs(opts.parameters, contents)
     report = start_report(opts, contents, pipe, node_cfg)
     report.notes.append(f"voxel size {pipe.voxel_size:g} m ({how})")
-    pairer = make_pairer(node_cfg, queue_depth=MAX_QUEUE)
+    pairer = Pairer.from_config(node_cfg, queue_depth=MAX_QUEUE)
     expected = {p.source.stamp_ns: p for p in iter_pairs(contents, pairer)}
     note_pairing_drops(report, pairer.counters())
     playable = [c for c in contents.clouds if c.msg is not None]

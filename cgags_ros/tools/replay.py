@@ -205,7 +205,7 @@ def user_parameters(params_file: str | None, sets: Sequence[str], voxel_size: fl
     """Flat node/pipeline parameters in priority order: YAML < --set < explicit flags."""
     values: dict[str, Any] = {}
     if params_file:
-        values.update(configutil._flatten_mapping(load_yaml(params_file)))
+        values.update(configutil.flatten_mapping(load_yaml(params_file)))
     values.update(parse_set_values(sets))
     if voxel_size is not None:
         values["voxel_size"] = voxel_size
@@ -228,15 +228,6 @@ def resolve_configs(values: dict[str, Any], contents: BagContents
     pipe, node = configs_from_parameters(values)
     flat = {**configutil.flatten(pipe), **configutil.flatten(node)}
     return pipe, node, {k: flat[k] for k in values}, how
-
-
-def make_pairer(cfg: NodeConfig, queue_depth: int | None = None) -> Pairer:
-    """The node's Pairer for ``cfg`` (offline replay pops after every message, so its
-    queue never fills; ``queue_depth`` only matters for a live consumer)."""
-    return Pairer(cfg.pairing_mode, slop=cfg.sync_slop,
-                  queue_depth=queue_depth or cfg.queue_depth,
-                  max_waiting_sources=cfg.max_waiting_sources,
-                  max_waiting_targets=cfg.max_waiting_targets)
 
 
 def iter_pairs(contents: BagContents, pairer: Pairer) -> Iterator[Pair]:
@@ -303,7 +294,7 @@ def replay_offline(opts: ReplayOptions) -> BagReport:
     report = start_report(opts, contents, pipe, node)
     report.notes.append(f"voxel size {pipe.voxel_size:g} m ({how})")
     progress = Progress(len(contents.sources), enabled=not opts.quiet)
-    pairer = make_pairer(node)
+    pairer = Pairer.from_config(node)  # popped after every message: the queue never fills
     for pair in iter_pairs(contents, pairer):
         src, tgt = pair.source.payload, pair.target.payload
         progress.update(f"source {_stamp_s(src.stamp_ns)}")
