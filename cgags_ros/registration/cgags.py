@@ -27,7 +27,9 @@ from .sampling import (sample_common_vertex, sample_edges, sample_guided, tourna
 from .stopping import compatible_sample_inlier_probability, empirical_inlier_probability, ransac_bound
 
 _MIN_BATCH = 32
-_LISTS_AFTER_DRAWS = 2048  # build CSR neighbour lists once this many triples were drawn
+# CSR neighbour lists cost ~N^2 bit scans; build them once ~N^2/2000 triples were drawn
+# (about when rejection sampling would have spent as much).
+_LISTS_BUILD_RATIO = 2000
 _GIVE_UP_DRAWS = 4096  # draws without a single usable (non-collinear) triangle: give up
 _CHANCE_PER_BATCH = 2  # hypotheses per batch scored exactly whatever their pre-score
 
@@ -187,7 +189,8 @@ class _Search:
         s = cfg.edge_tournament if cfg.edge_sampling == "tournament" else 1
         # Neighbour lists make draws O(1) but cost about one graph build: only worth it
         # once the search turns out to be long.
-        csr = self.graph.neighbour_lists() if self.num_drawn > _LISTS_AFTER_DRAWS else None
+        long_search = self.num_drawn > max(256, self.graph.n ** 2 // _LISTS_BUILD_RATIO)
+        csr = self.graph.neighbour_lists() if long_search else None
         i, j = sample_edges(self.graph, self.rng, count * s, src=self.src, dst=self.dst,
                             delta=self.delta, soft=cfg.compatibility == "soft", csr=csr)
         if s > 1:
