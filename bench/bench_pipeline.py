@@ -50,10 +50,11 @@ from cgags_ros.config import PipelineConfig
 from cgags_ros.datasets.synthetic import shared_data_dir
 from cgags_ros.errors import CgagsError
 from cgags_ros.node_config import NodeConfig
+from cgags_ros.pairing import Pairer
 from cgags_ros.registration.metrics import rotation_error_deg, translation_error
 from cgags_ros.tools.demo import DEMO_BAGS
 from cgags_ros.tools.replay import (DEFAULT_MAX_RE_DEG, DEFAULT_MAX_TE_VOXELS, auto_voxel_size,
-                                    iter_pairs, make_pairer, read_bag_contents)
+                                    iter_pairs, read_bag_contents)
 from cgags_ros.tools.report import fmt, markdown_table
 
 KISS_DEFAULT_VOXEL = 0.3
@@ -146,7 +147,7 @@ def load_pairs(bag_dir: Path) -> tuple[list[tuple[int, np.ndarray, np.ndarray, n
     size cgags-replay would choose for the bag."""
     contents = read_bag_contents(bag_dir, "/source_cloud", "/target_cloud", "/ground_truth")
     pairs = []
-    for pair in iter_pairs(contents, make_pairer(NodeConfig())):
+    for pair in iter_pairs(contents, Pairer.from_config(NodeConfig())):
         stamp = pair.source.stamp_ns
         if stamp in contents.ground_truth:
             pairs.append((stamp, pair.source.payload.xyz, pair.target.payload.xyz,

@@ -8,7 +8,7 @@ from cgags_ros.datasets.gt_pairs import find_pair
 from cgags_ros.errors import EmptyCloudError, InvalidInputError
 from cgags_ros.features.config import FrontEndConfig, RefineConfig
 from cgags_ros.features.frontend import (downsample, extract_features, finite_points,
-                                         match_features, point_resolution)
+                                         match_features, nearest_rows, point_resolution)
 from cgags_ros.features.io import read_cloud
 from cgags_ros.features.refine import evaluate_alignment, refine_transform
 from cgags_ros.registration.metrics import rotation_error_deg, translation_error
@@ -80,6 +80,58 @@ def test_ratio_test_and_cap_keep_the_best(bunny):
     assert 0 < len(strict) < len(all_corr)
     inlier_share = lambda c: np.mean(_residuals(fs, ft, c, T) < 6 * fs.resolution)  # noqa: E731
     assert inlier_share(strict) > inlier_share(all_corr)
+
+
+def _reference_matches(a, b, mutual, ratio):
+    """match_features by definition, from the full exact distance matrix (no zero rows),
+    and the source rows whose nearest target is tied (any of the tied ones is right)."""
+    D = np.linalg.norm(a[:, None, :] - b[None], axis=2)
+    order = np.argsort(D, axis=1, kind="stable")
+    rows = np.arange(len(a))
+    nn, d0, d1 = order[:, 0], D[rows, order[:, 0]], D[rows, order[:, 1]]
+    keep = np.ones(len(a), dtype=bool)
+    if mutual:
+        keep &= np.argmin(D, axis=0)[nn] == rows
+    if ratio < 1:
+        keep &= d0 < ratio * d1
+    matches = {(i, j) for i, j in zip(np.flatnonzero(keep), nn[keep])}
+    return matches, set(np.flatnonzero(d1 - d0 < 1e-9))
+
+
+@pytest.mark.parametrize("mutual, ratio", [(True, 1.0), (True, 0.8), (False, 0.9)])
+def test_matches_equal_exact_brute_force(mutual, ratio):
+    """FPFH-like histograms (33 bins, sums of 300) with exact duplicates, as sparse clouds
+    give: the blockwise matrix-product search must agree with exact distances. Duplicate
+    targets make the only ties; the ratio test rejects every tie, while with the mutual
+    filter alone a source whose nearest target is duplicated may pair with any copy."""
+    rng = np.random.default_rng(3)
+    b = rng.dirichlet(np.ones(33) * 0.3, 700) * 300
+    a = b[rng.permutation(700)[:600]] + rng.normal(0, 2.0, (600, 33))
+    b[650:] = b[600:650]  # exact duplicate targets
+    a[:40] = b[600:640]  # sources that tie between two targets at distance 0
+    a[40:60] = b[:20]  # sources with one target at distance 0
+    cfg = FrontEndConfig(mutual_filter=mutual, ratio_test=ratio, max_correspondences=0)
+    got = match_features(a, b, cfg)
+    pairs = set(zip(got.source_index.tolist(), got.target_index.tolist()))
+    expected, tied = _reference_matches(a, b, mutual, ratio)
+    assert set(range(40)) <= tied
+    if ratio < 1:
+        assert pairs == expected and not any(i in tied for i, _ in pairs)
+    else:
+        assert {p for p in pairs if p[0] not in tied} == {p for p in expected if p[0] not in tied}
+        D = np.linalg.norm(a[:, None, :] - b[None], axis=2)
+        assert all(D[i, j] <= D[i].min() + 1e-9 for i, j in pairs if i in tied)
+    np.testing.assert_allclose(got.distance, np.linalg.norm(
+        a[got.source_index] - b[got.target_index], axis=1))
+    assert np.all(np.diff(got.distance) >= 0)
+
+
+def test_nearest_rows_blocks_and_second_neighbour():
+    rng = np.random.default_rng(4)
+    q, r = rng.normal(size=(1000, 33)), rng.normal(size=(3000, 33))
+    D = np.linalg.norm(q[:, None, :] - r[None], axis=2)
+    np.testing.assert_array_equal(nearest_rows(q, r, 2), np.argsort(D, axis=1)[:, :2])
+    np.testing.assert_array_equal(nearest_rows(r, q, 1)[:, 0], np.argmin(D, axis=0))
 
 
 def test_zero_descriptors_never_match():

@@ -22,7 +22,8 @@ from cgags_ros.datasets.gt_pairs import find_pair
 from cgags_ros.errors import EmptyCloudError, InvalidConfigError, InvalidInputError
 from cgags_ros.features.io import read_cloud
 from cgags_ros.features.refine import evaluate_alignment
-from cgags_ros.pipeline import PipelineResult, chance_inliers, observability, register_clouds
+from cgags_ros.pipeline import (PipelineResult, cached_features, chance_inliers,
+                                clear_feature_cache, observability, register_clouds, warm_up)
 from cgags_ros.registration.metrics import rotation_error_deg, translation_error
 
 # name: (gt folder, source, target, voxel m, coarse (RE, TE), refined (RE, TE))
@@ -115,6 +116,41 @@ def test_no_refinement_returns_the_core_estimate(data_dir):
     result = register_clouds(read_cloud(src), read_cloud(dst), config=cfg)
     assert not result.refined and result.valid
     np.testing.assert_array_equal(result.transform, result.coarse_transform)
+
+
+def test_feature_cache_is_exact_and_keyed_on_content(data_dir):
+    src, dst, _ = find_pair(data_dir / "objects/stanford_bunny_scans/gt_pairs.txt",
+                            "bun045.ply", "bun000.ply")
+    source, target = read_cloud(src), read_cloud(dst)
+    clear_feature_cache()
+    first = register_clouds(source, target, voxel_size=0.003)
+    again = register_clouds(source.copy(), target.copy(), voxel_size=0.003)  # same content
+    # The coarse estimate is bit-exact; Open3D's multi-threaded ICP sums in a varying order.
+    np.testing.assert_array_equal(first.coarse_transform, again.coarse_transform)
+    np.testing.assert_allclose(first.transform, again.transform, rtol=0, atol=1e-12)
+    assert again.timings["fpfh"] == 0.0 and first.timings["fpfh"] > 0
+    cfg = PipelineConfig().frontend
+    a = cached_features(target, 0.003, cfg)
+    assert cached_features(target.copy(), 0.003, cfg) is a
+    assert cached_features(target, 0.004, cfg) is not a  # other voxel size
+    moved = target.copy()
+    moved[0, 0] += 1e-9  # any change of content misses
+    assert cached_features(moved, 0.003, cfg) is not cached_features(target, 0.003, cfg)
+    clear_feature_cache()
+    fresh = register_clouds(source, target, voxel_size=0.003)
+    np.testing.assert_array_equal(first.coarse_transform, fresh.coarse_transform)
+
+
+def test_warm_up_runs_every_stage():
+    result = warm_up()
+    assert result.valid and result.refined, result.reason
+    c, s = np.cos(0.3), np.sin(0.3)
+    T = np.array([[c, s, 0, 0], [-s, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+    T[:3, 3] = -T[:3, :3] @ [0.2, 0.2, 0.2]  # inverse of (R, 0.2): source -> target
+    assert rotation_error_deg(result.transform, T) < 1.0
+    assert translation_error(result.transform, T) < 0.05
+    gicp = warm_up(pipeline_config_from({"refine.method": "gicp"}))
+    assert gicp.valid and gicp.refined
 
 
 # --- degenerate and non-overlapping input: valid=False with a reason -------------------------
