@@ -67,8 +67,11 @@ Method = Callable[[np.ndarray, np.ndarray, float], np.ndarray]
 # --- methods: (source (N,3), target (M,3), voxel metres) -> 4x4 source->target ----------------
 
 def run_cgags(src: np.ndarray, tgt: np.ndarray, voxel: float) -> np.ndarray:
-    from cgags_ros.pipeline import register_clouds
+    from cgags_ros.pipeline import clear_feature_cache, register_clouds
 
+    # Cold: the baselines featurise both clouds every pair, so ours does too (the node,
+    # with a latched target, would reuse the target's features and be faster).
+    clear_feature_cache()
     result = register_clouds(src, tgt, voxel_size=voxel)
     if not result.valid:
         raise CgagsError(f"invalid: {result.reason}")
