@@ -51,6 +51,8 @@ class PipelineResult(RegistrationResult):
             of the overlap (0: some motion is unconstrained, e.g. plane on plane).
         chance_inliers: inliers the estimate would collect if every correspondence were an
             outlier (expected value under a random pairing).
+        inlier_source_points, inlier_target_points: (K, 3) the core's inlier
+            correspondences (downsampled keypoints, source and target frames, metres).
         num_source_points, num_target_points: points after voxel downsampling.
         voxel_size: metres. resolution: point resolution pr (metres) given to the core.
     """
@@ -62,6 +64,8 @@ class PipelineResult(RegistrationResult):
     overlap: float = 0.0
     observability: float = float("nan")
     chance_inliers: float = float("nan")
+    inlier_source_points: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
+    inlier_target_points: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
     num_source_points: int = 0
     num_target_points: int = 0
     voxel_size: float = float("nan")
@@ -125,6 +129,8 @@ def register_clouds(source: np.ndarray, target: np.ndarray, *, voxel_size: float
         result.num_correspondences = len(corr)
         return _finish(result, start, core)
     _copy_core(core, result)
+    result.inlier_source_points = fs.points[corr.source_index[core.inliers]]
+    result.inlier_target_points = ft.points[corr.target_index[core.inliers]]
     if core.reason:  # nothing worth refining or gating further
         return _finish(result, start, core.reason)
     with timed(result.timings, "refinement"):

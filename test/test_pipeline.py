@@ -77,6 +77,11 @@ def test_real_pair_coarse_estimate(runs, name, rotated):
     assert result.valid, result.reason
     assert rotation_error_deg(result.coarse_transform, T) < max_re
     assert translation_error(result.coarse_transform, T) < max_te
+    # the inlier keypoints the result carries are matched by the ground truth motion
+    src, dst = result.inlier_source_points, result.inlier_target_points
+    assert len(src) == result.num_inliers == len(dst)
+    moved = src @ T[:3, :3].T + T[:3, 3]
+    assert np.median(np.linalg.norm(moved - dst, axis=1)) < max_te
 
 
 @pytest.mark.parametrize("name, rotated", CASES)

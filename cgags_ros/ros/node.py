@@ -62,8 +62,8 @@ RegisterFn = Callable[..., Any]  # register_clouds(source, target, *, config) ->
 
 _INT64_MAX = 2**63 - 1
 _FLOAT_MAX = 1.7976931348623157e308
-_LOG_REPEAT_S = 30.0
-_WARM_UP_LIMIT_S = 120.0  # starting a registration process (imports Open3D) may take this  # a cause already logged is logged again at most this often
+_LOG_REPEAT_S = 30.0  # a cause already logged is logged again at most this often
+_WARM_UP_LIMIT_S = 120.0  # starting a registration process (imports Open3D) may take this
 
 
 def pose_covariance(src: np.ndarray, dst: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -110,19 +110,14 @@ def inlier_pairs(result: Any, source: np.ndarray, target: np.ndarray,
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Matched (source, target) points behind the estimate, for :func:`pose_covariance`.
 
-    Uses the result's inlier correspondences when it carries their coordinates
-    (``inlier_source``/``inlier_target`` or ``source_corr``/``target_corr`` with
-    ``inliers``); otherwise nearest neighbours of a subsample of the aligned source within
+    The pipeline's inlier correspondences when the result carries them (at least 3);
+    otherwise nearest neighbours of a subsample of the aligned source within
     ``max_distance`` metres.
     """
-    for a, b in (("inlier_source", "inlier_target"), ("inlier_source_points", "inlier_target_points")):
-        if getattr(result, a, None) is not None and getattr(result, b, None) is not None:
-            return np.asarray(getattr(result, a)), np.asarray(getattr(result, b))
-    for a, b in (("source_corr", "target_corr"), ("corr_source", "corr_target")):
-        s, d = getattr(result, a, None), getattr(result, b, None)
-        if s is not None and d is not None and len(result.inliers):
-            idx = np.asarray(result.inliers)
-            return np.asarray(s)[idx], np.asarray(d)[idx]
+    src = getattr(result, "inlier_source_points", None)
+    dst = getattr(result, "inlier_target_points", None)
+    if src is not None and dst is not None and len(src) >= 3:
+        return np.asarray(src), np.asarray(dst)
     rng = np.random.default_rng(0)
     src = source if len(source) <= max_points else source[rng.choice(len(source), max_points, replace=False)]
     aligned = src @ T[:3, :3].T + T[:3, 3]
