@@ -400,11 +400,13 @@ class Progress:
 # --- command line -------------------------------------------------------------------------------
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0],
+    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0].replace("``", ""),
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
-    p.add_argument("--source-topic", default="/source_cloud")
-    p.add_argument("--target-topic", default="/target_cloud")
+    p.add_argument("--source-topic", default="/source_cloud",
+                   help="PointCloud2 topic of the clouds to align (default: %(default)s)")
+    p.add_argument("--target-topic", default="/target_cloud",
+                   help="PointCloud2 topic of the reference clouds (default: %(default)s)")
     p.add_argument("--ground-truth-topic", default=None,
                    help=f"PoseStamped source->target, matched to sources by stamp (default: "
                         f"{DEFAULT_GT_TOPIC} when the bag has it; given explicitly, it must exist)")
@@ -414,7 +416,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "(ROS format or a plain mapping), e.g. config/register_node.yaml")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override one parameter (repeatable), e.g. --set core.p1=0.95")
-    p.add_argument("--pairing", choices=MODES, default=None)
+    p.add_argument("--pairing", choices=MODES, default=None,
+                   help="how sources meet targets, as the node's pairing_mode (default: "
+                   "the parameters', latest_target)")
     p.add_argument("--output", type=Path, default=None, help="default: out/replay/<bag>")
     p.add_argument("--pose-topic", default=DEFAULT_POSE_TOPIC, help="topic in the output bag")
     p.add_argument("--max-re-deg", type=float, default=DEFAULT_MAX_RE_DEG,
@@ -423,11 +427,13 @@ def build_parser() -> argparse.ArgumentParser:
                    f"most this (metres; default {DEFAULT_MAX_TE_VOXELS:g} voxel sizes)")
     p.add_argument("--quiet", action="store_true", help="no progress, no tables")
     live = p.add_argument_group("live replay through the ROS node")
-    live.add_argument("--live", action="store_true")
+    live.add_argument("--live", action="store_true",
+                      help="publish the bag over DDS into a register_node and record its ~/pose")
     live.add_argument("--rate", type=float, default=1.0, help="playback speed factor (> 0)")
     live.add_argument("--no-spawn", dest="spawn", action="store_false",
                       help="use a running register_node instead of starting one")
-    live.add_argument("--node-name", default="register_node")
+    live.add_argument("--node-name", default="register_node",
+                      help="name of the node to start or listen to (default: %(default)s)")
     live.add_argument("--timeout", type=float, default=60.0,
                       help="seconds without progress from the node before giving up")
     live.add_argument("--startup-timeout", type=float, default=60.0,
