@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 from .errors import InvalidConfigError
 
@@ -134,3 +134,20 @@ def _deepcopy(cfg: Any) -> Any:
     changes = {f.name: _deepcopy(getattr(cfg, f.name))
                for f in dataclasses.fields(cfg) if dataclasses.is_dataclass(getattr(cfg, f.name))}
     return dataclasses.replace(cfg, **changes)
+
+
+def parse_key_values(items: Sequence[str]) -> dict[str, Any]:
+    """Command-line overrides ``['core.p1=0.9', 'refine.method=gicp']`` -> a dict with
+    YAML-typed values (3 -> int, true -> bool). Raises InvalidConfigError on a bad item."""
+    import yaml
+
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        if not sep or not key.strip():
+            raise InvalidConfigError(f"--set expects KEY=VALUE, got {item!r}")
+        try:
+            out[key.strip()] = yaml.safe_load(raw)
+        except yaml.YAMLError as exc:
+            raise InvalidConfigError(f"--set {item!r}: value is not valid YAML ({exc})") from exc
+    return out

@@ -15,8 +15,9 @@ from typing import Sequence
 
 import numpy as np
 
+from .. import configutil
 from ..config import PipelineConfig, load_yaml, pipeline_config_from
-from ..errors import CgagsError, InvalidConfigError, InvalidInputError
+from ..errors import CgagsError, InvalidInputError
 from ..features.io import SUFFIXES, read_cloud, write_cloud
 
 EXIT_INVALID = 1  # registration ran but the estimate failed a validity gate
@@ -88,7 +89,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _config(args: argparse.Namespace) -> PipelineConfig:
     values: dict = load_yaml(args.config) if args.config else {}
-    values.update(_parse_overrides(args.overrides))
+    values.update(configutil.parse_key_values(args.overrides))
     if args.voxel_size is not None:
         values["voxel_size"] = args.voxel_size
     if args.no_refine:
@@ -96,21 +97,6 @@ def _config(args: argparse.Namespace) -> PipelineConfig:
     if args.seed is not None:
         values["seed"] = args.seed
     return pipeline_config_from(values)
-
-
-def _parse_overrides(items: Sequence[str]) -> dict:
-    import yaml
-
-    out = {}
-    for item in items:
-        key, sep, raw = item.partition("=")
-        if not sep or not key.strip():
-            raise InvalidConfigError(f"--set expects KEY=VALUE, got {item!r}")
-        try:
-            out[key.strip()] = yaml.safe_load(raw)  # YAML typing: 3 -> int, true -> bool
-        except yaml.YAMLError as exc:
-            raise InvalidConfigError(f"--set {item!r}: value is not valid YAML ({exc})") from exc
-    return out
 
 
 def _moved(points: np.ndarray, transform: np.ndarray) -> np.ndarray:

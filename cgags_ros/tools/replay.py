@@ -184,29 +184,13 @@ def _occupied_voxels(points: np.ndarray, voxel: float) -> int:
     return len(np.unique(keys, axis=0))
 
 
-def parse_set_values(items: Sequence[str]) -> dict[str, Any]:
-    """``['core.p1=0.9', 'refine.method=gicp']`` -> typed dict (YAML scalars)."""
-    import yaml
-
-    out = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise InvalidConfigError(f"--set expects key=value, got {item!r}")
-        try:
-            out[key.strip()] = yaml.safe_load(value)
-        except yaml.YAMLError as exc:
-            raise InvalidConfigError(f"--set {item!r}: bad value: {exc}") from exc
-    return out
-
-
 def user_parameters(params_file: str | None, sets: Sequence[str], voxel_size: float | None,
                     pairing: str | None) -> dict[str, Any]:
     """Flat node/pipeline parameters in priority order: YAML < --set < explicit flags."""
     values: dict[str, Any] = {}
     if params_file:
         values.update(configutil.flatten_mapping(load_yaml(params_file)))
-    values.update(parse_set_values(sets))
+    values.update(configutil.parse_key_values(sets))
     if voxel_size is not None:
         values["voxel_size"] = voxel_size
     if pairing is not None:
