@@ -22,8 +22,8 @@ from .hypotheses import (fit_triples, refit, residual_matrix, score_in_common_ne
 from .preference import PreferenceLists
 from .result import RegistrationResult
 from .rigid import to_matrix
-from .sampling import (sample_common_vertex, sample_edges, sample_guided, tournament,
-                       triangle_areas)
+from .sampling import (sample_common_vertex, sample_edges, sample_guided,
+                       sample_vertex_tournament, tournament, triangle_areas)
 from .stopping import compatible_sample_inlier_probability, empirical_inlier_probability, ransac_bound
 
 _MIN_BATCH = 32
@@ -76,13 +76,19 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
             "they are all outliers, or the thresholds are too small for the noise"))
 
     search = _Search(src, dst, graph, cfg, tau, delta, np.random.default_rng(seed))
-    # 2-3. Minimal compatible subsets (edge + common-neighbour vertex) until the P1 bound.
-    with timer("compatible_sampling"):
-        search.compatible_stage()
-    # 4-5. Preference-based accelerated guided sampling until the P2 bound.
-    if cfg.guided_sampling and search.best_inliers is not None:
-        with timer("guided_sampling"):
-            search.guided_stage()
+    while True:
+        # 2-3. Minimal compatible subsets (edge + common-neighbour vertex) until the P1 bound.
+        with timer("compatible_sampling"):
+            search.compatible_stage()
+        # 4-5. Preference-based accelerated guided sampling until the P2 bound.
+        if cfg.guided_sampling and search.best_inliers is not None:
+            with timer("guided_sampling"):
+                search.guided_stage()
+        # Guided sampling refines around the best model; if that model still does not stand
+        # out from chance, explore again with compatible sampling (until the caps).
+        if search.significant() or search.exhausted() or cfg.stopping == "fixed":
+            break
+        search.stats["restarts"] = search.stats.get("restarts", 0) + 1
     result.num_hypotheses = search.num_hypotheses
     result.stats.update(search.stats)
     if search.best_inliers is None:
@@ -147,13 +153,13 @@ class _Search:
         while self.num_drawn < cfg.max_iterations and not self.out_of_time():
             batch = min(batch, cfg.max_iterations - self.num_drawn)
             self.num_drawn += batch
-            triples = self.minimal_compatible_subsets(batch)
+            triples, support = self.minimal_compatible_subsets(batch)
             if self.num_hypotheses == 0 and self.num_drawn >= _GIVE_UP_DRAWS:
                 self.stats["stopped_by"] = "no_usable_triangle"
                 break
             n1 += batch
             self.stats["compatible_samples"] += batch
-            if self.evaluate(triples):
+            if self.evaluate(triples, support):
                 w1 = self._stage_one_inlier_probability()
             bound = ransac_bound(cfg.p1, w1)
             self.stats["stage_one_bound"] = bound
@@ -182,9 +188,10 @@ class _Search:
         observed = empirical_inlier_probability(self.sampled, self.best_mask)
         return max(analytic, observed)
 
-    def minimal_compatible_subsets(self, count: int) -> np.ndarray:
+    def minimal_compatible_subsets(self, count: int) -> tuple[np.ndarray, np.ndarray | None]:
         """Triples (i, j, k): a compatible edge (graph edge sampling), then a vertex k in
-        N(i) ∩ N(j) (graph vertex sampling), each uniform or by tournament (see config)."""
+        N(i) ∩ N(j) (graph vertex sampling), each uniform or by tournament (see config).
+        Returns the non-collinear triples and, when known, their common-neighbour counts."""
         cfg = self.cfg
         s = cfg.edge_tournament if cfg.edge_sampling == "tournament" else 1
         # Neighbour lists make draws O(1) but cost about one graph build: only worth it
@@ -195,29 +202,32 @@ class _Search:
                             delta=self.delta, soft=cfg.compatibility == "soft", csr=csr)
         if s > 1:
             i, j = tournament(self.graph, (i, j), count, s)
-        v = cfg.vertex_tournament if cfg.vertex_sampling == "tournament" else 1
-        ii, jj = np.repeat(i, v), np.repeat(j, v)
-        k, ok = sample_common_vertex(self.graph, self.rng, ii, jj, weights=self.vertex_weights,
-                                     csr=csr)
-        if v > 1:
-            k, ok = tournament(self.graph, (ii, jj, k), count, v, ok)
+        if cfg.vertex_sampling == "tournament":
+            k, ok, support = sample_vertex_tournament(self.graph, self.rng, i, j,
+                                                      cfg.vertex_tournament, csr=csr)
+        else:
+            k, ok = sample_common_vertex(self.graph, self.rng, i, j,
+                                         weights=self.vertex_weights, csr=csr)
+            support = None
         self.stats["empty_common_neighbourhood"] += int((~ok).sum())
         triples = np.stack([i, j, k], axis=1)[ok]
         self.sampled.append(triples)
-        return self._keep_non_collinear(triples)
+        return self._keep_non_collinear(triples, None if support is None else support[ok])
 
-    def _keep_non_collinear(self, triples: np.ndarray) -> np.ndarray:
+    def _keep_non_collinear(self, triples: np.ndarray, support: np.ndarray | None = None
+                            ) -> tuple[np.ndarray, np.ndarray | None]:
         min_area = self.cfg.min_triangle_area_factor * self.tau ** 2
         if min_area <= 0 or len(triples) == 0:
-            return triples
+            return triples, support
         i, j, k = triples.T
         ok = (triangle_areas(self.src, i, j, k) >= min_area) & (triangle_areas(self.dst, i, j, k) >= min_area)
         self.stats["rejected_collinear"] += int((~ok).sum())
-        return triples[ok]
+        return triples[ok], None if support is None else support[ok]
 
     # --- hypotheses -------------------------------------------------------------------------
-    def evaluate(self, triples: np.ndarray) -> bool:
-        """Fit and score a batch of triples; update best model and preference lists.
+    def evaluate(self, triples: np.ndarray, support: np.ndarray | None = None) -> bool:
+        """Fit and score a batch of triples (``support``: their common-neighbour counts,
+        when the sampler knows them); update best model and preference lists.
         Returns True when the best model improved."""
         if len(triples) == 0:
             return False
@@ -229,7 +239,8 @@ class _Search:
             # (an upper bound on its restricted score), then the restricted score itself.
             cand = np.arange(len(triples))
             if len(triples) > 4 * cfg.exact_per_batch:
-                support = np.bitwise_count(self.graph.common(*triples.T)).sum(axis=1, dtype=np.int64)
+                if support is None:
+                    support = self.graph.popcount(self.graph.common(*triples.T))
                 cand = np.argpartition(-support, 4 * cfg.exact_per_batch - 1)[: 4 * cfg.exact_per_batch]
             pre = score_in_common_neighbourhood(self.graph, self.src, self.dst, R[cand], t[cand],
                                                 triples[cand], self.tau, cfg.score)
@@ -294,6 +305,11 @@ class _Search:
             return False
         return len(inliers) >= self.cfg.distinct_ratio * self.runner_up(inliers)
 
+    def exhausted(self) -> bool:
+        """The hypothesis cap or the time budget is used up (or no triangle is usable)."""
+        return (self.num_drawn >= self.cfg.max_iterations or self.out_of_time()
+                or self.stats["stopped_by"] == "no_usable_triangle")
+
     def out_of_time(self) -> bool:
         if self.cfg.time_budget > 0 and time.perf_counter() - self.start > self.cfg.time_budget:
             self.stats["stopped_by"] = "time_budget"
@@ -321,7 +337,7 @@ class _Search:
             batch = min(batch, cfg.max_iterations - self.num_drawn)
             self.num_drawn += batch
             li, lj, lk, ok = sample_guided(self.rng, kernel, adjacency, seed_w, batch, cfg.xi)
-            triples = self._keep_non_collinear(np.stack([members[li], members[lj], members[lk]], 1)[ok])
+            triples, _ = self._keep_non_collinear(np.stack([members[li], members[lj], members[lk]], 1)[ok])
             self.stats["guided_samples"] += batch
             improved = self.evaluate(triples)
             if improved:
@@ -341,8 +357,7 @@ class _Search:
             bound = ransac_bound(cfg.p2, w2)
             self.stats["stage_two_bound"] = bound
             self.stats["stage_two_w"] = w2
-            if (cfg.stopping == "adaptive" and n2 >= max(bound, cfg.min_iterations)
-                    and self.significant()):
+            if cfg.stopping == "adaptive" and n2 >= max(bound, cfg.min_iterations):
                 self.stats["stopped_by"] = "p2_bound"
                 break
             batch = min(2 * batch, cfg.batch_size)

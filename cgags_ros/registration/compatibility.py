@@ -20,16 +20,20 @@ class CompatibilityGraph:
     """Bit-packed undirected compatibility graph (no self loops).
 
     Attributes:
-        packed: (N, ceil(N/8)) uint8, bit j of row i (little bit order) set iff i ~ j.
+        packed: (N, W) uint8, W = ceil(N/8) rounded up to whole 64-bit words; bit j of
+            row i (little bit order) set iff i ~ j.
         degree: (N,) int64 number of compatible partners of each correspondence.
         num_edges: undirected edge count |E|.
     """
 
     def __init__(self, packed: np.ndarray, n: int):
-        self.packed = packed
-        self._flat = packed.reshape(-1)
+        # Rows padded to whole 64-bit words: ANDs and popcounts then run on uint64.
+        pad = -packed.shape[1] % 8
+        self.packed = np.ascontiguousarray(np.pad(packed, ((0, 0), (0, pad))) if pad else packed)
+        self._flat = self.packed.reshape(-1)
+        self._words = self.packed.view(np.uint64)
         self.n = n
-        self.degree = np.bitwise_count(packed).sum(axis=1, dtype=np.int64)
+        self.degree = self.popcount(self.packed)
         self.num_edges = int(self.degree.sum() // 2)
 
     _MAX_LIST_ENTRIES = 40_000_000  # int32 neighbour lists up to 160 MB
@@ -64,11 +68,19 @@ class CompatibilityGraph:
         return ((byte >> (j & 7).astype(np.uint8)) & 1).astype(bool)
 
     def common(self, *idx: np.ndarray) -> np.ndarray:
-        """Packed rows of the common neighbourhood N(a) ∩ N(b) ∩ ... per batch item."""
-        out = self.packed[idx[0]].copy()
+        """Packed rows (uint8) of the common neighbourhood N(a) ∩ N(b) ∩ ... per item."""
+        out = self._words[idx[0]]
         for k in idx[1:]:
-            out &= self.packed[k]
-        return out
+            out &= self._words[k]
+        return out.view(np.uint8)
+
+    def popcount(self, rows: np.ndarray) -> np.ndarray:
+        """Set bits per packed row (rows shaped like ``packed``: whole words)."""
+        return np.bitwise_count(rows.view(np.uint64)).sum(axis=1, dtype=np.int64)
+
+    def common_count(self, rows: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        """|rows[m] ∩ N(idx[m])| for packed rows (e.g. from :meth:`common`)."""
+        return np.bitwise_count(rows.view(np.uint64) & self._words[idx]).sum(axis=1, dtype=np.int64)
 
     def count_edges_within(self, members: np.ndarray) -> int:
         """Number of undirected edges among ``members`` (indices)."""

@@ -29,11 +29,16 @@ class PreferenceLists:
             return
         new_ids = np.arange(self.num_hypotheses, self.num_hypotheses + e)
         self.num_hypotheses += e
-        res = np.concatenate([self.residuals, residuals.T.astype(np.float32)], axis=1)
-        ids = np.concatenate([self.ids, np.broadcast_to(new_ids, (res.shape[0], e))], axis=1)
+        new_res = residuals.T.astype(np.float32)
+        # Only lists that some new hypothesis enters need merging (few, once lists fill).
+        rows = np.flatnonzero(new_res.min(axis=1) < self.residuals.max(axis=1))
+        if len(rows) == 0:
+            return
+        res = np.concatenate([self.residuals[rows], new_res[rows]], axis=1)
+        ids = np.concatenate([self.ids[rows], np.broadcast_to(new_ids, (len(rows), e))], axis=1)
         keep = np.argpartition(res, self.b - 1, axis=1)[:, : self.b]
-        self.residuals = np.take_along_axis(res, keep, axis=1)
-        self.ids = np.take_along_axis(ids, keep, axis=1)
+        self.residuals[rows] = np.take_along_axis(res, keep, axis=1)
+        self.ids[rows] = np.take_along_axis(ids, keep, axis=1)
 
     def quality(self) -> np.ndarray:
         """Median residual over each correspondence's list (inf until the list is full)."""

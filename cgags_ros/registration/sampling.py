@@ -151,9 +151,50 @@ def tournament(graph: CompatibilityGraph, members: tuple[np.ndarray, ...], count
     (i, j, k)); ``ok`` marks valid candidates. Returns the winners' arrays, and their ``ok``
     mask when ``ok`` was given.
     """
-    support = np.bitwise_count(graph.common(*members)).sum(axis=1, dtype=np.int64)
+    support = graph.popcount(graph.common(*members))
     if ok is not None:
         support = np.where(ok, support, -1)
     pick = np.argmax(support.reshape(count, size), axis=1) + np.arange(count) * size
     winners = tuple(m[pick] for m in members)
     return winners if ok is None else (winners[-1], ok[pick])
+
+
+def sample_vertex_tournament(graph: CompatibilityGraph, rng: np.random.Generator, i: np.ndarray,
+                             j: np.ndarray, size: int, *,
+                             csr: tuple[np.ndarray, np.ndarray] | None = None,
+                             draws: int = 64) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each edge (i, j): up to ``size`` uniform candidates k in N(i) ∩ N(j), keeping
+    the one with the largest support |N(i) ∩ N(j) ∩ N(k)| (vertex tournament).
+
+    Candidates come from one batch of ``draws`` proposals per edge (from N(i) with the
+    neighbour lists, else from all vertices), of which the first ``size`` members of
+    N(i) ∩ N(j) compete; edges whose proposals all missed draw one k exactly (no
+    tournament). Returns k, a mask of edges with a non-empty common neighbourhood, and
+    the winners' support (the common-neighbour count of the triple).
+    """
+    count = len(i)
+    if csr is not None:
+        offset = np.floor(rng.random((count, draws)) * graph.degree[i][:, None]).astype(np.int64)
+        cand = csr[1][csr[0][i][:, None] + offset].astype(np.int64)
+        hit = graph.has_edge(np.repeat(j[:, None], draws, 1), cand)
+    else:
+        cand = rng.integers(0, graph.n, size=(count, draws))
+        hit = graph.has_edge(np.repeat(i[:, None], draws, 1), cand)
+        hit &= graph.has_edge(np.repeat(j[:, None], draws, 1), cand)
+    hit &= np.cumsum(hit, axis=1) <= size
+    rows, cols = np.nonzero(hit)
+    common_ij = graph.common(i, j)
+    support = graph.common_count(common_ij[rows], cand[rows, cols])
+    # Per edge, the candidate with the largest support: sort by (row, -support).
+    order = np.lexsort((-support, rows))
+    first = order[np.unique(rows[order], return_index=True)[1]]
+    k = np.zeros(count, dtype=np.int64)
+    best = np.zeros(count, dtype=np.int64)
+    ok = np.zeros(count, dtype=bool)
+    k[rows[first]], best[rows[first]], ok[rows[first]] = cand[rows[first], cols[first]], support[first], True
+    miss = np.flatnonzero(~ok)
+    if len(miss):
+        k[miss], ok[miss] = _uniform_member(common_ij[miss], graph.n, rng)
+        found = miss[ok[miss]]
+        best[found] = graph.common_count(common_ij[found], k[found])
+    return k, ok, best

@@ -38,7 +38,7 @@ def compatible_sample_inlier_probability(graph: CompatibilityGraph, inliers: np.
     pick = rng.choice(len(a), size=min(pairs, len(a)), replace=False)
     i, j = inliers[a[pick]], inliers[b[pick]]
     common = graph.common(i, j)
-    total = np.bitwise_count(common).sum(axis=1)
+    total = graph.popcount(common)
     mask = np.zeros(graph.n, dtype=bool)
     mask[inliers] = True
     inside = (np.unpackbits(common, axis=1, count=graph.n, bitorder="little").view(bool) & mask).sum(axis=1)
