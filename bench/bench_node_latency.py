@@ -33,7 +33,8 @@ def main() -> int:
     parser.add_argument("--rate", type=float, default=10.0, help="source clouds per second")
     parser.add_argument("--duration", type=float, default=20.0, help="seconds of publishing")
     parser.add_argument("--voxel-size", type=float, default=0.4, help="metres")
-    parser.add_argument("--queue-depth", type=int, default=2)
+    parser.add_argument("--queue-depth", type=int, default=None,
+                        help="default: the node's default (NodeConfig.queue_depth)")
     parser.add_argument("--registration-timeout", type=float, default=30.0,
                         help="0 runs the pipeline in the node's thread (no child process)")
     args = parser.parse_args()
@@ -58,6 +59,10 @@ def main() -> int:
         elif rec.topic == "/source_cloud":
             sources.append(to_rclpy_pointcloud2(rec.msg))
 
+    from cgags_ros.node_config import NodeConfig
+
+    if args.queue_depth is None:
+        args.queue_depth = NodeConfig().queue_depth
     rclpy.init()
     node = RegisterNode(parameter_overrides=[
         Parameter("voxel_size", value=args.voxel_size),

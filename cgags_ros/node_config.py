@@ -31,8 +31,10 @@ class NodeConfig:
         0.05, "synchronized mode: largest |source stamp - target stamp|, seconds.",
         low=0.0, high=3600.0)
     queue_depth: int = option(
-        2, "Pairs waiting for the registration worker; when full the oldest pair is dropped "
-        "(counted in /diagnostics).", low=1, high=1000)
+        1, "Pairs waiting for the registration worker; when full the oldest pair is dropped "
+        "(counted in /diagnostics). 1 gives the lowest latency (a new source waits only "
+        "behind the pair in progress; LiDAR at 10 Hz: p95 ~260 ms vs ~345 ms with 2, same "
+        "throughput); more buffers bursts at the cost of latency.", low=1, high=1000)
     max_waiting_sources: int = option(
         1, "Sources kept while no target (latest_target) or no matching target "
         "(synchronized) has arrived; the oldest is dropped beyond this.", low=1, high=1000)

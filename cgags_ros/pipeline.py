@@ -9,14 +9,23 @@ are 4x4 source->target (``p_target = R p_source + t``), metres.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
+import os
 import threading
 import time
 from collections import OrderedDict
 from typing import Any
 
-import numpy as np
+# Before numpy loads OpenBLAS: short spin of its idle threads (see features.frontend).
+# Where numpy was loaded earlier this is too late: its idle threads then spin ~0.1 s after
+# each threaded call and slow Open3D by ~30 % on 2 cores. So register_clouds keeps BLAS to
+# one thread (via threadpoolctl, when installed) and matches descriptors on _MATCH_WORKERS
+# threads of its own instead, which is also faster than BLAS's threads (argmins included).
+os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "20")
+
+import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree
 from scipy.stats import poisson
 
@@ -105,6 +114,13 @@ def register_clouds(source: np.ndarray, target: np.ndarray, *, voxel_size: float
         InvalidInputError: an array is not (N, 3) numeric. EmptyCloudError: no finite point.
         InvalidConfigError: a configuration value is out of range.
     """
+    guard, workers = _blas_guard()
+    with guard:
+        return _register_clouds(source, target, voxel_size, config, workers)
+
+
+def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float | None,
+                     config: PipelineConfig | None, workers: int) -> PipelineResult:
     start = time.perf_counter()
     cfg = _effective_config(config, voxel_size)
     v = cfg.voxel_size
@@ -121,7 +137,7 @@ def register_clouds(source: np.ndarray, target: np.ndarray, *, voxel_size: float
     if reason:
         return _finish(result, start, reason)
     with timed(result.timings, "matching"):
-        corr = match_features(fs.descriptors, ft.descriptors, cfg.frontend)
+        corr = match_features(fs.descriptors, ft.descriptors, cfg.frontend, workers)
     result.stats.update(num_source_points=len(fs.points), num_target_points=len(ft.points))
     with timed(result.timings, "registration"):
         core = _global_estimate(fs, ft, corr, result.resolution, cfg)
@@ -161,6 +177,27 @@ def warm_up(config: PipelineConfig | None = None) -> PipelineResult:
     c, s = np.cos(0.3), np.sin(0.3)
     R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     return register_clouds(terrain @ R.T + 0.2, terrain, voxel_size=0.15, config=config)
+
+
+_MATCH_WORKERS = max(1, min(4, os.cpu_count() or 1))
+_blas_controller: Any = None
+
+
+def _blas_guard() -> tuple[contextlib.AbstractContextManager, int]:
+    """(context keeping BLAS to one thread, descriptor-matching threads): with threadpoolctl
+    (see the top of this module) one BLAS thread and _MATCH_WORKERS matching threads;
+    without it nothing and 1 (BLAS's own threads match)."""
+    global _blas_controller
+    if _blas_controller is None:
+        try:
+            from threadpoolctl import ThreadpoolController
+        except ImportError:
+            _blas_controller = False
+        else:
+            _blas_controller = ThreadpoolController()  # after numpy/scipy have loaded
+    if _blas_controller is False:
+        return contextlib.nullcontext(), 1
+    return _blas_controller.limit(limits=1, user_api="blas"), _MATCH_WORKERS
 
 
 _CACHE_SIZE = 2  # clouds whose features are kept: a latched target plus one more

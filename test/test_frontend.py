@@ -132,6 +132,19 @@ def test_nearest_rows_blocks_and_second_neighbour():
     D = np.linalg.norm(q[:, None, :] - r[None], axis=2)
     np.testing.assert_array_equal(nearest_rows(q, r, 2), np.argsort(D, axis=1)[:, :2])
     np.testing.assert_array_equal(nearest_rows(r, q, 1)[:, 0], np.argmin(D, axis=0))
+    # rows split over threads (as register_clouds does): the same answer, blocks and all
+    np.testing.assert_array_equal(nearest_rows(q, r, 2, workers=3), np.argsort(D, axis=1)[:, :2])
+    np.testing.assert_array_equal(nearest_rows(r, q, 1, workers=2)[:, 0], np.argmin(D, axis=0))
+
+
+@pytest.mark.parametrize("mutual, ratio", [(True, 1.0), (True, 0.8)])
+def test_threaded_matching_is_identical(bunny, mutual, ratio):
+    fs, ft, _ = bunny
+    cfg = FrontEndConfig(mutual_filter=mutual, ratio_test=ratio)
+    one = match_features(fs.descriptors, ft.descriptors, cfg)
+    two = match_features(fs.descriptors, ft.descriptors, cfg, workers=2)
+    for name in ("source_index", "target_index", "distance"):
+        np.testing.assert_array_equal(getattr(one, name), getattr(two, name))
 
 
 def test_zero_descriptors_never_match():

@@ -34,6 +34,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 
+from cgags_ros.config import PipelineConfig  # noqa: E402
 from cgags_ros.datasets.bag import read_messages  # noqa: E402
 from cgags_ros.errors import InvalidConfigError  # noqa: E402
 from cgags_ros.registration.metrics import rotation_error_deg, translation_error  # noqa: E402
@@ -239,6 +240,54 @@ def test_pose_covariance_reflects_geometry():
     assert sd[:3] == pytest.approx([0.01 / 20] * 3, rel=0.3)  # sigma / sqrt(N)
     assert sd[3] > 1.2 * sd[5] and sd[4] > 1.2 * sd[5]
     assert pose_covariance(src[:2], src[:2], np.eye(4))[0, 0] == 1e6
+
+
+def test_isolated_registration_sends_an_unchanged_target_once(monkeypatch):
+    """The registration process keeps the last target: the same array object is not sent
+    again, a new one is, and after a restart (fresh process) it is sent again. Results equal
+    the pipeline run in this process."""
+    from cgags_ros.pipeline import register_clouds
+    from cgags_ros.ros import node as node_module
+
+    rng = np.random.default_rng(3)  # a terrain patch with three bumps, as in warm_up
+    xy = rng.uniform(-2.0, 2.0, (4000, 2))
+    bumps = ((0.7, 0.5, 0.8, 0.3), (-0.9, -0.2, 0.5, 0.1), (0.1, -1.1, -0.6, 0.5))
+    target = np.c_[xy, sum(h * np.exp(-((xy[:, 0] - x) ** 2 + (xy[:, 1] - y) ** 2) / w)
+                           for x, y, h, w in bumps)]
+    c, s = np.cos(0.2), np.sin(0.2)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    source = target @ R.T + 0.1
+    other = target[::-1].copy()  # same points, another array: must be sent
+    cfg = PipelineConfig(voxel_size=0.15)
+    sent = []
+
+    def spy_on(iso):
+        real = iso._pool.submit
+
+        def spy(fn, src, tgt, **kw):
+            sent.append(tgt is not None)
+            return real(fn, src, tgt, **kw)
+
+        monkeypatch.setattr(iso._pool, "submit", spy)
+
+    iso = node_module._IsolatedRegistration(60.0)
+    try:
+        spy_on(iso)
+        first = iso(source, target, config=cfg)
+        again = iso(source, target, config=cfg)
+        changed = iso(source, other, config=cfg)
+        assert sent == [True, False, True]
+        iso.restart()
+        sent.clear()
+        spy_on(iso)
+        after = iso(source, other, config=cfg)
+        assert sent == [True]
+    finally:
+        iso.close()
+    local = register_clouds(source, target, config=cfg)
+    for result in (first, again, changed, after):
+        assert result.valid, result.reason
+        np.testing.assert_allclose(result.transform, local.transform, atol=1e-6)
 
 
 # ------------------------------------------------------------------------ real pipeline

@@ -9,13 +9,23 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 # Open3D parallelises with OpenMP, whose idle threads spin by default: on a machine where
 # other work holds a core, each of ICP's many short parallel loops then waits for a
 # descheduled thread (measured: ICP 5x slower, up to 0.3 s). Passive waiting costs nothing
 # measurable on an idle machine. Only effective before OpenMP loads; a user's value wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# OpenBLAS (numpy's BLAS) has the same habit: after a threaded call (the descriptor
+# matching's matrix products) its workers spin for 2^28 cycles (~0.1 s), i.e. through the
+# rest of the pair and into the next one's FPFH, and on 2 cores they take the CPU from
+# Open3D (measured on a LiDAR pair: FPFH 68 -> 44 ms, normals 9 -> 6 ms, ICP 20 -> 13 ms
+# with a 2^20-cycle spin, ~0.4 ms). Read when OpenBLAS loads, i.e. only effective if set
+# before numpy is first imported; a user's value wins. (cgags_ros.pipeline also keeps
+# BLAS to one thread during a registration, where threadpoolctl is installed.)
+os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "20")
 
 import numpy as np  # noqa: E402
 import open3d as o3d  # noqa: E402
@@ -141,15 +151,16 @@ def extract_features(points: np.ndarray, voxel_size: float, config: FrontEndConf
     return CloudFeatures(down, normals, descriptors, point_resolution(down))
 
 
-def match_features(source: np.ndarray, target: np.ndarray,
-                   config: FrontEndConfig) -> Correspondences:
+def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfig,
+                   workers: int = 1) -> Correspondences:
     """Nearest neighbours in descriptor space, source -> target, best first.
 
     Keeps only mutual nearest neighbours (``mutual_filter``), then Lowe's ratio test
     (``ratio_test`` < 1), then at most ``max_correspondences`` by descriptor distance.
     Descriptors that are all zero (no neighbours within the FPFH radius) never match:
     they would all be identical and pair up at random. Neighbours are exact (Euclidean,
-    float64); among exactly equidistant descriptors the lowest index wins.
+    float64); among exactly equidistant descriptors the lowest index wins. ``workers``
+    threads share the rows (see :func:`nearest_rows`); the result does not depend on it.
     """
     src_ok = np.flatnonzero(_informative(source))
     dst_ok = np.flatnonzero(_informative(target))
@@ -157,14 +168,14 @@ def match_features(source: np.ndarray, target: np.ndarray,
         return _empty_correspondences()
     src, dst = source[src_ok], target[dst_ok]
     k = 2 if config.ratio_test < 1.0 and len(dst_ok) > 1 else 1
-    nn = nearest_rows(src, dst, k)
+    nn = nearest_rows(src, dst, k, workers)
     dist = np.linalg.norm(src[:, None, :] - dst[nn], axis=2)
     keep = np.ones(len(src_ok), dtype=bool)
     if config.mutual_filter:
         # Only targets that are some source's nearest can pass: ask only them back.
         hit = np.unique(nn[:, 0])
         back = np.full(len(dst), -1)
-        back[hit] = nearest_rows(dst[hit], src, 1)[:, 0]
+        back[hit] = nearest_rows(dst[hit], src, 1, workers)[:, 0]
         keep &= back[nn[:, 0]] == np.arange(len(src_ok))
     if k == 2:
         # Lowe: a match is distinctive when its best distance is clearly below the second.
@@ -172,12 +183,24 @@ def match_features(source: np.ndarray, target: np.ndarray,
     return _best(src_ok[keep], dst_ok[nn[keep, 0]], dist[keep, 0], config.max_correspondences)
 
 
-_BLOCK_ELEMENTS = 1 << 21  # distance-matrix entries per block (16 MB of float64)
+_BLOCK_ELEMENTS = 1 << 18  # distance-matrix entries per block (2 MB of float64: stays in
+# cache while argmin reads it back; 16 MB blocks measured 1.5x slower at 3.6k x 3.6k)
 
 
-def nearest_rows(query: np.ndarray, reference: np.ndarray, k: int = 1) -> np.ndarray:
+_pool: ThreadPoolExecutor | None = None
+_pool_size = 0
+_pool_lock = threading.Lock()
+
+
+def nearest_rows(query: np.ndarray, reference: np.ndarray, k: int = 1,
+                 workers: int = 1) -> np.ndarray:
     """(len(query), k) indices of the ``k`` rows of ``reference`` nearest to each query row
     (Euclidean), nearest first; k is 1 or 2 (``reference`` needs at least k rows).
+
+    ``workers`` > 1 splits the query rows over that many threads (numpy releases the GIL
+    in the products and argmins; rows are independent, so the result is the same). Meant
+    for single-threaded BLAS: with 1 BLAS thread each, 2 threads took 27 ms where 2 BLAS
+    threads took 38 ms (5.1k x 4.9k FPFH, 2 cores), the argmins being parallel too.
 
     Brute force by blocks of one matrix product: ``|q - r|^2 = |q|^2 - 2 q.r + |r|^2``, and
     ``|q|^2`` is constant along a row, so ``[q, 1] @ [-2 r, |r|^2]^T`` ranks the same. For
@@ -186,6 +209,22 @@ def nearest_rows(query: np.ndarray, reference: np.ndarray, k: int = 1) -> np.nda
     duplicates (distance 0, common among sparse FPFH) from near-duplicates: rows whose second
     neighbour is that close are ranked again from the exact differences.
     """
+    step = max(1, _BLOCK_ELEMENTS // max(len(reference), 1))
+    if workers > 1 and len(query) >= 2 * step:
+        global _pool, _pool_size
+        with _pool_lock:
+            if _pool is None or _pool_size < workers:
+                _pool = ThreadPoolExecutor(workers, thread_name_prefix="cgags_match")
+                _pool_size = workers
+            pool = _pool
+        bounds = np.linspace(0, len(query), workers + 1).astype(int)
+        parts = [pool.submit(_nearest_rows, query[a:b], reference, k)
+                 for a, b in zip(bounds[:-1], bounds[1:])]
+        return np.vstack([p.result() for p in parts])
+    return _nearest_rows(query, reference, k)
+
+
+def _nearest_rows(query: np.ndarray, reference: np.ndarray, k: int) -> np.ndarray:
     q = np.hstack([query, np.ones((len(query), 1))])
     norms = np.einsum("ij,ij->i", reference, reference)
     r = np.vstack([-2.0 * reference.T, norms])

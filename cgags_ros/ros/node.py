@@ -33,12 +33,17 @@ registration never blocks reception (the pairer's bounded queue drops the oldest
 from __future__ import annotations
 
 import collections
+import os
 import threading
 import time
 import traceback
 from typing import Any, Callable
 
-import numpy as np
+# Short spin of OpenBLAS's idle threads, set before numpy loads it (see
+# cgags_ros.features.frontend: on 2 cores the default spin slows Open3D by ~30 %).
+os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "20")
+
+import numpy as np  # noqa: E402
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
@@ -135,27 +140,54 @@ class RegistrationTimeout(CgagsError):
     """A registration ran past ``registration_timeout`` and its process was killed."""
 
 
+_child_target: np.ndarray | None = None  # in the registration process: the last target
+
+
+class _TargetNotHeld(Exception):
+    """The registration process holds no target (it was restarted): send it again."""
+
+
+def _register_in_child(source: np.ndarray, target: np.ndarray | None, *,
+                       config: PipelineConfig) -> Any:
+    """``register_clouds`` in the registration process; ``target=None`` reuses the target
+    sent last, so an unchanged (latched) target crosses the pipe once, not every pair."""
+    global _child_target
+    from ..pipeline import register_clouds
+
+    if target is not None:
+        _child_target = target
+    elif _child_target is None:
+        raise _TargetNotHeld()
+    return register_clouds(source, _child_target, config=config)
+
+
 class _IsolatedRegistration:
     """Runs ``register_clouds`` in one spawned child process with a time limit.
 
     A pathological input that makes the pipeline loop (or crash natively) costs one pair:
     the child is killed and a fresh one started. Spawn, not fork: forking a process that
-    runs DDS threads is unsafe. Results and typed errors come back pickled.
+    runs DDS threads is unsafe. Results and typed errors come back pickled. The child keeps
+    the last target: a target that is the same array object as the previous call's is not
+    sent again (the node never writes to a decoded cloud).
     """
 
     def __init__(self, timeout_s: float):
         self.timeout_s = timeout_s
         self._pool: Any = None
         self._closed = False
+        self._sent_target: np.ndarray | None = None  # what the child holds (by identity)
         self._start()
 
     def _start(self) -> None:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        from ..pipeline import register_clouds, warm_up
+        from ..pipeline import warm_up
 
-        self._fn = register_clouds
+        self._fn = _register_in_child
+        self._sent_target = None
+        # The child inherits the environment when it is spawned, before it loads numpy.
+        os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "20")
         self._pool = ProcessPoolExecutor(max_workers=1,
                                          mp_context=multiprocessing.get_context("spawn"))
         # Warm-up: the child imports the pipeline (Open3D) and runs every stage once on a
@@ -174,9 +206,17 @@ class _IsolatedRegistration:
             except Exception:  # noqa: BLE001 - a failed warm-up shows again on the real pair
                 pass
             self._warm = None
-        future = self._pool.submit(self._fn, source, target, config=config)
+        held = target is self._sent_target
+        # Only a completed call proves the child holds this target; after any failure it
+        # is sent again.
+        self._sent_target = None
+        future = self._pool.submit(self._fn, source, None if held else target, config=config)
         try:
-            return future.result(timeout=self.timeout_s)
+            result = future.result(timeout=self.timeout_s)
+            self._sent_target = target
+            return result
+        except _TargetNotHeld:  # not expected (a restart forgets what was sent); resend
+            return self(source, target, config=config)
         except FutureTimeout:
             self.restart()
             raise RegistrationTimeout(
