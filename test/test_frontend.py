@@ -137,6 +137,22 @@ def test_nearest_rows_blocks_and_second_neighbour():
     np.testing.assert_array_equal(nearest_rows(r, q, 1, workers=2)[:, 0], np.argmin(D, axis=0))
 
 
+def test_nearest_row_float32_path_is_exact_on_near_ties():
+    """k = 1 runs in float32 (squared norms ~1e5 like FPFH, rounding ~1e-2): near-duplicate
+    and exactly duplicated reference rows must still be ranked by the exact distance, ties
+    to the lower index."""
+    rng = np.random.default_rng(7)
+    base = rng.uniform(0.0, 200.0, size=(400, 33))
+    r = np.vstack([base,
+                   base[:100] + rng.normal(scale=1e-4, size=(100, 33)),  # near-duplicates
+                   base[100:150]])                                       # exact duplicates
+    q = np.vstack([base[:300] + rng.normal(scale=1e-5, size=(300, 33)),
+                   rng.uniform(0.0, 200.0, size=(300, 33))])
+    D = np.linalg.norm(q[:, None, :] - r[None], axis=2)
+    np.testing.assert_array_equal(nearest_rows(q, r, 1)[:, 0], np.argmin(D, axis=1))
+    np.testing.assert_array_equal(nearest_rows(q, r, 1, workers=2)[:, 0], np.argmin(D, axis=1))
+
+
 @pytest.mark.parametrize("mutual, ratio", [(True, 1.0), (True, 0.8)])
 def test_threaded_matching_is_identical(bunny, mutual, ratio):
     fs, ft, _ = bunny

@@ -190,6 +190,8 @@ def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfi
 
 _BLOCK_ELEMENTS = 1 << 18  # distance-matrix entries per block (2 MB of float64: stays in
 # cache while argmin reads it back; 16 MB blocks measured 1.5x slower at 3.6k x 3.6k)
+_BLOCK_ELEMENTS_F32 = 1 << 20  # float32 entries per block in _nearest_row32 (4 MB; measured
+# 20-25 % faster than 1 MB blocks on 5k x 5k FPFH)
 
 
 _pool: ThreadPoolExecutor | None = None
@@ -201,6 +203,9 @@ def nearest_rows(query: np.ndarray, reference: np.ndarray, k: int = 1,
                  workers: int = 1) -> np.ndarray:
     """(len(query), k) indices of the ``k`` rows of ``reference`` nearest to each query row
     (Euclidean), nearest first; k is 1 or 2 (``reference`` needs at least k rows).
+
+    k = 1 is computed in float32 with an exact float64 decision wherever float32 rounding
+    could change the answer (:func:`_nearest_row32`); k = 2 by the float64 expansion below.
 
     ``workers`` > 1 splits the query rows over that many threads (numpy releases the GIL
     in the products and argmins; rows are independent, so the result is the same). Meant
@@ -223,10 +228,61 @@ def nearest_rows(query: np.ndarray, reference: np.ndarray, k: int = 1,
                 _pool_size = workers
             pool = _pool
         bounds = np.linspace(0, len(query), workers + 1).astype(int)
-        parts = [pool.submit(_nearest_rows, query[a:b], reference, k)
+        parts = [pool.submit(_nearest_rows_any, query[a:b], reference, k)
                  for a, b in zip(bounds[:-1], bounds[1:])]
         return np.vstack([p.result() for p in parts])
-    return _nearest_rows(query, reference, k)
+    return _nearest_rows_any(query, reference, k)
+
+
+def _nearest_rows_any(query: np.ndarray, reference: np.ndarray, k: int) -> np.ndarray:
+    return _nearest_row32(query, reference) if k == 1 else _nearest_rows(query, reference, k)
+
+
+# Bound on |float32 - exact| of one entry of the float32 product in _nearest_row32, relative
+# to |q|^2 + 2 max|r|^2: input rounding plus a 34-term dot product is <= ~37 u (u = 6e-8,
+# 2.2e-6); the factor 1e-5 leaves a 4.5x margin.
+_F32_TOL = 1e-5
+
+
+def _nearest_row32(query: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """``_nearest_rows(query, reference, 1)`` from float32 products, exact.
+
+    The expansion in float32 (descriptors centred on the reference mean, so that the
+    squared norms, hence the rounding, are smaller) halves the product and argmin time
+    (measured 5.1k x 4.9k FPFH: 30 vs 66 ms, 8.6 vs 18 ms). A row whose float32 runner-up
+    is within twice the rounding bound of its minimum (1-8 % of the rows on the bundled
+    clouds: mostly near-duplicate descriptors) is decided by exact float64 distances to
+    every reference row in that window, ties to the lower index; so the answer never
+    depends on float32 rounding, and near-duplicates are ranked more exactly than by the
+    float64 expansion.
+    """
+    centre = reference.mean(axis=0)
+    q, ref = query - centre, reference - centre
+    norms = np.einsum("ij,ij->i", ref, ref)
+    r = np.vstack([-2.0 * ref.T, norms]).astype(np.float32)
+    q32 = np.hstack([q, np.ones((len(q), 1))]).astype(np.float32)
+    tol = 2.0 * _F32_TOL * (np.einsum("ij,ij->i", q, q) + 2.0 * norms.max())
+    out = np.empty(len(query), dtype=np.int64)
+    bound = np.empty(len(query))
+    step = max(1, _BLOCK_ELEMENTS_F32 // len(reference))
+    unsure = []
+    for s in range(0, len(query), step):
+        d = q32[s:s + step] @ r
+        rows = np.arange(len(d))
+        out[s:s + step] = first = d.argmin(axis=1)
+        bound[s:s + step] = d[rows, first] + tol[s:s + step]
+        d[rows, first] = np.inf
+        unsure.append(s + np.flatnonzero(d.min(axis=1) <= bound[s:s + step]))
+    unsure = np.concatenate(unsure)
+    if len(unsure):  # every reference row within the window, then exact distances
+        row, col = np.nonzero(q32[unsure] @ r <= bound[unsure, None])
+        row = unsure[row]
+        dist = np.linalg.norm(query[row] - reference[col], axis=1)
+        order = np.lexsort((col, dist, row))
+        row, col = row[order], col[order]
+        head = np.r_[True, row[1:] != row[:-1]]
+        out[row[head]] = col[head]
+    return out[:, None]
 
 
 def _nearest_rows(query: np.ndarray, reference: np.ndarray, k: int) -> np.ndarray:
