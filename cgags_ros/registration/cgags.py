@@ -27,6 +27,10 @@ from .sampling import (sample_common_vertex, sample_edges, sample_guided,
 from .stopping import compatible_sample_inlier_probability, empirical_inlier_probability, ransac_bound
 
 _MIN_BATCH = 32
+# Mean common-neighbourhood size (share of N) of a batch's candidates above which the
+# pre-screen scores them on all N correspondences instead (LiDAR bag pair, 60 % inliers:
+# core 45 -> 31 ms; at 99 % outliers neighbourhoods are ~1 % of N and stay restricted).
+_DENSE_PRESCREEN = 0.2
 # CSR neighbour lists cost ~N^2 bit scans; build them once ~N^2/2000 triples were drawn
 # (about when rejection sampling would have spent as much).
 _LISTS_BUILD_RATIO = 2000
@@ -238,12 +242,18 @@ class _Search:
             # Two cheap filters before exact scoring: the triple's common-neighbour count
             # (an upper bound on its restricted score), then the restricted score itself.
             cand = np.arange(len(triples))
+            if support is None:
+                support = self.graph.popcount(self.graph.common(*triples.T))
             if len(triples) > 4 * cfg.exact_per_batch:
-                if support is None:
-                    support = self.graph.popcount(self.graph.common(*triples.T))
                 cand = np.argpartition(-support, 4 * cfg.exact_per_batch - 1)[: 4 * cfg.exact_per_batch]
-            pre = score_in_common_neighbourhood(self.graph, self.src, self.dst, R[cand], t[cand],
-                                                triples[cand], self.tau, cfg.score)
+            if support[cand].mean() >= _DENSE_PRESCREEN * self.graph.n:
+                # Common neighbourhoods span much of N: the full residuals (float32, no
+                # gather) are cheaper than the restricted ones, and exactly the score.
+                pre = score_values(residual_matrix(self.src, self.dst, R[cand], t[cand]),
+                                   self.tau, cfg.score).sum(axis=1)
+            else:
+                pre = score_in_common_neighbourhood(self.graph, self.src, self.dst, R[cand],
+                                                    t[cand], triples[cand], self.tau, cfg.score)
             top = cand[np.argpartition(-pre, cfg.exact_per_batch - 1)[: cfg.exact_per_batch]]
             # Triples arrive in random order: the first ones are unselected hypotheses.
             top = np.concatenate([np.arange(_CHANCE_PER_BATCH), top])
