@@ -283,8 +283,8 @@ def _gate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences, result: P
           cfg: PipelineConfig) -> str:
     """Why the final estimate must not be trusted, or '' when it passes every gate."""
     distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
-    align = evaluate_alignment(fs.points, ft.points, result.transform, distance)
-    back = evaluate_alignment(ft.points, fs.points, np.linalg.inv(result.transform), distance)
+    align = evaluate_alignment(fs.points, _tree(ft), result.transform, distance)
+    back = evaluate_alignment(ft.points, _tree(fs), np.linalg.inv(result.transform), distance)
     result.fitness, result.inlier_rmse = align.fitness, align.inlier_rmse
     result.overlap = min(align.fitness, back.fitness)
     result.chance_inliers = chance_inliers(fs.points[corr.source_index],
@@ -294,6 +294,10 @@ def _gate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences, result: P
     return (_significance_reason(result, cfg.refine.significance)
             or _observability_reason(result, cfg.refine.min_observability)
             or _fitness_reason(result, cfg.refine.min_fitness, distance))
+
+
+def _tree(features: CloudFeatures) -> cKDTree:
+    return features.tree if features.tree is not None else cKDTree(features.points)
 
 
 def chance_inliers(src: np.ndarray, dst: np.ndarray, transform: np.ndarray, tau: float) -> float:

@@ -44,6 +44,13 @@ class RefineConfig:
     max_correspondence_distance_factor: float = option(
         1.5, "Refinement correspondence distance in voxel sizes.", low=0.01, high=100.0)
     max_iterations: int = option(50, "Refinement iterations.", low=1, high=10000)
+    coarse_stage_tolerance: float = option(
+        1e-4, "When the core's inlier threshold exceeds the refinement distance, a first "
+        "refinement stage runs at that threshold; it stops once fitness and inlier RMSE "
+        "change by less than this (relative). It only has to bring the estimate within the "
+        "final distance: 1e-4 gave the same final errors as 1e-6 on the bundled pairs "
+        "(<= 0.005 deg, 0.8 mm) in a third of the time on indoor pairs. The final stage "
+        "keeps Open3D's 1e-6.", low=0.0, high=1.0)
     min_fitness: float = option(
         0.0, "After refinement, a fitness (share of source points with a target point within "
         "the refinement distance) below this marks the result invalid. 0 disables.",

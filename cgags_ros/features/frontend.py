@@ -41,15 +41,17 @@ class CloudFeatures:
 
     Attributes:
         points: (M, 3) voxel centroids, metres.
-        normals: (M, 3) unit normals (sign arbitrary: PCA gives no orientation).
+        normals: (M, 3) unit normals, oriented per ``FrontEndConfig.normal_orientation``.
         descriptors: (M, 33) FPFH histograms.
         resolution: pr, the mean nearest-neighbour distance of ``points``, metres.
+        tree: k-d tree over ``points`` (built for ``resolution``, reused by the gates).
     """
 
     points: np.ndarray
     normals: np.ndarray
     descriptors: np.ndarray
     resolution: float
+    tree: cKDTree | None = None
 
 
 @dataclasses.dataclass
@@ -134,11 +136,12 @@ def compute_fpfh(points: np.ndarray, normals: np.ndarray, voxel_size: float,
     return feature.numpy().astype(np.float64, copy=False)
 
 
-def point_resolution(points: np.ndarray) -> float:
-    """pr: mean distance from each point to its nearest other point, metres."""
+def point_resolution(points: np.ndarray, tree: cKDTree | None = None) -> float:
+    """pr: mean distance from each point to its nearest other point, metres (``tree``: a
+    k-d tree over ``points`` if one exists)."""
     if len(points) < 2:
         return 0.0
-    d, _ = cKDTree(points).query(points, k=2)
+    d, _ = (tree if tree is not None else cKDTree(points)).query(points, k=2)
     return float(np.mean(d[:, 1]))
 
 
@@ -153,7 +156,8 @@ def extract_features(points: np.ndarray, voxel_size: float, config: FrontEndConf
         normals = estimate_normals(down, voxel_size, config)
     with timed(timings, "fpfh"):
         descriptors = compute_fpfh(down, normals, voxel_size, config)
-    return CloudFeatures(down, normals, descriptors, point_resolution(down))
+    tree = cKDTree(down)
+    return CloudFeatures(down, normals, descriptors, point_resolution(down, tree), tree)
 
 
 def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfig,

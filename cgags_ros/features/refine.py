@@ -59,7 +59,8 @@ def refine_transform(source: np.ndarray, target: np.ndarray, initial: np.ndarray
     The final stage matches points within ``max_correspondence_distance_factor * v``. When
     ``coarse_distance`` (metres, typically the core's inlier threshold tau: the coarse
     estimate is only good to about tau) is larger, a first stage runs with it, so that an
-    estimate off by more than the final distance still converges.
+    estimate off by more than the final distance still converges; point-to-plane's first
+    stage stops at ``config.coarse_stage_tolerance`` (GICP runs both stages in full).
     ``config.method == 'none'`` returns ``initial`` unchanged.
     """
     final = config.max_correspondence_distance_factor * voxel_size
@@ -67,8 +68,10 @@ def refine_transform(source: np.ndarray, target: np.ndarray, initial: np.ndarray
                                                                             final]
     T = np.asarray(initial, dtype=np.float64)
     for distance in stages:
+        tolerance = config.coarse_stage_tolerance if distance > final else 1e-6
         if config.method == "point_to_plane":
-            T = _point_to_plane(source, target, target_normals, T, distance, voxel_size, config)
+            T = _point_to_plane(source, target, target_normals, T, distance, voxel_size, config,
+                                tolerance)
         elif config.method == "gicp":
             T = _gicp(source, target, T, distance, voxel_size, config)
     return T
@@ -76,7 +79,7 @@ def refine_transform(source: np.ndarray, target: np.ndarray, initial: np.ndarray
 
 def _point_to_plane(source: np.ndarray, target: np.ndarray, target_normals: np.ndarray | None,
                     initial: np.ndarray, distance: float, voxel_size: float,
-                    config: RefineConfig) -> np.ndarray:
+                    config: RefineConfig, tolerance: float = 1e-6) -> np.ndarray:
     reg = o3d.pipelines.registration
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source))
     dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target))
@@ -87,7 +90,8 @@ def _point_to_plane(source: np.ndarray, target: np.ndarray, target_normals: np.n
         dst.normals = o3d.utility.Vector3dVector(target_normals)
     result = reg.registration_icp(
         src, dst, distance, initial, reg.TransformationEstimationPointToPlane(),
-        reg.ICPConvergenceCriteria(max_iteration=config.max_iterations))
+        reg.ICPConvergenceCriteria(relative_fitness=tolerance, relative_rmse=tolerance,
+                                   max_iteration=config.max_iterations))
     return np.asarray(result.transformation).copy()
 
 
