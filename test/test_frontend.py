@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
 from cgags_ros.datasets.gt_pairs import find_pair
@@ -85,7 +86,7 @@ def test_ratio_test_and_cap_keep_the_best(bunny):
 def _reference_matches(a, b, mutual, ratio):
     """match_features by definition, from the full exact distance matrix (no zero rows),
     and the source rows whose nearest target is tied (any of the tied ones is right)."""
-    D = np.linalg.norm(a[:, None, :] - b[None], axis=2)
+    D = cdist(a, b)
     order = np.argsort(D, axis=1, kind="stable")
     rows = np.arange(len(a))
     nn, d0, d1 = order[:, 0], D[rows, order[:, 0]], D[rows, order[:, 1]]
@@ -119,7 +120,7 @@ def test_matches_equal_exact_brute_force(mutual, ratio):
         assert pairs == expected and not any(i in tied for i, _ in pairs)
     else:
         assert {p for p in pairs if p[0] not in tied} == {p for p in expected if p[0] not in tied}
-        D = np.linalg.norm(a[:, None, :] - b[None], axis=2)
+        D = cdist(a, b)
         assert all(D[i, j] <= D[i].min() + 1e-9 for i, j in pairs if i in tied)
     np.testing.assert_allclose(got.distance, np.linalg.norm(
         a[got.source_index] - b[got.target_index], axis=1))
@@ -129,7 +130,7 @@ def test_matches_equal_exact_brute_force(mutual, ratio):
 def test_nearest_rows_blocks_and_second_neighbour():
     rng = np.random.default_rng(4)
     q, r = rng.normal(size=(1000, 33)), rng.normal(size=(3000, 33))
-    D = np.linalg.norm(q[:, None, :] - r[None], axis=2)
+    D = cdist(q, r)
     np.testing.assert_array_equal(nearest_rows(q, r, 2), np.argsort(D, axis=1)[:, :2])
     np.testing.assert_array_equal(nearest_rows(r, q, 1)[:, 0], np.argmin(D, axis=0))
     # rows split over threads (as register_clouds does): the same answer, blocks and all
@@ -148,9 +149,12 @@ def test_nearest_row_float32_path_is_exact_on_near_ties():
                    base[100:150]])                                       # exact duplicates
     q = np.vstack([base[:300] + rng.normal(scale=1e-5, size=(300, 33)),
                    rng.uniform(0.0, 200.0, size=(300, 33))])
-    D = np.linalg.norm(q[:, None, :] - r[None], axis=2)
+    D = cdist(q, r)
     np.testing.assert_array_equal(nearest_rows(q, r, 1)[:, 0], np.argmin(D, axis=1))
     np.testing.assert_array_equal(nearest_rows(q, r, 1, workers=2)[:, 0], np.argmin(D, axis=1))
+    # all descriptors identical (every row ties with every row): lowest index, bounded memory
+    same = np.full((3000, 33), 60.0)
+    np.testing.assert_array_equal(nearest_rows(same, same, 1)[:, 0], np.zeros(3000))
 
 
 @pytest.mark.parametrize("mutual, ratio", [(True, 1.0), (True, 0.8)])
