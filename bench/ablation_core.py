@@ -21,8 +21,8 @@ from cgags_ros.registration import (CoreConfig, register_correspondences, rotati
 
 VARIANTS: dict[str, dict] = {
     "paper-literal (uniform edge, uniform vertex, kernel seeds, after_b)": dict(
-        edge_sampling="uniform", vertex_sampling="uniform", guided_seed="kernel",
-        guided_start="after_b_hypotheses", stage_one_estimate="analytic"),
+        compatibility="binary", edge_sampling="uniform", vertex_sampling="uniform",
+        guided_seed="kernel", guided_start="after_b_hypotheses", stage_one_estimate="analytic"),
     "uniform edge + uniform vertex": dict(edge_sampling="uniform", vertex_sampling="uniform"),
     "uniform edge + tournament vertex": dict(edge_sampling="uniform", vertex_sampling="tournament"),
     "tournament edge + uniform vertex": dict(edge_sampling="tournament", vertex_sampling="uniform"),
@@ -31,7 +31,7 @@ VARIANTS: dict[str, dict] = {
     "default, no guided sampling": dict(guided_sampling=False),
     "default, guided seeds from kernel": dict(guided_seed="kernel"),
     "default, guided from b hypotheses": dict(guided_start="after_b_hypotheses"),
-    "default, soft compatibility": dict(compatibility="soft"),
+    "default, binary compatibility": dict(compatibility="binary"),
     "default, vertex by degree": dict(vertex_sampling="degree"),
     "default, max_up = best updates": dict(max_up_mode="best_updates"),
     "default, max_up = local re-fits": dict(max_up_mode="local_refits"),

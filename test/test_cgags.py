@@ -82,7 +82,7 @@ def test_result_reports_stages(bunny):
     dict(edge_sampling="uniform", vertex_sampling="uniform"),
     dict(guided_sampling=False),
     dict(guided_seed="kernel", guided_start="after_b_hypotheses"),
-    dict(compatibility="soft", vertex_sampling="degree"),
+    dict(compatibility="binary", vertex_sampling="degree"),
     dict(max_up_mode="local_refits", score="truncated", prescreen=False),
     dict(max_up_mode="best_updates", refit="once", stage_one_estimate="analytic"),
     dict(stopping="fixed", max_iterations=3000),

@@ -378,7 +378,7 @@ def test_separate_process_synchronized_lidar_then_sigterm(ros, data_dir, tmp_pat
         # a live parameter change over the parameter service: invalid refused, valid taken
         client = io.node.create_client(SetParameters, "/register_node/set_parameters")
         assert client.wait_for_service(timeout_sec=10)
-        for value, ok in [("bogus", False), ("soft", True)]:
+        for value, ok in [("bogus", False), ("binary", True)]:
             req = SetParameters.Request(parameters=[
                 Parameter("core.compatibility", value=value).to_parameter_msg()])
             future = client.call_async(req)

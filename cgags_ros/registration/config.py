@@ -26,8 +26,10 @@ class CoreConfig:
 
     # --- compatibility graph (INFERRED) --------------------------------------------------
     compatibility: str = option(
-        "binary", "INFERRED. 'binary': edge when | |p_i-p_j| - |q_i-q_j| | < delta. 'soft': "
-        "same edges, sampled with weight 1 - (d_ij/delta)^2.",
+        "soft", "INFERRED. 'binary': edge when | |p_i-p_j| - |q_i-q_j| | < delta, edges "
+        "drawn uniformly. 'soft': same edges, drawn with weight 1 - (d_ij/delta)^2 (chosen "
+        "by docs/ablation.md: 197 vs 193 of 200 at 99 % outliers, N = 1000; equal "
+        "elsewhere and on the bags).",
         choices=("binary", "soft"))
     min_pair_distance_factor: float = option(
         0.0, "INFERRED. Drop graph edges whose source pair is closer than this many tau "
