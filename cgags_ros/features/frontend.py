@@ -284,13 +284,8 @@ def _nearest_row32(query: np.ndarray, reference: np.ndarray) -> np.ndarray:
     chunk = max(1, _EXACT_PAIRS // len(reference))
     for c in range(0, len(unsure), chunk):
         rows = unsure[c:c + chunk]
-        row, col = np.nonzero(q32[rows] @ r <= bound[rows, None])
-        row = rows[row]
-        dist = np.linalg.norm(query[row] - reference[col], axis=1)
-        order = np.lexsort((col, dist, row))
-        row, col = row[order], col[order]
-        head = np.r_[True, row[1:] != row[:-1]]
-        out[row[head]] = col[head]
+        out[rows] = _exact_nearest(query[rows], reference, q32[rows] @ r <= bound[rows, None],
+                                   1)[:, 0]
     return out[:, None]
 
 
@@ -313,20 +308,22 @@ def _nearest_rows(query: np.ndarray, reference: np.ndarray, k: int) -> np.ndarra
             tol = 1e-9 * (qq + norms.max())
             unsure = np.flatnonzero(qq + d[rows, second] <= tol)
             if len(unsure):
-                out[s + unsure] = _exact_two(query[s + unsure], reference,
-                                             d[unsure] + qq[unsure, None] <= 2 * tol[unsure, None])
+                out[s + unsure] = _exact_nearest(
+                    query[s + unsure], reference,
+                    d[unsure] + qq[unsure, None] <= 2 * tol[unsure, None], 2)
     return out
 
 
-def _exact_two(query: np.ndarray, reference: np.ndarray, candidates: np.ndarray) -> np.ndarray:
-    """Two nearest among the ``candidates`` mask (rows x reference), exact distances, ties
-    to the lower index."""
+def _exact_nearest(query: np.ndarray, reference: np.ndarray, candidates: np.ndarray,
+                   k: int) -> np.ndarray:
+    """(len(query), k): the k nearest among the ``candidates`` mask (rows x reference; every
+    row holds at least k), exact distances, ties to the lower index."""
     row, col = np.nonzero(candidates)
     dist = np.linalg.norm(query[row] - reference[col], axis=1)
     order = np.lexsort((col, dist, row))
     row, col = row[order], col[order]
     start = np.searchsorted(row, np.arange(len(query)))
-    return np.stack([col[start], col[start + 1]], axis=1)
+    return np.stack([col[start + i] for i in range(k)], axis=1)
 
 
 def _informative(descriptors: np.ndarray) -> np.ndarray:
