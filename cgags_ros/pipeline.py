@@ -18,12 +18,7 @@ import time
 from collections import OrderedDict
 from typing import Any
 
-# Before numpy loads OpenBLAS: short spin of its idle threads (see features.frontend).
-# Where numpy was loaded earlier this is too late: its idle threads then spin ~0.1 s after
-# each threaded call and slow Open3D by ~30 % on 2 cores. So register_clouds keeps BLAS to
-# one thread (via threadpoolctl, when installed) and matches descriptors on _MATCH_WORKERS
-# threads of its own instead, which is also faster than BLAS's threads (argmins included).
-os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "20")
+from .features import thread_env  # noqa: F401  (before numpy loads OpenBLAS)
 
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree
@@ -185,8 +180,9 @@ _blas_controller: Any = None
 
 def _blas_guard() -> tuple[contextlib.AbstractContextManager, int]:
     """(context keeping BLAS to one thread, descriptor-matching threads): with threadpoolctl
-    (see the top of this module) one BLAS thread and _MATCH_WORKERS matching threads;
-    without it nothing and 1 (BLAS's own threads match)."""
+    one BLAS thread and _MATCH_WORKERS matching threads (own threads match faster than
+    BLAS's, argmins included, and idle BLAS workers cannot spin into Open3D's time; see
+    features.thread_env); without it nothing and 1 (BLAS's own threads match)."""
     global _blas_controller
     if _blas_controller is None:
         try:

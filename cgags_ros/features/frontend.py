@@ -8,24 +8,11 @@ numpy at every boundary; each cloud stays in its own frame (nothing is transform
 from __future__ import annotations
 
 import dataclasses
-import os
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
-# Open3D parallelises with OpenMP, whose idle threads spin by default: on a machine where
-# other work holds a core, each of ICP's many short parallel loops then waits for a
-# descheduled thread (measured: ICP 5x slower, up to 0.3 s). Passive waiting costs nothing
-# measurable on an idle machine. Only effective before OpenMP loads; a user's value wins.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-# OpenBLAS (numpy's BLAS) has the same habit: after a threaded call (the descriptor
-# matching's matrix products) its workers spin for 2^28 cycles (~0.1 s), i.e. through the
-# rest of the pair and into the next one's FPFH, and on 2 cores they take the CPU from
-# Open3D (measured on a LiDAR pair: FPFH 68 -> 44 ms, normals 9 -> 6 ms, ICP 20 -> 13 ms
-# with a 2^20-cycle spin, ~0.4 ms). Read when OpenBLAS loads, i.e. only effective if set
-# before numpy is first imported; a user's value wins. (cgags_ros.pipeline also keeps
-# BLAS to one thread during a registration, where threadpoolctl is installed.)
-os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "20")
+from . import thread_env  # noqa: F401  (before numpy and Open3D load)
 
 import numpy as np  # noqa: E402
 import open3d as o3d  # noqa: E402

@@ -33,15 +33,12 @@ registration never blocks reception (the pairer's bounded queue drops the oldest
 from __future__ import annotations
 
 import collections
-import os
 import threading
 import time
 import traceback
 from typing import Any, Callable
 
-# Short spin of OpenBLAS's idle threads, set before numpy loads it (see
-# cgags_ros.features.frontend: on 2 cores the default spin slows Open3D by ~30 %).
-os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "20")
+from ..features import thread_env  # noqa: F401  (before numpy loads OpenBLAS)
 
 import numpy as np  # noqa: E402
 import rclpy
@@ -186,8 +183,6 @@ class _IsolatedRegistration:
 
         self._fn = _register_in_child
         self._sent_target = None
-        # The child inherits the environment when it is spawned, before it loads numpy.
-        os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "20")
         self._pool = ProcessPoolExecutor(max_workers=1,
                                          mp_context=multiprocessing.get_context("spawn"))
         # Warm-up: the child imports the pipeline (Open3D) and runs every stage once on a
