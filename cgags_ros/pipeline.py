@@ -26,6 +26,7 @@ from scipy.stats import poisson
 
 from . import configutil
 from .config import PipelineConfig
+from .datasets.synthetic import terrain_patch
 from .errors import DegenerateCorrespondencesError, EmptyCloudError
 from .features.config import FrontEndConfig
 from .features.frontend import (CloudFeatures, Correspondences, extract_features,
@@ -163,12 +164,7 @@ def warm_up(config: PipelineConfig | None = None) -> PipelineResult:
     Returns the result (valid, refined unless ``refine.method`` is 'none') of registering a
     4 m terrain patch with three bumps (0.15 m voxels) onto itself rotated by 17 degrees.
     """
-    rng = np.random.default_rng(0)
-    xy = rng.uniform(-2.0, 2.0, (4000, 2))
-    bumps = ((0.7, 0.5, 0.8, 0.3), (-0.9, -0.2, 0.5, 0.1), (0.1, -1.1, -0.6, 0.5))
-    z = sum(h * np.exp(-((xy[:, 0] - x) ** 2 + (xy[:, 1] - y) ** 2) / w)
-            for x, y, h, w in bumps)
-    terrain = np.c_[xy, z]
+    terrain = terrain_patch(np.random.default_rng(0))
     c, s = np.cos(0.3), np.sin(0.3)
     R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     return register_clouds(terrain @ R.T + 0.2, terrain, voxel_size=0.15, config=config)
@@ -279,8 +275,8 @@ def _gate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences, result: P
           cfg: PipelineConfig) -> str:
     """Why the final estimate must not be trusted, or '' when it passes every gate."""
     distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
-    align = evaluate_alignment(fs.points, _tree(ft), result.transform, distance)
-    back = evaluate_alignment(ft.points, _tree(fs), np.linalg.inv(result.transform), distance)
+    align = evaluate_alignment(fs.points, ft.tree, result.transform, distance)
+    back = evaluate_alignment(ft.points, fs.tree, np.linalg.inv(result.transform), distance)
     result.fitness, result.inlier_rmse = align.fitness, align.inlier_rmse
     result.overlap = min(align.fitness, back.fitness)
     result.chance_inliers = chance_inliers(fs.points[corr.source_index],
@@ -290,10 +286,6 @@ def _gate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences, result: P
     return (_significance_reason(result, cfg.refine.significance)
             or _observability_reason(result, cfg.refine.min_observability)
             or _fitness_reason(result, cfg.refine.min_fitness, distance))
-
-
-def _tree(features: CloudFeatures) -> cKDTree:
-    return features.tree if features.tree is not None else cKDTree(features.points)
 
 
 def chance_inliers(src: np.ndarray, dst: np.ndarray, transform: np.ndarray, tau: float) -> float:

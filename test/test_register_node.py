@@ -36,6 +36,7 @@ from std_msgs.msg import Header  # noqa: E402
 
 from cgags_ros.config import PipelineConfig  # noqa: E402
 from cgags_ros.datasets.bag import read_messages  # noqa: E402
+from cgags_ros.datasets.synthetic import terrain_patch  # noqa: E402
 from cgags_ros.errors import InvalidConfigError  # noqa: E402
 from cgags_ros.registration.metrics import rotation_error_deg, translation_error  # noqa: E402
 from cgags_ros.registration.result import RegistrationResult  # noqa: E402
@@ -249,11 +250,7 @@ def test_isolated_registration_sends_an_unchanged_target_once(monkeypatch):
     from cgags_ros.pipeline import register_clouds
     from cgags_ros.ros import node as node_module
 
-    rng = np.random.default_rng(3)  # a terrain patch with three bumps, as in warm_up
-    xy = rng.uniform(-2.0, 2.0, (4000, 2))
-    bumps = ((0.7, 0.5, 0.8, 0.3), (-0.9, -0.2, 0.5, 0.1), (0.1, -1.1, -0.6, 0.5))
-    target = np.c_[xy, sum(h * np.exp(-((xy[:, 0] - x) ** 2 + (xy[:, 1] - y) ** 2) / w)
-                           for x, y, h, w in bumps)]
+    target = terrain_patch(np.random.default_rng(3))
     c, s = np.cos(0.2), np.sin(0.2)
     R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     source = target @ R.T + 0.1

@@ -72,6 +72,16 @@ def mean_nn_distance(points: np.ndarray) -> float:
     return float(np.mean(d[:, 1]))
 
 
+def terrain_patch(rng: np.random.Generator, n: int = 4000) -> np.ndarray:
+    """(n, 3) points of a 4 m x 4 m terrain patch with three Gaussian bumps (metres): enough
+    relief for FPFH and a fully constrained rigid fit (``pipeline.warm_up``, node tests)."""
+    xy = rng.uniform(-2.0, 2.0, (n, 2))
+    bumps = ((0.7, 0.5, 0.8, 0.3), (-0.9, -0.2, 0.5, 0.1), (0.1, -1.1, -0.6, 0.5))
+    z = sum(h * np.exp(-((xy[:, 0] - x) ** 2 + (xy[:, 1] - y) ** 2) / w)
+            for x, y, h, w in bumps)
+    return np.c_[xy, z]
+
+
 def random_transform(rng: np.random.Generator, max_translation: float = 1.0) -> np.ndarray:
     """Uniformly random rotation (any angle) and a translation in [-t, t]^3."""
     T = np.eye(4)

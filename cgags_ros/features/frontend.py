@@ -38,7 +38,7 @@ class CloudFeatures:
     normals: np.ndarray
     descriptors: np.ndarray
     resolution: float
-    tree: cKDTree | None = None
+    tree: cKDTree
 
 
 @dataclasses.dataclass
