@@ -2,8 +2,9 @@ import numpy as np
 import pytest
 
 from cgags_ros.registration.compatibility import CompatibilityGraph
+from cgags_ros.registration.compatibility import length_consistency
 from cgags_ros.registration.sampling import (sample_common_vertex, sample_edges, sample_guided,
-                                             tournament, weighted_choice_rows)
+                                             soft_edge_weights, tournament, weighted_choice_rows)
 
 
 def _graph(dense: np.ndarray) -> CompatibilityGraph:
@@ -33,6 +34,29 @@ def test_edges_are_edges_and_uniform_over_E(lists):
     assert abs(counts.mean() - expected) < 1e-9 + 0.01 * expected
     assert counts.std() < 4 * np.sqrt(expected)  # binomial spread, no systematic bias
     assert counts.min() > 0
+
+
+@pytest.mark.parametrize("path", ["rejection", "lists", "lists_with_weights"])
+def test_soft_edges_are_drawn_in_proportion_to_their_weight(path):
+    g = _random_graph(n=40, p=0.3, seed=7)
+    dense = g.rows(np.arange(g.n))
+    rng = np.random.default_rng(8)
+    src, dst = rng.random((g.n, 3)), rng.random((g.n, 3))
+    a, b = np.nonzero(np.triu(dense))
+    delta = 1.01 * length_consistency(src, dst, a, b).max()  # every edge keeps some weight
+    csr = None if path == "rejection" else g.neighbour_lists()
+    weights = soft_edge_weights(csr, src, dst, delta) if path == "lists_with_weights" else None
+    draws = 300000
+    i, j = sample_edges(g, rng, draws, src=src, dst=dst, delta=delta, soft=True, csr=csr,
+                        csr_weights=weights)
+    assert len(i) == draws and dense[i, j].all()
+    key = np.minimum(i, j) * g.n + np.maximum(i, j)
+    counts = np.bincount(key, minlength=g.n * g.n)[a * g.n + b]
+    w = 1.0 - (length_consistency(src, dst, a, b) / delta) ** 2
+    expected = draws * w / w.sum()
+    # chi-square-like check: each edge within 5 binomial sigmas, no systematic tilt
+    assert np.all(np.abs(counts - expected) < 5 * np.sqrt(expected) + 5)
+    assert np.corrcoef(counts, expected)[0, 1] > 0.98
 
 
 def test_sparse_rows_use_the_exact_fallback():

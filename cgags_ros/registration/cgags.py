@@ -23,7 +23,8 @@ from .preference import PreferenceLists
 from .result import RegistrationResult
 from .rigid import to_matrix
 from .sampling import (sample_common_vertex, sample_edges, sample_guided,
-                       sample_vertex_tournament, tournament, triangle_areas)
+                       sample_vertex_tournament, soft_edge_weights, tournament,
+                       triangle_areas)
 from .stopping import compatible_sample_inlier_probability, empirical_inlier_probability, ransac_bound
 
 _MIN_BATCH = 32
@@ -143,6 +144,7 @@ class _Search:
         self.num_exact = 0
         self.start = time.perf_counter()
         self.top_models: list[tuple[int, np.ndarray]] = []
+        self.csr_weights: np.ndarray | None = None  # soft edge weights over neighbour lists
         self.stats = {"compatible_samples": 0, "guided_samples": 0, "rejected_collinear": 0,
                       "empty_common_neighbourhood": 0, "kernel_refreshes": 0,
                       "best_updates": 0, "stage_one_bound": float("inf"),
@@ -202,8 +204,14 @@ class _Search:
         # once the search turns out to be long.
         long_search = self.num_drawn > max(256, self.graph.n ** 2 // _LISTS_BUILD_RATIO)
         csr = self.graph.neighbour_lists() if long_search else None
+        soft = cfg.compatibility == "soft"
+        # Soft weights of all neighbour-list entries cost about as much as weighing
+        # 2|E| proposals: precompute them once the search has weighed that many.
+        if (csr is not None and soft and self.csr_weights is None
+                and self.num_drawn * s >= len(csr[1])):
+            self.csr_weights = soft_edge_weights(csr, self.src, self.dst, self.delta)
         i, j = sample_edges(self.graph, self.rng, count * s, src=self.src, dst=self.dst,
-                            delta=self.delta, soft=cfg.compatibility == "soft", csr=csr)
+                            delta=self.delta, soft=soft, csr=csr, csr_weights=self.csr_weights)
         if s > 1:
             i, j = tournament(self.graph, (i, j), count, s)
         if cfg.vertex_sampling == "tournament":
@@ -236,28 +244,34 @@ class _Search:
         if len(triples) == 0:
             return False
         cfg = self.cfg
-        R, t = fit_triples(self.src, self.dst, *triples.T)
         self.num_hypotheses += len(triples)
         if cfg.prescreen and len(triples) > cfg.exact_per_batch:
             # Two cheap filters before exact scoring: the triple's common-neighbour count
             # (an upper bound on its restricted score), then the restricted score itself.
+            # Only the triples that pass the first filter are fitted (the others' transforms
+            # would never be used), plus the first _CHANCE_PER_BATCH: triples arrive in
+            # random order, so these are unselected hypotheses (the chance level).
             cand = np.arange(len(triples))
             if support is None:
                 support = self.graph.popcount(self.graph.common(*triples.T))
             if len(triples) > 4 * cfg.exact_per_batch:
                 cand = np.argpartition(-support, 4 * cfg.exact_per_batch - 1)[: 4 * cfg.exact_per_batch]
+            fitted = np.concatenate([np.arange(_CHANCE_PER_BATCH), cand])
+            R, t = fit_triples(self.src, self.dst, *triples[fitted].T)
+            Rc, tc = R[_CHANCE_PER_BATCH:], t[_CHANCE_PER_BATCH:]
             if support[cand].mean() >= _DENSE_PRESCREEN * self.graph.n:
                 # Common neighbourhoods span much of N: the full residuals (float32, no
                 # gather) are cheaper than the restricted ones, and exactly the score.
-                pre = score_values(residual_matrix(self.src, self.dst, R[cand], t[cand]),
+                pre = score_values(residual_matrix(self.src, self.dst, Rc, tc),
                                    self.tau, cfg.score).sum(axis=1)
             else:
-                pre = score_in_common_neighbourhood(self.graph, self.src, self.dst, R[cand],
-                                                    t[cand], triples[cand], self.tau, cfg.score)
-            top = cand[np.argpartition(-pre, cfg.exact_per_batch - 1)[: cfg.exact_per_batch]]
-            # Triples arrive in random order: the first ones are unselected hypotheses.
-            top = np.concatenate([np.arange(_CHANCE_PER_BATCH), top])
+                pre = score_in_common_neighbourhood(self.graph, self.src, self.dst, Rc, tc,
+                                                    triples[cand], self.tau, cfg.score)
+            top = np.argpartition(-pre, cfg.exact_per_batch - 1)[: cfg.exact_per_batch]
+            top = np.concatenate([np.arange(_CHANCE_PER_BATCH), _CHANCE_PER_BATCH + top])
             R, t = R[top], t[top]
+        else:
+            R, t = fit_triples(self.src, self.dst, *triples.T)
         res = residual_matrix(self.src, self.dst, R, t)
         # Random hypotheses' inlier counts measure the chance consensus level.
         self.chance_counts.extend(np.maximum((res[:_CHANCE_PER_BATCH] <= self.tau).sum(axis=1) - 3, 0))

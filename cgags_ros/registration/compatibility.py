@@ -94,9 +94,9 @@ class CompatibilityGraph:
 def length_consistency(src: np.ndarray, dst: np.ndarray, i: np.ndarray,
                        j: np.ndarray) -> np.ndarray:
     """d_ij = | ||p_i - p_j|| - ||q_i - q_j|| | for index arrays i, j (any shape)."""
-    dp = np.linalg.norm(src[i] - src[j], axis=-1)
-    dq = np.linalg.norm(dst[i] - dst[j], axis=-1)
-    return np.abs(dp - dq)
+    a = src[i] - src[j]
+    b = dst[i] - dst[j]
+    return np.abs(np.sqrt(np.einsum("...k,...k->...", a, a)) - np.sqrt(np.einsum("...k,...k->...", b, b)))
 
 
 def _expansion_factors(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -45,33 +45,50 @@ def _uniform_member(rows_packed: np.ndarray, n: int, rng: np.random.Generator,
 def sample_edges(graph: CompatibilityGraph, rng: np.random.Generator, count: int, *,
                  src: np.ndarray, dst: np.ndarray, delta: float, soft: bool,
                  csr: tuple[np.ndarray, np.ndarray] | None = None,
+                 csr_weights: np.ndarray | None = None,
                  tries: int = 24) -> tuple[np.ndarray, np.ndarray]:
     """Draw ``count`` edges (i, j) uniformly from E (graph edge sampling).
 
     Uniform over edges equals: i with probability deg(i) / 2|E|, then j uniform in N(i).
     j is found by rejection (cheap when the graph is dense), with an exact fallback for the
-    rows where all tries missed. With ``soft`` compatibility an edge is kept with
-    probability 1 - (d_ij / delta)^2, so nearly-incompatible edges are drawn less often.
+    rows where all tries missed; with the neighbour lists ``csr``, an entry is drawn
+    directly. With ``soft`` compatibility a uniform edge is accepted with probability
+    1 - (d_ij / delta)^2 (``csr_weights``: these values per neighbour-list entry, from
+    :func:`soft_edge_weights`), so edges are drawn in proportion to it.
     """
     i = np.empty(count, dtype=np.int64)
     j = np.empty(count, dtype=np.int64)
     filled = 0
     while filled < count:  # more than one round only with soft compatibility
         need = count - filled
+        # Soft acceptance averages ~2/3: propose enough that one round usually suffices
+        # (accepted proposals are i.i.d. from the soft distribution; the surplus is cut).
+        draw = need if not soft else int(1.55 * need) + 16
         if csr is not None:  # uniform over directed adjacency entries = uniform over E
-            e = rng.integers(0, len(csr[1]), need)
+            e = rng.integers(0, len(csr[1]), draw)
             ii = np.searchsorted(csr[0], e, side="right") - 1
             jj = csr[1][e].astype(np.int64)
         else:
-            ii, jj = _edges_by_rejection(graph, rng, need, tries)
+            ii, jj = _edges_by_rejection(graph, rng, draw, tries)
         if soft:
-            d = length_consistency(src, dst, ii, jj)
-            keep = rng.random(need) < 1.0 - (d / delta) ** 2
-            ii, jj = ii[keep], jj[keep]
+            w = (csr_weights[e] if csr is not None and csr_weights is not None
+                 else 1.0 - (length_consistency(src, dst, ii, jj) / delta) ** 2)
+            keep = rng.random(draw) < w
+            ii, jj = ii[keep][:need], jj[keep][:need]
         i[filled:filled + len(ii)] = ii
         j[filled:filled + len(jj)] = jj
         filled += len(ii)
     return i, j
+
+
+def soft_edge_weights(csr: tuple[np.ndarray, np.ndarray], src: np.ndarray, dst: np.ndarray,
+                      delta: float) -> np.ndarray:
+    """Soft weights 1 - (d_ij / delta)^2 of the neighbour-list entries, for
+    :func:`sample_edges` (computed once per search, with the lists)."""
+    indptr, indices = csr
+    rows = np.repeat(np.arange(len(indptr) - 1), np.diff(indptr))
+    d = length_consistency(src, dst, rows, indices)
+    return (1.0 - (d / delta) ** 2).astype(np.float32)
 
 
 def _edges_by_rejection(graph: CompatibilityGraph, rng: np.random.Generator, count: int,
