@@ -37,6 +37,7 @@ VARIANTS: dict[str, dict] = {
     "default, max_up = local re-fits": dict(max_up_mode="local_refits"),
     "default, truncated score": dict(score="truncated"),
     "default, no prescreen": dict(prescreen=False),
+    "default, guided count since improvement": dict(guided_count="since_improvement"),
     "default, analytic w1": dict(stage_one_estimate="analytic"),
     "default, observed w1": dict(stage_one_estimate="observed"),
     "default, single re-fit": dict(refit="once"),

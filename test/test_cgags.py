@@ -85,6 +85,7 @@ def test_result_reports_stages(bunny):
     dict(compatibility="binary", vertex_sampling="degree"),
     dict(max_up_mode="local_refits", score="truncated", prescreen=False),
     dict(max_up_mode="best_updates", refit="once", stage_one_estimate="analytic"),
+    dict(guided_count="since_improvement"),
     dict(stopping="fixed", max_iterations=3000),
 ])
 def test_every_inferred_option_still_registers(bunny, config):

@@ -130,7 +130,7 @@ class _Search:
                  delta: float, rng: np.random.Generator):
         self.src, self.dst, self.graph, self.cfg = src, dst, graph, cfg
         self.tau, self.delta, self.rng = tau, delta, rng
-        self.num_hypotheses = 0  # fitted and scored
+        self.num_hypotheses = 0  # minimal subsets generated (the pre-screen fits the best)
         self.num_drawn = 0  # sampled, including triples rejected before fitting (the cap)
         self.best_score = -np.inf
         self.best_T = np.eye(4)
@@ -358,6 +358,7 @@ class _Search:
         refreshes = 1
         start_improvements = self.improvements
         n2 = hits = 0
+        drawn: list[np.ndarray] = []  # this stage's triples, to re-count hits for a new best
         batch = _MIN_BATCH
         while self.num_drawn < cfg.max_iterations and not self.out_of_time():
             batch = min(batch, cfg.max_iterations - self.num_drawn)
@@ -365,9 +366,16 @@ class _Search:
             li, lj, lk, ok = sample_guided(self.rng, kernel, adjacency, seed_w, batch, cfg.xi)
             triples, _ = self._keep_non_collinear(np.stack([members[li], members[lj], members[lk]], 1)[ok])
             self.stats["guided_samples"] += batch
+            drawn.append(triples)
+            n2 += batch
             improved = self.evaluate(triples)
-            if improved:
+            if cfg.guided_count == "since_improvement" and improved:
                 n2 = hits = 0
+            elif improved:  # as adaptive RANSAC: all draws count, w2 from the new best
+                hits = sum(int(self.best_mask[d].all(axis=1).sum()) for d in drawn if len(d))
+            else:
+                hits += int(self.best_mask[triples].all(axis=1).sum()) if len(triples) else 0
+            if improved:
                 updates = self.improvements - start_improvements
                 if cfg.max_up_mode == "best_updates" and updates >= cfg.max_up:
                     self.stats["stopped_by"] = "max_up_best_updates"
@@ -375,9 +383,6 @@ class _Search:
                 if cfg.max_up_mode != "preference_refreshes" or refreshes <= cfg.max_up:
                     members, kernel, adjacency, seed_w = self._kernel()
                     refreshes += 1
-            else:
-                n2 += batch
-                hits += int(self.best_mask[triples].all(axis=1).sum()) if len(triples) else 0
             self.stats["guided_hits"], self.stats["guided_n"] = hits, n2
             w2 = max(hits / n2 if n2 else 0.0, getattr(self, "w1", 0.0))
             bound = ransac_bound(cfg.p2, w2)

@@ -117,6 +117,12 @@ class CoreConfig:
         "estimated from the best model's inliers inside the compatibility graph; 'fixed': "
         "always max_iterations.", choices=("adaptive", "fixed"))
 
+    guided_count: str = option(
+        "all_draws", "INFERRED. Which guided draws the P2 bound counts: 'all_draws' of the "
+        "stage, with w2 re-estimated against each new best model (adaptive RANSAC), or "
+        "'since_improvement' (restart the count at every new best model; more draws when "
+        "large inlier sets improve by a few inliers at a time).",
+        choices=("all_draws", "since_improvement"))
     stage_one_estimate: str = option(
         "observed", "INFERRED. Estimate of w1 (all-inlier probability of one stage-one sample) "
         "for the P1 bound: 'analytic' (uniform edge and vertex sampling, from the best "

@@ -19,7 +19,8 @@ class RegistrationResult:
             final transform.
         valid: True only when the estimate passed every validity gate.
         reason: empty when valid, otherwise why the estimate must not be trusted.
-        num_hypotheses: minimal-subset hypotheses generated and scored.
+        num_hypotheses: minimal subsets generated (non-collinear triples); each is ranked by
+            the pre-screen, the best of each batch are fitted and scored.
         num_correspondences: correspondences given (after input checks).
         inlier_threshold: tau in metres used for scoring.
         compatibility_threshold: delta in metres used for the compatibility graph.
