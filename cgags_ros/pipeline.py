@@ -33,6 +33,7 @@ from .features.frontend import (CloudFeatures, Correspondences, extract_features
                                 finite_points, match_features, timed)
 from .features.refine import Alignment, evaluate_alignment, refine_transform
 from .registration import register_correspondences
+from .registration.blas import blas_controller, single_blas_thread
 from .registration.result import RegistrationResult
 
 
@@ -171,7 +172,6 @@ def warm_up(config: PipelineConfig | None = None) -> PipelineResult:
 
 
 _MATCH_WORKERS = max(1, min(4, os.cpu_count() or 1))
-_blas_controller: Any = None
 
 
 def _blas_guard() -> tuple[contextlib.AbstractContextManager, int]:
@@ -179,17 +179,9 @@ def _blas_guard() -> tuple[contextlib.AbstractContextManager, int]:
     one BLAS thread and _MATCH_WORKERS matching threads (own threads match faster than
     BLAS's, argmins included, and idle BLAS workers cannot spin into Open3D's time; see
     features.thread_env); without it nothing and 1 (BLAS's own threads match)."""
-    global _blas_controller
-    if _blas_controller is None:
-        try:
-            from threadpoolctl import ThreadpoolController
-        except ImportError:
-            _blas_controller = False
-        else:
-            _blas_controller = ThreadpoolController()  # after numpy/scipy have loaded
-    if _blas_controller is False:
+    if blas_controller() is None:
         return contextlib.nullcontext(), 1
-    return _blas_controller.limit(limits=1, user_api="blas"), _MATCH_WORKERS
+    return single_blas_thread(), _MATCH_WORKERS
 
 
 _CACHE_SIZE = 2  # clouds whose features are kept: a latched target plus one more

@@ -167,3 +167,29 @@ def test_nearly_collinear_correspondences_end_quickly_and_invalid():
     assert not res.valid
     assert "collinear" in res.reason
     assert res.timings["total"] < 30
+
+
+def test_blas_runs_single_threaded_during_the_core_and_is_restored(bunny, monkeypatch):
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    from cgags_ros.registration import cgags
+
+    def blas_threads():
+        return [lib["num_threads"] for lib in threadpoolctl.threadpool_info()
+                if lib["user_api"] == "blas"]
+
+    before = blas_threads()
+    with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
+        outer = blas_threads()
+        seen = []
+        build = cgags.build_compatibility_graph
+
+        def spy(*args, **kwargs):
+            seen.append(blas_threads())
+            return build(*args, **kwargs)
+
+        monkeypatch.setattr(cgags, "build_compatibility_graph", spy)
+        prob = make_correspondences(bunny, 300, 0.5, rng=3)
+        _check_recovery(prob, register_correspondences(prob.src, prob.dst, inlier_threshold=TAU))
+        assert seen and all(n == 1 for n in seen[0])
+        assert blas_threads() == outer  # the caller's limits come back
+    assert blas_threads() == before

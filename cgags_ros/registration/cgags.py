@@ -15,6 +15,7 @@ from scipy.stats import poisson
 
 from .. import configutil
 from ..errors import DegenerateCorrespondencesError, InvalidInputError
+from .blas import with_single_blas_thread
 from .compatibility import CompatibilityGraph, build_compatibility_graph
 from .config import CoreConfig
 from .hypotheses import (fit_triples, refit, residual_matrix, score_in_common_neighbourhood,
@@ -39,6 +40,7 @@ _GIVE_UP_DRAWS = 4096  # draws without a single usable (non-collinear) triangle:
 _CHANCE_PER_BATCH = 2  # hypotheses per batch scored exactly whatever their pre-score
 
 
+@with_single_blas_thread
 def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
                              resolution: float | None = None, config: CoreConfig | None = None,
                              seed: int = 0) -> RegistrationResult:

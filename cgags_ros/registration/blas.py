@@ -1,0 +1,47 @@
+"""Keep BLAS to one thread while the core runs (optional ``threadpoolctl``).
+
+The core's matrix products are small (3x3 fits, 5-deep graph blocks) or memory bound, so a
+second OpenBLAS thread adds nothing but spinning: measured with ``OPENBLAS_NUM_THREADS=1``
+vs 2 on the core benchmark's problems, the same wall time (N = 1000 and 5000) at half the
+CPU time. On a robot that CPU belongs to the other nodes. ``threadpoolctl`` is not a
+dependency of the core (numpy/scipy only): without it this is a no-op.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+from typing import Any
+
+_controller: Any = None
+
+
+def blas_controller() -> Any:
+    """A ``threadpoolctl.ThreadpoolController`` (made once, after numpy and scipy have
+    loaded their BLAS), or None when threadpoolctl is not installed."""
+    global _controller
+    if _controller is None:
+        try:
+            from threadpoolctl import ThreadpoolController
+        except ImportError:
+            _controller = False
+        else:
+            _controller = ThreadpoolController()
+    return _controller or None
+
+
+def single_blas_thread() -> contextlib.AbstractContextManager:
+    """Context in which BLAS uses one thread (nests; restores the previous limits)."""
+    controller = blas_controller()
+    if controller is None:
+        return contextlib.nullcontext()
+    return controller.limit(limits=1, user_api="blas")
+
+
+def with_single_blas_thread(fn):
+    """Decorator: run ``fn`` under :func:`single_blas_thread`."""
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with single_blas_thread():
+            return fn(*args, **kwargs)
+    return wrapper
