@@ -14,6 +14,21 @@ def test_lists_keep_the_b_smallest_residuals():
     assert np.allclose(np.sort(pref.residuals, axis=1), np.sort(all_res, axis=0)[:5].T)
 
 
+def test_lists_fill_free_slots_then_rank():
+    rng = np.random.default_rng(1)
+    pref = PreferenceLists(n=50, b=20)
+    all_res = rng.random((60, 50)).astype(np.float32)
+    seen = 0
+    for size in (3, 5, 12, 7, 30, 3):
+        pref.update(all_res[seen:seen + size])
+        seen += size
+        k = min(seen, 20)
+        expected = np.sort(np.argsort(all_res[:seen], axis=0, kind="stable")[:k].T, axis=1)
+        got = np.sort(pref.ids, axis=1)[:, 20 - k:]  # unfilled slots hold -1
+        assert np.array_equal(got, expected)
+        assert np.isinf(pref.residuals).sum() == 50 * (20 - k)
+
+
 def test_intersection_kernel():
     pref = PreferenceLists(n=3, b=4)
     pref.ids = np.array([[0, 1, 2, 3], [2, 3, 4, 5], [6, 7, 8, 9]])

@@ -3,7 +3,7 @@ import math
 import numpy as np
 
 from cgags_ros.registration.compatibility import CompatibilityGraph
-from cgags_ros.registration.stopping import (compatible_sample_inlier_probability,
+from cgags_ros.registration.stopping import (compatible_sample_inlier_probability, poisson_isf,
                                              empirical_inlier_probability, ransac_bound)
 
 
@@ -34,3 +34,11 @@ def test_empirical_inlier_probability():
     samples = [np.array([[0, 1, 2], [0, 1, 5]]), np.array([[1, 2, 3], [7, 8, 9]])]
     assert empirical_inlier_probability(samples, mask) == 0.5
     assert empirical_inlier_probability([], mask) == 0.0
+
+
+def test_poisson_isf_matches_scipy():
+    from scipy.stats import poisson
+
+    for lam in (1e-4, 0.05, 0.4, 1.0, 3.7, 12.0, 40.0):
+        for alpha in (0.5, 1e-2, 1e-4, 1e-7, 1e-12):
+            assert poisson_isf(alpha, lam) == int(poisson.isf(alpha, lam)), (alpha, lam)

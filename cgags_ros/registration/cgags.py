@@ -11,7 +11,6 @@ import time
 from contextlib import contextmanager
 
 import numpy as np
-from scipy.stats import poisson
 
 from .. import configutil
 from ..errors import DegenerateCorrespondencesError, InvalidInputError
@@ -26,7 +25,8 @@ from .rigid import to_matrix
 from .sampling import (sample_common_vertex, sample_edges, sample_guided,
                        sample_vertex_tournament, soft_edge_weights, tournament,
                        triangle_areas)
-from .stopping import compatible_sample_inlier_probability, empirical_inlier_probability, ransac_bound
+from .stopping import (compatible_sample_inlier_probability, empirical_inlier_probability,
+                       poisson_isf, ransac_bound)
 
 _MIN_BATCH = 32
 # Mean common-neighbourhood size (share of N) of a batch's candidates above which the
@@ -314,7 +314,7 @@ class _Search:
         zeros = float((counts == 0).sum()) if len(counts) else 0.0
         lam = -np.log(max(zeros, 1.0) / (len(counts) + 3.0))
         alpha = (1.0 - self.cfg.p1) / max(self.num_exact, 1)
-        return 3 + int(poisson.isf(alpha, lam)) + 1
+        return 3 + poisson_isf(alpha, lam) + 1
 
     def runner_up(self, inliers: np.ndarray) -> int:
         """Largest consensus among scored hypotheses that share under half of their inliers

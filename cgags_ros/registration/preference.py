@@ -28,7 +28,12 @@ class PreferenceLists:
         if e == 0:
             return
         new_ids = np.arange(self.num_hypotheses, self.num_hypotheses + e)
+        filled = self.num_hypotheses  # every hypothesis enters every list until they are full
         self.num_hypotheses += e
+        if filled + e <= self.b:  # free slots: no ranking needed yet
+            self.residuals[:, filled:filled + e] = residuals.T
+            self.ids[:, filled:filled + e] = new_ids
+            return
         new_res = residuals.T.astype(np.float32)
         # Only lists that some new hypothesis enters need merging (few, once lists fill).
         rows = np.flatnonzero(new_res.min(axis=1) < self.residuals.max(axis=1))
