@@ -27,7 +27,7 @@ def blas_controller() -> Any:
             _controller = False
         else:
             _controller = ThreadpoolController()
-    return _controller or None
+    return None if _controller is False else _controller
 
 
 def single_blas_thread() -> contextlib.AbstractContextManager:
