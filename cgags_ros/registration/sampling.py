@@ -81,14 +81,21 @@ def sample_edges(graph: CompatibilityGraph, rng: np.random.Generator, count: int
     return i, j
 
 
+_WEIGHT_CHUNK = 1 << 20  # entries per chunk: ~100 MB of float64 scratch at most
+
+
 def soft_edge_weights(csr: tuple[np.ndarray, np.ndarray], src: np.ndarray, dst: np.ndarray,
                       delta: float) -> np.ndarray:
     """Soft weights 1 - (d_ij / delta)^2 of the neighbour-list entries, for
     :func:`sample_edges` (computed once per search, with the lists)."""
     indptr, indices = csr
-    rows = np.repeat(np.arange(len(indptr) - 1), np.diff(indptr))
-    d = length_consistency(src, dst, rows, indices)
-    return (1.0 - (d / delta) ** 2).astype(np.float32)
+    rows = np.repeat(np.arange(len(indptr) - 1, dtype=np.int32), np.diff(indptr))
+    weights = np.empty(len(indices), dtype=np.float32)
+    for start in range(0, len(indices), _WEIGHT_CHUNK):  # bounded scratch memory
+        part = slice(start, start + _WEIGHT_CHUNK)
+        d = length_consistency(src, dst, rows[part], indices[part])
+        weights[part] = 1.0 - (d / delta) ** 2
+    return weights
 
 
 def _edges_by_rejection(graph: CompatibilityGraph, rng: np.random.Generator, count: int,
