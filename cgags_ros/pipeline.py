@@ -22,7 +22,6 @@ from .features import thread_env  # noqa: F401  (before numpy loads OpenBLAS)
 
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree
-from scipy.stats import poisson
 
 from . import configutil
 from .config import PipelineConfig
@@ -35,6 +34,7 @@ from .features.refine import Alignment, evaluate_alignment, refine_transform
 from .registration import register_correspondences
 from .registration.blas import blas_controller, single_blas_thread
 from .registration.result import RegistrationResult
+from .registration.stopping import poisson_isf
 
 
 @dataclasses.dataclass
@@ -322,7 +322,7 @@ def _significance_reason(result: PipelineResult, significance: float) -> str:
     if significance <= 0:
         return ""
     hypotheses = max(result.num_hypotheses, 1)
-    bound = 3 + poisson.isf(significance / hypotheses, result.chance_inliers)
+    bound = 3 + poisson_isf(significance / hypotheses, result.chance_inliers)
     if result.num_inliers > bound:
         return ""
     return (f"{result.num_inliers} inliers of {result.num_correspondences} correspondences "

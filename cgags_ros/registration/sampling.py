@@ -72,13 +72,19 @@ def sample_edges(graph: CompatibilityGraph, rng: np.random.Generator, count: int
             ii, jj = _edges_by_rejection(graph, rng, draw, tries)
         if soft:
             w = (csr_weights[e] if csr is not None and csr_weights is not None
-                 else 1.0 - (length_consistency(src, dst, ii, jj) / delta) ** 2)
+                 else soft_weights(src, dst, ii, jj, delta))
             keep = rng.random(draw) < w
             ii, jj = ii[keep][:need], jj[keep][:need]
         i[filled:filled + len(ii)] = ii
         j[filled:filled + len(jj)] = jj
         filled += len(ii)
     return i, j
+
+
+def soft_weights(src: np.ndarray, dst: np.ndarray, i: np.ndarray, j: np.ndarray,
+                 delta: float) -> np.ndarray:
+    """Soft compatibility weight 1 - (d_ij / delta)^2 of edges (i, j)."""
+    return 1.0 - (length_consistency(src, dst, i, j) / delta) ** 2
 
 
 _WEIGHT_CHUNK = 1 << 20  # entries per chunk: ~100 MB of float64 scratch at most
@@ -93,8 +99,7 @@ def soft_edge_weights(csr: tuple[np.ndarray, np.ndarray], src: np.ndarray, dst: 
     weights = np.empty(len(indices), dtype=np.float32)
     for start in range(0, len(indices), _WEIGHT_CHUNK):  # bounded scratch memory
         part = slice(start, start + _WEIGHT_CHUNK)
-        d = length_consistency(src, dst, rows[part], indices[part])
-        weights[part] = 1.0 - (d / delta) ** 2
+        weights[part] = soft_weights(src, dst, rows[part], indices[part], delta)
     return weights
 
 
