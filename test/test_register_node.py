@@ -231,6 +231,32 @@ def test_invalid_startup_parameter_raises(ros):
                      parameter_overrides=[Parameter("pairing_mode", value="nearest")])
 
 
+def test_callbacks_after_context_shutdown_do_not_raise():
+    """SIGTERM shuts the context down while the executor may still dispatch the
+    diagnostics timer or the worker may still publish a pose; that must end quietly, not
+    as an RCLError that makes rclpy.spin() raise and the node exit 1 (seen once in CI)."""
+    from rclpy.context import Context
+
+    from cgags_ros.pairing import Pair, Stamped
+    from cgags_ros.ros.node import _Cloud
+
+    ctx = Context()
+    rclpy.init(context=ctx)
+    node = RegisterNode(register_fn=fake_register, context=ctx)
+    xyz = np.random.default_rng(0).normal(size=(30, 3))
+    cloud = Stamped(1, "map", _Cloud(xyz, Header(frame_id="map"), 0))
+    result = fake_register(xyz, xyz, config=node._pipeline_cfg)  # noqa: SLF001
+    ctx.try_shutdown()
+    try:
+        with pytest.raises(RuntimeError, match="context is invalid"):  # what would escape
+            node._diag_pub.publish(node._diag_pub.msg_type())  # noqa: SLF001
+        node._publish_diagnostics()  # noqa: SLF001 - the timer's callback
+        node._publish(Pair(cloud, cloud), result.transform, result,  # noqa: SLF001
+                      node._pipeline_cfg, node._node_cfg)  # noqa: SLF001
+    finally:
+        node.destroy_node()
+
+
 def test_pose_covariance_reflects_geometry():
     rng = np.random.default_rng(0)
     src = rng.normal(size=(400, 3)) * [1.0, 1.0, 0.01]  # a thin slab: rotations about x/y

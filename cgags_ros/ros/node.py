@@ -427,7 +427,7 @@ class RegisterNode(Node):
         header = Header(stamp=source.header.stamp,
                         frame_id=cfg.pose_frame_id or target.header.frame_id)
         pose = transform_to_pose(T)
-        self._pose_pub.publish(PoseStamped(header=header, pose=pose))
+        self._send(self._pose_pub, PoseStamped(header=header, pose=pose))
         cov_msg = PoseWithCovarianceStamped(header=header)
         cov_msg.pose.pose = pose
         threshold = float(getattr(result, "inlier_threshold", float("nan")))
@@ -435,10 +435,10 @@ class RegisterNode(Node):
             threshold = 1.5 * pipe_cfg.voxel_size
         src, dst = inlier_pairs(result, source.xyz, target.xyz, T, threshold)
         cov_msg.pose.covariance = [float(v) for v in pose_covariance(src, dst, T).ravel()]
-        self._pose_cov_pub.publish(cov_msg)
+        self._send(self._pose_cov_pub, cov_msg)
         if cfg.publish_aligned_cloud:
             aligned = source.xyz @ T[:3, :3].T + T[:3, 3]
-            self._aligned_pub.publish(xyz_to_pointcloud2(aligned, header))
+            self._send(self._aligned_pub, xyz_to_pointcloud2(aligned, header))
         if cfg.broadcast_tf:
             self._broadcast(T, header, cfg.tf_child_frame or source.header.frame_id)
         latency = (time.monotonic_ns() - source.receipt_ns) * 1e-9
@@ -512,7 +512,24 @@ class RegisterNode(Node):
         status.values = [KeyValue(key=str(k), value=str(v)) for k, v in stats.items()]
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()
-        self._diag_pub.publish(msg)
+        self._send(self._diag_pub, msg)
+
+    def _send(self, publisher: Any, msg: Any) -> None:
+        """Publish unless the context has been shut down (Ctrl-C / SIGTERM).
+
+        rclpy's signal handler shuts the context down asynchronously: the executor may
+        still dispatch the diagnostics timer, and the worker may still be finishing a
+        pair. A publish then raises RCLError ("publisher's context is invalid"), which
+        from a timer callback would escape rclpy.spin() and end the node with exit 1.
+        Errors while the context is still valid are raised as before.
+        """
+        if not self.context.ok():
+            return
+        try:
+            publisher.publish(msg)
+        except RuntimeError:  # rclpy's RCLError derives from RuntimeError
+            if self.context.ok():
+                raise
 
     # ------------------------------------------------------------------ shutdown
 
@@ -573,6 +590,9 @@ def main(args: list[str] | None = None) -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RuntimeError:  # an rclpy call racing the signal handler's shutdown
+        if rclpy.ok():
+            raise
     except InvalidConfigError as exc:  # e.g. a pairing_mode typo in the YAML
         rclpy.logging.get_logger("register_node").fatal(str(exc))
         raise SystemExit(2) from None
