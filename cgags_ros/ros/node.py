@@ -590,12 +590,12 @@ def main(args: list[str] | None = None) -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except RuntimeError:  # an rclpy call racing the signal handler's shutdown
-        if rclpy.ok():
-            raise
     except InvalidConfigError as exc:  # e.g. a pairing_mode typo in the YAML
         rclpy.logging.get_logger("register_node").fatal(str(exc))
         raise SystemExit(2) from None
+    except RuntimeError:  # an rclpy call racing the signal handler's shutdown
+        if rclpy.ok():
+            raise
     finally:
         if node is not None:
             node.destroy_node()
