@@ -360,7 +360,7 @@ class _Search:
         refreshes = 1
         start_improvements = self.improvements
         n2 = hits = 0
-        drawn: list[np.ndarray] = []  # this stage's triples, to re-count hits for a new best
+        drawn: list[np.ndarray] = []  # all_draws: the stage's triples, re-counted at a new best
         batch = _MIN_BATCH
         while self.num_drawn < cfg.max_iterations and not self.out_of_time():
             batch = min(batch, cfg.max_iterations - self.num_drawn)
@@ -368,7 +368,8 @@ class _Search:
             li, lj, lk, ok = sample_guided(self.rng, kernel, adjacency, seed_w, batch, cfg.xi)
             triples, _ = self._keep_non_collinear(np.stack([members[li], members[lj], members[lk]], 1)[ok])
             self.stats["guided_samples"] += batch
-            drawn.append(triples)
+            if cfg.guided_count == "all_draws":
+                drawn.append(triples)
             n2 += batch
             improved = self.evaluate(triples)
             if cfg.guided_count == "since_improvement" and improved:
