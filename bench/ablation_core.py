@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from cgags_ros import configutil
+from cgags_ros.config import fields
 from cgags_ros.datasets.synthetic import load_bunny, make_correspondences
 from cgags_ros.registration import (CoreConfig, register_correspondences, rotation_error_deg,
                                     translation_error)
@@ -79,7 +79,7 @@ def main(argv=None) -> None:
              "|" + "---|" * (len(cells) + 1)]
     print("\n".join(lines), flush=True)
     for name in names:
-        cfg = configutil.update_from_flat(CoreConfig(), VARIANTS[name])
+        cfg = fields.update_from_flat(CoreConfig(), VARIANTS[name])
         cols = []
         for n, r in cells:
             s, med, _, h = run_cell(model, n, r, cfg, args.trials, args.tau, args.noise, args.outliers)

@@ -59,7 +59,7 @@ if str(ROOT / "bench") not in sys.path:
     sys.path.insert(0, str(ROOT / "bench"))
 
 from cgags_ros.datasets.synthetic import load_bunny, make_correspondences  # noqa: E402
-from cgags_ros.registration.metrics import rotation_error_deg, translation_error  # noqa: E402
+from cgags_ros.geometry import rotation_error_deg, translation_error  # noqa: E402
 
 import baselines  # noqa: E402
 

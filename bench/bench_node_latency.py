@@ -46,7 +46,7 @@ def main() -> int:
     from sensor_msgs.msg import PointCloud2
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from cgags_ros.datasets.bag import read_messages
+    from cgags_ros.io.bag import read_messages
     from cgags_ros.datasets.synthetic import shared_data_dir
     from cgags_ros.ros.conversions import to_rclpy_pointcloud2
     from cgags_ros.ros.node import RegisterNode
@@ -59,7 +59,7 @@ def main() -> int:
         elif rec.topic == "/source_cloud":
             sources.append(to_rclpy_pointcloud2(rec.msg))
 
-    from cgags_ros.node_config import NodeConfig
+    from cgags_ros.config.node import NodeConfig
 
     if args.queue_depth is None:
         args.queue_depth = NodeConfig().queue_depth

@@ -4,14 +4,14 @@
 
 For every bag in ``<shared data>/bags`` (or ``--bags-dir``) and every source cloud with
 ground truth, paired with its target exactly as ``cgags-replay`` pairs them
-(:func:`cgags_ros.tools.replay.iter_pairs`, the node's pairing code), it runs:
+(:func:`cgags_ros.tools.replay_common.iter_pairs`, the node's pairing code), it runs:
 
 ``cgags``
     :func:`cgags_ros.pipeline.register_clouds` with default parameters (includes its
     point-to-plane ICP refinement).
 ``open3d_fpfh_ransac``
     Open3D 0.19 ``registration_ransac_based_on_feature_matching`` on the *same* front end
-    (:func:`cgags_ros.features.frontend.extract_features`: voxel size, normal and FPFH radii
+    (:func:`cgags_ros.frontend.features.extract_features`: voxel size, normal and FPFH radii
     and neighbour caps of ``PipelineConfig().frontend``), ``mutual_filter=True``,
     ``max_correspondence_distance = 1.5 v`` (Open3D's tutorial), point-to-point
     estimation, ``ransac_n = 3``, checkers ``EdgeLength(0.9)`` and ``Distance(1.5 v)``,
@@ -49,11 +49,11 @@ import numpy as np
 from cgags_ros.config import PipelineConfig
 from cgags_ros.datasets.synthetic import shared_data_dir
 from cgags_ros.errors import CgagsError
-from cgags_ros.node_config import NodeConfig
-from cgags_ros.pairing import Pairer
-from cgags_ros.registration.metrics import rotation_error_deg, translation_error
+from cgags_ros.config.node import NodeConfig
+from cgags_ros.pipeline.pairing import Pairer
+from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.tools.demo import DEMO_BAGS
-from cgags_ros.tools.replay import (DEFAULT_MAX_RE_DEG, DEFAULT_MAX_TE_VOXELS, auto_voxel_size,
+from cgags_ros.tools.replay_common import (DEFAULT_MAX_RE_DEG, DEFAULT_MAX_TE_VOXELS, auto_voxel_size,
                                     iter_pairs, read_bag_contents)
 from cgags_ros.tools.report import fmt, markdown_table
 
@@ -81,7 +81,7 @@ def run_cgags(src: np.ndarray, tgt: np.ndarray, voxel: float) -> np.ndarray:
 def run_open3d(src: np.ndarray, tgt: np.ndarray, voxel: float, seed: int = 0) -> np.ndarray:
     import open3d as o3d
 
-    from cgags_ros.features.frontend import extract_features
+    from cgags_ros.frontend.features import extract_features
 
     reg = o3d.pipelines.registration
     frontend = PipelineConfig().frontend

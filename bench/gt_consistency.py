@@ -35,12 +35,12 @@ if str(ROOT) not in sys.path:
 
 from cgags_ros.datasets.gt_pairs import read_gt_pairs  # noqa: E402
 from cgags_ros.datasets.synthetic import shared_data_dir  # noqa: E402
-from cgags_ros.features.config import RefineConfig  # noqa: E402
-from cgags_ros.features.frontend import downsample  # noqa: E402
-from cgags_ros.features.io import read_cloud  # noqa: E402
-from cgags_ros.features.refine import refine_transform  # noqa: E402
+from cgags_ros.config.frontend import RefineConfig  # noqa: E402
+from cgags_ros.frontend.features import downsample  # noqa: E402
+from cgags_ros.io.clouds import read_cloud  # noqa: E402
+from cgags_ros.frontend.refine import refine_transform  # noqa: E402
 from cgags_ros.pipeline import register_clouds  # noqa: E402
-from cgags_ros.registration.metrics import rotation_error_deg, translation_error  # noqa: E402
+from cgags_ros.geometry import rotation_error_deg, translation_error  # noqa: E402
 
 
 def refine_from(source: np.ndarray, target: np.ndarray, init: np.ndarray, voxel: float,

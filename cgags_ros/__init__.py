@@ -1,13 +1,23 @@
 """cgags_ros: global point cloud registration for ROS 2.
 
-The package is layered so that each layer imports only what it needs:
+Layers, each importing only the ones below it (a test checks this)::
 
-- ``cgags_ros.registration``: the ROS-free core (numpy/scipy only).
-- ``cgags_ros.features``: the point-cloud front end (Open3D).
-- ``cgags_ros.pipeline``: clouds in, result out; used by the node, the CLIs and benchmarks.
-- ``cgags_ros.ros``: the only code that imports rclpy and message types.
+    tools -> ros -> pipeline -> frontend, registration -> geometry, config, io, datasets
 
-Importing ``cgags_ros`` itself pulls in none of them.
+``registration`` is the ROS-free core (numpy/scipy only), ``frontend`` the Open3D front
+end, ``pipeline`` the one path every tool and the node call, ``ros`` the only code that
+imports rclpy and message types.
 """
 
-__version__ = "0.1.0"
+import os
+
+__version__ = '0.1.0'
+
+# The thread pools under the front end read these when their libraries load, so they are
+# set here, before any submodule imports numpy or Open3D (a user's own value wins; a
+# spawned registration process inherits them). OpenMP's idle threads spin by default and,
+# on a loaded machine, each of ICP's short parallel loops then waits for a descheduled
+# thread; OpenBLAS's workers likewise spin after each threaded call and take the CPU from
+# Open3D. Passive waiting costs nothing measurable on an idle machine (docs/method.md).
+os.environ.setdefault('OMP_WAIT_POLICY', 'PASSIVE')
+os.environ.setdefault('OPENBLAS_THREAD_TIMEOUT', '20')

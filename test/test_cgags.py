@@ -5,7 +5,8 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from cgags_ros.datasets.synthetic import load_bunny, make_correspondences, mean_nn_distance
+from cgags_ros.datasets.synthetic import load_bunny, make_correspondences
+from cgags_ros.geometry import point_resolution
 from cgags_ros.errors import DegenerateCorrespondencesError, InvalidInputError
 from cgags_ros.registration import (CoreConfig, register_correspondences, rotation_error_deg,
                                     translation_error)
@@ -47,7 +48,7 @@ def test_structured_surface_outliers(bunny):
 
 
 def test_paper_thresholds_from_resolution(bunny):
-    pr = mean_nn_distance(bunny)
+    pr = point_resolution(bunny)
     prob = make_correspondences(bunny, 1000, 0.9, noise_sigma=pr / 2, rng=3)
     res = register_correspondences(prob.src, prob.dst, resolution=pr, seed=0)
     assert res.inlier_threshold == pytest.approx(6 * pr)

@@ -1,4 +1,4 @@
-"""cgags_ros.ros.conversions: PointCloud2 layouts, malformed clouds, poses, quaternions."""
+"""cgags_ros.io.pointcloud2 and ros.conversions: PointCloud2 layouts, malformed clouds, poses, quaternions."""
 
 from __future__ import annotations
 
@@ -8,8 +8,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cgags_ros.datasets.bag import read_messages
+from cgags_ros import geometry
 from cgags_ros.errors import EmptyCloudError, MalformedCloudError
+from cgags_ros.io import pointcloud2 as pc2
+from cgags_ros.io.bag import read_messages
 from cgags_ros.ros import conversions as conv
 
 RNG = np.random.default_rng(7)
@@ -65,7 +67,7 @@ POINTS = RNG.normal(size=(60, 3)) * 10.0
 ])
 def test_layouts_decode_exactly(kwargs):
     msg = make_cloud(POINTS, **kwargs)
-    xyz = conv.pointcloud2_to_xyz(msg)
+    xyz = pc2.pointcloud2_to_xyz(msg)
     assert xyz.dtype == np.float64 and xyz.shape == (60, 3)
     tol = 0 if kwargs.get("layout", (("x", 7),))[0][1] == 8 else 1e-5
     np.testing.assert_allclose(xyz, POINTS, rtol=tol, atol=tol)
@@ -75,7 +77,7 @@ def test_organized_cloud_with_nans_drops_non_finite_points():
     pts = POINTS.copy()
     pts[::4] = np.nan
     pts[1, 2] = np.inf
-    xyz = conv.pointcloud2_to_xyz(make_cloud(pts, height=6))
+    xyz = pc2.pointcloud2_to_xyz(make_cloud(pts, height=6))
     keep = np.isfinite(pts).all(axis=1)
     np.testing.assert_allclose(xyz, pts[keep], atol=1e-5)
 
@@ -95,15 +97,15 @@ def test_malformed_clouds_raise_with_reason(mutate, match):
     msg = make_cloud(POINTS)
     mutate(msg)
     with pytest.raises(MalformedCloudError, match=match):
-        conv.pointcloud2_to_xyz(msg)
+        pc2.pointcloud2_to_xyz(msg)
 
 
 def test_empty_and_all_nan_clouds():
     empty = make_cloud(np.zeros((0, 3)))
     with pytest.raises(EmptyCloudError, match="no points"):
-        conv.pointcloud2_to_xyz(empty)
+        pc2.pointcloud2_to_xyz(empty)
     with pytest.raises(EmptyCloudError, match="none is finite"):
-        conv.pointcloud2_to_xyz(make_cloud(np.full((8, 3), np.nan)))
+        pc2.pointcloud2_to_xyz(make_cloud(np.full((8, 3), np.nan)))
 
 
 def test_round_trip_through_rclpy_message():
@@ -113,18 +115,18 @@ def test_round_trip_through_rclpy_message():
     msg = conv.xyz_to_pointcloud2(POINTS, header)
     assert (msg.width, msg.height, msg.point_step, msg.row_step) == (60, 1, 12, 720)
     assert msg.header.frame_id == "velodyne" and msg.is_dense
-    np.testing.assert_allclose(conv.pointcloud2_to_xyz(msg), POINTS, rtol=1e-6, atol=1e-5)
+    np.testing.assert_allclose(pc2.pointcloud2_to_xyz(msg), POINTS, rtol=1e-6, atol=1e-5)
 
 
 def test_bag_messages_decode_and_faulty_bag_reasons(data_dir):
     bags = data_dir / "bags"
     rec = next(read_messages(bags / "lidar", ["/source_cloud"]))
-    xyz = conv.pointcloud2_to_xyz(rec.msg)  # rosbags message, intensity field skipped
+    xyz = pc2.pointcloud2_to_xyz(rec.msg)  # rosbags message, intensity field skipped
     assert xyz.shape == (rec.msg.width, 3) and np.abs(xyz).max() < 200.0
     outcomes = []
     for rec in read_messages(bags / "faulty", ["/source_cloud"]):
         try:
-            outcomes.append(len(conv.pointcloud2_to_xyz(rec.msg)))
+            outcomes.append(len(pc2.pointcloud2_to_xyz(rec.msg)))
         except (EmptyCloudError, MalformedCloudError) as exc:
             outcomes.append(type(exc).__name__)
     assert outcomes.count("EmptyCloudError") == 2 and outcomes.count("MalformedCloudError") == 2
@@ -137,26 +139,26 @@ def test_quaternion_matrix_round_trip_including_near_180_degrees():
         Rotation.from_rotvec([0.0, 0.0, 0.0])]
     for rot in rots:
         R = rot.as_matrix()
-        q = conv.matrix_to_quaternion(R)
+        q = geometry.matrix_to_quaternion(R)
         assert q[3] >= 0 and abs(np.linalg.norm(q) - 1) < 1e-12
-        np.testing.assert_allclose(conv.quaternion_to_matrix(q), R, atol=1e-9)
+        np.testing.assert_allclose(geometry.quaternion_to_matrix(q), R, atol=1e-9)
         q_ref = rot.as_quat()  # scipy also uses (x, y, z, w)
         assert min(np.abs(q - q_ref).max(), np.abs(q + q_ref).max()) < 1e-9
 
 
 def test_pose_round_trip_rclpy_and_duck_typed():
-    T = conv.make_transform(Rotation.from_euler("xyz", [10, -20, 170], degrees=True).as_matrix(),
+    T = geometry.make_transform(Rotation.from_euler("xyz", [10, -20, 170], degrees=True).as_matrix(),
                             [1.0, -2.0, 0.5])
     pose = conv.transform_to_pose(T)
-    np.testing.assert_allclose(conv.pose_to_transform(pose), T, atol=1e-12)
+    np.testing.assert_allclose(pc2.pose_to_transform(pose), T, atol=1e-12)
     from std_msgs.msg import Header
 
     stamped = conv.transform_to_pose_stamped(T, Header(frame_id="map"))
-    np.testing.assert_allclose(conv.pose_to_transform(stamped), T, atol=1e-12)
+    np.testing.assert_allclose(pc2.pose_to_transform(stamped), T, atol=1e-12)
     tf = conv.transform_to_transform_stamped(T, Header(frame_id="map"), "base")
-    np.testing.assert_allclose(conv.pose_to_transform(tf), T, atol=1e-12)
+    np.testing.assert_allclose(pc2.pose_to_transform(tf), T, atol=1e-12)
     ns = types.SimpleNamespace
     duck = ns(header=None, pose=ns(position=ns(x=1.0, y=-2.0, z=0.5),
-                                   orientation=ns(**dict(zip("xyzw", conv.matrix_to_quaternion(T[:3, :3]))))))
-    np.testing.assert_allclose(conv.pose_to_transform(duck), T, atol=1e-12)
-    assert conv.stamp_to_ns(conv.ns_to_stamp(1_700_000_000_500_000_001)) == 1_700_000_000_500_000_001
+                                   orientation=ns(**dict(zip("xyzw", geometry.matrix_to_quaternion(T[:3, :3]))))))
+    np.testing.assert_allclose(pc2.pose_to_transform(duck), T, atol=1e-12)
+    assert pc2.stamp_to_ns(conv.ns_to_stamp(1_700_000_000_500_000_001)) == 1_700_000_000_500_000_001

@@ -1,18 +1,18 @@
-"""cgags_ros.features.frontend and refine: checks, downsampling, FPFH matching, refinement."""
+"""cgags_ros.frontend: checks, downsampling, FPFH matching (matching.py), refinement."""
 
 import numpy as np
 import pytest
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
+from cgags_ros.config.frontend import FrontEndConfig, RefineConfig
 from cgags_ros.datasets.gt_pairs import find_pair
 from cgags_ros.errors import EmptyCloudError, InvalidInputError
-from cgags_ros.features.config import FrontEndConfig, RefineConfig
-from cgags_ros.features.frontend import (downsample, extract_features, finite_points,
-                                         match_features, nearest_rows, point_resolution)
-from cgags_ros.features.io import read_cloud
-from cgags_ros.features.refine import evaluate_alignment, refine_transform
-from cgags_ros.registration.metrics import rotation_error_deg, translation_error
+from cgags_ros.frontend.features import downsample, extract_features, finite_points
+from cgags_ros.frontend.matching import match_features, nearest_rows
+from cgags_ros.frontend.refine import evaluate_alignment, refine_transform
+from cgags_ros.geometry import point_resolution, rotation_error_deg, translation_error
+from cgags_ros.io.clouds import read_cloud
 
 VOXEL = 0.003  # bunny scans, metres
 

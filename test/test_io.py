@@ -1,11 +1,11 @@
-"""cgags_ros.features.io and cgags_ros.datasets.gt_pairs on the shared real data."""
+"""cgags_ros.io.clouds and cgags_ros.datasets.gt_pairs on the shared real data."""
 
 import numpy as np
 import pytest
 
 from cgags_ros.datasets.gt_pairs import find_pair, parse_gt_pairs, read_gt_pairs
 from cgags_ros.errors import InvalidInputError
-from cgags_ros.features.io import read_cloud, write_cloud
+from cgags_ros.io.clouds import read_cloud, write_cloud
 
 
 @pytest.mark.parametrize("relpath, count", [

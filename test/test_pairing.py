@@ -6,8 +6,8 @@ import threading
 
 import pytest
 
-from cgags_ros.datasets.bag import read_messages
-from cgags_ros.pairing import Pairer
+from cgags_ros.io.bag import read_messages
+from cgags_ros.pipeline.pairing import Pairer
 
 S = 1_000_000_000  # ns per second
 

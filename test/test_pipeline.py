@@ -20,11 +20,12 @@ from scipy.spatial.transform import Rotation
 from cgags_ros.config import PipelineConfig, pipeline_config_from
 from cgags_ros.datasets.gt_pairs import find_pair
 from cgags_ros.errors import EmptyCloudError, InvalidConfigError, InvalidInputError
-from cgags_ros.features.io import read_cloud
-from cgags_ros.features.refine import evaluate_alignment
-from cgags_ros.pipeline import (PipelineResult, cached_features, chance_inliers,
-                                clear_feature_cache, observability, register_clouds, warm_up)
-from cgags_ros.registration.metrics import rotation_error_deg, translation_error
+from cgags_ros.io.clouds import read_cloud
+from cgags_ros.frontend.refine import evaluate_alignment
+from cgags_ros.pipeline import (PipelineResult, cached_features, clear_feature_cache,
+                                register_clouds, warm_up)
+from cgags_ros.pipeline.gates import chance_inliers, observability
+from cgags_ros.geometry import rotation_error_deg, translation_error
 
 # name: (gt folder, source, target, voxel m, coarse (RE, TE), refined (RE, TE))
 PAIRS = {
@@ -201,7 +202,7 @@ def test_observability_and_chance_level_gates():
     rng = np.random.default_rng(0)
     plane = _plane(rng, 2000)
     normals = np.tile([0.0, 0.0, 1.0], (len(plane), 1))
-    from cgags_ros.features.refine import Alignment
+    from cgags_ros.frontend.refine import Alignment
 
     idx = np.arange(len(plane))
     align = Alignment(np.eye(4), 1.0, 0.0, 0.1, idx, idx)

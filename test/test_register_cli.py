@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from cgags_ros.datasets.gt_pairs import find_pair
-from cgags_ros.features.io import read_cloud
-from cgags_ros.registration.metrics import rotation_error_deg, translation_error
+from cgags_ros.io.clouds import read_cloud
+from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.tools.register_cli import EXIT_ERROR, main
 
 

@@ -13,11 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cgags_ros.datasets.bag import read_messages
-from cgags_ros.ros.conversions import pose_to_transform
-from cgags_ros.tools import replay
+from cgags_ros.io.bag import read_messages
+from cgags_ros.io.pointcloud2 import pose_to_transform
+from cgags_ros.tools import replay, replay_common
 from cgags_ros.tools.demo import DEMO_BAGS, demo_options
-from cgags_ros.tools.replay import ReplayOptions, auto_voxel_size, run
+from cgags_ros.tools.replay import run
+from cgags_ros.tools.replay_common import LiveOptions, ReplayOptions, auto_voxel_size
 
 BAGS = sorted(DEMO_BAGS)  # bunny, lidar, redkitchen with their RE/TE thresholds
 TARGET_FRAMES = {"bunny": "turntable", "redkitchen": "map", "lidar": "map"}
@@ -52,12 +53,12 @@ def ros_env():
 
 @pytest.fixture(scope="module")
 def offline_reports(bags, out):
-    return {bag: run(demo_options(bag, out / "offline", live=False, quiet=True)) for bag in BAGS}
+    return {bag: run(demo_options(bag, out / "offline", quiet=True)) for bag in BAGS}
 
 
 @pytest.fixture(scope="module")
 def live_reports(bags, out, ros_env):
-    return {bag: run(demo_options(bag, out / "live", live=True, quiet=True)) for bag in BAGS}
+    return {bag: run(demo_options(bag, out / "live", quiet=True), LiveOptions()) for bag in BAGS}
 
 
 def _check_accuracy(report, bag):
@@ -95,7 +96,7 @@ def test_output_files(offline_reports, live_reports, out, mode):
         valid = [row for row in report.rows if row.valid]  # only valid estimates are written
         assert valid, f"{bag}: no valid estimate"
         records = list(read_messages(folder / "poses"))
-        assert [r.topic for r in records] == [replay.DEFAULT_POSE_TOPIC] * len(valid)
+        assert [r.topic for r in records] == [replay_common.DEFAULT_POSE_TOPIC] * len(valid)
         assert {r.msgtype for r in records} == {"geometry_msgs/msg/PoseStamped"}
         assert [r.stamp_ns for r in records] == [row.source_stamp_ns for row in valid]
         assert {r.frame_id for r in records} == {TARGET_FRAMES[bag]}
@@ -114,7 +115,7 @@ def test_output_files(offline_reports, live_reports, out, mode):
 
 
 def test_ground_truth_matched_by_stamp(bags):
-    contents = replay.read_bag_contents(bags / "lidar", "/source_cloud", "/target_cloud",
+    contents = replay_common.read_bag_contents(bags / "lidar", "/source_cloud", "/target_cloud",
                                         "/ground_truth")
     stamps = [c.stamp_ns for c in contents.sources]
     assert sorted(contents.ground_truth) == stamps
@@ -125,7 +126,7 @@ def test_auto_voxel_size_follows_scene_scale(offline_reports):
     assert 0.001 <= voxels["bunny"] <= 0.005
     assert 0.03 <= voxels["redkitchen"] <= 0.08
     assert 0.2 <= voxels["lidar"] <= 0.6
-    with pytest.raises(replay.ReplayError):
+    with pytest.raises(replay_common.ReplayError):
         auto_voxel_size(np.zeros((10, 3)))
 
 
@@ -141,8 +142,8 @@ def test_faulty_bag_counts_broken_messages(bags, out, capsys):
 
 def test_faulty_bag_live(bags, out, ros_env):
     opts = ReplayOptions(bag=bags / "faulty", output=out / "faulty_live", max_te=0.01,
-                         live=True, quiet=True, timeout=30.0)
-    report = run(opts)
+                         quiet=True)
+    report = run(opts, LiveOptions(timeout=30.0))
     assert len(report.broken) == 4
     assert report.recall == 1.0
     assert not any("stopped waiting" in n for n in report.notes)  # the node accounted for all

@@ -11,10 +11,9 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from ..errors import InvalidInputError
+from ..io.clouds import read_cloud
 
 DEFAULT_SHARED_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 BUNNY_MODEL = "objects/teaser/bun_zipper_res3.ply"
@@ -27,34 +26,6 @@ def shared_data_dir() -> Path:
     return Path(os.environ.get("CGAGS_DATA_DIR", DEFAULT_SHARED_DATA))
 
 
-def read_ascii_ply_vertices(path: str | Path) -> np.ndarray:
-    """x, y, z of the ``vertex`` element of an ASCII PLY file (other elements ignored)."""
-    path = Path(path)
-    with open(path, "r", encoding="ascii", errors="replace") as f:
-        if f.readline().strip() != "ply":
-            raise InvalidInputError(f"{path} is not a PLY file")
-        n_vertex, props, in_vertex, fmt = None, [], False, None
-        for line in f:
-            tok = line.split()
-            if not tok:
-                continue
-            if tok[0] == "format":
-                fmt = tok[1]
-            elif tok[0] == "element":
-                in_vertex = tok[1] == "vertex"
-                if in_vertex:
-                    n_vertex = int(tok[2])
-            elif tok[0] == "property" and in_vertex:
-                props.append(tok[-1])
-            elif tok[0] == "end_header":
-                break
-        if fmt != "ascii" or n_vertex is None or not {"x", "y", "z"} <= set(props):
-            raise InvalidInputError(f"{path}: need an ascii PLY with vertex x, y, z")
-        rows = [f.readline().split() for _ in range(n_vertex)]
-    data = np.asarray(rows, dtype=np.float64)
-    return data[:, [props.index("x"), props.index("y"), props.index("z")]]
-
-
 def unit_scale(points: np.ndarray) -> np.ndarray:
     """Centre the points and scale them so the largest bounding-box extent is 1."""
     centred = points - points.mean(axis=0)
@@ -63,13 +34,7 @@ def unit_scale(points: np.ndarray) -> np.ndarray:
 
 def load_bunny(data_dir: str | Path | None = None) -> np.ndarray:
     """The Stanford bunny model (1889 points), unit-scaled."""
-    return unit_scale(read_ascii_ply_vertices(Path(data_dir or shared_data_dir()) / BUNNY_MODEL))
-
-
-def mean_nn_distance(points: np.ndarray) -> float:
-    """Point resolution pr: mean distance from each point to its nearest neighbour."""
-    d, _ = cKDTree(points).query(points, k=2)
-    return float(np.mean(d[:, 1]))
+    return unit_scale(read_cloud(Path(data_dir or shared_data_dir()) / BUNNY_MODEL))
 
 
 def terrain_patch(rng: np.random.Generator, n: int = 4000) -> np.ndarray:

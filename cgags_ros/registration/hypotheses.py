@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .compatibility import CompatibilityGraph
-from .rigid import kabsch, kabsch_batch, residuals, to_matrix
+from .rigid import kabsch, kabsch_batch, residuals
 
 
 def fit_triples(src: np.ndarray, dst: np.ndarray, i: np.ndarray, j: np.ndarray,
@@ -86,4 +86,4 @@ def refit(src: np.ndarray, dst: np.ndarray, T: np.ndarray, tau: float,
 
 
 __all__ = ["fit_triples", "score_values", "score_in_common_neighbourhood", "residual_matrix",
-           "refit", "to_matrix"]
+           "refit"]

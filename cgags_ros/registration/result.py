@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import time
 from typing import Any
 
 import numpy as np
@@ -54,6 +55,14 @@ class RegistrationResult:
     @property
     def inlier_ratio(self) -> float:
         return self.num_inliers / self.num_correspondences if self.num_correspondences else 0.0
+
+    def finish(self, start: float, reason: str = "") -> "RegistrationResult":
+        """Set ``valid``/``reason`` and ``timings['total']`` (since ``start``,
+        ``time.perf_counter()``); return self."""
+        self.valid = not reason
+        self.reason = reason
+        self.timings["total"] = time.perf_counter() - start
+        return self
 
     def summary(self) -> dict[str, Any]:
         """JSON-friendly dict (lists instead of arrays)."""

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..geometry import make_transform
+
 
 def kabsch_batch(P: np.ndarray, Q: np.ndarray,
                  W: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -35,14 +37,7 @@ def kabsch_batch(P: np.ndarray, Q: np.ndarray,
 def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
     """4x4 (weighted) least-squares rigid transform mapping ``src`` (K, 3) onto ``dst``."""
     R, t = kabsch_batch(src[None], dst[None], None if weights is None else weights[None])
-    return to_matrix(R[0], t[0])
-
-
-def to_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = t
-    return T
+    return make_transform(R[0], t[0])
 
 
 def residuals(T: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:

@@ -19,7 +19,7 @@ lidar          5           0.6        outdoor LiDAR (KITTI-style)
 =============  ==========  =========  ==============================================
 
 The voxel size of each bag is chosen from its target cloud
-(:func:`cgags_ros.tools.replay.auto_voxel_size`) unless ``--voxel-size`` is given.
+(:func:`cgags_ros.tools.replay_common.auto_voxel_size`) unless ``--voxel-size`` is given.
 """
 
 from __future__ import annotations
@@ -31,7 +31,9 @@ from typing import Sequence
 
 from ..datasets.synthetic import shared_data_dir
 from ..errors import CgagsError
-from .replay import ReplayOptions, run
+from .cli import EXIT_ERROR, error_line
+from .replay import run
+from .replay_common import LiveOptions, ReplayOptions
 from .report import BagReport, summary_table
 
 PROG = "cgags-demo"
@@ -44,19 +46,21 @@ DEMO_BAGS: dict[str, tuple[float, float]] = {
 
 
 def bags_dir() -> Path:
+    """Return the folder of the bundled bags."""
     return shared_data_dir() / "bags"
 
 
-def demo_options(bag: str, out: Path, *, live: bool = True, rate: float = 1.0,
-                 voxel_size: float | None = None, quiet: bool = False) -> ReplayOptions:
-    """The replay of one bundled bag with its success thresholds."""
+def demo_options(bag: str, out: Path, *, voxel_size: float | None = None,
+                 quiet: bool = False) -> ReplayOptions:
+    """Return the replay of one bundled bag with its success thresholds."""
     max_re, max_te = DEMO_BAGS[bag]
     params = {} if voxel_size is None else {"voxel_size": voxel_size}
     return ReplayOptions(bag=bags_dir() / bag, parameters=params, output=out / bag,
-                         max_re_deg=max_re, max_te=max_te, live=live, rate=rate, quiet=quiet)
+                         max_re_deg=max_re, max_te=max_te, quiet=quiet)
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """Return the argument parser of ``cgags-demo``."""
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
     p.add_argument("--bags", nargs="+", choices=sorted(DEMO_BAGS), default=list(DEMO_BAGS))
     p.add_argument("--output", type=Path, default=Path("out") / "demo")
@@ -69,25 +73,25 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``cgags-demo``."""
     args = build_parser().parse_args(argv)
     if args.rate <= 0:
         print(f"{PROG}: error: --rate must be > 0, got {args.rate:g}", file=sys.stderr)
-        return 2
+        return EXIT_ERROR
     if not bags_dir().is_dir():
         print(f"{PROG}: error: no bags at {bags_dir()}; set CGAGS_DATA_DIR to the shared data "
               "folder", file=sys.stderr)
-        return 2
+        return EXIT_ERROR
     reports: list[BagReport] = []
     failed: list[str] = []
     for bag in args.bags:
         mode = "offline" if args.offline else f"live, rate {args.rate:g}"
         print(f"\n=== {bag} ({mode}) ===", flush=True)
-        opts = demo_options(bag, args.output, live=not args.offline, rate=args.rate,
-                            voxel_size=args.voxel_size, quiet=args.quiet)
+        opts = demo_options(bag, args.output, voxel_size=args.voxel_size, quiet=args.quiet)
         try:
-            reports.append(run(opts))
+            reports.append(run(opts, None if args.offline else LiveOptions(rate=args.rate)))
         except CgagsError as exc:
-            print(f"{PROG}: {bag}: error: {' '.join(str(exc).split())}", file=sys.stderr)
+            print(error_line(PROG, exc, bag), file=sys.stderr)
             failed.append(bag)
     print("\n" + summary_table(reports))
     print(f"\nplots and results: {args.output}/<bag>/errors.png, results.csv, results.json, "

@@ -15,13 +15,15 @@ from typing import Sequence
 
 import numpy as np
 
-from .. import configutil
-from ..config import PipelineConfig, load_yaml, pipeline_config_from
-from ..errors import CgagsError, InvalidInputError
-from ..features.io import SUFFIXES, read_cloud, write_cloud
+from ..config import fields
+from ..config.pipeline import PipelineConfig, load_yaml, pipeline_config_from
+from ..errors import InvalidInputError
+from ..geometry import apply_transform
+from ..io.clouds import SUFFIXES, read_cloud, write_cloud
+from .cli import EXIT_ERROR, run_cli
 
+PROG = "cgags-register"
 EXIT_INVALID = 1  # registration ran but the estimate failed a validity gate
-EXIT_ERROR = 2    # bad input or options: nothing was registered
 
 EPILOG = f"""\
 point cloud formats: {', '.join(SUFFIXES)} (x, y, z in metres).
@@ -40,7 +42,7 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
-        prog="cgags-register", epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
+        prog=PROG, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Globally register SOURCE onto TARGET (FPFH correspondences + CGAGS, "
                     "then optional ICP/GICP refinement).")
     parser.add_argument("source", type=Path, help="cloud to move (SOURCE frame)")
@@ -68,28 +70,28 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    try:
-        config = _config(args)
-        source, target = read_cloud(args.source), read_cloud(args.target)
-        from ..pipeline import register_clouds  # after the cheap checks: imports Open3D
+    """Entry point of ``cgags-register``."""
+    args = build_parser().parse_args(argv)
+    return run_cli(PROG, lambda: _register(args))
 
-        result = register_clouds(source, target, config=config)
-        if args.output:
-            write_cloud(args.output, _moved(source, result.transform))
-        if args.plot:
-            plot_overlay(args.plot, source, target, result.transform)
-    except CgagsError as exc:
-        print(f"cgags-register: error: {exc}", file=sys.stderr)
-        return EXIT_ERROR
+
+def _register(args: argparse.Namespace) -> int:
+    config = _config(args)
+    source, target = read_cloud(args.source), read_cloud(args.target)
+    from ..pipeline import register_clouds  # after the cheap checks: imports Open3D
+
+    result = register_clouds(source, target, config=config)
+    if args.output:
+        write_cloud(args.output, apply_transform(result.transform, source))
+    if args.plot:
+        plot_overlay(args.plot, source, target, result.transform)
     print(json.dumps(result.summary(), indent=2) if args.json else format_result(result))
     return 0 if result.valid else EXIT_INVALID
 
 
 def _config(args: argparse.Namespace) -> PipelineConfig:
     values: dict = load_yaml(args.config) if args.config else {}
-    values.update(configutil.parse_key_values(args.overrides))
+    values.update(fields.parse_key_values(args.overrides))
     if args.voxel_size is not None:
         values["voxel_size"] = args.voxel_size
     if args.no_refine:
@@ -97,10 +99,6 @@ def _config(args: argparse.Namespace) -> PipelineConfig:
     if args.seed is not None:
         values["seed"] = args.seed
     return pipeline_config_from(values)
-
-
-def _moved(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
-    return points @ transform[:3, :3].T + transform[:3, 3]
 
 
 def format_result(result) -> str:
@@ -134,7 +132,7 @@ def plot_overlay(path: Path, source: np.ndarray, target: np.ndarray,
     src, dst = pick(source), pick(target)
     fig, axes = plt.subplots(2, 2, figsize=(10, 9))
     for col, (title, moved) in enumerate((("before (identity)", src),
-                                          ("after (estimate)", _moved(src, transform)))):
+                                          ("after (estimate)", apply_transform(transform, src)))):
         for row, (a, b, label) in enumerate(((0, 1, "x-y"), (0, 2, "x-z"))):
             ax = axes[row, col]
             ax.scatter(dst[:, a], dst[:, b], s=0.3, c="tab:blue", label="target")

@@ -1,7 +1,7 @@
 """Replay results: one row per registered pair, summary numbers, CSV/JSON files, a PNG plot
 and the tables printed at the end of ``cgags-replay`` and ``cgags-demo``.
 
-Pure bookkeeping: numpy, the registration metrics and (lazily, Agg backend) matplotlib.
+Pure bookkeeping: numpy, the geometry metrics and (lazily, Agg backend) matplotlib.
 Transforms are 4x4 source->target (``p_target = R p_source + t``), metres; stamps are
 integer nanoseconds since the epoch (ROS time); times are seconds.
 """
@@ -17,8 +17,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from ..registration.metrics import rotation_error_deg, translation_error
-from ..ros.conversions import matrix_to_quaternion
+from ..geometry import matrix_to_quaternion, rotation_error_deg, translation_error
 
 RESULTS_CSV = "results.csv"
 RESULTS_JSON = "results.json"

@@ -1,7 +1,7 @@
 """rosbag2 (MCAP) input and output without ROS, through ``rosbags``.
 
 A thin adapter: it turns a bag into small records in log-time order and stops there; the
-conversion to numpy is ``cgags_ros.ros.conversions`` (duck-typed, so it accepts the
+conversion to numpy is :mod:`cgags_ros.io.pointcloud2` (duck-typed, so it accepts the
 rosbags messages yielded here).
 
 Accepted paths: a rosbag2 directory (with ``metadata.yaml``) or a single ``.mcap`` file.
@@ -16,6 +16,7 @@ from typing import Any, Iterable, Iterator
 import numpy as np
 
 from ..errors import BagError, BagTopicError, InvalidInputError
+from ..geometry import matrix_to_quaternion
 
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 
@@ -205,8 +206,6 @@ def write_poses_mcap(path: str | Path, records: Iterable[tuple[int, str, np.ndar
     from rosbags.rosbag2 import Writer
     from rosbags.rosbag2.enums import StoragePlugin
     from rosbags.typesys import Stores, get_typestore
-
-    from ..ros.conversions import matrix_to_quaternion
 
     path = Path(path)
     if path.exists():

@@ -18,7 +18,6 @@ queue as deep as the bag (unless given). Its log is ``node.log`` in OUT_DIR.
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import signal
 import subprocess
@@ -27,142 +26,42 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from ..pairing import Pairer
-from ..ros.conversions import pose_to_transform, stamp_to_ns
-from .replay import (BagContents, CloudMessage, ReplayError, ReplayOptions, finish_report,
-                     iter_pairs, load_contents, make_row, note_pairing_drops,
-                     resolve_configs, start_report)
+from ..pipeline.pairing import Pairer
+from ..ros import diagnostics
+from ..ros.player import MAX_QUEUE, LiveSession, Received
+from .replay_common import (BagContents, CloudMessage, LiveOptions, ReplayError,
+                            ReplayOptions, finish_report, iter_pairs, load_contents,
+                            make_row, note_pairing_drops, resolve_configs, start_report)
 from .report import BagReport, PairRow
 
 DIAGNOSTICS_PERIOD_S = 0.1
 SHUTDOWN_GRACE_S = 10.0
-MAX_QUEUE = 1000  # node_config's upper bound for depths
-# Node counters that end a source's life (see cgags_ros.ros.node and cgags_ros.pairing).
-_SOURCE_DROPS = ("source_", "queue_full", "reset")
 
 
-@dataclasses.dataclass
-class Received:
-    """A pose from the node: 4x4 source->target, its frame, and when it arrived (s)."""
-
-    transform: np.ndarray
-    frame_id: str
-    receipt_s: float
-
-
-class LiveSession:
-    """An rclpy context with the player node: publishers, pose and diagnostics recorders."""
-
-    def __init__(self, opts: ReplayOptions, n_sources: int):
-        import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray
-        from geometry_msgs.msg import PoseStamped
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-        from sensor_msgs.msg import PointCloud2
-
-        self.context = Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node("cgags_replay_player", context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        depth = max(1, min(n_sources, MAX_QUEUE))
-        self.source_pub = self.node.create_publisher(
-            PointCloud2, opts.source_topic,
-            QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE))
-        self.target_pub = self.node.create_publisher(
-            PointCloud2, opts.target_topic,
-            QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.TRANSIENT_LOCAL))
-        self.poses: dict[int, Received] = {}
-        self.details: dict[int, dict[str, str]] = {}
-        self.stats: dict[str, str] = {}
-        self.last_progress = time.monotonic()
-        self.node_id = "/" + opts.node_name.lstrip("/")
-        self.pose_sub = self.node.create_subscription(
-            PoseStamped, f"{self.node_id}/pose", self._on_pose, 100)
-        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 100)
-
-    def _on_pose(self, msg: Any) -> None:
-        stamp = stamp_to_ns(msg.header.stamp)
-        self.poses[stamp] = Received(pose_to_transform(msg), msg.header.frame_id, time.monotonic())
-        self.last_progress = time.monotonic()
-
-    def _on_diagnostics(self, msg: Any) -> None:
-        for status in msg.status:
-            if status.hardware_id != self.node_id:
-                continue
-            values = {kv.key: kv.value for kv in status.values}
-            if values != self.stats:
-                self.last_progress = time.monotonic()
-            self.stats = values
-            stamp = values.get("last_source_stamp_ns")
-            if stamp:
-                self.details[int(stamp)] = values
-
-    def spin_for(self, seconds: float) -> None:
-        end = time.monotonic() + max(seconds, 0.0)
-        while True:
-            left = end - time.monotonic()
-            self.executor.spin_once(timeout_sec=max(min(left, 0.02), 0.0))
-            if left <= 0:
-                return
-
-    def connected(self) -> bool:
-        return (self.source_pub.get_subscription_count() > 0
-                and self.target_pub.get_subscription_count() > 0
-                and self.pose_sub.get_publisher_count() > 0)
-
-    def accounted_sources(self) -> int | None:
-        """Sources the node is done with (published + rejected + dropped + waiting), from
-        its last diagnostics; None before any diagnostics."""
-        if not self.stats:
-            return None
-        n = 0
-        for key, value in self.stats.items():
-            if (key == "published"
-                    or (key.startswith("rejected.") and not key.startswith("rejected.target_"))
-                    or (key.startswith("pairing.dropped.") and key[16:].startswith(_SOURCE_DROPS))
-                    or key == "pairing.waiting_sources"):
-                n += _int(value)
-        return n
-
-    def received_sources(self) -> int:
-        return _int(self.stats.get("received_source", "0"))
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
-        self.context.try_shutdown()
-
-
-def replay_live(opts: ReplayOptions) -> BagReport:
+def replay_live(opts: ReplayOptions, live: LiveOptions) -> BagReport:
     """Replay the bag through the node; write and return the report (as offline)."""
     start = time.perf_counter()
     contents = load_contents(opts)
     pipe, node_cfg, params, how = resolve_configs(opts.parameters, contents)
-    report = start_report(opts, contents, pipe, node_cfg)
+    report = start_report(opts, contents, pipe, node_cfg, "live")
     report.notes.append(f"voxel size {pipe.voxel_size:g} m ({how})")
     pairer = Pairer.from_config(node_cfg, queue_depth=MAX_QUEUE)
     expected = {p.source.stamp_ns: p for p in iter_pairs(contents, pairer)}
-    note_pairing_drops(report, pairer.counters())
+    note_pairing_drops(report, pairer)
     playable = [c for c in contents.clouds if c.msg is not None]
     n_sources = sum(c.role == "source" for c in playable)
     out = opts.out_dir
     out.mkdir(parents=True, exist_ok=True)
-    proc = spawn_node(opts, params, n_sources, out) if opts.spawn else None
+    proc = spawn_node(opts, live, params, n_sources, out) if live.spawn else None
     session = None
     try:
-        session = LiveSession(opts, n_sources)
-        wait_for_node(session, proc, opts, out)
-        sent = play(session, playable, opts.rate, proc)
-        finished = wait_for_results(session, proc, opts, n_sources, len(expected))
+        session = LiveSession(opts.source_topic, opts.target_topic, live.node_name, n_sources)
+        wait_for_node(session, proc, opts, live, out)
+        sent = play(session, playable, live.rate, proc)
+        finished = wait_for_results(session, proc, live, n_sources, len(expected))
         if not finished:
             report.notes.append(f"stopped waiting: no progress from the node for "
-                                f"{opts.timeout:g} s (see node.log)")
+                                f"{live.timeout:g} s (see node.log)")
     finally:
         if session is not None:
             session.close()
@@ -176,8 +75,8 @@ def replay_live(opts: ReplayOptions) -> BagReport:
 
 # --- node process --------------------------------------------------------------------------
 
-def spawn_node(opts: ReplayOptions, params: dict[str, Any], n_sources: int,
-               out: Path) -> subprocess.Popen:
+def spawn_node(opts: ReplayOptions, live: LiveOptions, params: dict[str, Any],
+               n_sources: int, out: Path) -> subprocess.Popen:
     """Start ``python -m cgags_ros.register_node`` with a generated parameter file."""
     import yaml
 
@@ -188,7 +87,7 @@ def spawn_node(opts: ReplayOptions, params: dict[str, Any], n_sources: int,
     params_file = out / "node_params.yaml"
     params_file.write_text(yaml.safe_dump({"/**": {"ros__parameters": values}}, sort_keys=False))
     cmd = [sys.executable, "-m", "cgags_ros.register_node", "--ros-args",
-           "-r", f"__node:={opts.node_name}", "--params-file", str(params_file),
+           "-r", f"__node:={live.node_name}", "--params-file", str(params_file),
            "-r", f"source_cloud:={opts.source_topic}", "-r", f"target_cloud:={opts.target_topic}"]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     log = open(out / "node.log", "w", encoding="utf-8")
@@ -199,9 +98,9 @@ def spawn_node(opts: ReplayOptions, params: dict[str, Any], n_sources: int,
 
 
 def wait_for_node(session: LiveSession, proc: subprocess.Popen | None, opts: ReplayOptions,
-                  out: Path) -> None:
+                  live: LiveOptions, out: Path) -> None:
     """Block until the node subscribes to both clouds and publishes its pose topic."""
-    deadline = time.monotonic() + opts.startup_timeout
+    deadline = time.monotonic() + live.startup_timeout
     while not session.connected():
         if proc is not None and proc.poll() is not None:
             raise ReplayError(f"register_node exited with code {proc.returncode} before it "
@@ -209,7 +108,7 @@ def wait_for_node(session: LiveSession, proc: subprocess.Popen | None, opts: Rep
         if time.monotonic() > deadline:
             what = "the spawned register_node" if proc is not None else (
                 f"a running {session.node_id} (started with --no-spawn)")
-            raise ReplayError(f"no connection to {what} within {opts.startup_timeout:g} s: "
+            raise ReplayError(f"no connection to {what} within {live.startup_timeout:g} s: "
                               f"nobody subscribes to {opts.source_topic}/{opts.target_topic} "
                               f"or publishes {session.node_id}/pose")
         session.spin_for(0.1)
@@ -264,9 +163,9 @@ def play(session: LiveSession, clouds: list[CloudMessage], rate: float,
     return sent
 
 
-def wait_for_results(session: LiveSession, proc: subprocess.Popen | None, opts: ReplayOptions,
+def wait_for_results(session: LiveSession, proc: subprocess.Popen | None, live: LiveOptions,
                      n_sources: int, n_expected: int) -> bool:
-    """Spin until the node is done with every source; False on ``opts.timeout`` without
+    """Spin until the node is done with every source; False on ``live.timeout`` without
     progress or when the node exited."""
     session.last_progress = time.monotonic()
     while True:
@@ -281,7 +180,7 @@ def wait_for_results(session: LiveSession, proc: subprocess.Popen | None, opts: 
             return True
         if proc is not None and proc.poll() is not None:
             return False
-        if time.monotonic() - session.last_progress > opts.timeout:
+        if time.monotonic() - session.last_progress > live.timeout:
             return False
 
 
@@ -303,36 +202,21 @@ def build_rows(contents: BagContents, expected: dict[int, Any], poses: dict[int,
         if src is None:
             continue
         row = make_row(len(rows), src, pair.target.payload if pair else None, contents)
-        info = details.get(stamp, {})
-        row.inliers = _int(info["last_inliers"]) if "last_inliers" in info else None
-        row.fitness = _float(info.get("last_fitness"))
-        row.time_s = _float(info.get("last_timing.total"))
+        info = details.get(stamp)
+        last = diagnostics.last_result(info or {})
+        row.inliers, row.fitness, row.time_s = last["inliers"], last["fitness"], last["time_s"]
         got = poses.get(stamp)
         if got is not None:
-            row.valid = info.get("last_valid", "True") == "True"
+            row.valid = last["valid"]
             row.transform, row.target_frame = got.transform, got.frame_id
             row.latency_s = got.receipt_s - sent[stamp] if stamp in sent else None
-            row.reason = info.get("last_reason", "")
+            row.reason = last["reason"]
         else:
-            row.reason = info.get("last_reason") or "no pose received (see node.log)"
+            row.reason = last["reason"] or "no pose received (see node.log)"
         rows.append(row)
     return rows
 
 
 def node_notes(stats: dict[str, str]) -> list[str]:
-    keys = [k for k in stats if k.startswith(("rejected.", "pairing.dropped."))]
-    return [f"node {k}: {stats[k]}" for k in sorted(keys) if _int(stats[k])]
-
-
-def _int(value: Any) -> int:
-    try:
-        return int(float(value))
-    except (TypeError, ValueError):
-        return 0
-
-
-def _float(value: Any) -> float | None:
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        return None
+    """Return a note per rejection and drop reason the node counted."""
+    return [f"node {line}" for line in diagnostics.nonzero_drops(stats)]

@@ -1,10 +1,11 @@
-"""Small helpers for the typed, documented config dataclasses of every layer.
+"""Typed, documented config fields: the one declaration every layer's options come from.
 
-Each config field is declared with :func:`option`, which records a description and the
-allowed range or choices in the field metadata. From that single declaration we get
-validation (:func:`validate`), flattening to ``section.name`` keys for YAML and ROS
-parameters (:func:`flatten`, :func:`update_from_flat`) and the ROS parameter descriptors
-(built in ``cgags_ros.ros``). Pure Python: the core may import it.
+Each config field is declared with :func:`option`, which records a description, the
+allowed range or choices and whether it is an advanced (research) switch in the field
+metadata. From that single declaration come validation (:func:`validate`), flattening to
+``section.name`` keys for YAML and ROS parameters (:func:`flatten`, :func:`update_from_flat`),
+the generated parameter file and docs (:mod:`cgags_ros.config.files`) and the ROS parameter
+descriptors (:mod:`cgags_ros.ros.parameters`). Pure Python: the core may import it.
 """
 
 from __future__ import annotations
@@ -13,15 +14,19 @@ import dataclasses
 import math
 from typing import Any, Mapping, Sequence
 
-from .errors import InvalidConfigError
+from ..errors import InvalidConfigError
 
 
 def option(default: Any, description: str, *, low: float | None = None,
            high: float | None = None, choices: tuple | None = None,
-           allow_none: bool = False) -> Any:
-    """A dataclass field with a description and a valid range (inclusive) or set of choices."""
+           allow_none: bool = False, advanced: bool = False) -> Any:
+    """Declare a dataclass field with a description and a valid range or set of choices.
+
+    ``low``/``high`` are inclusive. ``advanced`` marks a research switch: still settable
+    everywhere, documented in docs/parameters.md, left out of the default parameter file.
+    """
     meta = {"description": description, "low": low, "high": high,
-            "choices": choices, "allow_none": allow_none}
+            "choices": choices, "allow_none": allow_none, "advanced": advanced}
     return dataclasses.field(default=default, metadata=meta)
 
 
@@ -87,7 +92,7 @@ def flatten(cfg: Any, _prefix: str = "") -> dict[str, Any]:
 
 
 def describe(cls_or_cfg: Any, _prefix: str = "") -> dict[str, dict[str, Any]]:
-    """Flattened field metadata: ``{key: {description, low, high, choices, default}}``."""
+    """Flattened field metadata: ``{key: {description, low, high, choices, advanced, default}}``."""
     cfg = cls_or_cfg() if isinstance(cls_or_cfg, type) else cls_or_cfg
     out: dict[str, dict[str, Any]] = {}
     for f in dataclasses.fields(cfg):

@@ -12,7 +12,8 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from .config import RefineConfig
+from ..config.frontend import RefineConfig
+from ..geometry import apply_transform
 
 
 @dataclasses.dataclass
@@ -41,7 +42,7 @@ def evaluate_alignment(source: np.ndarray, target: np.ndarray | cKDTree,
                        transform: np.ndarray, max_distance: float) -> Alignment:
     """Fitness and inlier RMSE of ``transform`` (source (N, 3) -> target, metres)."""
     tree = target if isinstance(target, cKDTree) else cKDTree(target)
-    moved = source @ transform[:3, :3].T + transform[:3, 3]
+    moved = apply_transform(transform, source)
     dist, nn = tree.query(moved, k=1, distance_upper_bound=max_distance)
     close = np.isfinite(dist)
     rmse = float(np.sqrt(np.mean(dist[close] ** 2))) if close.any() else float("nan")

@@ -1,7 +1,7 @@
-"""Configuration of the whole pipeline: one dataclass per layer, composed here.
+"""Configuration of the whole pipeline: the per-layer dataclasses, composed.
 
-Defaults live in the dataclasses and are mirrored in ``config/register_node.yaml``
-(a test checks the two agree). ``voxel_size`` (metres) is the one scale every radius and
+Defaults live in the dataclasses; ``config/register_node.yaml`` is generated from them
+(:mod:`cgags_ros.config.files`). ``voxel_size`` (metres) is the one scale every radius and
 threshold derives from.
 """
 
@@ -11,15 +11,17 @@ import dataclasses
 from pathlib import Path
 from typing import Any, Mapping
 
-from . import configutil
-from .configutil import option
-from .errors import InvalidConfigError
-from .features.config import FrontEndConfig, RefineConfig
-from .registration.config import CoreConfig
+from ..errors import InvalidConfigError
+from . import fields
+from .core import CoreConfig
+from .fields import option
+from .frontend import FrontEndConfig, RefineConfig
 
 
 @dataclasses.dataclass
 class PipelineConfig:
+    """Everything ``register_clouds`` needs: the voxel size, each layer's options, a seed."""
+
     voxel_size: float = option(
         0.05, "Voxel size in metres; normals, FPFH radii and thresholds derive from it.",
         low=1e-6, high=100.0)
@@ -31,8 +33,10 @@ class PipelineConfig:
 
 
 def load_yaml(path: str | Path) -> dict[str, Any]:
-    """Read a YAML file and return its mapping. Accepts ROS-style files
-    (``node_name: {ros__parameters: {...}}``) and plain mappings."""
+    """Read a YAML file of parameters and return its mapping.
+
+    Accepts ROS-style files (``node_name: {ros__parameters: {...}}``) and plain mappings.
+    """
     import yaml
 
     try:
@@ -52,6 +56,9 @@ def load_yaml(path: str | Path) -> dict[str, Any]:
 
 def pipeline_config_from(values: Mapping[str, Any] | None = None,
                          base: PipelineConfig | None = None) -> PipelineConfig:
-    """A validated PipelineConfig from flat (``core.p1``) or nested keys; unknown keys raise."""
+    """Return a validated PipelineConfig from flat (``core.p1``) or nested keys.
+
+    Unknown keys raise InvalidConfigError.
+    """
     base = base or PipelineConfig()
-    return configutil.update_from_flat(base, values or {})
+    return fields.update_from_flat(base, values or {})

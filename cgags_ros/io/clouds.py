@@ -6,8 +6,10 @@ Formats, chosen by file extension:
   scans with their extra ``range_grid`` element load fine.
 - ``.pcd``: ascii, binary and binary_compressed (PCL).
 - ``.npy``: an (N, >=3) numeric array; the first three columns are x, y, z.
-- ``.csv``, ``.xyz``, ``.txt``: one point per row, comma or whitespace separated, the first
-  three columns x, y, z; a non-numeric header row and ``#`` comments are skipped.
+- ``.csv``, ``.xyz``, ``.txt``: one point per row, the first three columns x, y, z; the
+  delimiter (comma, semicolon, tab or spaces) is detected from the first data row, so a
+  whitespace-separated ``.csv`` (as some public datasets ship their scans) reads too; a
+  non-numeric header row and ``#`` comments are skipped.
 
 Every failure raises :class:`~cgags_ros.errors.InvalidInputError` naming the file and the
 problem; nothing is printed.
@@ -247,14 +249,23 @@ def _read_npy(path: Path) -> np.ndarray:
 
 
 def _read_text(path: Path) -> np.ndarray:
-    delimiter = "," if path.suffix.lower() == ".csv" else None
     with open(path, "r", encoding="utf-8", errors="replace") as f:
         lines = [ln for ln in f if ln.strip() and not ln.lstrip().startswith("#")]
+    delimiter = _sniff_delimiter(lines[1] if len(lines) > 1 else lines[0]) if lines else None
     if lines and not _is_numeric_row(lines[0], delimiter):
         lines = lines[1:]  # a header such as "x,y,z"
     if not lines:
         return np.zeros((0, 3))
     return np.loadtxt(lines, delimiter=delimiter, ndmin=2)
+
+
+def _sniff_delimiter(line: str) -> str | None:
+    """Return the delimiter of a data row: the first of , ; tab that splits it into
+    numbers, else None (runs of whitespace)."""
+    for delimiter in (",", ";", "\t"):
+        if delimiter in line and _is_numeric_row(line, delimiter):
+            return delimiter
+    return None
 
 
 def _is_numeric_row(line: str, delimiter: str | None) -> bool:

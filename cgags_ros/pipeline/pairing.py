@@ -82,8 +82,11 @@ class Pairer:
 
     @classmethod
     def from_config(cls, cfg, queue_depth: int | None = None) -> "Pairer":
-        """The Pairer described by a :class:`~cgags_ros.node_config.NodeConfig` (the node
-        and the replay tool both build theirs here); ``queue_depth`` overrides cfg's."""
+        """Return the Pairer a :class:`~cgags_ros.config.node.NodeConfig` describes.
+
+        The node and the replay tool both build theirs here; ``queue_depth`` overrides
+        the config's.
+        """
         return cls(cfg.pairing_mode, slop=cfg.sync_slop,
                    queue_depth=queue_depth or cfg.queue_depth,
                    max_waiting_sources=cfg.max_waiting_sources,
@@ -97,7 +100,7 @@ class Pairer:
         if slop < 0 or queue_depth < 1 or max_waiting_sources < 1 or max_waiting_targets < 1:
             raise ValueError("slop must be >= 0 and queue/buffer sizes >= 1")
         self.mode = mode
-        self.slop_ns = int(round(slop * 1e9))
+        self.set_slop(slop)
         self.queue_depth = int(queue_depth)
         self.max_waiting_sources = int(max_waiting_sources)
         self.max_waiting_targets = int(max_waiting_targets)
@@ -113,6 +116,10 @@ class Pairer:
         self._newest_target_ns: int | None = None
         self._receipts = 0
         self._cond = threading.Condition()
+
+    def set_slop(self, slop: float) -> None:
+        """Set the synchronized-mode slop (seconds); applies to the next match."""
+        self.slop_ns = int(round(slop * 1e9))
 
     # ------------------------------------------------------------------ input
 

@@ -1,0 +1,14 @@
+"""Configuration: one typed dataclass per layer, all declared with :func:`fields.option`.
+
+- :mod:`.fields`: the field helper (descriptions, ranges, validation, flat keys).
+- :mod:`.core`, :mod:`.frontend`, :mod:`.pipeline`, :mod:`.node`: the per-layer dataclasses.
+- :mod:`.files`: ``config/register_node.yaml`` and ``docs/parameters.md``, generated.
+"""
+
+from .core import CoreConfig
+from .frontend import FrontEndConfig, RefineConfig
+from .node import NodeConfig, configs_from_parameters
+from .pipeline import PipelineConfig, load_yaml, pipeline_config_from
+
+__all__ = ['CoreConfig', 'FrontEndConfig', 'NodeConfig', 'PipelineConfig', 'RefineConfig',
+           'configs_from_parameters', 'load_yaml', 'pipeline_config_from']

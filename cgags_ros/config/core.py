@@ -1,0 +1,154 @@
+"""Configuration of the registration core (``cgags_ros.registration``).
+
+"paper" marks the paper's parameter table (METHOD.md). "INFERRED" marks a reconstruction
+choice the paper does not state; those are advanced switches, and docs/ablation.md gives
+the measurements that chose their defaults.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from ..errors import InvalidConfigError
+from .fields import option
+
+
+@dataclasses.dataclass
+class CoreConfig:
+    """Options of the registration core; the defaults are the paper's where it has one."""
+
+    # --- thresholds (paper: tau = 6 pr, delta = 10 pr) -----------------------------------
+    inlier_threshold_factor: float = option(
+        6.0, 'Inlier threshold tau in units of the point resolution pr (paper: 6).', low=1e-6)
+    compatibility_threshold_factor: float = option(
+        10.0, 'Compatibility threshold delta in units of pr (paper: 10).', low=1e-6)
+    compatibility_to_inlier_ratio: float = option(
+        10.0 / 6.0, 'delta / tau when only an inlier threshold (no resolution) is given '
+        "(the paper's 10/6).", low=1e-3, advanced=True)
+
+    # --- compatibility graph (INFERRED) --------------------------------------------------
+    compatibility: str = option(
+        'soft', "INFERRED. 'binary': edge when | |p_i-p_j| - |q_i-q_j| | < delta, edges "
+        "drawn uniformly. 'soft': same edges, drawn with weight 1 - (d_ij/delta)^2.",
+        choices=('binary', 'soft'), advanced=True)
+    min_pair_distance_factor: float = option(
+        0.0, 'INFERRED. Drop graph edges whose source pair is closer than this many tau '
+        '(short edges constrain rotation poorly). 0 keeps all.', low=0.0, advanced=True)
+
+    # --- minimal compatible subsets (INFERRED) -------------------------------------------
+    edge_sampling: str = option(
+        'tournament', "INFERRED. How the compatible edge (i, j) is drawn: 'uniform' over all "
+        "edges (favours high-degree vertices), or 'tournament': the edge with the most "
+        'common neighbours |N(i) ∩ N(j)| among edge_tournament uniform draws.',
+        choices=('uniform', 'tournament'), advanced=True)
+    edge_tournament: int = option(
+        16, "Uniform edge draws per selected edge with edge_sampling='tournament'.",
+        low=1, high=4096, advanced=True)
+    vertex_sampling: str = option(
+        'tournament', "INFERRED. How k is drawn from N(i) ∩ N(j): 'uniform', 'degree' "
+        "(proportional to k's degree), or 'tournament': the k with the largest support "
+        '|N(i) ∩ N(j) ∩ N(k)| among vertex_tournament uniform draws.',
+        choices=('uniform', 'degree', 'tournament'), advanced=True)
+    vertex_tournament: int = option(
+        8, "Uniform vertex draws per selected vertex with vertex_sampling='tournament'.",
+        low=1, high=4096, advanced=True)
+    min_triangle_area_factor: float = option(
+        0.5, 'INFERRED. Reject near-collinear triples whose source triangle area is below '
+        'factor * tau^2. 0 disables.', low=0.0, advanced=True)
+
+    # --- hypothesis scoring ----------------------------------------------------------------
+    score: str = option(
+        'inlier_count', "Hypothesis score: 'inlier_count' (paper) or 'truncated' "
+        '(MSAC: sum of max(0, 1 - r^2/tau^2)).', choices=('inlier_count', 'truncated'),
+        advanced=True)
+    batch_size: int = option(
+        512, 'Largest number of hypotheses generated and scored per vectorized batch '
+        '(batches start small and double, so easy problems stop early).', low=1,
+        high=100000, advanced=True)
+    prescreen: bool = option(
+        True, "INFERRED (speed). Score each hypothesis first on its sample's common "
+        'neighbourhood {i,j,k} ∪ N(i)∩N(j)∩N(k), then score only the best exact_per_batch '
+        'of each batch on all N. False scores every hypothesis on all N.', advanced=True)
+    exact_per_batch: int = option(
+        16, 'Hypotheses per batch scored on all N (and fed to the preference lists) when '
+        'prescreen is on.', low=1, high=100000, advanced=True)
+
+    # --- preference-based accelerated guided sampling -------------------------------------
+    guided_sampling: bool = option(
+        True, 'Use preference-based accelerated guided sampling after stage one.',
+        advanced=True)
+    preference_length: int = option(
+        20, "b: length of each correspondence's preference list (paper: 20).",
+        low=1, high=1000, advanced=True)
+    xi: float = option(
+        1e-6, 'xi: floor added to kernel sampling weights (paper: 1e-6).', low=0.0,
+        advanced=True)
+    max_up: int = option(
+        3, 'max_up (paper: 3). See max_up_mode.', low=0, high=1000, advanced=True)
+    max_up_mode: str = option(
+        'preference_refreshes', "INFERRED meaning of max_up: 'preference_refreshes' "
+        "(recompute the kernel at most max_up times), 'best_updates' (stop guiding after "
+        "max_up improvements of the best model), or 'local_refits' (max_up least-squares "
+        're-fits per new best model).',
+        choices=('preference_refreshes', 'best_updates', 'local_refits'), advanced=True)
+    guided_start: str = option(
+        'stage_one_confidence', 'INFERRED. When guided sampling starts: '
+        "'after_b_hypotheses' (as soon as b hypotheses exist) or 'stage_one_confidence' "
+        '(when the P1 bound for compatible sampling is met).',
+        choices=('after_b_hypotheses', 'stage_one_confidence'), advanced=True)
+    guided_seed: str = option(
+        'best_inliers', "INFERRED. Where guided sampling draws its seed i: 'best_inliers' "
+        "(uniformly from the current best model's inliers) or 'kernel' (proportional to "
+        'the kernel support sum_j K(i, j) over compatible j).',
+        choices=('best_inliers', 'kernel'), advanced=True)
+    kernel_subset: int = option(
+        400, 'Correspondences (top by preference-kernel support) kept for guided sampling; '
+        'bounds the N x M kernel. 0 keeps all.', low=0, advanced=True)
+
+    # --- stopping ----------------------------------------------------------------------------
+    max_iterations: int = option(
+        100000, 'Hard cap on generated hypotheses (paper: 1e5).', low=1, high=10**8)
+    time_budget: float = option(
+        0.0, 'Seconds after which sampling stops and the best model so far is used (the '
+        "result then says stopped_by='time_budget'). 0: no limit, only max_iterations.",
+        low=0.0)
+    min_iterations: int = option(
+        0, 'Hypotheses generated before any adaptive stop.', low=0, advanced=True)
+    p1: float = option(0.99, 'Confidence P1 of the compatible-sampling stage (paper: 0.99).',
+                       low=0.0, high=0.999999)
+    p2: float = option(0.99, 'Confidence P2 of the guided stage (paper: 0.99).',
+                       low=0.0, high=0.999999)
+    stopping: str = option(
+        'adaptive', "INFERRED. 'adaptive': RANSAC bound log(1-P)/log(1-w) per stage with w "
+        "estimated from the best model's inliers inside the compatibility graph; 'fixed': "
+        'always max_iterations.', choices=('adaptive', 'fixed'), advanced=True)
+    guided_count: str = option(
+        'all_draws', "INFERRED. Which guided draws the P2 bound counts: 'all_draws' of the "
+        'stage, with w2 re-estimated against each new best model (adaptive RANSAC), or '
+        "'since_improvement' (restart the count at every new best model).",
+        choices=('all_draws', 'since_improvement'), advanced=True)
+    stage_one_estimate: str = option(
+        'observed', 'INFERRED. Estimate of w1 (all-inlier probability of one stage-one '
+        "sample) for the P1 bound: 'analytic' (uniform edge and vertex sampling, from the "
+        "best model's inlier subgraph) or 'observed' (the larger of that and the share of "
+        'drawn samples inside the best inlier set).', choices=('analytic', 'observed'),
+        advanced=True)
+
+    # --- final re-fit and validity ------------------------------------------------------------
+    refit: str = option(
+        'iterative', "INFERRED. Final least-squares re-fit on the best model's inliers: "
+        "'iterative' (repeat while the inlier set changes), 'once', or 'none'.",
+        choices=('iterative', 'once', 'none'), advanced=True)
+    refit_iterations: int = option(10, 'Maximum iterative re-fits.', low=1, high=1000,
+                                   advanced=True)
+    distinct_ratio: float = option(
+        1.3, 'A result is significant (search may stop, result may be valid) only if its '
+        'inlier count is at least this times that of the best distinct alternative '
+        'hypothesis (sharing under half its inliers), and above the chance level.', low=1.0)
+    min_inliers: int = option(
+        6, 'An estimate with fewer inliers is reported valid=False.', low=3)
+
+    def check(self) -> None:
+        """Check constraints between fields (called by ``fields.validate``)."""
+        if self.guided_sampling and self.preference_length < 1:
+            raise InvalidConfigError('preference_length must be >= 1 with guided sampling')

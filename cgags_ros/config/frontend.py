@@ -1,0 +1,76 @@
+"""Configuration of the point-cloud front end and of the refinement after the core.
+
+Every radius is a multiple of the voxel size, so one number tunes them all. No Open3D
+import here: the node reads these to declare its parameters.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from .fields import option
+
+
+@dataclasses.dataclass
+class FrontEndConfig:
+    """Downsampling, normals, FPFH and descriptor matching."""
+
+    normal_radius_factor: float = option(
+        2.0, 'Normal estimation radius in voxel sizes.', low=0.1, high=100.0)
+    normal_max_nn: int = option(30, 'Maximum neighbours for normal estimation.', low=3,
+                                high=1000)
+    normal_orientation: str = option(
+        'origin', "Normal sign (FPFH depends on it): 'centroid' points normals towards the "
+        "cloud's centroid (frame-independent), 'origin' towards the frame origin (the sensor "
+        "for raw scans in the sensor frame), 'none' keeps PCA's arbitrary, frame-dependent "
+        'sign.', choices=('centroid', 'origin', 'none'))
+    fpfh_radius_factor: float = option(
+        5.0, 'FPFH feature radius in voxel sizes.', low=0.5, high=100.0)
+    fpfh_max_nn: int = option(100, 'Maximum neighbours for FPFH.', low=5, high=5000)
+    mutual_filter: bool = option(True, 'Keep only mutual nearest neighbours in FPFH space.',
+                                 advanced=True)
+    ratio_test: float = option(
+        1.0, 'Lowe ratio test on FPFH distances (1.0 disables).', low=0.1, high=1.0,
+        advanced=True)
+    max_correspondences: int = option(
+        5000, 'Keep at most this many correspondences (best descriptor distance first); '
+        '0 keeps all.', low=0)
+    min_points: int = option(
+        10, 'Fewer points than this after downsampling is rejected as an empty cloud.', low=3)
+    inlier_threshold: float = option(
+        0.0, 'Inlier threshold tau in metres handed to the core; 0 derives it from the point '
+        'resolution pr (mean nearest-neighbour distance of the downsampled clouds) as '
+        'core.inlier_threshold_factor * pr.', low=0.0)
+
+
+@dataclasses.dataclass
+class RefineConfig:
+    """Local refinement of the core's estimate and the validity gates after it."""
+
+    method: str = option(
+        'point_to_plane', "Refinement after the global estimate: 'none', 'point_to_plane' "
+        "(Open3D ICP) or 'gicp' (small_gicp).", choices=('none', 'point_to_plane', 'gicp'))
+    max_correspondence_distance_factor: float = option(
+        1.5, 'Refinement correspondence distance in voxel sizes.', low=0.01, high=100.0)
+    max_iterations: int = option(50, 'Refinement iterations.', low=1, high=10000)
+    coarse_stage_tolerance: float = option(
+        1e-4, "When the core's inlier threshold exceeds the refinement distance, a first "
+        'refinement stage runs at that threshold; it stops once fitness and inlier RMSE '
+        'change by less than this (relative): it only has to bring the estimate within the '
+        "final distance. The final stage keeps Open3D's 1e-6.", low=0.0, high=1.0,
+        advanced=True)
+    min_fitness: float = option(
+        0.0, 'After refinement, a fitness (share of source points with a target point within '
+        'the refinement distance) below this marks the result invalid. 0 disables.',
+        low=0.0, high=1.0)
+    significance: float = option(
+        0.01, 'Chance-inlier gate: the estimate is invalid unless its inlier count is above '
+        'what the best of the generated hypotheses would reach with probability '
+        '`significance` if every correspondence were an outlier (Poisson model of the '
+        'correspondences that fall within tau of the estimate by chance). 0 disables.',
+        low=0.0, high=1.0)
+    min_observability: float = option(
+        0.02, 'Degeneracy gate: smallest / largest eigenvalue of the point-to-plane '
+        'information matrix over the overlapping points (rotation scaled by the overlap '
+        'radius). Planes, lines, spheres and cylinders leave some motion unconstrained and '
+        'give ~0; the estimate is then invalid. 0 disables.', low=0.0, high=1.0)

@@ -1,0 +1,1 @@
+"""Point-cloud front end (Open3D): features, descriptor matching and local refinement."""

@@ -1,0 +1,107 @@
+"""Rigid-transform and point-set geometry shared by every layer (one copy of each).
+
+Conventions: a 4x4 transform ``T`` maps source-frame points into the target frame,
+``p_target = T[:3, :3] @ p_source + T[:3, 3]``; metres; quaternions are ``(x, y, z, w)`` as
+in geometry_msgs. numpy and scipy only.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .errors import InvalidInputError
+
+
+def make_transform(R: np.ndarray, t: Any) -> np.ndarray:
+    """Build the 4x4 transform with rotation ``R`` (3x3) and translation ``t`` (3,)."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return T
+
+
+def apply_transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Map (N, 3) ``points`` by the 4x4 transform ``T``."""
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def quaternion_to_matrix(q: Any) -> np.ndarray:
+    """Convert a quaternion ``(x, y, z, w)`` to a 3x3 rotation matrix (normalised first)."""
+    x, y, z, w = np.asarray(q, dtype=np.float64).reshape(4)
+    norm = np.sqrt(x * x + y * y + z * z + w * w)
+    if not np.isfinite(norm) or norm < 1e-12:
+        raise InvalidInputError(f'quaternion {tuple(q)} has zero or non-finite norm')
+    x, y, z, w = x / norm, y / norm, z / norm, w / norm
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
+    """Convert a 3x3 rotation matrix to a unit quaternion ``(x, y, z, w)`` with ``w >= 0``.
+
+    Shepperd's method picks the largest diagonal term, so it is stable near 180 degrees.
+    """
+    R = np.asarray(R, dtype=np.float64)[:3, :3]
+    trace = np.trace(R)
+    diag = np.array([R[0, 0], R[1, 1], R[2, 2], trace])
+    k = int(np.argmax(diag))
+    if k == 3:
+        w = 0.5 * np.sqrt(max(1.0 + trace, 0.0))
+        q = np.array([(R[2, 1] - R[1, 2]), (R[0, 2] - R[2, 0]), (R[1, 0] - R[0, 1]), 0.0])
+        q /= 4.0 * w
+        q[3] = w
+    else:
+        i, j, m = k, (k + 1) % 3, (k + 2) % 3
+        s = 0.5 * np.sqrt(max(1.0 + R[i, i] - R[j, j] - R[m, m], 0.0))
+        q = np.zeros(4)
+        q[i] = s
+        q[j] = (R[j, i] + R[i, j]) / (4.0 * s)
+        q[m] = (R[m, i] + R[i, m]) / (4.0 * s)
+        q[3] = (R[m, j] - R[j, m]) / (4.0 * s)
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def rotation_error_deg(T_est: np.ndarray, T_gt: np.ndarray) -> float:
+    """Return RE = arccos((trace(R_gt^T R) - 1) / 2) in degrees."""
+    R = np.asarray(T_est)[:3, :3]
+    R_gt = np.asarray(T_gt)[:3, :3]
+    c = (np.trace(R_gt.T @ R) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def translation_error(T_est: np.ndarray, T_gt: np.ndarray) -> float:
+    """Return TE = ||t_gt - t|| in the units of the input (metres)."""
+    return float(np.linalg.norm(np.asarray(T_est)[:3, 3] - np.asarray(T_gt)[:3, 3]))
+
+
+def is_success(T_est: np.ndarray, T_gt: np.ndarray, max_re_deg: float, max_te: float) -> bool:
+    """Tell whether RE <= ``max_re_deg`` and TE <= ``max_te``."""
+    return (rotation_error_deg(T_est, T_gt) <= max_re_deg
+            and translation_error(T_est, T_gt) <= max_te)
+
+
+def point_resolution(points: np.ndarray, tree: cKDTree | None = None) -> float:
+    """Return pr, the mean distance from each point to its nearest other point (metres).
+
+    ``tree`` is a k-d tree over ``points`` when the caller already has one.
+    """
+    if len(points) < 2:
+        return 0.0
+    d, _ = (tree if tree is not None else cKDTree(points)).query(points, k=2)
+    return float(np.mean(d[:, 1]))
+
+
+def spread(points: np.ndarray) -> np.ndarray:
+    """Return the singular values of the centred (N, 3) ``points``, largest first.
+
+    ``s[1] / sqrt(N)`` is the RMS spread across the main axis: near 0 for a line, which
+    leaves the rotation about it undetermined; ``s[0]`` near 0 means identical points.
+    """
+    return np.linalg.svd(points - points.mean(axis=0), compute_uv=False)

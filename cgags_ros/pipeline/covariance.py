@@ -1,0 +1,77 @@
+"""Covariance of a registration result for geometry_msgs/PoseWithCovariance (ROS-free)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..geometry import apply_transform
+
+
+def pose_covariance(src: np.ndarray, dst: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """6x6 covariance of a rigid pose estimated from matched points, ROS order.
+
+    Row-major, ordered (x, y, z, rotation about X, Y, Z) as geometry_msgs/
+    PoseWithCovariance wants: a perturbation ``t' = t + dt`` (metres, target frame) and
+    ``R' = exp([dphi]x) R`` (radians, about the target frame's axes through the source
+    origin).
+
+    Gauss-Newton on the point-to-point residuals ``r_i = R src_i + t - dst_i``: the
+    Jacobian of r_i is ``J_i = [I, -[R src_i]x]``, the information is ``sum J_i^T J_i``
+    and ``cov = sigma^2 (J^T J)^-1`` with the residual variance ``sigma^2 = sum |r_i|^2 /
+    (3K - 6)``. It reflects geometry (a planar scene leaves some directions weak) and fit
+    quality; it ignores wrong correspondences and correlation between points, so treat it
+    as optimistic. Fewer than 3 pairs or a singular information: variances of 1e6.
+    """
+    src = np.asarray(src, dtype=np.float64).reshape(-1, 3)
+    dst = np.asarray(dst, dtype=np.float64).reshape(-1, 3)
+    k = min(len(src), len(dst))
+    if k < 3:
+        return np.diag([1e6] * 6)
+    R, t = T[:3, :3], T[:3, 3]
+    rotated = src[:k] @ R.T
+    residuals = rotated + t - dst[:k]
+    sigma2 = max(float(np.sum(residuals**2)) / max(3 * k - 6, 1), 1e-12)
+    # J_i^T J_i summed in closed form: [[K I, -S^T], [-S, sum(|p|^2 I - p p^T)]],
+    # with S = sum [p]x (p = R src_i); -[p]x^T = [p]x, so the off-diagonal block is [sum p]x.
+    p_sum = rotated.sum(axis=0)
+    skew = np.array([[0, -p_sum[2], p_sum[1]], [p_sum[2], 0, -p_sum[0]],
+                     [-p_sum[1], p_sum[0], 0]])
+    info = np.zeros((6, 6))
+    info[:3, :3] = k * np.eye(3)
+    info[:3, 3:] = skew
+    info[3:, :3] = skew.T
+    info[3:, 3:] = np.sum(rotated**2) * np.eye(3) - rotated.T @ rotated
+    if np.linalg.cond(info) > 1e12:
+        return np.diag([1e6] * 6)
+    return sigma2 * np.linalg.inv(info)
+
+
+def inlier_pairs(result: Any, source: np.ndarray, target: np.ndarray,
+                 T: np.ndarray, max_distance: float, max_points: int = 2000
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Matched (source, target) points behind the estimate, for :func:`pose_covariance`.
+
+    The pipeline's inlier correspondences when the result carries them (at least 3);
+    otherwise nearest neighbours of a subsample of the aligned source within
+    ``max_distance`` metres.
+    """
+    src = getattr(result, "inlier_source_points", None)
+    dst = getattr(result, "inlier_target_points", None)
+    if src is not None and dst is not None and len(src) >= 3:
+        return np.asarray(src), np.asarray(dst)
+    rng = np.random.default_rng(0)
+    if len(source) > max_points:
+        source = source[rng.choice(len(source), max_points, replace=False)]
+    src = source
+    aligned = apply_transform(T, src)
+    # Only the target near the aligned source matters; cropping keeps the tree small.
+    lo, hi = aligned.min(axis=0) - max_distance, aligned.max(axis=0) + max_distance
+    near = target[np.all((target >= lo) & (target <= hi), axis=1)]
+    if len(near) == 0:
+        return src[:0], src[:0]
+    dist, idx = cKDTree(near).query(aligned, distance_upper_bound=max_distance)
+    ok = np.isfinite(dist)
+    return src[ok], near[idx[ok]]

@@ -1,0 +1,112 @@
+"""Validity gates: why a final estimate must not be trusted, with the values behind it.
+
+Each gate returns a reason ('' when it passes): a line-like cloud, chance-level inliers,
+degenerate overlap geometry (planes, lines, spheres), low fitness.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..config.pipeline import PipelineConfig
+from ..frontend.features import CloudFeatures
+from ..frontend.matching import Correspondences
+from ..frontend.refine import Alignment, evaluate_alignment
+from ..geometry import apply_transform, spread
+from ..registration import poisson_isf
+from .result import PipelineResult
+
+
+def line_reason(points: np.ndarray, name: str, voxel_size: float) -> str:
+    """A cloud whose RMS spread across its main axis is below one voxel is a line: the
+    rotation about it can never be determined, so the core is not even asked."""
+    s = spread(points)
+    if s[1] / np.sqrt(len(points)) >= voxel_size:
+        return ""
+    return (f"degenerate {name} cloud: it is (nearly) a line (spread across its axis "
+            f"{s[1] / np.sqrt(len(points)):.3g} m < voxel size {voxel_size:g} m); the rotation "
+            "about it is undetermined")
+
+
+def gate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences, result: PipelineResult,
+          cfg: PipelineConfig) -> str:
+    """Why the final estimate must not be trusted, or '' when it passes every gate."""
+    distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
+    align = evaluate_alignment(fs.points, ft.tree, result.transform, distance)
+    back = evaluate_alignment(ft.points, fs.tree, np.linalg.inv(result.transform), distance)
+    result.fitness, result.inlier_rmse = align.fitness, align.inlier_rmse
+    result.overlap = min(align.fitness, back.fitness)
+    result.chance_inliers = chance_inliers(fs.points[corr.source_index],
+                                           ft.points[corr.target_index], result.coarse_transform,
+                                           result.inlier_threshold)
+    result.observability = observability(fs.points, ft.normals, align)
+    return (_significance_reason(result, cfg.refine.significance)
+            or _observability_reason(result, cfg.refine.min_observability)
+            or _fitness_reason(result, cfg.refine.min_fitness, distance))
+
+
+def chance_inliers(src: np.ndarray, dst: np.ndarray, transform: np.ndarray, tau: float) -> float:
+    """Expected inliers of ``transform`` if the correspondences were paired at random.
+
+    Averages, over all (i, j), whether ``dst[j]`` lies within ``tau`` of ``T src[i]``: the
+    exact expectation under a random permutation of the target rows. It is high where
+    keypoints are dense or the threshold loose, i.e. where a count means little.
+    """
+    moved = apply_transform(transform, src)
+    counts = cKDTree(dst).query_ball_point(moved, r=tau, return_length=True)
+    return float(np.sum(counts) / max(len(src), 1))
+
+
+def observability(source: np.ndarray, target_normals: np.ndarray, align: Alignment) -> float:
+    """Smallest / largest eigenvalue of the 6x6 point-to-plane information matrix.
+
+    Rows are ``[(p - c) x n / L, n]`` over the overlapping points (p: moved source point,
+    n: normal of its nearest target point, c, L: centroid and RMS radius of the overlap,
+    which makes rotation and translation columns commensurate). A plane leaves in-plane
+    motion unconstrained, a line its axis, a sphere all rotations: the ratio is then ~0.
+    """
+    if len(align.source_index) < 6:
+        return 0.0
+    T = align.transform
+    p = apply_transform(T, source[align.source_index])
+    n = target_normals[align.target_index]
+    centred = p - p.mean(axis=0)
+    radius = np.sqrt(np.mean(np.sum(centred ** 2, axis=1)))
+    if radius <= 0:
+        return 0.0
+    J = np.hstack([np.cross(centred / radius, n), n])
+    eig = np.linalg.eigvalsh(J.T @ J / len(J))
+    return float(max(eig[0], 0.0) / eig[-1]) if eig[-1] > 0 else 0.0
+
+
+def _significance_reason(result: PipelineResult, significance: float) -> str:
+    """Chance-level gate. If all N correspondences were outliers, the inliers of a fixed
+    transform are ~Poisson(mu) (mu = chance_inliers), plus the 3 that define a hypothesis;
+    the best of H hypotheses then exceeds the Poisson 1 - significance/H quantile with
+    probability ~significance (union bound)."""
+    if significance <= 0:
+        return ""
+    hypotheses = max(result.num_hypotheses, 1)
+    bound = 3 + poisson_isf(significance / hypotheses, result.chance_inliers)
+    if result.num_inliers > bound:
+        return ""
+    return (f"{result.num_inliers} inliers of {result.num_correspondences} correspondences "
+            f"is no better than chance (random pairing gives {result.chance_inliers:.2g} per "
+            f"estimate; the best of {hypotheses} hypotheses reaches {bound:.0f}): the clouds "
+            "probably do not overlap")
+
+
+def _observability_reason(result: PipelineResult, min_observability: float) -> str:
+    if min_observability <= 0 or result.observability >= min_observability:
+        return ""
+    return (f"degenerate geometry: the overlap constrains some motion only weakly "
+            f"(observability {result.observability:.2g} < {min_observability:g}; e.g. plane, "
+            "line, sphere or cylinder); the pose along it is arbitrary")
+
+
+def _fitness_reason(result: PipelineResult, min_fitness: float, distance: float) -> str:
+    if min_fitness <= 0 or result.fitness >= min_fitness:
+        return ""
+    return (f"fitness {result.fitness:.3f} < refine.min_fitness {min_fitness:g}: too few "
+            f"source points lie within {distance:.3g} m of the target after alignment")

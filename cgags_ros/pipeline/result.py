@@ -1,0 +1,64 @@
+"""The result of the whole pipeline: the core's result plus refinement and gate values."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from ..registration import RegistrationResult
+
+
+@dataclasses.dataclass
+class PipelineResult(RegistrationResult):
+    """:class:`RegistrationResult` of the whole pipeline.
+
+    ``transform`` is the final estimate (refined when refinement is on); ``inliers`` index
+    the putative correspondences given to the core. Extra attributes:
+
+    Attributes:
+        coarse_transform: the core's global estimate (4x4 source->target, metres).
+        refined: whether a refinement ran (``refine.method != 'none'``).
+        fitness: share of downsampled source points with a target point within the
+            refinement distance (``refine.max_correspondence_distance_factor * v``) under
+            ``transform``.
+        inlier_rmse: RMS distance (metres) of those points to their nearest target point.
+        overlap: min of the source-side and target-side shares of points with a neighbour
+            in the other cloud within the refinement distance (a symmetric overlap ratio).
+        observability: smallest/largest eigenvalue of the point-to-plane information matrix
+            of the overlap (0: some motion is unconstrained, e.g. plane on plane).
+        chance_inliers: inliers the estimate would collect if every correspondence were an
+            outlier (expected value under a random pairing).
+        inlier_source_points, inlier_target_points: (K, 3) the core's inlier
+            correspondences (downsampled keypoints, source and target frames, metres).
+        num_source_points, num_target_points: points after voxel downsampling.
+        voxel_size: metres. resolution: point resolution pr (metres) given to the core.
+    """
+
+    coarse_transform: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
+    refined: bool = False
+    fitness: float = 0.0
+    inlier_rmse: float = float("nan")
+    overlap: float = 0.0
+    observability: float = float("nan")
+    chance_inliers: float = float("nan")
+    inlier_source_points: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
+    inlier_target_points: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
+    num_source_points: int = 0
+    num_target_points: int = 0
+    voxel_size: float = float("nan")
+    resolution: float = float("nan")
+
+    def summary(self) -> dict[str, Any]:
+        out = super().summary()
+        out.update(
+            coarse_transform=np.asarray(self.coarse_transform, dtype=float).tolist(),
+            refined=bool(self.refined), fitness=float(self.fitness),
+            inlier_rmse=float(self.inlier_rmse), overlap=float(self.overlap),
+            observability=float(self.observability),
+            chance_inliers=float(self.chance_inliers),
+            num_source_points=int(self.num_source_points),
+            num_target_points=int(self.num_target_points),
+            voxel_size=float(self.voxel_size), resolution=float(self.resolution))
+        return out

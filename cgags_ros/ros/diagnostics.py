@@ -1,0 +1,112 @@
+"""The node's /diagnostics: one flat key space, built here and read back by live replay.
+
+:func:`build_statistics` makes the keys the node publishes; :func:`accounted_sources` and
+:func:`last_result` read them back (from the string values a DiagnosticStatus carries),
+so the names are defined once.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+REJECTED = 'rejected.'  # rejected.<cause>: clouds or pairs the node refused, per cause
+PAIRING = 'pairing.'  # pairing.<counter> of cgags_ros.pipeline.pairing.Pairer.counters()
+DROPPED = PAIRING + 'dropped.'  # pairing.dropped.<reason>
+LAST = 'last_'  # last_<field>: the most recent registration
+LAST_TIMING = 'last_timing.'  # last_timing.<stage>: its stage times, seconds
+# Pairing drop reasons that end a source's life (see cgags_ros.pipeline.pairing).
+SOURCE_DROPS = ('source_', 'queue_full', 'reset')
+
+
+def build_statistics(counts: Mapping[str, int], rejected: Mapping[str, int],
+                     last: Mapping[str, Any], latencies: Iterable[float], voxel_size: float,
+                     pairing: Mapping[str, int]) -> dict[str, Any]:
+    """Return the flat statistics of the node (what /diagnostics carries)."""
+    stats: dict[str, Any] = dict(counts)
+    stats.update({f'{REJECTED}{k}': v for k, v in sorted(rejected.items())})
+    stats['rejected'] = sum(rejected.values())
+    for key, value in last.items():
+        if key == 'timings':
+            stats.update({f'{LAST_TIMING}{k}': v for k, v in value.items()})
+        else:
+            stats[f'{LAST}{key}'] = value
+    stats['voxel_size'] = voxel_size
+    lat = np.array(list(latencies))
+    if lat.size:
+        stats['latency_p50_s'] = float(np.percentile(lat, 50))
+        stats['latency_p95_s'] = float(np.percentile(lat, 95))
+    stats.update({f'{PAIRING}{k}': v for k, v in pairing.items()})
+    return stats
+
+
+def diagnostic_array(stats: Mapping[str, Any], name: str, hardware_id: str,
+                     stamp: Any) -> DiagnosticArray:
+    """Return the /diagnostics message of ``stats``, with a level and a one-line message."""
+    status = DiagnosticStatus(name=name, hardware_id=hardware_id)
+    if not stats.get('received_source') or not stats.get('received_target'):
+        status.level = DiagnosticStatus.STALE
+        status.message = 'waiting for source and target clouds'
+    elif stats.get(f'{LAST}valid') is False:
+        status.level = DiagnosticStatus.WARN
+        status.message = f"last registration invalid: {stats.get(f'{LAST}reason', '')}"
+    elif stats['rejected'] or stats[f'{PAIRING}dropped']:
+        status.level = DiagnosticStatus.WARN
+        status.message = 'running; some clouds rejected or dropped'
+    else:
+        status.level, status.message = DiagnosticStatus.OK, 'running'
+    status.values = [KeyValue(key=str(k), value=str(v)) for k, v in stats.items()]
+    msg = DiagnosticArray(status=[status])
+    msg.header.stamp = stamp
+    return msg
+
+
+def accounted_sources(values: Mapping[str, str]) -> int:
+    """Sources the node is done with: published + rejected + dropped + waiting."""
+    n = 0
+    for key, value in values.items():
+        if (key == 'published'
+                or (key.startswith(REJECTED) and not key.startswith(f'{REJECTED}target_'))
+                or (key.startswith(DROPPED) and key[len(DROPPED):].startswith(SOURCE_DROPS))
+                or key == f'{PAIRING}waiting_sources'):
+            n += as_int(value)
+    return n
+
+
+def last_result(values: Mapping[str, str]) -> dict[str, Any]:
+    """Return the last registration's fields (valid, reason, inliers, fitness, time_s)."""
+    return {'valid': values.get(f'{LAST}valid', 'True') == 'True',
+            'reason': values.get(f'{LAST}reason', ''),
+            'inliers': as_int(values[f'{LAST}inliers']) if f'{LAST}inliers' in values else None,
+            'fitness': as_float(values.get(f'{LAST}fitness')),
+            'time_s': as_float(values.get(f'{LAST_TIMING}total'))}
+
+
+def last_source_stamp_ns(values: Mapping[str, str]) -> int | None:
+    """Return the source stamp of the last registration, or None before the first."""
+    stamp = values.get(f'{LAST}source_stamp_ns')
+    return int(stamp) if stamp else None
+
+
+def nonzero_drops(values: Mapping[str, str]) -> list[str]:
+    """Return 'key: value' for every rejection and pairing drop the node counted."""
+    keys = [k for k in values if k.startswith((REJECTED, DROPPED))]
+    return [f'{k}: {values[k]}' for k in sorted(keys) if as_int(values[k])]
+
+
+def as_int(value: Any) -> int:
+    """Read a counter published as text (0 when it is not a number)."""
+    try:
+        return int(float(value))
+    except (TypeError, ValueError):
+        return 0
+
+
+def as_float(value: Any) -> float | None:
+    """Read a number published as text (None when it is not one)."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return None

@@ -1,0 +1,105 @@
+"""The player of live replay: an rclpy context that publishes a bag's clouds into a
+register_node and records its poses and /diagnostics.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+
+from ..io.pointcloud2 import pose_to_transform, stamp_to_ns
+from . import diagnostics
+
+MAX_QUEUE = 1000  # the node config's upper bound for depths
+
+
+@dataclasses.dataclass
+class Received:
+    """A pose from the node: 4x4 source->target, its frame, and when it arrived (s)."""
+
+    transform: np.ndarray
+    frame_id: str
+    receipt_s: float
+
+
+class LiveSession:
+    """An rclpy context with the player node: publishers, pose and diagnostics recorders."""
+
+    def __init__(self, source_topic: str, target_topic: str, node_name: str, n_sources: int):
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node("cgags_replay_player", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        depth = max(1, min(n_sources, MAX_QUEUE))
+        self.source_pub = self.node.create_publisher(
+            PointCloud2, source_topic,
+            QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE))
+        self.target_pub = self.node.create_publisher(
+            PointCloud2, target_topic,
+            QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self.poses: dict[int, Received] = {}
+        self.details: dict[int, dict[str, str]] = {}
+        self.stats: dict[str, str] = {}
+        self.last_progress = time.monotonic()
+        self.node_id = "/" + node_name.lstrip("/")
+        self.pose_sub = self.node.create_subscription(
+            PoseStamped, f"{self.node_id}/pose", self._on_pose, 100)
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 100)
+
+    def _on_pose(self, msg: Any) -> None:
+        stamp = stamp_to_ns(msg.header.stamp)
+        self.poses[stamp] = Received(pose_to_transform(msg), msg.header.frame_id, time.monotonic())
+        self.last_progress = time.monotonic()
+
+    def _on_diagnostics(self, msg: Any) -> None:
+        for status in msg.status:
+            if status.hardware_id != self.node_id:
+                continue
+            values = {kv.key: kv.value for kv in status.values}
+            if values != self.stats:
+                self.last_progress = time.monotonic()
+            self.stats = values
+            stamp = diagnostics.last_source_stamp_ns(values)
+            if stamp is not None:
+                self.details[stamp] = values
+
+    def spin_for(self, seconds: float) -> None:
+        """Spin the player's executor for ``seconds`` (at least once)."""
+        end = time.monotonic() + max(seconds, 0.0)
+        while True:
+            left = end - time.monotonic()
+            self.executor.spin_once(timeout_sec=max(min(left, 0.02), 0.0))
+            if left <= 0:
+                return
+
+    def connected(self) -> bool:
+        """Tell whether the node subscribes to both clouds and publishes its pose."""
+        return (self.source_pub.get_subscription_count() > 0
+                and self.target_pub.get_subscription_count() > 0
+                and self.pose_sub.get_publisher_count() > 0)
+
+    def accounted_sources(self) -> int | None:
+        """Sources the node is done with (published + rejected + dropped + waiting), from
+        its last diagnostics; None before any diagnostics."""
+        return diagnostics.accounted_sources(self.stats) if self.stats else None
+
+    def received_sources(self) -> int:
+        return diagnostics.as_int(self.stats.get("received_source", "0"))
+
+    def close(self) -> None:
+        """Shut the player's executor, node and context down."""
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.context.try_shutdown()

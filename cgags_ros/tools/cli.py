@@ -1,0 +1,29 @@
+"""The one error helper of the command-line tools: library errors as one line, exit 2."""
+
+from __future__ import annotations
+
+import sys
+from typing import Callable
+
+from ..errors import CgagsError
+
+EXIT_ERROR = 2  # bad input or options: nothing (more) was done
+EXIT_INTERRUPTED = 130
+
+
+def error_line(prog: str, exc: BaseException, what: str = '') -> str:
+    """Return ``PROG: [WHAT: ]error: MESSAGE`` with the message folded onto one line."""
+    where = f'{what}: ' if what else ''
+    return f"{prog}: {where}error: {' '.join(str(exc).split())}"
+
+
+def run_cli(prog: str, body: Callable[[], int]) -> int:
+    """Run ``body``; a CgagsError becomes one line on stderr and exit 2, Ctrl-C exit 130."""
+    try:
+        return body()
+    except CgagsError as exc:
+        print(error_line(prog, exc), file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        print(f'{prog}: interrupted', file=sys.stderr)
+        return EXIT_INTERRUPTED

@@ -1,0 +1,42 @@
+"""cgags_ros.pipeline.covariance: the pose covariance follows the inlier geometry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cgags_ros.pipeline.covariance import inlier_pairs, pose_covariance
+
+
+def test_pose_covariance_reflects_geometry():
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(400, 3)) * [1.0, 1.0, 0.01]  # a thin slab: rotations about x/y
+    noise = rng.normal(scale=0.01, size=src.shape)       # are constrained less tightly than z
+    cov = pose_covariance(src, src + noise, np.eye(4))
+    assert np.allclose(cov, cov.T)
+    sd = np.sqrt(np.diag(cov))
+    assert sd[:3] == pytest.approx([0.01 / 20] * 3, rel=0.3)  # sigma / sqrt(N)
+    assert sd[3] > 1.2 * sd[5] and sd[4] > 1.2 * sd[5]
+    assert pose_covariance(src[:2], src[:2], np.eye(4))[0, 0] == 1e6
+
+
+def test_inlier_pairs_prefers_the_results_inliers_then_nearest_neighbours():
+    rng = np.random.default_rng(1)
+    target = rng.uniform(-1, 1, size=(500, 3))
+    T = np.eye(4)
+    T[:3, 3] = [0.5, 0.0, 0.0]
+    source = target - T[:3, 3]  # T maps source exactly onto target
+
+    class Result:
+        inlier_source_points = source[:10]
+        inlier_target_points = target[:10]
+
+    src, dst = inlier_pairs(Result(), source, target, T, 0.01)
+    assert np.array_equal(src, source[:10]) and np.array_equal(dst, target[:10])
+    src, dst = inlier_pairs(object(), source, target, T, 0.01, max_points=200)
+    assert len(src) == 200
+    np.testing.assert_allclose(src + T[:3, 3], dst, atol=1e-12)
+    far = T.copy()
+    far[:3, 3] += 10.0  # nothing within the distance: no pairs, no error
+    src, dst = inlier_pairs(object(), source, target, far, 0.01)
+    assert len(src) == len(dst) == 0
