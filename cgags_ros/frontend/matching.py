@@ -63,10 +63,10 @@ def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfi
     return _best(src_ok[keep], dst_ok[nn[keep, 0]], dist[keep, 0], config.max_correspondences)
 
 
-_BLOCK_ELEMENTS = 1 << 18  # distance-matrix entries per block (2 MB of float64: stays in
-# cache while argmin reads it back; 16 MB blocks measured 1.5x slower at 3.6k x 3.6k)
-_BLOCK_ELEMENTS_F32 = 1 << 20  # float32 entries per block in _nearest_row32 (4 MB; measured
-# 20-25 % faster than 1 MB blocks on 5k x 5k FPFH)
+# Block sizes (entries of one distance block) that stay in cache while argmin reads them
+# back; chosen by measurement (docs/implementation.md).
+_BLOCK_ELEMENTS = 1 << 18  # float64
+_BLOCK_ELEMENTS_F32 = 1 << 20  # float32, in _nearest_row32
 _EXACT_PAIRS = 1 << 16  # candidate pairs per chunk of the exact re-ranking (<= 17 MB)
 
 
@@ -85,13 +85,13 @@ def nearest_rows(query: np.ndarray, reference: np.ndarray, k: int = 1,
 
     ``workers`` > 1 splits the query rows over that many threads (numpy releases the GIL
     in the products and argmins; rows are independent, so the result is the same). Meant
-    for single-threaded BLAS: with 1 BLAS thread each, 2 threads took 27 ms where 2 BLAS
-    threads took 38 ms (5.1k x 4.9k FPFH, 2 cores), the argmins being parallel too.
+    for single-threaded BLAS: own threads also run the argmins in parallel, so they beat
+    BLAS's threads (docs/implementation.md).
 
     Brute force by blocks of one matrix product: ``|q - r|^2 = |q|^2 - 2 q.r + |r|^2``, and
     ``|q|^2`` is constant along a row, so ``[q, 1] @ [-2 r, |r|^2]^T`` ranks the same. For
-    33-D FPFH a k-d tree prunes little: this is ~3x faster than scipy's cKDTree at 5k-20k
-    descriptors. The expansion is exact up to ~1e-15 of the squared norms, which cannot tell
+    33-D FPFH a k-d tree prunes little: this is faster than scipy's cKDTree at the sizes
+    the pipeline matches. The expansion is exact up to ~1e-15 of the squared norms, which cannot tell
     duplicates (distance 0, common among sparse FPFH) from near-duplicates: rows whose second
     neighbour is that close are ranked again from the exact differences.
     """
@@ -124,10 +124,10 @@ def _nearest_row32(query: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """``_nearest_rows(query, reference, 1)`` from float32 products, exact.
 
     The expansion in float32 (descriptors centred on the reference mean, so that the
-    squared norms, hence the rounding, are smaller) halves the product and argmin time
-    (measured 5.1k x 4.9k FPFH: 30 vs 66 ms, 8.6 vs 18 ms). A row whose float32 runner-up
-    is within twice the rounding bound of its minimum (1-8 % of the rows on the bundled
-    clouds: mostly near-duplicate descriptors) is decided by exact float64 distances to
+    squared norms, hence the rounding, are smaller) halves the product and argmin time.
+    A row whose float32 runner-up is within twice the rounding bound of its minimum (a few
+    per cent of the rows: mostly near-duplicate descriptors) is decided by exact float64
+    distances to
     every reference row in that window, ties to the lower index; so the answer never
     depends on float32 rounding, and near-duplicates are ranked more exactly than by the
     float64 expansion.

@@ -1,9 +1,8 @@
 """Keep BLAS to one thread while the core runs (optional ``threadpoolctl``).
 
 The core's matrix products are small (3x3 fits, 5-deep graph blocks) or memory bound, so a
-second OpenBLAS thread adds nothing but spinning: measured with ``OPENBLAS_NUM_THREADS=1``
-vs 2 on the core benchmark's problems, the same wall time (N = 1000 and 5000) at half the
-CPU time. On a robot that CPU belongs to the other nodes. ``threadpoolctl`` is not a
+second OpenBLAS thread adds nothing but spinning: the same wall time at half the CPU time
+(docs/implementation.md). On a robot that CPU belongs to the other nodes. ``threadpoolctl`` is not a
 dependency of the core (numpy/scipy only): without it this is a no-op.
 """
 

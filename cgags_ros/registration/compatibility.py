@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-_BLOCK_ELEMENTS = 1 << 16  # float32 elements per scratch block (256 KiB, two of them stay
-# in L2; measured 20-30 % faster than 1 MiB blocks at N = 1000 and 5000)
+# float32 elements per scratch block: two blocks stay in L2 (docs/implementation.md).
+_BLOCK_ELEMENTS = 1 << 16
 
 
 class CompatibilityGraph:
@@ -102,8 +102,8 @@ def length_consistency(src: np.ndarray, dst: np.ndarray, i: np.ndarray,
 def _expansion_factors(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(U, V) with ``(U @ V)[i, j] = |p_i - p_j|^2``: U = [p, |p|^2, 1], V = [-2 p, 1, |p|^2]^T.
 
-    One 5-deep product per block instead of nine elementwise passes (with the 256 KiB
-    blocks: N = 1000 5.0 -> 1.7 ms, N = 5000 72 -> 40 ms). float32 rounding moves a squared
+    One 5-deep product per block instead of nine elementwise passes (several times
+    faster, docs/implementation.md). float32 rounding moves a squared
     distance by ~1e-7 of the squared extent, so an edge can only flip within ~1e-5 of the
     extent of the threshold |d_ij| = delta, far below any noise the thresholds model.
     """

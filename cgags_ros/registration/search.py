@@ -27,8 +27,9 @@ from .stopping import (compatible_sample_inlier_probability, empirical_inlier_pr
 
 _MIN_BATCH = 32
 # Mean common-neighbourhood size (share of N) of a batch's candidates above which the
-# pre-screen scores them on all N correspondences instead (LiDAR bag pair, 60 % inliers:
-# core 45 -> 31 ms; at 99 % outliers neighbourhoods are ~1 % of N and stay restricted).
+# pre-screen scores them on all N correspondences instead: with many inliers the restricted
+# gather costs more than full residuals; at high outlier ratios neighbourhoods are small
+# and stay restricted (docs/implementation.md).
 _DENSE_PRESCREEN = 0.2
 # CSR neighbour lists cost ~N^2 bit scans; build them once ~N^2/2000 triples were drawn
 # (about when rejection sampling would have spent as much).

@@ -45,8 +45,6 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
-                       qos_profile_sensor_data)
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
@@ -60,6 +58,7 @@ from ..pipeline.pairing import Pair, Pairer
 from . import diagnostics
 from .conversions import transform_to_pose, transform_to_transform_stamped, xyz_to_pointcloud2
 from .parameters import descriptor
+from .qos import source_qos, target_qos
 from .worker import IsolatedRegistration, RegisterFn, RegistrationTimeout, load_pipeline
 
 _LOG_REPEAT_S = 30.0  # a cause already logged is logged again at most this often
@@ -106,8 +105,8 @@ class RegisterNode(Node):
         self._tf_broadcaster: Any = None
         self._tf_missing_logged = False
 
-        self.create_subscription(PointCloud2, "source_cloud", self._on_source, self._source_qos())
-        self.create_subscription(PointCloud2, "target_cloud", self._on_target, self._target_qos())
+        self.create_subscription(PointCloud2, "source_cloud", self._on_source, source_qos(cfg))
+        self.create_subscription(PointCloud2, "target_cloud", self._on_target, target_qos(cfg))
         self._pose_pub = self.create_publisher(PoseStamped, "~/pose", 10)
         self._pose_cov_pub = self.create_publisher(PoseWithCovarianceStamped,
                                                    "~/pose_with_covariance", 10)
@@ -156,23 +155,6 @@ class RegisterNode(Node):
             return self._node_cfg
 
     # ------------------------------------------------------------------ input
-
-    def _source_qos(self) -> QoSProfile:
-        cfg = self._node_cfg
-        if cfg.source_qos == "sensor_data":
-            qos = QoSProfile(depth=cfg.source_depth)
-            qos.reliability = qos_profile_sensor_data.reliability
-            qos.durability = qos_profile_sensor_data.durability
-            qos.history = HistoryPolicy.KEEP_LAST
-            return qos
-        return QoSProfile(depth=cfg.source_depth, reliability=ReliabilityPolicy.RELIABLE)
-
-    def _target_qos(self) -> QoSProfile:
-        cfg = self._node_cfg
-        durability = (DurabilityPolicy.TRANSIENT_LOCAL if cfg.target_durability == "transient_local"
-                      else DurabilityPolicy.VOLATILE)
-        return QoSProfile(depth=cfg.target_depth, reliability=ReliabilityPolicy.RELIABLE,
-                          durability=durability)
 
     def _decode(self, msg: PointCloud2, role: str) -> _Cloud | None:
         receipt = time.monotonic_ns()

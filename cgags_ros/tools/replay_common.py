@@ -20,7 +20,7 @@ from ..config import fields
 from ..config.node import NodeConfig, configs_from_parameters
 from ..config.pipeline import PipelineConfig, load_yaml
 from ..errors import CgagsError, InvalidInputError
-from ..io.bag import BagReader, write_poses_mcap
+from ..io.bag import BagReader, BagRecord, write_poses_mcap
 from ..io.pointcloud2 import pointcloud2_to_xyz, pose_to_transform
 from ..pipeline.pairing import Pair, Pairer
 from .report import (BagReport, BrokenMessage, PairRow, SuccessCriteria, pairs_table,
@@ -40,20 +40,24 @@ class ReplayError(CgagsError):
 
 # --- bag contents ------------------------------------------------------------------------------
 
-@dataclasses.dataclass
-class CloudMessage:
-    """A source or target PointCloud2 of the bag. ``xyz`` is (N, 3) metres in ``frame_id``,
-    or None when the message could not be decoded (then it is also in ``broken``); ``msg``
-    is the rosbags message (None when it could not be deserialized)."""
+@dataclasses.dataclass(frozen=True)
+class CloudMessage(BagRecord):
+    """A source or target PointCloud2 of the bag: its record, role and decoded points.
 
-    role: str  # 'source' | 'target'
-    topic: str
-    msgtype: str
-    log_time_ns: int
-    stamp_ns: int | None
-    frame_id: str
-    msg: Any
-    xyz: np.ndarray | None
+    ``xyz`` is (N, 3) metres in ``frame_id``, or None when the message could not be decoded
+    (then it is also in ``broken``); ``msg`` is None when it could not be deserialized.
+    """
+
+    role: str = "source"  # 'source' | 'target'
+    xyz: np.ndarray | None = None
+
+    @classmethod
+    def of(cls, rec: BagRecord, role: str, xyz: np.ndarray | None = None) -> "CloudMessage":
+        """Return the cloud of a record (a broken record keeps no stamp, frame or msg)."""
+        if rec.error:
+            return cls(rec.topic, rec.msgtype, rec.log_time_ns, None, "", None, rec.error, role)
+        return cls(rec.topic, rec.msgtype, rec.log_time_ns, rec.stamp_ns, rec.frame_id,
+                   rec.msg, rec.error, role, xyz)
 
 
 @dataclasses.dataclass
@@ -97,8 +101,7 @@ def read_bag_contents(path: str | Path, source_topic: str, target_topic: str,
             if rec.error:
                 broken.append(BrokenMessage(rec.topic, rec.stamp_ns or None, rec.error))
                 if rec.topic in roles:
-                    clouds.append(CloudMessage(roles[rec.topic], rec.topic, rec.msgtype,
-                                               rec.log_time_ns, None, "", None, None))
+                    clouds.append(CloudMessage.of(rec, roles[rec.topic]))
                 continue
             if rec.topic not in roles:
                 _add_ground_truth(rec, gts, broken)
@@ -108,8 +111,7 @@ def read_bag_contents(path: str | Path, source_topic: str, target_topic: str,
                 xyz = pointcloud2_to_xyz(rec.msg, **kwargs)
             except InvalidInputError as exc:
                 broken.append(BrokenMessage(rec.topic, rec.stamp_ns, str(exc)))
-            clouds.append(CloudMessage(roles[rec.topic], rec.topic, rec.msgtype, rec.log_time_ns,
-                                       rec.stamp_ns, rec.frame_id, rec.msg, xyz))
+            clouds.append(CloudMessage.of(rec, roles[rec.topic], xyz))
     return BagContents(Path(path), clouds, gts, broken, gt_topic)
 
 

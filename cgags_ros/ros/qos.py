@@ -1,0 +1,27 @@
+"""QoS profiles of the node's subscriptions, from its configuration."""
+
+from __future__ import annotations
+
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
+                       qos_profile_sensor_data)
+
+from ..config.node import NodeConfig
+
+
+def source_qos(cfg: NodeConfig) -> QoSProfile:
+    """Return the QoS of ``source_cloud``: sensor data (best effort) or reliable."""
+    if cfg.source_qos == 'sensor_data':
+        qos = QoSProfile(depth=cfg.source_depth)
+        qos.reliability = qos_profile_sensor_data.reliability
+        qos.durability = qos_profile_sensor_data.durability
+        qos.history = HistoryPolicy.KEEP_LAST
+        return qos
+    return QoSProfile(depth=cfg.source_depth, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def target_qos(cfg: NodeConfig) -> QoSProfile:
+    """Return the QoS of ``target_cloud``: reliable, volatile or transient-local."""
+    durability = (DurabilityPolicy.TRANSIENT_LOCAL if cfg.target_durability == 'transient_local'
+                  else DurabilityPolicy.VOLATILE)
+    return QoSProfile(depth=cfg.target_depth, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=durability)
