@@ -1,4 +1,5 @@
-"""Ablation of the core's INFERRED choices (METHOD.md) on bunny-derived correspondences.
+"""
+Ablation of the core's INFERRED choices (METHOD.md) on bunny-derived correspondences.
 
 Each variant overrides CoreConfig fields; every variant sees the same problems and seeds.
 Reports success (RE < 5 deg, TE < 0.1 on the unit-scaled bunny), median/p90 time and median
@@ -12,37 +13,40 @@ from __future__ import annotations
 import argparse
 import time
 
-import numpy as np
-
 from cgags_ros.config import fields
 from cgags_ros.datasets.synthetic import load_bunny, make_correspondences
-from cgags_ros.registration import (CoreConfig, register_correspondences, rotation_error_deg,
-                                    translation_error)
+from cgags_ros.registration import (
+    CoreConfig,
+    register_correspondences,
+    rotation_error_deg,
+    translation_error,
+)
+import numpy as np
 
 VARIANTS: dict[str, dict] = {
-    "paper-literal (uniform edge, uniform vertex, kernel seeds, after_b)": dict(
-        compatibility="binary", edge_sampling="uniform", vertex_sampling="uniform",
-        guided_seed="kernel", guided_start="after_b_hypotheses", stage_one_estimate="analytic"),
-    "uniform edge + uniform vertex": dict(edge_sampling="uniform", vertex_sampling="uniform"),
-    "uniform edge + tournament vertex": dict(edge_sampling="uniform", vertex_sampling="tournament"),
-    "tournament edge + uniform vertex": dict(edge_sampling="tournament", vertex_sampling="uniform"),
-    "tournament edge + tournament vertex": dict(edge_sampling="tournament", vertex_sampling="tournament"),
-    "default": {},
-    "default, no guided sampling": dict(guided_sampling=False),
-    "default, guided seeds from kernel": dict(guided_seed="kernel"),
-    "default, guided from b hypotheses": dict(guided_start="after_b_hypotheses"),
-    "default, binary compatibility": dict(compatibility="binary"),
-    "default, vertex by degree": dict(vertex_sampling="degree"),
-    "default, max_up = best updates": dict(max_up_mode="best_updates"),
-    "default, max_up = local re-fits": dict(max_up_mode="local_refits"),
-    "default, truncated score": dict(score="truncated"),
-    "default, no prescreen": dict(prescreen=False),
-    "default, guided count since improvement": dict(guided_count="since_improvement"),
-    "default, analytic w1": dict(stage_one_estimate="analytic"),
-    "default, observed w1": dict(stage_one_estimate="observed"),
-    "default, single re-fit": dict(refit="once"),
-    "default, edge tournament 64": dict(edge_tournament=64),
-    "default, vertex tournament 32": dict(vertex_tournament=32),
+    'paper-literal (uniform edge, uniform vertex, kernel seeds, after_b)': {
+        'compatibility': 'binary', 'edge_sampling': 'uniform', 'vertex_sampling': 'uniform',
+        'guided_seed': 'kernel', 'guided_start': 'after_b_hypotheses', 'stage_one_estimate': 'analytic'},
+    'uniform edge + uniform vertex': {'edge_sampling': 'uniform', 'vertex_sampling': 'uniform'},
+    'uniform edge + tournament vertex': {'edge_sampling': 'uniform', 'vertex_sampling': 'tournament'},
+    'tournament edge + uniform vertex': {'edge_sampling': 'tournament', 'vertex_sampling': 'uniform'},
+    'tournament edge + tournament vertex': {'edge_sampling': 'tournament', 'vertex_sampling': 'tournament'},
+    'default': {},
+    'default, no guided sampling': {'guided_sampling': False},
+    'default, guided seeds from kernel': {'guided_seed': 'kernel'},
+    'default, guided from b hypotheses': {'guided_start': 'after_b_hypotheses'},
+    'default, binary compatibility': {'compatibility': 'binary'},
+    'default, vertex by degree': {'vertex_sampling': 'degree'},
+    'default, max_up = best updates': {'max_up_mode': 'best_updates'},
+    'default, max_up = local re-fits': {'max_up_mode': 'local_refits'},
+    'default, truncated score': {'score': 'truncated'},
+    'default, no prescreen': {'prescreen': False},
+    'default, guided count since improvement': {'guided_count': 'since_improvement'},
+    'default, analytic w1': {'stage_one_estimate': 'analytic'},
+    'default, observed w1': {'stage_one_estimate': 'observed'},
+    'default, single re-fit': {'refit': 'once'},
+    'default, edge tournament 64': {'edge_tournament': 64},
+    'default, vertex tournament 32': {'vertex_tournament': 32},
 }
 
 
@@ -61,36 +65,36 @@ def run_cell(model, n, ratio, cfg, trials, tau, noise, outliers):
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--trials", type=int, default=10)
-    ap.add_argument("--cells", default="1000:0.95,1000:0.99,5000:0.99,5000:0.995",
-                    help="comma-separated N:outlier_ratio")
-    ap.add_argument("--variants", default="", help="comma-separated substrings to select variants")
-    ap.add_argument("--tau", type=float, default=0.05, help="inlier threshold (unit-scaled bunny)")
-    ap.add_argument("--noise", type=float, default=0.01)
-    ap.add_argument("--outliers", default="uniform", choices=("uniform", "surface"))
-    ap.add_argument("--output", help="append the markdown table to this file")
+    ap.add_argument('--trials', type=int, default=10)
+    ap.add_argument('--cells', default='1000:0.95,1000:0.99,5000:0.99,5000:0.995',
+                    help='comma-separated N:outlier_ratio')
+    ap.add_argument('--variants', default='', help='comma-separated substrings to select variants')
+    ap.add_argument('--tau', type=float, default=0.05, help='inlier threshold (unit-scaled bunny)')
+    ap.add_argument('--noise', type=float, default=0.01)
+    ap.add_argument('--outliers', default='uniform', choices=('uniform', 'surface'))
+    ap.add_argument('--output', help='append the markdown table to this file')
     args = ap.parse_args(argv)
     model = load_bunny()
-    cells = [(int(c.split(":")[0]), float(c.split(":")[1])) for c in args.cells.split(",")]
-    names = [v for v in VARIANTS if not args.variants or any(s in v for s in args.variants.split(","))]
-    header = "| variant | " + " | ".join(f"N={n} r={r}" for n, r in cells) + " |"
-    lines = [f"outliers={args.outliers}, noise={args.noise}, tau={args.tau}, trials={args.trials}; "
-             "cell = success % / median ms / median hypotheses", "", header,
-             "|" + "---|" * (len(cells) + 1)]
-    print("\n".join(lines), flush=True)
+    cells = [(int(c.split(':')[0]), float(c.split(':')[1])) for c in args.cells.split(',')]
+    names = [v for v in VARIANTS if not args.variants or any(s in v for s in args.variants.split(','))]
+    header = '| variant | ' + ' | '.join(f'N={n} r={r}' for n, r in cells) + ' |'
+    lines = [f'outliers={args.outliers}, noise={args.noise}, tau={args.tau}, trials={args.trials}; '
+             'cell = success % / median ms / median hypotheses', '', header,
+             '|' + '---|' * (len(cells) + 1)]
+    print('\n'.join(lines), flush=True)
     for name in names:
         cfg = fields.update_from_flat(CoreConfig(), VARIANTS[name])
         cols = []
         for n, r in cells:
             s, med, _, h = run_cell(model, n, r, cfg, args.trials, args.tau, args.noise, args.outliers)
-            cols.append(f"{100 * s:.0f} / {1000 * med:.0f} / {h:.0f}")
-        line = f"| {name} | " + " | ".join(cols) + " |"
+            cols.append(f'{100 * s:.0f} / {1000 * med:.0f} / {h:.0f}')
+        line = f'| {name} | ' + ' | '.join(cols) + ' |'
         lines.append(line)
         print(line, flush=True)
     if args.output:
-        with open(args.output, "a", encoding="utf-8") as f:
-            f.write("\n".join(lines) + "\n\n")
+        with open(args.output, 'a', encoding='utf-8') as f:
+            f.write('\n'.join(lines) + '\n\n')
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     main()

@@ -1,4 +1,5 @@
-"""Baseline robust registration solvers for the benchmarks, on the same putative correspondences.
+"""
+Baseline robust registration solvers for the benchmarks, on the same putative correspondences.
 
 Every baseline is a function ``(src, dst, tau) -> 4x4`` (row ``i`` of ``src`` corresponds to row
 ``i`` of ``dst``; the returned transform maps ``src`` onto ``dst``, ``dst ≈ R @ src + t``), so the
@@ -78,14 +79,14 @@ class BaselineResult:
 def _as_points(a: np.ndarray, name: str) -> np.ndarray:
     a = np.asarray(a, dtype=np.float64)
     if a.ndim != 2 or a.shape[1] != 3:
-        raise ValueError(f"{name} must be (N, 3), got {a.shape}")
+        raise ValueError(f'{name} must be (N, 3), got {a.shape}')
     return a
 
 
 def _check(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    src, dst = _as_points(src, "src"), _as_points(dst, "dst")
+    src, dst = _as_points(src, 'src'), _as_points(dst, 'dst')
     if len(src) != len(dst):
-        raise ValueError(f"src and dst need the same number of rows ({len(src)} != {len(dst)})")
+        raise ValueError(f'src and dst need the same number of rows ({len(src)} != {len(dst)})')
     return src, dst
 
 
@@ -115,9 +116,9 @@ def open3d_ransac_detailed(src: np.ndarray, dst: np.ndarray, tau: float, *,
         reg.RANSACConvergenceCriteria(int(max_iterations), float(confidence)))
     T = np.array(result.transformation, dtype=np.float64)
     return BaselineResult(T, bool(result.fitness > 0.0), {
-        "fitness_nn": float(result.fitness),
-        "inlier_rmse_nn": float(result.inlier_rmse),
-        "num_nn_correspondences": int(len(result.correspondence_set)),
+        'fitness_nn': float(result.fitness),
+        'inlier_rmse_nn': float(result.inlier_rmse),
+        'num_nn_correspondences': int(len(result.correspondence_set)),
     })
 
 
@@ -158,11 +159,11 @@ def kiss_prune_and_solve_detailed(src: np.ndarray, dst: np.ndarray, tau: float) 
     dst32 = np.ascontiguousarray(dst, dtype=np.float32)
     solution = matcher.prune_and_solve(src32, dst32)
     return BaselineResult(_kiss_transform(solution), bool(solution.valid), {
-        "robin_noise_bound": float(cfg.robin_noise_bound),
-        "solver_noise_bound": float(cfg.solver_noise_bound),
-        "num_rotation_inliers": int(matcher.get_num_rotation_inliers()),
-        "num_final_inliers": int(matcher.get_num_final_inliers()),
-        "solver_time_s": float(matcher.get_solver_time()),
+        'robin_noise_bound': float(cfg.robin_noise_bound),
+        'solver_noise_bound': float(cfg.solver_noise_bound),
+        'num_rotation_inliers': int(matcher.get_num_rotation_inliers()),
+        'num_final_inliers': int(matcher.get_num_final_inliers()),
+        'solver_time_s': float(matcher.get_solver_time()),
     })
 
 
@@ -173,7 +174,8 @@ def kiss_prune_and_solve(src: np.ndarray, dst: np.ndarray, tau: float) -> np.nda
 
 def kiss_prune_and_solve_breakdown(src: np.ndarray, dst: np.ndarray, tau: float,
                                    repeats: int = 5) -> dict[str, float]:
-    """Median milliseconds of the parts of one KISS-Matcher ``prune_and_solve`` call.
+    """
+    Median milliseconds of the parts of one KISS-Matcher ``prune_and_solve`` call.
 
     ``total``: the Python-timed call; ``solver``: the library's own ``get_solver_time()`` (GNC-TLS
     rotation + COTE translation); ``to_float32``: the numpy float64 -> float32 copy done by the
@@ -204,13 +206,13 @@ def kiss_prune_and_solve_breakdown(src: np.ndarray, dst: np.ndarray, tau: float,
         matcher.prune_and_solve(src32, dst32)
         t_total.append(time.perf_counter() - t0)
         t_solver.append(matcher.get_solver_time())
-    out = {"total": med(t_total), "solver": med(t_solver), "to_float32": med(t_f32),
-           "pybind_conversion_upper": med(t_conv)}
-    out["prune_and_rest"] = out["total"] - out["solver"] - out["pybind_conversion_upper"]
+    out = {'total': med(t_total), 'solver': med(t_solver), 'to_float32': med(t_f32),
+           'pybind_conversion_upper': med(t_conv)}
+    out['prune_and_rest'] = out['total'] - out['solver'] - out['pybind_conversion_upper']
     return out
 
 
 BASELINES: dict[str, Callable[[np.ndarray, np.ndarray, float], np.ndarray]] = {
-    "open3d": open3d_ransac,
-    "kiss": kiss_prune_and_solve,
+    'open3d': open3d_ransac,
+    'kiss': kiss_prune_and_solve,
 }

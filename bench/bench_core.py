@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Core benchmark (issue 2): our registration core vs Open3D RANSAC vs KISS-Matcher.
+"""
+Core benchmark (issue 2): our registration core vs Open3D RANSAC vs KISS-Matcher.
 
 All solvers run on the SAME synthetic putative correspondences (Stanford bunny, unit-scaled:
 largest extent 1; ``cgags_ros.datasets.synthetic.make_correspondences``), one problem at a time,
@@ -43,11 +44,11 @@ import dataclasses
 import importlib
 import json
 import os
+from pathlib import Path
 import platform
 import sys
 import time
 import traceback
-from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
@@ -55,21 +56,20 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
-if str(ROOT / "bench") not in sys.path:
-    sys.path.insert(0, str(ROOT / "bench"))
-
-from cgags_ros.datasets.synthetic import load_bunny, make_correspondences  # noqa: E402
-from cgags_ros.geometry import rotation_error_deg, translation_error  # noqa: E402
+if str(ROOT / 'bench') not in sys.path:
+    sys.path.insert(0, str(ROOT / 'bench'))
 
 import baselines  # noqa: E402
+from cgags_ros.datasets.synthetic import load_bunny, make_correspondences  # noqa: E402
+from cgags_ros.geometry import rotation_error_deg, translation_error  # noqa: E402
 
 DEFAULT_RATIOS = (0.9, 0.95, 0.98, 0.99, 0.995)
 DEFAULT_SIZES = (1000, 5000)
 QUICK_RATIOS = (0.9, 0.99)
 QUICK_SIZES = (1000, 5000)
-DEFAULT_SOLVERS = ("ours", "open3d", "kiss")
-DEFAULT_SOLVER_TRIALS = "open3d=1"
-DEFAULT_SOLVER_MAX_N = "open3d=1000"
+DEFAULT_SOLVERS = ('ours', 'open3d', 'kiss')
+DEFAULT_SOLVER_TRIALS = 'open3d=1'
+DEFAULT_SOLVER_MAX_N = 'open3d=1000'
 
 
 # ------------------------------------------------------------------------------- solvers
@@ -98,14 +98,14 @@ def _make_ours() -> Solver:
     def run(src, dst, tau, seed):
         res = register_correspondences(src, dst, inlier_threshold=tau, seed=seed)
         return SolverOutput(np.asarray(res.transform, dtype=float), bool(res.valid), {
-            "reason": res.reason,
-            "num_inliers": int(len(res.inliers)),
-            "num_hypotheses": int(res.num_hypotheses),
-            "core_total_s": float(res.timings.get("total", float("nan"))),
+            'reason': res.reason,
+            'num_inliers': int(len(res.inliers)),
+            'num_hypotheses': int(res.num_hypotheses),
+            'core_total_s': float(res.timings.get('total', float('nan'))),
         })
 
-    return Solver("ours", run, "cgags_ros.registration.register_correspondences("
-                  "src, dst, inlier_threshold=tau, seed=problem seed), default CoreConfig")
+    return Solver('ours', run, 'cgags_ros.registration.register_correspondences('
+                  'src, dst, inlier_threshold=tau, seed=problem seed), default CoreConfig')
 
 
 def _make_open3d() -> Solver:
@@ -115,9 +115,9 @@ def _make_open3d() -> Solver:
         r = baselines.open3d_ransac_detailed(src, dst, tau, seed=seed)
         return SolverOutput(r.transform, r.valid, r.info)
 
-    return Solver("open3d", run, "Open3D 0.19 registration_ransac_based_on_correspondence, "
-                  "max_correspondence_distance=tau, PointToPoint(False), ransac_n=3, no checkers, "
-                  "RANSACConvergenceCriteria(100000, 0.999)")
+    return Solver('open3d', run, 'Open3D 0.19 registration_ransac_based_on_correspondence, '
+                  'max_correspondence_distance=tau, PointToPoint(False), ransac_n=3, no checkers, '
+                  'RANSACConvergenceCriteria(100000, 0.999)')
 
 
 def _make_kiss() -> Solver:
@@ -127,9 +127,9 @@ def _make_kiss() -> Solver:
         r = baselines.kiss_prune_and_solve_detailed(src, dst, tau)
         return SolverOutput(r.transform, r.valid, r.info)
 
-    return Solver("kiss", run, "KISS-Matcher 1.0.2 KISSMatcher(KISSMatcherConfig(voxel_size=tau, "
-                  "robin_noise_bound_gain=1, solver_noise_bound_gain=1)).prune_and_solve(src, dst) "
-                  "(ROBIN and solver noise bounds = tau)")
+    return Solver('kiss', run, 'KISS-Matcher 1.0.2 KISSMatcher(KISSMatcherConfig(voxel_size=tau, '
+                  'robin_noise_bound_gain=1, solver_noise_bound_gain=1)).prune_and_solve(src, dst) '
+                  '(ROBIN and solver noise bounds = tau)')
 
 
 def _make_kiss_scaled(factor: float) -> Solver:
@@ -140,24 +140,24 @@ def _make_kiss_scaled(factor: float) -> Solver:
         r = baselines.kiss_prune_and_solve_detailed(src, dst, factor * tau)
         return SolverOutput(r.transform, r.valid, r.info)
 
-    return Solver(f"kiss@{factor:g}", run, f"as kiss, but ROBIN and solver noise bounds = "
-                  f"{factor:g} * tau (voxel_size = {factor:g} * tau)")
+    return Solver(f'kiss@{factor:g}', run, f'as kiss, but ROBIN and solver noise bounds = '
+                  f'{factor:g} * tau (voxel_size = {factor:g} * tau)')
 
 
 def _make_plugin(spec: str) -> Solver:
-    module, _, attr = spec.partition(":")
+    module, _, attr = spec.partition(':')
     fn = getattr(importlib.import_module(module), attr)
 
     def run(src, dst, tau, seed):
         return SolverOutput(np.asarray(fn(src, dst, tau), dtype=float))
 
-    return Solver(spec, run, f"{spec}(src, dst, tau) -> 4x4")
+    return Solver(spec, run, f'{spec}(src, dst, tau) -> 4x4')
 
 
 BUILTIN_SOLVERS: dict[str, Callable[[], Solver]] = {
-    "ours": _make_ours,
-    "open3d": _make_open3d,
-    "kiss": _make_kiss,
+    'ours': _make_ours,
+    'open3d': _make_open3d,
+    'kiss': _make_kiss,
 }
 
 
@@ -168,17 +168,17 @@ def load_solvers(names: list[str]) -> tuple[list[Solver], dict[str, str]]:
         try:
             if name in BUILTIN_SOLVERS:
                 solvers.append(BUILTIN_SOLVERS[name]())
-            elif name.startswith("kiss@"):
+            elif name.startswith('kiss@'):
                 solvers.append(_make_kiss_scaled(float(name[5:])))
-            elif ":" in name:
+            elif ':' in name:
                 solvers.append(_make_plugin(name))
             else:
                 raise ValueError(f"unknown solver {name!r} (built-ins: {', '.join(BUILTIN_SOLVERS)}, "
-                                 "or module:function)")
+                                 'or module:function)')
         except ValueError:
             raise
         except Exception as exc:  # ImportError, AttributeError, ...
-            skipped[name] = f"{type(exc).__name__}: {exc}"
+            skipped[name] = f'{type(exc).__name__}: {exc}'
     return solvers, skipped
 
 
@@ -198,14 +198,14 @@ def run_one(solver: Solver, src, dst, tau, seed, gt, max_re, max_te) -> dict[str
         out = solver.fn(src, dst, tau, seed)
     except Exception as exc:  # a crash counts as a failure
         out = SolverOutput(np.eye(4), False, {})
-        err = f"{type(exc).__name__}: {exc}"
+        err = f'{type(exc).__name__}: {exc}'
         traceback.print_exc(file=sys.stderr)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     re, te = rotation_error_deg(out.transform, gt), translation_error(out.transform, gt)
-    rec = {"wall_ms": wall * 1e3, "cpu_ms": cpu * 1e3, "re_deg": re, "te": te,
-           "success": bool(re < max_re and te < max_te), "valid": out.valid, "info": out.info}
+    rec = {'wall_ms': wall * 1e3, 'cpu_ms': cpu * 1e3, 're_deg': re, 'te': te,
+           'success': bool(re < max_re and te < max_te), 'valid': out.valid, 'info': out.info}
     if err:
-        rec["error"] = err
+        rec['error'] = err
     return rec
 
 
@@ -221,30 +221,30 @@ def warm_up(solvers: list[Solver], model: np.ndarray, tau: float, noise: float) 
 
 def summarise(records: list[dict[str, Any]]) -> dict[str, Any]:
     if not records:
-        return {"n": 0}
-    wall = np.array([r["wall_ms"] for r in records])
-    succ = np.array([r["success"] for r in records])
-    valid = [r["valid"] for r in records]
+        return {'n': 0}
+    wall = np.array([r['wall_ms'] for r in records])
+    succ = np.array([r['success'] for r in records])
+    valid = [r['valid'] for r in records]
     out = {
-        "n": len(records),
-        "successes": int(succ.sum()),
-        "success_pct": 100.0 * float(succ.mean()),
-        "median_ms": float(np.median(wall)),
-        "p90_ms": float(np.percentile(wall, 90)),
-        "mean_cpu_ms": float(np.mean([r["cpu_ms"] for r in records])),
-        "errors": sum("error" in r for r in records),
+        'n': len(records),
+        'successes': int(succ.sum()),
+        'success_pct': 100.0 * float(succ.mean()),
+        'median_ms': float(np.median(wall)),
+        'p90_ms': float(np.percentile(wall, 90)),
+        'mean_cpu_ms': float(np.mean([r['cpu_ms'] for r in records])),
+        'errors': sum('error' in r for r in records),
     }
     if all(v is not None for v in valid):
-        out["valid"] = int(sum(valid))
-        out["valid_but_wrong"] = int(sum(v and not s for v, s in zip(valid, succ)))
-        out["invalid_but_right"] = int(sum((not v) and s for v, s in zip(valid, succ)))
+        out['valid'] = int(sum(valid))
+        out['valid_but_wrong'] = int(sum(v and not s for v, s in zip(valid, succ)))
+        out['invalid_but_right'] = int(sum((not v) and s for v, s in zip(valid, succ)))
     return out
 
 
 def parse_caps(text: str) -> dict[str, int]:
     caps = {}
-    for item in filter(None, (s.strip() for s in (text or "").split(","))):
-        name, _, k = item.partition("=")
+    for item in filter(None, (s.strip() for s in (text or '').split(','))):
+        name, _, k = item.partition('=')
         caps[name.strip()] = int(k)
     return caps
 
@@ -253,9 +253,9 @@ def run_benchmark(args: argparse.Namespace) -> dict[str, Any]:
     model = load_bunny(args.data_dir)
     solvers, skipped = load_solvers(args.solvers)
     for name, why in skipped.items():
-        print(f"[bench_core] solver {name!r} skipped: {why}", file=sys.stderr)
+        print(f'[bench_core] solver {name!r} skipped: {why}', file=sys.stderr)
     if not solvers:
-        raise SystemExit("no solver could be loaded")
+        raise SystemExit('no solver could be loaded')
     caps = {s.name: min(args.trials, args.caps.get(s.name, args.trials)) for s in solvers}
     max_n = {s.name: args.max_n[s.name] for s in solvers if s.name in args.max_n}
     env = environment()  # at start: the core's sources as imported, not as edited later
@@ -278,27 +278,27 @@ def run_benchmark(args: argparse.Namespace) -> dict[str, Any]:
                                   args.max_re, args.max_te)
                     rec.update(trial=trial, seed=seed)
                     per_solver[s.name].append(rec)
-            cell = {"ratio": ratio, "n": n, "num_inliers": int(round((1 - ratio) * n)),
-                    "summary": {k: summarise(v) for k, v in per_solver.items()}}
+            cell = {'ratio': ratio, 'n': n, 'num_inliers': int(round((1 - ratio) * n)),
+                    'summary': {k: summarise(v) for k, v in per_solver.items()}}
             # Fairness for capped solvers: the other solvers on the same (first k) problems.
             subsets = {}
             for s in solvers:
                 if caps[s.name] < args.trials and per_solver[s.name]:
                     subsets[s.name] = {o.name: summarise([r for r in per_solver[o.name]
-                                                          if r["trial"] < caps[s.name]])
+                                                          if r['trial'] < caps[s.name]])
                                        for o in solvers if o.name != s.name}
             if subsets:
-                cell["on_capped_subset"] = subsets
+                cell['on_capped_subset'] = subsets
             if not args.no_records:
-                cell["records"] = per_solver
+                cell['records'] = per_solver
             cells.append(cell)
-            line = "  ".join(f"{k}: {v['success_pct']:.0f}% {v['median_ms']:.0f}ms (n={v['n']})"
-                             for k, v in cell["summary"].items() if v["n"])
-            print(f"[bench_core] ratio={ratio} N={n}: {line}  "
-                  f"[{time.perf_counter() - t_start:.0f}s]", file=sys.stderr, flush=True)
+            line = '  '.join(f"{k}: {v['success_pct']:.0f}% {v['median_ms']:.0f}ms (n={v['n']})"
+                             for k, v in cell['summary'].items() if v['n'])
+            print(f'[bench_core] ratio={ratio} N={n}: {line}  '
+                  f'[{time.perf_counter() - t_start:.0f}s]', file=sys.stderr, flush=True)
 
     breakdown = {}
-    if any(s.name == "kiss" for s in solvers) and not args.no_breakdown:
+    if any(s.name == 'kiss' for s in solvers) and not args.no_breakdown:
         for n in args.sizes:
             ratio = args.ratios[len(args.ratios) // 2]
             p = make_correspondences(model, n, ratio, noise_sigma=args.noise,
@@ -307,31 +307,31 @@ def run_benchmark(args: argparse.Namespace) -> dict[str, Any]:
                 p.src, p.dst, args.tau))
 
     return {
-        "settings": {
-            "ratios": list(args.ratios), "sizes": list(args.sizes), "trials": args.trials,
-            "trials_per_solver": caps, "max_n_per_solver": max_n, "noise_sigma": args.noise, "tau": args.tau,
-            "outliers": args.outliers, "seed": args.seed, "max_re_deg": args.max_re,
-            "max_te": args.max_te, "quick": args.quick, "model": "Stanford bunny bun_zipper_res3, "
-            "1889 points, unit-scaled (largest extent 1)",
+        'settings': {
+            'ratios': list(args.ratios), 'sizes': list(args.sizes), 'trials': args.trials,
+            'trials_per_solver': caps, 'max_n_per_solver': max_n, 'noise_sigma': args.noise, 'tau': args.tau,
+            'outliers': args.outliers, 'seed': args.seed, 'max_re_deg': args.max_re,
+            'max_te': args.max_te, 'quick': args.quick, 'model': 'Stanford bunny bun_zipper_res3, '
+            '1889 points, unit-scaled (largest extent 1)',
         },
-        "solvers": {s.name: s.description for s in solvers},
-        "skipped": skipped,
-        "environment": dict(env, loadavg_after=list(os.getloadavg())),
-        "total_s": time.perf_counter() - t_start,
-        "kiss_breakdown_ms": breakdown,
-        "cells": cells,
+        'solvers': {s.name: s.description for s in solvers},
+        'skipped': skipped,
+        'environment': dict(env, loadavg_after=list(os.getloadavg())),
+        'total_s': time.perf_counter() - t_start,
+        'kiss_breakdown_ms': breakdown,
+        'cells': cells,
     }
 
 
 def environment() -> dict[str, Any]:
     import cgags_ros
 
-    env = {"python": platform.python_version(), "machine": platform.machine(),
-           "cpu_count": os.cpu_count(), "loadavg_before": list(os.getloadavg()),
-           "cgags_ros_path": str(Path(cgags_ros.__file__).resolve().parent),
-           "threads_env": {k: os.environ[k] for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
-                                                       "MKL_NUM_THREADS") if k in os.environ}}
-    for mod in ("numpy", "scipy", "open3d", "kiss_matcher"):
+    env = {'python': platform.python_version(), 'machine': platform.machine(),
+           'cpu_count': os.cpu_count(), 'loadavg_before': list(os.getloadavg()),
+           'cgags_ros_path': str(Path(cgags_ros.__file__).resolve().parent),
+           'threads_env': {k: os.environ[k] for k in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS',
+                                                       'MKL_NUM_THREADS') if k in os.environ}}
+    for mod in ('numpy', 'scipy', 'open3d', 'kiss_matcher'):
         try:
             env[mod] = importlib.import_module(mod).__version__
         except Exception:
@@ -339,20 +339,20 @@ def environment() -> dict[str, Any]:
     try:
         import hashlib
         h = hashlib.sha256()
-        for f in sorted((Path(cgags_ros.__file__).resolve().parent / "registration").glob("*.py")):
+        for f in sorted((Path(cgags_ros.__file__).resolve().parent / 'registration').glob('*.py')):
             h.update(f.name.encode() + f.read_bytes())
-        env["core_sources_sha256"] = h.hexdigest()[:12]  # the core is not committed yet
+        env['core_sources_sha256'] = h.hexdigest()[:12]  # the core is not committed yet
     except Exception:
         pass
     try:
         import subprocess
-        git = ["git", "-C", str(ROOT)]
-        env["git"] = subprocess.run(git + ["rev-parse", "--short", "HEAD"],
+        git = ['git', '-C', str(ROOT)]
+        env['git'] = subprocess.run(git + ['rev-parse', '--short', 'HEAD'],
                                     capture_output=True, text=True).stdout.strip()
-        dirty = subprocess.run(git + ["status", "--porcelain", "--", "cgags_ros/registration"],
+        dirty = subprocess.run(git + ['status', '--porcelain', '--', 'cgags_ros/registration'],
                                capture_output=True, text=True).stdout.strip()
         if dirty:
-            env["git"] += " (+ uncommitted changes in cgags_ros/registration)"
+            env['git'] += ' (+ uncommitted changes in cgags_ros/registration)'
     except Exception:
         pass
     return env
@@ -362,132 +362,132 @@ def environment() -> dict[str, Any]:
 
 
 def to_markdown(res: dict[str, Any]) -> str:
-    st, env = res["settings"], res["environment"]
-    names = list(res["solvers"])
-    caps = st["trials_per_solver"]
+    st, env = res['settings'], res['environment']
+    names = list(res['solvers'])
+    caps = st['trials_per_solver']
     lines = [
         f"### Core benchmark: {', '.join(names)}",
-        "",
+        '',
         f"Bunny (1889 pts, unit-scaled), noise sigma = {st['noise_sigma']}, tau = {st['tau']}, "
         f"outliers = {st['outliers']}, seed = {st['seed']}; success = RE < {st['max_re_deg']} deg "
         f"and TE < {st['max_te']}; time = wall ms per problem (whole solver call). "
-        f"{st['trials']} trials per cell" + "".join(
-            f"; **{k}: {v} trial(s) per cell** (the first {v} problem(s) of each cell)"
-            for k, v in caps.items() if v < st["trials"]) + "".join(
+        f"{st['trials']} trials per cell" + ''.join(
+            f'; **{k}: {v} trial(s) per cell** (the first {v} problem(s) of each cell)'
+            for k, v in caps.items() if v < st['trials']) + ''.join(
             f"; **{k} not run for N > {v}** ('-' in the table)"
-            for k, v in st.get("max_n_per_solver", {}).items()
-            if any(n > v for n in st["sizes"])) + ".",
-        "",
+            for k, v in st.get('max_n_per_solver', {}).items()
+            if any(n > v for n in st['sizes'])) + '.',
+        '',
     ]
-    head = "| outlier ratio | N | inliers |"
-    sep = "|---:|---:|---:|"
+    head = '| outlier ratio | N | inliers |'
+    sep = '|---:|---:|---:|'
     for k in names:
-        tag = f" (n={caps[k]})" if caps[k] < st["trials"] else ""
-        head += f" {k} succ %{tag} | {k} med ms | {k} p90 ms |"
-        sep += "---:|---:|---:|"
+        tag = f' (n={caps[k]})' if caps[k] < st['trials'] else ''
+        head += f' {k} succ %{tag} | {k} med ms | {k} p90 ms |'
+        sep += '---:|---:|---:|'
     lines += [head, sep]
-    for c in res["cells"]:
+    for c in res['cells']:
         row = f"| {c['ratio']} | {c['n']} | {c['num_inliers']} |"
         for k in names:
-            s = c["summary"][k]
-            if not s.get("n"):
-                row += " - | - | - |"
+            s = c['summary'][k]
+            if not s.get('n'):
+                row += ' - | - | - |'
                 continue
             row += f" {s['success_pct']:.0f} | {s['median_ms']:.1f} | {s['p90_ms']:.1f} |"
         lines.append(row)
     # validity totals
-    lines += ["", "Validity flags over all cells (success vs the solver's own valid flag):", "",
-              "| solver | problems | successes | reported valid | valid but wrong | invalid but right |",
-              "|---|---:|---:|---:|---:|---:|"]
+    lines += ['', "Validity flags over all cells (success vs the solver's own valid flag):", '',
+              '| solver | problems | successes | reported valid | valid but wrong | invalid but right |',
+              '|---|---:|---:|---:|---:|---:|']
     for k in names:
-        ss = [c["summary"][k] for c in res["cells"] if c["summary"][k].get("n")]
+        ss = [c['summary'][k] for c in res['cells'] if c['summary'][k].get('n')]
         tot = lambda key: sum(s.get(key, 0) for s in ss)  # noqa: E731
-        has_valid = all("valid" in s for s in ss)
+        has_valid = all('valid' in s for s in ss)
         lines.append(f"| {k} | {tot('n')} | {tot('successes')} | "
                      + (f"{tot('valid')} | {tot('valid_but_wrong')} | {tot('invalid_but_right')} |"
-                        if has_valid else "n/a | n/a | n/a |"))
-    subs = [(c, k, v) for c in res["cells"] for k, v in c.get("on_capped_subset", {}).items()]
+                        if has_valid else 'n/a | n/a | n/a |'))
+    subs = [(c, k, v) for c in res['cells'] for k, v in c.get('on_capped_subset', {}).items()]
     if subs:
-        lines += ["", "Other solvers on the capped solver's problems only (succ % / median ms):", ""]
+        lines += ['', "Other solvers on the capped solver's problems only (succ % / median ms):", '']
         for c, k, v in subs:
             lines.append(f"- ratio {c['ratio']}, N {c['n']} ({k}'s {c['summary'][k]['n']} "
-                         "problem(s)): " + ", ".join(
+                         'problem(s)): ' + ', '.join(
                              f"{o} {s['success_pct']:.0f}% / {s['median_ms']:.1f} ms"
-                             for o, s in v.items() if s.get("n")))
-    if res["kiss_breakdown_ms"]:
-        lines += ["", "KISS-Matcher `prune_and_solve` time split (median ms; see "
-                  "`baselines.kiss_prune_and_solve_breakdown`):", "",
-                  "| N | ratio | total | GNC+COTE solve (get_solver_time) | pybind conversion "
-                  "(upper bound) | ROBIN prune + copies | float32 copy (wrapper) |",
-                  "|---:|---:|---:|---:|---:|---:|---:|"]
-        for n, b in res["kiss_breakdown_ms"].items():
+                             for o, s in v.items() if s.get('n')))
+    if res['kiss_breakdown_ms']:
+        lines += ['', 'KISS-Matcher `prune_and_solve` time split (median ms; see '
+                  '`baselines.kiss_prune_and_solve_breakdown`):', '',
+                  '| N | ratio | total | GNC+COTE solve (get_solver_time) | pybind conversion '
+                  '(upper bound) | ROBIN prune + copies | float32 copy (wrapper) |',
+                  '|---:|---:|---:|---:|---:|---:|---:|']
+        for n, b in res['kiss_breakdown_ms'].items():
             lines.append(f"| {n} | {b['ratio']} | {b['total']:.2f} | {b['solver']:.2f} | "
                          f"{b['pybind_conversion_upper']:.2f} | {b['prune_and_rest']:.2f} | "
                          f"{b['to_float32']:.3f} |")
-    lines += ["", "Solvers:", ""] + [f"- `{k}`: {d}" for k, d in res["solvers"].items()]
-    for k, why in res["skipped"].items():
-        lines.append(f"- `{k}`: **skipped** ({why})")
-    lines += ["", f"Machine: {env.get('cpu_count')} CPUs, shared (load average "
+    lines += ['', 'Solvers:', ''] + [f'- `{k}`: {d}' for k, d in res['solvers'].items()]
+    for k, why in res['skipped'].items():
+        lines.append(f'- `{k}`: **skipped** ({why})')
+    lines += ['', f"Machine: {env.get('cpu_count')} CPUs, shared (load average "
               f"{env['loadavg_before'][0]:.2f} before, {env['loadavg_after'][0]:.2f} after; "
-              "timings include contention). Open3D (TBB) and KISS-Matcher (OpenMP) use all "
+              'timings include contention). Open3D (TBB) and KISS-Matcher (OpenMP) use all '
               f"cores. Versions: numpy {env.get('numpy')}, open3d {env.get('open3d')}, "
               f"kiss_matcher {env.get('kiss_matcher')}, git {env.get('git')}, "
               f"registration/*.py sha256 {env.get('core_sources_sha256')}. "
               f"Total {res['total_s']:.0f} s."]
-    return "\n".join(lines) + "\n"
+    return '\n'.join(lines) + '\n'
 
 
 def _floats(text: str) -> tuple[float, ...]:
-    return tuple(float(x) for x in text.split(",") if x.strip())
+    return tuple(float(x) for x in text.split(',') if x.strip())
 
 
 def _ints(text: str) -> tuple[int, ...]:
-    return tuple(int(x) for x in text.split(",") if x.strip())
+    return tuple(int(x) for x in text.split(',') if x.strip())
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--solvers", default=",".join(DEFAULT_SOLVERS),
-                    help="comma list of ours, open3d, kiss and/or module:function "
-                         "(default: %(default)s)")
-    ap.add_argument("--ratios", type=_floats, default=None,
+    ap.add_argument('--solvers', default=','.join(DEFAULT_SOLVERS),
+                    help='comma list of ours, open3d, kiss and/or module:function '
+                         '(default: %(default)s)')
+    ap.add_argument('--ratios', type=_floats, default=None,
                     help=f"outlier ratios (default {','.join(map(str, DEFAULT_RATIOS))})")
-    ap.add_argument("--sizes", type=_ints, default=None,
+    ap.add_argument('--sizes', type=_ints, default=None,
                     help=f"correspondence counts N (default {','.join(map(str, DEFAULT_SIZES))})")
-    ap.add_argument("--trials", type=int, default=None, help="trials per cell (default 20, quick 5)")
-    ap.add_argument("--solver-trials", default=DEFAULT_SOLVER_TRIALS,
+    ap.add_argument('--trials', type=int, default=None, help='trials per cell (default 20, quick 5)')
+    ap.add_argument('--solver-trials', default=DEFAULT_SOLVER_TRIALS,
                     help="per-solver cap on trials per cell, e.g. 'open3d=1,kiss=10' "
                          "(default: %(default)s; '' for no cap)")
-    ap.add_argument("--solver-max-n", default=DEFAULT_SOLVER_MAX_N,
+    ap.add_argument('--solver-max-n', default=DEFAULT_SOLVER_MAX_N,
                     help="per-solver largest N to run, e.g. 'open3d=1000' (default: %(default)s; "
                          "'' to run every solver at every N)")
-    ap.add_argument("--quick", action="store_true",
-                    help=f"5 trials, ratios {QUICK_RATIOS}, N {QUICK_SIZES} (explicit flags win)")
-    ap.add_argument("--noise", type=float, default=0.01, help="inlier noise sigma (default 0.01)")
-    ap.add_argument("--tau", type=float, default=0.05,
-                    help="inlier threshold given to every solver (default 0.05)")
-    ap.add_argument("--outliers", choices=("uniform", "surface"), default="uniform")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--max-re", type=float, default=5.0, help="success: RE below (deg)")
-    ap.add_argument("--max-te", type=float, default=0.1, help="success: TE below (model units)")
-    ap.add_argument("--data-dir", default=None, help="shared data dir (default ../shared/data)")
-    ap.add_argument("--output", type=Path, default=None, help="write the markdown table here")
-    ap.add_argument("--json", type=Path, default=None, help="write all results as JSON here")
-    ap.add_argument("--no-records", action="store_true", help="omit per-trial records from JSON")
-    ap.add_argument("--no-breakdown", action="store_true",
-                    help="skip the KISS-Matcher prune_and_solve time split")
+    ap.add_argument('--quick', action='store_true',
+                    help=f'5 trials, ratios {QUICK_RATIOS}, N {QUICK_SIZES} (explicit flags win)')
+    ap.add_argument('--noise', type=float, default=0.01, help='inlier noise sigma (default 0.01)')
+    ap.add_argument('--tau', type=float, default=0.05,
+                    help='inlier threshold given to every solver (default 0.05)')
+    ap.add_argument('--outliers', choices=('uniform', 'surface'), default='uniform')
+    ap.add_argument('--seed', type=int, default=0)
+    ap.add_argument('--max-re', type=float, default=5.0, help='success: RE below (deg)')
+    ap.add_argument('--max-te', type=float, default=0.1, help='success: TE below (model units)')
+    ap.add_argument('--data-dir', default=None, help='shared data dir (default ../shared/data)')
+    ap.add_argument('--output', type=Path, default=None, help='write the markdown table here')
+    ap.add_argument('--json', type=Path, default=None, help='write all results as JSON here')
+    ap.add_argument('--no-records', action='store_true', help='omit per-trial records from JSON')
+    ap.add_argument('--no-breakdown', action='store_true',
+                    help='skip the KISS-Matcher prune_and_solve time split')
     args = ap.parse_args(argv)
-    args.solvers = [s.strip() for s in args.solvers.split(",") if s.strip()]
+    args.solvers = [s.strip() for s in args.solvers.split(',') if s.strip()]
     args.ratios = args.ratios or (QUICK_RATIOS if args.quick else DEFAULT_RATIOS)
     args.sizes = args.sizes or (QUICK_SIZES if args.quick else DEFAULT_SIZES)
     args.trials = args.trials or (5 if args.quick else 20)
     args.caps = parse_caps(args.solver_trials)
     args.max_n = parse_caps(args.solver_max_n)
     if not all(0.0 <= r < 1.0 for r in args.ratios):
-        ap.error("outlier ratios must be in [0, 1)")
+        ap.error('outlier ratios must be in [0, 1)')
     if args.tau <= 0 or args.trials < 1:
-        ap.error("--tau must be > 0 and --trials >= 1")
+        ap.error('--tau must be > 0 and --trials >= 1')
     return args
 
 
@@ -513,5 +513,5 @@ def _json_default(o):
     return str(o)
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     sys.exit(main())

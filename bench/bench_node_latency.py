@@ -1,4 +1,5 @@
-"""Latency of the ROS node: source-cloud receipt -> ~/pose publish, and queue boundedness.
+"""
+Latency of the ROS node: source-cloud receipt -> ~/pose publish, and queue boundedness.
 
 Publishes the LiDAR bag's source clouds at a fixed rate (default 10 Hz, cycling through the
 bag) against its target cloud (latched once), with the real pipeline, over real DDS in one
@@ -16,26 +17,26 @@ from __future__ import annotations
 
 import argparse
 import os
+from pathlib import Path
 import sys
 import threading
 import time
-from pathlib import Path
 
-os.environ.setdefault("ROS_DOMAIN_ID", "58")
-os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+os.environ.setdefault('ROS_DOMAIN_ID', '58')
+os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 import numpy as np  # noqa: E402
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--bag", default=None, help="bag (default: shared data lidar bag)")
-    parser.add_argument("--rate", type=float, default=10.0, help="source clouds per second")
-    parser.add_argument("--duration", type=float, default=20.0, help="seconds of publishing")
-    parser.add_argument("--voxel-size", type=float, default=0.4, help="metres")
-    parser.add_argument("--queue-depth", type=int, default=None,
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('--bag', default=None, help='bag (default: shared data lidar bag)')
+    parser.add_argument('--rate', type=float, default=10.0, help='source clouds per second')
+    parser.add_argument('--duration', type=float, default=20.0, help='seconds of publishing')
+    parser.add_argument('--voxel-size', type=float, default=0.4, help='metres')
+    parser.add_argument('--queue-depth', type=int, default=None,
                         help="default: the node's default (NodeConfig.queue_depth)")
-    parser.add_argument("--registration-timeout", type=float, default=30.0,
+    parser.add_argument('--registration-timeout', type=float, default=30.0,
                         help="0 runs the pipeline in the node's thread (no child process)")
     args = parser.parse_args()
 
@@ -46,17 +47,17 @@ def main() -> int:
     from sensor_msgs.msg import PointCloud2
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from cgags_ros.io.bag import read_messages
     from cgags_ros.datasets.synthetic import shared_data_dir
+    from cgags_ros.io.bag import read_messages
     from cgags_ros.ros.conversions import to_rclpy_pointcloud2
     from cgags_ros.ros.node import RegisterNode
 
-    bag = Path(args.bag) if args.bag else shared_data_dir() / "bags" / "lidar"
+    bag = Path(args.bag) if args.bag else shared_data_dir() / 'bags' / 'lidar'
     sources, target = [], None
-    for rec in read_messages(bag, ["/source_cloud", "/target_cloud"]):
-        if rec.topic == "/target_cloud" and target is None:
+    for rec in read_messages(bag, ['/source_cloud', '/target_cloud']):
+        if rec.topic == '/target_cloud' and target is None:
             target = to_rclpy_pointcloud2(rec.msg)
-        elif rec.topic == "/source_cloud":
+        elif rec.topic == '/source_cloud':
             sources.append(to_rclpy_pointcloud2(rec.msg))
 
     from cgags_ros.config.node import NodeConfig
@@ -65,15 +66,15 @@ def main() -> int:
         args.queue_depth = NodeConfig().queue_depth
     rclpy.init()
     node = RegisterNode(parameter_overrides=[
-        Parameter("voxel_size", value=args.voxel_size),
-        Parameter("queue_depth", value=args.queue_depth),
-        Parameter("target_durability", value="transient_local"),
-        Parameter("registration_timeout", value=args.registration_timeout)])
-    io = rclpy.create_node("bench_io")
+        Parameter('voxel_size', value=args.voxel_size),
+        Parameter('queue_depth', value=args.queue_depth),
+        Parameter('target_durability', value='transient_local'),
+        Parameter('registration_timeout', value=args.registration_timeout)])
+    io = rclpy.create_node('bench_io')
     latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    target_pub = io.create_publisher(PointCloud2, "target_cloud", latched)
-    source_pub = io.create_publisher(PointCloud2, "source_cloud", 10)
+    target_pub = io.create_publisher(PointCloud2, 'target_cloud', latched)
+    source_pub = io.create_publisher(PointCloud2, 'source_cloud', 10)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     executor.add_node(io)
@@ -81,7 +82,7 @@ def main() -> int:
     spinner.start()
     target_pub.publish(target)
     deadline = time.monotonic() + 30
-    while not node.statistics().get("received_target") and time.monotonic() < deadline:
+    while not node.statistics().get('received_target') and time.monotonic() < deadline:
         time.sleep(0.05)
 
     max_pending = 0
@@ -107,29 +108,29 @@ def main() -> int:
     rclpy.try_shutdown()
 
     rows = [
-        ("bag", str(bag.name)), ("rate (Hz)", f"{args.rate:g}"),
-        ("duration (s)", f"{args.duration:g}"), ("voxel_size (m)", f"{args.voxel_size:g}"),
-        ("queue_depth", str(args.queue_depth)),
-        ("registration", "child process" if args.registration_timeout > 0 else "in thread"),
-        ("sources published", str(k)),
-        ("sources received", str(stats.get("received_source", 0))),
-        ("poses published", str(stats.get("published", 0))),
-        ("rejected (invalid etc.)", str(stats.get("rejected", 0))),
-        ("dropped (queue_full)", str(stats.get("pairing.dropped.queue_full", 0))),
-        ("max pending (<= queue_depth)", str(max_pending)),
-        ("latency p50 (ms)", f"{1e3 * np.percentile(lat, 50):.0f}" if lat.size else "n/a"),
-        ("latency p95 (ms)", f"{1e3 * np.percentile(lat, 95):.0f}" if lat.size else "n/a"),
-        ("last total pipeline (ms)", f"{1e3 * stats.get('last_timing.total', float('nan')):.0f}"),
+        ('bag', str(bag.name)), ('rate (Hz)', f'{args.rate:g}'),
+        ('duration (s)', f'{args.duration:g}'), ('voxel_size (m)', f'{args.voxel_size:g}'),
+        ('queue_depth', str(args.queue_depth)),
+        ('registration', 'child process' if args.registration_timeout > 0 else 'in thread'),
+        ('sources published', str(k)),
+        ('sources received', str(stats.get('received_source', 0))),
+        ('poses published', str(stats.get('published', 0))),
+        ('rejected (invalid etc.)', str(stats.get('rejected', 0))),
+        ('dropped (queue_full)', str(stats.get('pairing.dropped.queue_full', 0))),
+        ('max pending (<= queue_depth)', str(max_pending)),
+        ('latency p50 (ms)', f'{1e3 * np.percentile(lat, 50):.0f}' if lat.size else 'n/a'),
+        ('latency p95 (ms)', f'{1e3 * np.percentile(lat, 95):.0f}' if lat.size else 'n/a'),
+        ('last total pipeline (ms)', f"{1e3 * stats.get('last_timing.total', float('nan')):.0f}"),
     ]
     width = max(len(r[0]) for r in rows)
     print(f"| {'metric'.ljust(width)} | value |")
     print(f"|{'-' * (width + 2)}|-------|")
     for name, value in rows:
-        print(f"| {name.ljust(width)} | {value} |")
+        print(f'| {name.ljust(width)} | {value} |')
     bounded = max_pending <= args.queue_depth
     print(f"\nqueue bounded: {'yes' if bounded else 'NO'}")
     return 0 if bounded else 1
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     sys.exit(main())

@@ -1,4 +1,5 @@
-"""Pipeline benchmark on the bundled bags (issue 3), run by hand::
+"""
+Pipeline benchmark on the bundled bags (issue 3), run by hand::
 
     .venv/bin/python bench/bench_pipeline.py [--bags bunny lidar] [--output out/bench_pipeline.json]
 
@@ -39,27 +40,31 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+from pathlib import Path
 import platform
 import time
-from pathlib import Path
 from typing import Callable
 
-import numpy as np
-
 from cgags_ros.config import PipelineConfig
+from cgags_ros.config.node import NodeConfig
 from cgags_ros.datasets.synthetic import shared_data_dir
 from cgags_ros.errors import CgagsError
-from cgags_ros.config.node import NodeConfig
-from cgags_ros.pipeline.pairing import Pairer
 from cgags_ros.geometry import rotation_error_deg, translation_error
+from cgags_ros.pipeline.pairing import Pairer
 from cgags_ros.tools.demo import DEMO_BAGS
-from cgags_ros.tools.replay_common import (DEFAULT_MAX_RE_DEG, DEFAULT_MAX_TE_VOXELS, auto_voxel_size,
-                                    iter_pairs, read_bag_contents)
+from cgags_ros.tools.replay_common import (
+    auto_voxel_size,
+    DEFAULT_MAX_RE_DEG,
+    DEFAULT_MAX_TE_VOXELS,
+    iter_pairs,
+    read_bag_contents,
+)
 from cgags_ros.tools.report import fmt, markdown_table
+import numpy as np
 
 KISS_DEFAULT_VOXEL = 0.3
 OPEN3D_DISTANCE_FACTOR = 1.5
-THRESHOLD_ALIASES = {"faulty": "bunny"}  # the faulty bag holds bunny scans
+THRESHOLD_ALIASES = {'faulty': 'bunny'}  # the faulty bag holds bunny scans
 
 Method = Callable[[np.ndarray, np.ndarray, float], np.ndarray]
 
@@ -74,19 +79,18 @@ def run_cgags(src: np.ndarray, tgt: np.ndarray, voxel: float) -> np.ndarray:
     clear_feature_cache()
     result = register_clouds(src, tgt, voxel_size=voxel)
     if not result.valid:
-        raise CgagsError(f"invalid: {result.reason}")
+        raise CgagsError(f'invalid: {result.reason}')
     return result.transform
 
 
 def run_open3d(src: np.ndarray, tgt: np.ndarray, voxel: float, seed: int = 0) -> np.ndarray:
-    import open3d as o3d
-
     from cgags_ros.frontend.features import extract_features
+    import open3d as o3d
 
     reg = o3d.pipelines.registration
     frontend = PipelineConfig().frontend
-    fs = extract_features(src, voxel, frontend, "source")
-    ft = extract_features(tgt, voxel, frontend, "target")
+    fs = extract_features(src, voxel, frontend, 'source')
+    ft = extract_features(tgt, voxel, frontend, 'target')
     clouds, features = [], []
     for f in (fs, ft):
         clouds.append(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(f.points)))
@@ -115,7 +119,7 @@ def run_kiss(src: np.ndarray, tgt: np.ndarray, voxel: float, scale: float = 1.0)
     T[:3, :3] = np.asarray(solution.rotation, dtype=np.float64).reshape(3, 3)
     T[:3, 3] = np.asarray(solution.translation, dtype=np.float64).reshape(3) / scale
     if not solution.valid:
-        raise CgagsError("KISS-Matcher reported valid=False")
+        raise CgagsError('KISS-Matcher reported valid=False')
     return T
 
 
@@ -124,10 +128,10 @@ def run_kiss_rescaled(src: np.ndarray, tgt: np.ndarray, voxel: float) -> np.ndar
 
 
 METHODS: dict[str, Method] = {
-    "cgags": run_cgags,
-    "open3d_fpfh_ransac": run_open3d,
-    "kiss_matcher": run_kiss,
-    "kiss_matcher_rescaled": run_kiss_rescaled,
+    'cgags': run_cgags,
+    'open3d_fpfh_ransac': run_open3d,
+    'kiss_matcher': run_kiss,
+    'kiss_matcher_rescaled': run_kiss_rescaled,
 }
 
 
@@ -142,13 +146,15 @@ class Trial:
     re_deg: float | None
     te_m: float | None
     success: bool
-    error: str = ""
+    error: str = ''
 
 
 def load_pairs(bag_dir: Path) -> tuple[list[tuple[int, np.ndarray, np.ndarray, np.ndarray]], float]:
-    """(stamp, source, target, ground truth) per source with ground truth, and the voxel
-    size cgags-replay would choose for the bag."""
-    contents = read_bag_contents(bag_dir, "/source_cloud", "/target_cloud", "/ground_truth")
+    """
+    (stamp, source, target, ground truth) per source with ground truth, and the voxel
+    size cgags-replay would choose for the bag.
+    """
+    contents = read_bag_contents(bag_dir, '/source_cloud', '/target_cloud', '/ground_truth')
     pairs = []
     for pair in iter_pairs(contents, Pairer.from_config(NodeConfig())):
         stamp = pair.source.stamp_ns
@@ -171,7 +177,7 @@ def run_trial(bag: str, method: str, fn: Method, stamp: int, src: np.ndarray,
         T = fn(src, tgt, voxel)
     except Exception as exc:  # noqa: BLE001 - a failing baseline is a data point
         return Trial(bag, method, stamp, time.perf_counter() - t0, None, None, False,
-                     " ".join(f"{type(exc).__name__}: {exc}".split()))
+                     ' '.join(f'{type(exc).__name__}: {exc}'.split()))
     dt = time.perf_counter() - t0
     re, te = rotation_error_deg(T, gt), translation_error(T, gt)
     return Trial(bag, method, stamp, dt, re, te, bool(re <= limits[0] and te <= limits[1]))
@@ -180,56 +186,56 @@ def run_trial(bag: str, method: str, fn: Method, stamp: int, src: np.ndarray,
 def summarize(trials: list[Trial]) -> dict:
     ok = [t for t in trials if t.success]
     return {
-        "pairs": len(trials), "successes": len(ok),
-        "recall": len(ok) / len(trials) if trials else None,
-        "mean_re_deg": float(np.mean([t.re_deg for t in ok])) if ok else None,
-        "mean_te_m": float(np.mean([t.te_m for t in ok])) if ok else None,
-        "median_time_s": float(np.median([t.time_s for t in trials])) if trials else None,
-        "errors": sorted({t.error for t in trials if t.error}),
+        'pairs': len(trials), 'successes': len(ok),
+        'recall': len(ok) / len(trials) if trials else None,
+        'mean_re_deg': float(np.mean([t.re_deg for t in ok])) if ok else None,
+        'mean_te_m': float(np.mean([t.te_m for t in ok])) if ok else None,
+        'median_time_s': float(np.median([t.time_s for t in trials])) if trials else None,
+        'errors': sorted({t.error for t in trials if t.error}),
     }
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--bags-dir", type=Path, default=shared_data_dir() / "bags")
-    p.add_argument("--bags", nargs="+", default=None, help="default: every bag in --bags-dir")
-    p.add_argument("--methods", nargs="+", choices=sorted(METHODS), default=list(METHODS))
-    p.add_argument("--output", type=Path, default=None, help="JSON results path")
+    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    p.add_argument('--bags-dir', type=Path, default=shared_data_dir() / 'bags')
+    p.add_argument('--bags', nargs='+', default=None, help='default: every bag in --bags-dir')
+    p.add_argument('--methods', nargs='+', choices=sorted(METHODS), default=list(METHODS))
+    p.add_argument('--output', type=Path, default=None, help='JSON results path')
     args = p.parse_args(argv)
     names = args.bags or sorted(d.name for d in args.bags_dir.iterdir()
-                                if (d / "metadata.yaml").exists())
+                                if (d / 'metadata.yaml').exists())
     trials: list[Trial] = []
     rows, summary = [], {}
     for bag in names:
         pairs, voxel = load_pairs(args.bags_dir / bag)
         limits = thresholds(bag, voxel)
-        print(f"{bag}: {len(pairs)} pair(s) with ground truth, voxel {voxel:g} m, success "
-              f"RE <= {limits[0]:g} deg, TE <= {limits[1]:g} m", flush=True)
+        print(f'{bag}: {len(pairs)} pair(s) with ground truth, voxel {voxel:g} m, success '
+              f'RE <= {limits[0]:g} deg, TE <= {limits[1]:g} m', flush=True)
         for method in args.methods:
-            if method == "kiss_matcher_rescaled" and np.isclose(voxel, KISS_DEFAULT_VOXEL):
+            if method == 'kiss_matcher_rescaled' and np.isclose(voxel, KISS_DEFAULT_VOXEL):
                 continue
             got = [run_trial(bag, method, METHODS[method], *pair, voxel, limits)
                    for pair in pairs]
             trials += got
             s = summarize(got)
-            summary.setdefault(bag, {"voxel_size": voxel, "max_re_deg": limits[0],
-                                     "max_te_m": limits[1], "methods": {}})["methods"][method] = s
-            rows.append((bag, method, f"{s['successes']}/{s['pairs']}", s["mean_re_deg"],
-                         s["mean_te_m"], s["median_time_s"], "; ".join(s["errors"])[:70]))
+            summary.setdefault(bag, {'voxel_size': voxel, 'max_re_deg': limits[0],
+                                     'max_te_m': limits[1], 'methods': {}})['methods'][method] = s
+            rows.append((bag, method, f"{s['successes']}/{s['pairs']}", s['mean_re_deg'],
+                         s['mean_te_m'], s['median_time_s'], '; '.join(s['errors'])[:70]))
             print(f"  {method}: recall {s['successes']}/{s['pairs']}, median "
                   f"{fmt(s['median_time_s'])} s", flush=True)
-    table = markdown_table(("bag", "method", "recall", "mean RE [deg]", "mean TE [m]",
-                            "median time [s]", "errors"), rows)
-    print("\n" + table)
+    table = markdown_table(('bag', 'method', 'recall', 'mean RE [deg]', 'mean TE [m]',
+                            'median time [s]', 'errors'), rows)
+    print('\n' + table)
     if args.output:
         args.output.parent.mkdir(parents=True, exist_ok=True)
         args.output.write_text(json.dumps({
-            "machine": {"platform": platform.platform(), "python": platform.python_version()},
-            "summary": summary, "table": table,
-            "trials": [dataclasses.asdict(t) for t in trials]}, indent=2))
-        print(f"\nwrote {args.output}")
+            'machine': {'platform': platform.platform(), 'python': platform.python_version()},
+            'summary': summary, 'table': table,
+            'trials': [dataclasses.asdict(t) for t in trials]}, indent=2))
+        print(f'\nwrote {args.output}')
     return 0
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     raise SystemExit(main())

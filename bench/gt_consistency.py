@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""How far is a pair's ground truth from the best alignment its own geometry supports?
+"""
+How far is a pair's ground truth from the best alignment its own geometry supports?
 
 Issue 3 asks for RE <= 1 deg and TE <= 3 cm after refinement on the 3DMatch redkitchen pairs.
 This script measures whether the reference can confirm that: it refines each pair of
@@ -24,8 +25,8 @@ Run by hand (~20 s)::
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
+import sys
 
 import numpy as np
 
@@ -33,20 +34,22 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from cgags_ros.config.frontend import RefineConfig  # noqa: E402
 from cgags_ros.datasets.gt_pairs import read_gt_pairs  # noqa: E402
 from cgags_ros.datasets.synthetic import shared_data_dir  # noqa: E402
-from cgags_ros.config.frontend import RefineConfig  # noqa: E402
 from cgags_ros.frontend.features import downsample  # noqa: E402
-from cgags_ros.io.clouds import read_cloud  # noqa: E402
 from cgags_ros.frontend.refine import refine_transform  # noqa: E402
-from cgags_ros.pipeline import register_clouds  # noqa: E402
 from cgags_ros.geometry import rotation_error_deg, translation_error  # noqa: E402
+from cgags_ros.io.clouds import read_cloud  # noqa: E402
+from cgags_ros.pipeline import register_clouds  # noqa: E402
 
 
 def refine_from(source: np.ndarray, target: np.ndarray, init: np.ndarray, voxel: float,
                 method: str) -> np.ndarray:
-    """The pipeline's own refinement (``features.refine``) on ``voxel``-downsampled clouds,
-    matching within 3 voxels, up to 100 iterations."""
+    """
+    The pipeline's own refinement (``features.refine``) on ``voxel``-downsampled clouds,
+    matching within 3 voxels, up to 100 iterations.
+    """
     config = RefineConfig(method=method, max_correspondence_distance_factor=3.0,
                           max_iterations=100)
     return refine_transform(downsample(source, voxel, 3), downsample(target, voxel, 3), init,
@@ -54,29 +57,29 @@ def refine_from(source: np.ndarray, target: np.ndarray, init: np.ndarray, voxel:
 
 
 def errors(T: np.ndarray, ref: np.ndarray) -> str:
-    return f"{rotation_error_deg(T, ref):5.2f} deg {100 * translation_error(T, ref):5.1f} cm"
+    return f'{rotation_error_deg(T, ref):5.2f} deg {100 * translation_error(T, ref):5.1f} cm'
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--voxels", type=float, nargs="+", default=[0.01, 0.025],
-                        help="refiner voxel sizes in metres (correspondence distance 3 voxels)")
-    parser.add_argument("--pipeline-voxel", type=float, default=0.05)
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--voxels', type=float, nargs='+', default=[0.01, 0.025],
+                        help='refiner voxel sizes in metres (correspondence distance 3 voxels)')
+    parser.add_argument('--pipeline-voxel', type=float, default=0.05)
     args = parser.parse_args(argv)
-    pairs = read_gt_pairs(shared_data_dir() / "indoor_3dmatch" / "gt_pairs.txt")
+    pairs = read_gt_pairs(shared_data_dir() / 'indoor_3dmatch' / 'gt_pairs.txt')
     for src_path, tgt_path, gt in pairs:
         source, target = read_cloud(src_path), read_cloud(tgt_path)
         ours = register_clouds(source, target, voxel_size=args.pipeline_voxel).transform
-        print(f"{src_path.name} -> {tgt_path.name}: ours (voxel {args.pipeline_voxel} m) vs ground "
-              f"truth: {errors(ours, gt)}")
+        print(f'{src_path.name} -> {tgt_path.name}: ours (voxel {args.pipeline_voxel} m) vs ground '
+              f'truth: {errors(ours, gt)}')
         for voxel in args.voxels:
-            for name, method in (("Open3D point-to-plane ICP", "point_to_plane"),
-                                 ("small_gicp GICP", "gicp")):
+            for name, method in (('Open3D point-to-plane ICP', 'point_to_plane'),
+                                 ('small_gicp GICP', 'gicp')):
                 optimum = refine_from(source, target, gt, voxel, method)
-                print(f"  {name:26s} from GT, voxel {voxel:5.3f}: optimum vs GT {errors(optimum, gt)};"
-                      f" ours vs optimum {errors(ours, optimum)}")
+                print(f'  {name:26s} from GT, voxel {voxel:5.3f}: optimum vs GT {errors(optimum, gt)};'
+                      f' ours vs optimum {errors(ours, optimum)}')
     return 0
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     raise SystemExit(main())

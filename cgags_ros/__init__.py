@@ -1,4 +1,5 @@
-"""cgags_ros: global point cloud registration for ROS 2.
+"""
+cgags_ros: global point cloud registration for ROS 2.
 
 Layers, each importing only the ones below it (a test checks this)::
 

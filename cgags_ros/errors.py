@@ -22,8 +22,10 @@ class InvalidConfigError(CgagsError, ValueError):
 
 
 class MalformedCloudError(InvalidInputError):
-    """A PointCloud2 message cannot be decoded (missing x/y/z, inconsistent sizes, unsupported
-    datatypes). The message names the field or size that is wrong."""
+    """
+    A PointCloud2 message cannot be decoded (missing x/y/z, inconsistent sizes, unsupported
+    datatypes). The message names the field or size that is wrong.
+    """
 
 
 class BagError(CgagsError):
@@ -34,4 +36,4 @@ class BagTopicError(BagError, KeyError):
     """A requested topic is not in the bag; the message lists the topics that are."""
 
     def __str__(self) -> str:  # KeyError would otherwise quote the message
-        return str(self.args[0]) if self.args else ""
+        return str(self.args[0]) if self.args else ''

@@ -1,4 +1,5 @@
-"""Rigid-transform and point-set geometry shared by every layer (one copy of each).
+"""
+Rigid-transform and point-set geometry shared by every layer (one copy of each).
 
 Conventions: a 4x4 transform ``T`` maps source-frame points into the target frame,
 ``p_target = T[:3, :3] @ p_source + T[:3, 3]``; metres; quaternions are ``(x, y, z, w)`` as
@@ -43,7 +44,8 @@ def quaternion_to_matrix(q: Any) -> np.ndarray:
 
 
 def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
-    """Convert a 3x3 rotation matrix to a unit quaternion ``(x, y, z, w)`` with ``w >= 0``.
+    """
+    Convert a 3x3 rotation matrix to a unit quaternion ``(x, y, z, w)`` with ``w >= 0``.
 
     Shepperd's method picks the largest diagonal term, so it is stable near 180 degrees.
     """
@@ -88,7 +90,8 @@ def is_success(T_est: np.ndarray, T_gt: np.ndarray, max_re_deg: float, max_te: f
 
 
 def point_resolution(points: np.ndarray, tree: cKDTree | None = None) -> float:
-    """Return pr, the mean distance from each point to its nearest other point (metres).
+    """
+    Return pr, the mean distance from each point to its nearest other point (metres).
 
     ``tree`` is a k-d tree over ``points`` when the caller already has one.
     """
@@ -99,7 +102,8 @@ def point_resolution(points: np.ndarray, tree: cKDTree | None = None) -> float:
 
 
 def spread(points: np.ndarray) -> np.ndarray:
-    """Return the singular values of the centred (N, 3) ``points``, largest first.
+    """
+    Return the singular values of the centred (N, 3) ``points``, largest first.
 
     ``s[1] / sqrt(N)`` is the RMS spread across the main axis: near 0 for a line, which
     leaves the rotation about it undetermined; ``s[0]`` near 0 means identical points.

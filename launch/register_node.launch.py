@@ -1,4 +1,5 @@
-"""Launch the registration node with the package's default parameters.
+"""
+Launch the registration node with the package's default parameters.
 
     ros2 launch cgags_ros register_node.launch.py \
         source_topic:=/velodyne_points target_topic:=/map_cloud \
@@ -19,31 +20,31 @@ from launch_ros.parameter_descriptions import ParameterValue
 
 
 def generate_launch_description() -> LaunchDescription:
-    defaults = os.path.join(get_package_share_directory("cgags_ros"), "config",
-                            "register_node.yaml")
+    defaults = os.path.join(get_package_share_directory('cgags_ros'), 'config',
+                            'register_node.yaml')
     args = [
-        DeclareLaunchArgument("source_topic", default_value="source_cloud",
-                              description="PointCloud2 to align (sensor frame)."),
-        DeclareLaunchArgument("target_topic", default_value="target_cloud",
-                              description="PointCloud2 reference (map or previous scan)."),
-        DeclareLaunchArgument("params_file", default_value=defaults,
-                              description="YAML with register_node parameters."),
-        DeclareLaunchArgument("use_sim_time", default_value="false",
-                              description="Use /clock (true when playing a bag)."),
-        DeclareLaunchArgument("namespace", default_value="",
-                              description="Namespace of the node and its topics."),
+        DeclareLaunchArgument('source_topic', default_value='source_cloud',
+                              description='PointCloud2 to align (sensor frame).'),
+        DeclareLaunchArgument('target_topic', default_value='target_cloud',
+                              description='PointCloud2 reference (map or previous scan).'),
+        DeclareLaunchArgument('params_file', default_value=defaults,
+                              description='YAML with register_node parameters.'),
+        DeclareLaunchArgument('use_sim_time', default_value='false',
+                              description='Use /clock (true when playing a bag).'),
+        DeclareLaunchArgument('namespace', default_value='',
+                              description='Namespace of the node and its topics.'),
     ]
     node = Node(
-        package="cgags_ros",
-        executable="register_node",
-        name="register_node",
-        namespace=LaunchConfiguration("namespace"),
-        output="screen",
+        package='cgags_ros',
+        executable='register_node',
+        name='register_node',
+        namespace=LaunchConfiguration('namespace'),
+        output='screen',
         emulate_tty=True,
-        parameters=[defaults, LaunchConfiguration("params_file"),
-                    {"use_sim_time": ParameterValue(LaunchConfiguration("use_sim_time"),
+        parameters=[defaults, LaunchConfiguration('params_file'),
+                    {'use_sim_time': ParameterValue(LaunchConfiguration('use_sim_time'),
                                                     value_type=bool)}],
-        remappings=[("source_cloud", LaunchConfiguration("source_topic")),
-                    ("target_cloud", LaunchConfiguration("target_topic"))],
+        remappings=[('source_cloud', LaunchConfiguration('source_topic')),
+                    ('target_cloud', LaunchConfiguration('target_topic'))],
     )
     return LaunchDescription(args + [node])

@@ -2,20 +2,23 @@
 
 import tracemalloc
 
+from cgags_ros.datasets.synthetic import load_bunny, make_correspondences
+from cgags_ros.errors import DegenerateCorrespondencesError, InvalidInputError
+from cgags_ros.geometry import point_resolution
+from cgags_ros.registration import (
+    CoreConfig,
+    register_correspondences,
+    rotation_error_deg,
+    translation_error,
+)
 import numpy as np
 import pytest
-
-from cgags_ros.datasets.synthetic import load_bunny, make_correspondences
-from cgags_ros.geometry import point_resolution
-from cgags_ros.errors import DegenerateCorrespondencesError, InvalidInputError
-from cgags_ros.registration import (CoreConfig, register_correspondences, rotation_error_deg,
-                                    translation_error)
 
 TAU = 0.05  # inlier threshold on the unit-scaled bunny, ~3 sigma of the 0.01 noise
 MAX_RE_DEG, MAX_TE = 3.0, 0.05  # noise sigma 0.01 on a unit-sized model
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope='module')
 def bunny(data_dir):
     return load_bunny(data_dir)
 
@@ -24,13 +27,13 @@ def _check_recovery(prob, res):
     re = rotation_error_deg(res.transform, prob.transform)
     te = translation_error(res.transform, prob.transform)
     assert res.valid, res.reason
-    assert re < MAX_RE_DEG and te < MAX_TE, f"RE {re:.2f} deg, TE {te:.3f}"
+    assert re < MAX_RE_DEG and te < MAX_TE, f'RE {re:.2f} deg, TE {te:.3f}'
     true_inliers = np.flatnonzero(prob.inlier_mask)
     recall = np.isin(true_inliers, res.inliers).mean()
-    assert recall > 0.9, f"only {recall:.0%} of the true inliers recovered"
+    assert recall > 0.9, f'only {recall:.0%} of the true inliers recovered'
 
 
-@pytest.mark.parametrize("n,ratio,seeds", [
+@pytest.mark.parametrize('n,ratio,seeds', [
     (1000, 0.5, [0]), (1000, 0.9, [0, 1]), (1000, 0.95, [0, 1]), (1000, 0.99, [0, 1, 2]),
     (5000, 0.9, [0]), (5000, 0.99, [0, 1]), (5000, 0.995, [0]),
 ])
@@ -42,7 +45,7 @@ def test_recovers_any_rotation_under_heavy_outliers(bunny, n, ratio, seeds):
 
 
 def test_structured_surface_outliers(bunny):
-    prob = make_correspondences(bunny, 2000, 0.98, noise_sigma=0.005, rng=7, outliers="surface")
+    prob = make_correspondences(bunny, 2000, 0.98, noise_sigma=0.005, rng=7, outliers='surface')
     res = register_correspondences(prob.src, prob.dst, inlier_threshold=0.025, seed=0)
     _check_recovery(prob, res)
 
@@ -68,26 +71,26 @@ def test_deterministic_for_a_seed(bunny):
 def test_result_reports_stages(bunny):
     prob = make_correspondences(bunny, 1000, 0.95, rng=9)
     res = register_correspondences(prob.src, prob.dst, inlier_threshold=TAU)
-    for stage in ("compatibility_graph", "compatible_sampling", "guided_sampling", "refit", "total"):
+    for stage in ('compatibility_graph', 'compatible_sampling', 'guided_sampling', 'refit', 'total'):
         assert stage in res.timings
-    drawn = res.stats["compatible_samples"] + res.stats["guided_samples"]
+    drawn = res.stats['compatible_samples'] + res.stats['guided_samples']
     assert 0 < res.num_hypotheses <= drawn  # triples rejected before fitting are not hypotheses
-    assert res.stats["graph_edges"] > 0
-    assert res.stats["stopped_by"] in ("p1_bound", "p2_bound")
+    assert res.stats['graph_edges'] > 0
+    assert res.stats['stopped_by'] in ('p1_bound', 'p2_bound')
     assert 0 < res.inlier_ratio <= 1
     summary = res.summary()
-    assert summary["valid"] and len(summary["transform"]) == 4
+    assert summary['valid'] and len(summary['transform']) == 4
 
 
-@pytest.mark.parametrize("config", [
-    dict(edge_sampling="uniform", vertex_sampling="uniform"),
-    dict(guided_sampling=False),
-    dict(guided_seed="kernel", guided_start="after_b_hypotheses"),
-    dict(compatibility="binary", vertex_sampling="degree"),
-    dict(max_up_mode="local_refits", score="truncated", prescreen=False),
-    dict(max_up_mode="best_updates", refit="once", stage_one_estimate="analytic"),
-    dict(guided_count="since_improvement"),
-    dict(stopping="fixed", max_iterations=3000),
+@pytest.mark.parametrize('config', [
+    {'edge_sampling': 'uniform', 'vertex_sampling': 'uniform'},
+    {'guided_sampling': False},
+    {'guided_seed': 'kernel', 'guided_start': 'after_b_hypotheses'},
+    {'compatibility': 'binary', 'vertex_sampling': 'degree'},
+    {'max_up_mode': 'local_refits', 'score': 'truncated', 'prescreen': False},
+    {'max_up_mode': 'best_updates', 'refit': 'once', 'stage_one_estimate': 'analytic'},
+    {'guided_count': 'since_improvement'},
+    {'stopping': 'fixed', 'max_iterations': 3000},
 ])
 def test_every_inferred_option_still_registers(bunny, config):
     prob = make_correspondences(bunny, 1000, 0.95, rng=21)
@@ -110,20 +113,20 @@ def test_incompatible_correspondences_give_a_reason():
     src = rng.uniform(0, 1, (50, 3))
     dst = rng.uniform(0, 1000, (50, 3))  # nothing length-consistent at this threshold
     res = register_correspondences(src, dst, inlier_threshold=1e-4)
-    assert not res.valid and "length-consistent" in res.reason
+    assert not res.valid and 'length-consistent' in res.reason
     assert np.array_equal(res.transform, np.eye(4))
 
 
-@pytest.mark.parametrize("src,dst,error,match", [
-    (np.zeros((2, 3)), np.zeros((2, 3)), DegenerateCorrespondencesError, "at least 3"),
-    (np.ones((10, 3)), np.random.default_rng(0).normal(size=(10, 3)), DegenerateCorrespondencesError, "identical"),
+@pytest.mark.parametrize('src,dst,error,match', [
+    (np.zeros((2, 3)), np.zeros((2, 3)), DegenerateCorrespondencesError, 'at least 3'),
+    (np.ones((10, 3)), np.random.default_rng(0).normal(size=(10, 3)), DegenerateCorrespondencesError, 'identical'),
     (np.outer(np.arange(10.0), [1, 2, 3]), np.random.default_rng(0).normal(size=(10, 3)),
-     DegenerateCorrespondencesError, "collinear"),
-    (np.zeros((10, 2)), np.zeros((10, 2)), InvalidInputError, "shape"),
-    (np.zeros((10, 3)), np.zeros((9, 3)), InvalidInputError, "same number of rows"),
+     DegenerateCorrespondencesError, 'collinear'),
+    (np.zeros((10, 2)), np.zeros((10, 2)), InvalidInputError, 'shape'),
+    (np.zeros((10, 3)), np.zeros((9, 3)), InvalidInputError, 'same number of rows'),
     (np.array([[np.nan, 0, 0]] + [[i, i * i, 1.0] for i in range(9)]),
-     np.random.default_rng(0).normal(size=(10, 3)), InvalidInputError, "NaN"),
-    ([["a", "b", "c"]] * 5, np.zeros((5, 3)), InvalidInputError, "numeric"),
+     np.random.default_rng(0).normal(size=(10, 3)), InvalidInputError, 'NaN'),
+    ([['a', 'b', 'c']] * 5, np.zeros((5, 3)), InvalidInputError, 'numeric'),
 ])
 def test_bad_input_raises_typed_errors(src, dst, error, match):
     with pytest.raises(error, match=match):
@@ -132,23 +135,23 @@ def test_bad_input_raises_typed_errors(src, dst, error, match):
 
 def test_thresholds_are_required_and_positive(bunny):
     prob = make_correspondences(bunny, 100, 0.5, rng=0)
-    with pytest.raises(InvalidInputError, match="inlier_threshold"):
+    with pytest.raises(InvalidInputError, match='inlier_threshold'):
         register_correspondences(prob.src, prob.dst)
-    with pytest.raises(InvalidInputError, match="positive"):
+    with pytest.raises(InvalidInputError, match='positive'):
         register_correspondences(prob.src, prob.dst, inlier_threshold=-1.0)
-    with pytest.raises(InvalidInputError, match="positive"):
-        register_correspondences(prob.src, prob.dst, resolution=float("nan"))
+    with pytest.raises(InvalidInputError, match='positive'):
+        register_correspondences(prob.src, prob.dst, resolution=float('nan'))
 
 
 def test_invalid_config_is_rejected(bunny):
     from cgags_ros.errors import InvalidConfigError
 
     prob = make_correspondences(bunny, 100, 0.5, rng=0)
-    with pytest.raises(InvalidConfigError, match="p1"):
+    with pytest.raises(InvalidConfigError, match='p1'):
         register_correspondences(prob.src, prob.dst, inlier_threshold=TAU, config=CoreConfig(p1=1.5))
-    with pytest.raises(InvalidConfigError, match="edge_sampling"):
+    with pytest.raises(InvalidConfigError, match='edge_sampling'):
         register_correspondences(prob.src, prob.dst, inlier_threshold=TAU,
-                                 config=CoreConfig(edge_sampling="magic"))
+                                 config=CoreConfig(edge_sampling='magic'))
 
 
 def test_twenty_thousand_correspondences_stay_under_1gb(bunny):
@@ -157,7 +160,7 @@ def test_twenty_thousand_correspondences_stay_under_1gb(bunny):
     res = register_correspondences(prob.src, prob.dst, inlier_threshold=TAU, seed=0)
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
-    assert peak < 1 << 30, f"peak {peak / 2**20:.0f} MiB"
+    assert peak < 1 << 30, f'peak {peak / 2**20:.0f} MiB'
     _check_recovery(prob, res)
 
 
@@ -166,20 +169,20 @@ def test_nearly_collinear_correspondences_end_quickly_and_invalid():
     line = np.outer(rng.uniform(0, 1, 2000), [1.0, 0.5, 0.2]) + rng.normal(0, 1e-4, (2000, 3))
     res = register_correspondences(line, line + [0.1, 0, 0], inlier_threshold=0.01, seed=0)
     assert not res.valid
-    assert "collinear" in res.reason
-    assert res.timings["total"] < 30
+    assert 'collinear' in res.reason
+    assert res.timings['total'] < 30
 
 
 def test_blas_runs_single_threaded_during_the_core_and_is_restored(bunny, monkeypatch):
-    threadpoolctl = pytest.importorskip("threadpoolctl")
+    threadpoolctl = pytest.importorskip('threadpoolctl')
     from cgags_ros.registration import cgags
 
     def blas_threads():
-        return [lib["num_threads"] for lib in threadpoolctl.threadpool_info()
-                if lib["user_api"] == "blas"]
+        return [lib['num_threads'] for lib in threadpoolctl.threadpool_info()
+                if lib['user_api'] == 'blas']
 
     before = blas_threads()
-    with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
+    with threadpoolctl.threadpool_limits(limits=2, user_api='blas'):
         outer = blas_threads()
         seen = []
         build = cgags.build_compatibility_graph
@@ -188,7 +191,7 @@ def test_blas_runs_single_threaded_during_the_core_and_is_restored(bunny, monkey
             seen.append(blas_threads())
             return build(*args, **kwargs)
 
-        monkeypatch.setattr(cgags, "build_compatibility_graph", spy)
+        monkeypatch.setattr(cgags, 'build_compatibility_graph', spy)
         prob = make_correspondences(bunny, 300, 0.5, rng=3)
         _check_recovery(prob, register_correspondences(prob.src, prob.dst, inlier_threshold=TAU))
         assert seen and all(n == 1 for n in seen[0])

@@ -1,7 +1,6 @@
+from cgags_ros.registration.compatibility import build_compatibility_graph, length_consistency
 import numpy as np
 from scipy.spatial.distance import cdist
-
-from cgags_ros.registration.compatibility import build_compatibility_graph, length_consistency
 
 
 def _problem(n=300, seed=0):
@@ -51,7 +50,7 @@ def test_edge_queries_and_common_neighbourhood():
     rng = np.random.default_rng(0)
     i, j = rng.integers(0, 200, 500), rng.integers(0, 200, 500)
     assert np.array_equal(g.has_edge(i, j), dense[i, j])
-    common = np.unpackbits(g.common(i[:10], j[:10]), axis=1, count=200, bitorder="little").astype(bool)
+    common = np.unpackbits(g.common(i[:10], j[:10]), axis=1, count=200, bitorder='little').astype(bool)
     assert np.array_equal(common, dense[i[:10]] & dense[j[:10]])
     d = length_consistency(src, dst, i, j)
     assert np.allclose(d, np.abs(np.linalg.norm(src[i] - src[j], axis=1) - np.linalg.norm(dst[i] - dst[j], axis=1)))

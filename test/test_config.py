@@ -4,13 +4,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import pytest
-
-from cgags_ros.config import PipelineConfig, fields, load_yaml
+from cgags_ros.config import fields, load_yaml, PipelineConfig
 from cgags_ros.config.files import parameters_markdown, ros_parameters_yaml
-from cgags_ros.config.node import (READ_ONLY, NodeConfig, configs_from_parameters,
-                                   default_parameters, parameter_descriptions)
+from cgags_ros.config.node import (
+    configs_from_parameters,
+    default_parameters,
+    NodeConfig,
+    parameter_descriptions,
+    READ_ONLY,
+)
 from cgags_ros.errors import InvalidConfigError
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 YAML = ROOT / 'config' / 'register_node.yaml'
@@ -50,17 +54,17 @@ def test_every_parameter_is_documented_and_short():
 def test_node_and_pipeline_keys_are_disjoint_and_described():
     desc = parameter_descriptions()
     assert set(desc) == set(default_parameters())
-    assert {"voxel_size", "core.p1", "frontend.fpfh_radius_factor", "pairing_mode"} <= set(desc)
+    assert {'voxel_size', 'core.p1', 'frontend.fpfh_radius_factor', 'pairing_mode'} <= set(desc)
     assert READ_ONLY <= set(fields.flatten(NodeConfig()))
-    assert all(meta["description"] for meta in desc.values())
+    assert all(meta['description'] for meta in desc.values())
 
 
-@pytest.mark.parametrize("values, match", [
-    ({"pairing_mode": "nearest"}, "pairing_mode"),
-    ({"sync_slop": -0.1}, "sync_slop"),
-    ({"core.p1": 2.0}, "core.p1"),
-    ({"voxel_size": "big"}, "voxel_size"),
-    ({"no_such_key": 1}, "no_such_key"),
+@pytest.mark.parametrize('values, match', [
+    ({'pairing_mode': 'nearest'}, 'pairing_mode'),
+    ({'sync_slop': -0.1}, 'sync_slop'),
+    ({'core.p1': 2.0}, 'core.p1'),
+    ({'voxel_size': 'big'}, 'voxel_size'),
+    ({'no_such_key': 1}, 'no_such_key'),
 ])
 def test_invalid_values_name_the_key(values, match):
     with pytest.raises(InvalidConfigError, match=match):
@@ -68,7 +72,7 @@ def test_invalid_values_name_the_key(values, match):
 
 
 def test_flat_changes_apply_over_a_base():
-    pipe, node = configs_from_parameters({"voxel_size": 0.3, "sync_slop": 0.1})
-    pipe2, node2 = configs_from_parameters({"core.p1": 0.9}, base=(pipe, node))
+    pipe, node = configs_from_parameters({'voxel_size': 0.3, 'sync_slop': 0.1})
+    pipe2, node2 = configs_from_parameters({'core.p1': 0.9}, base=(pipe, node))
     assert (pipe2.voxel_size, pipe2.core.p1, node2.sync_slop) == (0.3, 0.9, 0.1)
     assert pipe.core.p1 == PipelineConfig().core.p1  # base untouched

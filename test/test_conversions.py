@@ -4,15 +4,14 @@ from __future__ import annotations
 
 import types
 
-import numpy as np
-import pytest
-from scipy.spatial.transform import Rotation
-
 from cgags_ros import geometry
 from cgags_ros.errors import EmptyCloudError, MalformedCloudError
 from cgags_ros.io import pointcloud2 as pc2
 from cgags_ros.io.bag import read_messages
 from cgags_ros.ros import conversions as conv
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
 
 RNG = np.random.default_rng(7)
 
@@ -21,26 +20,26 @@ def field(name, offset, datatype, count=1):
     return types.SimpleNamespace(name=name, offset=offset, datatype=datatype, count=count)
 
 
-def make_cloud(points, *, layout=(("x", 7), ("y", 7), ("z", 7)), pad_point=0, pad_row=0,
+def make_cloud(points, *, layout=(('x', 7), ('y', 7), ('z', 7)), pad_point=0, pad_row=0,
                height=1, bigendian=False, extra=()):
     """A duck-typed PointCloud2 with arbitrary field order/types/padding/endianness."""
     points = np.asarray(points, dtype=np.float64)
     n = len(points)
     width = n // height
-    order = ">" if bigendian else "<"
+    order = '>' if bigendian else '<'
     names, formats, offsets, fields, offset = [], [], [], [], 0
     for name, datatype in list(layout) + list(extra):
-        fmt = {7: "f4", 8: "f8", 2: "u1", 4: "u2"}[datatype]
+        fmt = {7: 'f4', 8: 'f8', 2: 'u1', 4: 'u2'}[datatype]
         names.append(name)
         formats.append(order + fmt)
         offsets.append(offset)
         fields.append(field(name, offset, datatype))
         offset += np.dtype(fmt).itemsize
     point_step = offset + pad_point
-    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets,
-                      "itemsize": point_step})
+    dtype = np.dtype({'names': names, 'formats': formats, 'offsets': offsets,
+                      'itemsize': point_step})
     arr = np.zeros(n, dtype=dtype)
-    for i, axis in enumerate("xyz"):
+    for i, axis in enumerate('xyz'):
         if axis in names:
             arr[axis] = points[:, i]
     row_bytes = width * point_step
@@ -55,21 +54,21 @@ def make_cloud(points, *, layout=(("x", 7), ("y", 7), ("z", 7)), pad_point=0, pa
 POINTS = RNG.normal(size=(60, 3)) * 10.0
 
 
-@pytest.mark.parametrize("kwargs", [
+@pytest.mark.parametrize('kwargs', [
     {},
-    {"layout": (("z", 7), ("x", 7), ("y", 7))},
-    {"layout": (("x", 8), ("y", 8), ("z", 8))},
-    {"layout": (("x", 7), ("y", 7), ("z", 7)), "extra": (("intensity", 7), ("ring", 4)),
-     "pad_point": 2},
-    {"bigendian": True},
-    {"bigendian": True, "layout": (("y", 8), ("z", 8), ("x", 8))},
-    {"height": 6, "pad_row": 5},
+    {'layout': (('z', 7), ('x', 7), ('y', 7))},
+    {'layout': (('x', 8), ('y', 8), ('z', 8))},
+    {'layout': (('x', 7), ('y', 7), ('z', 7)), 'extra': (('intensity', 7), ('ring', 4)),
+     'pad_point': 2},
+    {'bigendian': True},
+    {'bigendian': True, 'layout': (('y', 8), ('z', 8), ('x', 8))},
+    {'height': 6, 'pad_row': 5},
 ])
 def test_layouts_decode_exactly(kwargs):
     msg = make_cloud(POINTS, **kwargs)
     xyz = pc2.pointcloud2_to_xyz(msg)
     assert xyz.dtype == np.float64 and xyz.shape == (60, 3)
-    tol = 0 if kwargs.get("layout", (("x", 7),))[0][1] == 8 else 1e-5
+    tol = 0 if kwargs.get('layout', (('x', 7),))[0][1] == 8 else 1e-5
     np.testing.assert_allclose(xyz, POINTS, rtol=tol, atol=tol)
 
 
@@ -82,16 +81,16 @@ def test_organized_cloud_with_nans_drops_non_finite_points():
     np.testing.assert_allclose(xyz, pts[keep], atol=1e-5)
 
 
-@pytest.mark.parametrize("mutate, match", [
-    (lambda m: setattr(m, "fields", m.fields[:2]), "no z field"),
-    (lambda m: setattr(m, "data", m.data[:-12]), "truncated"),
-    (lambda m: setattr(m, "row_step", m.row_step - 1), "row_step"),
-    (lambda m: setattr(m, "width", 10**9), "above the limit"),
-    (lambda m: setattr(m, "point_step", 8), "does not fit"),
-    (lambda m: setattr(m, "point_step", 10**6), "absurd"),
-    (lambda m: setattr(m.fields[0], "datatype", 2), "UINT8"),
-    (lambda m: setattr(m.fields[1], "datatype", 42), "unknown"),
-    (lambda m: setattr(m, "height", -1), "negative"),
+@pytest.mark.parametrize('mutate, match', [
+    (lambda m: setattr(m, 'fields', m.fields[:2]), 'no z field'),
+    (lambda m: setattr(m, 'data', m.data[:-12]), 'truncated'),
+    (lambda m: setattr(m, 'row_step', m.row_step - 1), 'row_step'),
+    (lambda m: setattr(m, 'width', 10**9), 'above the limit'),
+    (lambda m: setattr(m, 'point_step', 8), 'does not fit'),
+    (lambda m: setattr(m, 'point_step', 10**6), 'absurd'),
+    (lambda m: setattr(m.fields[0], 'datatype', 2), 'UINT8'),
+    (lambda m: setattr(m.fields[1], 'datatype', 42), 'unknown'),
+    (lambda m: setattr(m, 'height', -1), 'negative'),
 ])
 def test_malformed_clouds_raise_with_reason(mutate, match):
     msg = make_cloud(POINTS)
@@ -102,34 +101,34 @@ def test_malformed_clouds_raise_with_reason(mutate, match):
 
 def test_empty_and_all_nan_clouds():
     empty = make_cloud(np.zeros((0, 3)))
-    with pytest.raises(EmptyCloudError, match="no points"):
+    with pytest.raises(EmptyCloudError, match='no points'):
         pc2.pointcloud2_to_xyz(empty)
-    with pytest.raises(EmptyCloudError, match="none is finite"):
+    with pytest.raises(EmptyCloudError, match='none is finite'):
         pc2.pointcloud2_to_xyz(make_cloud(np.full((8, 3), np.nan)))
 
 
 def test_round_trip_through_rclpy_message():
     from std_msgs.msg import Header
 
-    header = Header(frame_id="velodyne")
+    header = Header(frame_id='velodyne')
     msg = conv.xyz_to_pointcloud2(POINTS, header)
     assert (msg.width, msg.height, msg.point_step, msg.row_step) == (60, 1, 12, 720)
-    assert msg.header.frame_id == "velodyne" and msg.is_dense
+    assert msg.header.frame_id == 'velodyne' and msg.is_dense
     np.testing.assert_allclose(pc2.pointcloud2_to_xyz(msg), POINTS, rtol=1e-6, atol=1e-5)
 
 
 def test_bag_messages_decode_and_faulty_bag_reasons(data_dir):
-    bags = data_dir / "bags"
-    rec = next(read_messages(bags / "lidar", ["/source_cloud"]))
+    bags = data_dir / 'bags'
+    rec = next(read_messages(bags / 'lidar', ['/source_cloud']))
     xyz = pc2.pointcloud2_to_xyz(rec.msg)  # rosbags message, intensity field skipped
     assert xyz.shape == (rec.msg.width, 3) and np.abs(xyz).max() < 200.0
     outcomes = []
-    for rec in read_messages(bags / "faulty", ["/source_cloud"]):
+    for rec in read_messages(bags / 'faulty', ['/source_cloud']):
         try:
             outcomes.append(len(pc2.pointcloud2_to_xyz(rec.msg)))
         except (EmptyCloudError, MalformedCloudError) as exc:
             outcomes.append(type(exc).__name__)
-    assert outcomes.count("EmptyCloudError") == 2 and outcomes.count("MalformedCloudError") == 2
+    assert outcomes.count('EmptyCloudError') == 2 and outcomes.count('MalformedCloudError') == 2
     assert outcomes[-1] == 40097  # the good cloud at the end
 
 
@@ -147,18 +146,18 @@ def test_quaternion_matrix_round_trip_including_near_180_degrees():
 
 
 def test_pose_round_trip_rclpy_and_duck_typed():
-    T = geometry.make_transform(Rotation.from_euler("xyz", [10, -20, 170], degrees=True).as_matrix(),
+    T = geometry.make_transform(Rotation.from_euler('xyz', [10, -20, 170], degrees=True).as_matrix(),
                             [1.0, -2.0, 0.5])
     pose = conv.transform_to_pose(T)
     np.testing.assert_allclose(pc2.pose_to_transform(pose), T, atol=1e-12)
     from std_msgs.msg import Header
 
-    stamped = conv.transform_to_pose_stamped(T, Header(frame_id="map"))
+    stamped = conv.transform_to_pose_stamped(T, Header(frame_id='map'))
     np.testing.assert_allclose(pc2.pose_to_transform(stamped), T, atol=1e-12)
-    tf = conv.transform_to_transform_stamped(T, Header(frame_id="map"), "base")
+    tf = conv.transform_to_transform_stamped(T, Header(frame_id='map'), 'base')
     np.testing.assert_allclose(pc2.pose_to_transform(tf), T, atol=1e-12)
     ns = types.SimpleNamespace
     duck = ns(header=None, pose=ns(position=ns(x=1.0, y=-2.0, z=0.5),
-                                   orientation=ns(**dict(zip("xyzw", geometry.matrix_to_quaternion(T[:3, :3]))))))
+                                   orientation=ns(**dict(zip('xyzw', geometry.matrix_to_quaternion(T[:3, :3]))))))
     np.testing.assert_allclose(pc2.pose_to_transform(duck), T, atol=1e-12)
     assert pc2.stamp_to_ns(conv.ns_to_stamp(1_700_000_000_500_000_001)) == 1_700_000_000_500_000_001

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
+from cgags_ros.pipeline.covariance import inlier_pairs, pose_covariance
 import numpy as np
 import pytest
-
-from cgags_ros.pipeline.covariance import inlier_pairs, pose_covariance
 
 
 def test_pose_covariance_reflects_geometry():

@@ -1,10 +1,5 @@
 """cgags_ros.frontend: checks, downsampling, FPFH matching (matching.py), refinement."""
 
-import numpy as np
-import pytest
-from scipy.spatial.distance import cdist
-from scipy.spatial.transform import Rotation
-
 from cgags_ros.config.frontend import FrontEndConfig, RefineConfig
 from cgags_ros.datasets.gt_pairs import find_pair
 from cgags_ros.errors import EmptyCloudError, InvalidInputError
@@ -13,15 +8,19 @@ from cgags_ros.frontend.matching import match_features, nearest_rows
 from cgags_ros.frontend.refine import evaluate_alignment, refine_transform
 from cgags_ros.geometry import point_resolution, rotation_error_deg, translation_error
 from cgags_ros.io.clouds import read_cloud
+import numpy as np
+import pytest
+from scipy.spatial.distance import cdist
+from scipy.spatial.transform import Rotation
 
 VOXEL = 0.003  # bunny scans, metres
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope='module')
 def bunny(data_dir):
     """bun045 -> bun000 features (3 mm voxels) and the ground-truth transform."""
-    src, dst, T = find_pair(data_dir / "objects/stanford_bunny_scans/gt_pairs.txt",
-                            "bun045.ply", "bun000.ply")
+    src, dst, T = find_pair(data_dir / 'objects/stanford_bunny_scans/gt_pairs.txt',
+                            'bun045.ply', 'bun000.ply')
     cfg = FrontEndConfig()
     return (extract_features(read_cloud(src), VOXEL, cfg),
             extract_features(read_cloud(dst), VOXEL, cfg), T)
@@ -35,17 +34,17 @@ def _residuals(fs, ft, corr, T):
 def test_finite_points_checks():
     pts = np.array([[0, 0, 0], [np.nan, 1, 1], [1, np.inf, 1], [1, 2, 3]], dtype=float)
     assert finite_points(pts).shape == (2, 3)
-    with pytest.raises(InvalidInputError, match="shape"):
+    with pytest.raises(InvalidInputError, match='shape'):
         finite_points(np.zeros((4, 2)))
-    with pytest.raises(InvalidInputError, match="not numeric"):
-        finite_points([["a", "b", "c"]])
+    with pytest.raises(InvalidInputError, match='not numeric'):
+        finite_points([['a', 'b', 'c']])
     for empty in (np.zeros((0, 3)), np.full((10, 3), np.nan)):
-        with pytest.raises(EmptyCloudError, match="no finite points"):
+        with pytest.raises(EmptyCloudError, match='no finite points'):
             finite_points(empty)
 
 
 def test_downsample_rejects_too_few_points():
-    with pytest.raises(EmptyCloudError, match="min_points"):
+    with pytest.raises(EmptyCloudError, match='min_points'):
         downsample(np.tile([1.0, 2.0, 3.0], (500, 1)), 0.05, min_points=10)
 
 
@@ -84,10 +83,12 @@ def test_ratio_test_and_cap_keep_the_best(bunny):
 
 
 def _reference_matches(a, b, mutual, ratio):
-    """match_features by definition, from the full exact distance matrix (no zero rows),
-    and the source rows whose nearest target is tied (any of the tied ones is right)."""
+    """
+    match_features by definition, from the full exact distance matrix (no zero rows),
+    and the source rows whose nearest target is tied (any of the tied ones is right).
+    """
     D = cdist(a, b)
-    order = np.argsort(D, axis=1, kind="stable")
+    order = np.argsort(D, axis=1, kind='stable')
     rows = np.arange(len(a))
     nn, d0, d1 = order[:, 0], D[rows, order[:, 0]], D[rows, order[:, 1]]
     keep = np.ones(len(a), dtype=bool)
@@ -99,12 +100,14 @@ def _reference_matches(a, b, mutual, ratio):
     return matches, set(np.flatnonzero(d1 - d0 < 1e-9))
 
 
-@pytest.mark.parametrize("mutual, ratio", [(True, 1.0), (True, 0.8), (False, 0.9)])
+@pytest.mark.parametrize('mutual, ratio', [(True, 1.0), (True, 0.8), (False, 0.9)])
 def test_matches_equal_exact_brute_force(mutual, ratio):
-    """FPFH-like histograms (33 bins, sums of 300) with exact duplicates, as sparse clouds
+    """
+    FPFH-like histograms (33 bins, sums of 300) with exact duplicates, as sparse clouds
     give: the blockwise matrix-product search must agree with exact distances. Duplicate
     targets make the only ties; the ratio test rejects every tie, while with the mutual
-    filter alone a source whose nearest target is duplicated may pair with any copy."""
+    filter alone a source whose nearest target is duplicated may pair with any copy.
+    """
     rng = np.random.default_rng(3)
     b = rng.dirichlet(np.ones(33) * 0.3, 700) * 300
     a = b[rng.permutation(700)[:600]] + rng.normal(0, 2.0, (600, 33))
@@ -139,9 +142,11 @@ def test_nearest_rows_blocks_and_second_neighbour():
 
 
 def test_nearest_row_float32_path_is_exact_on_near_ties():
-    """k = 1 runs in float32 (squared norms ~1e5 like FPFH, rounding ~1e-2): near-duplicate
+    """
+    k = 1 runs in float32 (squared norms ~1e5 like FPFH, rounding ~1e-2): near-duplicate
     and exactly duplicated reference rows must still be ranked by the exact distance, ties
-    to the lower index."""
+    to the lower index.
+    """
     rng = np.random.default_rng(7)
     base = rng.uniform(0.0, 200.0, size=(400, 33))
     r = np.vstack([base,
@@ -157,13 +162,13 @@ def test_nearest_row_float32_path_is_exact_on_near_ties():
     np.testing.assert_array_equal(nearest_rows(same, same, 1)[:, 0], np.zeros(3000))
 
 
-@pytest.mark.parametrize("mutual, ratio", [(True, 1.0), (True, 0.8)])
+@pytest.mark.parametrize('mutual, ratio', [(True, 1.0), (True, 0.8)])
 def test_threaded_matching_is_identical(bunny, mutual, ratio):
     fs, ft, _ = bunny
     cfg = FrontEndConfig(mutual_filter=mutual, ratio_test=ratio)
     one = match_features(fs.descriptors, ft.descriptors, cfg)
     two = match_features(fs.descriptors, ft.descriptors, cfg, workers=2)
-    for name in ("source_index", "target_index", "distance"):
+    for name in ('source_index', 'target_index', 'distance'):
         np.testing.assert_array_equal(getattr(one, name), getattr(two, name))
 
 
@@ -173,10 +178,12 @@ def test_zero_descriptors_never_match():
 
 
 def test_normals_are_frame_independent_with_origin_orientation(bunny):
-    """Rotating the cloud about the origin rotates FPFH inputs consistently: the same
-    voxel centroids get the same descriptors (sign of normals follows the viewpoint)."""
+    """
+    Rotating the cloud about the origin rotates FPFH inputs consistently: the same
+    voxel centroids get the same descriptors (sign of normals follows the viewpoint).
+    """
     fs, _, _ = bunny
-    R = Rotation.from_euler("xyz", [40, -70, 120], degrees=True).as_matrix()
+    R = Rotation.from_euler('xyz', [40, -70, 120], degrees=True).as_matrix()
     rotated = extract_features(fs.points @ R.T, VOXEL, FrontEndConfig(min_points=3))
     # Downsampling again moves centroids slightly; compare descriptors of matched points.
     corr = match_features(fs.descriptors, rotated.descriptors, FrontEndConfig())
@@ -185,11 +192,11 @@ def test_normals_are_frame_independent_with_origin_orientation(bunny):
     assert close.mean() > 0.8
 
 
-@pytest.mark.parametrize("method", ["point_to_plane", "gicp"])
+@pytest.mark.parametrize('method', ['point_to_plane', 'gicp'])
 def test_refinement_converges_from_a_perturbed_pose(bunny, method):
     fs, ft, T = bunny
     delta = np.eye(4)
-    delta[:3, :3] = Rotation.from_euler("z", 3, degrees=True).as_matrix()
+    delta[:3, :3] = Rotation.from_euler('z', 3, degrees=True).as_matrix()
     delta[:3, 3] = [0.004, -0.003, 0.002]  # metres: off by ~2 voxels and 3 degrees
     start = delta @ T
     refined = refine_transform(fs.points, ft.points, start, voxel_size=VOXEL,
@@ -205,5 +212,5 @@ def test_refinement_converges_from_a_perturbed_pose(bunny, method):
 def test_refinement_none_is_identity_operation(bunny):
     fs, ft, T = bunny
     out = refine_transform(fs.points, ft.points, T, voxel_size=VOXEL,
-                           config=RefineConfig(method="none"))
+                           config=RefineConfig(method='none'))
     np.testing.assert_array_equal(out, T)

@@ -1,19 +1,18 @@
 """cgags_ros.io.clouds and cgags_ros.datasets.gt_pairs on the shared real data."""
 
-import numpy as np
-import pytest
-
 from cgags_ros.datasets.gt_pairs import find_pair, parse_gt_pairs, read_gt_pairs
 from cgags_ros.errors import InvalidInputError
 from cgags_ros.io.clouds import read_cloud, write_cloud
+import numpy as np
+import pytest
 
 
-@pytest.mark.parametrize("relpath, count", [
-    ("objects/stanford_bunny_scans/bun000.ply", 40256),  # ascii PLY + range_grid element
-    ("indoor_3dmatch/7-scenes-redkitchen/cloud_bin_0.ply", 258342),  # binary PLY
-    ("lidar/small_gicp/source.ply", 69792),  # binary PLY with intensity
-    ("objects/pcl/bun0.pcd", 397),  # ascii PCD
-    ("indoor_3dmatch/geotransformer_demo/src.npy", 15953),
+@pytest.mark.parametrize('relpath, count', [
+    ('objects/stanford_bunny_scans/bun000.ply', 40256),  # ascii PLY + range_grid element
+    ('indoor_3dmatch/7-scenes-redkitchen/cloud_bin_0.ply', 258342),  # binary PLY
+    ('lidar/small_gicp/source.ply', 69792),  # binary PLY with intensity
+    ('objects/pcl/bun0.pcd', 397),  # ascii PCD
+    ('indoor_3dmatch/geotransformer_demo/src.npy', 15953),
 ])
 def test_read_real_clouds(data_dir, relpath, count):
     points = read_cloud(data_dir / relpath)
@@ -21,42 +20,42 @@ def test_read_real_clouds(data_dir, relpath, count):
     assert np.isfinite(points).all()
 
 
-@pytest.mark.parametrize("suffix", [".ply", ".pcd", ".npy", ".csv", ".xyz", ".txt"])
+@pytest.mark.parametrize('suffix', ['.ply', '.pcd', '.npy', '.csv', '.xyz', '.txt'])
 def test_write_read_round_trip(tmp_path, suffix):
     points = np.random.default_rng(0).normal(size=(50, 3))
-    write_cloud(tmp_path / f"c{suffix}", points)
-    atol = 0 if suffix in (".ply", ".pcd", ".npy") else 1e-7
-    np.testing.assert_allclose(read_cloud(tmp_path / f"c{suffix}"), points, atol=atol, rtol=0)
+    write_cloud(tmp_path / f'c{suffix}', points)
+    atol = 0 if suffix in ('.ply', '.pcd', '.npy') else 1e-7
+    np.testing.assert_allclose(read_cloud(tmp_path / f'c{suffix}'), points, atol=atol, rtol=0)
 
 
 def test_text_with_header_and_extra_columns(tmp_path):
-    (tmp_path / "c.csv").write_text("x,y,z,intensity\n1,2,3,9\n4,5,6,9\n")
-    np.testing.assert_array_equal(read_cloud(tmp_path / "c.csv"), [[1, 2, 3], [4, 5, 6]])
+    (tmp_path / 'c.csv').write_text('x,y,z,intensity\n1,2,3,9\n4,5,6,9\n')
+    np.testing.assert_array_equal(read_cloud(tmp_path / 'c.csv'), [[1, 2, 3], [4, 5, 6]])
 
 
 def test_truncated_binary_files_fail_loudly(tmp_path, data_dir):
     # Open3D would return zero-padded points here; we must not.
-    raw = (data_dir / "lidar/small_gicp/source.ply").read_bytes()
-    (tmp_path / "t.ply").write_bytes(raw[:5000])
-    with pytest.raises(InvalidInputError, match="truncated"):
-        read_cloud(tmp_path / "t.ply")
-    text = (data_dir / "objects/pcl/bun0.pcd").read_text()
-    (tmp_path / "t.pcd").write_text(text[:3000])
-    with pytest.raises(InvalidInputError, match="truncated"):
-        read_cloud(tmp_path / "t.pcd")
+    raw = (data_dir / 'lidar/small_gicp/source.ply').read_bytes()
+    (tmp_path / 't.ply').write_bytes(raw[:5000])
+    with pytest.raises(InvalidInputError, match='truncated'):
+        read_cloud(tmp_path / 't.ply')
+    text = (data_dir / 'objects/pcl/bun0.pcd').read_text()
+    (tmp_path / 't.pcd').write_text(text[:3000])
+    with pytest.raises(InvalidInputError, match='truncated'):
+        read_cloud(tmp_path / 't.pcd')
 
 
-@pytest.mark.parametrize("name, content, match", [
-    ("missing.ply", None, "no such file"),
-    ("cloud.obj", b"v 1 2 3\n", "unsupported point cloud format"),
-    ("garbage.ply", b"hello\n", "not a PLY file"),
-    ("garbage.pcd", b"hello\n", "not a PCD file"),
-    ("bad.csv", b"1,2,3\n4,five,6\n", "cannot read"),
-    ("flat.npy", None, "expected an \\(N, 3\\) array"),
+@pytest.mark.parametrize('name, content, match', [
+    ('missing.ply', None, 'no such file'),
+    ('cloud.obj', b'v 1 2 3\n', 'unsupported point cloud format'),
+    ('garbage.ply', b'hello\n', 'not a PLY file'),
+    ('garbage.pcd', b'hello\n', 'not a PCD file'),
+    ('bad.csv', b'1,2,3\n4,five,6\n', 'cannot read'),
+    ('flat.npy', None, 'expected an \\(N, 3\\) array'),
 ])
 def test_unreadable_files_raise_invalid_input(tmp_path, name, content, match):
     path = tmp_path / name
-    if name == "flat.npy":
+    if name == 'flat.npy':
         np.save(path, np.zeros(5))
     elif content is not None:
         path.write_bytes(content)
@@ -65,23 +64,23 @@ def test_unreadable_files_raise_invalid_input(tmp_path, name, content, match):
 
 
 def test_gt_pairs_of_every_folder(data_dir):
-    pairs = {(s.name, t.name): T for f in sorted(data_dir.glob("**/gt_pairs.txt"))
+    pairs = {(s.name, t.name): T for f in sorted(data_dir.glob('**/gt_pairs.txt'))
              for s, t, T in read_gt_pairs(f)}
-    assert {("bun045.ply", "bun000.ply"), ("cloud_bin_4.ply", "cloud_bin_0.ply"),
-            ("src.npy", "ref.npy"), ("source.ply", "target.ply")} <= set(pairs)
+    assert {('bun045.ply', 'bun000.ply'), ('cloud_bin_4.ply', 'cloud_bin_0.ply'),
+            ('src.npy', 'ref.npy'), ('source.ply', 'target.ply')} <= set(pairs)
     # The demo's gt.npy and the parsed block agree (same source -> target convention).
-    gt = np.load(data_dir / "indoor_3dmatch/geotransformer_demo/gt.npy")
-    np.testing.assert_allclose(pairs[("src.npy", "ref.npy")], gt, atol=1e-8)
-    s, _, _ = find_pair(data_dir / "indoor_3dmatch/gt_pairs.txt", "src.npy", "ref.npy")
+    gt = np.load(data_dir / 'indoor_3dmatch/geotransformer_demo/gt.npy')
+    np.testing.assert_allclose(pairs[('src.npy', 'ref.npy')], gt, atol=1e-8)
+    s, _, _ = find_pair(data_dir / 'indoor_3dmatch/gt_pairs.txt', 'src.npy', 'ref.npy')
     assert s.exists()
 
 
 def test_gt_pairs_format_errors():
-    good = "# c\npair a b\n" + "1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n"
-    assert parse_gt_pairs(good)[0][:2] == ("a", "b")
-    with pytest.raises(InvalidInputError, match="4 rows of 4"):
-        parse_gt_pairs("pair a b\n1 0 0 0\n")
+    good = '# c\npair a b\n' + '1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n'
+    assert parse_gt_pairs(good)[0][:2] == ('a', 'b')
+    with pytest.raises(InvalidInputError, match='4 rows of 4'):
+        parse_gt_pairs('pair a b\n1 0 0 0\n')
     with pytest.raises(InvalidInputError, match="before any 'pair'"):
-        parse_gt_pairs("1 0 0 0\n")
-    with pytest.raises(InvalidInputError, match="not a rigid"):
-        parse_gt_pairs(good.replace("0 1 0 0", "0 2 0 0"))
+        parse_gt_pairs('1 0 0 0\n')
+    with pytest.raises(InvalidInputError, match='not a rigid'):
+        parse_gt_pairs(good.replace('0 1 0 0', '0 2 0 0'))

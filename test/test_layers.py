@@ -1,4 +1,5 @@
-"""The package's architecture, checked from its sources with ast.
+"""
+The package's architecture, checked from its sources with ast.
 
 Layers import one way: tools -> ros -> pipeline -> frontend / registration -> geometry,
 config, io, datasets (and errors, timing). Only ros/ imports rclpy and message packages;
@@ -40,7 +41,8 @@ def modules() -> dict[str, Path]:
 
 
 def imports(name: str, path: Path) -> tuple[set[str], set[str]]:
-    """Return (cgags_ros modules, third-party top-level modules) that ``path`` imports.
+    """
+    Return (cgags_ros modules, third-party top-level modules) that ``path`` imports.
 
     Function-level imports count too: a lazy import still ties the layers together.
     """

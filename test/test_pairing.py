@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import threading
 
-import pytest
-
 from cgags_ros.io.bag import read_messages
 from cgags_ros.pipeline.pairing import Pairer
+import pytest
 
 S = 1_000_000_000  # ns per second
 
@@ -17,104 +16,106 @@ def drain(pairer):
 
 
 def test_latest_target_pairs_each_source_with_newest_received_target():
-    p = Pairer("latest_target", queue_depth=10)
-    p.add_target(5 * S, "map", "T_old_stamp")
-    p.add_source(1 * S, "lidar", "s1")
-    p.add_target(0, "map", "T2")  # receipt order counts, not stamps (latched map)
-    p.add_source(2 * S, "lidar", "s2")
-    p.add_source(3 * S, "lidar", "s3")
-    assert drain(p) == [("s1", "T_old_stamp"), ("s2", "T2"), ("s3", "T2")]
-    assert p.counters()["dropped"] == 0
+    p = Pairer('latest_target', queue_depth=10)
+    p.add_target(5 * S, 'map', 'T_old_stamp')
+    p.add_source(1 * S, 'lidar', 's1')
+    p.add_target(0, 'map', 'T2')  # receipt order counts, not stamps (latched map)
+    p.add_source(2 * S, 'lidar', 's2')
+    p.add_source(3 * S, 'lidar', 's3')
+    assert drain(p) == [('s1', 'T_old_stamp'), ('s2', 'T2'), ('s3', 'T2')]
+    assert p.counters()['dropped'] == 0
 
 
 def test_latest_target_sources_before_any_target_keep_newest_n():
-    p = Pairer("latest_target", queue_depth=10, max_waiting_sources=2)
+    p = Pairer('latest_target', queue_depth=10, max_waiting_sources=2)
     for k in range(4):
-        p.add_source(k * S, "lidar", f"s{k}")
+        p.add_source(k * S, 'lidar', f's{k}')
     assert p.waiting_sources == 2 and p.pop() is None
-    p.add_target(0, "map", "T")
-    assert drain(p) == [("s2", "T"), ("s3", "T")]
-    assert p.drops == {"source_superseded_before_target": 2}
+    p.add_target(0, 'map', 'T')
+    assert drain(p) == [('s2', 'T'), ('s3', 'T')]
+    assert p.drops == {'source_superseded_before_target': 2}
 
 
 def test_unused_target_replacement_is_counted():
-    p = Pairer("latest_target")
-    p.add_target(0, "map", "T1")
-    p.add_target(1, "map", "T2")
-    p.add_source(2, "lidar", "s")
-    p.add_target(3, "map", "T3")  # T2 was used: not a drop
-    assert p.drops == {"target_replaced_unused": 1}
+    p = Pairer('latest_target')
+    p.add_target(0, 'map', 'T1')
+    p.add_target(1, 'map', 'T2')
+    p.add_source(2, 'lidar', 's')
+    p.add_target(3, 'map', 'T3')  # T2 was used: not a drop
+    assert p.drops == {'target_replaced_unused': 1}
 
 
 def test_bounded_queue_drops_oldest_pairs():
-    p = Pairer("latest_target", queue_depth=2)
-    p.add_target(0, "map", "T")
+    p = Pairer('latest_target', queue_depth=2)
+    p.add_target(0, 'map', 'T')
     for k in range(5):
-        p.add_source(k, "lidar", f"s{k}")
+        p.add_source(k, 'lidar', f's{k}')
     assert p.pending == 2
-    assert drain(p) == [("s3", "T"), ("s4", "T")]
+    assert drain(p) == [('s3', 'T'), ('s4', 'T')]
     c = p.counters()
-    assert c["dropped.queue_full"] == 3 and c["paired"] == 5 and c["received_sources"] == 5
+    assert c['dropped.queue_full'] == 3 and c['paired'] == 5 and c['received_sources'] == 5
 
 
 def test_synchronized_pairs_nearest_within_slop_one_to_one():
-    p = Pairer("synchronized", slop=0.05, queue_depth=10, max_waiting_sources=10)
-    p.add_source(int(1.00 * S), "a", "s1")
-    p.add_target(int(0.97 * S), "m", "t097")
+    p = Pairer('synchronized', slop=0.05, queue_depth=10, max_waiting_sources=10)
+    p.add_source(int(1.00 * S), 'a', 's1')
+    p.add_target(int(0.97 * S), 'm', 't097')
     assert p.pop() is None  # a closer target may still come
-    p.add_target(int(1.01 * S), "m", "t101")  # at/after the source: match is final
-    assert drain(p) == [("s1", "t101")]
-    p.add_source(int(1.02 * S), "a", "s2")  # t101 is used; t097 is 0.05 s away
-    p.add_target(int(1.2 * S), "m", "t120")
-    assert drain(p) == [("s2", "t097")]
+    p.add_target(int(1.01 * S), 'm', 't101')  # at/after the source: match is final
+    assert drain(p) == [('s1', 't101')]
+    p.add_source(int(1.02 * S), 'a', 's2')  # t101 is used; t097 is 0.05 s away
+    p.add_target(int(1.2 * S), 'm', 't120')
+    assert drain(p) == [('s2', 't097')]
 
 
 def test_synchronized_drops_are_counted_with_reasons():
-    p = Pairer("synchronized", slop=0.05, queue_depth=10, max_waiting_sources=2,
+    p = Pairer('synchronized', slop=0.05, queue_depth=10, max_waiting_sources=2,
                max_waiting_targets=2)
-    p.add_source(1 * S, "a", "s1")
-    p.add_target(2 * S, "m", "t2")  # newest target far after s1: s1 can never match
-    assert p.drops["source_no_target_within_slop"] == 1
-    p.add_source(3 * S, "a", "s3")  # t2 can never match a later source
-    assert p.drops["target_no_source_within_slop"] == 1
+    p.add_source(1 * S, 'a', 's1')
+    p.add_target(2 * S, 'm', 't2')  # newest target far after s1: s1 can never match
+    assert p.drops['source_no_target_within_slop'] == 1
+    p.add_source(3 * S, 'a', 's3')  # t2 can never match a later source
+    assert p.drops['target_no_source_within_slop'] == 1
     for k in range(4, 7):
-        p.add_source(k * S, "a", f"s{k}")
-    assert p.drops["source_buffer_full"] == 2
+        p.add_source(k * S, 'a', f's{k}')
+    assert p.drops['source_buffer_full'] == 2
     assert p.pop() is None
 
 
 def test_synchronized_on_lidar_bag_stamps(data_dir):
-    """The LiDAR bag's first source (0.1 s) sits between targets 0.0 and 0.2: with a 50 ms
-    slop it is dropped, the five others pair with the equal-stamp target."""
-    p = Pairer("synchronized", slop=0.05, queue_depth=10, max_waiting_sources=3)
-    for rec in read_messages(data_dir / "bags" / "lidar", ["/source_cloud", "/target_cloud"]):
-        add = p.add_source if rec.topic == "/source_cloud" else p.add_target
+    """
+    The LiDAR bag's first source (0.1 s) sits between targets 0.0 and 0.2: with a 50 ms
+    slop it is dropped, the five others pair with the equal-stamp target.
+    """
+    p = Pairer('synchronized', slop=0.05, queue_depth=10, max_waiting_sources=3)
+    for rec in read_messages(data_dir / 'bags' / 'lidar', ['/source_cloud', '/target_cloud']):
+        add = p.add_source if rec.topic == '/source_cloud' else p.add_target
         add(rec.stamp_ns, rec.frame_id, rec.stamp_ns)
     pairs = list(iter(p.pop, None))
     assert len(pairs) == 5 and all(pair.dt_ns == 0 for pair in pairs)
-    assert p.drops["source_no_target_within_slop"] == 1
+    assert p.drops['source_no_target_within_slop'] == 1
 
 
 def test_wait_pop_wakes_on_pair_and_on_wake():
-    p = Pairer("latest_target")
-    p.add_target(0, "m", "T")
-    threading.Timer(0.05, p.add_source, args=(1, "a", "s")).start()
+    p = Pairer('latest_target')
+    p.add_target(0, 'm', 'T')
+    threading.Timer(0.05, p.add_source, args=(1, 'a', 's')).start()
     pair = p.wait_pop(timeout=5.0)
-    assert pair is not None and pair.source.payload == "s"
+    assert pair is not None and pair.source.payload == 's'
     threading.Timer(0.05, p.wake).start()
     assert p.wait_pop(timeout=5.0) is None
 
 
 def test_reset_counts_discarded_and_keeps_latched_target():
-    p = Pairer("latest_target", queue_depth=5)
-    p.add_target(0, "m", "T")
-    p.add_source(1, "a", "s")
+    p = Pairer('latest_target', queue_depth=5)
+    p.add_target(0, 'm', 'T')
+    p.add_source(1, 'a', 's')
     p.reset()
-    assert p.drops["reset"] == 1 and p.has_target
+    assert p.drops['reset'] == 1 and p.has_target
 
 
 def test_invalid_arguments():
-    with pytest.raises(ValueError, match="pairing mode"):
-        Pairer("nearest")
+    with pytest.raises(ValueError, match='pairing mode'):
+        Pairer('nearest')
     with pytest.raises(ValueError):
         Pairer(queue_depth=0)

@@ -1,4 +1,5 @@
-"""register_clouds on real pairs with ground truth, plus degenerate and non-overlapping input.
+"""
+register_clouds on real pairs with ground truth, plus degenerate and non-overlapping input.
 
 Success thresholds (METHOD.md; objects chosen for the 15 cm bunny):
   coarse (core only):  objects RE < 5 deg, TE < 1 cm; indoor RE < 15 deg, TE < 0.3 m;
@@ -13,30 +14,34 @@ source; the ground truth then becomes T_gt @ inv(X).
 
 import dataclasses
 
+from cgags_ros.config import pipeline_config_from, PipelineConfig
+from cgags_ros.datasets.gt_pairs import find_pair
+from cgags_ros.errors import EmptyCloudError, InvalidConfigError, InvalidInputError
+from cgags_ros.frontend.refine import evaluate_alignment
+from cgags_ros.geometry import rotation_error_deg, translation_error
+from cgags_ros.io.clouds import read_cloud
+from cgags_ros.pipeline import (
+    cached_features,
+    clear_feature_cache,
+    PipelineResult,
+    register_clouds,
+    warm_up,
+)
+from cgags_ros.pipeline.gates import chance_inliers, observability
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cgags_ros.config import PipelineConfig, pipeline_config_from
-from cgags_ros.datasets.gt_pairs import find_pair
-from cgags_ros.errors import EmptyCloudError, InvalidConfigError, InvalidInputError
-from cgags_ros.io.clouds import read_cloud
-from cgags_ros.frontend.refine import evaluate_alignment
-from cgags_ros.pipeline import (PipelineResult, cached_features, clear_feature_cache,
-                                register_clouds, warm_up)
-from cgags_ros.pipeline.gates import chance_inliers, observability
-from cgags_ros.geometry import rotation_error_deg, translation_error
-
 # name: (gt folder, source, target, voxel m, coarse (RE, TE), refined (RE, TE))
 PAIRS = {
-    "bun045": ("objects/stanford_bunny_scans", "bun045.ply", "bun000.ply", 0.003,
+    'bun045': ('objects/stanford_bunny_scans', 'bun045.ply', 'bun000.ply', 0.003,
                (5.0, 0.01), (1.0, 0.002)),
-    "bun315": ("objects/stanford_bunny_scans", "bun315.ply", "bun000.ply", 0.003,
+    'bun315': ('objects/stanford_bunny_scans', 'bun315.ply', 'bun000.ply', 0.003,
                (5.0, 0.01), (1.0, 0.002)),
-    "kitchen4": ("indoor_3dmatch", "cloud_bin_4.ply", "cloud_bin_0.ply", 0.05,
+    'kitchen4': ('indoor_3dmatch', 'cloud_bin_4.ply', 'cloud_bin_0.ply', 0.05,
                  (15.0, 0.3), (5.0, 0.15)),
-    "kitchen6": ("indoor_3dmatch", "src.npy", "ref.npy", 0.05, (15.0, 0.3), (5.0, 0.15)),
-    "lidar": ("lidar", "source.ply", "target.ply", 0.4, (5.0, 0.6), (1.0, 0.1)),
+    'kitchen6': ('indoor_3dmatch', 'src.npy', 'ref.npy', 0.05, (15.0, 0.3), (5.0, 0.15)),
+    'lidar': ('lidar', 'source.ply', 'target.ply', 0.4, (5.0, 0.6), (1.0, 0.1)),
 }
 CASES = [(name, rotated) for name in PAIRS for rotated in (False, True)]
 
@@ -50,7 +55,7 @@ def random_motion(seed: int, shift: float) -> np.ndarray:
     return X
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope='module')
 def runs(data_dir):
     """Lazily computed {(pair, rotated): (result, ground truth, source, target)}."""
     cache = {}
@@ -58,7 +63,7 @@ def runs(data_dir):
     def get(name, rotated):
         if (name, rotated) not in cache:
             folder, s, t, voxel, _, _ = PAIRS[name]
-            src_path, dst_path, T = find_pair(data_dir / folder / "gt_pairs.txt", s, t)
+            src_path, dst_path, T = find_pair(data_dir / folder / 'gt_pairs.txt', s, t)
             source, target = read_cloud(src_path), read_cloud(dst_path)
             if rotated:
                 X = random_motion(seed=len(cache) + 7, shift=20 * voxel)
@@ -71,7 +76,7 @@ def runs(data_dir):
     return get
 
 
-@pytest.mark.parametrize("name, rotated", CASES)
+@pytest.mark.parametrize('name, rotated', CASES)
 def test_real_pair_coarse_estimate(runs, name, rotated):
     result, T, _, _ = runs(name, rotated)
     max_re, max_te = PAIRS[name][4]
@@ -85,7 +90,7 @@ def test_real_pair_coarse_estimate(runs, name, rotated):
     assert np.median(np.linalg.norm(moved - dst, axis=1)) < max_te
 
 
-@pytest.mark.parametrize("name, rotated", CASES)
+@pytest.mark.parametrize('name, rotated', CASES)
 def test_real_pair_refined_estimate(runs, name, rotated):
     result, T, source, target = runs(name, rotated)
     max_re, max_te = PAIRS[name][5]
@@ -99,7 +104,7 @@ def test_real_pair_refined_estimate(runs, name, rotated):
 
 
 def test_result_fields_and_timings(runs):
-    result, _, source, _ = runs("bun045", False)
+    result, _, source, _ = runs('bun045', False)
     assert isinstance(result, PipelineResult)
     assert result.voxel_size == 0.003 and 0 < result.resolution < 0.003
     assert 0 < result.num_source_points < len(source)
@@ -107,26 +112,26 @@ def test_result_fields_and_timings(runs):
     assert 0.8 < result.fitness <= 1 and 0.8 < result.overlap <= 1
     assert result.inlier_rmse < 0.003 and result.observability > 0.05
     assert result.chance_inliers < 0.1 * result.num_inliers
-    stages = {"downsample", "normals", "fpfh", "matching", "registration", "refinement",
-              "total"}
+    stages = {'downsample', 'normals', 'fpfh', 'matching', 'registration', 'refinement',
+              'total'}
     assert stages <= set(result.timings)
-    assert result.timings["total"] >= sum(result.timings[k] for k in stages - {"total"}) - 1e-6
+    assert result.timings['total'] >= sum(result.timings[k] for k in stages - {'total'}) - 1e-6
     summary = result.summary()
-    assert summary["valid"] and len(summary["coarse_transform"]) == 4
+    assert summary['valid'] and len(summary['coarse_transform']) == 4
 
 
 def test_no_refinement_returns_the_core_estimate(data_dir):
-    src, dst, _ = find_pair(data_dir / "objects/stanford_bunny_scans/gt_pairs.txt",
-                            "bun045.ply", "bun000.ply")
-    cfg = pipeline_config_from({"voxel_size": 0.003, "refine.method": "none"})
+    src, dst, _ = find_pair(data_dir / 'objects/stanford_bunny_scans/gt_pairs.txt',
+                            'bun045.ply', 'bun000.ply')
+    cfg = pipeline_config_from({'voxel_size': 0.003, 'refine.method': 'none'})
     result = register_clouds(read_cloud(src), read_cloud(dst), config=cfg)
     assert not result.refined and result.valid
     np.testing.assert_array_equal(result.transform, result.coarse_transform)
 
 
 def test_feature_cache_is_exact_and_keyed_on_content(data_dir):
-    src, dst, _ = find_pair(data_dir / "objects/stanford_bunny_scans/gt_pairs.txt",
-                            "bun045.ply", "bun000.ply")
+    src, dst, _ = find_pair(data_dir / 'objects/stanford_bunny_scans/gt_pairs.txt',
+                            'bun045.ply', 'bun000.ply')
     source, target = read_cloud(src), read_cloud(dst)
     clear_feature_cache()
     first = register_clouds(source, target, voxel_size=0.003)
@@ -134,7 +139,7 @@ def test_feature_cache_is_exact_and_keyed_on_content(data_dir):
     # The coarse estimate is bit-exact; Open3D's multi-threaded ICP sums in a varying order.
     np.testing.assert_array_equal(first.coarse_transform, again.coarse_transform)
     np.testing.assert_allclose(first.transform, again.transform, rtol=0, atol=1e-12)
-    assert again.timings["fpfh"] == 0.0 and first.timings["fpfh"] > 0
+    assert again.timings['fpfh'] == 0.0 and first.timings['fpfh'] > 0
     cfg = PipelineConfig().frontend
     a = cached_features(target, 0.003, cfg)
     assert cached_features(target.copy(), 0.003, cfg) is a
@@ -155,7 +160,7 @@ def test_warm_up_runs_every_stage():
     T[:3, 3] = -T[:3, :3] @ [0.2, 0.2, 0.2]  # inverse of (R, 0.2): source -> target
     assert rotation_error_deg(result.transform, T) < 1.0
     assert translation_error(result.transform, T) < 0.05
-    gicp = warm_up(pipeline_config_from({"refine.method": "gicp"}))
+    gicp = warm_up(pipeline_config_from({'refine.method': 'gicp'}))
     assert gicp.valid and gicp.refined
 
 
@@ -169,30 +174,30 @@ def _moved(points, seed):
     return points @ X[:3, :3].T + X[:3, 3]
 
 
-@pytest.mark.parametrize("kind", ["plane", "line", "single_point", "sphere"])
+@pytest.mark.parametrize('kind', ['plane', 'line', 'single_point', 'sphere'])
 def test_degenerate_clouds_are_invalid(kind):
     rng = np.random.default_rng(1)
-    if kind == "plane":
+    if kind == 'plane':
         source, target = _plane(rng), _moved(_plane(rng), 2)
-    elif kind == "line":
+    elif kind == 'line':
         line = np.c_[rng.uniform(-2, 2, 5000), rng.normal(0, 0.002, (5000, 2))]
         source, target = line, _moved(line, 3)
-    elif kind == "single_point":
+    elif kind == 'single_point':
         source, target = np.tile([1.0, 2.0, 3.0], (1000, 1)), _moved(_plane(rng), 4)
     else:
         ball = rng.normal(size=(20000, 3))
         ball /= np.linalg.norm(ball, axis=1, keepdims=True)
         source, target = ball, _moved(ball, 5)
-    cfg = pipeline_config_from({"voxel_size": 0.05, "core.max_iterations": 5000})
+    cfg = pipeline_config_from({'voxel_size': 0.05, 'core.max_iterations': 5000})
     result = register_clouds(source, target, config=cfg)
     assert not result.valid and result.reason
 
 
 def test_non_overlapping_halves_are_invalid(data_dir):
     """Two disjoint halves (1 m gap) of a 3DMatch fragment: no true correspondence."""
-    cloud = read_cloud(data_dir / "indoor_3dmatch/7-scenes-redkitchen/cloud_bin_0.ply")
+    cloud = read_cloud(data_dir / 'indoor_3dmatch/7-scenes-redkitchen/cloud_bin_0.ply')
     x = np.median(cloud[:, 0])
-    cfg = pipeline_config_from({"voxel_size": 0.05, "core.max_iterations": 5000})
+    cfg = pipeline_config_from({'voxel_size': 0.05, 'core.max_iterations': 5000})
     result = register_clouds(cloud[cloud[:, 0] < x - 0.5], _moved(cloud[cloud[:, 0] > x + 0.5], 6),
                              config=cfg)
     assert not result.valid and result.reason
@@ -222,11 +227,11 @@ def test_observability_and_chance_level_gates():
 
 
 # --- bad arrays and options raise typed errors ----------------------------------------------
-@pytest.mark.parametrize("bad, error", [
+@pytest.mark.parametrize('bad, error', [
     (np.zeros((10, 2)), InvalidInputError),
     (np.zeros((0, 3)), EmptyCloudError),
     (np.full((50, 3), np.nan), EmptyCloudError),
-    ([["a", "b", "c"]], InvalidInputError),
+    ([['a', 'b', 'c']], InvalidInputError),
 ])
 def test_bad_arrays_raise(bad, error):
     good = np.random.default_rng(0).normal(size=(100, 3))
@@ -240,6 +245,6 @@ def test_bad_voxel_size_raises_config_error():
     good = np.random.default_rng(0).normal(size=(100, 3))
     with pytest.raises(InvalidConfigError):
         register_clouds(good, good, voxel_size=-1.0)
-    cfg = dataclasses.replace(PipelineConfig(), voxel_size=float("nan"))
+    cfg = dataclasses.replace(PipelineConfig(), voxel_size=float('nan'))
     with pytest.raises(InvalidConfigError):
         register_clouds(good, good, config=cfg)

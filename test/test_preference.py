@@ -1,6 +1,5 @@
-import numpy as np
-
 from cgags_ros.registration.preference import PreferenceLists
+import numpy as np
 
 
 def test_lists_keep_the_b_smallest_residuals():
@@ -23,7 +22,7 @@ def test_lists_fill_free_slots_then_rank():
         pref.update(all_res[seen:seen + size])
         seen += size
         k = min(seen, 20)
-        expected = np.sort(np.argsort(all_res[:seen], axis=0, kind="stable")[:k].T, axis=1)
+        expected = np.sort(np.argsort(all_res[:seen], axis=0, kind='stable')[:k].T, axis=1)
         got = np.sort(pref.ids, axis=1)[:, 20 - k:]  # unfilled slots hold -1
         assert np.array_equal(got, expected)
         assert np.isinf(pref.residuals).sum() == 50 * (20 - k)

@@ -1,4 +1,5 @@
-"""cgags_ros.ros.node: the node over real DDS, with the real pipeline on the bags' clouds.
+"""
+cgags_ros.ros.node: the node over real DDS, with the real pipeline on the bags' clouds.
 
 In-process: the node and a test "io" node share one executor on a thread. Out-of-process:
 ``python -m cgags_ros.register_node --ros-args ...``, stopped with SIGTERM. Only the
@@ -10,21 +11,30 @@ from __future__ import annotations
 
 import os
 
-os.environ["ROS_DOMAIN_ID"] = "47"  # before rclpy.init; distinct from other test modules
-os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ['ROS_DOMAIN_ID'] = '47'  # before rclpy.init; distinct from other test modules
+os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
+from pathlib import Path  # noqa: E402
 import signal  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import threading  # noqa: E402
 import time  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-rclpy = pytest.importorskip("rclpy")
+rclpy = pytest.importorskip('rclpy')
 
+from cgags_ros.config import PipelineConfig  # noqa: E402
+from cgags_ros.datasets.synthetic import terrain_patch  # noqa: E402
+from cgags_ros.errors import InvalidConfigError  # noqa: E402
+from cgags_ros.geometry import rotation_error_deg, translation_error  # noqa: E402
+from cgags_ros.io.bag import read_messages  # noqa: E402
+from cgags_ros.io.pointcloud2 import pose_to_transform  # noqa: E402
+from cgags_ros.registration import RegistrationResult  # noqa: E402
+from cgags_ros.ros.conversions import to_rclpy_pointcloud2, xyz_to_pointcloud2  # noqa: E402
+from cgags_ros.ros.node import RegisterNode  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped  # noqa: E402
 from rcl_interfaces.srv import SetParameters  # noqa: E402
@@ -34,36 +44,27 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 
-from cgags_ros.config import PipelineConfig  # noqa: E402
-from cgags_ros.io.bag import read_messages  # noqa: E402
-from cgags_ros.datasets.synthetic import terrain_patch  # noqa: E402
-from cgags_ros.errors import InvalidConfigError  # noqa: E402
-from cgags_ros.geometry import rotation_error_deg, translation_error  # noqa: E402
-from cgags_ros.registration import RegistrationResult  # noqa: E402
-from cgags_ros.io.pointcloud2 import pose_to_transform  # noqa: E402
-from cgags_ros.ros.conversions import (to_rclpy_pointcloud2,  # noqa: E402
-                                       xyz_to_pointcloud2)
-from cgags_ros.ros.node import RegisterNode  # noqa: E402
-
 REPO = Path(__file__).resolve().parents[1]
-LIMITS = {"bunny": (5.0, 0.01), "redkitchen": (15.0, 0.3), "lidar": (5.0, 0.6),
-          "faulty": (5.0, 0.01)}
-VOXEL = {"bunny": 0.003, "redkitchen": 0.05, "lidar": 0.4, "faulty": 0.003}
+LIMITS = {'bunny': (5.0, 0.01), 'redkitchen': (15.0, 0.3), 'lidar': (5.0, 0.6),
+          'faulty': (5.0, 0.01)}
+VOXEL = {'bunny': 0.003, 'redkitchen': 0.05, 'lidar': 0.4, 'faulty': 0.003}
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def wait_for(predicate, timeout, what, detail=None):
-    """Poll until ``predicate()`` is truthy; fail (with ``detail()``, e.g. the node's
-    counters and last rejection reason) after ``timeout`` seconds instead of hanging."""
+    """
+    Poll until ``predicate()`` is truthy; fail (with ``detail()``, e.g. the node's
+    counters and last rejection reason) after ``timeout`` seconds instead of hanging.
+    """
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         value = predicate()
         if value:
             return value
         time.sleep(0.02)
-    pytest.fail(f"timed out after {timeout} s waiting for {what}"
-                + (f"; node state: {detail()}" if detail else ""))
+    pytest.fail(f'timed out after {timeout} s waiting for {what}'
+                + (f'; node state: {detail()}' if detail else ''))
 
 
 class Bag:
@@ -73,7 +74,7 @@ class Bag:
         self.records = []  # (topic, stamp_ns, rclpy msg)
         self.gt = {}
         for rec in read_messages(path):
-            if rec.topic == "/ground_truth":
+            if rec.topic == '/ground_truth':
                 self.gt[rec.stamp_ns] = pose_to_transform(rec.msg)
             else:
                 self.records.append((rec.topic, rec.stamp_ns, to_rclpy_pointcloud2(rec.msg)))
@@ -87,7 +88,7 @@ _BAGS: dict[str, Bag] = {}
 
 def bag(data_dir, name) -> Bag:
     if name not in _BAGS:
-        _BAGS[name] = Bag(data_dir / "bags" / name)
+        _BAGS[name] = Bag(data_dir / 'bags' / name)
     return _BAGS[name]
 
 
@@ -96,27 +97,27 @@ def check_pose(pose: PoseStamped, b: Bag, name: str, stamp: int, target_frame: s
     T = pose_to_transform(pose)
     re, te = rotation_error_deg(T, b.gt[stamp]), translation_error(T, b.gt[stamp])
     max_re, max_te = LIMITS[name]
-    assert re < max_re and te < max_te, f"{name}: RE {re:.2f} deg, TE {te:.4f} m"
+    assert re < max_re and te < max_te, f'{name}: RE {re:.2f} deg, TE {te:.4f} m'
 
 
 class IO:
     """The test's side of the wire: publishes clouds, records poses and diagnostics."""
 
-    def __init__(self, namespace_node="/register_node"):
-        self.node = rclpy.create_node("test_io")
-        self.source_pub = self.node.create_publisher(PointCloud2, "source_cloud", 10)
-        self.target_pub = self.node.create_publisher(PointCloud2, "target_cloud", LATCHED)
+    def __init__(self, namespace_node='/register_node'):
+        self.node = rclpy.create_node('test_io')
+        self.source_pub = self.node.create_publisher(PointCloud2, 'source_cloud', 10)
+        self.target_pub = self.node.create_publisher(PointCloud2, 'target_cloud', LATCHED)
         self.poses: list[PoseStamped] = []
         self.cov: list[PoseWithCovarianceStamped] = []
         self.aligned: list[PointCloud2] = []
         self.diag: dict[str, dict[str, str]] = {}
-        self.node.create_subscription(PoseStamped, f"{namespace_node}/pose", self.poses.append, 10)
+        self.node.create_subscription(PoseStamped, f'{namespace_node}/pose', self.poses.append, 10)
         self.node.create_subscription(PoseWithCovarianceStamped,
-                                      f"{namespace_node}/pose_with_covariance",
+                                      f'{namespace_node}/pose_with_covariance',
                                       self.cov.append, 10)
-        self.node.create_subscription(PointCloud2, f"{namespace_node}/aligned_cloud",
+        self.node.create_subscription(PointCloud2, f'{namespace_node}/aligned_cloud',
                                       self.aligned.append, 10)
-        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
+        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)
 
     def _on_diag(self, msg):
         for status in msg.status:
@@ -129,7 +130,7 @@ class IO:
         return None
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope='module')
 def ros():
     """rclpy context + an executor thread spinning the io node and any node added."""
     rclpy.init()
@@ -165,7 +166,7 @@ def fake_register(source, target, *, config):
     T = np.eye(4)
     T[0, 3] = config.voxel_size
     return RegistrationResult(transform=T, valid=config.voxel_size <= 1.0,
-                              reason="" if config.voxel_size <= 1.0 else "fake: too coarse",
+                              reason='' if config.voxel_size <= 1.0 else 'fake: too coarse',
                               inliers=np.arange(12), num_correspondences=20,
                               inlier_threshold=0.05)
 
@@ -176,80 +177,81 @@ def test_plumbing_parameters_outputs_and_rejections(ros):
                       publish_aligned_cloud=True)
     try:
         # parameters are generated from the dataclasses, with ranges and read-only flags
-        names = {"voxel_size", "core.p1", "frontend.fpfh_radius_factor", "pairing_mode"}
+        names = {'voxel_size', 'core.p1', 'frontend.fpfh_radius_factor', 'pairing_mode'}
         assert names <= set(node._parameters)
-        d = node.describe_parameter("voxel_size")
-        assert d.floating_point_range[0].from_value > 0 and "metres" in d.description
-        assert node.describe_parameter("pairing_mode").read_only
-        assert "synchronized" in node.describe_parameter("pairing_mode").additional_constraints
-        assert node.describe_parameter("core.max_iterations").integer_range
+        d = node.describe_parameter('voxel_size')
+        assert d.floating_point_range[0].from_value > 0 and 'metres' in d.description
+        assert node.describe_parameter('pairing_mode').read_only
+        assert 'synchronized' in node.describe_parameter('pairing_mode').additional_constraints
+        assert node.describe_parameter('core.max_iterations').integer_range
 
         rng = np.random.default_rng(1)
         pts = rng.random((500, 3))
-        io.target_pub.publish(xyz_to_pointcloud2(pts, Header(frame_id="map")))
-        wait_for(lambda: node.statistics().get("received_target"), 5, "target")
-        bad = xyz_to_pointcloud2(pts, Header(frame_id="lidar"))
+        io.target_pub.publish(xyz_to_pointcloud2(pts, Header(frame_id='map')))
+        wait_for(lambda: node.statistics().get('received_target'), 5, 'target')
+        bad = xyz_to_pointcloud2(pts, Header(frame_id='lidar'))
         bad.row_step += 4  # data length no longer matches
         io.source_pub.publish(bad)
-        io.source_pub.publish(xyz_to_pointcloud2(np.zeros((0, 3)), Header(frame_id="lidar")))
-        good = xyz_to_pointcloud2(pts, Header(frame_id="lidar"))
+        io.source_pub.publish(xyz_to_pointcloud2(np.zeros((0, 3)), Header(frame_id='lidar')))
+        good = xyz_to_pointcloud2(pts, Header(frame_id='lidar'))
         good.header.stamp.sec = 7
         io.source_pub.publish(good)
-        pose = wait_for(lambda: io.pose_at(7 * 10**9), 5, "pose of the good source")
-        assert pose.header.frame_id == "map" and pose.pose.position.x == pytest.approx(0.05)
-        wait_for(lambda: io.aligned and io.cov, 5, "aligned cloud and covariance")
-        assert io.aligned[-1].header.frame_id == "map" and io.aligned[-1].width == 500
+        pose = wait_for(lambda: io.pose_at(7 * 10**9), 5, 'pose of the good source')
+        assert pose.header.frame_id == 'map' and pose.pose.position.x == pytest.approx(0.05)
+        wait_for(lambda: io.aligned and io.cov, 5, 'aligned cloud and covariance')
+        assert io.aligned[-1].header.frame_id == 'map' and io.aligned[-1].width == 500
         cov = np.array(io.cov[-1].pose.covariance).reshape(6, 6)
         assert np.allclose(cov, cov.T) and (np.diag(cov) > 0).all()
         stats = node.statistics()
-        assert stats["rejected.source_malformed"] == 1 and stats["rejected.source_empty"] == 1
+        assert stats['rejected.source_malformed'] == 1 and stats['rejected.source_empty'] == 1
 
         # live changes: invalid ones are refused with a reason; valid ones apply next pair
-        for name, value in [("core.compatibility", "bogus"), ("voxel_size", -1.0),
-                            ("pairing_mode", "synchronized")]:
+        for name, value in [('core.compatibility', 'bogus'), ('voxel_size', -1.0),
+                            ('pairing_mode', 'synchronized')]:
             result = node.set_parameters([Parameter(name, value=value)])[0]
             assert not result.successful and result.reason
-        assert node.set_parameters([Parameter("voxel_size", value=2.0)])[0].successful
+        assert node.set_parameters([Parameter('voxel_size', value=2.0)])[0].successful
         good.header.stamp.sec = 8
         io.source_pub.publish(good)  # fake marks voxel_size > 1 invalid: not published
-        wait_for(lambda: node.statistics().get("rejected.invalid_result"), 5, "invalid result")
+        wait_for(lambda: node.statistics().get('rejected.invalid_result'), 5, 'invalid result')
         assert io.pose_at(8 * 10**9) is None
-        node.set_parameters([Parameter("publish_invalid", value=True)])
+        node.set_parameters([Parameter('publish_invalid', value=True)])
         good.header.stamp.sec = 9
         io.source_pub.publish(good)
-        wait_for(lambda: io.pose_at(9 * 10**9), 5, "invalid pose with publish_invalid")
+        wait_for(lambda: io.pose_at(9 * 10**9), 5, 'invalid pose with publish_invalid')
         diag = wait_for(lambda: io.diag.get(node.get_fully_qualified_name(), {})
-                        .get("published_invalid"), 5, "diagnostics")
-        assert diag == "1"
+                        .get('published_invalid'), 5, 'diagnostics')
+        assert diag == '1'
     finally:
         stop_node(executor, node)
 
 
 def test_invalid_startup_parameter_raises(ros):
     executor, _ = ros
-    with pytest.raises(InvalidConfigError, match="pairing_mode"):
+    with pytest.raises(InvalidConfigError, match='pairing_mode'):
         RegisterNode(register_fn=fake_register,
-                     parameter_overrides=[Parameter("pairing_mode", value="nearest")])
+                     parameter_overrides=[Parameter('pairing_mode', value='nearest')])
 
 
 def test_callbacks_after_context_shutdown_do_not_raise():
-    """SIGTERM shuts the context down while the executor may still dispatch the
+    """
+    SIGTERM shuts the context down while the executor may still dispatch the
     diagnostics timer or the worker may still publish a pose; that must end quietly, not
-    as an RCLError that makes rclpy.spin() raise and the node exit 1 (seen once in CI)."""
-    from rclpy.context import Context
-
+    as an RCLError that makes rclpy.spin() raise and the node exit 1 (seen once in CI).
+    """
     from cgags_ros.pipeline.pairing import Pair, Stamped
     from cgags_ros.ros.node import _Cloud
+    from rclpy.context import Context
 
     ctx = Context()
     rclpy.init(context=ctx)
     node = RegisterNode(register_fn=fake_register, context=ctx)
     xyz = np.random.default_rng(0).normal(size=(30, 3))
-    cloud = Stamped(1, "map", _Cloud(xyz, Header(frame_id="map"), 0))
+    cloud = Stamped(1, 'map', _Cloud(xyz, Header(frame_id='map'), 0))
     result = fake_register(xyz, xyz, config=node._pipeline_cfg)  # noqa: SLF001
     ctx.try_shutdown()
     try:
-        with pytest.raises(RuntimeError, match="context is invalid"):  # what would escape
+        with pytest.raises(RuntimeError, match='context is invalid'):  # what would escape
             node._diag_pub.publish(node._diag_pub.msg_type())  # noqa: SLF001
         node._publish_diagnostics()  # noqa: SLF001 - the timer's callback
         node._publish(Pair(cloud, cloud), result.transform, result,  # noqa: SLF001
@@ -259,9 +261,11 @@ def test_callbacks_after_context_shutdown_do_not_raise():
 
 
 def test_isolated_registration_sends_an_unchanged_target_once(monkeypatch):
-    """The registration process keeps the last target: the same array object is not sent
+    """
+    The registration process keeps the last target: the same array object is not sent
     again, a new one is, and after a restart (fresh process) it is sent again. Results equal
-    the pipeline run in this process."""
+    the pipeline run in this process.
+    """
     from cgags_ros.pipeline import register_clouds
     from cgags_ros.ros.worker import IsolatedRegistration
 
@@ -280,7 +284,7 @@ def test_isolated_registration_sends_an_unchanged_target_once(monkeypatch):
             sent.append(tgt is not None)
             return real(fn, src, tgt, **kw)
 
-        monkeypatch.setattr(iso._pool, "submit", spy)
+        monkeypatch.setattr(iso._pool, 'submit', spy)
 
     iso = IsolatedRegistration(60.0)
     try:
@@ -306,110 +310,112 @@ def test_isolated_registration_sends_an_unchanged_target_once(monkeypatch):
 
 
 def test_latched_target_then_live_voxel_changes_across_bags(ros, data_dir):
-    """bunny with a map latched before the node starts, then redkitchen and lidar after
-    changing voxel_size live on the same node."""
+    """
+    bunny with a map latched before the node starts, then redkitchen and lidar after
+    changing voxel_size live on the same node.
+    """
     executor, io = ros
-    bunny = bag(data_dir, "bunny")
-    stamp0, target0 = bunny.clouds("/target_cloud")[0]
+    bunny = bag(data_dir, 'bunny')
+    stamp0, target0 = bunny.clouds('/target_cloud')[0]
     io.target_pub.publish(target0)  # latched before the node exists
-    node = start_node(executor, voxel_size=VOXEL["bunny"], target_durability="transient_local",
+    node = start_node(executor, voxel_size=VOXEL['bunny'], target_durability='transient_local',
                       diagnostics_period=0.2)
     try:
-        wait_for(lambda: node.statistics().get("received_target") == 1, 10, "latched target")
-        for name in ("bunny", "redkitchen", "lidar"):
+        wait_for(lambda: node.statistics().get('received_target') == 1, 10, 'latched target')
+        for name in ('bunny', 'redkitchen', 'lidar'):
             b = bag(data_dir, name)
-            if name != "bunny":
-                result = node.set_parameters([Parameter("voxel_size", value=VOXEL[name])])[0]
+            if name != 'bunny':
+                result = node.set_parameters([Parameter('voxel_size', value=VOXEL[name])])[0]
                 assert result.successful
-                before = node.statistics()["received_target"]
-                io.target_pub.publish(b.clouds("/target_cloud")[0][1])
-                wait_for(lambda: node.statistics()["received_target"] > before, 10, "target")
-            stamp, source = b.clouds("/source_cloud")[0]
+                before = node.statistics()['received_target']
+                io.target_pub.publish(b.clouds('/target_cloud')[0][1])
+                wait_for(lambda: node.statistics()['received_target'] > before, 10, 'target')
+            stamp, source = b.clouds('/source_cloud')[0]
             io.poses.clear()
             io.source_pub.publish(source)
-            pose = wait_for(lambda: io.pose_at(stamp), 30, f"{name} pose", node.statistics)
-            target_frame = b.clouds("/target_cloud")[0][1].header.frame_id
+            pose = wait_for(lambda: io.pose_at(stamp), 30, f'{name} pose', node.statistics)
+            target_frame = b.clouds('/target_cloud')[0][1].header.frame_id
             check_pose(pose, b, name, stamp, target_frame)
-            assert node.statistics()["last_voxel_size"] == VOXEL[name]
+            assert node.statistics()['last_voxel_size'] == VOXEL[name]
         key = node.get_fully_qualified_name()
-        diag = wait_for(lambda: io.diag.get(key, {}).get("published") == "3" and io.diag[key],
-                        5, "diagnostics with 3 published")
-        assert diag["voxel_size"] == str(VOXEL["lidar"]) and int(diag["last_inliers"]) > 6
+        diag = wait_for(lambda: io.diag.get(key, {}).get('published') == '3' and io.diag[key],
+                        5, 'diagnostics with 3 published')
+        assert diag['voxel_size'] == str(VOXEL['lidar']) and int(diag['last_inliers']) > 6
     finally:
         stop_node(executor, node)
 
 
 def test_faulty_bag_rejections_counted_and_good_pair_published(ros, data_dir):
     executor, io = ros
-    b = bag(data_dir, "faulty")
+    b = bag(data_dir, 'faulty')
     # One faulty cloud (2000 collinear points) stalls the registration core: the node's
     # watchdog must kill it so that the good pair after it is still published.
-    node = start_node(executor, voxel_size=VOXEL["faulty"], diagnostics_period=0.2,
+    node = start_node(executor, voxel_size=VOXEL['faulty'], diagnostics_period=0.2,
                       queue_depth=10, registration_timeout=20.0)
     try:
         time.sleep(0.5)  # discovery of the new node's subscriptions
         io.poses.clear()
         for topic, _, msg in b.records:
-            (io.target_pub if topic == "/target_cloud" else io.source_pub).publish(msg)
+            (io.target_pub if topic == '/target_cloud' else io.source_pub).publish(msg)
             time.sleep(0.05)
         good_stamp = max(b.gt)
-        pose = wait_for(lambda: io.pose_at(good_stamp), 60, "pose of the good source",
+        pose = wait_for(lambda: io.pose_at(good_stamp), 60, 'pose of the good source',
                         node.statistics)
-        check_pose(pose, b, "faulty", good_stamp, "turntable")
+        check_pose(pose, b, 'faulty', good_stamp, 'turntable')
         key = node.get_fully_qualified_name()
-        diag = wait_for(lambda: io.diag.get(key, {}).get("rejected.source_malformed") == "2"
-                        and io.diag[key], 5, "diagnostics with rejections")
-        assert diag["rejected.source_empty"] == "2"  # no points / all NaN
-        assert int(diag["received_source"]) == 8 and int(diag["rejected"]) >= 5
+        diag = wait_for(lambda: io.diag.get(key, {}).get('rejected.source_malformed') == '2'
+                        and io.diag[key], 5, 'diagnostics with rejections')
+        assert diag['rejected.source_empty'] == '2'  # no points / all NaN
+        assert int(diag['received_source']) == 8 and int(diag['rejected']) >= 5
     finally:
         stop_node(executor, node)
 
 
 def test_separate_process_synchronized_lidar_then_sigterm(ros, data_dir, tmp_path):
     executor, io = ros
-    b = bag(data_dir, "lidar")
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    log = open(tmp_path / "node.log", "w+")  # a file, not a pipe: a full pipe would block
+    b = bag(data_dir, 'lidar')
+    env = dict(os.environ, PYTHONUNBUFFERED='1')
+    log = open(tmp_path / 'node.log', 'w+')  # a file, not a pipe: a full pipe would block
     proc = subprocess.Popen(
-        [sys.executable, "-m", "cgags_ros.register_node", "--ros-args",
-         "--params-file", str(REPO / "config" / "register_node.yaml"),
-         "-p", "pairing_mode:=synchronized", "-p", "sync_slop:=0.02",
-         "-p", f"voxel_size:={VOXEL['lidar']}", "-p", "queue_depth:=10",
-         "-p", "max_waiting_sources:=10", "-p", "diagnostics_period:=0.2",
+        [sys.executable, '-m', 'cgags_ros.register_node', '--ros-args',
+         '--params-file', str(REPO / 'config' / 'register_node.yaml'),
+         '-p', 'pairing_mode:=synchronized', '-p', 'sync_slop:=0.02',
+         '-p', f"voxel_size:={VOXEL['lidar']}", '-p', 'queue_depth:=10',
+         '-p', 'max_waiting_sources:=10', '-p', 'diagnostics_period:=0.2',
          # Reliable here so the test is deterministic: best-effort 1 MB clouds across
          # processes on a loaded machine lose samples (sensor_data is used in-process).
-         "-p", "source_qos:=reliable"],
+         '-p', 'source_qos:=reliable'],
         cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, text=True)
     try:
         wait_for(lambda: io.source_pub.get_subscription_count() and
                  io.target_pub.get_subscription_count() and
-                 io.node.count_publishers("/register_node/pose"), 30, "node discovery")
+                 io.node.count_publishers('/register_node/pose'), 30, 'node discovery')
         # The publisher can see the match before the subscriber does; a sample sent in
         # between is lost even when reliable, so wait until the node reports itself.
-        wait_for(lambda: "/register_node" in io.diag, 30, "the node's first diagnostics")
+        wait_for(lambda: '/register_node' in io.diag, 30, "the node's first diagnostics")
         # a live parameter change over the parameter service: invalid refused, valid taken
-        client = io.node.create_client(SetParameters, "/register_node/set_parameters")
+        client = io.node.create_client(SetParameters, '/register_node/set_parameters')
         assert client.wait_for_service(timeout_sec=10)
-        for value, ok in [("bogus", False), ("binary", True)]:
+        for value, ok in [('bogus', False), ('binary', True)]:
             req = SetParameters.Request(parameters=[
-                Parameter("core.compatibility", value=value).to_parameter_msg()])
+                Parameter('core.compatibility', value=value).to_parameter_msg()])
             future = client.call_async(req)
-            wait_for(future.done, 10, "set_parameters reply")
+            wait_for(future.done, 10, 'set_parameters reply')
             assert future.result().results[0].successful is ok
         io.poses.clear()
         for topic, _, msg in b.records:
-            (io.target_pub if topic == "/target_cloud" else io.source_pub).publish(msg)
+            (io.target_pub if topic == '/target_cloud' else io.source_pub).publish(msg)
             time.sleep(0.1)
-        sources = [stamp for stamp, _ in b.clouds("/source_cloud")]
+        sources = [stamp for stamp, _ in b.clouds('/source_cloud')]
         # the first source (0.1 s) has no target within 20 ms; the five others pair exactly
-        wait_for(lambda: all(io.pose_at(s) for s in sources[1:]), 60, "five lidar poses",
-                 lambda: io.diag.get("/register_node"))
+        wait_for(lambda: all(io.pose_at(s) for s in sources[1:]), 60, 'five lidar poses',
+                 lambda: io.diag.get('/register_node'))
         for stamp in sources[1:]:
-            check_pose(io.pose_at(stamp), b, "lidar", stamp, "map")
+            check_pose(io.pose_at(stamp), b, 'lidar', stamp, 'map')
         assert io.pose_at(sources[0]) is None
-        diag = wait_for(lambda: io.diag.get("/register_node", {})
-                        .get("pairing.dropped.source_no_target_within_slop"), 10, "diagnostics")
-        assert diag == "1"
+        diag = wait_for(lambda: io.diag.get('/register_node', {})
+                        .get('pairing.dropped.source_no_target_within_slop'), 10, 'diagnostics')
+        assert diag == '1'
     finally:
         proc.send_signal(signal.SIGTERM)
         try:
@@ -421,4 +427,4 @@ def test_separate_process_synchronized_lidar_then_sigterm(ros, data_dir, tmp_pat
         out = log.read()
         log.close()
     assert proc.returncode == 0, out
-    assert "Traceback" not in out, out
+    assert 'Traceback' not in out, out

@@ -1,16 +1,20 @@
+from cgags_ros.registration.compatibility import CompatibilityGraph, length_consistency
+from cgags_ros.registration.sampling import (
+    sample_common_vertex,
+    sample_edges,
+    sample_guided,
+    soft_edge_weights,
+    tournament,
+    weighted_choice_rows,
+)
 import numpy as np
 import pytest
-
-from cgags_ros.registration.compatibility import CompatibilityGraph
-from cgags_ros.registration.compatibility import length_consistency
-from cgags_ros.registration.sampling import (sample_common_vertex, sample_edges, sample_guided,
-                                             soft_edge_weights, tournament, weighted_choice_rows)
 
 
 def _graph(dense: np.ndarray) -> CompatibilityGraph:
     dense = dense | dense.T
     np.fill_diagonal(dense, False)
-    return CompatibilityGraph(np.packbits(dense, axis=1, bitorder="little"), len(dense))
+    return CompatibilityGraph(np.packbits(dense, axis=1, bitorder='little'), len(dense))
 
 
 def _random_graph(n=60, p=0.2, seed=0):
@@ -18,7 +22,7 @@ def _random_graph(n=60, p=0.2, seed=0):
     return _graph(np.triu(rng.random((n, n)) < p, 1))
 
 
-@pytest.mark.parametrize("lists", [False, True])
+@pytest.mark.parametrize('lists', [False, True])
 def test_edges_are_edges_and_uniform_over_E(lists):
     g = _random_graph()
     dense = g.rows(np.arange(g.n))
@@ -36,7 +40,7 @@ def test_edges_are_edges_and_uniform_over_E(lists):
     assert counts.min() > 0
 
 
-@pytest.mark.parametrize("path", ["rejection", "lists", "lists_with_weights"])
+@pytest.mark.parametrize('path', ['rejection', 'lists', 'lists_with_weights'])
 def test_soft_edges_are_drawn_in_proportion_to_their_weight(path):
     g = _random_graph(n=40, p=0.3, seed=7)
     dense = g.rows(np.arange(g.n))
@@ -44,8 +48,8 @@ def test_soft_edges_are_drawn_in_proportion_to_their_weight(path):
     src, dst = rng.random((g.n, 3)), rng.random((g.n, 3))
     a, b = np.nonzero(np.triu(dense))
     delta = 1.01 * length_consistency(src, dst, a, b).max()  # every edge keeps some weight
-    csr = None if path == "rejection" else g.neighbour_lists()
-    weights = soft_edge_weights(csr, src, dst, delta) if path == "lists_with_weights" else None
+    csr = None if path == 'rejection' else g.neighbour_lists()
+    weights = soft_edge_weights(csr, src, dst, delta) if path == 'lists_with_weights' else None
     draws = 300000
     i, j = sample_edges(g, rng, draws, src=src, dst=dst, delta=delta, soft=True, csr=csr,
                         csr_weights=weights)
@@ -80,7 +84,7 @@ def test_common_vertex_reports_empty_neighbourhoods():
     assert not ok[0]
 
 
-@pytest.mark.parametrize("lists", [False, True])
+@pytest.mark.parametrize('lists', [False, True])
 def test_common_vertex_is_in_both_neighbourhoods(lists):
     g = _random_graph(n=200, p=0.3, seed=3)
     dense = g.rows(np.arange(g.n))

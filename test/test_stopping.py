@@ -1,10 +1,13 @@
 import math
 
-import numpy as np
-
 from cgags_ros.registration.compatibility import CompatibilityGraph
-from cgags_ros.registration.stopping import (compatible_sample_inlier_probability, poisson_isf,
-                                             empirical_inlier_probability, ransac_bound)
+from cgags_ros.registration.stopping import (
+    compatible_sample_inlier_probability,
+    empirical_inlier_probability,
+    poisson_isf,
+    ransac_bound,
+)
+import numpy as np
 
 
 def test_ransac_bound():
@@ -22,7 +25,7 @@ def test_inlier_probability_of_compatible_sampling_on_a_known_graph():
     dense[:6, :6] = True
     dense[6:, 6:] = True
     np.fill_diagonal(dense, False)
-    g = CompatibilityGraph(np.packbits(dense, axis=1, bitorder="little"), n)
+    g = CompatibilityGraph(np.packbits(dense, axis=1, bitorder='little'), n)
     w = compatible_sample_inlier_probability(g, np.arange(6), np.random.default_rng(0))
     assert math.isclose(w, 15 / 30 * 1.0)
     assert compatible_sample_inlier_probability(g, np.arange(2), np.random.default_rng(0)) == 0.0

@@ -1,4 +1,5 @@
-"""Configuration: one typed dataclass per layer, all declared with :func:`fields.option`.
+"""
+Configuration: one typed dataclass per layer, all declared with :func:`fields.option`.
 
 - :mod:`.fields`: the field helper (descriptions, ranges, validation, flat keys).
 - :mod:`.core`, :mod:`.frontend`, :mod:`.pipeline`, :mod:`.node`: the per-layer dataclasses.
@@ -7,8 +8,8 @@
 
 from .core import CoreConfig
 from .frontend import FrontEndConfig, RefineConfig
-from .node import NodeConfig, configs_from_parameters
-from .pipeline import PipelineConfig, load_yaml, pipeline_config_from
+from .node import configs_from_parameters, NodeConfig
+from .pipeline import load_yaml, pipeline_config_from, PipelineConfig
 
 __all__ = ['CoreConfig', 'FrontEndConfig', 'NodeConfig', 'PipelineConfig', 'RefineConfig',
            'configs_from_parameters', 'load_yaml', 'pipeline_config_from']

@@ -1,4 +1,5 @@
-"""Configuration of the registration core (``cgags_ros.registration``).
+"""
+Configuration of the registration core (``cgags_ros.registration``).
 
 "paper" marks the paper's parameter table (METHOD.md). "INFERRED" marks a reconstruction
 choice the paper does not state; those are advanced switches, and docs/ablation.md gives
@@ -9,8 +10,8 @@ from __future__ import annotations
 
 import dataclasses
 
-from ..errors import InvalidConfigError
 from .fields import option
+from ..errors import InvalidConfigError
 
 
 @dataclasses.dataclass

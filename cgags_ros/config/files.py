@@ -1,4 +1,5 @@
-"""Files generated from the config dataclasses: the node's default parameter file and docs.
+"""
+Files generated from the config dataclasses: the node's default parameter file and docs.
 
 ``config/register_node.yaml`` holds every user parameter with its default and description
 (advanced research switches are left out: they keep their defaults unless set);

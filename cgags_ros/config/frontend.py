@@ -1,4 +1,5 @@
-"""Configuration of the point-cloud front end and of the refinement after the core.
+"""
+Configuration of the point-cloud front end and of the refinement after the core.
 
 Every radius is a multiple of the voxel size, so one number tunes them all. No Open3D
 import here: the node reads these to declare its parameters.

@@ -1,4 +1,5 @@
-"""Synthetic putative correspondences built from a real scanned model (numpy/scipy only).
+"""
+Synthetic putative correspondences built from a real scanned model (numpy/scipy only).
 
 Used by the core's tests, the core benchmark and the ablation. Convention everywhere:
 ``dst = R @ src + t`` for inliers (source -> target), units of the model (the Stanford
@@ -15,15 +16,15 @@ from scipy.spatial.transform import Rotation
 
 from ..io.clouds import read_cloud
 
-DEFAULT_SHARED_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
-BUNNY_MODEL = "objects/teaser/bun_zipper_res3.ply"
+DEFAULT_SHARED_DATA = Path(__file__).resolve().parents[2].parent / 'shared' / 'data'
+BUNNY_MODEL = 'objects/teaser/bun_zipper_res3.ply'
 
 
 def shared_data_dir() -> Path:
     """``../shared/data`` relative to the repository root (override with CGAGS_DATA_DIR)."""
     import os
 
-    return Path(os.environ.get("CGAGS_DATA_DIR", DEFAULT_SHARED_DATA))
+    return Path(os.environ.get('CGAGS_DATA_DIR', DEFAULT_SHARED_DATA))
 
 
 def unit_scale(points: np.ndarray) -> np.ndarray:
@@ -38,8 +39,10 @@ def load_bunny(data_dir: str | Path | None = None) -> np.ndarray:
 
 
 def terrain_patch(rng: np.random.Generator, n: int = 4000) -> np.ndarray:
-    """(n, 3) points of a 4 m x 4 m terrain patch with three Gaussian bumps (metres): enough
-    relief for FPFH and a fully constrained rigid fit (``pipeline.warm_up``, node tests)."""
+    """
+    (n, 3) points of a 4 m x 4 m terrain patch with three Gaussian bumps (metres): enough
+    relief for FPFH and a fully constrained rigid fit (``pipeline.warm_up``, node tests).
+    """
     xy = rng.uniform(-2.0, 2.0, (n, 2))
     bumps = ((0.7, 0.5, 0.8, 0.3), (-0.9, -0.2, 0.5, 0.1), (0.1, -1.1, -0.6, 0.5))
     z = sum(h * np.exp(-((xy[:, 0] - x) ** 2 + (xy[:, 1] - y) ** 2) / w)
@@ -66,9 +69,10 @@ class SyntheticProblem:
 
 def make_correspondences(model: np.ndarray, n: int, outlier_ratio: float, *,
                          noise_sigma: float = 0.01, rng: np.random.Generator | int = 0,
-                         outliers: str = "uniform",
+                         outliers: str = 'uniform',
                          transform: np.ndarray | None = None) -> SyntheticProblem:
-    """N putative correspondences of which round((1 - outlier_ratio) N) are inliers.
+    """
+    N putative correspondences of which round((1 - outlier_ratio) N) are inliers.
 
     Inliers: ``src`` a model point, ``dst = R src + t + N(0, sigma^2 I)``.
     Outliers (``outliers``): ``'uniform'`` puts ``dst`` uniformly in the bounding box of the
@@ -89,10 +93,10 @@ def make_correspondences(model: np.ndarray, n: int, outlier_ratio: float, *,
     src[:n_in] = model[idx_in]
     dst[:n_in] = moved[idx_in] + rng.normal(0.0, noise_sigma, (n_in, 3))
     src[n_in:] = model[rng.integers(0, len(model), n_out)]
-    if outliers == "uniform":
+    if outliers == 'uniform':
         lo, hi = moved.min(axis=0), moved.max(axis=0)
         dst[n_in:] = rng.uniform(lo, hi, (n_out, 3))
-    elif outliers == "surface":
+    elif outliers == 'surface':
         dst[n_in:] = moved[rng.integers(0, len(model), n_out)] + rng.normal(0.0, noise_sigma, (n_out, 3))
     else:
         raise ValueError(f"outliers must be 'uniform' or 'surface', got {outliers!r}")

@@ -1,4 +1,5 @@
-"""Features of one cloud: clean, voxel-downsample, normals, FPFH.
+"""
+Features of one cloud: clean, voxel-downsample, normals, FPFH.
 
 Open3D is used in the front end only, never in the registration core. All lengths are
 metres; every radius is a multiple of the voxel size ``v``. Arrays are numpy at every
@@ -21,7 +22,8 @@ from ..timing import timed
 
 @dataclasses.dataclass
 class CloudFeatures:
-    """One downsampled cloud and what the front end computed on it (cloud's own frame).
+    """
+    One downsampled cloud and what the front end computed on it (cloud's own frame).
 
     Attributes:
         points: (M, 3) voxel centroids, metres.
@@ -38,8 +40,9 @@ class CloudFeatures:
     tree: cKDTree
 
 
-def finite_points(points: np.ndarray, name: str = "cloud") -> np.ndarray:
-    """(N, 3) float64 ``points`` without non-finite rows (``points`` itself, not a copy, when
+def finite_points(points: np.ndarray, name: str = 'cloud') -> np.ndarray:
+    """
+    (N, 3) float64 ``points`` without non-finite rows (``points`` itself, not a copy, when
     it is already a clean float64 array: the front end never writes to it).
 
     Raises InvalidInputError for a wrong shape or non-numeric data and EmptyCloudError
@@ -48,50 +51,53 @@ def finite_points(points: np.ndarray, name: str = "cloud") -> np.ndarray:
     try:
         pts = np.asarray(points, dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise InvalidInputError(f"{name}: points are not numeric ({exc})") from exc
+        raise InvalidInputError(f'{name}: points are not numeric ({exc})') from exc
     if pts.ndim != 2 or pts.shape[1] != 3:
-        raise InvalidInputError(f"{name}: expected an (N, 3) array of x, y, z in metres, "
-                                f"got shape {pts.shape}")
+        raise InvalidInputError(f'{name}: expected an (N, 3) array of x, y, z in metres, '
+                                f'got shape {pts.shape}')
     finite = np.isfinite(pts).all(axis=1)
     if not finite.all():
         pts = pts[finite]
     if len(pts) == 0:
-        raise EmptyCloudError(f"{name}: no finite points (got {len(points)} rows, all "
-                              "empty or NaN/inf); check the sensor driver or the file")
+        raise EmptyCloudError(f'{name}: no finite points (got {len(points)} rows, all '
+                              'empty or NaN/inf); check the sensor driver or the file')
     return pts
 
 
 def downsample(points: np.ndarray, voxel_size: float, min_points: int,
-               name: str = "cloud") -> np.ndarray:
+               name: str = 'cloud') -> np.ndarray:
     """Voxel-grid centroids (metres). EmptyCloudError when fewer than ``min_points`` remain."""
     down = np.asarray(_o3d_cloud(points).voxel_down_sample(voxel_size).points)
     if len(down) < min_points:
         raise EmptyCloudError(
-            f"{name}: only {len(down)} point(s) left after {voxel_size:g} m voxel downsampling "
-            f"(need frontend.min_points = {min_points}); lower the voxel size or check that "
-            "the cloud is not a single repeated point")
+            f'{name}: only {len(down)} point(s) left after {voxel_size:g} m voxel downsampling '
+            f'(need frontend.min_points = {min_points}); lower the voxel size or check that '
+            'the cloud is not a single repeated point')
     return down
 
 
 def estimate_normals(points: np.ndarray, voxel_size: float,
                      config: FrontEndConfig) -> np.ndarray:
-    """Unit PCA normals from neighbours within ``normal_radius_factor * v``, oriented per
-    ``normal_orientation`` (PCA's own sign changes with the frame, and FPFH with it)."""
+    """
+    Unit PCA normals from neighbours within ``normal_radius_factor * v``, oriented per
+    ``normal_orientation`` (PCA's own sign changes with the frame, and FPFH with it).
+    """
     cloud = _tensor_cloud(points)
     cloud.estimate_normals(max_nn=config.normal_max_nn,
                            radius=config.normal_radius_factor * voxel_size)
     normals = cloud.point.normals.numpy().copy()
-    if config.normal_orientation == "none":
+    if config.normal_orientation == 'none':
         return normals
-    viewpoint = points.mean(axis=0) if config.normal_orientation == "centroid" else np.zeros(3)
-    flip = np.einsum("ij,ij->i", normals, viewpoint - points) < 0
+    viewpoint = points.mean(axis=0) if config.normal_orientation == 'centroid' else np.zeros(3)
+    flip = np.einsum('ij,ij->i', normals, viewpoint - points) < 0
     normals[flip] *= -1.0
     return normals
 
 
 def compute_fpfh(points: np.ndarray, normals: np.ndarray, voxel_size: float,
                  config: FrontEndConfig) -> np.ndarray:
-    """(M, 33) FPFH descriptors with radius ``fpfh_radius_factor * v``.
+    """
+    (M, 33) FPFH descriptors with radius ``fpfh_radius_factor * v``.
 
     Open3D's tensor implementation (hybrid search, float64): the same values as the legacy
     ``pipelines.registration.compute_fpfh_feature`` in about half its time; tensor normals
@@ -104,15 +110,15 @@ def compute_fpfh(points: np.ndarray, normals: np.ndarray, voxel_size: float,
 
 
 def extract_features(points: np.ndarray, voxel_size: float, config: FrontEndConfig,
-                     name: str = "cloud",
+                     name: str = 'cloud',
                      timings: dict[str, float] | None = None) -> CloudFeatures:
     """finite points -> downsample -> normals -> FPFH; adds stage seconds to ``timings``."""
     timings = {} if timings is None else timings
-    with timed(timings, "downsample"):
+    with timed(timings, 'downsample'):
         down = downsample(finite_points(points, name), voxel_size, config.min_points, name)
-    with timed(timings, "normals"):
+    with timed(timings, 'normals'):
         normals = estimate_normals(down, voxel_size, config)
-    with timed(timings, "fpfh"):
+    with timed(timings, 'fpfh'):
         descriptors = compute_fpfh(down, normals, voxel_size, config)
     tree = cKDTree(down)
     return CloudFeatures(down, normals, descriptors, point_resolution(down, tree), tree)

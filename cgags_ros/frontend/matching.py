@@ -1,4 +1,5 @@
-"""Putative correspondences: nearest neighbours in FPFH descriptor space.
+"""
+Putative correspondences: nearest neighbours in FPFH descriptor space.
 
 Exact (Euclidean, float64 decisions) brute force by blocks of one matrix product, on
 ``workers`` threads; see :func:`nearest_rows` for why not a k-d tree.
@@ -6,9 +7,9 @@ Exact (Euclidean, float64 decisions) brute force by blocks of one matrix product
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 import dataclasses
 import threading
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -17,7 +18,8 @@ from ..config.frontend import FrontEndConfig
 
 @dataclasses.dataclass
 class Correspondences:
-    """Putative matches: ``source[i]`` (source frame) <-> ``target[i]`` (target frame).
+    """
+    Putative matches: ``source[i]`` (source frame) <-> ``target[i]`` (target frame).
 
     ``source_index``/``target_index`` index the downsampled clouds; ``distance`` is the FPFH
     descriptor distance, ascending (best first).
@@ -33,7 +35,8 @@ class Correspondences:
 
 def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfig,
                    workers: int = 1) -> Correspondences:
-    """Nearest neighbours in descriptor space, source -> target, best first.
+    """
+    Nearest neighbours in descriptor space, source -> target, best first.
 
     Keeps only mutual nearest neighbours (``mutual_filter``), then Lowe's ratio test
     (``ratio_test`` < 1), then at most ``max_correspondences`` by descriptor distance.
@@ -77,7 +80,8 @@ _pool_lock = threading.Lock()
 
 def nearest_rows(query: np.ndarray, reference: np.ndarray, k: int = 1,
                  workers: int = 1) -> np.ndarray:
-    """(len(query), k) indices of the ``k`` rows of ``reference`` nearest to each query row
+    """
+    (len(query), k) indices of the ``k`` rows of ``reference`` nearest to each query row
     (Euclidean), nearest first; k is 1 or 2 (``reference`` needs at least k rows).
 
     k = 1 is computed in float32 with an exact float64 decision wherever float32 rounding
@@ -100,7 +104,7 @@ def nearest_rows(query: np.ndarray, reference: np.ndarray, k: int = 1,
         global _pool, _pool_size
         with _pool_lock:
             if _pool is None or _pool_size < workers:
-                _pool = ThreadPoolExecutor(workers, thread_name_prefix="cgags_match")
+                _pool = ThreadPoolExecutor(workers, thread_name_prefix='cgags_match')
                 _pool_size = workers
             pool = _pool
         bounds = np.linspace(0, len(query), workers + 1).astype(int)
@@ -121,7 +125,8 @@ _F32_TOL = 1e-5
 
 
 def _nearest_row32(query: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """``_nearest_rows(query, reference, 1)`` from float32 products, exact.
+    """
+    ``_nearest_rows(query, reference, 1)`` from float32 products, exact.
 
     The expansion in float32 (descriptors centred on the reference mean, so that the
     squared norms, hence the rounding, are smaller) halves the product and argmin time.
@@ -134,10 +139,10 @@ def _nearest_row32(query: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """
     centre = reference.mean(axis=0)
     q, ref = query - centre, reference - centre
-    norms = np.einsum("ij,ij->i", ref, ref)
+    norms = np.einsum('ij,ij->i', ref, ref)
     r = np.vstack([-2.0 * ref.T, norms]).astype(np.float32)
     q32 = np.hstack([q, np.ones((len(q), 1))]).astype(np.float32)
-    tol = 2.0 * _F32_TOL * (np.einsum("ij,ij->i", q, q) + 2.0 * norms.max())
+    tol = 2.0 * _F32_TOL * (np.einsum('ij,ij->i', q, q) + 2.0 * norms.max())
     out = np.empty(len(query), dtype=np.int64)
     bound = np.empty(len(query))
     step = max(1, _BLOCK_ELEMENTS_F32 // len(reference))
@@ -162,7 +167,7 @@ def _nearest_row32(query: np.ndarray, reference: np.ndarray) -> np.ndarray:
 
 def _nearest_rows(query: np.ndarray, reference: np.ndarray, k: int) -> np.ndarray:
     q = np.hstack([query, np.ones((len(query), 1))])
-    norms = np.einsum("ij,ij->i", reference, reference)
+    norms = np.einsum('ij,ij->i', reference, reference)
     r = np.vstack([-2.0 * reference.T, norms])
     out = np.empty((len(query), k), dtype=np.int64)
     step = max(1, _BLOCK_ELEMENTS // len(reference))
@@ -175,7 +180,7 @@ def _nearest_rows(query: np.ndarray, reference: np.ndarray, k: int) -> np.ndarra
             d[rows, first] = np.inf
             out[s:s + step, 1] = second = d.argmin(axis=1)
             d[rows, first] = best
-            qq = np.einsum("ij,ij->i", query[s:s + step], query[s:s + step])
+            qq = np.einsum('ij,ij->i', query[s:s + step], query[s:s + step])
             tol = 1e-9 * (qq + norms.max())
             unsure = np.flatnonzero(qq + d[rows, second] <= tol)
             if len(unsure):
@@ -187,8 +192,10 @@ def _nearest_rows(query: np.ndarray, reference: np.ndarray, k: int) -> np.ndarra
 
 def _exact_nearest(query: np.ndarray, reference: np.ndarray, candidates: np.ndarray,
                    k: int) -> np.ndarray:
-    """(len(query), k): the k nearest among the ``candidates`` mask (rows x reference; every
-    row holds at least k), exact distances, ties to the lower index."""
+    """
+    (len(query), k): the k nearest among the ``candidates`` mask (rows x reference; every
+    row holds at least k), exact distances, ties to the lower index.
+    """
     row, col = np.nonzero(candidates)
     dist = np.linalg.norm(query[row] - reference[col], axis=1)
     order = np.lexsort((col, dist, row))
@@ -202,7 +209,7 @@ def _informative(descriptors: np.ndarray) -> np.ndarray:
 
 
 def _best(src: np.ndarray, dst: np.ndarray, dist: np.ndarray, cap: int) -> Correspondences:
-    order = np.argsort(dist, kind="stable")
+    order = np.argsort(dist, kind='stable')
     if cap > 0:
         order = order[:cap]
     return Correspondences(src[order].astype(np.int64), dst[order].astype(np.int64),

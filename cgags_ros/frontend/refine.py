@@ -1,4 +1,5 @@
-"""Local refinement of a coarse source->target estimate, and alignment quality.
+"""
+Local refinement of a coarse source->target estimate, and alignment quality.
 
 Point-to-plane ICP (Open3D) or GICP (small_gicp) on the downsampled clouds. Transforms are
 4x4 source->target (``p_target = R p_source + t``), metres.
@@ -18,7 +19,8 @@ from ..geometry import apply_transform
 
 @dataclasses.dataclass
 class Alignment:
-    """How well ``transform`` puts the source onto the target.
+    """
+    How well ``transform`` puts the source onto the target.
 
     Attributes:
         transform: 4x4 source->target, metres.
@@ -45,7 +47,7 @@ def evaluate_alignment(source: np.ndarray, target: np.ndarray | cKDTree,
     moved = apply_transform(transform, source)
     dist, nn = tree.query(moved, k=1, distance_upper_bound=max_distance)
     close = np.isfinite(dist)
-    rmse = float(np.sqrt(np.mean(dist[close] ** 2))) if close.any() else float("nan")
+    rmse = float(np.sqrt(np.mean(dist[close] ** 2))) if close.any() else float('nan')
     fitness = float(close.mean()) if len(source) else 0.0
     return Alignment(np.asarray(transform, dtype=np.float64), fitness, rmse, max_distance,
                      np.flatnonzero(close), nn[close])
@@ -55,7 +57,8 @@ def refine_transform(source: np.ndarray, target: np.ndarray, initial: np.ndarray
                      voxel_size: float, config: RefineConfig,
                      target_normals: np.ndarray | None = None,
                      coarse_distance: float | None = None) -> np.ndarray:
-    """Refined 4x4 source->target transform starting from ``initial``.
+    """
+    Refined 4x4 source->target transform starting from ``initial``.
 
     The final stage matches points within ``max_correspondence_distance_factor * v``. When
     ``coarse_distance`` (metres, typically the core's inlier threshold tau: the coarse
@@ -70,10 +73,10 @@ def refine_transform(source: np.ndarray, target: np.ndarray, initial: np.ndarray
     T = np.asarray(initial, dtype=np.float64)
     for distance in stages:
         tolerance = config.coarse_stage_tolerance if distance > final else 1e-6
-        if config.method == "point_to_plane":
+        if config.method == 'point_to_plane':
             T = _point_to_plane(source, target, target_normals, T, distance, voxel_size, config,
                                 tolerance)
-        elif config.method == "gicp":
+        elif config.method == 'gicp':
             T = _gicp(source, target, T, distance, voxel_size, config)
     return T
 
@@ -102,7 +105,7 @@ def _gicp(source: np.ndarray, target: np.ndarray, initial: np.ndarray, distance:
 
     # The clouds are already voxelized at v; small_gicp re-voxelizes at the same size, which
     # leaves them (almost) unchanged but is what its one-call API needs for covariances.
-    result = small_gicp.align(target, source, initial, registration_type="GICP",
+    result = small_gicp.align(target, source, initial, registration_type='GICP',
                               downsampling_resolution=voxel_size,
                               max_correspondence_distance=distance,
                               max_iterations=config.max_iterations, num_threads=1)

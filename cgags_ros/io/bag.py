@@ -1,4 +1,5 @@
-"""rosbag2 (MCAP) input and output without ROS, through ``rosbags``.
+"""
+rosbag2 (MCAP) input and output without ROS, through ``rosbags``.
 
 A thin adapter: it turns a bag into small records in log-time order and stops there; the
 conversion to numpy is :mod:`cgags_ros.io.pointcloud2` (duck-typed, so it accepts the
@@ -18,12 +19,13 @@ import numpy as np
 from ..errors import BagError, BagTopicError, InvalidInputError
 from ..geometry import matrix_to_quaternion
 
-POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
 
 
 @dataclasses.dataclass(frozen=True)
 class BagRecord:
-    """One message of a bag.
+    """
+    One message of a bag.
 
     Attributes:
         topic: topic name as recorded (e.g. ``/source_cloud``).
@@ -42,7 +44,7 @@ class BagRecord:
     stamp_ns: int | None
     frame_id: str
     msg: Any
-    error: str = ""
+    error: str = ''
 
     @property
     def ok(self) -> bool:
@@ -59,18 +61,19 @@ class TopicInfo:
 def _check_path(path: str | Path) -> Path:
     path = Path(path)
     if not path.exists():
-        raise BagError(f"bag {path} does not exist")
+        raise BagError(f'bag {path} does not exist')
     if path.is_dir():
-        if not (path / "metadata.yaml").exists():
-            raise BagError(f"{path} is a directory without metadata.yaml, so not a rosbag2 bag; "
-                           "pass the bag directory or its .mcap file")
-    elif path.suffix not in (".mcap", ".db3"):
-        raise BagError(f"{path} is not a rosbag2 bag (expected a bag directory or a .mcap file)")
+        if not (path / 'metadata.yaml').exists():
+            raise BagError(f'{path} is a directory without metadata.yaml, so not a rosbag2 bag; '
+                           'pass the bag directory or its .mcap file')
+    elif path.suffix not in ('.mcap', '.db3'):
+        raise BagError(f'{path} is not a rosbag2 bag (expected a bag directory or a .mcap file)')
     return path
 
 
 class BagReader:
-    """Reads a rosbag2 bag; use as a context manager.
+    """
+    Reads a rosbag2 bag; use as a context manager.
 
     ``messages()`` yields :class:`BagRecord` in log-time order. A message that fails to
     deserialize is yielded as a record with ``msg=None`` and ``error`` set, and counted in
@@ -79,7 +82,7 @@ class BagReader:
 
     def __init__(self, path: str | Path):
         from rosbags.highlevel import AnyReader
-        from rosbags.typesys import Stores, get_typestore
+        from rosbags.typesys import get_typestore, Stores
 
         self.path = _check_path(path)
         self.num_errors = 0
@@ -88,9 +91,9 @@ class BagReader:
             self._reader = AnyReader([self.path],
                                      default_typestore=get_typestore(Stores.ROS2_JAZZY))
         except Exception as exc:
-            raise BagError(f"cannot read bag {self.path}: {exc}") from exc
+            raise BagError(f'cannot read bag {self.path}: {exc}') from exc
 
-    def __enter__(self) -> "BagReader":
+    def __enter__(self) -> 'BagReader':
         self.open()
         return self
 
@@ -101,7 +104,7 @@ class BagReader:
         try:
             self._reader.open()
         except Exception as exc:  # rosbags raises several unrelated types for bad files
-            raise BagError(f"cannot read bag {self.path}: {exc}") from exc
+            raise BagError(f'cannot read bag {self.path}: {exc}') from exc
 
     def close(self) -> None:
         if self._reader.stack is not None:
@@ -117,7 +120,8 @@ class BagReader:
         return out
 
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[BagRecord]:
-        """Records of the given topics (all topics when None), in log-time order.
+        """
+        Records of the given topics (all topics when None), in log-time order.
 
         Topic names may be given with or without the leading '/'.
         Raises BagTopicError when a requested topic is not in the bag.
@@ -127,10 +131,10 @@ class BagReader:
         if topics is not None:
             wanted = set()
             for name in topics:
-                key = name if name in available else "/" + name.lstrip("/")
+                key = name if name in available else '/' + name.lstrip('/')
                 if key not in available:
                     raise BagTopicError(
-                        f"topic {name!r} is not in {self.path}; it has: "
+                        f'topic {name!r} is not in {self.path}; it has: '
                         f"{', '.join(f'{t} ({i.msgtype})' for t, i in sorted(available.items()))}")
                 wanted.add(key)
             connections = [c for c in connections if c.topic in wanted]
@@ -141,19 +145,19 @@ class BagReader:
             for conn, log_time, raw in self._reader.messages(connections=connections):
                 yield self._record(conn, int(log_time), raw)
         except Exception as exc:  # storage-level corruption: stop with a typed error
-            raise BagError(f"cannot read messages from {self.path}: {exc}") from exc
+            raise BagError(f'cannot read messages from {self.path}: {exc}') from exc
 
     def _record(self, conn: Any, log_time: int, raw: Any) -> BagRecord:
         try:
             msg = self._reader.deserialize(raw, conn.msgtype)
         except Exception as exc:  # noqa: BLE001 - a broken message becomes an error record
             self.num_errors += 1
-            return BagRecord(conn.topic, conn.msgtype, log_time, None, "", None,
-                             f"cannot deserialize {conn.msgtype} ({len(raw)} bytes): "
-                             f"{type(exc).__name__}: {exc}")
-        header = getattr(msg, "header", None)
+            return BagRecord(conn.topic, conn.msgtype, log_time, None, '', None,
+                             f'cannot deserialize {conn.msgtype} ({len(raw)} bytes): '
+                             f'{type(exc).__name__}: {exc}')
+        header = getattr(msg, 'header', None)
         stamp_ns = None
-        frame_id = ""
+        frame_id = ''
         if header is not None:
             stamp_ns = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
             frame_id = str(header.frame_id)
@@ -167,7 +171,8 @@ def list_topics(path: str | Path) -> dict[str, TopicInfo]:
 
 
 def read_messages(path: str | Path, topics: Iterable[str] | None = None) -> Iterator[BagRecord]:
-    """Records of a bag in log-time order (see :meth:`BagReader.messages`).
+    """
+    Records of a bag in log-time order (see :meth:`BagReader.messages`).
 
     Path and topic errors raise here, not at the first ``next()``; the bag is closed when
     the iterator is exhausted or garbage-collected.
@@ -190,8 +195,9 @@ def read_messages(path: str | Path, topics: Iterable[str] | None = None) -> Iter
 
 
 def write_poses_mcap(path: str | Path, records: Iterable[tuple[int, str, np.ndarray]], *,
-                     topic: str = "/pose") -> int:
-    """Write ``geometry_msgs/msg/PoseStamped`` messages to a new rosbag2 MCAP bag directory.
+                     topic: str = '/pose') -> int:
+    """
+    Write ``geometry_msgs/msg/PoseStamped`` messages to a new rosbag2 MCAP bag directory.
 
     Args:
         path: bag directory to create (must not exist; rosbags never overwrites).
@@ -205,25 +211,25 @@ def write_poses_mcap(path: str | Path, records: Iterable[tuple[int, str, np.ndar
     """
     from rosbags.rosbag2 import Writer
     from rosbags.rosbag2.enums import StoragePlugin
-    from rosbags.typesys import Stores, get_typestore
+    from rosbags.typesys import get_typestore, Stores
 
     path = Path(path)
     if path.exists():
-        raise BagError(f"{path} exists already; rosbags writes new bags only")
+        raise BagError(f'{path} exists already; rosbags writes new bags only')
     store = get_typestore(Stores.ROS2_JAZZY)
     PoseStamped = store.types[POSE_STAMPED]
-    Header = store.types["std_msgs/msg/Header"]
-    Time = store.types["builtin_interfaces/msg/Time"]
-    Pose = store.types["geometry_msgs/msg/Pose"]
-    Point = store.types["geometry_msgs/msg/Point"]
-    Quaternion = store.types["geometry_msgs/msg/Quaternion"]
+    Header = store.types['std_msgs/msg/Header']
+    Time = store.types['builtin_interfaces/msg/Time']
+    Pose = store.types['geometry_msgs/msg/Pose']
+    Point = store.types['geometry_msgs/msg/Point']
+    Quaternion = store.types['geometry_msgs/msg/Quaternion']
     count = 0
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         conn = writer.add_connection(topic, POSE_STAMPED, typestore=store)
         for stamp_ns, frame_id, T in records:
             T = np.asarray(T, dtype=np.float64)
             if T.shape != (4, 4) or not np.isfinite(T).all():
-                raise InvalidInputError(f"pose at {stamp_ns} ns is not a finite 4x4 transform")
+                raise InvalidInputError(f'pose at {stamp_ns} ns is not a finite 4x4 transform')
             sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
             qx, qy, qz, qw = (float(v) for v in matrix_to_quaternion(T[:3, :3]))
             msg = PoseStamped(

@@ -1,4 +1,5 @@
-"""PointCloud2 decoding and pose/stamp reading, duck-typed and ROS-free.
+"""
+PointCloud2 decoding and pose/stamp reading, duck-typed and ROS-free.
 
 Decoding reads only the attributes every PointCloud2 has (``height``, ``width``,
 ``fields[name, offset, datatype, count]``, ``is_bigendian``, ``point_step``, ``row_step``,
@@ -21,10 +22,10 @@ from ..geometry import make_transform, quaternion_to_matrix
 
 # sensor_msgs/PointField datatype constants -> (name, size in bytes)
 POINT_FIELD_TYPES = {
-    1: ("INT8", 1), 2: ("UINT8", 1), 3: ("INT16", 2), 4: ("UINT16", 2),
-    5: ("INT32", 4), 6: ("UINT32", 4), 7: ("FLOAT32", 4), 8: ("FLOAT64", 8),
+    1: ('INT8', 1), 2: ('UINT8', 1), 3: ('INT16', 2), 4: ('UINT16', 2),
+    5: ('INT32', 4), 6: ('UINT32', 4), 7: ('FLOAT32', 4), 8: ('FLOAT64', 8),
 }
-_XYZ_DTYPES = {7: "f4", 8: "f8"}
+_XYZ_DTYPES = {7: 'f4', 8: 'f8'}
 FLOAT32 = 7
 
 # Sanity limits: a cloud beyond these is a corrupt header, not a real sensor frame.
@@ -39,11 +40,11 @@ def _int_attr(msg: Any, name: str) -> int:
     try:
         value = getattr(msg, name)
     except AttributeError as exc:
-        raise MalformedCloudError(f"not a PointCloud2: no attribute {name!r}") from exc
+        raise MalformedCloudError(f'not a PointCloud2: no attribute {name!r}') from exc
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise MalformedCloudError(f"{name} must be an integer, got {value!r}")
+        raise MalformedCloudError(f'{name} must be an integer, got {value!r}')
     if value < 0:
-        raise MalformedCloudError(f"{name} = {value} is negative")
+        raise MalformedCloudError(f'{name} = {value} is negative')
     return int(value)
 
 
@@ -60,11 +61,12 @@ def data_bytes(data: Any) -> np.ndarray:
 
 
 def cloud_field_names(msg: Any) -> list[str]:
-    return [str(f.name) for f in getattr(msg, "fields", [])]
+    return [str(f.name) for f in getattr(msg, 'fields', [])]
 
 
 def pointcloud2_to_xyz(msg: Any, *, max_points: int = MAX_POINTS) -> np.ndarray:
-    """x, y, z of every finite point of a PointCloud2, as an (N, 3) float64 array (metres).
+    """
+    x, y, z of every finite point of a PointCloud2, as an (N, 3) float64 array (metres).
 
     Handles any field order, float32 or float64 coordinates, padding inside a point and at
     the end of each row (``row_step > width * point_step``), organized clouds
@@ -77,12 +79,12 @@ def pointcloud2_to_xyz(msg: Any, *, max_points: int = MAX_POINTS) -> np.ndarray:
             ``height * row_step``, or absurd sizes (more than ``max_points`` points).
         EmptyCloudError: no points, or no finite point.
     """
-    height = _int_attr(msg, "height")
-    width = _int_attr(msg, "width")
-    point_step = _int_attr(msg, "point_step")
-    row_step = _int_attr(msg, "row_step")
-    fields = {str(f.name): f for f in getattr(msg, "fields", [])}
-    missing = [axis for axis in "xyz" if axis not in fields]
+    height = _int_attr(msg, 'height')
+    width = _int_attr(msg, 'width')
+    point_step = _int_attr(msg, 'point_step')
+    row_step = _int_attr(msg, 'row_step')
+    fields = {str(f.name): f for f in getattr(msg, 'fields', [])}
+    missing = [axis for axis in 'xyz' if axis not in fields]
     if missing:
         raise MalformedCloudError(
             f"PointCloud2 has no {'/'.join(missing)} field (fields: "
@@ -90,60 +92,60 @@ def pointcloud2_to_xyz(msg: Any, *, max_points: int = MAX_POINTS) -> np.ndarray:
     n = height * width
     if n > max_points:
         raise MalformedCloudError(
-            f"PointCloud2 claims {height} x {width} = {n} points, above the limit {max_points}")
+            f'PointCloud2 claims {height} x {width} = {n} points, above the limit {max_points}')
     if point_step > MAX_POINT_STEP:
-        raise MalformedCloudError(f"point_step = {point_step} bytes is absurd (> {MAX_POINT_STEP})")
+        raise MalformedCloudError(f'point_step = {point_step} bytes is absurd (> {MAX_POINT_STEP})')
 
     dtype_fields = {}
-    for axis in "xyz":
+    for axis in 'xyz':
         f = fields[axis]
         datatype = int(f.datatype)
         if datatype not in _XYZ_DTYPES:
-            type_name = POINT_FIELD_TYPES.get(datatype, (f"unknown ({datatype})",))[0]
+            type_name = POINT_FIELD_TYPES.get(datatype, (f'unknown ({datatype})',))[0]
             raise MalformedCloudError(
-                f"field {axis!r} has datatype {type_name}; only FLOAT32 and FLOAT64 "
-                "coordinates are supported")
-        if int(getattr(f, "count", 1)) < 1:
-            raise MalformedCloudError(f"field {axis!r} has count {f.count}; expected >= 1")
+                f'field {axis!r} has datatype {type_name}; only FLOAT32 and FLOAT64 '
+                'coordinates are supported')
+        if int(getattr(f, 'count', 1)) < 1:
+            raise MalformedCloudError(f'field {axis!r} has count {f.count}; expected >= 1')
         size = 8 if datatype == 8 else 4
         offset = int(f.offset)
         if offset < 0 or offset + size > point_step:
             raise MalformedCloudError(
-                f"field {axis!r} (offset {offset}, {size} bytes) does not fit in "
-                f"point_step = {point_step}")
+                f'field {axis!r} (offset {offset}, {size} bytes) does not fit in '
+                f'point_step = {point_step}')
         dtype_fields[axis] = (_XYZ_DTYPES[datatype], offset)
 
     data = data_bytes(msg.data)
     if n == 0:
         raise EmptyCloudError(
-            f"PointCloud2 has no points (height {height}, width {width}, {data.size} data bytes)")
+            f'PointCloud2 has no points (height {height}, width {width}, {data.size} data bytes)')
     if row_step < width * point_step:
         raise MalformedCloudError(
-            f"row_step = {row_step} is smaller than width * point_step = {width} * "
-            f"{point_step} = {width * point_step}")
+            f'row_step = {row_step} is smaller than width * point_step = {width} * '
+            f'{point_step} = {width * point_step}')
     if data.size != height * row_step:
         raise MalformedCloudError(
-            f"data has {data.size} bytes but height * row_step = {height} * {row_step} = "
-            f"{height * row_step}; the message is truncated or its header is wrong")
+            f'data has {data.size} bytes but height * row_step = {height} * {row_step} = '
+            f'{height * row_step}; the message is truncated or its header is wrong')
 
-    order = ">" if bool(getattr(msg, "is_bigendian", False)) else "<"
-    dtype = np.dtype({"names": list(dtype_fields),
-                      "formats": [order + fmt for fmt, _ in dtype_fields.values()],
-                      "offsets": [off for _, off in dtype_fields.values()],
-                      "itemsize": point_step})
+    order = '>' if bool(getattr(msg, 'is_bigendian', False)) else '<'
+    dtype = np.dtype({'names': list(dtype_fields),
+                      'formats': [order + fmt for fmt, _ in dtype_fields.values()],
+                      'offsets': [off for _, off in dtype_fields.values()],
+                      'itemsize': point_step})
     if row_step == width * point_step:
         rows = data
     else:  # drop the padding at the end of every row
         rows = np.ascontiguousarray(data.reshape(height, row_step)[:, :width * point_step])
     structured = rows.view(dtype).reshape(-1)
     xyz = np.empty((n, 3), dtype=np.float64)
-    for i, axis in enumerate("xyz"):
+    for i, axis in enumerate('xyz'):
         xyz[:, i] = structured[axis]
     finite = np.isfinite(xyz).all(axis=1)
     if not finite.all():
         xyz = xyz[finite]
         if xyz.shape[0] == 0:
-            raise EmptyCloudError(f"PointCloud2 has {n} points but none is finite")
+            raise EmptyCloudError(f'PointCloud2 has {n} points but none is finite')
     return xyz
 
 
@@ -159,11 +161,13 @@ def stamp_to_ns(stamp: Any) -> int:
 
 
 def pose_to_transform(pose: Any) -> np.ndarray:
-    """geometry_msgs Pose, PoseStamped, PoseWithCovariance(Stamped) or Transform(Stamped)
-    (rclpy or rosbags) -> 4x4 float64 transform. Duck-typed."""
-    while hasattr(pose, "pose") or hasattr(pose, "transform"):  # unwrap *Stamped / WithCovariance
-        pose = pose.pose if hasattr(pose, "pose") else pose.transform
-    if hasattr(pose, "position"):
+    """
+    geometry_msgs Pose, PoseStamped, PoseWithCovariance(Stamped) or Transform(Stamped)
+    (rclpy or rosbags) -> 4x4 float64 transform. Duck-typed.
+    """
+    while hasattr(pose, 'pose') or hasattr(pose, 'transform'):  # unwrap *Stamped / WithCovariance
+        pose = pose.pose if hasattr(pose, 'pose') else pose.transform
+    if hasattr(pose, 'position'):
         p, q = pose.position, pose.orientation
     else:  # geometry_msgs/Transform
         p, q = pose.translation, pose.rotation

@@ -1,4 +1,5 @@
-"""Clouds in, result out: the one registration path of the node, the CLIs and benchmarks.
+"""
+Clouds in, result out: the one registration path of the node, the CLIs and benchmarks.
 
 :func:`register_clouds` (``register.py``) runs the front end, the core, refinement and the
 validity gates (``gates.py``); features of recent clouds are cached (``cache.py``);

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
+from collections import OrderedDict
 import dataclasses
 import hashlib
 import threading
-from collections import OrderedDict
 
 import numpy as np
 
@@ -18,13 +18,15 @@ _cache_lock = threading.Lock()
 
 
 def cached_features(points: np.ndarray, voxel_size: float, config: FrontEndConfig,
-                    name: str = "cloud",
+                    name: str = 'cloud',
                     timings: dict[str, float] | None = None) -> CloudFeatures:
-    """:func:`extract_features`, remembered for the last two clouds by exact content (and
+    """
+    :func:`extract_features`, remembered for the last two clouds by exact content (and
     voxel size and front-end settings): a latched map target, or a target shared by
     consecutive pairs, is featurised once (~half the front end at 10 Hz). The front end is
     deterministic, so a hit returns exactly what recomputing would; the arrays returned are
-    shared and must not be written to. Hashing costs far less than featurising."""
+    shared and must not be written to. Hashing costs far less than featurising.
+    """
     key = (hashlib.blake2b(np.ascontiguousarray(points), digest_size=16).digest(),
            points.shape, voxel_size, dataclasses.astuple(config))
     with _cache_lock:
@@ -32,7 +34,7 @@ def cached_features(points: np.ndarray, voxel_size: float, config: FrontEndConfi
         if hit is not None:
             _cache.move_to_end(key)
     if hit is not None:
-        for stage in ("downsample", "normals", "fpfh") if timings is not None else ():
+        for stage in ('downsample', 'normals', 'fpfh') if timings is not None else ():
             timings.setdefault(stage, 0.0)  # no time spent, but keep the keys
         return hit
     features = extract_features(points, voxel_size, config, name, timings)

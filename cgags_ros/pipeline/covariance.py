@@ -11,7 +11,8 @@ from ..geometry import apply_transform
 
 
 def pose_covariance(src: np.ndarray, dst: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """6x6 covariance of a rigid pose estimated from matched points, ROS order.
+    """
+    6x6 covariance of a rigid pose estimated from matched points, ROS order.
 
     Row-major, ordered (x, y, z, rotation about X, Y, Z) as geometry_msgs/
     PoseWithCovariance wants: a perturbation ``t' = t + dt`` (metres, target frame) and
@@ -52,14 +53,15 @@ def pose_covariance(src: np.ndarray, dst: np.ndarray, T: np.ndarray) -> np.ndarr
 def inlier_pairs(result: Any, source: np.ndarray, target: np.ndarray,
                  T: np.ndarray, max_distance: float, max_points: int = 2000
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """Matched (source, target) points behind the estimate, for :func:`pose_covariance`.
+    """
+    Matched (source, target) points behind the estimate, for :func:`pose_covariance`.
 
     The pipeline's inlier correspondences when the result carries them (at least 3);
     otherwise nearest neighbours of a subsample of the aligned source within
     ``max_distance`` metres.
     """
-    src = getattr(result, "inlier_source_points", None)
-    dst = getattr(result, "inlier_target_points", None)
+    src = getattr(result, 'inlier_source_points', None)
+    dst = getattr(result, 'inlier_target_points', None)
     if src is not None and dst is not None and len(src) >= 3:
         return np.asarray(src), np.asarray(dst)
     rng = np.random.default_rng(0)

@@ -1,4 +1,5 @@
-"""Validity gates: why a final estimate must not be trusted, with the values behind it.
+"""
+Validity gates: why a final estimate must not be trusted, with the values behind it.
 
 Each gate returns a reason ('' when it passes): a line-like cloud, chance-level inliers,
 degenerate overlap geometry (planes, lines, spheres), low fitness.
@@ -9,24 +10,26 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .result import PipelineResult
 from ..config.pipeline import PipelineConfig
 from ..frontend.features import CloudFeatures
 from ..frontend.matching import Correspondences
 from ..frontend.refine import Alignment, evaluate_alignment
 from ..geometry import apply_transform, spread
 from ..registration import poisson_isf
-from .result import PipelineResult
 
 
 def line_reason(points: np.ndarray, name: str, voxel_size: float) -> str:
-    """A cloud whose RMS spread across its main axis is below one voxel is a line: the
-    rotation about it can never be determined, so the core is not even asked."""
+    """
+    A cloud whose RMS spread across its main axis is below one voxel is a line: the
+    rotation about it can never be determined, so the core is not even asked.
+    """
     s = spread(points)
     if s[1] / np.sqrt(len(points)) >= voxel_size:
-        return ""
-    return (f"degenerate {name} cloud: it is (nearly) a line (spread across its axis "
-            f"{s[1] / np.sqrt(len(points)):.3g} m < voxel size {voxel_size:g} m); the rotation "
-            "about it is undetermined")
+        return ''
+    return (f'degenerate {name} cloud: it is (nearly) a line (spread across its axis '
+            f'{s[1] / np.sqrt(len(points)):.3g} m < voxel size {voxel_size:g} m); the rotation '
+            'about it is undetermined')
 
 
 def gate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences, result: PipelineResult,
@@ -47,7 +50,8 @@ def gate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences, result: Pi
 
 
 def chance_inliers(src: np.ndarray, dst: np.ndarray, transform: np.ndarray, tau: float) -> float:
-    """Expected inliers of ``transform`` if the correspondences were paired at random.
+    """
+    Expected inliers of ``transform`` if the correspondences were paired at random.
 
     Averages, over all (i, j), whether ``dst[j]`` lies within ``tau`` of ``T src[i]``: the
     exact expectation under a random permutation of the target rows. It is high where
@@ -59,7 +63,8 @@ def chance_inliers(src: np.ndarray, dst: np.ndarray, transform: np.ndarray, tau:
 
 
 def observability(source: np.ndarray, target_normals: np.ndarray, align: Alignment) -> float:
-    """Smallest / largest eigenvalue of the 6x6 point-to-plane information matrix.
+    """
+    Smallest / largest eigenvalue of the 6x6 point-to-plane information matrix.
 
     Rows are ``[(p - c) x n / L, n]`` over the overlapping points (p: moved source point,
     n: normal of its nearest target point, c, L: centroid and RMS radius of the overlap,
@@ -81,32 +86,34 @@ def observability(source: np.ndarray, target_normals: np.ndarray, align: Alignme
 
 
 def _significance_reason(result: PipelineResult, significance: float) -> str:
-    """Chance-level gate. If all N correspondences were outliers, the inliers of a fixed
+    """
+    Chance-level gate. If all N correspondences were outliers, the inliers of a fixed
     transform are ~Poisson(mu) (mu = chance_inliers), plus the 3 that define a hypothesis;
     the best of H hypotheses then exceeds the Poisson 1 - significance/H quantile with
-    probability ~significance (union bound)."""
+    probability ~significance (union bound).
+    """
     if significance <= 0:
-        return ""
+        return ''
     hypotheses = max(result.num_hypotheses, 1)
     bound = 3 + poisson_isf(significance / hypotheses, result.chance_inliers)
     if result.num_inliers > bound:
-        return ""
-    return (f"{result.num_inliers} inliers of {result.num_correspondences} correspondences "
-            f"is no better than chance (random pairing gives {result.chance_inliers:.2g} per "
-            f"estimate; the best of {hypotheses} hypotheses reaches {bound:.0f}): the clouds "
-            "probably do not overlap")
+        return ''
+    return (f'{result.num_inliers} inliers of {result.num_correspondences} correspondences '
+            f'is no better than chance (random pairing gives {result.chance_inliers:.2g} per '
+            f'estimate; the best of {hypotheses} hypotheses reaches {bound:.0f}): the clouds '
+            'probably do not overlap')
 
 
 def _observability_reason(result: PipelineResult, min_observability: float) -> str:
     if min_observability <= 0 or result.observability >= min_observability:
-        return ""
-    return (f"degenerate geometry: the overlap constrains some motion only weakly "
-            f"(observability {result.observability:.2g} < {min_observability:g}; e.g. plane, "
-            "line, sphere or cylinder); the pose along it is arbitrary")
+        return ''
+    return (f'degenerate geometry: the overlap constrains some motion only weakly '
+            f'(observability {result.observability:.2g} < {min_observability:g}; e.g. plane, '
+            'line, sphere or cylinder); the pose along it is arbitrary')
 
 
 def _fitness_reason(result: PipelineResult, min_fitness: float, distance: float) -> str:
     if min_fitness <= 0 or result.fitness >= min_fitness:
-        return ""
-    return (f"fitness {result.fitness:.3f} < refine.min_fitness {min_fitness:g}: too few "
-            f"source points lie within {distance:.3g} m of the target after alignment")
+        return ''
+    return (f'fitness {result.fitness:.3f} < refine.min_fitness {min_fitness:g}: too few '
+            f'source points lie within {distance:.3g} m of the target after alignment')

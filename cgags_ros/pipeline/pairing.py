@@ -1,4 +1,5 @@
-"""Pairing of source and target clouds: the one implementation the node and the offline
+"""
+Pairing of source and target clouds: the one implementation the node and the offline
 replay tool share (ROS-free, thread-safe).
 
 Feed it ``(stamp_ns, frame_id, payload)`` for every source and target as they arrive; take
@@ -45,7 +46,7 @@ import dataclasses
 import threading
 from typing import Any
 
-MODES = ("latest_target", "synchronized")
+MODES = ('latest_target', 'synchronized')
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,7 +71,8 @@ class Pair:
 
 
 class Pairer:
-    """Pairs sources with targets (see the module docstring for the exact semantics).
+    """
+    Pairs sources with targets (see the module docstring for the exact semantics).
 
     Args:
         mode: 'latest_target' or 'synchronized'.
@@ -81,8 +83,9 @@ class Pairer:
     """
 
     @classmethod
-    def from_config(cls, cfg, queue_depth: int | None = None) -> "Pairer":
-        """Return the Pairer a :class:`~cgags_ros.config.node.NodeConfig` describes.
+    def from_config(cls, cfg, queue_depth: int | None = None) -> 'Pairer':
+        """
+        Return the Pairer a :class:`~cgags_ros.config.node.NodeConfig` describes.
 
         The node and the replay tool both build theirs here; ``queue_depth`` overrides
         the config's.
@@ -92,13 +95,13 @@ class Pairer:
                    max_waiting_sources=cfg.max_waiting_sources,
                    max_waiting_targets=cfg.max_waiting_targets)
 
-    def __init__(self, mode: str = "latest_target", *, slop: float = 0.05,
+    def __init__(self, mode: str = 'latest_target', *, slop: float = 0.05,
                  queue_depth: int = 2, max_waiting_sources: int = 1,
                  max_waiting_targets: int = 10):
         if mode not in MODES:
             raise ValueError(f"pairing mode {mode!r} is not one of {', '.join(MODES)}")
         if slop < 0 or queue_depth < 1 or max_waiting_sources < 1 or max_waiting_targets < 1:
-            raise ValueError("slop must be >= 0 and queue/buffer sizes >= 1")
+            raise ValueError('slop must be >= 0 and queue/buffer sizes >= 1')
         self.mode = mode
         self.set_slop(slop)
         self.queue_depth = int(queue_depth)
@@ -127,24 +130,24 @@ class Pairer:
         with self._cond:
             self.received_sources += 1
             item = self._stamped(stamp_ns, frame_id, payload)
-            if self.mode == "latest_target":
+            if self.mode == 'latest_target':
                 if self._targets:
                     self._emit(item, self._targets[-1])
                 else:
                     self._push(self._sources, item, self.max_waiting_sources,
-                               "source_superseded_before_target")
+                               'source_superseded_before_target')
             else:
                 self._newest_source_ns = _newest(self._newest_source_ns, item.stamp_ns)
-                self._push(self._sources, item, self.max_waiting_sources, "source_buffer_full")
+                self._push(self._sources, item, self.max_waiting_sources, 'source_buffer_full')
                 self._match()
 
     def add_target(self, stamp_ns: int, frame_id: str, payload: Any) -> None:
         with self._cond:
             self.received_targets += 1
             item = self._stamped(stamp_ns, frame_id, payload)
-            if self.mode == "latest_target":
+            if self.mode == 'latest_target':
                 if self._targets and not self._target_used:
-                    self.drops["target_replaced_unused"] += 1
+                    self.drops['target_replaced_unused'] += 1
                 self._targets = [item]
                 self._target_used = False
                 waiting, self._sources = self._sources, []
@@ -152,7 +155,7 @@ class Pairer:
                     self._emit(source, item)
             else:
                 self._newest_target_ns = _newest(self._newest_target_ns, item.stamp_ns)
-                self._push(self._targets, item, self.max_waiting_targets, "target_buffer_full")
+                self._push(self._targets, item, self.max_waiting_targets, 'target_buffer_full')
                 self._match()
 
     # ------------------------------------------------------------------ output
@@ -175,15 +178,17 @@ class Pairer:
             self._cond.notify_all()
 
     def reset(self) -> None:
-        """Forget waiting sources, unmatched targets (synchronized mode) and ready pairs,
+        """
+        Forget waiting sources, unmatched targets (synchronized mode) and ready pairs,
         e.g. after a clock jump. The latest target of latest_target mode is kept: a latched
-        map is not sent again. Discarded items are counted as ``reset``."""
+        map is not sent again. Discarded items are counted as ``reset``.
+        """
         with self._cond:
-            self.drops["reset"] += len(self._ready) + len(self._sources)
+            self.drops['reset'] += len(self._ready) + len(self._sources)
             self._ready.clear()
             self._sources = []
-            if self.mode == "synchronized":
-                self.drops["reset"] += len(self._targets)
+            if self.mode == 'synchronized':
+                self.drops['reset'] += len(self._targets)
                 self._targets = []
             self._newest_source_ns = self._newest_target_ns = None
 
@@ -206,12 +211,12 @@ class Pairer:
     def counters(self) -> dict[str, int]:
         """Snapshot: received, paired, pending, and ``dropped.<reason>`` for every drop."""
         with self._cond:
-            out = {"received_sources": self.received_sources,
-                   "received_targets": self.received_targets,
-                   "paired": self.paired, "pending": len(self._ready),
-                   "waiting_sources": len(self._sources),
-                   "dropped": sum(self.drops.values())}
-            out.update({f"dropped.{k}": v for k, v in sorted(self.drops.items())})
+            out = {'received_sources': self.received_sources,
+                   'received_targets': self.received_targets,
+                   'paired': self.paired, 'pending': len(self._ready),
+                   'waiting_sources': len(self._sources),
+                   'dropped': sum(self.drops.values())}
+            out.update({f'dropped.{k}': v for k, v in sorted(self.drops.items())})
             return out
 
     # ------------------------------------------------------------------ internals
@@ -232,7 +237,7 @@ class Pairer:
         self._ready.append(Pair(source, target))
         while len(self._ready) > self.queue_depth:
             self._ready.popleft()
-            self.drops["queue_full"] += 1
+            self.drops['queue_full'] += 1
         self._cond.notify()
 
     def _match(self) -> None:
@@ -244,7 +249,7 @@ class Pairer:
             candidates = [t for t in self._targets if abs(t.stamp_ns - source.stamp_ns) <= slop]
             if not candidates:
                 if newest_target is not None and newest_target > source.stamp_ns + slop:
-                    self.drops["source_no_target_within_slop"] += 1
+                    self.drops['source_no_target_within_slop'] += 1
                 else:
                     kept.append(source)
                 continue
@@ -264,7 +269,7 @@ class Pairer:
             stale = newest_source > target.stamp_ns + slop
             usable = any(abs(s.stamp_ns - target.stamp_ns) <= slop for s in kept)
             if stale and not usable:
-                self.drops["target_no_source_within_slop"] += 1
+                self.drops['target_no_source_within_slop'] += 1
             else:
                 remaining.append(target)
         self._targets = remaining

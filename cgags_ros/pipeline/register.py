@@ -1,4 +1,5 @@
-"""Clouds in, result out: the one registration path of the node, the CLIs and benchmarks.
+"""
+Clouds in, result out: the one registration path of the node, the CLIs and benchmarks.
 
 ``register_clouds(source, target)`` runs: input checks -> voxel downsampling -> normals ->
 FPFH -> mutual-nearest-neighbour correspondences -> the CGAGS core (global, no initial
@@ -13,6 +14,10 @@ import time
 
 import numpy as np
 
+from .cache import cached_features
+from .gates import gate, line_reason
+from .result import PipelineResult
+from .runtime import blas_guard
 from ..config import fields
 from ..config.pipeline import PipelineConfig
 from ..datasets.synthetic import terrain_patch
@@ -20,17 +25,14 @@ from ..errors import DegenerateCorrespondencesError, EmptyCloudError
 from ..frontend.features import CloudFeatures, finite_points
 from ..frontend.matching import Correspondences, match_features
 from ..frontend.refine import refine_transform
-from ..registration import RegistrationResult, register_correspondences
+from ..registration import register_correspondences, RegistrationResult
 from ..timing import timed
-from .cache import cached_features
-from .gates import gate, line_reason
-from .result import PipelineResult
-from .runtime import blas_guard
 
 
 def register_clouds(source: np.ndarray, target: np.ndarray, *, voxel_size: float | None = None,
                     config: PipelineConfig | None = None) -> PipelineResult:
-    """Register ``source`` onto ``target`` with no initial guess.
+    """
+    Register ``source`` onto ``target`` with no initial guess.
 
     Args:
         source, target: (N, 3) points in metres, each in its own frame; non-finite rows
@@ -58,22 +60,22 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
     start = time.perf_counter()
     cfg = _effective_config(config, voxel_size)
     v = cfg.voxel_size
-    src, dst = finite_points(source, "source"), finite_points(target, "target")
+    src, dst = finite_points(source, 'source'), finite_points(target, 'target')
     result = PipelineResult(voxel_size=v)
     try:
-        fs = cached_features(src, v, cfg.frontend, "source", result.timings)
-        ft = cached_features(dst, v, cfg.frontend, "target", result.timings)
+        fs = cached_features(src, v, cfg.frontend, 'source', result.timings)
+        ft = cached_features(dst, v, cfg.frontend, 'target', result.timings)
     except EmptyCloudError as exc:  # data too small for this voxel size: not a crash
         return result.finish(start, str(exc))
     result.num_source_points, result.num_target_points = len(fs.points), len(ft.points)
     result.resolution = 0.5 * (fs.resolution + ft.resolution)
-    reason = line_reason(fs.points, "source", v) or line_reason(ft.points, "target", v)
+    reason = line_reason(fs.points, 'source', v) or line_reason(ft.points, 'target', v)
     if reason:
         return result.finish(start, reason)
-    with timed(result.timings, "matching"):
+    with timed(result.timings, 'matching'):
         corr = match_features(fs.descriptors, ft.descriptors, cfg.frontend, workers)
     result.stats.update(num_source_points=len(fs.points), num_target_points=len(ft.points))
-    with timed(result.timings, "registration"):
+    with timed(result.timings, 'registration'):
         core = _global_estimate(fs, ft, corr, result.resolution, cfg)
     if isinstance(core, str):
         result.num_correspondences = len(corr)
@@ -83,18 +85,19 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
     result.inlier_target_points = ft.points[corr.target_index[core.inliers]]
     if core.reason:  # nothing worth refining or gating further
         return result.finish(start, core.reason)
-    with timed(result.timings, "refinement"):
+    with timed(result.timings, 'refinement'):
         result.transform = refine_transform(
             fs.points, ft.points, core.transform, voxel_size=v, config=cfg.refine,
             target_normals=ft.normals, coarse_distance=core.inlier_threshold)
-        result.refined = cfg.refine.method != "none"
-    with timed(result.timings, "validation"):
+        result.refined = cfg.refine.method != 'none'
+    with timed(result.timings, 'validation'):
         reason = gate(fs, ft, corr, result, cfg)
     return result.finish(start, reason)
 
 
 def warm_up(config: PipelineConfig | None = None) -> PipelineResult:
-    """Register a small synthetic pair once, so that one-time start-up costs (Open3D's lazy
+    """
+    Register a small synthetic pair once, so that one-time start-up costs (Open3D's lazy
     initialisation, first calls into SciPy/BLAS and the refinement library) are not paid by
     the first real pair. For a node to call at start-up with its own ``config`` (every
     stage, its refinement method included, then runs once). ~0.1-0.2 s; safe to call again.
@@ -109,7 +112,7 @@ def warm_up(config: PipelineConfig | None = None) -> PipelineResult:
 
 
 def _effective_config(config: PipelineConfig | None, voxel_size: float | None) -> PipelineConfig:
-    overrides = {} if voxel_size is None else {"voxel_size": voxel_size}
+    overrides = {} if voxel_size is None else {'voxel_size': voxel_size}
     return fields.update_from_flat(config or PipelineConfig(), overrides)  # validated copy
 
 
@@ -117,24 +120,22 @@ def _global_estimate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences
                      resolution: float, cfg: PipelineConfig) -> RegistrationResult | str:
     """The core's estimate, or the reason there is none (too few/degenerate matches)."""
     if len(corr) < 3:
-        return (f"only {len(corr)} putative correspondence(s) (need 3): the FPFH features "
-                "do not match; check the voxel size and that the clouds overlap")
+        return (f'only {len(corr)} putative correspondence(s) (need 3): the FPFH features '
+                'do not match; check the voxel size and that the clouds overlap')
     tau = cfg.frontend.inlier_threshold or None
     try:
         return register_correspondences(
             fs.points[corr.source_index], ft.points[corr.target_index], inlier_threshold=tau,
             resolution=resolution, config=cfg.core, seed=cfg.seed)
     except DegenerateCorrespondencesError as exc:
-        return f"degenerate correspondences: {exc}"
+        return f'degenerate correspondences: {exc}'
 
 
 def _copy_core(core: RegistrationResult, result: PipelineResult) -> None:
     for f in dataclasses.fields(RegistrationResult):
-        if f.name not in ("timings", "valid", "reason"):
+        if f.name not in ('timings', 'valid', 'reason'):
             setattr(result, f.name, getattr(core, f.name))
     result.stats = {**result.stats, **core.stats}
     result.coarse_transform = core.transform.copy()
     result.transform = core.transform.copy()
-    result.timings.update({f"core_{k}": t for k, t in core.timings.items()})
-
-
+    result.timings.update({f'core_{k}': t for k, t in core.timings.items()})

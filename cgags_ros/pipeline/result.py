@@ -12,7 +12,8 @@ from ..registration import RegistrationResult
 
 @dataclasses.dataclass
 class PipelineResult(RegistrationResult):
-    """:class:`RegistrationResult` of the whole pipeline.
+    """
+    :class:`RegistrationResult` of the whole pipeline.
 
     ``transform`` is the final estimate (refined when refinement is on); ``inliers`` index
     the putative correspondences given to the core. Extra attributes:
@@ -39,16 +40,16 @@ class PipelineResult(RegistrationResult):
     coarse_transform: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
     refined: bool = False
     fitness: float = 0.0
-    inlier_rmse: float = float("nan")
+    inlier_rmse: float = float('nan')
     overlap: float = 0.0
-    observability: float = float("nan")
-    chance_inliers: float = float("nan")
+    observability: float = float('nan')
+    chance_inliers: float = float('nan')
     inlier_source_points: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
     inlier_target_points: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
     num_source_points: int = 0
     num_target_points: int = 0
-    voxel_size: float = float("nan")
-    resolution: float = float("nan")
+    voxel_size: float = float('nan')
+    resolution: float = float('nan')
 
     def summary(self) -> dict[str, Any]:
         out = super().summary()

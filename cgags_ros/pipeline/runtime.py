@@ -1,4 +1,5 @@
-"""Thread settings of one registration: BLAS held to one thread, descriptor matching on
+"""
+Thread settings of one registration: BLAS held to one thread, descriptor matching on
 its own threads.
 
 Own matching threads are faster than BLAS's (the argmins run in parallel too), and idle
@@ -18,7 +19,8 @@ MATCH_WORKERS = max(1, min(4, os.cpu_count() or 1))
 
 
 def blas_guard() -> tuple[contextlib.AbstractContextManager, int]:
-    """Return (context keeping BLAS to one thread, descriptor-matching threads).
+    """
+    Return (context keeping BLAS to one thread, descriptor-matching threads).
 
     With threadpoolctl: one BLAS thread and ``MATCH_WORKERS`` matching threads; without it
     nothing and 1 (BLAS's own threads then match).

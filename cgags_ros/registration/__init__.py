@@ -1,4 +1,5 @@
-"""The ROS-free registration core (numpy/scipy only): Algorithm 1 and its steps.
+"""
+The ROS-free registration core (numpy/scipy only): Algorithm 1 and its steps.
 
 >>> from cgags_ros.registration import register_correspondences
 >>> result = register_correspondences(src, dst, resolution=0.05)   # doctest: +SKIP
@@ -8,13 +9,13 @@ Public API: :func:`register_correspondences`, :class:`CoreConfig`,
 quantile the pipeline's gate shares with the core) and :func:`single_blas_thread`.
 """
 
-from ..config.core import CoreConfig
-from ..errors import DegenerateCorrespondencesError, InvalidInputError
-from ..geometry import rotation_error_deg, translation_error
 from .blas import blas_controller, single_blas_thread
 from .cgags import register_correspondences
 from .result import RegistrationResult
 from .stopping import poisson_isf
+from ..config.core import CoreConfig
+from ..errors import DegenerateCorrespondencesError, InvalidInputError
+from ..geometry import rotation_error_deg, translation_error
 
 __all__ = ['register_correspondences', 'CoreConfig', 'RegistrationResult',
            'rotation_error_deg', 'translation_error', 'InvalidInputError',

@@ -1,4 +1,5 @@
-"""Keep BLAS to one thread while the core runs (optional ``threadpoolctl``).
+"""
+Keep BLAS to one thread while the core runs (optional ``threadpoolctl``).
 
 The core's matrix products are small (3x3 fits, 5-deep graph blocks) or memory bound, so a
 second OpenBLAS thread adds nothing but spinning: the same wall time at half the CPU time
@@ -16,8 +17,10 @@ _controller: Any = None
 
 
 def blas_controller() -> Any:
-    """A ``threadpoolctl.ThreadpoolController`` (made once, after numpy and scipy have
-    loaded their BLAS), or None when threadpoolctl is not installed."""
+    """
+    A ``threadpoolctl.ThreadpoolController`` (made once, after numpy and scipy have
+    loaded their BLAS), or None when threadpoolctl is not installed.
+    """
     global _controller
     if _controller is None:
         try:
@@ -34,7 +37,7 @@ def single_blas_thread() -> contextlib.AbstractContextManager:
     controller = blas_controller()
     if controller is None:
         return contextlib.nullcontext()
-    return controller.limit(limits=1, user_api="blas")
+    return controller.limit(limits=1, user_api='blas')
 
 
 def with_single_blas_thread(fn):

@@ -1,4 +1,5 @@
-"""Algorithm 1: compatibility graph + accelerated guided sampling (Remote Sensing 2024, 16, 2789).
+"""
+Algorithm 1: compatibility graph + accelerated guided sampling (Remote Sensing 2024, 16, 2789).
 
 Read :func:`register_correspondences` top to bottom: it is the paper's algorithm, each step
 named as in the paper. :class:`~.search.Search` holds the sampling state of the two stages.
@@ -11,22 +12,24 @@ import time
 
 import numpy as np
 
-from ..config import fields
-from ..config.core import CoreConfig
-from ..errors import DegenerateCorrespondencesError, InvalidInputError
-from ..geometry import spread
-from ..timing import timed
 from .blas import with_single_blas_thread
 from .compatibility import build_compatibility_graph
 from .hypotheses import refit
 from .result import RegistrationResult
 from .search import Search
+from ..config import fields
+from ..config.core import CoreConfig
+from ..errors import DegenerateCorrespondencesError, InvalidInputError
+from ..geometry import spread
+from ..timing import timed
+
 
 @with_single_blas_thread
 def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
                              resolution: float | None = None, config: CoreConfig | None = None,
                              seed: int = 0) -> RegistrationResult:
-    """Estimate the rigid transform mapping ``src`` onto ``dst`` from putative correspondences.
+    """
+    Estimate the rigid transform mapping ``src`` onto ``dst`` from putative correspondences.
 
     Args:
         src, dst: (N, 3) arrays in metres; row i of each is one putative correspondence
@@ -55,54 +58,54 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
                                 compatibility_threshold=delta)
 
     # 1. Compatibility graph (rigid length consistency, delta).
-    with timed(result.timings, "compatibility_graph"):
+    with timed(result.timings, 'compatibility_graph'):
         graph = build_compatibility_graph(src, dst, delta, cfg.min_pair_distance_factor * tau)
     result.stats.update(graph_edges=graph.num_edges, graph_density=graph.density)
     if graph.num_edges == 0:
         return result.finish(start, (
-            f"no two correspondences are length-consistent within delta={delta:.4g} m: "
-            "they are all outliers, or the thresholds are too small for the noise"))
+            f'no two correspondences are length-consistent within delta={delta:.4g} m: '
+            'they are all outliers, or the thresholds are too small for the noise'))
 
     search = Search(src, dst, graph, cfg, tau, delta, np.random.default_rng(seed))
     while True:
         # 2-3. Minimal compatible subsets (edge + common-neighbour vertex) until the P1 bound.
-        with timed(result.timings, "compatible_sampling"):
+        with timed(result.timings, 'compatible_sampling'):
             search.compatible_stage()
         # 4-5. Preference-based accelerated guided sampling until the P2 bound.
         if cfg.guided_sampling and search.best_inliers is not None:
-            with timed(result.timings, "guided_sampling"):
+            with timed(result.timings, 'guided_sampling'):
                 search.guided_stage()
         # Guided sampling refines around the best model; if that model still does not stand
         # out from chance, explore again with compatible sampling (until the caps).
-        if search.significant() or search.exhausted() or cfg.stopping == "fixed":
+        if search.significant() or search.exhausted() or cfg.stopping == 'fixed':
             break
-        search.stats["restarts"] = search.stats.get("restarts", 0) + 1
+        search.stats['restarts'] = search.stats.get('restarts', 0) + 1
     result.num_hypotheses = search.num_hypotheses
     result.stats.update(search.stats)
     if search.best_inliers is None:
-        if search.stats["rejected_collinear"]:
+        if search.stats['rejected_collinear']:
             return result.finish(start, (
-                "every compatible triangle of correspondences is nearly collinear: the scene "
-                "(or its matched keypoints) is a line, and the rotation about it is undetermined"))
+                'every compatible triangle of correspondences is nearly collinear: the scene '
+                '(or its matched keypoints) is a line, and the rotation about it is undetermined'))
         return result.finish(start, (
-            "no compatible triangle of correspondences was found: the compatibility graph "
-            "has edges but no 3-cliques (too few inliers or thresholds too small)"))
+            'no compatible triangle of correspondences was found: the compatibility graph '
+            'has edges but no 3-cliques (too few inliers or thresholds too small)'))
 
     # 6. Final least-squares re-fit on the inliers of the best hypothesis.
-    with timed(result.timings, "refit"):
+    with timed(result.timings, 'refit'):
         T, inliers = search.best_T, search.best_inliers
-        if cfg.refit != "none":
-            iters = cfg.refit_iterations if cfg.refit == "iterative" else 1
+        if cfg.refit != 'none':
+            iters = cfg.refit_iterations if cfg.refit == 'iterative' else 1
             T, inliers, done = refit(src, dst, T, tau, iters)
-            result.stats["refits"] = done
+            result.stats['refits'] = done
     result.transform, result.inliers = T, inliers
     chance, runner_up = search.chance_level(), search.runner_up(inliers)
     result.stats.update(chance_level=chance, runner_up=runner_up)
     reason = _validity_reason(src, inliers, cfg, tau)
     if not reason and not search.significant(inliers):
-        reason = (f"the best consensus ({len(inliers)} inliers) does not stand out: chance "
-                  f"level {chance}, best distinct alternative {runner_up} (x{cfg.distinct_ratio}"
-                  " required); no rigid motion is clearly supported")
+        reason = (f'the best consensus ({len(inliers)} inliers) does not stand out: chance '
+                  f'level {chance}, best distinct alternative {runner_up} (x{cfg.distinct_ratio}'
+                  ' required); no rigid motion is clearly supported')
     return result.finish(start, reason)
 
 
@@ -112,40 +115,40 @@ def _check_correspondences(src, dst) -> tuple[np.ndarray, np.ndarray]:
         src = np.asarray(src, dtype=np.float64)
         dst = np.asarray(dst, dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise InvalidInputError(f"correspondences must be numeric (N, 3) arrays: {exc}") from exc
-    for name, a in (("src", src), ("dst", dst)):
+        raise InvalidInputError(f'correspondences must be numeric (N, 3) arrays: {exc}') from exc
+    for name, a in (('src', src), ('dst', dst)):
         if a.ndim != 2 or a.shape[1] != 3:
-            raise InvalidInputError(f"{name} must have shape (N, 3), got {a.shape}")
+            raise InvalidInputError(f'{name} must have shape (N, 3), got {a.shape}')
     if len(src) != len(dst):
         raise InvalidInputError(
-            f"src and dst must have the same number of rows (one correspondence per row), "
-            f"got {len(src)} and {len(dst)}")
+            f'src and dst must have the same number of rows (one correspondence per row), '
+            f'got {len(src)} and {len(dst)}')
     bad = ~(np.isfinite(src).all(axis=1) & np.isfinite(dst).all(axis=1))
     if bad.any():
         rows = np.flatnonzero(bad)
         raise InvalidInputError(
-            f"{len(rows)} correspondence(s) contain NaN or Inf (first rows: {rows[:5].tolist()}); "
-            "drop non-finite points before matching")
+            f'{len(rows)} correspondence(s) contain NaN or Inf (first rows: {rows[:5].tolist()}); '
+            'drop non-finite points before matching')
     if len(src) < 3:
         raise DegenerateCorrespondencesError(
-            f"need at least 3 correspondences for a rigid transform, got {len(src)}")
-    for name, a in (("source", src), ("target", dst)):
+            f'need at least 3 correspondences for a rigid transform, got {len(src)}')
+    for name, a in (('source', src), ('target', dst)):
         s = spread(a)
         if s[0] <= 1e-12 * max(1.0, np.abs(a).max()):
-            raise DegenerateCorrespondencesError(f"all {name} points are identical")
+            raise DegenerateCorrespondencesError(f'all {name} points are identical')
         if s[1] <= 1e-9 * s[0]:
             raise DegenerateCorrespondencesError(
-                f"all {name} points are collinear: the rotation about their line is undetermined")
+                f'all {name} points are collinear: the rotation about their line is undetermined')
     return src, dst
 
 
 def _thresholds(cfg: CoreConfig, tau: float | None, pr: float | None) -> tuple[float, float]:
-    for name, v in (("inlier_threshold", tau), ("resolution", pr)):
+    for name, v in (('inlier_threshold', tau), ('resolution', pr)):
         if v is not None and not (np.isfinite(v) and v > 0):
-            raise InvalidInputError(f"{name} must be a positive finite number of metres, got {v!r}")
+            raise InvalidInputError(f'{name} must be a positive finite number of metres, got {v!r}')
     if tau is None and pr is None:
         raise InvalidInputError(
-            "give inlier_threshold (metres) or resolution (the point resolution pr in metres)")
+            'give inlier_threshold (metres) or resolution (the point resolution pr in metres)')
     if tau is None:
         tau = cfg.inlier_threshold_factor * pr
     delta = cfg.compatibility_threshold_factor * pr if pr is not None else cfg.compatibility_to_inlier_ratio * tau
@@ -154,11 +157,11 @@ def _thresholds(cfg: CoreConfig, tau: float | None, pr: float | None) -> tuple[f
 
 def _validity_reason(src: np.ndarray, inliers: np.ndarray, cfg: CoreConfig, tau: float) -> str:
     if len(inliers) < cfg.min_inliers:
-        return (f"only {len(inliers)} inliers (< min_inliers={cfg.min_inliers}): no rigid "
-                "motion is supported by enough correspondences")
+        return (f'only {len(inliers)} inliers (< min_inliers={cfg.min_inliers}): no rigid '
+                'motion is supported by enough correspondences')
     pts = src[inliers]
     s = spread(pts)
     # RMS spread orthogonal to the main axis below tau: the inliers are (nearly) collinear.
     if s[1] / np.sqrt(len(pts)) < tau:
-        return "the inliers are nearly collinear: the rotation about their line is undetermined"
-    return ""
+        return 'the inliers are nearly collinear: the rotation about their line is undetermined'
+    return ''

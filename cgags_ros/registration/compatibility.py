@@ -1,4 +1,5 @@
-"""Compatibility graph over putative correspondences (rigid length consistency).
+"""
+Compatibility graph over putative correspondences (rigid length consistency).
 
 Correspondences i and j are compatible when ``| ||p_i - p_j|| - ||q_i - q_j|| | < delta``:
 a rigid motion preserves lengths, so two inliers are always compatible (up to noise), while
@@ -18,7 +19,8 @@ _BLOCK_ELEMENTS = 1 << 16
 
 
 class CompatibilityGraph:
-    """Bit-packed undirected compatibility graph (no self loops).
+    """
+    Bit-packed undirected compatibility graph (no self loops).
 
     Attributes:
         packed: (N, W) uint8, W = ceil(N/8) rounded up to whole 64-bit words; bit j of
@@ -40,9 +42,11 @@ class CompatibilityGraph:
     _MAX_LIST_ENTRIES = 40_000_000  # int32 neighbour lists up to 160 MB
 
     def neighbour_lists(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """CSR neighbour lists (indptr, indices), built once; None if they would exceed
-        the memory cap (then samplers fall back to rejection on the bit matrix)."""
-        if not hasattr(self, "_csr"):
+        """
+        CSR neighbour lists (indptr, indices), built once; None if they would exceed
+        the memory cap (then samplers fall back to rejection on the bit matrix).
+        """
+        if not hasattr(self, '_csr'):
             if 2 * self.num_edges > self._MAX_LIST_ENTRIES:
                 self._csr = None
             else:
@@ -61,7 +65,7 @@ class CompatibilityGraph:
 
     def rows(self, idx: np.ndarray) -> np.ndarray:
         """Unpacked boolean rows (len(idx), N)."""
-        return np.unpackbits(self.packed[idx], axis=1, count=self.n, bitorder="little").view(bool)
+        return np.unpackbits(self.packed[idx], axis=1, count=self.n, bitorder='little').view(bool)
 
     def has_edge(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
         """Vectorized edge test for index arrays of equal shape."""
@@ -96,25 +100,27 @@ def length_consistency(src: np.ndarray, dst: np.ndarray, i: np.ndarray,
     """d_ij = | ||p_i - p_j|| - ||q_i - q_j|| | for index arrays i, j (any shape)."""
     a = src[i] - src[j]
     b = dst[i] - dst[j]
-    return np.abs(np.sqrt(np.einsum("...k,...k->...", a, a)) - np.sqrt(np.einsum("...k,...k->...", b, b)))
+    return np.abs(np.sqrt(np.einsum('...k,...k->...', a, a)) - np.sqrt(np.einsum('...k,...k->...', b, b)))
 
 
 def _expansion_factors(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(U, V) with ``(U @ V)[i, j] = |p_i - p_j|^2``: U = [p, |p|^2, 1], V = [-2 p, 1, |p|^2]^T.
+    """
+    (U, V) with ``(U @ V)[i, j] = |p_i - p_j|^2``: U = [p, |p|^2, 1], V = [-2 p, 1, |p|^2]^T.
 
     One 5-deep product per block instead of nine elementwise passes (several times
     faster, docs/implementation.md). float32 rounding moves a squared
     distance by ~1e-7 of the squared extent, so an edge can only flip within ~1e-5 of the
     extent of the threshold |d_ij| = delta, far below any noise the thresholds model.
     """
-    sq = np.einsum("ij,ij->i", p, p)[:, None]
+    sq = np.einsum('ij,ij->i', p, p)[:, None]
     one = np.ones_like(sq)
     return np.hstack([p, sq, one]), np.ascontiguousarray(np.hstack([-2.0 * p, one, sq]).T)
 
 
 def build_compatibility_graph(src: np.ndarray, dst: np.ndarray, delta: float,
                               min_pair_distance: float = 0.0) -> CompatibilityGraph:
-    """Build the graph with edges ``d_ij < delta`` (and ``||p_i - p_j|| >= min_pair_distance``).
+    """
+    Build the graph with edges ``d_ij < delta`` (and ``||p_i - p_j|| >= min_pair_distance``).
 
     Squared distances are computed in float32 from centred coordinates, a block of rows at
     a time (cache-resident scratch), as one 5-deep matrix product (``_expansion_factors``;
@@ -145,5 +151,5 @@ def build_compatibility_graph(src: np.ndarray, dst: np.ndarray, delta: float,
         if edge is not None:
             ok &= edge
         ok[np.arange(m), np.arange(start, stop)] = False  # no self loops
-        packed[start:stop] = np.packbits(ok, axis=1, bitorder="little")
+        packed[start:stop] = np.packbits(ok, axis=1, bitorder='little')
     return CompatibilityGraph(packed, n)

@@ -16,9 +16,11 @@ def fit_triples(src: np.ndarray, dst: np.ndarray, i: np.ndarray, j: np.ndarray,
 
 
 def score_values(res: np.ndarray, tau: float, mode: str) -> np.ndarray:
-    """Per-residual score contribution: 1 for inliers ('inlier_count') or the truncated
-    quadratic max(0, 1 - r^2 / tau^2) ('truncated', MSAC)."""
-    if mode == "inlier_count":
+    """
+    Per-residual score contribution: 1 for inliers ('inlier_count') or the truncated
+    quadratic max(0, 1 - r^2 / tau^2) ('truncated', MSAC).
+    """
+    if mode == 'inlier_count':
         return (res <= tau).astype(np.float64)
     return np.maximum(0.0, 1.0 - (res / tau) ** 2)
 
@@ -26,7 +28,8 @@ def score_values(res: np.ndarray, tau: float, mode: str) -> np.ndarray:
 def score_in_common_neighbourhood(graph: CompatibilityGraph, src: np.ndarray, dst: np.ndarray,
                                   R: np.ndarray, t: np.ndarray, triples: np.ndarray,
                                   tau: float, mode: str) -> np.ndarray:
-    """Score each hypothesis on {i, j, k} ∪ (N(i) ∩ N(j) ∩ N(k)) only.
+    """
+    Score each hypothesis on {i, j, k} ∪ (N(i) ∩ N(j) ∩ N(k)) only.
 
     Every inlier of a correct hypothesis is compatible with its three (inlier) sample
     members, so for good hypotheses this equals the full score up to noise, at a fraction
@@ -34,12 +37,12 @@ def score_in_common_neighbourhood(graph: CompatibilityGraph, src: np.ndarray, ds
     the exact (all-N) scoring of its best members.
     """
     i, j, k = triples.T
-    cand = np.unpackbits(graph.common(i, j, k), axis=1, count=graph.n, bitorder="little")
+    cand = np.unpackbits(graph.common(i, j, k), axis=1, count=graph.n, bitorder='little')
     rows = np.arange(len(triples))
     for member in (i, j, k):
         cand[rows, member] = 1
     b, m = np.nonzero(cand)
-    moved = np.einsum("bij,bj->bi", R[b], src[m]) + t[b]
+    moved = np.einsum('bij,bj->bi', R[b], src[m]) + t[b]
     res = np.linalg.norm(moved - dst[m], axis=1)
     return np.bincount(b, weights=score_values(res, tau, mode), minlength=len(triples))
 
@@ -48,12 +51,13 @@ def residual_matrix(src: np.ndarray, dst: np.ndarray, R: np.ndarray, t: np.ndarr
     """Residuals of all N correspondences under E hypotheses: (E, N) float32."""
     moved = np.matmul(src.astype(np.float32)[None], R.transpose(0, 2, 1).astype(np.float32))
     moved += (t.astype(np.float32)[:, None, :] - dst.astype(np.float32)[None])
-    return np.sqrt(np.einsum("eni,eni->en", moved, moved))
+    return np.sqrt(np.einsum('eni,eni->en', moved, moved))
 
 
 def refit(src: np.ndarray, dst: np.ndarray, T: np.ndarray, tau: float,
           iterations: int) -> tuple[np.ndarray, np.ndarray, int]:
-    """Weighted least-squares re-fit on the inliers, repeated while the inlier set changes.
+    """
+    Weighted least-squares re-fit on the inliers, repeated while the inlier set changes.
 
     Inliers are weighted by Tukey's biweight (1 - r^2/tau^2)^2 of their current residual,
     so a chance outlier just inside tau cannot pull the estimate (with few inliers one
@@ -64,7 +68,7 @@ def refit(src: np.ndarray, dst: np.ndarray, T: np.ndarray, tau: float,
     Returns (T, inlier indices, re-fits done).
     """
     res = residuals(T, src, dst)
-    best_score = score_values(res, tau, "truncated").sum()
+    best_score = score_values(res, tau, 'truncated').sum()
     inliers = np.flatnonzero(res <= tau)
     done = 0
     for _ in range(iterations):
@@ -73,7 +77,7 @@ def refit(src: np.ndarray, dst: np.ndarray, T: np.ndarray, tau: float,
         weights = (1.0 - (res[inliers] / tau) ** 2) ** 2 + 1e-12
         T_new = kabsch(src[inliers], dst[inliers], weights)
         res_new = residuals(T_new, src, dst)
-        score_new = score_values(res_new, tau, "truncated").sum()
+        score_new = score_values(res_new, tau, 'truncated').sum()
         new_inliers = np.flatnonzero(res_new <= tau)
         if score_new < best_score:
             break
@@ -85,5 +89,5 @@ def refit(src: np.ndarray, dst: np.ndarray, T: np.ndarray, tau: float,
     return T, inliers, done
 
 
-__all__ = ["fit_triples", "score_values", "score_in_common_neighbourhood", "residual_matrix",
-           "refit"]
+__all__ = ['fit_triples', 'score_values', 'score_in_common_neighbourhood', 'residual_matrix',
+           'refit']

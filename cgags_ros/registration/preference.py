@@ -1,4 +1,5 @@
-"""Preference lists and the intersection kernel (Multi-GS / AGS style).
+"""
+Preference lists and the intersection kernel (Multi-GS / AGS style).
 
 Each correspondence keeps the b hypotheses under which its residual is smallest (its
 preference list T_i, "top-b residual ranks"). Two inliers of the same rigid motion prefer
@@ -10,7 +11,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import sparse
-
 
 _DENSE_LIMIT = 2_000_000  # members x distinct hypotheses for the dense kernel product
 

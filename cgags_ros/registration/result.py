@@ -11,7 +11,8 @@ import numpy as np
 
 @dataclasses.dataclass
 class RegistrationResult:
-    """Outcome of :func:`cgags_ros.registration.register_correspondences`.
+    """
+    Outcome of :func:`cgags_ros.registration.register_correspondences`.
 
     Attributes:
         transform: 4x4 float64 homogeneous transform mapping source points onto target
@@ -32,11 +33,11 @@ class RegistrationResult:
     transform: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
     inliers: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     valid: bool = False
-    reason: str = ""
+    reason: str = ''
     num_hypotheses: int = 0
     num_correspondences: int = 0
-    inlier_threshold: float = float("nan")
-    compatibility_threshold: float = float("nan")
+    inlier_threshold: float = float('nan')
+    compatibility_threshold: float = float('nan')
     stats: dict[str, Any] = dataclasses.field(default_factory=dict)
     timings: dict[str, float] = dataclasses.field(default_factory=dict)
 
@@ -56,28 +57,30 @@ class RegistrationResult:
     def inlier_ratio(self) -> float:
         return self.num_inliers / self.num_correspondences if self.num_correspondences else 0.0
 
-    def finish(self, start: float, reason: str = "") -> "RegistrationResult":
-        """Set ``valid``/``reason`` and ``timings['total']`` (since ``start``,
-        ``time.perf_counter()``); return self."""
+    def finish(self, start: float, reason: str = '') -> 'RegistrationResult':
+        """
+        Set ``valid``/``reason`` and ``timings['total']`` (since ``start``,
+        ``time.perf_counter()``); return self.
+        """
         self.valid = not reason
         self.reason = reason
-        self.timings["total"] = time.perf_counter() - start
+        self.timings['total'] = time.perf_counter() - start
         return self
 
     def summary(self) -> dict[str, Any]:
         """JSON-friendly dict (lists instead of arrays)."""
         return {
-            "valid": bool(self.valid),
-            "reason": self.reason,
-            "transform": np.asarray(self.transform, dtype=float).tolist(),
-            "num_inliers": self.num_inliers,
-            "num_correspondences": int(self.num_correspondences),
-            "inlier_ratio": float(self.inlier_ratio),
-            "num_hypotheses": int(self.num_hypotheses),
-            "inlier_threshold": float(self.inlier_threshold),
-            "compatibility_threshold": float(self.compatibility_threshold),
-            "stats": _jsonable(self.stats),
-            "timings": {k: float(v) for k, v in self.timings.items()},
+            'valid': bool(self.valid),
+            'reason': self.reason,
+            'transform': np.asarray(self.transform, dtype=float).tolist(),
+            'num_inliers': self.num_inliers,
+            'num_correspondences': int(self.num_correspondences),
+            'inlier_ratio': float(self.inlier_ratio),
+            'num_hypotheses': int(self.num_hypotheses),
+            'inlier_threshold': float(self.inlier_threshold),
+            'compatibility_threshold': float(self.compatibility_threshold),
+            'stats': _jsonable(self.stats),
+            'timings': {k: float(v) for k, v in self.timings.items()},
         }
 
 

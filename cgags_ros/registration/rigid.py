@@ -9,7 +9,8 @@ from ..geometry import make_transform
 
 def kabsch_batch(P: np.ndarray, Q: np.ndarray,
                  W: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(Weighted) least-squares rotations and translations with ``Q ≈ R @ P + t`` per item.
+    """
+    (Weighted) least-squares rotations and translations with ``Q ≈ R @ P + t`` per item.
 
     Args:
         P, Q: (B, K, 3) corresponding point sets (K >= 3).
@@ -20,17 +21,17 @@ def kabsch_batch(P: np.ndarray, Q: np.ndarray,
     if W is None:
         W = np.ones(P.shape[:2])
     W = W / W.sum(axis=1, keepdims=True)
-    cp = np.einsum("bk,bki->bi", W, P)[:, None, :]
-    cq = np.einsum("bk,bki->bi", W, Q)[:, None, :]
-    H = np.einsum("bk,bki,bkj->bij", W, P - cp, Q - cq)
+    cp = np.einsum('bk,bki->bi', W, P)[:, None, :]
+    cq = np.einsum('bk,bki->bi', W, Q)[:, None, :]
+    H = np.einsum('bk,bki,bkj->bij', W, P - cp, Q - cq)
     U, _, Vt = np.linalg.svd(H)
     # Reflection fix: flip the last singular vector where det(V U^T) < 0.
-    d = np.sign(np.linalg.det(np.einsum("bji,bkj->bik", Vt, U)))
+    d = np.sign(np.linalg.det(np.einsum('bji,bkj->bik', Vt, U)))
     d[d == 0] = 1.0
     Vt = Vt.copy()
     Vt[:, 2, :] *= d[:, None]
-    R = np.einsum("bji,bkj->bik", Vt, U)
-    t = cq[:, 0, :] - np.einsum("bij,bj->bi", R, cp[:, 0, :])
+    R = np.einsum('bji,bkj->bik', Vt, U)
+    t = cq[:, 0, :] - np.einsum('bij,bj->bi', R, cp[:, 0, :])
     return R, t
 
 

@@ -1,4 +1,5 @@
-"""Minimal compatible subsets: graph edge sampling, graph vertex sampling, guided sampling.
+"""
+Minimal compatible subsets: graph edge sampling, graph vertex sampling, guided sampling.
 
 A minimal subset is a triple (i, j, k) of correspondences: a compatible edge (i, j) and a
 vertex k compatible with both (k in N(i) ∩ N(j)). Sampling only triangles of the
@@ -13,7 +14,8 @@ from .compatibility import CompatibilityGraph, length_consistency
 
 
 def weighted_choice_rows(weights: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """One index per row of ``weights`` (B, M), with probability proportional to the row.
+    """
+    One index per row of ``weights`` (B, M), with probability proportional to the row.
 
     Returns the indices and a mask of rows whose total weight was positive.
     """
@@ -28,7 +30,7 @@ def weighted_choice_rows(weights: np.ndarray, rng: np.random.Generator) -> tuple
 def _uniform_member(rows_packed: np.ndarray, n: int, rng: np.random.Generator,
                     weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Exact draw of one set bit per packed row (optionally weighted per column)."""
-    rows = np.unpackbits(rows_packed, axis=1, count=n, bitorder="little")
+    rows = np.unpackbits(rows_packed, axis=1, count=n, bitorder='little')
     if weights is not None:
         return weighted_choice_rows(rows * weights[None, :], rng)
     # Uniform: pick a random position among each row's set bits (no cumulative sums).
@@ -47,7 +49,8 @@ def sample_edges(graph: CompatibilityGraph, rng: np.random.Generator, count: int
                  csr: tuple[np.ndarray, np.ndarray] | None = None,
                  csr_weights: np.ndarray | None = None,
                  tries: int = 24) -> tuple[np.ndarray, np.ndarray]:
-    """Draw ``count`` edges (i, j) uniformly from E (graph edge sampling).
+    """
+    Draw ``count`` edges (i, j) uniformly from E (graph edge sampling).
 
     Uniform over edges equals: i with probability deg(i) / 2|E|, then j uniform in N(i).
     j is found by rejection (cheap when the graph is dense), with an exact fallback for the
@@ -66,7 +69,7 @@ def sample_edges(graph: CompatibilityGraph, rng: np.random.Generator, count: int
         draw = need if not soft else int(1.55 * need) + 16
         if csr is not None:  # uniform over directed adjacency entries = uniform over E
             e = rng.integers(0, len(csr[1]), draw)
-            ii = np.searchsorted(csr[0], e, side="right") - 1
+            ii = np.searchsorted(csr[0], e, side='right') - 1
             jj = csr[1][e].astype(np.int64)
         else:
             ii, jj = _edges_by_rejection(graph, rng, draw, tries)
@@ -92,8 +95,10 @@ _WEIGHT_CHUNK = 1 << 20  # entries per chunk: ~100 MB of float64 scratch at most
 
 def soft_edge_weights(csr: tuple[np.ndarray, np.ndarray], src: np.ndarray, dst: np.ndarray,
                       delta: float) -> np.ndarray:
-    """Soft weights 1 - (d_ij / delta)^2 of the neighbour-list entries, for
-    :func:`sample_edges` (computed once per search, with the lists)."""
+    """
+    Soft weights 1 - (d_ij / delta)^2 of the neighbour-list entries, for
+    :func:`sample_edges` (computed once per search, with the lists).
+    """
     indptr, indices = csr
     rows = np.repeat(np.arange(len(indptr) - 1, dtype=np.int32), np.diff(indptr))
     weights = np.empty(len(indices), dtype=np.float32)
@@ -105,8 +110,10 @@ def soft_edge_weights(csr: tuple[np.ndarray, np.ndarray], src: np.ndarray, dst: 
 
 def _edges_by_rejection(graph: CompatibilityGraph, rng: np.random.Generator, count: int,
                         tries: int) -> tuple[np.ndarray, np.ndarray]:
-    """i with probability deg(i) / 2|E|, then j uniform in N(i) by rejection on the bit
-    matrix, with an exact fallback for rows where all tries missed."""
+    """
+    i with probability deg(i) / 2|E|, then j uniform in N(i) by rejection on the bit
+    matrix, with an exact fallback for rows where all tries missed.
+    """
     i = rng.choice(graph.n, size=count, p=graph.degree / graph.degree.sum())
     cand = rng.integers(0, graph.n, size=(count, tries))
     hit = graph.has_edge(np.repeat(i[:, None], tries, 1), cand)
@@ -122,7 +129,8 @@ def sample_common_vertex(graph: CompatibilityGraph, rng: np.random.Generator, i:
                          j: np.ndarray, *, weights: np.ndarray | None = None,
                          csr: tuple[np.ndarray, np.ndarray] | None = None,
                          tries: int = 48) -> tuple[np.ndarray, np.ndarray]:
-    """Draw k from N(i) ∩ N(j) (graph vertex sampling), uniformly or by ``weights``.
+    """
+    Draw k from N(i) ∩ N(j) (graph vertex sampling), uniformly or by ``weights``.
 
     Returns k and a mask of pairs with a non-empty common neighbourhood (others must be
     resampled by the caller).
@@ -150,7 +158,8 @@ def sample_common_vertex(graph: CompatibilityGraph, rng: np.random.Generator, i:
 def sample_guided(rng: np.random.Generator, kernel: np.ndarray, adjacency: np.ndarray,
                   seed_weights: np.ndarray, count: int, xi: float
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Preference-guided triples on a subset of M correspondences (local indices).
+    """
+    Preference-guided triples on a subset of M correspondences (local indices).
 
     Seed i with probability proportional to ``seed_weights``; then j in N(i) with
     probability proportional to K(i, j) + xi; then k in N(i) ∩ N(j) proportional to
@@ -172,7 +181,8 @@ def triangle_areas(points: np.ndarray, i: np.ndarray, j: np.ndarray, k: np.ndarr
 
 def tournament(graph: CompatibilityGraph, members: tuple[np.ndarray, ...], count: int,
                size: int, ok: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
-    """Keep, of each group of ``size`` consecutive candidates, the one whose members have the
+    """
+    Keep, of each group of ``size`` consecutive candidates, the one whose members have the
     most common neighbours (second/third-order compatibility: inliers share the other
     inliers as neighbours, outliers only chance ones).
 
@@ -192,7 +202,8 @@ def sample_vertex_tournament(graph: CompatibilityGraph, rng: np.random.Generator
                              j: np.ndarray, size: int, *,
                              csr: tuple[np.ndarray, np.ndarray] | None = None,
                              draws: int = 64) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For each edge (i, j): up to ``size`` uniform candidates k in N(i) ∩ N(j), keeping
+    """
+    For each edge (i, j): up to ``size`` uniform candidates k in N(i) ∩ N(j), keeping
     the one with the largest support |N(i) ∩ N(j) ∩ N(k)| (vertex tournament).
 
     Candidates come from one batch of ``draws`` proposals per edge (from N(i) with the

@@ -1,4 +1,5 @@
-"""The search state of Algorithm 1 (:mod:`.cgags`): the two sampling stages and scoring.
+"""
+The search state of Algorithm 1 (:mod:`.cgags`): the two sampling stages and scoring.
 
 Stage one draws minimal compatible subsets (a compatible edge, then a common-neighbour
 vertex) until the P1 bound; stage two is the preference-based accelerated guided sampling
@@ -12,18 +13,34 @@ import time
 
 import numpy as np
 
-from ..config.core import CoreConfig
-from ..geometry import make_transform
 from .compatibility import CompatibilityGraph
-from .hypotheses import (fit_triples, refit, residual_matrix, score_in_common_neighbourhood,
-                         score_values)
+from .hypotheses import (
+    fit_triples,
+    refit,
+    residual_matrix,
+    score_in_common_neighbourhood,
+    score_values,
+)
 from .preference import PreferenceLists
 from .rigid import residuals
-from .sampling import (sample_common_vertex, sample_edges, sample_guided,
-                       sample_vertex_tournament, soft_edge_weights, tournament,
-                       triangle_areas)
-from .stopping import (compatible_sample_inlier_probability, empirical_inlier_probability,
-                       poisson_isf, ransac_bound)
+from .sampling import (
+    sample_common_vertex,
+    sample_edges,
+    sample_guided,
+    sample_vertex_tournament,
+    soft_edge_weights,
+    tournament,
+    triangle_areas,
+)
+from .significance import ConsensusRecord
+from .stopping import (
+    compatible_sample_inlier_probability,
+    empirical_inlier_probability,
+    poisson_isf,
+    ransac_bound,
+)
+from ..config.core import CoreConfig
+from ..geometry import make_transform
 
 _MIN_BATCH = 32
 # Mean common-neighbourhood size (share of N) of a batch's candidates above which the
@@ -54,17 +71,15 @@ class Search:
         self.best_mask = np.zeros(graph.n, dtype=bool)
         self.improvements = 0
         self.preference = PreferenceLists(graph.n, cfg.preference_length)
-        self.vertex_weights = graph.degree.astype(np.float64) if cfg.vertex_sampling == "degree" else None
+        self.vertex_weights = graph.degree.astype(np.float64) if cfg.vertex_sampling == 'degree' else None
         self.sampled: list[np.ndarray] = []  # stage-one triples, to estimate w1 empirically
-        self.chance_counts: list[int] = []  # extra inliers of unselected hypotheses
-        self.num_exact = 0
+        self.consensus = ConsensusRecord(graph.n, tau)
         self.start = time.perf_counter()
-        self.top_models: list[tuple[int, np.ndarray]] = []
         self.csr_weights: np.ndarray | None = None  # soft edge weights over neighbour lists
-        self.stats = {"compatible_samples": 0, "guided_samples": 0, "rejected_collinear": 0,
-                      "empty_common_neighbourhood": 0, "kernel_refreshes": 0,
-                      "best_updates": 0, "stage_one_bound": float("inf"),
-                      "stage_two_bound": float("inf"), "stopped_by": "max_iterations"}
+        self.stats = {'compatible_samples': 0, 'guided_samples': 0, 'rejected_collinear': 0,
+                      'empty_common_neighbourhood': 0, 'kernel_refreshes': 0,
+                      'best_updates': 0, 'stage_one_bound': float('inf'),
+                      'stage_two_bound': float('inf'), 'stopped_by': 'max_iterations'}
 
     # --- stage one ------------------------------------------------------------------------
     def compatible_stage(self) -> None:
@@ -77,50 +92,54 @@ class Search:
             self.num_drawn += batch
             triples, support = self.minimal_compatible_subsets(batch)
             if self.num_hypotheses == 0 and self.num_drawn >= _GIVE_UP_DRAWS:
-                self.stats["stopped_by"] = "no_usable_triangle"
+                self.stats['stopped_by'] = 'no_usable_triangle'
                 break
             n1 += batch
-            self.stats["compatible_samples"] += batch
+            self.stats['compatible_samples'] += batch
             if self.evaluate(triples, support):
                 w1 = self._stage_one_inlier_probability()
             bound = ransac_bound(cfg.p1, w1)
-            self.stats["stage_one_bound"] = bound
-            self.stats["stage_one_w"] = w1
-            if (cfg.stopping == "adaptive" and n1 >= max(bound, cfg.min_iterations)
+            self.stats['stage_one_bound'] = bound
+            self.stats['stage_one_w'] = w1
+            if (cfg.stopping == 'adaptive' and n1 >= max(bound, cfg.min_iterations)
                     and self.significant()):
-                self.stats["stopped_by"] = "p1_bound"
+                self.stats['stopped_by'] = 'p1_bound'
                 break
-            if (cfg.guided_sampling and cfg.guided_start == "after_b_hypotheses"
+            if (cfg.guided_sampling and cfg.guided_start == 'after_b_hypotheses'
                     and self.preference.num_hypotheses >= cfg.preference_length
                     and self.best_inliers is not None):
                 break
-            if cfg.stopping == "fixed" and cfg.guided_sampling and n1 >= bound:
+            if cfg.stopping == 'fixed' and cfg.guided_sampling and n1 >= bound:
                 break
             batch = min(2 * batch, cfg.batch_size)
         self.w1 = w1
 
     def _stage_one_inlier_probability(self) -> float:
-        """w1: probability that one stage-one sample is all-inlier, taking the best model's
+        """
+        w1: probability that one stage-one sample is all-inlier, taking the best model's
         inliers as the inlier set. The larger of the analytic value for uniform edge and
         vertex sampling and the observed share of all stage-one samples drawn so far that
-        lie inside the set (which also covers the tournament samplers)."""
+        lie inside the set (which also covers the tournament samplers).
+        """
         analytic = compatible_sample_inlier_probability(self.graph, self.best_inliers, self.rng)
-        if self.cfg.stage_one_estimate == "analytic":
+        if self.cfg.stage_one_estimate == 'analytic':
             return analytic
         observed = empirical_inlier_probability(self.sampled, self.best_mask)
         return max(analytic, observed)
 
     def minimal_compatible_subsets(self, count: int) -> tuple[np.ndarray, np.ndarray | None]:
-        """Triples (i, j, k): a compatible edge (graph edge sampling), then a vertex k in
+        """
+        Triples (i, j, k): a compatible edge (graph edge sampling), then a vertex k in
         N(i) ∩ N(j) (graph vertex sampling), each uniform or by tournament (see config).
-        Returns the non-collinear triples and, when known, their common-neighbour counts."""
+        Returns the non-collinear triples and, when known, their common-neighbour counts.
+        """
         cfg = self.cfg
-        s = cfg.edge_tournament if cfg.edge_sampling == "tournament" else 1
+        s = cfg.edge_tournament if cfg.edge_sampling == 'tournament' else 1
         # Neighbour lists make draws O(1) but cost about one graph build: only worth it
         # once the search turns out to be long.
         long_search = self.num_drawn > max(256, self.graph.n ** 2 // _LISTS_BUILD_RATIO)
         csr = self.graph.neighbour_lists() if long_search else None
-        soft = cfg.compatibility == "soft"
+        soft = cfg.compatibility == 'soft'
         # Soft weights of all neighbour-list entries cost about as much as weighing
         # 2|E| proposals: precompute them once the search has weighed that many.
         if (csr is not None and soft and self.csr_weights is None
@@ -130,14 +149,14 @@ class Search:
                             delta=self.delta, soft=soft, csr=csr, csr_weights=self.csr_weights)
         if s > 1:
             i, j = tournament(self.graph, (i, j), count, s)
-        if cfg.vertex_sampling == "tournament":
+        if cfg.vertex_sampling == 'tournament':
             k, ok, support = sample_vertex_tournament(self.graph, self.rng, i, j,
                                                       cfg.vertex_tournament, csr=csr)
         else:
             k, ok = sample_common_vertex(self.graph, self.rng, i, j,
                                          weights=self.vertex_weights, csr=csr)
             support = None
-        self.stats["empty_common_neighbourhood"] += int((~ok).sum())
+        self.stats['empty_common_neighbourhood'] += int((~ok).sum())
         triples = np.stack([i, j, k], axis=1)[ok]
         self.sampled.append(triples)
         return self._keep_non_collinear(triples, None if support is None else support[ok])
@@ -149,14 +168,16 @@ class Search:
             return triples, support
         i, j, k = triples.T
         ok = (triangle_areas(self.src, i, j, k) >= min_area) & (triangle_areas(self.dst, i, j, k) >= min_area)
-        self.stats["rejected_collinear"] += int((~ok).sum())
+        self.stats['rejected_collinear'] += int((~ok).sum())
         return triples[ok], None if support is None else support[ok]
 
     # --- hypotheses -------------------------------------------------------------------------
     def evaluate(self, triples: np.ndarray, support: np.ndarray | None = None) -> bool:
-        """Fit and score a batch of triples (``support``: their common-neighbour counts,
+        """
+        Fit and score a batch of triples (``support``: their common-neighbour counts,
         when the sampler knows them); update best model and preference lists.
-        Returns True when the best model improved."""
+        Returns True when the best model improved.
+        """
         if len(triples) == 0:
             return False
         cfg = self.cfg
@@ -190,18 +211,16 @@ class Search:
             R, t = fit_triples(self.src, self.dst, *triples.T)
         res = residual_matrix(self.src, self.dst, R, t)
         # Random hypotheses' inlier counts measure the chance consensus level.
-        self.chance_counts.extend(np.maximum((res[:_CHANCE_PER_BATCH] <= self.tau).sum(axis=1) - 3, 0))
-        self.num_exact += len(res)
+        self.consensus.add(res, _CHANCE_PER_BATCH)
         if cfg.guided_sampling:
             self.preference.update(res)
         scores = score_values(res, self.tau, cfg.score).sum(axis=1)
-        self._remember_top_models(res)
         best = int(np.argmax(scores))
         if scores[best] <= self.best_score:
             return False
         self.best_score = float(scores[best])
         self.best_T = make_transform(R[best], t[best])
-        if cfg.max_up_mode == "local_refits" and cfg.max_up > 0:
+        if cfg.max_up_mode == 'local_refits' and cfg.max_up > 0:
             T, _, _ = refit(self.src, self.dst, self.best_T, self.tau, cfg.max_up)
             self.best_T = T
             res_best = residuals(T, self.src, self.dst)
@@ -212,34 +231,16 @@ class Search:
         self.best_mask[:] = False
         self.best_mask[self.best_inliers] = True
         self.improvements += 1
-        self.stats["best_updates"] += 1
+        self.stats['best_updates'] += 1
         return True
 
     def chance_level(self) -> int:
-        """Non-randomness bound (as in PROSAC): the inlier count that a wrong hypothesis
-        reaches by chance with probability below 1 - P1 among the exactly scored ones.
-
-        Chance inliers of a wrong hypothesis are ~ Poisson(lambda); lambda is estimated
-        from the share of zero counts among hypotheses scored without pre-selection (robust
-        to the few of them that happen to be near the true motion), with a +3 pseudo-count
-        so that a handful of samples cannot make a small consensus look significant.
-        """
-        counts = np.asarray(self.chance_counts)
-        zeros = float((counts == 0).sum()) if len(counts) else 0.0
-        lam = -np.log(max(zeros, 1.0) / (len(counts) + 3.0))
-        alpha = (1.0 - self.cfg.p1) / max(self.num_exact, 1)
-        return 3 + poisson_isf(alpha, lam) + 1
+        """Return the inlier count a wrong hypothesis reaches by chance (see significance)."""
+        return self.consensus.chance_level(self.cfg.p1)
 
     def runner_up(self, inliers: np.ndarray) -> int:
-        """Largest consensus among scored hypotheses that share under half of their inliers
-        with ``inliers``: a real motion stands well above every distinct alternative."""
-        inside = np.zeros(self.graph.n, dtype=bool)
-        inside[inliers] = True
-        best = 0
-        for count, members in self.top_models:
-            if count > best and 2 * np.count_nonzero(inside[members]) < len(members):
-                best = count
-        return best
+        """Return the largest consensus distinct from ``inliers`` (see significance)."""
+        return self.consensus.runner_up(inliers)
 
     def significant(self, inliers: np.ndarray | None = None) -> bool:
         inliers = self.best_inliers if inliers is None else inliers
@@ -250,22 +251,13 @@ class Search:
     def exhausted(self) -> bool:
         """The hypothesis cap or the time budget is used up (or no triangle is usable)."""
         return (self.num_drawn >= self.cfg.max_iterations or self.out_of_time()
-                or self.stats["stopped_by"] == "no_usable_triangle")
+                or self.stats['stopped_by'] == 'no_usable_triangle')
 
     def out_of_time(self) -> bool:
         if self.cfg.time_budget > 0 and time.perf_counter() - self.start > self.cfg.time_budget:
-            self.stats["stopped_by"] = "time_budget"
+            self.stats['stopped_by'] = 'time_budget'
             return True
         return False
-
-    def _remember_top_models(self, res: np.ndarray) -> None:
-        """Keep the inlier sets of the 32 largest consensus sets seen (for runner_up)."""
-        counts = (res <= self.tau).sum(axis=1)
-        floor = self.top_models[-1][0] if len(self.top_models) >= 32 else -1
-        for e in np.flatnonzero(counts > floor):
-            self.top_models.append((int(counts[e]), np.flatnonzero(res[e] <= self.tau)))
-        self.top_models.sort(key=lambda m: -m[0])
-        del self.top_models[32:]
 
     # --- stage two --------------------------------------------------------------------------
     def guided_stage(self) -> None:
@@ -281,12 +273,12 @@ class Search:
             self.num_drawn += batch
             li, lj, lk, ok = sample_guided(self.rng, kernel, adjacency, seed_w, batch, cfg.xi)
             triples, _ = self._keep_non_collinear(np.stack([members[li], members[lj], members[lk]], 1)[ok])
-            self.stats["guided_samples"] += batch
-            if cfg.guided_count == "all_draws":
+            self.stats['guided_samples'] += batch
+            if cfg.guided_count == 'all_draws':
                 drawn.append(triples)
             n2 += batch
             improved = self.evaluate(triples)
-            if cfg.guided_count == "since_improvement" and improved:
+            if cfg.guided_count == 'since_improvement' and improved:
                 n2 = hits = 0
             elif improved:  # as adaptive RANSAC: all draws count, w2 from the new best
                 hits = sum(int(self.best_mask[d].all(axis=1).sum()) for d in drawn if len(d))
@@ -294,35 +286,37 @@ class Search:
                 hits += int(self.best_mask[triples].all(axis=1).sum()) if len(triples) else 0
             if improved:
                 updates = self.improvements - start_improvements
-                if cfg.max_up_mode == "best_updates" and updates >= cfg.max_up:
-                    self.stats["stopped_by"] = "max_up_best_updates"
+                if cfg.max_up_mode == 'best_updates' and updates >= cfg.max_up:
+                    self.stats['stopped_by'] = 'max_up_best_updates'
                     break
-                if cfg.max_up_mode != "preference_refreshes" or refreshes <= cfg.max_up:
+                if cfg.max_up_mode != 'preference_refreshes' or refreshes <= cfg.max_up:
                     members, kernel, adjacency, seed_w = self._kernel()
                     refreshes += 1
-            self.stats["guided_hits"], self.stats["guided_n"] = hits, n2
-            w2 = max(hits / n2 if n2 else 0.0, getattr(self, "w1", 0.0))
+            self.stats['guided_hits'], self.stats['guided_n'] = hits, n2
+            w2 = max(hits / n2 if n2 else 0.0, getattr(self, 'w1', 0.0))
             bound = ransac_bound(cfg.p2, w2)
-            self.stats["stage_two_bound"] = bound
-            self.stats["stage_two_w"] = w2
-            if cfg.stopping == "adaptive" and n2 >= max(bound, cfg.min_iterations):
-                self.stats["stopped_by"] = "p2_bound"
+            self.stats['stage_two_bound'] = bound
+            self.stats['stage_two_w'] = w2
+            if cfg.stopping == 'adaptive' and n2 >= max(bound, cfg.min_iterations):
+                self.stats['stopped_by'] = 'p2_bound'
                 break
             batch = min(2 * batch, cfg.batch_size)
-        self.stats["kernel_refreshes"] = refreshes
+        self.stats['kernel_refreshes'] = refreshes
 
     def _kernel(self):
-        """Members (the M correspondences guided sampling draws from), their intersection
-        kernel K, compatibility adjacency and seed weights."""
+        """
+        Members (the M correspondences guided sampling draws from), their intersection
+        kernel K, compatibility adjacency and seed weights.
+        """
         cfg, n = self.cfg, self.graph.n
         if cfg.kernel_subset == 0 or n <= cfg.kernel_subset:
             members = np.arange(n)
         else:
-            order = np.argsort(self.preference.quality(), kind="stable")
+            order = np.argsort(self.preference.quality(), kind='stable')
             members = np.union1d(order[: cfg.kernel_subset], self.best_inliers)
         kernel = self.preference.kernel(members)
         adjacency = self.graph.rows(members)[:, members]
-        if cfg.guided_seed == "best_inliers":
+        if cfg.guided_seed == 'best_inliers':
             seed_w = np.isin(members, self.best_inliers).astype(np.float64)
         else:
             seed_w = (kernel * adjacency).sum(axis=1) + cfg.xi

@@ -11,8 +11,10 @@ from .compatibility import CompatibilityGraph
 
 
 def ransac_bound(confidence: float, w: float) -> float:
-    """Samples needed to draw at least one all-inlier sample with probability ``confidence``
-    when a single sample is all-inlier with probability ``w``: log(1 - P) / log(1 - w)."""
+    """
+    Samples needed to draw at least one all-inlier sample with probability ``confidence``
+    when a single sample is all-inlier with probability ``w``: log(1 - P) / log(1 - w).
+    """
     if w <= 0.0:
         return math.inf
     if w >= 1.0:
@@ -21,9 +23,11 @@ def ransac_bound(confidence: float, w: float) -> float:
 
 
 def poisson_isf(alpha: float, lam: float) -> int:
-    """Smallest k with P(X > k) <= alpha for X ~ Poisson(lam): ``scipy.stats.poisson.isf``
+    """
+    Smallest k with P(X > k) <= alpha for X ~ Poisson(lam): ``scipy.stats.poisson.isf``
     (same values; tested), ~8x cheaper per call than going through scipy.stats, which the
-    significance test calls every batch."""
+    significance test calls every batch.
+    """
     top = int(lam + 12.0 * math.sqrt(lam) + 40.0)
     while True:
         k = np.arange(top)
@@ -35,7 +39,8 @@ def poisson_isf(alpha: float, lam: float) -> int:
 
 def compatible_sample_inlier_probability(graph: CompatibilityGraph, inliers: np.ndarray,
                                          rng: np.random.Generator, pairs: int = 64) -> float:
-    """Probability that one compatible-stage sample (edge uniform over E, then a uniform
+    """
+    Probability that one compatible-stage sample (edge uniform over E, then a uniform
     common neighbour) is all-inlier, taking ``inliers`` as the inlier set.
 
     P(edge inside I) = |E(I)| / |E|; P(k in I | edge inside I) is averaged over up to
@@ -55,7 +60,7 @@ def compatible_sample_inlier_probability(graph: CompatibilityGraph, inliers: np.
     total = graph.popcount(common)
     mask = np.zeros(graph.n, dtype=bool)
     mask[inliers] = True
-    inside = (np.unpackbits(common, axis=1, count=graph.n, bitorder="little").view(bool) & mask).sum(axis=1)
+    inside = (np.unpackbits(common, axis=1, count=graph.n, bitorder='little').view(bool) & mask).sum(axis=1)
     ratio = np.where(total > 0, inside / np.maximum(total, 1), 0.0)
     return float(e_in / graph.num_edges * ratio.mean())
 

@@ -1,4 +1,5 @@
-"""Message builders: numpy arrays and 4x4 transforms to rclpy messages.
+"""
+Message builders: numpy arrays and 4x4 transforms to rclpy messages.
 
 The reverse direction (decoding PointCloud2, reading poses and stamps) is ROS-free and
 lives in :mod:`cgags_ros.io.pointcloud2`. Conventions as there: metres, the header's
@@ -11,49 +12,52 @@ from __future__ import annotations
 import array
 from typing import Any
 
-import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Pose, PoseStamped, TransformStamped
+import numpy as np
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
 from ..errors import InvalidInputError
 from ..geometry import matrix_to_quaternion
-from ..io.pointcloud2 import FLOAT32, data_bytes
+from ..io.pointcloud2 import data_bytes, FLOAT32
 
 
 def xyz_to_pointcloud2(points: np.ndarray, header: Any = None) -> Any:
-    """A dense, unorganized ``sensor_msgs/PointCloud2`` (float32 x, y, z; 12-byte points).
+    """
+    A dense, unorganized ``sensor_msgs/PointCloud2`` (float32 x, y, z; 12-byte points).
 
     ``header`` is a std_msgs/Header (or None for an empty one); points are in its frame.
     Raises InvalidInputError for anything but an (N, 3) array.
     """
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3:
-        raise InvalidInputError(f"points must have shape (N, 3), got {pts.shape}")
-    pts32 = np.ascontiguousarray(pts, dtype="<f4")
+        raise InvalidInputError(f'points must have shape (N, 3), got {pts.shape}')
+    pts32 = np.ascontiguousarray(pts, dtype='<f4')
     msg = PointCloud2()
     if header is not None:
         msg.header = header
     msg.height = 1
     msg.width = int(pts32.shape[0])
     msg.fields = [PointField(name=name, offset=4 * i, datatype=FLOAT32, count=1)
-                  for i, name in enumerate("xyz")]
+                  for i, name in enumerate('xyz')]
     msg.is_bigendian = False
     msg.point_step = 12
     msg.row_step = 12 * msg.width
     msg.is_dense = bool(np.isfinite(pts32).all())
     # array.array('B') takes rclpy's fast path; a bytes/list value is checked byte by byte.
-    buf = array.array("B")
+    buf = array.array('B')
     buf.frombytes(pts32.tobytes())
     msg.data = buf
     return msg
 
 
 def to_rclpy_pointcloud2(msg: Any) -> Any:
-    """Copy any PointCloud2-like message (e.g. from rosbags) into an rclpy
+    """
+    Copy any PointCloud2-like message (e.g. from rosbags) into an rclpy
     ``sensor_msgs/PointCloud2``, byte for byte: layout, header and even malformed sizes are
-    kept, so a bag can be republished exactly as recorded."""
+    kept, so a bag can be republished exactly as recorded.
+    """
     out = PointCloud2()
     out.header = Header(stamp=Time(sec=int(msg.header.stamp.sec),
                                    nanosec=int(msg.header.stamp.nanosec)),
@@ -63,7 +67,7 @@ def to_rclpy_pointcloud2(msg: Any) -> Any:
                              count=int(f.count)) for f in msg.fields]
     out.is_bigendian, out.is_dense = bool(msg.is_bigendian), bool(msg.is_dense)
     out.point_step, out.row_step = int(msg.point_step), int(msg.row_step)
-    buf = array.array("B")
+    buf = array.array('B')
     buf.frombytes(data_bytes(msg.data).tobytes())
     out.data = buf
     return out
@@ -78,7 +82,7 @@ def ns_to_stamp(ns: int) -> Any:
 def _check_transform(T: np.ndarray) -> np.ndarray:
     T = np.asarray(T, dtype=np.float64)
     if T.shape != (4, 4) or not np.isfinite(T).all():
-        raise InvalidInputError(f"transform must be a finite 4x4 array, got shape {T.shape}")
+        raise InvalidInputError(f'transform must be a finite 4x4 array, got shape {T.shape}')
     return T
 
 

@@ -1,4 +1,5 @@
-"""The node's /diagnostics: one flat key space, built here and read back by live replay.
+"""
+The node's /diagnostics: one flat key space, built here and read back by live replay.
 
 :func:`build_statistics` makes the keys the node publishes; :func:`accounted_sources` and
 :func:`last_result` read them back (from the string values a DiagnosticStatus carries),
@@ -9,8 +10,8 @@ from __future__ import annotations
 
 from typing import Any, Iterable, Mapping
 
-import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+import numpy as np
 
 REJECTED = 'rejected.'  # rejected.<cause>: clouds or pairs the node refused, per cause
 PAIRING = 'pairing.'  # pairing.<counter> of cgags_ros.pipeline.pairing.Pairer.counters()

@@ -1,4 +1,5 @@
-"""ROS 2 node: registers each source cloud onto a target cloud and publishes the pose.
+"""
+ROS 2 node: registers each source cloud onto a target cloud and publishes the pose.
 
 Topics (relative names; remap them):
     source_cloud (sensor_msgs/PointCloud2, in): the cloud to align, in its sensor frame.
@@ -39,27 +40,27 @@ import time
 import traceback
 from typing import Any
 
-import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+import numpy as np
 from rcl_interfaces.msg import SetParametersResult
+import rclpy
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
-from ..config.node import NodeConfig, configs_from_parameters, parameter_descriptions
+from . import diagnostics
+from .conversions import transform_to_pose, transform_to_transform_stamped, xyz_to_pointcloud2
+from .parameters import descriptor
+from .qos import source_qos, target_qos
+from .worker import IsolatedRegistration, load_pipeline, RegisterFn, RegistrationTimeout
+from ..config.node import configs_from_parameters, NodeConfig, parameter_descriptions
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError, EmptyCloudError, InvalidConfigError, InvalidInputError
 from ..geometry import apply_transform
 from ..io.pointcloud2 import pointcloud2_to_xyz, stamp_to_ns
 from ..pipeline.covariance import inlier_pairs, pose_covariance
 from ..pipeline.pairing import Pair, Pairer
-from . import diagnostics
-from .conversions import transform_to_pose, transform_to_transform_stamped, xyz_to_pointcloud2
-from .parameters import descriptor
-from .qos import source_qos, target_qos
-from .worker import IsolatedRegistration, RegisterFn, RegistrationTimeout, load_pipeline
 
 _LOG_REPEAT_S = 30.0  # a cause already logged is logged again at most this often
 
@@ -67,19 +68,20 @@ _LOG_REPEAT_S = 30.0  # a cause already logged is logged again at most this ofte
 class _Cloud:
     """A decoded cloud: points (N, 3) metres in ``header.frame_id``, receipt time."""
 
-    __slots__ = ("xyz", "header", "receipt_ns")
+    __slots__ = ('xyz', 'header', 'receipt_ns')
 
     def __init__(self, xyz: np.ndarray, header: Any, receipt_ns: int):
         self.xyz, self.header, self.receipt_ns = xyz, header, receipt_ns
 
 
 class RegisterNode(Node):
-    """Wires topics, parameters and diagnostics around ``cgags_ros.pipeline.register_clouds``.
+    """
+    Wires topics, parameters and diagnostics around ``cgags_ros.pipeline.register_clouds``.
 
     ``register_fn`` replaces the pipeline; it exists for unit tests of the plumbing only.
     """
 
-    def __init__(self, node_name: str = "register_node", *,
+    def __init__(self, node_name: str = 'register_node', *,
                  register_fn: RegisterFn | None = None, **kwargs: Any):
         super().__init__(node_name, **kwargs)
         self._declare_parameters()
@@ -105,29 +107,29 @@ class RegisterNode(Node):
         self._tf_broadcaster: Any = None
         self._tf_missing_logged = False
 
-        self.create_subscription(PointCloud2, "source_cloud", self._on_source, source_qos(cfg))
-        self.create_subscription(PointCloud2, "target_cloud", self._on_target, target_qos(cfg))
-        self._pose_pub = self.create_publisher(PoseStamped, "~/pose", 10)
+        self.create_subscription(PointCloud2, 'source_cloud', self._on_source, source_qos(cfg))
+        self.create_subscription(PointCloud2, 'target_cloud', self._on_target, target_qos(cfg))
+        self._pose_pub = self.create_publisher(PoseStamped, '~/pose', 10)
         self._pose_cov_pub = self.create_publisher(PoseWithCovarianceStamped,
-                                                   "~/pose_with_covariance", 10)
-        self._aligned_pub = self.create_publisher(PointCloud2, "~/aligned_cloud", 1)
-        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+                                                   '~/pose_with_covariance', 10)
+        self._aligned_pub = self.create_publisher(PointCloud2, '~/aligned_cloud', 1)
+        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_timer(cfg.diagnostics_period, self._publish_diagnostics)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self._stop = threading.Event()
-        self._worker = threading.Thread(target=self._work, name="register_worker", daemon=True)
+        self._worker = threading.Thread(target=self._work, name='register_worker', daemon=True)
         self._worker.start()
         self.get_logger().info(
-            f"registering source_cloud onto target_cloud ({cfg.pairing_mode}, voxel_size "
-            f"{self._pipeline_cfg.voxel_size} m, target {cfg.target_durability})")
+            f'registering source_cloud onto target_cloud ({cfg.pairing_mode}, voxel_size '
+            f'{self._pipeline_cfg.voxel_size} m, target {cfg.target_durability})')
 
     # ------------------------------------------------------------------ parameters
 
     def _declare_parameters(self) -> None:
         self._descriptions = parameter_descriptions()
         for name, meta in self._descriptions.items():
-            self.declare_parameter(name, meta["default"], descriptor(name, meta))
+            self.declare_parameter(name, meta['default'], descriptor(name, meta))
 
     def _on_set_parameters(self, params: list[rclpy.parameter.Parameter]) -> SetParametersResult:
         changes = {p.name: p.value for p in params if p.name in self._descriptions}
@@ -141,7 +143,7 @@ class RegisterNode(Node):
                 return SetParametersResult(successful=False, reason=str(exc))
             self._pipeline_cfg, self._node_cfg = pipe, node
             self._pairer.set_slop(node.sync_slop)
-        self.get_logger().info(f"parameters changed (next pair): {changes}")
+        self.get_logger().info(f'parameters changed (next pair): {changes}')
         return SetParametersResult(successful=True)
 
     @property
@@ -159,23 +161,23 @@ class RegisterNode(Node):
     def _decode(self, msg: PointCloud2, role: str) -> _Cloud | None:
         receipt = time.monotonic_ns()
         with self._lock:
-            self._counts[f"received_{role}"] += 1
+            self._counts[f'received_{role}'] += 1
             max_points = self._node_cfg.max_cloud_points
         try:
             xyz = pointcloud2_to_xyz(msg, max_points=max_points)
         except InvalidInputError as exc:
-            kind = "empty" if isinstance(exc, EmptyCloudError) else "malformed"
-            self._reject(f"{role}_{kind}", f"{role} cloud rejected: {exc}")
+            kind = 'empty' if isinstance(exc, EmptyCloudError) else 'malformed'
+            self._reject(f'{role}_{kind}', f'{role} cloud rejected: {exc}')
             return None
         return _Cloud(xyz, msg.header, receipt)
 
     def _on_source(self, msg: PointCloud2) -> None:
-        cloud = self._decode(msg, "source")
+        cloud = self._decode(msg, 'source')
         if cloud is not None:
             self._pairer.add_source(stamp_to_ns(msg.header.stamp), msg.header.frame_id, cloud)
 
     def _on_target(self, msg: PointCloud2) -> None:
-        cloud = self._decode(msg, "target")
+        cloud = self._decode(msg, 'target')
         if cloud is not None:
             self._pairer.add_target(stamp_to_ns(msg.header.stamp), msg.header.frame_id, cloud)
 
@@ -190,7 +192,7 @@ class RegisterNode(Node):
                 self._process(pair)
             except Exception as exc:  # noqa: BLE001 - the worker must outlive any bad pair
                 if not self._stop.is_set() and self.context.ok():
-                    self._reject("internal_error", f"pair failed: {exc!r}\n{traceback.format_exc()}")
+                    self._reject('internal_error', f'pair failed: {exc!r}\n{traceback.format_exc()}')
 
     def _process(self, pair: Pair) -> None:
         source, target = pair.source.payload, pair.target.payload
@@ -199,29 +201,29 @@ class RegisterNode(Node):
         try:
             result = self._register(source.xyz, target.xyz, config=pipe_cfg)
         except InvalidInputError as exc:
-            self._reject("pipeline_input", f"pair rejected by the pipeline: {exc}")
+            self._reject('pipeline_input', f'pair rejected by the pipeline: {exc}')
             return
         except RegistrationTimeout as exc:
-            self._reject("timeout", str(exc))
+            self._reject('timeout', str(exc))
             return
         except CgagsError as exc:
-            self._reject("pipeline_error", f"registration failed: {exc}")
+            self._reject('pipeline_error', f'registration failed: {exc}')
             return
         T = np.asarray(result.transform, dtype=np.float64)
         valid = bool(result.valid) and np.isfinite(T).all()
         with self._lock:
-            self._last = {"valid": valid, "reason": str(getattr(result, "reason", "")),
-                          "inliers": int(result.num_inliers),
-                          "fitness": float(getattr(result, "fitness", float("nan"))),
-                          "voxel_size": pipe_cfg.voxel_size,
-                          "timings": dict(getattr(result, "timings", {}) or {}),
-                          "source_stamp_ns": pair.source.stamp_ns}
+            self._last = {'valid': valid, 'reason': str(getattr(result, 'reason', '')),
+                          'inliers': int(result.num_inliers),
+                          'fitness': float(getattr(result, 'fitness', float('nan'))),
+                          'voxel_size': pipe_cfg.voxel_size,
+                          'timings': dict(getattr(result, 'timings', {}) or {}),
+                          'source_stamp_ns': pair.source.stamp_ns}
         if not valid:
             if not cfg.publish_invalid or not np.isfinite(T).all():
-                self._reject("invalid_result", f"invalid registration: {result.reason}")
+                self._reject('invalid_result', f'invalid registration: {result.reason}')
                 return
             with self._lock:
-                self._counts["published_invalid"] += 1
+                self._counts['published_invalid'] += 1
         self._publish(pair, T, result, pipe_cfg, cfg)
 
     def _publish(self, pair: Pair, T: np.ndarray, result: Any, pipe_cfg: PipelineConfig,
@@ -233,7 +235,7 @@ class RegisterNode(Node):
         self._send(self._pose_pub, PoseStamped(header=header, pose=pose))
         cov_msg = PoseWithCovarianceStamped(header=header)
         cov_msg.pose.pose = pose
-        threshold = float(getattr(result, "inlier_threshold", float("nan")))
+        threshold = float(getattr(result, 'inlier_threshold', float('nan')))
         if not np.isfinite(threshold) or threshold <= 0:
             threshold = 1.5 * pipe_cfg.voxel_size
         src, dst = inlier_pairs(result, source.xyz, target.xyz, T, threshold)
@@ -246,7 +248,7 @@ class RegisterNode(Node):
             self._broadcast(T, header, cfg.tf_child_frame or source.header.frame_id)
         latency = (time.monotonic_ns() - source.receipt_ns) * 1e-9
         with self._lock:
-            self._counts["published"] += 1
+            self._counts['published'] += 1
             self._latencies.append(latency)
 
     def _broadcast(self, T: np.ndarray, header: Header, child: str) -> None:
@@ -256,8 +258,8 @@ class RegisterNode(Node):
             except ImportError:
                 if not self._tf_missing_logged:
                     self._tf_missing_logged = True
-                    self.get_logger().warning("broadcast_tf is set but tf2_ros is not "
-                                              "importable; no TF is broadcast")
+                    self.get_logger().warning('broadcast_tf is set but tf2_ros is not '
+                                              'importable; no TF is broadcast')
                 return
             self._tf_broadcaster = TransformBroadcaster(self)
         self._tf_broadcaster.sendTransform(transform_to_transform_stamped(T, header, child))
@@ -275,7 +277,7 @@ class RegisterNode(Node):
             if due:
                 self._logged[cause] = now
         if due:
-            suffix = f" ({n} so far; repeats are logged every {_LOG_REPEAT_S:.0f} s)" if n > 1 else ""
+            suffix = f' ({n} so far; repeats are logged every {_LOG_REPEAT_S:.0f} s)' if n > 1 else ''
             self.get_logger().warning(message + suffix)
 
     def statistics(self) -> dict[str, Any]:
@@ -289,12 +291,13 @@ class RegisterNode(Node):
 
     def _publish_diagnostics(self) -> None:
         msg = diagnostics.diagnostic_array(
-            self.statistics(), f"{self.get_name()}: registration",
+            self.statistics(), f'{self.get_name()}: registration',
             self.get_fully_qualified_name(), self.get_clock().now().to_msg())
         self._send(self._diag_pub, msg)
 
     def _send(self, publisher: Any, msg: Any) -> None:
-        """Publish unless the context has been shut down (Ctrl-C / SIGTERM).
+        """
+        Publish unless the context has been shut down (Ctrl-C / SIGTERM).
 
         rclpy's signal handler shuts the context down asynchronously: the executor may
         still dispatch the diagnostics timer, and the worker may still be finishing a
@@ -322,8 +325,10 @@ class RegisterNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    """Entry point of ``ros2 run cgags_ros register_node`` and ``python -m
-    cgags_ros.register_node``; exits cleanly on Ctrl-C and SIGTERM."""
+    """
+    Entry point of ``ros2 run cgags_ros register_node`` and ``python -m
+    cgags_ros.register_node``; exits cleanly on Ctrl-C and SIGTERM.
+    """
     from rclpy.executors import ExternalShutdownException
 
     rclpy.init(args=args)
@@ -334,7 +339,7 @@ def main(args: list[str] | None = None) -> None:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except InvalidConfigError as exc:  # e.g. a pairing_mode typo in the YAML
-        rclpy.logging.get_logger("register_node").fatal(str(exc))
+        rclpy.logging.get_logger('register_node').fatal(str(exc))
         raise SystemExit(2) from None
     except RuntimeError:  # an rclpy call racing the signal handler's shutdown
         if rclpy.ok():

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                ParameterType)
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 
 _INT64_MAX = 2**63 - 1
 _FLOAT_MAX = 1.7976931348623157e308
@@ -13,12 +12,12 @@ _FLOAT_MAX = 1.7976931348623157e308
 
 def descriptor(name: str, meta: dict[str, Any]) -> ParameterDescriptor:
     """Return the ParameterDescriptor of a config field (type, description, range, read-only)."""
-    default = meta["default"]
-    desc = ParameterDescriptor(name=name, description=str(meta["description"]),
-                               read_only=bool(meta.get("read_only")))
-    if meta.get("choices"):
-        desc.additional_constraints = "one of: " + ", ".join(map(str, meta["choices"]))
-    ranged = meta.get("low") is not None or meta.get("high") is not None
+    default = meta['default']
+    desc = ParameterDescriptor(name=name, description=str(meta['description']),
+                               read_only=bool(meta.get('read_only')))
+    if meta.get('choices'):
+        desc.additional_constraints = 'one of: ' + ', '.join(map(str, meta['choices']))
+    ranged = meta.get('low') is not None or meta.get('high') is not None
     if isinstance(default, bool):
         desc.type = ParameterType.PARAMETER_BOOL
     elif isinstance(default, int):
@@ -41,6 +40,6 @@ def descriptor(name: str, meta: dict[str, Any]) -> ParameterDescriptor:
 
 def _bounds(meta: dict[str, Any], kind: type, largest: Any) -> tuple[Any, Any]:
     """Return the field's (low, high) as ``kind``; an open end becomes -largest/largest."""
-    low, high = meta.get("low"), meta.get("high")
+    low, high = meta.get('low'), meta.get('high')
     return (kind(low) if low is not None else -largest,
             kind(high) if high is not None else largest)

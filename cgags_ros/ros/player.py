@@ -1,4 +1,5 @@
-"""The player of live replay: an rclpy context that publishes a bag's clouds into a
+"""
+The player of live replay: an rclpy context that publishes a bag's clouds into a
 register_node and records its poses and /diagnostics.
 """
 
@@ -8,17 +9,17 @@ import dataclasses
 import time
 from typing import Any
 
-import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
+import numpy as np
+import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
-from ..io.pointcloud2 import pose_to_transform, stamp_to_ns
 from . import diagnostics
+from ..io.pointcloud2 import pose_to_transform, stamp_to_ns
 
 MAX_QUEUE = 1000  # the node config's upper bound for depths
 
@@ -38,7 +39,7 @@ class LiveSession:
     def __init__(self, source_topic: str, target_topic: str, node_name: str, n_sources: int):
         self.context = Context()
         rclpy.init(context=self.context)
-        self.node = rclpy.create_node("cgags_replay_player", context=self.context)
+        self.node = rclpy.create_node('cgags_replay_player', context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         depth = max(1, min(n_sources, MAX_QUEUE))
@@ -53,10 +54,10 @@ class LiveSession:
         self.details: dict[int, dict[str, str]] = {}
         self.stats: dict[str, str] = {}
         self.last_progress = time.monotonic()
-        self.node_id = "/" + node_name.lstrip("/")
+        self.node_id = '/' + node_name.lstrip('/')
         self.pose_sub = self.node.create_subscription(
-            PoseStamped, f"{self.node_id}/pose", self._on_pose, 100)
-        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 100)
+            PoseStamped, f'{self.node_id}/pose', self._on_pose, 100)
+        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 100)
 
     def _on_pose(self, msg: Any) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
@@ -91,12 +92,14 @@ class LiveSession:
                 and self.pose_sub.get_publisher_count() > 0)
 
     def accounted_sources(self) -> int | None:
-        """Sources the node is done with (published + rejected + dropped + waiting), from
-        its last diagnostics; None before any diagnostics."""
+        """
+        Sources the node is done with (published + rejected + dropped + waiting), from
+        its last diagnostics; None before any diagnostics.
+        """
         return diagnostics.accounted_sources(self.stats) if self.stats else None
 
     def received_sources(self) -> int:
-        return diagnostics.as_int(self.stats.get("received_source", "0"))
+        return diagnostics.as_int(self.stats.get('received_source', '0'))
 
     def close(self) -> None:
         """Shut the player's executor, node and context down."""

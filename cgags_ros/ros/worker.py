@@ -1,4 +1,5 @@
-"""The registration worker: ``register_clouds`` in a child process, with a time limit.
+"""
+The registration worker: ``register_clouds`` in a child process, with a time limit.
 
 ROS-free by itself, but it exists for the node: a pathological input that makes the
 pipeline loop (or crash natively) costs one pair, not the node.
@@ -6,10 +7,10 @@ pipeline loop (or crash natively) costs one pair, not the node.
 
 from __future__ import annotations
 
-import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
 from concurrent.futures.process import BrokenProcessPool
+import multiprocessing
 from typing import Any, Callable
 
 import numpy as np
@@ -35,8 +36,10 @@ class _TargetNotHeld(Exception):
 
 def _register_in_child(source: np.ndarray, target: np.ndarray | None, *,
                        config: PipelineConfig) -> Any:
-    """``register_clouds`` in the registration process; ``target=None`` reuses the target
-    sent last, so an unchanged (latched) target crosses the pipe once, not every pair."""
+    """
+    ``register_clouds`` in the registration process; ``target=None`` reuses the target
+    sent last, so an unchanged (latched) target crosses the pipe once, not every pair.
+    """
     global _child_target
     from ..pipeline import register_clouds  # in the child: the parent needs no Open3D
 
@@ -54,7 +57,8 @@ def _warm_up_in_child() -> Any:
 
 
 class IsolatedRegistration:
-    """Runs ``register_clouds`` in one spawned child process with a time limit.
+    """
+    Runs ``register_clouds`` in one spawned child process with a time limit.
 
     A pathological input that makes the pipeline loop (or crash natively) costs one pair:
     the child is killed and a fresh one started. Spawn, not fork: forking a process that
@@ -74,14 +78,14 @@ class IsolatedRegistration:
         self._fn = _register_in_child
         self._sent_target = None
         self._pool = ProcessPoolExecutor(max_workers=1,
-                                         mp_context=multiprocessing.get_context("spawn"))
+                                         mp_context=multiprocessing.get_context('spawn'))
         # Warm-up: the child imports the pipeline (Open3D) and runs every stage once on a
         # small synthetic pair, so no start-up cost is counted against a real pair's limit.
         self._warm = self._pool.submit(_warm_up_in_child)
 
     def __call__(self, source: np.ndarray, target: np.ndarray, *, config: PipelineConfig) -> Any:
         if self._pool is None:
-            raise RegistrationTimeout("the registration process is shut down")
+            raise RegistrationTimeout('the registration process is shut down')
         if self._warm is not None:
             try:
                 self._warm.result(timeout=_WARM_UP_LIMIT_S)
@@ -102,11 +106,11 @@ class IsolatedRegistration:
         except FutureTimeout:
             self.restart()
             raise RegistrationTimeout(
-                f"registration took longer than registration_timeout = {self.timeout_s:g} s; "
-                "its process was restarted") from None
+                f'registration took longer than registration_timeout = {self.timeout_s:g} s; '
+                'its process was restarted') from None
         except BrokenProcessPool:
             self.restart()
-            raise RegistrationTimeout("the registration process died; restarted") from None
+            raise RegistrationTimeout('the registration process died; restarted') from None
 
     def restart(self) -> None:
         self._kill()
@@ -125,7 +129,7 @@ class IsolatedRegistration:
         if pool is None:
             return
         # ProcessPoolExecutor cannot cancel a running call: stop its process directly.
-        for proc in list(getattr(pool, "_processes", {}).values()):
+        for proc in list(getattr(pool, '_processes', {}).values()):
             proc.kill()
         pool.shutdown(wait=wait, cancel_futures=True)
 

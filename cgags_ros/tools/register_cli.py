@@ -1,4 +1,5 @@
-"""``cgags-register``: register two point cloud files with no initial guess.
+"""
+``cgags-register``: register two point cloud files with no initial guess.
 
 Thin edge tool: reads the files, calls :func:`cgags_ros.pipeline.register_clouds`, prints or
 writes the result. Errors the user can fix (unreadable file, bad option value) are one line
@@ -9,20 +10,20 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
+import sys
 from typing import Sequence
 
 import numpy as np
 
+from .cli import EXIT_ERROR, run_cli
 from ..config import fields
-from ..config.pipeline import PipelineConfig, load_yaml, pipeline_config_from
+from ..config.pipeline import load_yaml, pipeline_config_from, PipelineConfig
 from ..errors import InvalidInputError
 from ..geometry import apply_transform
-from ..io.clouds import SUFFIXES, read_cloud, write_cloud
-from .cli import EXIT_ERROR, run_cli
+from ..io.clouds import read_cloud, SUFFIXES, write_cloud
 
-PROG = "cgags-register"
+PROG = 'cgags-register'
 EXIT_INVALID = 1  # registration ran but the estimate failed a validity gate
 
 EPILOG = f"""\
@@ -37,35 +38,35 @@ example: cgags-register bun045.ply bun000.ply --voxel-size 0.003 --set refine.me
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str):
         """One line on stderr (argparse would also print the whole usage)."""
-        self.exit(EXIT_ERROR, f"{self.prog}: error: {message} (see --help)\n")
+        self.exit(EXIT_ERROR, f'{self.prog}: error: {message} (see --help)\n')
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog=PROG, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Globally register SOURCE onto TARGET (FPFH correspondences + CGAGS, "
-                    "then optional ICP/GICP refinement).")
-    parser.add_argument("source", type=Path, help="cloud to move (SOURCE frame)")
-    parser.add_argument("target", type=Path, help="fixed cloud (TARGET frame)")
-    parser.add_argument("--voxel-size", type=float, metavar="V",
-                        help="voxel size in metres; every radius and threshold derives from "
+        description='Globally register SOURCE onto TARGET (FPFH correspondences + CGAGS, '
+                    'then optional ICP/GICP refinement).')
+    parser.add_argument('source', type=Path, help='cloud to move (SOURCE frame)')
+    parser.add_argument('target', type=Path, help='fixed cloud (TARGET frame)')
+    parser.add_argument('--voxel-size', type=float, metavar='V',
+                        help='voxel size in metres; every radius and threshold derives from '
                              f"it (default: the config's, {PipelineConfig().voxel_size:g})")
-    parser.add_argument("--config", type=Path, metavar="YAML",
-                        help="YAML file with pipeline parameters (plain or ROS "
+    parser.add_argument('--config', type=Path, metavar='YAML',
+                        help='YAML file with pipeline parameters (plain or ROS '
                              "'node: {ros__parameters: ...}' layout)")
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        dest="overrides",
-                        help="override one parameter, e.g. core.max_iterations=20000 or "
-                             "frontend.max_correspondences=3000 (repeatable; YAML values)")
-    parser.add_argument("--no-refine", action="store_true",
-                        help="skip ICP/GICP refinement (same as --set refine.method=none)")
-    parser.add_argument("--seed", type=int, metavar="N", help="random seed of the sampler")
-    parser.add_argument("--json", action="store_true",
-                        help="print the full result as JSON on stdout instead of text")
-    parser.add_argument("--output", type=Path, metavar="ALIGNED",
-                        help="write the source moved into the target frame (any format above)")
-    parser.add_argument("--plot", type=Path, metavar="PNG",
-                        help="save before/after overlay views (PNG, matplotlib)")
+    parser.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
+                        dest='overrides',
+                        help='override one parameter, e.g. core.max_iterations=20000 or '
+                             'frontend.max_correspondences=3000 (repeatable; YAML values)')
+    parser.add_argument('--no-refine', action='store_true',
+                        help='skip ICP/GICP refinement (same as --set refine.method=none)')
+    parser.add_argument('--seed', type=int, metavar='N', help='random seed of the sampler')
+    parser.add_argument('--json', action='store_true',
+                        help='print the full result as JSON on stdout instead of text')
+    parser.add_argument('--output', type=Path, metavar='ALIGNED',
+                        help='write the source moved into the target frame (any format above)')
+    parser.add_argument('--plot', type=Path, metavar='PNG',
+                        help='save before/after overlay views (PNG, matplotlib)')
     return parser
 
 
@@ -93,30 +94,30 @@ def _config(args: argparse.Namespace) -> PipelineConfig:
     values: dict = load_yaml(args.config) if args.config else {}
     values.update(fields.parse_key_values(args.overrides))
     if args.voxel_size is not None:
-        values["voxel_size"] = args.voxel_size
+        values['voxel_size'] = args.voxel_size
     if args.no_refine:
-        values["refine.method"] = "none"
+        values['refine.method'] = 'none'
     if args.seed is not None:
-        values["seed"] = args.seed
+        values['seed'] = args.seed
     return pipeline_config_from(values)
 
 
 def format_result(result) -> str:
     """Human-readable report: transform, validity, inliers, quality and stage times."""
-    lines = ["transform (source -> target, metres):"]
-    lines += ["  " + " ".join(f"{x: .6f}" for x in row) for row in result.transform]
+    lines = ['transform (source -> target, metres):']
+    lines += ['  ' + ' '.join(f'{x: .6f}' for x in row) for row in result.transform]
     lines.append(f"valid: {'yes' if result.valid else 'no'}"
-                 + (f" ({result.reason})" if result.reason else ""))
-    lines.append(f"inliers: {result.num_inliers} / {result.num_correspondences} correspondences "
-                 f"({100 * result.inlier_ratio:.1f} %), {result.num_hypotheses} hypotheses")
-    lines.append(f"fitness: {result.fitness:.3f}, inlier RMSE: {result.inlier_rmse:.4g} m, "
+                 + (f' ({result.reason})' if result.reason else ''))
+    lines.append(f'inliers: {result.num_inliers} / {result.num_correspondences} correspondences '
+                 f'({100 * result.inlier_ratio:.1f} %), {result.num_hypotheses} hypotheses')
+    lines.append(f'fitness: {result.fitness:.3f}, inlier RMSE: {result.inlier_rmse:.4g} m, '
                  f"overlap: {result.overlap:.3f}, refined: {'yes' if result.refined else 'no'}")
-    lines.append(f"points after {result.voxel_size:g} m voxels: {result.num_source_points} "
-                 f"source, {result.num_target_points} target; resolution {result.resolution:.4g} m")
-    stages = ("downsample", "normals", "fpfh", "matching", "registration", "refinement", "total")
-    lines.append("time [s]: " + ", ".join(f"{k} {result.timings[k]:.3f}"
+    lines.append(f'points after {result.voxel_size:g} m voxels: {result.num_source_points} '
+                 f'source, {result.num_target_points} target; resolution {result.resolution:.4g} m')
+    stages = ('downsample', 'normals', 'fpfh', 'matching', 'registration', 'refinement', 'total')
+    lines.append('time [s]: ' + ', '.join(f'{k} {result.timings[k]:.3f}'
                                          for k in stages if k in result.timings))
-    return "\n".join(lines)
+    return '\n'.join(lines)
 
 
 def plot_overlay(path: Path, source: np.ndarray, target: np.ndarray,
@@ -124,30 +125,30 @@ def plot_overlay(path: Path, source: np.ndarray, target: np.ndarray,
     """Top (x-y) and side (x-z) views of target + source before and after alignment (PNG)."""
     import matplotlib
 
-    matplotlib.use("Agg")
+    matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
     rng = np.random.default_rng(0)
     pick = lambda p: p[rng.choice(len(p), min(len(p), max_points), replace=False)]  # noqa: E731
     src, dst = pick(source), pick(target)
     fig, axes = plt.subplots(2, 2, figsize=(10, 9))
-    for col, (title, moved) in enumerate((("before (identity)", src),
-                                          ("after (estimate)", apply_transform(transform, src)))):
-        for row, (a, b, label) in enumerate(((0, 1, "x-y"), (0, 2, "x-z"))):
+    for col, (title, moved) in enumerate((('before (identity)', src),
+                                          ('after (estimate)', apply_transform(transform, src)))):
+        for row, (a, b, label) in enumerate(((0, 1, 'x-y'), (0, 2, 'x-z'))):
             ax = axes[row, col]
-            ax.scatter(dst[:, a], dst[:, b], s=0.3, c="tab:blue", label="target")
-            ax.scatter(moved[:, a], moved[:, b], s=0.3, c="tab:orange", label="source")
-            ax.set_title(f"{title}, {label} view", fontsize=9)
-            ax.set_aspect("equal", adjustable="datalim")
-            ax.legend(loc="upper right", markerscale=10, fontsize=7)
+            ax.scatter(dst[:, a], dst[:, b], s=0.3, c='tab:blue', label='target')
+            ax.scatter(moved[:, a], moved[:, b], s=0.3, c='tab:orange', label='source')
+            ax.set_title(f'{title}, {label} view', fontsize=9)
+            ax.set_aspect('equal', adjustable='datalim')
+            ax.legend(loc='upper right', markerscale=10, fontsize=7)
     fig.tight_layout()
     try:
         fig.savefig(path, dpi=100)
     except OSError as exc:
-        raise InvalidInputError(f"cannot write plot {path}: {exc}") from exc
+        raise InvalidInputError(f'cannot write plot {path}: {exc}') from exc
     finally:
         plt.close(fig)
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     sys.exit(main())

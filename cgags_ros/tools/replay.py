@@ -1,4 +1,5 @@
-"""``cgags-replay``: register the clouds of a rosbag2 bag, offline or through the ROS node.
+"""
+``cgags-replay``: register the clouds of a rosbag2 bag, offline or through the ROS node.
 
 Offline (default, no ROS installation needed)::
 
@@ -35,60 +36,66 @@ the run with one ``cgags-replay: error: ...`` line and exit code 2.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
+import sys
 from typing import Sequence
 
+from .cli import run_cli
+from .replay_common import (
+    DEFAULT_GT_TOPIC,
+    DEFAULT_MAX_RE_DEG,
+    DEFAULT_MAX_TE_VOXELS,
+    DEFAULT_POSE_TOPIC,
+    LiveOptions,
+    ReplayOptions,
+    user_parameters,
+)
+from .report import BagReport
 from ..errors import InvalidConfigError
 from ..pipeline.pairing import MODES
-from .cli import run_cli
-from .replay_common import (DEFAULT_GT_TOPIC, DEFAULT_MAX_RE_DEG, DEFAULT_MAX_TE_VOXELS,
-                            DEFAULT_POSE_TOPIC, LiveOptions, ReplayOptions,
-                            user_parameters)
-from .report import BagReport
 
-PROG = "cgags-replay"
+PROG = 'cgags-replay'
 
 
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser of ``cgags-replay``."""
-    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0].replace("``", ""),
+    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split('\n\n')[0].replace('``', ''),
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
-    p.add_argument("--source-topic", default="/source_cloud",
-                   help="PointCloud2 topic of the clouds to align (default: %(default)s)")
-    p.add_argument("--target-topic", default="/target_cloud",
-                   help="PointCloud2 topic of the reference clouds (default: %(default)s)")
-    p.add_argument("--ground-truth-topic", default=None,
-                   help=f"PoseStamped source->target, matched to sources by stamp (default: "
-                        f"{DEFAULT_GT_TOPIC} when the bag has it; given explicitly, it must exist)")
-    p.add_argument("--voxel-size", type=float, default=None,
-                   help="metres (default: --set/--params, else chosen from the target cloud)")
-    p.add_argument("--params", default=None, help="YAML of node/pipeline parameters "
-                   "(ROS format or a plain mapping), e.g. config/register_node.yaml")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override one parameter (repeatable), e.g. --set core.p1=0.95")
-    p.add_argument("--pairing", choices=MODES, default=None,
+    p.add_argument('bag', type=Path, help='rosbag2 directory or .mcap file')
+    p.add_argument('--source-topic', default='/source_cloud',
+                   help='PointCloud2 topic of the clouds to align (default: %(default)s)')
+    p.add_argument('--target-topic', default='/target_cloud',
+                   help='PointCloud2 topic of the reference clouds (default: %(default)s)')
+    p.add_argument('--ground-truth-topic', default=None,
+                   help=f'PoseStamped source->target, matched to sources by stamp (default: '
+                        f'{DEFAULT_GT_TOPIC} when the bag has it; given explicitly, it must exist)')
+    p.add_argument('--voxel-size', type=float, default=None,
+                   help='metres (default: --set/--params, else chosen from the target cloud)')
+    p.add_argument('--params', default=None, help='YAML of node/pipeline parameters '
+                   '(ROS format or a plain mapping), e.g. config/register_node.yaml')
+    p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
+                   help='override one parameter (repeatable), e.g. --set core.p1=0.95')
+    p.add_argument('--pairing', choices=MODES, default=None,
                    help="how sources meet targets, as the node's pairing_mode (default: "
                    "the parameters', latest_target)")
-    p.add_argument("--output", type=Path, default=None, help="default: out/replay/<bag>")
-    p.add_argument("--pose-topic", default=DEFAULT_POSE_TOPIC, help="topic in the output bag")
-    p.add_argument("--max-re-deg", type=float, default=DEFAULT_MAX_RE_DEG,
-                   help="success: rotation error at most this (degrees)")
-    p.add_argument("--max-te", type=float, default=None, help="success: translation error at "
-                   f"most this (metres; default {DEFAULT_MAX_TE_VOXELS:g} voxel sizes)")
-    p.add_argument("--quiet", action="store_true", help="no progress, no tables")
-    live = p.add_argument_group("live replay through the ROS node")
-    live.add_argument("--live", action="store_true",
-                      help="publish the bag over DDS into a register_node and record its ~/pose")
-    live.add_argument("--rate", type=float, default=1.0, help="playback speed factor (> 0)")
-    live.add_argument("--no-spawn", dest="spawn", action="store_false",
-                      help="use a running register_node instead of starting one")
-    live.add_argument("--node-name", default="register_node",
-                      help="name of the node to start or listen to (default: %(default)s)")
-    live.add_argument("--timeout", type=float, default=60.0,
-                      help="seconds without progress from the node before giving up")
-    live.add_argument("--startup-timeout", type=float, default=60.0,
+    p.add_argument('--output', type=Path, default=None, help='default: out/replay/<bag>')
+    p.add_argument('--pose-topic', default=DEFAULT_POSE_TOPIC, help='topic in the output bag')
+    p.add_argument('--max-re-deg', type=float, default=DEFAULT_MAX_RE_DEG,
+                   help='success: rotation error at most this (degrees)')
+    p.add_argument('--max-te', type=float, default=None, help='success: translation error at '
+                   f'most this (metres; default {DEFAULT_MAX_TE_VOXELS:g} voxel sizes)')
+    p.add_argument('--quiet', action='store_true', help='no progress, no tables')
+    live = p.add_argument_group('live replay through the ROS node')
+    live.add_argument('--live', action='store_true',
+                      help='publish the bag over DDS into a register_node and record its ~/pose')
+    live.add_argument('--rate', type=float, default=1.0, help='playback speed factor (> 0)')
+    live.add_argument('--no-spawn', dest='spawn', action='store_false',
+                      help='use a running register_node instead of starting one')
+    live.add_argument('--node-name', default='register_node',
+                      help='name of the node to start or listen to (default: %(default)s)')
+    live.add_argument('--timeout', type=float, default=60.0,
+                      help='seconds without progress from the node before giving up')
+    live.add_argument('--startup-timeout', type=float, default=60.0,
                       help="seconds to wait for the node's topics")
     return p
 
@@ -96,7 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
 def options_from_args(args: argparse.Namespace) -> tuple[ReplayOptions, LiveOptions | None]:
     """Return the replay options of the command line, and the live ones with ``--live``."""
     if args.rate <= 0:
-        raise InvalidConfigError(f"--rate must be > 0, got {args.rate}")
+        raise InvalidConfigError(f'--rate must be > 0, got {args.rate}')
     opts = ReplayOptions(
         bag=args.bag, source_topic=args.source_topic, target_topic=args.target_topic,
         ground_truth_topic=args.ground_truth_topic or DEFAULT_GT_TOPIC,
@@ -131,5 +138,5 @@ def main(argv: Sequence[str] | None = None) -> int:
     return run_cli(PROG, body)
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     sys.exit(main())

@@ -1,4 +1,5 @@
-"""What offline and live replay share: the bag's contents, configuration, pairing, report.
+"""
+What offline and live replay share: the bag's contents, configuration, pairing, report.
 
 :func:`read_bag_contents` decodes the bag (:mod:`cgags_ros.io.bag`,
 :mod:`cgags_ros.io.pointcloud2`); :func:`resolve_configs` applies the user's parameters
@@ -10,25 +11,32 @@ ground truth and writes the poses bag and result files.
 from __future__ import annotations
 
 import dataclasses
-import shutil
 from pathlib import Path
+import shutil
 from typing import Any, Iterator, Sequence
 
 import numpy as np
 
+from .report import (
+    BagReport,
+    BrokenMessage,
+    PairRow,
+    pairs_table,
+    SuccessCriteria,
+    summary_line,
+    write_results,
+)
 from ..config import fields
-from ..config.node import NodeConfig, configs_from_parameters
-from ..config.pipeline import PipelineConfig, load_yaml
+from ..config.node import configs_from_parameters, NodeConfig
+from ..config.pipeline import load_yaml, PipelineConfig
 from ..errors import CgagsError, InvalidInputError
 from ..io.bag import BagReader, BagRecord, write_poses_mcap
 from ..io.pointcloud2 import pointcloud2_to_xyz, pose_to_transform
 from ..pipeline.pairing import Pair, Pairer
-from .report import (BagReport, BrokenMessage, PairRow, SuccessCriteria, pairs_table,
-                     summary_line, write_results)
 
-DEFAULT_POSE_TOPIC = "/cgags/pose"
-DEFAULT_GT_TOPIC = "/ground_truth"
-POSES_DIR = "poses"
+DEFAULT_POSE_TOPIC = '/cgags/pose'
+DEFAULT_GT_TOPIC = '/ground_truth'
+POSES_DIR = 'poses'
 AUTO_VOXEL_POINTS = 5000
 DEFAULT_MAX_RE_DEG = 5.0
 DEFAULT_MAX_TE_VOXELS = 3.0
@@ -42,28 +50,31 @@ class ReplayError(CgagsError):
 
 @dataclasses.dataclass(frozen=True)
 class CloudMessage(BagRecord):
-    """A source or target PointCloud2 of the bag: its record, role and decoded points.
+    """
+    A source or target PointCloud2 of the bag: its record, role and decoded points.
 
     ``xyz`` is (N, 3) metres in ``frame_id``, or None when the message could not be decoded
     (then it is also in ``broken``); ``msg`` is None when it could not be deserialized.
     """
 
-    role: str = "source"  # 'source' | 'target'
+    role: str = 'source'  # 'source' | 'target'
     xyz: np.ndarray | None = None
 
     @classmethod
-    def of(cls, rec: BagRecord, role: str, xyz: np.ndarray | None = None) -> "CloudMessage":
+    def of(cls, rec: BagRecord, role: str, xyz: np.ndarray | None = None) -> 'CloudMessage':
         """Return the cloud of a record (a broken record keeps no stamp, frame or msg)."""
         if rec.error:
-            return cls(rec.topic, rec.msgtype, rec.log_time_ns, None, "", None, rec.error, role)
+            return cls(rec.topic, rec.msgtype, rec.log_time_ns, None, '', None, rec.error, role)
         return cls(rec.topic, rec.msgtype, rec.log_time_ns, rec.stamp_ns, rec.frame_id,
                    rec.msg, rec.error, role, xyz)
 
 
 @dataclasses.dataclass
 class BagContents:
-    """Clouds in log-time order, ground truth by source stamp (4x4 source->target), and
-    the broken messages that were skipped."""
+    """
+    Clouds in log-time order, ground truth by source stamp (4x4 source->target), and
+    the broken messages that were skipped.
+    """
 
     path: Path
     clouds: list[CloudMessage]
@@ -73,29 +84,30 @@ class BagContents:
 
     @property
     def sources(self) -> list[CloudMessage]:
-        return [c for c in self.clouds if c.role == "source"]
+        return [c for c in self.clouds if c.role == 'source']
 
     def first_target_points(self) -> np.ndarray | None:
-        return next((c.xyz for c in self.clouds if c.role == "target" and c.xyz is not None), None)
+        return next((c.xyz for c in self.clouds if c.role == 'target' and c.xyz is not None), None)
 
 
 def read_bag_contents(path: str | Path, source_topic: str, target_topic: str,
                       ground_truth_topic: str | None, *,
                       require_ground_truth: bool = False,
                       max_points: int | None = None) -> BagContents:
-    """Read and decode the clouds (and ground truth) of a bag.
+    """
+    Read and decode the clouds (and ground truth) of a bag.
 
     ``ground_truth_topic`` is used when the bag has it; a missing one raises
     BagTopicError only with ``require_ground_truth``. Raises BagError / BagTopicError for a
     bad path or a missing cloud topic.
     """
-    kwargs = {} if max_points is None else {"max_points": max_points}
+    kwargs = {} if max_points is None else {'max_points': max_points}
     with BagReader(path) as reader:
         gt_topic = ground_truth_topic
         if gt_topic and not require_ground_truth and not _has_topic(reader, gt_topic):
             gt_topic = None
         topics = [source_topic, target_topic] + ([gt_topic] if gt_topic else [])
-        roles = {_canonical(source_topic): "source", _canonical(target_topic): "target"}
+        roles = {_canonical(source_topic): 'source', _canonical(target_topic): 'target'}
         clouds, gts, broken = [], {}, []
         for rec in reader.messages(topics):
             if rec.error:
@@ -116,7 +128,7 @@ def read_bag_contents(path: str | Path, source_topic: str, target_topic: str,
 
 
 def _canonical(topic: str) -> str:
-    return "/" + topic.lstrip("/")
+    return '/' + topic.lstrip('/')
 
 
 def _has_topic(reader: BagReader, topic: str) -> bool:
@@ -128,16 +140,18 @@ def _add_ground_truth(rec: Any, gts: dict[int, np.ndarray], broken: list[BrokenM
     try:
         gts[int(rec.stamp_ns)] = pose_to_transform(rec.msg)
     except (AttributeError, TypeError, InvalidInputError) as exc:
-        broken.append(BrokenMessage(rec.topic, rec.stamp_ns, f"bad ground truth pose: {exc}"))
+        broken.append(BrokenMessage(rec.topic, rec.stamp_ns, f'bad ground truth pose: {exc}'))
 
 
 def auto_voxel_size(points: np.ndarray, target_points: int = AUTO_VOXEL_POINTS) -> float:
-    """Voxel size (metres) at which ``points`` keep about ``target_points`` occupied voxels,
-    found by bisection on a log scale and rounded to two significant digits."""
+    """
+    Voxel size (metres) at which ``points`` keep about ``target_points`` occupied voxels,
+    found by bisection on a log scale and rounded to two significant digits.
+    """
     pts = np.asarray(points, dtype=np.float64)
     if len(pts) <= target_points:
-        raise ReplayError(f"cannot choose a voxel size: the target cloud has only {len(pts)} "
-                          "points; pass --voxel-size")
+        raise ReplayError(f'cannot choose a voxel size: the target cloud has only {len(pts)} '
+                          'points; pass --voxel-size')
     pts = pts - pts.min(axis=0)
     diag = float(np.linalg.norm(pts.max(axis=0))) or 1.0
     lo, hi = np.log(diag * 1e-5), np.log(diag)
@@ -147,7 +161,7 @@ def auto_voxel_size(points: np.ndarray, target_points: int = AUTO_VOXEL_POINTS) 
             lo = mid
         else:
             hi = mid
-    return float(f"{np.exp(0.5 * (lo + hi)):.2g}")
+    return float(f'{np.exp(0.5 * (lo + hi)):.2g}')
 
 
 def _occupied_voxels(points: np.ndarray, voxel: float) -> int:
@@ -163,9 +177,9 @@ def user_parameters(params_file: str | None, sets: Sequence[str], voxel_size: fl
         values.update(fields.flatten_mapping(load_yaml(params_file)))
     values.update(fields.parse_key_values(sets))
     if voxel_size is not None:
-        values["voxel_size"] = voxel_size
+        values['voxel_size'] = voxel_size
     if pairing is not None:
-        values["pairing_mode"] = pairing
+        values['pairing_mode'] = pairing
     return values
 
 
@@ -173,20 +187,21 @@ def resolve_configs(values: dict[str, Any], contents: BagContents
                     ) -> tuple[PipelineConfig, NodeConfig, dict[str, Any], str]:
     """Validated configs plus the parameters to hand a node, and how the voxel was chosen."""
     values = dict(values)
-    how = "given"
-    if "voxel_size" not in values:
+    how = 'given'
+    if 'voxel_size' not in values:
         points = contents.first_target_points()
         if points is None:
-            raise ReplayError(f"{contents.path} has no decodable target cloud")
-        values["voxel_size"] = auto_voxel_size(points)
-        how = f"auto: ~{AUTO_VOXEL_POINTS} target points"
+            raise ReplayError(f'{contents.path} has no decodable target cloud')
+        values['voxel_size'] = auto_voxel_size(points)
+        how = f'auto: ~{AUTO_VOXEL_POINTS} target points'
     pipe, node = configs_from_parameters(values)
     flat = {**fields.flatten(pipe), **fields.flatten(node)}
     return pipe, node, {k: flat[k] for k in values}, how
 
 
 def iter_pairs(contents: BagContents, pairer: Pairer) -> Iterator[Pair]:
-    """Yield the pairs of decodable clouds in the order the node would form them.
+    """
+    Yield the pairs of decodable clouds in the order the node would form them.
 
     Payloads are :class:`CloudMessage`. Undecodable clouds are skipped, as the node
     rejects them; ``pairer.counters()`` tells what pairing dropped.
@@ -194,7 +209,7 @@ def iter_pairs(contents: BagContents, pairer: Pairer) -> Iterator[Pair]:
     for cloud in contents.clouds:
         if cloud.xyz is None:
             continue
-        add = pairer.add_source if cloud.role == "source" else pairer.add_target
+        add = pairer.add_source if cloud.role == 'source' else pairer.add_target
         add(cloud.stamp_ns, cloud.frame_id, cloud)
         while (pair := pairer.pop()) is not None:
             yield pair
@@ -205,8 +220,8 @@ class ReplayOptions:
     """What to replay and where the results go (offline and live alike)."""
 
     bag: Path
-    source_topic: str = "/source_cloud"
-    target_topic: str = "/target_cloud"
+    source_topic: str = '/source_cloud'
+    target_topic: str = '/target_cloud'
     ground_truth_topic: str | None = DEFAULT_GT_TOPIC
     require_ground_truth: bool = False
     parameters: dict[str, Any] = dataclasses.field(default_factory=dict)
@@ -219,12 +234,12 @@ class ReplayOptions:
     @property
     def out_dir(self) -> Path:
         """Return the output folder (``out/replay/<bag>`` unless given)."""
-        return self.output or Path("out") / "replay" / self.bag_name
+        return self.output or Path('out') / 'replay' / self.bag_name
 
     @property
     def bag_name(self) -> str:
         """Return the bag's name (its folder, or the .mcap file's stem)."""
-        return self.bag.stem if self.bag.suffix == ".mcap" else self.bag.resolve().name
+        return self.bag.stem if self.bag.suffix == '.mcap' else self.bag.resolve().name
 
 
 @dataclasses.dataclass
@@ -233,7 +248,7 @@ class LiveOptions:
 
     rate: float = 1.0
     spawn: bool = True
-    node_name: str = "register_node"
+    node_name: str = 'register_node'
     timeout: float = 60.0
     startup_timeout: float = 60.0
 
@@ -254,7 +269,7 @@ def load_contents(opts: ReplayOptions) -> BagContents:
                                  opts.ground_truth_topic,
                                  require_ground_truth=opts.require_ground_truth)
     if not contents.sources:
-        raise ReplayError(f"{opts.bag}: topic {opts.source_topic} has no messages")
+        raise ReplayError(f'{opts.bag}: topic {opts.source_topic} has no messages')
     return contents
 
 
@@ -263,7 +278,7 @@ def make_row(index: int, src: CloudMessage, tgt: CloudMessage | None,
     """A row with stamps, frames and ground truth filled in; no estimate yet."""
     return PairRow(index=index, source_stamp_ns=int(src.stamp_ns),
                    target_stamp_ns=None if tgt is None else int(tgt.stamp_ns),
-                   source_frame=src.frame_id, target_frame="" if tgt is None else tgt.frame_id,
+                   source_frame=src.frame_id, target_frame='' if tgt is None else tgt.frame_id,
                    valid=False, ground_truth=contents.ground_truth.get(int(src.stamp_ns)))
 
 
@@ -271,7 +286,7 @@ def note_pairing_drops(report: BagReport, pairer: Pairer) -> None:
     """Add a note per reason for which pairing dropped messages."""
     for reason, value in sorted(pairer.drops.items()):
         if value:
-            report.notes.append(f"pairing dropped {value} message(s): {reason}")
+            report.notes.append(f'pairing dropped {value} message(s): {reason}')
 
 
 def finish_report(report: BagReport, opts: ReplayOptions, contents: BagContents) -> BagReport:
@@ -279,11 +294,11 @@ def finish_report(report: BagReport, opts: ReplayOptions, contents: BagContents)
     for row in report.rows:
         row.evaluate(report.criteria)
     if contents.ground_truth_topic is None:
-        report.notes.append("no ground truth topic: RE/TE and recall not computed")
+        report.notes.append('no ground truth topic: RE/TE and recall not computed')
     out = opts.out_dir
     out.mkdir(parents=True, exist_ok=True)
     poses_dir = out / POSES_DIR
-    if poses_dir.is_dir() and (poses_dir / "metadata.yaml").exists():
+    if poses_dir.is_dir() and (poses_dir / 'metadata.yaml').exists():
         shutil.rmtree(poses_dir)  # our own output of a previous run
     poses = [(r.source_stamp_ns, r.target_frame, r.transform) for r in report.rows
              if r.valid and r.transform is not None]
@@ -299,15 +314,15 @@ def print_report(report: BagReport, paths: dict[str, Path], pose_topic: str) -> 
     """Print the pairs table, broken messages, notes and the summary line."""
     print(pairs_table(report))
     for b in report.broken:
-        stamp = "" if b.stamp_ns is None else f" at {stamp_s(b.stamp_ns)}"
-        print(f"broken message on {b.topic}{stamp}: {b.reason}")
+        stamp = '' if b.stamp_ns is None else f' at {stamp_s(b.stamp_ns)}'
+        print(f'broken message on {b.topic}{stamp}: {b.reason}')
     for note in report.notes:
-        print(f"note: {note}")
+        print(f'note: {note}')
     print(summary_line(report))
-    print(f"wrote {report.output_bag} ({len([r for r in report.rows if r.valid])} poses on "
-          f"{pose_topic}), " + ", ".join(str(p) for p in paths.values()))
+    print(f'wrote {report.output_bag} ({len([r for r in report.rows if r.valid])} poses on '
+          f'{pose_topic}), ' + ', '.join(str(p) for p in paths.values()))
 
 
 def stamp_s(stamp_ns: int | None) -> str:
     """Format a stamp in seconds ("?" when unknown)."""
-    return "?" if stamp_ns is None else f"{stamp_ns * 1e-9:.3f} s"
+    return '?' if stamp_ns is None else f'{stamp_ns * 1e-9:.3f} s'

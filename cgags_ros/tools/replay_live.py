@@ -1,4 +1,5 @@
-"""Live replay (``cgags-replay BAG --live``): the bag's clouds through a running register_node.
+"""
+Live replay (``cgags-replay BAG --live``): the bag's clouds through a running register_node.
 
 Starts ``python -m cgags_ros.register_node`` (unless ``--no-spawn``), publishes every
 deserializable cloud of the bag (raw CDR, like ``ros2 bag play``; broken ones included, the
@@ -19,20 +20,31 @@ queue as deep as the bag (unless given). Its log is ``node.log`` in OUT_DIR.
 from __future__ import annotations
 
 import os
+from pathlib import Path
 import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 from typing import Any
 
+from .replay_common import (
+    BagContents,
+    CloudMessage,
+    finish_report,
+    iter_pairs,
+    LiveOptions,
+    load_contents,
+    make_row,
+    note_pairing_drops,
+    ReplayError,
+    ReplayOptions,
+    resolve_configs,
+    start_report,
+)
+from .report import BagReport, PairRow
 from ..pipeline.pairing import Pairer
 from ..ros import diagnostics
-from ..ros.player import MAX_QUEUE, LiveSession, Received
-from .replay_common import (BagContents, CloudMessage, LiveOptions, ReplayError,
-                            ReplayOptions, finish_report, iter_pairs, load_contents,
-                            make_row, note_pairing_drops, resolve_configs, start_report)
-from .report import BagReport, PairRow
+from ..ros.player import LiveSession, MAX_QUEUE, Received
 
 DIAGNOSTICS_PERIOD_S = 0.1
 SHUTDOWN_GRACE_S = 10.0
@@ -43,13 +55,13 @@ def replay_live(opts: ReplayOptions, live: LiveOptions) -> BagReport:
     start = time.perf_counter()
     contents = load_contents(opts)
     pipe, node_cfg, params, how = resolve_configs(opts.parameters, contents)
-    report = start_report(opts, contents, pipe, node_cfg, "live")
-    report.notes.append(f"voxel size {pipe.voxel_size:g} m ({how})")
+    report = start_report(opts, contents, pipe, node_cfg, 'live')
+    report.notes.append(f'voxel size {pipe.voxel_size:g} m ({how})')
     pairer = Pairer.from_config(node_cfg, queue_depth=MAX_QUEUE)
     expected = {p.source.stamp_ns: p for p in iter_pairs(contents, pairer)}
     note_pairing_drops(report, pairer)
     playable = [c for c in contents.clouds if c.msg is not None]
-    n_sources = sum(c.role == "source" for c in playable)
+    n_sources = sum(c.role == 'source' for c in playable)
     out = opts.out_dir
     out.mkdir(parents=True, exist_ok=True)
     proc = spawn_node(opts, live, params, n_sources, out) if live.spawn else None
@@ -60,8 +72,8 @@ def replay_live(opts: ReplayOptions, live: LiveOptions) -> BagReport:
         sent = play(session, playable, live.rate, proc)
         finished = wait_for_results(session, proc, live, n_sources, len(expected))
         if not finished:
-            report.notes.append(f"stopped waiting: no progress from the node for "
-                                f"{live.timeout:g} s (see node.log)")
+            report.notes.append(f'stopped waiting: no progress from the node for '
+                                f'{live.timeout:g} s (see node.log)')
     finally:
         if session is not None:
             session.close()
@@ -81,16 +93,16 @@ def spawn_node(opts: ReplayOptions, live: LiveOptions, params: dict[str, Any],
     import yaml
 
     depth = max(2, min(n_sources + 1, MAX_QUEUE))
-    values = {"source_qos": "reliable", "source_depth": depth, "queue_depth": depth,
-              "diagnostics_period": DIAGNOSTICS_PERIOD_S}
+    values = {'source_qos': 'reliable', 'source_depth': depth, 'queue_depth': depth,
+              'diagnostics_period': DIAGNOSTICS_PERIOD_S}
     values.update(params)  # the user's own settings win
-    params_file = out / "node_params.yaml"
-    params_file.write_text(yaml.safe_dump({"/**": {"ros__parameters": values}}, sort_keys=False))
-    cmd = [sys.executable, "-m", "cgags_ros.register_node", "--ros-args",
-           "-r", f"__node:={live.node_name}", "--params-file", str(params_file),
-           "-r", f"source_cloud:={opts.source_topic}", "-r", f"target_cloud:={opts.target_topic}"]
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    log = open(out / "node.log", "w", encoding="utf-8")
+    params_file = out / 'node_params.yaml'
+    params_file.write_text(yaml.safe_dump({'/**': {'ros__parameters': values}}, sort_keys=False))
+    cmd = [sys.executable, '-m', 'cgags_ros.register_node', '--ros-args',
+           '-r', f'__node:={live.node_name}', '--params-file', str(params_file),
+           '-r', f'source_cloud:={opts.source_topic}', '-r', f'target_cloud:={opts.target_topic}']
+    env = dict(os.environ, PYTHONUNBUFFERED='1')
+    log = open(out / 'node.log', 'w', encoding='utf-8')
     try:
         return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
     finally:
@@ -103,14 +115,14 @@ def wait_for_node(session: LiveSession, proc: subprocess.Popen | None, opts: Rep
     deadline = time.monotonic() + live.startup_timeout
     while not session.connected():
         if proc is not None and proc.poll() is not None:
-            raise ReplayError(f"register_node exited with code {proc.returncode} before it "
+            raise ReplayError(f'register_node exited with code {proc.returncode} before it '
                               f"connected: {_log_tail(out / 'node.log')}")
         if time.monotonic() > deadline:
-            what = "the spawned register_node" if proc is not None else (
-                f"a running {session.node_id} (started with --no-spawn)")
-            raise ReplayError(f"no connection to {what} within {live.startup_timeout:g} s: "
-                              f"nobody subscribes to {opts.source_topic}/{opts.target_topic} "
-                              f"or publishes {session.node_id}/pose")
+            what = 'the spawned register_node' if proc is not None else (
+                f'a running {session.node_id} (started with --no-spawn)')
+            raise ReplayError(f'no connection to {what} within {live.startup_timeout:g} s: '
+                              f'nobody subscribes to {opts.source_topic}/{opts.target_topic} '
+                              f'or publishes {session.node_id}/pose')
         session.spin_for(0.1)
     session.spin_for(0.3)  # let the transient-local/reliable handshakes settle
 
@@ -131,19 +143,21 @@ def stop_node(proc: subprocess.Popen) -> int | None:
 
 def _log_tail(path: Path, lines: int = 5) -> str:
     try:
-        text = path.read_text(encoding="utf-8", errors="replace").strip().splitlines()
+        text = path.read_text(encoding='utf-8', errors='replace').strip().splitlines()
     except OSError:
-        return "(no log)"
-    return " | ".join(text[-lines:]) or "(empty log)"
+        return '(no log)'
+    return ' | '.join(text[-lines:]) or '(empty log)'
 
 
 # --- playback and recording -----------------------------------------------------------------
 
 def play(session: LiveSession, clouds: list[CloudMessage], rate: float,
          proc: subprocess.Popen | None) -> dict[int, float]:
-    """Publish the clouds at their recorded spacing / rate; returns source stamp -> the
-    monotonic time it was sent."""
-    from rosbags.typesys import Stores, get_typestore
+    """
+    Publish the clouds at their recorded spacing / rate; returns source stamp -> the
+    monotonic time it was sent.
+    """
+    from rosbags.typesys import get_typestore, Stores
 
     store = get_typestore(Stores.ROS2_JAZZY)
     sent: dict[int, float] = {}
@@ -154,19 +168,21 @@ def play(session: LiveSession, clouds: list[CloudMessage], rate: float,
         due = wall0 + (cloud.log_time_ns - t0) * 1e-9 / rate
         session.spin_for(due - time.monotonic())
         if proc is not None and proc.poll() is not None:
-            raise ReplayError(f"register_node exited with code {proc.returncode} during playback")
+            raise ReplayError(f'register_node exited with code {proc.returncode} during playback')
         raw = bytes(store.serialize_cdr(cloud.msg, cloud.msgtype))
-        pub = session.source_pub if cloud.role == "source" else session.target_pub
+        pub = session.source_pub if cloud.role == 'source' else session.target_pub
         pub.publish(raw)
-        if cloud.role == "source" and cloud.stamp_ns is not None:
+        if cloud.role == 'source' and cloud.stamp_ns is not None:
             sent[cloud.stamp_ns] = time.monotonic()
     return sent
 
 
 def wait_for_results(session: LiveSession, proc: subprocess.Popen | None, live: LiveOptions,
                      n_sources: int, n_expected: int) -> bool:
-    """Spin until the node is done with every source; False on ``live.timeout`` without
-    progress or when the node exited."""
+    """
+    Spin until the node is done with every source; False on ``live.timeout`` without
+    progress or when the node exited.
+    """
     session.last_progress = time.monotonic()
     while True:
         session.spin_for(0.1)
@@ -204,19 +220,19 @@ def build_rows(contents: BagContents, expected: dict[int, Any], poses: dict[int,
         row = make_row(len(rows), src, pair.target.payload if pair else None, contents)
         info = details.get(stamp)
         last = diagnostics.last_result(info or {})
-        row.inliers, row.fitness, row.time_s = last["inliers"], last["fitness"], last["time_s"]
+        row.inliers, row.fitness, row.time_s = last['inliers'], last['fitness'], last['time_s']
         got = poses.get(stamp)
         if got is not None:
-            row.valid = last["valid"]
+            row.valid = last['valid']
             row.transform, row.target_frame = got.transform, got.frame_id
             row.latency_s = got.receipt_s - sent[stamp] if stamp in sent else None
-            row.reason = last["reason"]
+            row.reason = last['reason']
         else:
-            row.reason = last["reason"] or "no pose received (see node.log)"
+            row.reason = last['reason'] or 'no pose received (see node.log)'
         rows.append(row)
     return rows
 
 
 def node_notes(stats: dict[str, str]) -> list[str]:
     """Return a note per rejection and drop reason the node counted."""
-    return [f"node {line}" for line in diagnostics.nonzero_drops(stats)]
+    return [f'node {line}' for line in diagnostics.nonzero_drops(stats)]

@@ -1,4 +1,5 @@
-"""Replay results: one row per registered pair, summary numbers, CSV/JSON files, a PNG plot
+"""
+Replay results: one row per registered pair, summary numbers, CSV/JSON files, a PNG plot
 and the tables printed at the end of ``cgags-replay`` and ``cgags-demo``.
 
 Pure bookkeeping: numpy, the geometry metrics and (lazily, Agg backend) matplotlib.
@@ -19,14 +20,14 @@ import numpy as np
 
 from ..geometry import matrix_to_quaternion, rotation_error_deg, translation_error
 
-RESULTS_CSV = "results.csv"
-RESULTS_JSON = "results.json"
-PLOT_PNG = "errors.png"
+RESULTS_CSV = 'results.csv'
+RESULTS_JSON = 'results.json'
+PLOT_PNG = 'errors.png'
 
 CSV_COLUMNS = (
-    "index", "source_stamp_ns", "target_stamp_ns", "source_frame", "target_frame",
-    "valid", "reason", "inliers", "fitness", "time_s", "latency_s", "re_deg", "te_m",
-    "success", "tx", "ty", "tz", "qx", "qy", "qz", "qw",
+    'index', 'source_stamp_ns', 'target_stamp_ns', 'source_frame', 'target_frame',
+    'valid', 'reason', 'inliers', 'fitness', 'time_s', 'latency_s', 're_deg', 'te_m',
+    'success', 'tx', 'ty', 'tz', 'qx', 'qy', 'qz', 'qw',
 )
 
 
@@ -40,7 +41,8 @@ class SuccessCriteria:
 
 @dataclasses.dataclass
 class PairRow:
-    """One source cloud that was registered (offline) or sent to the node (live).
+    """
+    One source cloud that was registered (offline) or sent to the node (live).
 
     ``transform`` is the estimate (4x4 source->target, metres) or None when there is none
     (live replay: the node published nothing for this source). ``time_s`` is the
@@ -55,7 +57,7 @@ class PairRow:
     source_frame: str
     target_frame: str
     valid: bool
-    reason: str = ""
+    reason: str = ''
     inliers: int | None = None
     fitness: float | None = None
     time_s: float | None = None
@@ -67,8 +69,10 @@ class PairRow:
     success: bool | None = None
 
     def evaluate(self, criteria: SuccessCriteria) -> None:
-        """Fill RE/TE/success from ``ground_truth`` (no-op without it). A pair without an
-        estimate, or with an invalid one, is a failure."""
+        """
+        Fill RE/TE/success from ``ground_truth`` (no-op without it). A pair without an
+        estimate, or with an invalid one, is a failure.
+        """
         if self.ground_truth is None:
             return
         if self.transform is None:
@@ -82,16 +86,16 @@ class PairRow:
 
     def csv_row(self) -> dict[str, Any]:
         row = {k: getattr(self, k) for k in CSV_COLUMNS[:14]}
-        row["valid"] = int(self.valid)
-        row["success"] = "" if self.success is None else int(self.success)
+        row['valid'] = int(self.valid)
+        row['success'] = '' if self.success is None else int(self.success)
         pose = _pose7(self.transform)
-        row.update(zip(CSV_COLUMNS[14:], pose if pose is not None else [""] * 7))
-        return {k: ("" if v is None else v) for k, v in row.items()}
+        row.update(zip(CSV_COLUMNS[14:], pose if pose is not None else [''] * 7))
+        return {k: ('' if v is None else v) for k, v in row.items()}
 
     def to_json(self) -> dict[str, Any]:
         out = {k: getattr(self, k) for k in CSV_COLUMNS[:14]}
-        out["transform"] = None if self.transform is None else np.asarray(self.transform).tolist()
-        out["ground_truth"] = (None if self.ground_truth is None
+        out['transform'] = None if self.transform is None else np.asarray(self.transform).tolist()
+        out['ground_truth'] = (None if self.ground_truth is None
                                else np.asarray(self.ground_truth).tolist())
         return _finite_or_none(out)
 
@@ -117,7 +121,7 @@ class BagReport:
     rows: list[PairRow] = dataclasses.field(default_factory=list)
     broken: list[BrokenMessage] = dataclasses.field(default_factory=list)
     notes: list[str] = dataclasses.field(default_factory=list)
-    output_bag: str = ""
+    output_bag: str = ''
     wall_time_s: float = 0.0
 
     @property
@@ -156,19 +160,19 @@ class BagReport:
     def summary(self) -> dict[str, Any]:
         mean_re, mean_te = self.mean_errors()
         return _finite_or_none({
-            "bag": self.bag, "mode": self.mode, "voxel_size": self.voxel_size,
-            "pairing": self.pairing, "pairs": len(self.rows), "valid": self.num_valid,
-            "with_ground_truth": len(self.evaluated), "successes": self.num_success,
-            "recall": self.recall, "mean_re_deg": mean_re, "mean_te_m": mean_te,
-            "median_time_s": self.median_time_s(), "broken_messages": len(self.broken),
-            "max_re_deg": self.criteria.max_re_deg, "max_te_m": self.criteria.max_te_m,
-            "output_bag": self.output_bag, "wall_time_s": self.wall_time_s,
+            'bag': self.bag, 'mode': self.mode, 'voxel_size': self.voxel_size,
+            'pairing': self.pairing, 'pairs': len(self.rows), 'valid': self.num_valid,
+            'with_ground_truth': len(self.evaluated), 'successes': self.num_success,
+            'recall': self.recall, 'mean_re_deg': mean_re, 'mean_te_m': mean_te,
+            'median_time_s': self.median_time_s(), 'broken_messages': len(self.broken),
+            'max_re_deg': self.criteria.max_re_deg, 'max_te_m': self.criteria.max_te_m,
+            'output_bag': self.output_bag, 'wall_time_s': self.wall_time_s,
         })
 
     def to_json(self) -> dict[str, Any]:
-        return {"summary": self.summary(), "pairs": [r.to_json() for r in self.rows],
-                "broken_messages": [dataclasses.asdict(b) for b in self.broken],
-                "notes": list(self.notes)}
+        return {'summary': self.summary(), 'pairs': [r.to_json() for r in self.rows],
+                'broken_messages': [dataclasses.asdict(b) for b in self.broken],
+                'notes': list(self.notes)}
 
 
 # --- files ---------------------------------------------------------------------------------
@@ -177,15 +181,15 @@ def write_results(report: BagReport, out_dir: str | Path) -> dict[str, Path]:
     """Write results.csv, results.json and (with ground truth or timings) errors.png."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    paths = {"csv": out_dir / RESULTS_CSV, "json": out_dir / RESULTS_JSON}
-    with open(paths["csv"], "w", newline="", encoding="utf-8") as f:
+    paths = {'csv': out_dir / RESULTS_CSV, 'json': out_dir / RESULTS_JSON}
+    with open(paths['csv'], 'w', newline='', encoding='utf-8') as f:
         writer = csv.DictWriter(f, fieldnames=CSV_COLUMNS)
         writer.writeheader()
         writer.writerows(r.csv_row() for r in report.rows)
-    with open(paths["json"], "w", encoding="utf-8") as f:
+    with open(paths['json'], 'w', encoding='utf-8') as f:
         json.dump(report.to_json(), f, indent=2)
     if report.rows:
-        paths["plot"] = plot_report(report, out_dir / PLOT_PNG)
+        paths['plot'] = plot_report(report, out_dir / PLOT_PNG)
     return paths
 
 
@@ -193,36 +197,36 @@ def plot_report(report: BagReport, path: str | Path) -> Path:
     """RE, TE (with the success thresholds) and time per pair over the bag's time, PNG."""
     import matplotlib
 
-    matplotlib.use("Agg")
+    matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
     rows = report.rows
     t0 = rows[0].source_stamp_ns
     x = np.array([(r.source_stamp_ns - t0) * 1e-9 for r in rows])
-    panels = [("RE [deg]", [r.re_deg for r in rows], report.criteria.max_re_deg),
-              ("TE [m]", [r.te_m for r in rows], report.criteria.max_te_m),
-              ("time [s]", [r.time_s for r in rows], None)]
+    panels = [('RE [deg]', [r.re_deg for r in rows], report.criteria.max_re_deg),
+              ('TE [m]', [r.te_m for r in rows], report.criteria.max_te_m),
+              ('time [s]', [r.time_s for r in rows], None)]
     if not report.has_ground_truth:
         panels = panels[2:]
     fig, axes = plt.subplots(len(panels), 1, sharex=True, figsize=(7, 2.2 * len(panels) + 0.6),
                              squeeze=False)
     for ax, (label, values, limit) in zip(axes[:, 0], panels):
         y = np.array([np.nan if v is None else v for v in values], dtype=float)
-        colors = ["tab:green" if r.success or (r.success is None and r.valid) else "tab:red"
+        colors = ['tab:green' if r.success or (r.success is None and r.valid) else 'tab:red'
                   for r in rows]
-        ax.plot(x, y, color="0.7", lw=1, zorder=1)
+        ax.plot(x, y, color='0.7', lw=1, zorder=1)
         ax.scatter(x, y, c=colors, s=25, zorder=2)
         if limit is not None:
-            ax.axhline(limit, color="tab:red", ls="--", lw=1, label="success threshold")
-            ax.legend(loc="upper right", fontsize=7)
+            ax.axhline(limit, color='tab:red', ls='--', lw=1, label='success threshold')
+            ax.legend(loc='upper right', fontsize=7)
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
-    axes[-1, 0].set_xlabel("source stamp - first source stamp [s]")
+    axes[-1, 0].set_xlabel('source stamp - first source stamp [s]')
     recall = report.recall
-    title = f"{report.bag} ({report.mode}, voxel {report.voxel_size:g} m)"
+    title = f'{report.bag} ({report.mode}, voxel {report.voxel_size:g} m)'
     if recall is not None:
-        title += f": recall {report.num_success}/{len(report.evaluated)}"
-    axes[0, 0].set_title(title + "  (green: success/valid, red: failure)", fontsize=9)
+        title += f': recall {report.num_success}/{len(report.evaluated)}'
+    axes[0, 0].set_title(title + '  (green: success/valid, red: failure)', fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -233,18 +237,18 @@ def plot_report(report: BagReport, path: str | Path) -> Path:
 
 def markdown_table(headers: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
     """A GitHub markdown table; floats are formatted compactly, None as '-'."""
-    lines = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
-    lines += ["| " + " | ".join(fmt(v) for v in row) + " |" for row in rows]
-    return "\n".join(lines)
+    lines = ['| ' + ' | '.join(headers) + ' |', '|' + '|'.join('---' for _ in headers) + '|']
+    lines += ['| ' + ' | '.join(fmt(v) for v in row) + ' |' for row in rows]
+    return '\n'.join(lines)
 
 
 def fmt(value: Any, digits: int = 4) -> str:
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return "-"
+        return '-'
     if isinstance(value, bool):
-        return "yes" if value else "no"
+        return 'yes' if value else 'no'
     if isinstance(value, float):
-        return f"{value:.{digits}g}"
+        return f'{value:.{digits}g}'
     return str(value)
 
 
@@ -253,23 +257,23 @@ def pairs_table(report: BagReport) -> str:
     t0 = report.rows[0].source_stamp_ns if report.rows else 0
     rows = [(r.index, (r.source_stamp_ns - t0) * 1e-9, r.valid, r.inliers, r.re_deg, r.te_m,
              r.success, r.time_s, r.reason[:60]) for r in report.rows]
-    return markdown_table(("pair", "t [s]", "valid", "inliers", "RE [deg]", "TE [m]", "success",
-                           "time [s]", "reason"), rows)
+    return markdown_table(('pair', 't [s]', 'valid', 'inliers', 'RE [deg]', 'TE [m]', 'success',
+                           'time [s]', 'reason'), rows)
 
 
 def summary_line(report: BagReport) -> str:
     """One line: pairs, valid, recall, mean RE/TE over successes, median time, broken."""
     mean_re, mean_te = report.mean_errors()
-    parts = [f"{report.bag} [{report.mode}]", f"pairs {len(report.rows)}",
-             f"valid {report.num_valid}"]
+    parts = [f'{report.bag} [{report.mode}]', f'pairs {len(report.rows)}',
+             f'valid {report.num_valid}']
     if report.recall is not None:
-        parts.append(f"recall {report.num_success}/{len(report.evaluated)} "
-                     f"({100 * report.recall:.0f}%, RE<={report.criteria.max_re_deg:g} deg, "
-                     f"TE<={report.criteria.max_te_m:g} m)")
-        parts.append(f"mean RE {fmt(mean_re)} deg, mean TE {fmt(mean_te)} m")
-    parts.append(f"median time {fmt(report.median_time_s())} s")
-    parts.append(f"broken messages {len(report.broken)}")
-    return ", ".join(parts)
+        parts.append(f'recall {report.num_success}/{len(report.evaluated)} '
+                     f'({100 * report.recall:.0f}%, RE<={report.criteria.max_re_deg:g} deg, '
+                     f'TE<={report.criteria.max_te_m:g} m)')
+        parts.append(f'mean RE {fmt(mean_re)} deg, mean TE {fmt(mean_te)} m')
+    parts.append(f'median time {fmt(report.median_time_s())} s')
+    parts.append(f'broken messages {len(report.broken)}')
+    return ', '.join(parts)
 
 
 def summary_table(reports: Sequence[BagReport]) -> str:
@@ -277,11 +281,11 @@ def summary_table(reports: Sequence[BagReport]) -> str:
     rows = []
     for rep in reports:
         mean_re, mean_te = rep.mean_errors()
-        recall = None if rep.recall is None else f"{rep.num_success}/{len(rep.evaluated)}"
+        recall = None if rep.recall is None else f'{rep.num_success}/{len(rep.evaluated)}'
         rows.append((rep.bag, rep.mode, rep.voxel_size, len(rep.rows), recall, mean_re,
                      mean_te, rep.median_time_s(), len(rep.broken)))
-    return markdown_table(("bag", "mode", "voxel [m]", "pairs", "recall", "mean RE [deg]",
-                           "mean TE [m]", "median time [s]", "broken"), rows)
+    return markdown_table(('bag', 'mode', 'voxel [m]', 'pairs', 'recall', 'mean RE [deg]',
+                           'mean TE [m]', 'median time [s]', 'broken'), rows)
 
 
 # --- helpers --------------------------------------------------------------------------------

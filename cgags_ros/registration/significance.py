@@ -1,0 +1,72 @@
+"""
+Significance of a consensus: the chance level and the best distinct alternative.
+
+A real motion's consensus must stand above what a wrong hypothesis reaches by chance
+(a non-randomness bound, as in PROSAC) and well above every distinct alternative
+hypothesis; :class:`ConsensusRecord` keeps what both tests need while the search scores
+hypotheses.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .stopping import poisson_isf
+
+_TOP_MODELS = 32  # consensus sets kept for the runner-up
+
+
+class ConsensusRecord:
+    """The inlier counts of unselected hypotheses and the largest consensus sets seen."""
+
+    def __init__(self, n: int, tau: float):
+        self.n, self.tau = n, tau
+        self.chance_counts: list[int] = []  # extra inliers of unselected hypotheses
+        self.num_exact = 0
+        self.top_models: list[tuple[int, np.ndarray]] = []
+
+    def add(self, res: np.ndarray, unselected: int) -> None:
+        """
+        Record a batch of exactly scored hypotheses (residual rows, metres).
+
+        Its first ``unselected`` rows were not chosen by any score: their inlier counts
+        measure the chance consensus level.
+        """
+        inside = res <= self.tau
+        self.chance_counts.extend(np.maximum(inside[:unselected].sum(axis=1) - 3, 0))
+        self.num_exact += len(res)
+        counts = inside.sum(axis=1)
+        floor = self.top_models[-1][0] if len(self.top_models) >= _TOP_MODELS else -1
+        for e in np.flatnonzero(counts > floor):
+            self.top_models.append((int(counts[e]), np.flatnonzero(inside[e])))
+        self.top_models.sort(key=lambda m: -m[0])
+        del self.top_models[_TOP_MODELS:]
+
+    def chance_level(self, p1: float) -> int:
+        """
+        Return the inlier count a wrong hypothesis reaches with probability below 1 - P1.
+
+        Chance inliers of a wrong hypothesis are ~ Poisson(lambda); lambda is estimated
+        from the share of zero counts among hypotheses scored without pre-selection (robust
+        to the few of them that happen to be near the true motion), with a +3 pseudo-count
+        so that a handful of samples cannot make a small consensus look significant.
+        """
+        counts = np.asarray(self.chance_counts)
+        zeros = float((counts == 0).sum()) if len(counts) else 0.0
+        lam = -np.log(max(zeros, 1.0) / (len(counts) + 3.0))
+        alpha = (1.0 - p1) / max(self.num_exact, 1)
+        return 3 + poisson_isf(alpha, lam) + 1
+
+    def runner_up(self, inliers: np.ndarray) -> int:
+        """
+        Return the largest consensus that shares under half of its inliers with ``inliers``.
+
+        A real motion stands well above every distinct alternative.
+        """
+        inside = np.zeros(self.n, dtype=bool)
+        inside[inliers] = True
+        best = 0
+        for count, members in self.top_models:
+            if count > best and 2 * np.count_nonzero(inside[members]) < len(members):
+                best = count
+        return best
