@@ -26,11 +26,15 @@ import numpy as np
 VARIANTS: dict[str, dict] = {
     'paper-literal (uniform edge, uniform vertex, kernel seeds, after_b)': {
         'compatibility': 'binary', 'edge_sampling': 'uniform', 'vertex_sampling': 'uniform',
-        'guided_seed': 'kernel', 'guided_start': 'after_b_hypotheses', 'stage_one_estimate': 'analytic'},
+        'guided_seed': 'kernel', 'guided_start': 'after_b_hypotheses',
+        'stage_one_estimate': 'analytic'},
     'uniform edge + uniform vertex': {'edge_sampling': 'uniform', 'vertex_sampling': 'uniform'},
-    'uniform edge + tournament vertex': {'edge_sampling': 'uniform', 'vertex_sampling': 'tournament'},
-    'tournament edge + uniform vertex': {'edge_sampling': 'tournament', 'vertex_sampling': 'uniform'},
-    'tournament edge + tournament vertex': {'edge_sampling': 'tournament', 'vertex_sampling': 'tournament'},
+    'uniform edge + tournament vertex': {
+        'edge_sampling': 'uniform', 'vertex_sampling': 'tournament'},
+    'tournament edge + uniform vertex': {
+        'edge_sampling': 'tournament', 'vertex_sampling': 'uniform'},
+    'tournament edge + tournament vertex': {
+        'edge_sampling': 'tournament', 'vertex_sampling': 'tournament'},
     'default': {},
     'default, no guided sampling': {'guided_sampling': False},
     'default, guided seeds from kernel': {'guided_seed': 'kernel'},
@@ -53,9 +57,11 @@ VARIANTS: dict[str, dict] = {
 def run_cell(model, n, ratio, cfg, trials, tau, noise, outliers):
     ok, times, hyps = 0, [], []
     for seed in range(trials):
-        prob = make_correspondences(model, n, ratio, noise_sigma=noise, rng=seed, outliers=outliers)
+        prob = make_correspondences(model, n, ratio, noise_sigma=noise, rng=seed,
+                                    outliers=outliers)
         t0 = time.perf_counter()
-        res = register_correspondences(prob.src, prob.dst, inlier_threshold=tau, config=cfg, seed=seed)
+        res = register_correspondences(prob.src, prob.dst, inlier_threshold=tau, config=cfg,
+                                       seed=seed)
         times.append(time.perf_counter() - t0)
         hyps.append(res.num_hypotheses)
         ok += (res.valid and rotation_error_deg(res.transform, prob.transform) < 5.0
@@ -64,7 +70,8 @@ def run_cell(model, n, ratio, cfg, trials, tau, noise, outliers):
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__.strip(),
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--trials', type=int, default=10)
     ap.add_argument('--cells', default='1000:0.95,1000:0.99,5000:0.99,5000:0.995',
                     help='comma-separated N:outlier_ratio')
@@ -76,9 +83,11 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     model = load_bunny()
     cells = [(int(c.split(':')[0]), float(c.split(':')[1])) for c in args.cells.split(',')]
-    names = [v for v in VARIANTS if not args.variants or any(s in v for s in args.variants.split(','))]
+    names = [v for v in VARIANTS
+             if not args.variants or any(s in v for s in args.variants.split(','))]
     header = '| variant | ' + ' | '.join(f'N={n} r={r}' for n, r in cells) + ' |'
-    lines = [f'outliers={args.outliers}, noise={args.noise}, tau={args.tau}, trials={args.trials}; '
+    lines = [f'outliers={args.outliers}, noise={args.noise}, tau={args.tau}, '
+             f'trials={args.trials}; '
              'cell = success % / median ms / median hypotheses', '', header,
              '|' + '---|' * (len(cells) + 1)]
     print('\n'.join(lines), flush=True)
@@ -86,7 +95,8 @@ def main(argv=None) -> None:
         cfg = fields.update_from_flat(CoreConfig(), VARIANTS[name])
         cols = []
         for n, r in cells:
-            s, med, _, h = run_cell(model, n, r, cfg, args.trials, args.tau, args.noise, args.outliers)
+            s, med, _, h = run_cell(model, n, r, cfg, args.trials, args.tau, args.noise,
+                                    args.outliers)
             cols.append(f'{100 * s:.0f} / {1000 * med:.0f} / {h:.0f}')
         line = f'| {name} | ' + ' | '.join(cols) + ' |'
         lines.append(line)

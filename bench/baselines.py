@@ -131,7 +131,7 @@ def open3d_ransac(src: np.ndarray, dst: np.ndarray, tau: float) -> np.ndarray:
 
 
 def kiss_config(tau: float, *, robin_gain: float = 1.0, solver_gain: float = 1.0):
-    """KISSMatcherConfig whose ROBIN and solver noise bounds both equal ``tau``."""
+    """Return a KISSMatcherConfig whose ROBIN and solver noise bounds both equal ``tau``."""
     import kiss_matcher as km
 
     return km.KISSMatcherConfig(

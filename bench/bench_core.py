@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""
+r"""
 Core benchmark (issue 2): our registration core vs Open3D RANSAC vs KISS-Matcher.
 
 All solvers run on the SAME synthetic putative correspondences (Stanford bunny, unit-scaled:
@@ -11,7 +11,8 @@ median and p90 over the trials of a cell; CPU time (all threads of the process) 
 Defaults: outlier ratios 0.9 0.95 0.98 0.99 0.995, N = 1000 and 5000, 20 trials per cell,
 noise sigma 0.01, inlier threshold tau 0.05 (= 5 sigma; an inlier's residual norm
 |N(0, sigma^2 I_3)| exceeds 0.05 with probability ~1e-5), outliers 'uniform' (dst uniform in the
-bounding box of the transformed model, TEASER++ protocol) or 'surface' (dst on another model point).
+bounding box of the transformed model, TEASER++ protocol) or 'surface' (dst on another model
+point).
 Every solver gets the same tau: ours as ``inlier_threshold``, Open3D as
 ``max_correspondence_distance``, KISS-Matcher as both ROBIN and solver noise bounds. The exact
 baseline calls are documented in ``bench/baselines.py``.
@@ -33,7 +34,8 @@ that cannot be imported (e.g. ``ours`` before the core lands) is skipped with a 
 Examples::
 
     .venv/bin/python bench/bench_core.py --quick
-    .venv/bin/python bench/bench_core.py --solvers open3d,kiss --output docs/bench_core.md --json /tmp/b.json
+    .venv/bin/python bench/bench_core.py --solvers open3d,kiss \
+        --output docs/bench_core.md --json /tmp/b.json
     .venv/bin/python bench/bench_core.py --outliers surface --trials 10
 """
 
@@ -59,7 +61,9 @@ if str(ROOT) not in sys.path:
 if str(ROOT / 'bench') not in sys.path:
     sys.path.insert(0, str(ROOT / 'bench'))
 
-import baselines  # noqa: E402
+# Imported only after the sys.path set-up above, which makes bench/ and the repository root
+# importable: hence E402, and I100 for the local module placed before the third-party ones.
+import baselines  # noqa: E402, I100
 from cgags_ros.datasets.synthetic import load_bunny, make_correspondences  # noqa: E402
 from cgags_ros.geometry import rotation_error_deg, translation_error  # noqa: E402
 
@@ -128,8 +132,8 @@ def _make_kiss() -> Solver:
         return SolverOutput(r.transform, r.valid, r.info)
 
     return Solver('kiss', run, 'KISS-Matcher 1.0.2 KISSMatcher(KISSMatcherConfig(voxel_size=tau, '
-                  'robin_noise_bound_gain=1, solver_noise_bound_gain=1)).prune_and_solve(src, dst) '
-                  '(ROBIN and solver noise bounds = tau)')
+                  'robin_noise_bound_gain=1, solver_noise_bound_gain=1))'
+                  '.prune_and_solve(src, dst) (ROBIN and solver noise bounds = tau)')
 
 
 def _make_kiss_scaled(factor: float) -> Solver:
@@ -173,7 +177,8 @@ def load_solvers(names: list[str]) -> tuple[list[Solver], dict[str, str]]:
             elif ':' in name:
                 solvers.append(_make_plugin(name))
             else:
-                raise ValueError(f"unknown solver {name!r} (built-ins: {', '.join(BUILTIN_SOLVERS)}, "
+                raise ValueError(f'unknown solver {name!r} '
+                                 f"(built-ins: {', '.join(BUILTIN_SOLVERS)}, "
                                  'or module:function)')
         except ValueError:
             raise
@@ -302,14 +307,16 @@ def run_benchmark(args: argparse.Namespace) -> dict[str, Any]:
         for n in args.sizes:
             ratio = args.ratios[len(args.ratios) // 2]
             p = make_correspondences(model, n, ratio, noise_sigma=args.noise,
-                                     rng=problem_seed(args.seed, ratio, n, 0), outliers=args.outliers)
+                                     rng=problem_seed(args.seed, ratio, n, 0),
+                                     outliers=args.outliers)
             breakdown[str(n)] = dict(ratio=ratio, **baselines.kiss_prune_and_solve_breakdown(
                 p.src, p.dst, args.tau))
 
     return {
         'settings': {
             'ratios': list(args.ratios), 'sizes': list(args.sizes), 'trials': args.trials,
-            'trials_per_solver': caps, 'max_n_per_solver': max_n, 'noise_sigma': args.noise, 'tau': args.tau,
+            'trials_per_solver': caps, 'max_n_per_solver': max_n, 'noise_sigma': args.noise,
+            'tau': args.tau,
             'outliers': args.outliers, 'seed': args.seed, 'max_re_deg': args.max_re,
             'max_te': args.max_te, 'quick': args.quick, 'model': 'Stanford bunny bun_zipper_res3, '
             '1889 points, unit-scaled (largest extent 1)',
@@ -329,8 +336,9 @@ def environment() -> dict[str, Any]:
     env = {'python': platform.python_version(), 'machine': platform.machine(),
            'cpu_count': os.cpu_count(), 'loadavg_before': list(os.getloadavg()),
            'cgags_ros_path': str(Path(cgags_ros.__file__).resolve().parent),
-           'threads_env': {k: os.environ[k] for k in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS',
-                                                       'MKL_NUM_THREADS') if k in os.environ}}
+           'threads_env': {k: os.environ[k]
+                           for k in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS')
+                           if k in os.environ}}
     for mod in ('numpy', 'scipy', 'open3d', 'kiss_matcher'):
         try:
             env[mod] = importlib.import_module(mod).__version__
@@ -397,7 +405,8 @@ def to_markdown(res: dict[str, Any]) -> str:
         lines.append(row)
     # validity totals
     lines += ['', "Validity flags over all cells (success vs the solver's own valid flag):", '',
-              '| solver | problems | successes | reported valid | valid but wrong | invalid but right |',
+              '| solver | problems | successes | reported valid | valid but wrong '
+              '| invalid but right |',
               '|---|---:|---:|---:|---:|---:|']
     for k in names:
         ss = [c['summary'][k] for c in res['cells'] if c['summary'][k].get('n')]
@@ -408,7 +417,8 @@ def to_markdown(res: dict[str, Any]) -> str:
                         if has_valid else 'n/a | n/a | n/a |'))
     subs = [(c, k, v) for c in res['cells'] for k, v in c.get('on_capped_subset', {}).items()]
     if subs:
-        lines += ['', "Other solvers on the capped solver's problems only (succ % / median ms):", '']
+        lines += ['', "Other solvers on the capped solver's problems only (succ % / median ms):",
+                  '']
         for c, k, v in subs:
             lines.append(f"- ratio {c['ratio']}, N {c['n']} ({k}'s {c['summary'][k]['n']} "
                          'problem(s)): ' + ', '.join(
@@ -446,7 +456,7 @@ def _ints(text: str) -> tuple[int, ...]:
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0],
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--solvers', default=','.join(DEFAULT_SOLVERS),
                     help='comma list of ours, open3d, kiss and/or module:function '
@@ -455,7 +465,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                     help=f"outlier ratios (default {','.join(map(str, DEFAULT_RATIOS))})")
     ap.add_argument('--sizes', type=_ints, default=None,
                     help=f"correspondence counts N (default {','.join(map(str, DEFAULT_SIZES))})")
-    ap.add_argument('--trials', type=int, default=None, help='trials per cell (default 20, quick 5)')
+    ap.add_argument('--trials', type=int, default=None,
+                    help='trials per cell (default 20, quick 5)')
     ap.add_argument('--solver-trials', default=DEFAULT_SOLVER_TRIALS,
                     help="per-solver cap on trials per cell, e.g. 'open3d=1,kiss=10' "
                          "(default: %(default)s; '' for no cap)")

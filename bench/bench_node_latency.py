@@ -29,7 +29,7 @@ import numpy as np  # noqa: E402
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     parser.add_argument('--bag', default=None, help='bag (default: shared data lidar bag)')
     parser.add_argument('--rate', type=float, default=10.0, help='source clouds per second')
     parser.add_argument('--duration', type=float, default=20.0, help='seconds of publishing')

@@ -1,7 +1,10 @@
-"""
-Pipeline benchmark on the bundled bags (issue 3), run by hand::
+r"""
+Pipeline benchmark on the bundled bags (issue 3).
 
-    .venv/bin/python bench/bench_pipeline.py [--bags bunny lidar] [--output out/bench_pipeline.json]
+Run by hand::
+
+    .venv/bin/python bench/bench_pipeline.py [--bags bunny lidar] \
+        [--output out/bench_pipeline.json]
 
 For every bag in ``<shared data>/bags`` (or ``--bags-dir``) and every source cloud with
 ground truth, paired with its target exactly as ``cgags-replay`` pairs them
@@ -149,10 +152,12 @@ class Trial:
     error: str = ''
 
 
-def load_pairs(bag_dir: Path) -> tuple[list[tuple[int, np.ndarray, np.ndarray, np.ndarray]], float]:
+def load_pairs(
+        bag_dir: Path) -> tuple[list[tuple[int, np.ndarray, np.ndarray, np.ndarray]], float]:
     """
-    (stamp, source, target, ground truth) per source with ground truth, and the voxel
-    size cgags-replay would choose for the bag.
+    Return a bag's pairs with ground truth and the voxel size cgags-replay would choose.
+
+    One pair (stamp, source, target, ground truth) per source cloud with ground truth.
     """
     contents = read_bag_contents(bag_dir, '/source_cloud', '/target_cloud', '/ground_truth')
     pairs = []
@@ -196,7 +201,7 @@ def summarize(trials: list[Trial]) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    p = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
     p.add_argument('--bags-dir', type=Path, default=shared_data_dir() / 'bags')
     p.add_argument('--bags', nargs='+', default=None, help='default: every bag in --bags-dir')
     p.add_argument('--methods', nargs='+', choices=sorted(METHODS), default=list(METHODS))

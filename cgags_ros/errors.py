@@ -23,8 +23,10 @@ class InvalidConfigError(CgagsError, ValueError):
 
 class MalformedCloudError(InvalidInputError):
     """
-    A PointCloud2 message cannot be decoded (missing x/y/z, inconsistent sizes, unsupported
-    datatypes). The message names the field or size that is wrong.
+    A PointCloud2 message cannot be decoded.
+
+    Causes: missing x/y/z fields, inconsistent sizes or unsupported datatypes. The message
+    names the field or size that is wrong.
     """
 
 

@@ -71,7 +71,8 @@ def test_deterministic_for_a_seed(bunny):
 def test_result_reports_stages(bunny):
     prob = make_correspondences(bunny, 1000, 0.95, rng=9)
     res = register_correspondences(prob.src, prob.dst, inlier_threshold=TAU)
-    for stage in ('compatibility_graph', 'compatible_sampling', 'guided_sampling', 'refit', 'total'):
+    for stage in ('compatibility_graph', 'compatible_sampling', 'guided_sampling', 'refit',
+                  'total'):
         assert stage in res.timings
     drawn = res.stats['compatible_samples'] + res.stats['guided_samples']
     assert 0 < res.num_hypotheses <= drawn  # triples rejected before fitting are not hypotheses
@@ -119,7 +120,8 @@ def test_incompatible_correspondences_give_a_reason():
 
 @pytest.mark.parametrize('src,dst,error,match', [
     (np.zeros((2, 3)), np.zeros((2, 3)), DegenerateCorrespondencesError, 'at least 3'),
-    (np.ones((10, 3)), np.random.default_rng(0).normal(size=(10, 3)), DegenerateCorrespondencesError, 'identical'),
+    (np.ones((10, 3)), np.random.default_rng(0).normal(size=(10, 3)),
+     DegenerateCorrespondencesError, 'identical'),
     (np.outer(np.arange(10.0), [1, 2, 3]), np.random.default_rng(0).normal(size=(10, 3)),
      DegenerateCorrespondencesError, 'collinear'),
     (np.zeros((10, 2)), np.zeros((10, 2)), InvalidInputError, 'shape'),
@@ -148,7 +150,8 @@ def test_invalid_config_is_rejected(bunny):
 
     prob = make_correspondences(bunny, 100, 0.5, rng=0)
     with pytest.raises(InvalidConfigError, match='p1'):
-        register_correspondences(prob.src, prob.dst, inlier_threshold=TAU, config=CoreConfig(p1=1.5))
+        register_correspondences(prob.src, prob.dst, inlier_threshold=TAU,
+                                 config=CoreConfig(p1=1.5))
     with pytest.raises(InvalidConfigError, match='edge_sampling'):
         register_correspondences(prob.src, prob.dst, inlier_threshold=TAU,
                                  config=CoreConfig(edge_sampling='magic'))

@@ -50,10 +50,12 @@ def test_edge_queries_and_common_neighbourhood():
     rng = np.random.default_rng(0)
     i, j = rng.integers(0, 200, 500), rng.integers(0, 200, 500)
     assert np.array_equal(g.has_edge(i, j), dense[i, j])
-    common = np.unpackbits(g.common(i[:10], j[:10]), axis=1, count=200, bitorder='little').astype(bool)
+    common = np.unpackbits(g.common(i[:10], j[:10]), axis=1, count=200,
+                           bitorder='little').astype(bool)
     assert np.array_equal(common, dense[i[:10]] & dense[j[:10]])
     d = length_consistency(src, dst, i, j)
-    assert np.allclose(d, np.abs(np.linalg.norm(src[i] - src[j], axis=1) - np.linalg.norm(dst[i] - dst[j], axis=1)))
+    assert np.allclose(d, np.abs(np.linalg.norm(src[i] - src[j], axis=1)
+                                 - np.linalg.norm(dst[i] - dst[j], axis=1)))
 
 
 def test_memory_is_bit_packed():

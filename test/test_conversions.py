@@ -1,4 +1,8 @@
-"""cgags_ros.io.pointcloud2 and ros.conversions: PointCloud2 layouts, malformed clouds, poses, quaternions."""
+"""
+PointCloud2 layouts, malformed clouds, poses and quaternions.
+
+Tests of cgags_ros.io.pointcloud2 and cgags_ros.ros.conversions.
+"""
 
 from __future__ import annotations
 
@@ -22,7 +26,7 @@ def field(name, offset, datatype, count=1):
 
 def make_cloud(points, *, layout=(('x', 7), ('y', 7), ('z', 7)), pad_point=0, pad_row=0,
                height=1, bigendian=False, extra=()):
-    """A duck-typed PointCloud2 with arbitrary field order/types/padding/endianness."""
+    """Build a duck-typed PointCloud2 with arbitrary field order/types/padding/endianness."""
     points = np.asarray(points, dtype=np.float64)
     n = len(points)
     width = n // height
@@ -146,8 +150,8 @@ def test_quaternion_matrix_round_trip_including_near_180_degrees():
 
 
 def test_pose_round_trip_rclpy_and_duck_typed():
-    T = geometry.make_transform(Rotation.from_euler('xyz', [10, -20, 170], degrees=True).as_matrix(),
-                            [1.0, -2.0, 0.5])
+    T = geometry.make_transform(
+        Rotation.from_euler('xyz', [10, -20, 170], degrees=True).as_matrix(), [1.0, -2.0, 0.5])
     pose = conv.transform_to_pose(T)
     np.testing.assert_allclose(pc2.pose_to_transform(pose), T, atol=1e-12)
     from std_msgs.msg import Header
@@ -157,7 +161,9 @@ def test_pose_round_trip_rclpy_and_duck_typed():
     tf = conv.transform_to_transform_stamped(T, Header(frame_id='map'), 'base')
     np.testing.assert_allclose(pc2.pose_to_transform(tf), T, atol=1e-12)
     ns = types.SimpleNamespace
-    duck = ns(header=None, pose=ns(position=ns(x=1.0, y=-2.0, z=0.5),
-                                   orientation=ns(**dict(zip('xyzw', geometry.matrix_to_quaternion(T[:3, :3]))))))
+    duck = ns(header=None, pose=ns(
+        position=ns(x=1.0, y=-2.0, z=0.5),
+        orientation=ns(**dict(zip('xyzw', geometry.matrix_to_quaternion(T[:3, :3]))))))
     np.testing.assert_allclose(pc2.pose_to_transform(duck), T, atol=1e-12)
-    assert pc2.stamp_to_ns(conv.ns_to_stamp(1_700_000_000_500_000_001)) == 1_700_000_000_500_000_001
+    assert (pc2.stamp_to_ns(conv.ns_to_stamp(1_700_000_000_500_000_001))
+            == 1_700_000_000_500_000_001)

@@ -84,8 +84,10 @@ def test_ratio_test_and_cap_keep_the_best(bunny):
 
 def _reference_matches(a, b, mutual, ratio):
     """
-    match_features by definition, from the full exact distance matrix (no zero rows),
-    and the source rows whose nearest target is tied (any of the tied ones is right).
+    Compute match_features by definition, from the full exact distance matrix.
+
+    The inputs have no zero rows. Also return the source rows whose nearest target is tied
+    (any of the tied ones is right).
     """
     D = cdist(a, b)
     order = np.argsort(D, axis=1, kind='stable')
@@ -103,10 +105,12 @@ def _reference_matches(a, b, mutual, ratio):
 @pytest.mark.parametrize('mutual, ratio', [(True, 1.0), (True, 0.8), (False, 0.9)])
 def test_matches_equal_exact_brute_force(mutual, ratio):
     """
-    FPFH-like histograms (33 bins, sums of 300) with exact duplicates, as sparse clouds
-    give: the blockwise matrix-product search must agree with exact distances. Duplicate
-    targets make the only ties; the ratio test rejects every tie, while with the mutual
-    filter alone a source whose nearest target is duplicated may pair with any copy.
+    Check that the blockwise matrix-product search agrees with exact distances.
+
+    The inputs are FPFH-like histograms (33 bins, sums of 300) with exact duplicates, as
+    sparse clouds give. Duplicate targets make the only ties; the ratio test rejects every
+    tie, while with the mutual filter alone a source whose nearest target is duplicated may
+    pair with any copy.
     """
     rng = np.random.default_rng(3)
     b = rng.dirichlet(np.ones(33) * 0.3, 700) * 300
@@ -143,6 +147,8 @@ def test_nearest_rows_blocks_and_second_neighbour():
 
 def test_nearest_row_float32_path_is_exact_on_near_ties():
     """
+    Check that the float32 path of nearest_rows ranks near-ties by the exact distance.
+
     k = 1 runs in float32 (squared norms ~1e5 like FPFH, rounding ~1e-2): near-duplicate
     and exactly duplicated reference rows must still be ranked by the exact distance, ties
     to the lower index.
@@ -179,8 +185,10 @@ def test_zero_descriptors_never_match():
 
 def test_normals_are_frame_independent_with_origin_orientation(bunny):
     """
-    Rotating the cloud about the origin rotates FPFH inputs consistently: the same
-    voxel centroids get the same descriptors (sign of normals follows the viewpoint).
+    Check that rotating the cloud about the origin rotates the FPFH inputs consistently.
+
+    The same voxel centroids get the same descriptors (the sign of the normals follows the
+    viewpoint).
     """
     fs, _, _ = bunny
     R = Rotation.from_euler('xyz', [40, -70, 120], degrees=True).as_matrix()

@@ -33,6 +33,17 @@ def test_text_with_header_and_extra_columns(tmp_path):
     np.testing.assert_array_equal(read_cloud(tmp_path / 'c.csv'), [[1, 2, 3], [4, 5, 6]])
 
 
+@pytest.mark.parametrize('text', [
+    '# x y z\n1 2 3\n4\t5   6\n',  # whitespace-separated .csv, as some datasets ship
+    'x;y;z\n1;2;3\n4;5;6\n',
+    'x\ty\tz\n1\t2\t3\n4\t5\t6\n',
+    '1, 2, 3\n4, 5, 6\n',
+])
+def test_text_delimiter_is_detected(tmp_path, text):
+    (tmp_path / 'c.csv').write_text(text)
+    np.testing.assert_array_equal(read_cloud(tmp_path / 'c.csv'), [[1, 2, 3], [4, 5, 6]])
+
+
 def test_truncated_binary_files_fail_loudly(tmp_path, data_dir):
     # Open3D would return zero-padded points here; we must not.
     raw = (data_dir / 'lidar/small_gicp/source.ply').read_bytes()

@@ -84,8 +84,10 @@ def test_synchronized_drops_are_counted_with_reasons():
 
 def test_synchronized_on_lidar_bag_stamps(data_dir):
     """
-    The LiDAR bag's first source (0.1 s) sits between targets 0.0 and 0.2: with a 50 ms
-    slop it is dropped, the five others pair with the equal-stamp target.
+    Pair the LiDAR bag's sources with their equal-stamp targets under a 50 ms slop.
+
+    The bag's first source (0.1 s) sits between targets 0.0 and 0.2: with a 50 ms slop it is
+    dropped, the five others pair with the equal-stamp target.
     """
     p = Pairer('synchronized', slop=0.05, queue_depth=10, max_waiting_sources=3)
     for rec in read_messages(data_dir / 'bags' / 'lidar', ['/source_cloud', '/target_cloud']):

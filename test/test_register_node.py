@@ -26,7 +26,9 @@ import pytest  # noqa: E402
 
 rclpy = pytest.importorskip('rclpy')
 
-from cgags_ros.config import PipelineConfig  # noqa: E402
+# Imported only after the environment set-up and the rclpy skip above: hence E402, and I100
+# for the first-party block placed after numpy and pytest.
+from cgags_ros.config import PipelineConfig  # noqa: E402, I100
 from cgags_ros.datasets.synthetic import terrain_patch  # noqa: E402
 from cgags_ros.errors import InvalidConfigError  # noqa: E402
 from cgags_ros.geometry import rotation_error_deg, translation_error  # noqa: E402
@@ -54,8 +56,10 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
 
 def wait_for(predicate, timeout, what, detail=None):
     """
-    Poll until ``predicate()`` is truthy; fail (with ``detail()``, e.g. the node's
-    counters and last rejection reason) after ``timeout`` seconds instead of hanging.
+    Poll until ``predicate()`` is truthy and return its value.
+
+    Fail after ``timeout`` seconds instead of hanging, with ``detail()`` (e.g. the node's
+    counters and last rejection reason) in the message.
     """
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -132,7 +136,7 @@ class IO:
 
 @pytest.fixture(scope='module')
 def ros():
-    """rclpy context + an executor thread spinning the io node and any node added."""
+    """Provide an rclpy context and an executor thread spinning the io node and any node added."""
     rclpy.init()
     io = IO()
     executor = SingleThreadedExecutor()
@@ -235,6 +239,8 @@ def test_invalid_startup_parameter_raises(ros):
 
 def test_callbacks_after_context_shutdown_do_not_raise():
     """
+    Check that callbacks running after the context has shut down end quietly.
+
     SIGTERM shuts the context down while the executor may still dispatch the
     diagnostics timer or the worker may still publish a pose; that must end quietly, not
     as an RCLError that makes rclpy.spin() raise and the node exit 1 (seen once in CI).
@@ -262,6 +268,8 @@ def test_callbacks_after_context_shutdown_do_not_raise():
 
 def test_isolated_registration_sends_an_unchanged_target_once(monkeypatch):
     """
+    Check that the registration process is sent an unchanged target only once.
+
     The registration process keeps the last target: the same array object is not sent
     again, a new one is, and after a restart (fresh process) it is sent again. Results equal
     the pipeline run in this process.
@@ -311,8 +319,10 @@ def test_isolated_registration_sends_an_unchanged_target_once(monkeypatch):
 
 def test_latched_target_then_live_voxel_changes_across_bags(ros, data_dir):
     """
-    bunny with a map latched before the node starts, then redkitchen and lidar after
-    changing voxel_size live on the same node.
+    Register with a latched target, then with voxel_size changed live, across three bags.
+
+    The bunny bag runs with a map latched before the node starts, then redkitchen and lidar
+    after changing voxel_size live on the same node.
     """
     executor, io = ros
     bunny = bag(data_dir, 'bunny')

@@ -1,6 +1,8 @@
 """
-cgags-replay on the bundled bags: offline and live (through register_node), the output
-files, broken messages and the CLI's errors. Bags: ../shared/data/bags (see conftest).
+Tests of cgags-replay on the bundled bags.
+
+They cover offline and live replay (through register_node), the output files, broken
+messages and the CLI's errors. Bags: ../shared/data/bags (see conftest).
 """
 
 from __future__ import annotations
@@ -117,7 +119,7 @@ def test_output_files(offline_reports, live_reports, out, mode):
 
 def test_ground_truth_matched_by_stamp(bags):
     contents = replay_common.read_bag_contents(bags / 'lidar', '/source_cloud', '/target_cloud',
-                                        '/ground_truth')
+                                               '/ground_truth')
     stamps = [c.stamp_ns for c in contents.sources]
     assert sorted(contents.ground_truth) == stamps
 

@@ -25,7 +25,8 @@ def test_kabsch_never_returns_a_reflection():
 
 def test_kabsch_least_squares_on_noisy_points_and_residuals():
     rng = np.random.default_rng(2)
-    T = make_transform(Rotation.from_euler('xyz', [10, -20, 30], degrees=True).as_matrix(), [1, 2, 3])
+    T = make_transform(Rotation.from_euler('xyz', [10, -20, 30], degrees=True).as_matrix(),
+                       [1, 2, 3])
     src = rng.uniform(-1, 1, (500, 3))
     dst = src @ T[:3, :3].T + T[:3, 3] + rng.normal(0, 0.001, (500, 3))
     est = kabsch(src, dst)

@@ -45,7 +45,8 @@ def _check_field(owner: str, f: dataclasses.Field, value: Any) -> Any:
             raise InvalidConfigError(f'{name} must be true or false, got {value!r}')
         return value
     if isinstance(default, int) and not isinstance(default, bool):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or float(value) != int(value):
+        if (isinstance(value, bool) or not isinstance(value, (int, float))
+                or float(value) != int(value)):
             raise InvalidConfigError(f'{name} must be an integer, got {value!r}')
         value = int(value)
     elif isinstance(default, float) or (default is None and isinstance(value, (int, float))):
@@ -63,7 +64,8 @@ def _check_field(owner: str, f: dataclasses.Field, value: Any) -> Any:
     if high is not None and value > high:
         raise InvalidConfigError(f'{name} = {value!r} is above its maximum {high}')
     if choices is not None and value not in choices:
-        raise InvalidConfigError(f"{name} = {value!r} is not one of {', '.join(map(str, choices))}")
+        allowed = ', '.join(map(str, choices))
+        raise InvalidConfigError(f'{name} = {value!r} is not one of {allowed}')
     return value
 
 
@@ -94,7 +96,11 @@ def flatten(cfg: Any, _prefix: str = '') -> dict[str, Any]:
 
 
 def describe(cls_or_cfg: Any, _prefix: str = '') -> dict[str, dict[str, Any]]:
-    """Flattened field metadata: ``{key: {description, low, high, choices, advanced, default}}``."""
+    """
+    Return the flattened field metadata of a config class or instance.
+
+    The result is ``{key: {description, low, high, choices, advanced, default}}``.
+    """
     cfg = cls_or_cfg() if isinstance(cls_or_cfg, type) else cls_or_cfg
     out: dict[str, dict[str, Any]] = {}
     for f in dataclasses.fields(cfg):
@@ -146,8 +152,10 @@ def _deepcopy(cfg: Any) -> Any:
 
 def parse_key_values(items: Sequence[str]) -> dict[str, Any]:
     """
-    Command-line overrides ``['core.p1=0.9', 'refine.method=gicp']`` -> a dict with
-    YAML-typed values (3 -> int, true -> bool). Raises InvalidConfigError on a bad item.
+    Parse command-line overrides into a dict with YAML-typed values.
+
+    ``['core.p1=0.9', 'refine.method=gicp']`` becomes ``{'core.p1': 0.9, 'refine.method':
+    'gicp'}`` (3 -> int, true -> bool). Raises InvalidConfigError on a bad item.
     """
     import yaml
 

@@ -130,8 +130,10 @@ def configs_from_parameters(values: Mapping[str, Any], *,
                             base: tuple[PipelineConfig, NodeConfig] | None = None
                             ) -> tuple[PipelineConfig, NodeConfig]:
     """
-    Validated (PipelineConfig, NodeConfig) from flat parameters applied over ``base``
-    (defaults when None). Raises InvalidConfigError with the offending key.
+    Return a validated (PipelineConfig, NodeConfig) from flat parameters.
+
+    The parameters are applied over ``base`` (the defaults when None). Raises
+    InvalidConfigError with the offending key.
     """
     pipe_base, node_base = base or (PipelineConfig(), NodeConfig())
     pipe, node = split_parameters(values)

@@ -16,7 +16,7 @@ from ..errors import InvalidInputError
 
 
 def parse_gt_pairs(text: str, origin: str = 'gt_pairs.txt') -> list[tuple[str, str, np.ndarray]]:
-    """[(source name, target name, 4x4 source->target transform)] in file order."""
+    """Parse ``text`` into [(source name, target name, 4x4 source->target T)], file order."""
     pairs: list[tuple[str, str, np.ndarray]] = []
     names: tuple[str, str] | None = None
     rows: list[list[float]] = []
@@ -53,7 +53,7 @@ def read_gt_pairs(path: str | Path) -> list[tuple[Path, Path, np.ndarray]]:
 
 
 def find_pair(path: str | Path, source: str, target: str) -> tuple[Path, Path, np.ndarray]:
-    """The pair of ``path`` whose source and target file names are ``source``/``target``."""
+    """Return the pair of ``path`` whose source and target file names are given."""
     for s, t, T in read_gt_pairs(path):
         if s.name == source and t.name == target:
             return s, t, T

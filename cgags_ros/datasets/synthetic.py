@@ -21,7 +21,7 @@ BUNNY_MODEL = 'objects/teaser/bun_zipper_res3.ply'
 
 
 def shared_data_dir() -> Path:
-    """``../shared/data`` relative to the repository root (override with CGAGS_DATA_DIR)."""
+    """Return ``../shared/data`` relative to the repository root (or CGAGS_DATA_DIR)."""
     import os
 
     return Path(os.environ.get('CGAGS_DATA_DIR', DEFAULT_SHARED_DATA))
@@ -34,14 +34,16 @@ def unit_scale(points: np.ndarray) -> np.ndarray:
 
 
 def load_bunny(data_dir: str | Path | None = None) -> np.ndarray:
-    """The Stanford bunny model (1889 points), unit-scaled."""
+    """Load the Stanford bunny model (1889 points), unit-scaled."""
     return unit_scale(read_cloud(Path(data_dir or shared_data_dir()) / BUNNY_MODEL))
 
 
 def terrain_patch(rng: np.random.Generator, n: int = 4000) -> np.ndarray:
     """
-    (n, 3) points of a 4 m x 4 m terrain patch with three Gaussian bumps (metres): enough
-    relief for FPFH and a fully constrained rigid fit (``pipeline.warm_up``, node tests).
+    Sample (n, 3) points of a 4 m x 4 m terrain patch with three Gaussian bumps (metres).
+
+    The patch has enough relief for FPFH and a fully constrained rigid fit
+    (``pipeline.warm_up``, node tests).
     """
     xy = rng.uniform(-2.0, 2.0, (n, 2))
     bumps = ((0.7, 0.5, 0.8, 0.3), (-0.9, -0.2, 0.5, 0.1), (0.1, -1.1, -0.6, 0.5))
@@ -51,7 +53,7 @@ def terrain_patch(rng: np.random.Generator, n: int = 4000) -> np.ndarray:
 
 
 def random_transform(rng: np.random.Generator, max_translation: float = 1.0) -> np.ndarray:
-    """Uniformly random rotation (any angle) and a translation in [-t, t]^3."""
+    """Draw a uniformly random rotation (any angle) and a translation in [-t, t]^3."""
     T = np.eye(4)
     T[:3, :3] = Rotation.random(random_state=rng).as_matrix()
     T[:3, 3] = rng.uniform(-max_translation, max_translation, 3)
@@ -72,7 +74,7 @@ def make_correspondences(model: np.ndarray, n: int, outlier_ratio: float, *,
                          outliers: str = 'uniform',
                          transform: np.ndarray | None = None) -> SyntheticProblem:
     """
-    N putative correspondences of which round((1 - outlier_ratio) N) are inliers.
+    Build N putative correspondences of which round((1 - outlier_ratio) N) are inliers.
 
     Inliers: ``src`` a model point, ``dst = R src + t + N(0, sigma^2 I)``.
     Outliers (``outliers``): ``'uniform'`` puts ``dst`` uniformly in the bounding box of the
@@ -97,7 +99,8 @@ def make_correspondences(model: np.ndarray, n: int, outlier_ratio: float, *,
         lo, hi = moved.min(axis=0), moved.max(axis=0)
         dst[n_in:] = rng.uniform(lo, hi, (n_out, 3))
     elif outliers == 'surface':
-        dst[n_in:] = moved[rng.integers(0, len(model), n_out)] + rng.normal(0.0, noise_sigma, (n_out, 3))
+        dst[n_in:] = (moved[rng.integers(0, len(model), n_out)]
+                      + rng.normal(0.0, noise_sigma, (n_out, 3)))
     else:
         raise ValueError(f"outliers must be 'uniform' or 'surface', got {outliers!r}")
     mask = np.zeros(n, dtype=bool)

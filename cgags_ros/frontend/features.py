@@ -25,12 +25,11 @@ class CloudFeatures:
     """
     One downsampled cloud and what the front end computed on it (cloud's own frame).
 
-    Attributes:
-        points: (M, 3) voxel centroids, metres.
-        normals: (M, 3) unit normals, oriented per ``FrontEndConfig.normal_orientation``.
-        descriptors: (M, 33) FPFH histograms.
-        resolution: pr, the mean nearest-neighbour distance of ``points``, metres.
-        tree: k-d tree over ``points`` (built for ``resolution``, reused by the gates).
+    :ivar points: (M, 3) voxel centroids, metres.
+    :ivar normals: (M, 3) unit normals, oriented per ``FrontEndConfig.normal_orientation``.
+    :ivar descriptors: (M, 33) FPFH histograms.
+    :ivar resolution: pr, the mean nearest-neighbour distance of ``points``, metres.
+    :ivar tree: k-d tree over ``points`` (built for ``resolution``, reused by the gates).
     """
 
     points: np.ndarray
@@ -42,11 +41,13 @@ class CloudFeatures:
 
 def finite_points(points: np.ndarray, name: str = 'cloud') -> np.ndarray:
     """
-    (N, 3) float64 ``points`` without non-finite rows (``points`` itself, not a copy, when
-    it is already a clean float64 array: the front end never writes to it).
+    Return the (N, 3) float64 ``points`` without their non-finite rows.
 
-    Raises InvalidInputError for a wrong shape or non-numeric data and EmptyCloudError
-    when no finite point is left.
+    The result is ``points`` itself, not a copy, when it is already a clean float64 array:
+    the front end never writes to it.
+
+    :raises InvalidInputError: for a wrong shape or non-numeric data.
+    :raises EmptyCloudError: when no finite point is left.
     """
     try:
         pts = np.asarray(points, dtype=np.float64)
@@ -66,7 +67,11 @@ def finite_points(points: np.ndarray, name: str = 'cloud') -> np.ndarray:
 
 def downsample(points: np.ndarray, voxel_size: float, min_points: int,
                name: str = 'cloud') -> np.ndarray:
-    """Voxel-grid centroids (metres). EmptyCloudError when fewer than ``min_points`` remain."""
+    """
+    Return the voxel-grid centroids of ``points`` (metres).
+
+    :raises EmptyCloudError: when fewer than ``min_points`` remain.
+    """
     down = np.asarray(_o3d_cloud(points).voxel_down_sample(voxel_size).points)
     if len(down) < min_points:
         raise EmptyCloudError(
@@ -79,8 +84,10 @@ def downsample(points: np.ndarray, voxel_size: float, min_points: int,
 def estimate_normals(points: np.ndarray, voxel_size: float,
                      config: FrontEndConfig) -> np.ndarray:
     """
-    Unit PCA normals from neighbours within ``normal_radius_factor * v``, oriented per
-    ``normal_orientation`` (PCA's own sign changes with the frame, and FPFH with it).
+    Estimate unit PCA normals from the neighbours within ``normal_radius_factor * v``.
+
+    They are oriented per ``normal_orientation``: PCA's own sign changes with the frame, and
+    FPFH with it.
     """
     cloud = _tensor_cloud(points)
     cloud.estimate_normals(max_nn=config.normal_max_nn,
@@ -97,11 +104,11 @@ def estimate_normals(points: np.ndarray, voxel_size: float,
 def compute_fpfh(points: np.ndarray, normals: np.ndarray, voxel_size: float,
                  config: FrontEndConfig) -> np.ndarray:
     """
-    (M, 33) FPFH descriptors with radius ``fpfh_radius_factor * v``.
+    Compute the (M, 33) FPFH descriptors with radius ``fpfh_radius_factor * v``.
 
-    Open3D's tensor implementation (hybrid search, float64): the same values as the legacy
-    ``pipelines.registration.compute_fpfh_feature`` in about half its time; tensor normals
-    likewise match the legacy ones, faster (docs/implementation.md).
+    Open3D's tensor implementation (hybrid search, float64) gives the same values as the
+    legacy ``pipelines.registration.compute_fpfh_feature`` and is faster; tensor normals
+    likewise match the legacy ones (docs/implementation.md).
     """
     cloud = _tensor_cloud(points, normals)
     feature = o3d.t.pipelines.registration.compute_fpfh_feature(
@@ -112,7 +119,11 @@ def compute_fpfh(points: np.ndarray, normals: np.ndarray, voxel_size: float,
 def extract_features(points: np.ndarray, voxel_size: float, config: FrontEndConfig,
                      name: str = 'cloud',
                      timings: dict[str, float] | None = None) -> CloudFeatures:
-    """finite points -> downsample -> normals -> FPFH; adds stage seconds to ``timings``."""
+    """
+    Extract features: finite points -> downsample -> normals -> FPFH.
+
+    Each stage's seconds are added to ``timings``.
+    """
     timings = {} if timings is None else timings
     with timed(timings, 'downsample'):
         down = downsample(finite_points(points, name), voxel_size, config.min_points, name)

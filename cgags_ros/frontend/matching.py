@@ -36,7 +36,7 @@ class Correspondences:
 def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfig,
                    workers: int = 1) -> Correspondences:
     """
-    Nearest neighbours in descriptor space, source -> target, best first.
+    Match descriptors by nearest neighbour, source -> target, best first.
 
     Keeps only mutual nearest neighbours (``mutual_filter``), then Lowe's ratio test
     (``ratio_test`` < 1), then at most ``max_correspondences`` by descriptor distance.
@@ -81,8 +81,10 @@ _pool_lock = threading.Lock()
 def nearest_rows(query: np.ndarray, reference: np.ndarray, k: int = 1,
                  workers: int = 1) -> np.ndarray:
     """
-    (len(query), k) indices of the ``k`` rows of ``reference`` nearest to each query row
-    (Euclidean), nearest first; k is 1 or 2 (``reference`` needs at least k rows).
+    Return the indices of the ``k`` rows of ``reference`` nearest to each query row.
+
+    The result is (len(query), k), nearest first, by Euclidean distance; k is 1 or 2
+    (``reference`` needs at least k rows).
 
     k = 1 is computed in float32 with an exact float64 decision wherever float32 rounding
     could change the answer (:func:`_nearest_row32`); k = 2 by the float64 expansion below.
@@ -95,9 +97,9 @@ def nearest_rows(query: np.ndarray, reference: np.ndarray, k: int = 1,
     Brute force by blocks of one matrix product: ``|q - r|^2 = |q|^2 - 2 q.r + |r|^2``, and
     ``|q|^2`` is constant along a row, so ``[q, 1] @ [-2 r, |r|^2]^T`` ranks the same. For
     33-D FPFH a k-d tree prunes little: this is faster than scipy's cKDTree at the sizes
-    the pipeline matches. The expansion is exact up to ~1e-15 of the squared norms, which cannot tell
-    duplicates (distance 0, common among sparse FPFH) from near-duplicates: rows whose second
-    neighbour is that close are ranked again from the exact differences.
+    the pipeline matches. The expansion is exact up to ~1e-15 of the squared norms, which
+    cannot tell duplicates (distance 0, common among sparse FPFH) from near-duplicates: rows
+    whose second neighbour is that close are ranked again from the exact differences.
     """
     step = max(1, _BLOCK_ELEMENTS // max(len(reference), 1))
     if workers > 1 and len(query) >= 2 * step:
@@ -126,16 +128,15 @@ _F32_TOL = 1e-5
 
 def _nearest_row32(query: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """
-    ``_nearest_rows(query, reference, 1)`` from float32 products, exact.
+    Compute ``_nearest_rows(query, reference, 1)`` from float32 products, exactly.
 
     The expansion in float32 (descriptors centred on the reference mean, so that the
-    squared norms, hence the rounding, are smaller) halves the product and argmin time.
-    A row whose float32 runner-up is within twice the rounding bound of its minimum (a few
-    per cent of the rows: mostly near-duplicate descriptors) is decided by exact float64
-    distances to
-    every reference row in that window, ties to the lower index; so the answer never
-    depends on float32 rounding, and near-duplicates are ranked more exactly than by the
-    float64 expansion.
+    squared norms, hence the rounding, are smaller) moves half the bytes of float64, which
+    makes the products and argmins faster. A row whose float32 runner-up is within twice
+    the rounding bound of its minimum (few rows: mostly near-duplicate descriptors) is
+    decided by exact float64 distances to every reference row in that window, ties to the
+    lower index; so the answer never depends on float32 rounding, and near-duplicates are
+    ranked more exactly than by the float64 expansion.
     """
     centre = reference.mean(axis=0)
     q, ref = query - centre, reference - centre
@@ -193,8 +194,10 @@ def _nearest_rows(query: np.ndarray, reference: np.ndarray, k: int) -> np.ndarra
 def _exact_nearest(query: np.ndarray, reference: np.ndarray, candidates: np.ndarray,
                    k: int) -> np.ndarray:
     """
-    (len(query), k): the k nearest among the ``candidates`` mask (rows x reference; every
-    row holds at least k), exact distances, ties to the lower index.
+    Return the (len(query), k) indices of the k nearest rows among ``candidates``.
+
+    ``candidates`` is a mask (rows x reference; every row holds at least k); distances are
+    exact, ties go to the lower index.
     """
     row, col = np.nonzero(candidates)
     dist = np.linalg.norm(query[row] - reference[col], axis=1)

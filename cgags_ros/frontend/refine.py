@@ -22,14 +22,13 @@ class Alignment:
     """
     How well ``transform`` puts the source onto the target.
 
-    Attributes:
-        transform: 4x4 source->target, metres.
-        fitness: share of source points with a target point within ``max_distance``.
-        inlier_rmse: RMS distance (metres) of those source points to their nearest target
-            point; NaN when there are none.
-        max_distance: the distance (metres) that defines an overlapping point.
-        source_index, target_index: the overlapping source points and their nearest target
-            points (indices into the clouds given).
+    :ivar transform: 4x4 source->target, metres.
+    :ivar fitness: share of source points with a target point within ``max_distance``.
+    :ivar inlier_rmse: RMS distance (metres) of those source points to their nearest target
+        point; NaN when there are none.
+    :ivar max_distance: the distance (metres) that defines an overlapping point.
+    :ivar source_index: the overlapping source points (indices into the source given).
+    :ivar target_index: their nearest target points (indices into the target given).
     """
 
     transform: np.ndarray
@@ -42,7 +41,7 @@ class Alignment:
 
 def evaluate_alignment(source: np.ndarray, target: np.ndarray | cKDTree,
                        transform: np.ndarray, max_distance: float) -> Alignment:
-    """Fitness and inlier RMSE of ``transform`` (source (N, 3) -> target, metres)."""
+    """Evaluate ``transform`` (source (N, 3) -> target, metres): fitness and inlier RMSE."""
     tree = target if isinstance(target, cKDTree) else cKDTree(target)
     moved = apply_transform(transform, source)
     dist, nn = tree.query(moved, k=1, distance_upper_bound=max_distance)
@@ -58,7 +57,7 @@ def refine_transform(source: np.ndarray, target: np.ndarray, initial: np.ndarray
                      target_normals: np.ndarray | None = None,
                      coarse_distance: float | None = None) -> np.ndarray:
     """
-    Refined 4x4 source->target transform starting from ``initial``.
+    Refine the 4x4 source->target transform ``initial``.
 
     The final stage matches points within ``max_correspondence_distance_factor * v``. When
     ``coarse_distance`` (metres, typically the core's inlier threshold tau: the coarse
@@ -68,8 +67,8 @@ def refine_transform(source: np.ndarray, target: np.ndarray, initial: np.ndarray
     ``config.method == 'none'`` returns ``initial`` unchanged.
     """
     final = config.max_correspondence_distance_factor * voxel_size
-    stages = [final] if not coarse_distance or coarse_distance <= final else [coarse_distance,
-                                                                            final]
+    stages = ([final] if not coarse_distance or coarse_distance <= final
+              else [coarse_distance, final])
     T = np.asarray(initial, dtype=np.float64)
     for distance in stages:
         tolerance = config.coarse_stage_tolerance if distance > final else 1e-6

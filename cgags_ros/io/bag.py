@@ -27,15 +27,14 @@ class BagRecord:
     """
     One message of a bag.
 
-    Attributes:
-        topic: topic name as recorded (e.g. ``/source_cloud``).
-        msgtype: ROS type name (``sensor_msgs/msg/PointCloud2``).
-        log_time_ns: time the message was recorded, integer nanoseconds.
-        stamp_ns: ``header.stamp`` in nanoseconds, or None when the message has no header
-            or could not be deserialized.
-        frame_id: ``header.frame_id`` ('' when unknown).
-        msg: the deserialized rosbags message, or None for a broken message.
-        error: '' for a good message; otherwise why it could not be deserialized.
+    :ivar topic: topic name as recorded (e.g. ``/source_cloud``).
+    :ivar msgtype: ROS type name (``sensor_msgs/msg/PointCloud2``).
+    :ivar log_time_ns: time the message was recorded, integer nanoseconds.
+    :ivar stamp_ns: ``header.stamp`` in nanoseconds, or None when the message has no header
+        or could not be deserialized.
+    :ivar frame_id: ``header.frame_id`` ('' when unknown).
+    :ivar msg: the deserialized rosbags message, or None for a broken message.
+    :ivar error: '' for a good message; otherwise why it could not be deserialized.
     """
 
     topic: str
@@ -100,7 +99,7 @@ class BagReader:
     def __exit__(self, *exc: Any) -> None:
         self.close()
 
-    def open(self) -> None:
+    def open(self) -> None:  # noqa: A003 - public API of BagReader, like file objects
         try:
             self._reader.open()
         except Exception as exc:  # rosbags raises several unrelated types for bad files
@@ -121,10 +120,11 @@ class BagReader:
 
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[BagRecord]:
         """
-        Records of the given topics (all topics when None), in log-time order.
+        Iterate over the records of the given topics (all when None), in log-time order.
 
         Topic names may be given with or without the leading '/'.
-        Raises BagTopicError when a requested topic is not in the bag.
+
+        :raises BagTopicError: when a requested topic is not in the bag.
         """
         available = self.topics
         connections = self._reader.connections
@@ -165,14 +165,14 @@ class BagReader:
 
 
 def list_topics(path: str | Path) -> dict[str, TopicInfo]:
-    """``{topic: TopicInfo(name, msgtype, count)}`` of a bag."""
+    """Return the topics of a bag as ``{topic: TopicInfo(name, msgtype, count)}``."""
     with BagReader(path) as reader:
         return reader.topics
 
 
 def read_messages(path: str | Path, topics: Iterable[str] | None = None) -> Iterator[BagRecord]:
     """
-    Records of a bag in log-time order (see :meth:`BagReader.messages`).
+    Iterate over the records of a bag in log-time order (see :meth:`BagReader.messages`).
 
     Path and topic errors raise here, not at the first ``next()``; the bag is closed when
     the iterator is exhausted or garbage-collected.
@@ -199,15 +199,15 @@ def write_poses_mcap(path: str | Path, records: Iterable[tuple[int, str, np.ndar
     """
     Write ``geometry_msgs/msg/PoseStamped`` messages to a new rosbag2 MCAP bag directory.
 
-    Args:
-        path: bag directory to create (must not exist; rosbags never overwrites).
-        records: ``(stamp_ns, frame_id, T)`` with ``T`` a 4x4 transform whose pose is
-            written (the pose of the source frame in ``frame_id``); the stamp is used as
-            both header stamp and log time.
-        topic: output topic.
+    The bag is readable by rosbags and playable with ``ros2 bag play`` (rosbag2 version 9
+    metadata, CDR, MCAP storage).
 
-    Returns the number of messages written. The bag is readable by rosbags and playable
-    with ``ros2 bag play`` (rosbag2 version 9 metadata, CDR, MCAP storage).
+    :param path: bag directory to create (must not exist; rosbags never overwrites).
+    :param records: ``(stamp_ns, frame_id, T)`` with ``T`` a 4x4 transform whose pose is
+        written (the pose of the source frame in ``frame_id``); the stamp is used as both
+        header stamp and log time.
+    :param topic: output topic.
+    :returns: the number of messages written.
     """
     from rosbags.rosbag2 import Writer
     from rosbags.rosbag2.enums import StoragePlugin

@@ -105,8 +105,10 @@ PLY_TYPES = {'char': 'i1', 'int8': 'i1', 'uchar': 'u1', 'uint8': 'u1', 'short': 
 
 def _read_ply(path: Path) -> np.ndarray:
     """
-    x, y, z of the ``vertex`` element. Our own reader rather than Open3D's, because
-    Open3D fills a truncated binary file with zeros instead of failing.
+    Read x, y, z of the ``vertex`` element of a PLY file.
+
+    Our own reader rather than Open3D's, because Open3D fills a truncated binary file with
+    zeros instead of failing.
     """
     with open(path, 'rb') as f:
         fmt, elements = _ply_header(f, path)
@@ -182,8 +184,10 @@ PCD_TYPES = {('F', '4'): 'f4', ('F', '8'): 'f8', ('I', '1'): 'i1', ('I', '2'): '
 
 def _read_pcd(path: Path) -> np.ndarray:
     """
-    x, y, z of a PCD file. ascii and binary are parsed here (Open3D silently pads a
-    truncated file with zeros); binary_compressed goes to Open3D with a count check.
+    Read x, y, z of a PCD file.
+
+    ascii and binary are parsed here (Open3D silently pads a truncated file with zeros);
+    binary_compressed goes to Open3D with a count check.
     """
     with open(path, 'rb') as f:
         header = _pcd_header(f, path)
@@ -268,8 +272,10 @@ def _read_text(path: Path) -> np.ndarray:
 
 def _sniff_delimiter(line: str) -> str | None:
     """
-    Return the delimiter of a data row: the first of , ; tab that splits it into
-    numbers, else None (runs of whitespace).
+    Return the delimiter of a data row.
+
+    That is the first of , ; tab that splits it into numbers, else None (runs of
+    whitespace).
     """
     for delimiter in (',', ';', '\t'):
         if delimiter in line and _is_numeric_row(line, delimiter):

@@ -49,7 +49,7 @@ def _int_attr(msg: Any, name: str) -> int:
 
 
 def data_bytes(data: Any) -> np.ndarray:
-    """The message's data field as a flat uint8 array, without copying where possible."""
+    """Return the message's data field as a flat uint8 array, without copying where possible."""
     if isinstance(data, np.ndarray):
         return data.view(np.uint8).reshape(-1) if data.dtype.itemsize == 1 else \
             np.frombuffer(data.tobytes(), np.uint8)
@@ -66,18 +66,18 @@ def cloud_field_names(msg: Any) -> list[str]:
 
 def pointcloud2_to_xyz(msg: Any, *, max_points: int = MAX_POINTS) -> np.ndarray:
     """
-    x, y, z of every finite point of a PointCloud2, as an (N, 3) float64 array (metres).
+    Decode x, y, z of every finite point of a PointCloud2 (an (N, 3) float64 array, metres).
 
     Handles any field order, float32 or float64 coordinates, padding inside a point and at
     the end of each row (``row_step > width * point_step``), organized clouds
     (``height > 1``), big-endian data and non-finite points (dropped, whatever
     ``is_dense`` claims).
 
-    Raises:
-        MalformedCloudError: a missing x/y/z field, an unsupported coordinate datatype, a
-            field that does not fit in ``point_step``, ``data`` whose length disagrees with
-            ``height * row_step``, or absurd sizes (more than ``max_points`` points).
-        EmptyCloudError: no points, or no finite point.
+    :raises MalformedCloudError: for a missing x/y/z field, an unsupported coordinate
+        datatype, a field that does not fit in ``point_step``, ``data`` whose length
+        disagrees with ``height * row_step``, or absurd sizes (more than ``max_points``
+        points).
+    :raises EmptyCloudError: for no points, or no finite point.
     """
     height = _int_attr(msg, 'height')
     width = _int_attr(msg, 'width')
@@ -94,7 +94,8 @@ def pointcloud2_to_xyz(msg: Any, *, max_points: int = MAX_POINTS) -> np.ndarray:
         raise MalformedCloudError(
             f'PointCloud2 claims {height} x {width} = {n} points, above the limit {max_points}')
     if point_step > MAX_POINT_STEP:
-        raise MalformedCloudError(f'point_step = {point_step} bytes is absurd (> {MAX_POINT_STEP})')
+        raise MalformedCloudError(
+            f'point_step = {point_step} bytes is absurd (> {MAX_POINT_STEP})')
 
     dtype_fields = {}
     for axis in 'xyz':
@@ -153,7 +154,7 @@ def pointcloud2_to_xyz(msg: Any, *, max_points: int = MAX_POINTS) -> np.ndarray:
 
 
 def stamp_to_ns(stamp: Any) -> int:
-    """builtin_interfaces/Time (``sec``, ``nanosec``) -> integer nanoseconds."""
+    """Convert a builtin_interfaces/Time (``sec``, ``nanosec``) to integer nanoseconds."""
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
@@ -162,8 +163,10 @@ def stamp_to_ns(stamp: Any) -> int:
 
 def pose_to_transform(pose: Any) -> np.ndarray:
     """
-    geometry_msgs Pose, PoseStamped, PoseWithCovariance(Stamped) or Transform(Stamped)
-    (rclpy or rosbags) -> 4x4 float64 transform. Duck-typed.
+    Convert a pose to a 4x4 float64 transform.
+
+    Accepts a geometry_msgs Pose, PoseStamped, PoseWithCovariance(Stamped) or
+    Transform(Stamped), from rclpy or rosbags (duck-typed).
     """
     while hasattr(pose, 'pose') or hasattr(pose, 'transform'):  # unwrap *Stamped / WithCovariance
         pose = pose.pose if hasattr(pose, 'pose') else pose.transform

@@ -21,11 +21,13 @@ def cached_features(points: np.ndarray, voxel_size: float, config: FrontEndConfi
                     name: str = 'cloud',
                     timings: dict[str, float] | None = None) -> CloudFeatures:
     """
-    :func:`extract_features`, remembered for the last two clouds by exact content (and
-    voxel size and front-end settings): a latched map target, or a target shared by
-    consecutive pairs, is featurised once (~half the front end at 10 Hz). The front end is
-    deterministic, so a hit returns exactly what recomputing would; the arrays returned are
-    shared and must not be written to. Hashing costs far less than featurising.
+    Run :func:`extract_features`, remembered for the last two clouds.
+
+    Clouds are keyed by exact content (and voxel size and front-end settings): a latched
+    map target, or a target shared by consecutive pairs, is featurised once, which saves a
+    large share of the front end at sensor rates. The front end is deterministic, so a hit
+    returns exactly what recomputing would; the arrays returned are shared and must not be
+    written to. Hashing costs far less than featurising.
     """
     key = (hashlib.blake2b(np.ascontiguousarray(points), digest_size=16).digest(),
            points.shape, voxel_size, dataclasses.astuple(config))

@@ -54,11 +54,11 @@ def inlier_pairs(result: Any, source: np.ndarray, target: np.ndarray,
                  T: np.ndarray, max_distance: float, max_points: int = 2000
                  ) -> tuple[np.ndarray, np.ndarray]:
     """
-    Matched (source, target) points behind the estimate, for :func:`pose_covariance`.
+    Return the matched (source, target) points behind the estimate.
 
-    The pipeline's inlier correspondences when the result carries them (at least 3);
-    otherwise nearest neighbours of a subsample of the aligned source within
-    ``max_distance`` metres.
+    They are what :func:`pose_covariance` takes: the pipeline's inlier correspondences when
+    the result carries them (at least 3); otherwise nearest neighbours of a subsample of
+    the aligned source within ``max_distance`` metres.
     """
     src = getattr(result, 'inlier_source_points', None)
     dst = getattr(result, 'inlier_target_points', None)

@@ -21,6 +21,8 @@ from ..registration import poisson_isf
 
 def line_reason(points: np.ndarray, name: str, voxel_size: float) -> str:
     """
+    Return why ``points`` form a line, or '' when they do not.
+
     A cloud whose RMS spread across its main axis is below one voxel is a line: the
     rotation about it can never be determined, so the core is not even asked.
     """
@@ -33,8 +35,8 @@ def line_reason(points: np.ndarray, name: str, voxel_size: float) -> str:
 
 
 def gate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences, result: PipelineResult,
-          cfg: PipelineConfig) -> str:
-    """Why the final estimate must not be trusted, or '' when it passes every gate."""
+         cfg: PipelineConfig) -> str:
+    """Return why the final estimate must not be trusted, or '' when it passes every gate."""
     distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
     align = evaluate_alignment(fs.points, ft.tree, result.transform, distance)
     back = evaluate_alignment(ft.points, fs.tree, np.linalg.inv(result.transform), distance)
@@ -51,7 +53,7 @@ def gate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences, result: Pi
 
 def chance_inliers(src: np.ndarray, dst: np.ndarray, transform: np.ndarray, tau: float) -> float:
     """
-    Expected inliers of ``transform`` if the correspondences were paired at random.
+    Return the expected inliers of ``transform`` if correspondences were paired at random.
 
     Averages, over all (i, j), whether ``dst[j]`` lies within ``tau`` of ``T src[i]``: the
     exact expectation under a random permutation of the target rows. It is high where
@@ -64,7 +66,7 @@ def chance_inliers(src: np.ndarray, dst: np.ndarray, transform: np.ndarray, tau:
 
 def observability(source: np.ndarray, target_normals: np.ndarray, align: Alignment) -> float:
     """
-    Smallest / largest eigenvalue of the 6x6 point-to-plane information matrix.
+    Return the smallest / largest eigenvalue of the 6x6 point-to-plane information matrix.
 
     Rows are ``[(p - c) x n / L, n]`` over the overlapping points (p: moved source point,
     n: normal of its nearest target point, c, L: centroid and RMS radius of the overlap,
@@ -87,10 +89,12 @@ def observability(source: np.ndarray, target_normals: np.ndarray, align: Alignme
 
 def _significance_reason(result: PipelineResult, significance: float) -> str:
     """
-    Chance-level gate. If all N correspondences were outliers, the inliers of a fixed
-    transform are ~Poisson(mu) (mu = chance_inliers), plus the 3 that define a hypothesis;
-    the best of H hypotheses then exceeds the Poisson 1 - significance/H quantile with
-    probability ~significance (union bound).
+    Gate on chance level: return why the inliers are no better than chance, or ''.
+
+    If all N correspondences were outliers, the inliers of a fixed transform are
+    ~Poisson(mu) (mu = chance_inliers), plus the 3 that define a hypothesis; the best of H
+    hypotheses then exceeds the Poisson 1 - significance/H quantile with probability
+    ~significance (union bound).
     """
     if significance <= 0:
         return ''

@@ -1,6 +1,7 @@
 """
-Pairing of source and target clouds: the one implementation the node and the offline
-replay tool share (ROS-free, thread-safe).
+Pairing of source and target clouds.
+
+The one implementation the node and the offline replay tool share (ROS-free, thread-safe).
 
 Feed it ``(stamp_ns, frame_id, payload)`` for every source and target as they arrive; take
 ready :class:`Pair` objects out with :meth:`Pairer.pop` (or :meth:`Pairer.wait_pop` from a
@@ -66,7 +67,7 @@ class Pair:
 
     @property
     def dt_ns(self) -> int:
-        """source stamp - target stamp, nanoseconds."""
+        """Source stamp minus target stamp, nanoseconds."""
         return self.source.stamp_ns - self.target.stamp_ns
 
 
@@ -74,12 +75,11 @@ class Pairer:
     """
     Pairs sources with targets (see the module docstring for the exact semantics).
 
-    Args:
-        mode: 'latest_target' or 'synchronized'.
-        slop: synchronized mode only, the largest |source stamp - target stamp|, seconds.
-        queue_depth: ready pairs kept (>= 1); the oldest is dropped when full.
-        max_waiting_sources: sources kept while waiting for a target (>= 1).
-        max_waiting_targets: synchronized mode only, targets kept while unmatched (>= 1).
+    :param mode: 'latest_target' or 'synchronized'.
+    :param slop: synchronized mode only, the largest |source stamp - target stamp|, seconds.
+    :param queue_depth: ready pairs kept (>= 1); the oldest is dropped when full.
+    :param max_waiting_sources: sources kept while waiting for a target (>= 1).
+    :param max_waiting_targets: synchronized mode only, targets kept while unmatched (>= 1).
     """
 
     @classmethod
@@ -161,7 +161,7 @@ class Pairer:
     # ------------------------------------------------------------------ output
 
     def pop(self) -> Pair | None:
-        """The oldest ready pair, or None."""
+        """Return the oldest ready pair, or None."""
         with self._cond:
             return self._ready.popleft() if self._ready else None
 
@@ -179,9 +179,10 @@ class Pairer:
 
     def reset(self) -> None:
         """
-        Forget waiting sources, unmatched targets (synchronized mode) and ready pairs,
-        e.g. after a clock jump. The latest target of latest_target mode is kept: a latched
-        map is not sent again. Discarded items are counted as ``reset``.
+        Forget waiting sources, unmatched targets (synchronized mode) and ready pairs.
+
+        Used e.g. after a clock jump. The latest target of latest_target mode is kept: a
+        latched map is not sent again. Discarded items are counted as ``reset``.
         """
         with self._cond:
             self.drops['reset'] += len(self._ready) + len(self._sources)

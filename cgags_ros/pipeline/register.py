@@ -34,21 +34,19 @@ def register_clouds(source: np.ndarray, target: np.ndarray, *, voxel_size: float
     """
     Register ``source`` onto ``target`` with no initial guess.
 
-    Args:
-        source, target: (N, 3) points in metres, each in its own frame; non-finite rows
-            are dropped.
-        voxel_size: metres; overrides ``config.voxel_size`` (every radius derives from it).
-        config: :class:`PipelineConfig`; defaults when None.
-
-    Returns:
-        :class:`PipelineResult`. ``valid`` is False, with a ``reason``, when the clouds are
-        too small after downsampling, yield too few or degenerate correspondences, or when
-        the estimate fails a validity gate (core inliers, chance-level inliers, degenerate
-        overlap geometry, fitness). Never raises for such data-dependent failures.
-
-    Raises:
-        InvalidInputError: an array is not (N, 3) numeric. EmptyCloudError: no finite point.
-        InvalidConfigError: a configuration value is out of range.
+    :param source, target: (N, 3) points in metres, each in its own frame; non-finite rows
+        are dropped.
+    :param voxel_size: metres; overrides ``config.voxel_size`` (every radius derives from
+        it).
+    :param config: :class:`PipelineConfig`; defaults when None.
+    :returns: a :class:`PipelineResult`. ``valid`` is False, with a ``reason``, when the
+        clouds are too small after downsampling, yield too few or degenerate
+        correspondences, or when the estimate fails a validity gate (core inliers,
+        chance-level inliers, degenerate overlap geometry, fitness). Never raises for such
+        data-dependent failures.
+    :raises InvalidInputError: when an array is not (N, 3) numeric.
+    :raises EmptyCloudError: when a cloud has no finite point.
+    :raises InvalidConfigError: when a configuration value is out of range.
     """
     guard, workers = blas_guard()
     with guard:
@@ -97,13 +95,16 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
 
 def warm_up(config: PipelineConfig | None = None) -> PipelineResult:
     """
-    Register a small synthetic pair once, so that one-time start-up costs (Open3D's lazy
-    initialisation, first calls into SciPy/BLAS and the refinement library) are not paid by
-    the first real pair. For a node to call at start-up with its own ``config`` (every
-    stage, its refinement method included, then runs once). ~0.1-0.2 s; safe to call again.
+    Register a small synthetic pair once, to pay one-time start-up costs.
 
-    Returns the result (valid, refined unless ``refine.method`` is 'none') of registering a
-    4 m terrain patch with three bumps (0.15 m voxels) onto itself rotated by 17 degrees.
+    These costs (Open3D's lazy initialisation, first calls into SciPy/BLAS and the
+    refinement library) are then not paid by the first real pair. For a node to call at
+    start-up with its own ``config`` (every stage, its refinement method included, then
+    runs once). It is short and safe to call again.
+
+    :returns: the result (valid, refined unless ``refine.method`` is 'none') of registering
+        a 4 m terrain patch with three bumps (0.15 m voxels) onto itself rotated by 17
+        degrees.
     """
     terrain = terrain_patch(np.random.default_rng(0))
     c, s = np.cos(0.3), np.sin(0.3)
@@ -118,7 +119,7 @@ def _effective_config(config: PipelineConfig | None, voxel_size: float | None) -
 
 def _global_estimate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
                      resolution: float, cfg: PipelineConfig) -> RegistrationResult | str:
-    """The core's estimate, or the reason there is none (too few/degenerate matches)."""
+    """Return the core's estimate, or the reason there is none (too few/degenerate matches)."""
     if len(corr) < 3:
         return (f'only {len(corr)} putative correspondence(s) (need 3): the FPFH features '
                 'do not match; check the voxel size and that the clouds overlap')

@@ -18,23 +18,26 @@ class PipelineResult(RegistrationResult):
     ``transform`` is the final estimate (refined when refinement is on); ``inliers`` index
     the putative correspondences given to the core. Extra attributes:
 
-    Attributes:
-        coarse_transform: the core's global estimate (4x4 source->target, metres).
-        refined: whether a refinement ran (``refine.method != 'none'``).
-        fitness: share of downsampled source points with a target point within the
-            refinement distance (``refine.max_correspondence_distance_factor * v``) under
-            ``transform``.
-        inlier_rmse: RMS distance (metres) of those points to their nearest target point.
-        overlap: min of the source-side and target-side shares of points with a neighbour
-            in the other cloud within the refinement distance (a symmetric overlap ratio).
-        observability: smallest/largest eigenvalue of the point-to-plane information matrix
-            of the overlap (0: some motion is unconstrained, e.g. plane on plane).
-        chance_inliers: inliers the estimate would collect if every correspondence were an
-            outlier (expected value under a random pairing).
-        inlier_source_points, inlier_target_points: (K, 3) the core's inlier
-            correspondences (downsampled keypoints, source and target frames, metres).
-        num_source_points, num_target_points: points after voxel downsampling.
-        voxel_size: metres. resolution: point resolution pr (metres) given to the core.
+    :ivar coarse_transform: the core's global estimate (4x4 source->target, metres).
+    :ivar refined: whether a refinement ran (``refine.method != 'none'``).
+    :ivar fitness: share of downsampled source points with a target point within the
+        refinement distance (``refine.max_correspondence_distance_factor * v``) under
+        ``transform``.
+    :ivar inlier_rmse: RMS distance (metres) of those points to their nearest target point.
+    :ivar overlap: min of the source-side and target-side shares of points with a neighbour
+        in the other cloud within the refinement distance (a symmetric overlap ratio).
+    :ivar observability: smallest/largest eigenvalue of the point-to-plane information
+        matrix of the overlap (0: some motion is unconstrained, e.g. plane on plane).
+    :ivar chance_inliers: inliers the estimate would collect if every correspondence were
+        an outlier (expected value under a random pairing).
+    :ivar inlier_source_points: (K, 3) source side of the core's inlier correspondences
+        (downsampled keypoints, source frame, metres).
+    :ivar inlier_target_points: (K, 3) target side of the same correspondences (target
+        frame, metres).
+    :ivar num_source_points: source points after voxel downsampling.
+    :ivar num_target_points: target points after voxel downsampling.
+    :ivar voxel_size: voxel size v, metres.
+    :ivar resolution: point resolution pr (metres) given to the core.
     """
 
     coarse_transform: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))

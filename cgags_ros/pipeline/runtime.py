@@ -1,11 +1,11 @@
 """
-Thread settings of one registration: BLAS held to one thread, descriptor matching on
-its own threads.
+Thread settings of one registration.
 
-Own matching threads are faster than BLAS's (the argmins run in parallel too), and idle
-BLAS workers cannot then spin into Open3D's time. The environment defaults that make
-OpenMP and OpenBLAS wait passively are set when ``cgags_ros`` is imported (see its
-``__init__``), before numpy and Open3D load.
+BLAS is held to one thread and descriptor matching runs on its own threads. Own matching
+threads are faster than BLAS's (the argmins run in parallel too), and idle BLAS workers
+cannot then spin into Open3D's time. The environment defaults that make OpenMP and
+OpenBLAS wait passively are set when ``cgags_ros`` is imported (see its ``__init__``),
+before numpy and Open3D load.
 """
 
 from __future__ import annotations

@@ -2,8 +2,8 @@
 Keep BLAS to one thread while the core runs (optional ``threadpoolctl``).
 
 The core's matrix products are small (3x3 fits, 5-deep graph blocks) or memory bound, so a
-second OpenBLAS thread adds nothing but spinning: the same wall time at half the CPU time
-(docs/implementation.md). On a robot that CPU belongs to the other nodes. ``threadpoolctl`` is not a
+second OpenBLAS thread does not shorten them; it only spins and takes CPU time that, on a
+robot, belongs to the other nodes (docs/implementation.md). ``threadpoolctl`` is not a
 dependency of the core (numpy/scipy only): without it this is a no-op.
 """
 
@@ -18,8 +18,9 @@ _controller: Any = None
 
 def blas_controller() -> Any:
     """
-    A ``threadpoolctl.ThreadpoolController`` (made once, after numpy and scipy have
-    loaded their BLAS), or None when threadpoolctl is not installed.
+    Return the shared ``threadpoolctl.ThreadpoolController``, or None without threadpoolctl.
+
+    The controller is made once, on first use, after numpy and scipy have loaded their BLAS.
     """
     global _controller
     if _controller is None:
@@ -41,7 +42,7 @@ def single_blas_thread() -> contextlib.AbstractContextManager:
 
 
 def with_single_blas_thread(fn):
-    """Decorator: run ``fn`` under :func:`single_blas_thread`."""
+    """Wrap ``fn`` so that it runs under :func:`single_blas_thread` (a decorator)."""
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         with single_blas_thread():

@@ -31,24 +31,19 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
     """
     Estimate the rigid transform mapping ``src`` onto ``dst`` from putative correspondences.
 
-    Args:
-        src, dst: (N, 3) arrays in metres; row i of each is one putative correspondence
-            (most may be wrong).
-        inlier_threshold: tau in metres. Default: ``inlier_threshold_factor * resolution``.
-        resolution: point resolution pr in metres (mean nearest-neighbour distance of the
-            clouds the keypoints come from). With only ``resolution``, tau = 6 pr and the
-            compatibility threshold delta = 10 pr, as in the paper.
-        config: :class:`CoreConfig`; defaults are the paper's parameters.
-        seed: random seed; the result is deterministic for a given seed.
-
-    Returns:
-        :class:`RegistrationResult` with ``transform`` (source -> target), ``inliers``,
+    :param src, dst: (N, 3) arrays in metres; row i of each is one putative correspondence
+        (most may be wrong).
+    :param inlier_threshold: tau in metres. Default: ``inlier_threshold_factor * resolution``.
+    :param resolution: point resolution pr in metres (mean nearest-neighbour distance of the
+        clouds the keypoints come from). With only ``resolution``, tau = 6 pr and the
+        compatibility threshold delta = 10 pr, as in the paper.
+    :param config: :class:`CoreConfig`; defaults are the paper's parameters.
+    :param seed: random seed; the result is deterministic for a given seed.
+    :returns: :class:`RegistrationResult` with ``transform`` (source -> target), ``inliers``,
         ``valid``/``reason``, and per-stage ``stats``/``timings``.
-
-    Raises:
-        InvalidInputError: wrong shapes, mismatched rows, NaN/Inf, missing thresholds.
-        DegenerateCorrespondencesError: fewer than 3 correspondences, or all source or all
-            target points identical or collinear (a rigid transform is then undetermined).
+    :raises InvalidInputError: wrong shapes, mismatched rows, NaN/Inf, missing thresholds.
+    :raises DegenerateCorrespondencesError: fewer than 3 correspondences, or all source or
+        all target points identical or collinear (a rigid transform is then undetermined).
     """
     start = time.perf_counter()
     cfg = fields.validate(dataclasses.replace(config) if config else CoreConfig())
@@ -145,13 +140,17 @@ def _check_correspondences(src, dst) -> tuple[np.ndarray, np.ndarray]:
 def _thresholds(cfg: CoreConfig, tau: float | None, pr: float | None) -> tuple[float, float]:
     for name, v in (('inlier_threshold', tau), ('resolution', pr)):
         if v is not None and not (np.isfinite(v) and v > 0):
-            raise InvalidInputError(f'{name} must be a positive finite number of metres, got {v!r}')
+            raise InvalidInputError(
+                f'{name} must be a positive finite number of metres, got {v!r}')
     if tau is None and pr is None:
         raise InvalidInputError(
             'give inlier_threshold (metres) or resolution (the point resolution pr in metres)')
     if tau is None:
         tau = cfg.inlier_threshold_factor * pr
-    delta = cfg.compatibility_threshold_factor * pr if pr is not None else cfg.compatibility_to_inlier_ratio * tau
+    if pr is not None:
+        delta = cfg.compatibility_threshold_factor * pr
+    else:
+        delta = cfg.compatibility_to_inlier_ratio * tau
     return float(tau), float(delta)
 
 

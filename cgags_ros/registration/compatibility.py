@@ -22,11 +22,10 @@ class CompatibilityGraph:
     """
     Bit-packed undirected compatibility graph (no self loops).
 
-    Attributes:
-        packed: (N, W) uint8, W = ceil(N/8) rounded up to whole 64-bit words; bit j of
-            row i (little bit order) set iff i ~ j.
-        degree: (N,) int64 number of compatible partners of each correspondence.
-        num_edges: undirected edge count |E|.
+    :ivar packed: (N, W) uint8, W = ceil(N/8) rounded up to whole 64-bit words; bit j of
+        row i (little bit order) set iff i ~ j.
+    :ivar degree: (N,) int64 number of compatible partners of each correspondence.
+    :ivar num_edges: undirected edge count |E|.
     """
 
     def __init__(self, packed: np.ndarray, n: int):
@@ -43,8 +42,10 @@ class CompatibilityGraph:
 
     def neighbour_lists(self) -> tuple[np.ndarray, np.ndarray] | None:
         """
-        CSR neighbour lists (indptr, indices), built once; None if they would exceed
-        the memory cap (then samplers fall back to rejection on the bit matrix).
+        Return the CSR neighbour lists (indptr, indices), built on first use.
+
+        None if they would exceed the memory cap; samplers then fall back to rejection on
+        the bit matrix.
         """
         if not hasattr(self, '_csr'):
             if 2 * self.num_edges > self._MAX_LIST_ENTRIES:
@@ -64,7 +65,7 @@ class CompatibilityGraph:
         return 2.0 * self.num_edges / max(self.n * (self.n - 1), 1)
 
     def rows(self, idx: np.ndarray) -> np.ndarray:
-        """Unpacked boolean rows (len(idx), N)."""
+        """Return the unpacked boolean rows of ``idx``, shaped (len(idx), N)."""
         return np.unpackbits(self.packed[idx], axis=1, count=self.n, bitorder='little').view(bool)
 
     def has_edge(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
@@ -84,11 +85,12 @@ class CompatibilityGraph:
         return np.bitwise_count(rows.view(np.uint64)).sum(axis=1, dtype=np.int64)
 
     def common_count(self, rows: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        """|rows[m] ∩ N(idx[m])| for packed rows (e.g. from :meth:`common`)."""
-        return np.bitwise_count(rows.view(np.uint64) & self._words[idx]).sum(axis=1, dtype=np.int64)
+        """Return |rows[m] ∩ N(idx[m])| for packed rows (e.g. from :meth:`common`)."""
+        both = rows.view(np.uint64) & self._words[idx]
+        return np.bitwise_count(both).sum(axis=1, dtype=np.int64)
 
     def count_edges_within(self, members: np.ndarray) -> int:
-        """Number of undirected edges among ``members`` (indices)."""
+        """Return the number of undirected edges among ``members`` (indices)."""
         if len(members) < 2:
             return 0
         sub = self.rows(members)[:, members]
@@ -100,17 +102,18 @@ def length_consistency(src: np.ndarray, dst: np.ndarray, i: np.ndarray,
     """d_ij = | ||p_i - p_j|| - ||q_i - q_j|| | for index arrays i, j (any shape)."""
     a = src[i] - src[j]
     b = dst[i] - dst[j]
-    return np.abs(np.sqrt(np.einsum('...k,...k->...', a, a)) - np.sqrt(np.einsum('...k,...k->...', b, b)))
+    return np.abs(np.sqrt(np.einsum('...k,...k->...', a, a))
+                  - np.sqrt(np.einsum('...k,...k->...', b, b)))
 
 
 def _expansion_factors(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
     (U, V) with ``(U @ V)[i, j] = |p_i - p_j|^2``: U = [p, |p|^2, 1], V = [-2 p, 1, |p|^2]^T.
 
-    One 5-deep product per block instead of nine elementwise passes (several times
-    faster, docs/implementation.md). float32 rounding moves a squared
-    distance by ~1e-7 of the squared extent, so an edge can only flip within ~1e-5 of the
-    extent of the threshold |d_ij| = delta, far below any noise the thresholds model.
+    One 5-deep matrix product per block replaces nine elementwise passes over it, so the
+    work runs in BLAS (docs/implementation.md). float32 rounding moves a squared distance
+    by ~1e-7 of the squared extent, so an edge can only flip within ~1e-5 of the extent of
+    the threshold |d_ij| = delta, far below any noise the thresholds model.
     """
     sq = np.einsum('ij,ij->i', p, p)[:, None]
     one = np.ones_like(sq)
@@ -124,7 +127,7 @@ def build_compatibility_graph(src: np.ndarray, dst: np.ndarray, delta: float,
 
     Squared distances are computed in float32 from centred coordinates, a block of rows at
     a time (cache-resident scratch), as one 5-deep matrix product (``_expansion_factors``;
-    memory bound: one BLAS thread is as fast as two).
+    memory bound, so a second BLAS thread would not help).
     """
     n = len(src)
     x = (src - src.mean(axis=0)).astype(np.float32)

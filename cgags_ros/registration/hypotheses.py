@@ -17,8 +17,10 @@ def fit_triples(src: np.ndarray, dst: np.ndarray, i: np.ndarray, j: np.ndarray,
 
 def score_values(res: np.ndarray, tau: float, mode: str) -> np.ndarray:
     """
-    Per-residual score contribution: 1 for inliers ('inlier_count') or the truncated
-    quadratic max(0, 1 - r^2 / tau^2) ('truncated', MSAC).
+    Return the score contribution of each residual under the score ``mode``.
+
+    'inlier_count' gives 1 for inliers (r <= tau) and 0 otherwise; 'truncated' (MSAC)
+    gives the truncated quadratic max(0, 1 - r^2 / tau^2).
     """
     if mode == 'inlier_count':
         return (res <= tau).astype(np.float64)

@@ -14,20 +14,19 @@ class RegistrationResult:
     """
     Outcome of :func:`cgags_ros.registration.register_correspondences`.
 
-    Attributes:
-        transform: 4x4 float64 homogeneous transform mapping source points onto target
-            points (``dst ≈ R @ src + t``), metres. Identity when no estimate exists.
-        inliers: indices (into the correspondences) within ``inlier_threshold`` of the
-            final transform.
-        valid: True only when the estimate passed every validity gate.
-        reason: empty when valid, otherwise why the estimate must not be trusted.
-        num_hypotheses: minimal subsets generated (non-collinear triples); each is ranked by
-            the pre-screen, the best of each batch are fitted and scored.
-        num_correspondences: correspondences given (after input checks).
-        inlier_threshold: tau in metres used for scoring.
-        compatibility_threshold: delta in metres used for the compatibility graph.
-        stats: per-stage counters (graph edges, samples per stage, stopping bounds, ...).
-        timings: seconds per named stage, plus ``total``.
+    :ivar transform: 4x4 float64 homogeneous transform mapping source points onto target
+        points (``dst ≈ R @ src + t``), metres. Identity when no estimate exists.
+    :ivar inliers: indices (into the correspondences) within ``inlier_threshold`` of the
+        final transform.
+    :ivar valid: True only when the estimate passed every validity gate.
+    :ivar reason: empty when valid, otherwise why the estimate must not be trusted.
+    :ivar num_hypotheses: minimal subsets generated (non-collinear triples); each is ranked
+        by the pre-screen, the best of each batch are fitted and scored.
+    :ivar num_correspondences: correspondences given (after input checks).
+    :ivar inlier_threshold: tau in metres used for scoring.
+    :ivar compatibility_threshold: delta in metres used for the compatibility graph.
+    :ivar stats: per-stage counters (graph edges, samples per stage, stopping bounds, ...).
+    :ivar timings: seconds per named stage, plus ``total``.
     """
 
     transform: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
@@ -59,8 +58,9 @@ class RegistrationResult:
 
     def finish(self, start: float, reason: str = '') -> 'RegistrationResult':
         """
-        Set ``valid``/``reason`` and ``timings['total']`` (since ``start``,
-        ``time.perf_counter()``); return self.
+        Set ``valid``/``reason`` and ``timings['total']``; return self.
+
+        ``start`` is the ``time.perf_counter()`` value at which the registration began.
         """
         self.valid = not reason
         self.reason = reason

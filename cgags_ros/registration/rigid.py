@@ -12,11 +12,9 @@ def kabsch_batch(P: np.ndarray, Q: np.ndarray,
     """
     (Weighted) least-squares rotations and translations with ``Q ≈ R @ P + t`` per item.
 
-    Args:
-        P, Q: (B, K, 3) corresponding point sets (K >= 3).
-        W: optional (B, K) non-negative weights.
-    Returns:
-        R (B, 3, 3) proper rotations (det +1), t (B, 3).
+    :param P, Q: (B, K, 3) corresponding point sets (K >= 3).
+    :param W: optional (B, K) non-negative weights.
+    :returns: R (B, 3, 3) proper rotations (det +1), t (B, 3).
     """
     if W is None:
         W = np.ones(P.shape[:2])

@@ -13,7 +13,8 @@ import numpy as np
 from .compatibility import CompatibilityGraph, length_consistency
 
 
-def weighted_choice_rows(weights: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def weighted_choice_rows(weights: np.ndarray,
+                         rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """
     One index per row of ``weights`` (B, M), with probability proportional to the row.
 
@@ -96,8 +97,9 @@ _WEIGHT_CHUNK = 1 << 20  # entries per chunk: ~100 MB of float64 scratch at most
 def soft_edge_weights(csr: tuple[np.ndarray, np.ndarray], src: np.ndarray, dst: np.ndarray,
                       delta: float) -> np.ndarray:
     """
-    Soft weights 1 - (d_ij / delta)^2 of the neighbour-list entries, for
-    :func:`sample_edges` (computed once per search, with the lists).
+    Return the soft weights 1 - (d_ij / delta)^2 of the neighbour-list entries.
+
+    They serve :func:`sample_edges` and are computed once per search, with the lists.
     """
     indptr, indices = csr
     rows = np.repeat(np.arange(len(indptr) - 1, dtype=np.int32), np.diff(indptr))
@@ -111,8 +113,10 @@ def soft_edge_weights(csr: tuple[np.ndarray, np.ndarray], src: np.ndarray, dst: 
 def _edges_by_rejection(graph: CompatibilityGraph, rng: np.random.Generator, count: int,
                         tries: int) -> tuple[np.ndarray, np.ndarray]:
     """
-    i with probability deg(i) / 2|E|, then j uniform in N(i) by rejection on the bit
-    matrix, with an exact fallback for rows where all tries missed.
+    Draw ``count`` edges (i, j) uniformly from E by rejection on the bit matrix.
+
+    Draws i with probability deg(i) / 2|E|, then j uniform in N(i) by rejection, with an
+    exact fallback for rows where all tries missed.
     """
     i = rng.choice(graph.n, size=count, p=graph.degree / graph.degree.sum())
     cand = rng.integers(0, graph.n, size=(count, tries))
@@ -182,8 +186,10 @@ def triangle_areas(points: np.ndarray, i: np.ndarray, j: np.ndarray, k: np.ndarr
 def tournament(graph: CompatibilityGraph, members: tuple[np.ndarray, ...], count: int,
                size: int, ok: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """
-    Keep, of each group of ``size`` consecutive candidates, the one whose members have the
-    most common neighbours (second/third-order compatibility: inliers share the other
+    Keep the candidate with the most common neighbours of each group of ``size``.
+
+    Groups are ``size`` consecutive candidates; the winner is the one whose members have
+    the most common neighbours (second/third-order compatibility: inliers share the other
     inliers as neighbours, outliers only chance ones).
 
     ``members`` are index arrays of length count * size (an edge (i, j) or a triple
@@ -203,8 +209,10 @@ def sample_vertex_tournament(graph: CompatibilityGraph, rng: np.random.Generator
                              csr: tuple[np.ndarray, np.ndarray] | None = None,
                              draws: int = 64) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """
-    For each edge (i, j): up to ``size`` uniform candidates k in N(i) ∩ N(j), keeping
-    the one with the largest support |N(i) ∩ N(j) ∩ N(k)| (vertex tournament).
+    Draw k in N(i) ∩ N(j) for each edge (i, j) by vertex tournament.
+
+    Up to ``size`` uniform candidates k in N(i) ∩ N(j) compete; the one with the largest
+    support |N(i) ∩ N(j) ∩ N(k)| wins.
 
     Candidates come from one batch of ``draws`` proposals per edge (from N(i) with the
     neighbour lists, else from all vertices), of which the first ``size`` members of
@@ -231,7 +239,8 @@ def sample_vertex_tournament(graph: CompatibilityGraph, rng: np.random.Generator
     k = np.zeros(count, dtype=np.int64)
     best = np.zeros(count, dtype=np.int64)
     ok = np.zeros(count, dtype=bool)
-    k[rows[first]], best[rows[first]], ok[rows[first]] = cand[rows[first], cols[first]], support[first], True
+    winner = rows[first]
+    k[winner], best[winner], ok[winner] = cand[winner, cols[first]], support[first], True
     miss = np.flatnonzero(~ok)
     if len(miss):
         k[miss], ok[miss] = _uniform_member(common_ij[miss], graph.n, rng)

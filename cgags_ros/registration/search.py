@@ -14,31 +14,15 @@ import time
 import numpy as np
 
 from .compatibility import CompatibilityGraph
-from .hypotheses import (
-    fit_triples,
-    refit,
-    residual_matrix,
-    score_in_common_neighbourhood,
-    score_values,
-)
+from .hypotheses import (fit_triples, refit, residual_matrix, score_in_common_neighbourhood,
+                         score_values)
 from .preference import PreferenceLists
 from .rigid import residuals
-from .sampling import (
-    sample_common_vertex,
-    sample_edges,
-    sample_guided,
-    sample_vertex_tournament,
-    soft_edge_weights,
-    tournament,
-    triangle_areas,
-)
+from .sampling import (sample_common_vertex, sample_edges, sample_guided,
+                       sample_vertex_tournament, soft_edge_weights, tournament, triangle_areas)
 from .significance import ConsensusRecord
-from .stopping import (
-    compatible_sample_inlier_probability,
-    empirical_inlier_probability,
-    poisson_isf,
-    ransac_bound,
-)
+from .stopping import (compatible_sample_inlier_probability, empirical_inlier_probability,
+                       ransac_bound)
 from ..config.core import CoreConfig
 from ..geometry import make_transform
 
@@ -53,7 +37,6 @@ _DENSE_PRESCREEN = 0.2
 _LISTS_BUILD_RATIO = 2000
 _GIVE_UP_DRAWS = 4096  # draws without a single usable (non-collinear) triangle: give up
 _CHANCE_PER_BATCH = 2  # hypotheses per batch scored exactly whatever their pre-score
-
 
 
 class Search:
@@ -71,7 +54,8 @@ class Search:
         self.best_mask = np.zeros(graph.n, dtype=bool)
         self.improvements = 0
         self.preference = PreferenceLists(graph.n, cfg.preference_length)
-        self.vertex_weights = graph.degree.astype(np.float64) if cfg.vertex_sampling == 'degree' else None
+        self.vertex_weights = (graph.degree.astype(np.float64)
+                               if cfg.vertex_sampling == 'degree' else None)
         self.sampled: list[np.ndarray] = []  # stage-one triples, to estimate w1 empirically
         self.consensus = ConsensusRecord(graph.n, tau)
         self.start = time.perf_counter()
@@ -116,10 +100,12 @@ class Search:
 
     def _stage_one_inlier_probability(self) -> float:
         """
-        w1: probability that one stage-one sample is all-inlier, taking the best model's
-        inliers as the inlier set. The larger of the analytic value for uniform edge and
-        vertex sampling and the observed share of all stage-one samples drawn so far that
-        lie inside the set (which also covers the tournament samplers).
+        Return w1, the probability that one stage-one sample is all-inlier.
+
+        The best model's inliers are taken as the inlier set. w1 is the larger of the
+        analytic value for uniform edge and vertex sampling and the observed share of all
+        stage-one samples drawn so far that lie inside the set (which also covers the
+        tournament samplers).
         """
         analytic = compatible_sample_inlier_probability(self.graph, self.best_inliers, self.rng)
         if self.cfg.stage_one_estimate == 'analytic':
@@ -129,9 +115,11 @@ class Search:
 
     def minimal_compatible_subsets(self, count: int) -> tuple[np.ndarray, np.ndarray | None]:
         """
-        Triples (i, j, k): a compatible edge (graph edge sampling), then a vertex k in
-        N(i) ∩ N(j) (graph vertex sampling), each uniform or by tournament (see config).
-        Returns the non-collinear triples and, when known, their common-neighbour counts.
+        Draw ``count`` minimal compatible subsets, the triples (i, j, k).
+
+        Each is a compatible edge (graph edge sampling), then a vertex k in N(i) ∩ N(j)
+        (graph vertex sampling), each uniform or by tournament (see config). Returns the
+        non-collinear triples and, when known, their common-neighbour counts.
         """
         cfg = self.cfg
         s = cfg.edge_tournament if cfg.edge_sampling == 'tournament' else 1
@@ -167,15 +155,17 @@ class Search:
         if min_area <= 0 or len(triples) == 0:
             return triples, support
         i, j, k = triples.T
-        ok = (triangle_areas(self.src, i, j, k) >= min_area) & (triangle_areas(self.dst, i, j, k) >= min_area)
+        ok = ((triangle_areas(self.src, i, j, k) >= min_area)
+              & (triangle_areas(self.dst, i, j, k) >= min_area))
         self.stats['rejected_collinear'] += int((~ok).sum())
         return triples[ok], None if support is None else support[ok]
 
     # --- hypotheses -------------------------------------------------------------------------
     def evaluate(self, triples: np.ndarray, support: np.ndarray | None = None) -> bool:
         """
-        Fit and score a batch of triples (``support``: their common-neighbour counts,
-        when the sampler knows them); update best model and preference lists.
+        Fit and score a batch of triples; update the best model and the preference lists.
+
+        ``support`` holds the triples' common-neighbour counts when the sampler knows them.
         Returns True when the best model improved.
         """
         if len(triples) == 0:
@@ -192,7 +182,8 @@ class Search:
             if support is None:
                 support = self.graph.popcount(self.graph.common(*triples.T))
             if len(triples) > 4 * cfg.exact_per_batch:
-                cand = np.argpartition(-support, 4 * cfg.exact_per_batch - 1)[: 4 * cfg.exact_per_batch]
+                kept = 4 * cfg.exact_per_batch
+                cand = np.argpartition(-support, kept - 1)[:kept]
             fitted = np.concatenate([np.arange(_CHANCE_PER_BATCH), cand])
             R, t = fit_triples(self.src, self.dst, *triples[fitted].T)
             Rc, tc = R[_CHANCE_PER_BATCH:], t[_CHANCE_PER_BATCH:]
@@ -249,7 +240,7 @@ class Search:
         return len(inliers) >= self.cfg.distinct_ratio * self.runner_up(inliers)
 
     def exhausted(self) -> bool:
-        """The hypothesis cap or the time budget is used up (or no triangle is usable)."""
+        """Tell whether the hypothesis cap or time budget is used up, or no triangle is usable."""
         return (self.num_drawn >= self.cfg.max_iterations or self.out_of_time()
                 or self.stats['stopped_by'] == 'no_usable_triangle')
 
@@ -272,7 +263,8 @@ class Search:
             batch = min(batch, cfg.max_iterations - self.num_drawn)
             self.num_drawn += batch
             li, lj, lk, ok = sample_guided(self.rng, kernel, adjacency, seed_w, batch, cfg.xi)
-            triples, _ = self._keep_non_collinear(np.stack([members[li], members[lj], members[lk]], 1)[ok])
+            drawn_now = np.stack([members[li], members[lj], members[lk]], 1)[ok]
+            triples, _ = self._keep_non_collinear(drawn_now)
             self.stats['guided_samples'] += batch
             if cfg.guided_count == 'all_draws':
                 drawn.append(triples)
@@ -305,8 +297,10 @@ class Search:
 
     def _kernel(self):
         """
-        Members (the M correspondences guided sampling draws from), their intersection
-        kernel K, compatibility adjacency and seed weights.
+        Return the members, their kernel, adjacency and seed weights for guided sampling.
+
+        The members are the M correspondences guided sampling draws from; the kernel is
+        their intersection kernel K, the adjacency their compatibility adjacency.
         """
         cfg, n = self.cfg, self.graph.n
         if cfg.kernel_subset == 0 or n <= cfg.kernel_subset:

@@ -12,8 +12,10 @@ from .compatibility import CompatibilityGraph
 
 def ransac_bound(confidence: float, w: float) -> float:
     """
-    Samples needed to draw at least one all-inlier sample with probability ``confidence``
-    when a single sample is all-inlier with probability ``w``: log(1 - P) / log(1 - w).
+    Return the RANSAC bound log(1 - P) / log(1 - w) on the number of samples.
+
+    It is the number of samples needed to draw at least one all-inlier sample with
+    probability P = ``confidence`` when a single sample is all-inlier with probability ``w``.
     """
     if w <= 0.0:
         return math.inf
@@ -24,9 +26,11 @@ def ransac_bound(confidence: float, w: float) -> float:
 
 def poisson_isf(alpha: float, lam: float) -> int:
     """
-    Smallest k with P(X > k) <= alpha for X ~ Poisson(lam): ``scipy.stats.poisson.isf``
-    (same values; tested), ~8x cheaper per call than going through scipy.stats, which the
-    significance test calls every batch.
+    Return the smallest k with P(X > k) <= alpha for X ~ Poisson(lam).
+
+    Gives the same values as ``scipy.stats.poisson.isf`` (tested), but calls
+    ``scipy.special.pdtrc`` directly: the significance test calls it every batch, and the
+    generic ``scipy.stats`` machinery would add its per-call overhead each time.
     """
     top = int(lam + 12.0 * math.sqrt(lam) + 40.0)
     while True:
@@ -40,8 +44,10 @@ def poisson_isf(alpha: float, lam: float) -> int:
 def compatible_sample_inlier_probability(graph: CompatibilityGraph, inliers: np.ndarray,
                                          rng: np.random.Generator, pairs: int = 64) -> float:
     """
-    Probability that one compatible-stage sample (edge uniform over E, then a uniform
-    common neighbour) is all-inlier, taking ``inliers`` as the inlier set.
+    Return the probability that one compatible-stage sample is all-inlier.
+
+    A compatible-stage sample is an edge drawn uniformly over E, then a uniform common
+    neighbour; ``inliers`` is taken as the inlier set.
 
     P(edge inside I) = |E(I)| / |E|; P(k in I | edge inside I) is averaged over up to
     ``pairs`` random inlier edges as |N(i) ∩ N(j) ∩ I| / |N(i) ∩ N(j)|.
@@ -60,7 +66,8 @@ def compatible_sample_inlier_probability(graph: CompatibilityGraph, inliers: np.
     total = graph.popcount(common)
     mask = np.zeros(graph.n, dtype=bool)
     mask[inliers] = True
-    inside = (np.unpackbits(common, axis=1, count=graph.n, bitorder='little').view(bool) & mask).sum(axis=1)
+    unpacked = np.unpackbits(common, axis=1, count=graph.n, bitorder='little').view(bool)
+    inside = (unpacked & mask).sum(axis=1)
     ratio = np.where(total > 0, inside / np.maximum(total, 1), 0.0)
     return float(e_in / graph.num_edges * ratio.mean())
 

@@ -25,10 +25,11 @@ from ..io.pointcloud2 import data_bytes, FLOAT32
 
 def xyz_to_pointcloud2(points: np.ndarray, header: Any = None) -> Any:
     """
-    A dense, unorganized ``sensor_msgs/PointCloud2`` (float32 x, y, z; 12-byte points).
+    Build a dense, unorganized ``sensor_msgs/PointCloud2`` (float32 x, y, z; 12-byte points).
 
     ``header`` is a std_msgs/Header (or None for an empty one); points are in its frame.
-    Raises InvalidInputError for anything but an (N, 3) array.
+
+    :raises InvalidInputError: for anything but an (N, 3) array.
     """
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3:
@@ -54,9 +55,10 @@ def xyz_to_pointcloud2(points: np.ndarray, header: Any = None) -> Any:
 
 def to_rclpy_pointcloud2(msg: Any) -> Any:
     """
-    Copy any PointCloud2-like message (e.g. from rosbags) into an rclpy
-    ``sensor_msgs/PointCloud2``, byte for byte: layout, header and even malformed sizes are
-    kept, so a bag can be republished exactly as recorded.
+    Copy any PointCloud2-like message (e.g. from rosbags) into an rclpy PointCloud2.
+
+    The copy is byte for byte: layout, header and even malformed sizes are kept, so a bag
+    can be republished exactly as recorded.
     """
     out = PointCloud2()
     out.header = Header(stamp=Time(sec=int(msg.header.stamp.sec),

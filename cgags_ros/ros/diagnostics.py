@@ -65,7 +65,7 @@ def diagnostic_array(stats: Mapping[str, Any], name: str, hardware_id: str,
 
 
 def accounted_sources(values: Mapping[str, str]) -> int:
-    """Sources the node is done with: published + rejected + dropped + waiting."""
+    """Count the sources the node is done with: published + rejected + dropped + waiting."""
     n = 0
     for key, value in values.items():
         if (key == 'published'

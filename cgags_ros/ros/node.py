@@ -20,11 +20,10 @@ Topics (relative names; remap them):
         timings and latency.
     /tf (``broadcast_tf``, when tf2_ros is importable): target frame -> source frame.
 
-Parameters: every key of PipelineConfig (``voxel_size``, ``core.*``, ``frontend.*``,
-``refine.*``, ``seed``) and of NodeConfig (``pairing_mode``, ``sync_slop``...), declared
-with descriptions and ranges generated from the dataclasses. Changes at run time are
-validated and apply to the next pair. Note ROS parameters are typed: write ``1.0``, not
-``1``, for a float.
+Parameters: every key of PipelineConfig (``voxel_size``, ``core.*``, ``frontend.*``, ``refine.*``,
+``seed``) and of NodeConfig (``pairing_mode``, ``sync_slop``...), declared with descriptions and
+ranges generated from the dataclasses. Changes at run time are validated and apply to the next
+pair. Note ROS parameters are typed: write ``1.0``, not ``1``, for a float.
 
 Threading: subscription callbacks only decode the cloud (vectorized numpy) and hand it to
 the :class:`~cgags_ros.pipeline.pairing.Pairer`; registration runs on one worker thread
@@ -116,7 +115,6 @@ class RegisterNode(Node):
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_timer(cfg.diagnostics_period, self._publish_diagnostics)
         self.add_on_set_parameters_callback(self._on_set_parameters)
-
         self._stop = threading.Event()
         self._worker = threading.Thread(target=self._work, name='register_worker', daemon=True)
         self._worker.start()
@@ -192,7 +190,8 @@ class RegisterNode(Node):
                 self._process(pair)
             except Exception as exc:  # noqa: BLE001 - the worker must outlive any bad pair
                 if not self._stop.is_set() and self.context.ok():
-                    self._reject('internal_error', f'pair failed: {exc!r}\n{traceback.format_exc()}')
+                    self._reject('internal_error',
+                                 f'pair failed: {exc!r}\n{traceback.format_exc()}')
 
     def _process(self, pair: Pair) -> None:
         source, target = pair.source.payload, pair.target.payload
@@ -277,11 +276,12 @@ class RegisterNode(Node):
             if due:
                 self._logged[cause] = now
         if due:
-            suffix = f' ({n} so far; repeats are logged every {_LOG_REPEAT_S:.0f} s)' if n > 1 else ''
+            suffix = (f' ({n} so far; repeats are logged every {_LOG_REPEAT_S:.0f} s)'
+                      if n > 1 else '')
             self.get_logger().warning(message + suffix)
 
     def statistics(self) -> dict[str, Any]:
-        """Flat snapshot of the node's counters (what /diagnostics carries)."""
+        """Return a flat snapshot of the node's counters (what /diagnostics carries)."""
         with self._lock:
             counts, rejected = dict(self._counts), dict(self._rejected)
             last, latencies = dict(self._last), list(self._latencies)
@@ -303,7 +303,7 @@ class RegisterNode(Node):
         still dispatch the diagnostics timer, and the worker may still be finishing a
         pair. A publish then raises RCLError ("publisher's context is invalid"), which
         from a timer callback would escape rclpy.spin() and end the node with exit 1.
-        Errors while the context is still valid are raised as before.
+        Errors while the context is still valid are re-raised.
         """
         if not self.context.ok():
             return
@@ -326,11 +326,11 @@ class RegisterNode(Node):
 
 def main(args: list[str] | None = None) -> None:
     """
-    Entry point of ``ros2 run cgags_ros register_node`` and ``python -m
-    cgags_ros.register_node``; exits cleanly on Ctrl-C and SIGTERM.
+    Spin the node until Ctrl-C or SIGTERM, then shut down cleanly.
+
+    The ``register_node`` entry point (``ros2 run``, ``python -m cgags_ros.register_node``).
     """
     from rclpy.executors import ExternalShutdownException
-
     rclpy.init(args=args)
     node = None
     try:

@@ -1,6 +1,8 @@
 """
-The player of live replay: an rclpy context that publishes a bag's clouds into a
-register_node and records its poses and /diagnostics.
+The player of live replay.
+
+An rclpy context that publishes a bag's clouds into a register_node and records its poses
+and /diagnostics.
 """
 
 from __future__ import annotations
@@ -93,8 +95,9 @@ class LiveSession:
 
     def accounted_sources(self) -> int | None:
         """
-        Sources the node is done with (published + rejected + dropped + waiting), from
-        its last diagnostics; None before any diagnostics.
+        Count the sources the node is done with, from its last diagnostics.
+
+        That is published + rejected + dropped + waiting; None before any diagnostics.
         """
         return diagnostics.accounted_sources(self.stats) if self.stats else None
 

@@ -37,8 +37,10 @@ class _TargetNotHeld(Exception):
 def _register_in_child(source: np.ndarray, target: np.ndarray | None, *,
                        config: PipelineConfig) -> Any:
     """
-    ``register_clouds`` in the registration process; ``target=None`` reuses the target
-    sent last, so an unchanged (latched) target crosses the pipe once, not every pair.
+    Run ``register_clouds`` in the registration process.
+
+    ``target=None`` reuses the target sent last, so an unchanged (latched) target crosses
+    the pipe once, not every pair.
     """
     global _child_target
     from ..pipeline import register_clouds  # in the child: the parent needs no Open3D

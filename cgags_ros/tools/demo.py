@@ -62,7 +62,7 @@ def demo_options(bag: str, out: Path, *, voxel_size: float | None = None,
 
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser of ``cgags-demo``."""
-    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split('\n\n')[0])
+    p = argparse.ArgumentParser(prog=PROG, description=__doc__.strip().split('\n\n')[0])
     p.add_argument('--bags', nargs='+', choices=sorted(DEMO_BAGS), default=list(DEMO_BAGS))
     p.add_argument('--output', type=Path, default=Path('out') / 'demo')
     p.add_argument('--offline', action='store_true', help='in-process replay, no ROS')

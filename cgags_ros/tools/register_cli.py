@@ -37,7 +37,7 @@ example: cgags-register bun045.ply bun000.ply --voxel-size 0.003 --set refine.me
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str):
-        """One line on stderr (argparse would also print the whole usage)."""
+        """Exit with one line on stderr (argparse would also print the whole usage)."""
         self.exit(EXIT_ERROR, f'{self.prog}: error: {message} (see --help)\n')
 
 
@@ -103,7 +103,7 @@ def _config(args: argparse.Namespace) -> PipelineConfig:
 
 
 def format_result(result) -> str:
-    """Human-readable report: transform, validity, inliers, quality and stage times."""
+    """Format a human-readable report: transform, validity, inliers, quality, stage times."""
     lines = ['transform (source -> target, metres):']
     lines += ['  ' + ' '.join(f'{x: .6f}' for x in row) for row in result.transform]
     lines.append(f"valid: {'yes' if result.valid else 'no'}"
@@ -113,16 +113,17 @@ def format_result(result) -> str:
     lines.append(f'fitness: {result.fitness:.3f}, inlier RMSE: {result.inlier_rmse:.4g} m, '
                  f"overlap: {result.overlap:.3f}, refined: {'yes' if result.refined else 'no'}")
     lines.append(f'points after {result.voxel_size:g} m voxels: {result.num_source_points} '
-                 f'source, {result.num_target_points} target; resolution {result.resolution:.4g} m')
+                 f'source, {result.num_target_points} target; '
+                 f'resolution {result.resolution:.4g} m')
     stages = ('downsample', 'normals', 'fpfh', 'matching', 'registration', 'refinement', 'total')
     lines.append('time [s]: ' + ', '.join(f'{k} {result.timings[k]:.3f}'
-                                         for k in stages if k in result.timings))
+                                          for k in stages if k in result.timings))
     return '\n'.join(lines)
 
 
 def plot_overlay(path: Path, source: np.ndarray, target: np.ndarray,
                  transform: np.ndarray, max_points: int = 20000) -> None:
-    """Top (x-y) and side (x-z) views of target + source before and after alignment (PNG)."""
+    """Plot top (x-y) and side (x-z) views of target + source before and after alignment."""
     import matplotlib
 
     matplotlib.use('Agg')

@@ -59,7 +59,8 @@ PROG = 'cgags-replay'
 
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser of ``cgags-replay``."""
-    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split('\n\n')[0].replace('``', ''),
+    summary = __doc__.strip().split('\n\n')[0].replace('``', '')
+    p = argparse.ArgumentParser(prog=PROG, description=summary,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument('bag', type=Path, help='rosbag2 directory or .mcap file')
     p.add_argument('--source-topic', default='/source_cloud',
@@ -68,7 +69,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help='PointCloud2 topic of the reference clouds (default: %(default)s)')
     p.add_argument('--ground-truth-topic', default=None,
                    help=f'PoseStamped source->target, matched to sources by stamp (default: '
-                        f'{DEFAULT_GT_TOPIC} when the bag has it; given explicitly, it must exist)')
+                        f'{DEFAULT_GT_TOPIC} when the bag has it; given explicitly, it must '
+                        'exist)')
     p.add_argument('--voxel-size', type=float, default=None,
                    help='metres (default: --set/--params, else chosen from the target cloud)')
     p.add_argument('--params', default=None, help='YAML of node/pipeline parameters '

@@ -17,15 +17,8 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from .report import (
-    BagReport,
-    BrokenMessage,
-    PairRow,
-    pairs_table,
-    SuccessCriteria,
-    summary_line,
-    write_results,
-)
+from .report import (BagReport, BrokenMessage, PairRow, pairs_table, SuccessCriteria,
+                     summary_line, write_results)
 from ..config import fields
 from ..config.node import configs_from_parameters, NodeConfig
 from ..config.pipeline import load_yaml, PipelineConfig
@@ -72,8 +65,10 @@ class CloudMessage(BagRecord):
 @dataclasses.dataclass
 class BagContents:
     """
-    Clouds in log-time order, ground truth by source stamp (4x4 source->target), and
-    the broken messages that were skipped.
+    What a replay reads from a bag.
+
+    Clouds in log-time order, ground truth by source stamp (4x4 source->target), and the
+    broken messages that were skipped.
     """
 
     path: Path
@@ -145,8 +140,10 @@ def _add_ground_truth(rec: Any, gts: dict[int, np.ndarray], broken: list[BrokenM
 
 def auto_voxel_size(points: np.ndarray, target_points: int = AUTO_VOXEL_POINTS) -> float:
     """
-    Voxel size (metres) at which ``points`` keep about ``target_points`` occupied voxels,
-    found by bisection on a log scale and rounded to two significant digits.
+    Choose a voxel size (metres) that leaves ``points`` about ``target_points`` voxels.
+
+    The size at which that many voxels are occupied is found by bisection on a log scale
+    and rounded to two significant digits.
     """
     pts = np.asarray(points, dtype=np.float64)
     if len(pts) <= target_points:
@@ -171,7 +168,7 @@ def _occupied_voxels(points: np.ndarray, voxel: float) -> int:
 
 def user_parameters(params_file: str | None, sets: Sequence[str], voxel_size: float | None,
                     pairing: str | None) -> dict[str, Any]:
-    """Flat node/pipeline parameters in priority order: YAML < --set < explicit flags."""
+    """Merge the node/pipeline parameters in priority order: YAML < --set < explicit flags."""
     values: dict[str, Any] = {}
     if params_file:
         values.update(fields.flatten_mapping(load_yaml(params_file)))
@@ -185,7 +182,12 @@ def user_parameters(params_file: str | None, sets: Sequence[str], voxel_size: fl
 
 def resolve_configs(values: dict[str, Any], contents: BagContents
                     ) -> tuple[PipelineConfig, NodeConfig, dict[str, Any], str]:
-    """Validated configs plus the parameters to hand a node, and how the voxel was chosen."""
+    """
+    Validate the configs, choosing the voxel size when it is not given.
+
+    :returns: the pipeline and node configs, the parameters to hand a node, and how the
+        voxel size was chosen.
+    """
     values = dict(values)
     how = 'given'
     if 'voxel_size' not in values:
@@ -275,7 +277,7 @@ def load_contents(opts: ReplayOptions) -> BagContents:
 
 def make_row(index: int, src: CloudMessage, tgt: CloudMessage | None,
              contents: BagContents) -> PairRow:
-    """A row with stamps, frames and ground truth filled in; no estimate yet."""
+    """Start a row with stamps, frames and ground truth filled in; no estimate yet."""
     return PairRow(index=index, source_stamp_ns=int(src.stamp_ns),
                    target_stamp_ns=None if tgt is None else int(tgt.stamp_ns),
                    source_frame=src.frame_id, target_frame='' if tgt is None else tgt.frame_id,

@@ -154,8 +154,9 @@ def _log_tail(path: Path, lines: int = 5) -> str:
 def play(session: LiveSession, clouds: list[CloudMessage], rate: float,
          proc: subprocess.Popen | None) -> dict[int, float]:
     """
-    Publish the clouds at their recorded spacing / rate; returns source stamp -> the
-    monotonic time it was sent.
+    Publish the clouds at their recorded spacing / rate.
+
+    :returns: source stamp -> the monotonic time it was sent.
     """
     from rosbags.typesys import get_typestore, Stores
 
@@ -180,8 +181,10 @@ def play(session: LiveSession, clouds: list[CloudMessage], rate: float,
 def wait_for_results(session: LiveSession, proc: subprocess.Popen | None, live: LiveOptions,
                      n_sources: int, n_expected: int) -> bool:
     """
-    Spin until the node is done with every source; False on ``live.timeout`` without
-    progress or when the node exited.
+    Spin until the node is done with every source.
+
+    :returns: True when it is done; False on ``live.timeout`` without progress or when the
+        node exited.
     """
     session.last_progress = time.monotonic()
     while True:
@@ -201,7 +204,7 @@ def wait_for_results(session: LiveSession, proc: subprocess.Popen | None, live: 
 
 
 def _wait_for_details(session: LiveSession, grace: float = 1.0) -> None:
-    """The pose of the last pair can beat its diagnostics sample; give that a moment."""
+    """Wait briefly: the pose of the last pair can beat its diagnostics sample."""
     end = time.monotonic() + grace
     while time.monotonic() < end and not set(session.poses) <= set(session.details):
         session.spin_for(0.05)
@@ -209,7 +212,7 @@ def _wait_for_details(session: LiveSession, grace: float = 1.0) -> None:
 
 def build_rows(contents: BagContents, expected: dict[int, Any], poses: dict[int, Received],
                details: dict[int, dict[str, str]], sent: dict[int, float]) -> list[PairRow]:
-    """One row per source the node should have paired (and per unexpected pose)."""
+    """Build one row per source the node should have paired (and per unexpected pose)."""
     by_stamp = {c.stamp_ns: c for c in contents.sources if c.stamp_ns is not None}
     rows = []
     for stamp in sorted(set(expected) | set(poses)):

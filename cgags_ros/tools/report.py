@@ -1,6 +1,8 @@
 """
-Replay results: one row per registered pair, summary numbers, CSV/JSON files, a PNG plot
-and the tables printed at the end of ``cgags-replay`` and ``cgags-demo``.
+Replay results: rows, summary numbers, result files and printed tables.
+
+One row per registered pair, summary numbers, CSV/JSON files, a PNG plot and the tables
+printed at the end of ``cgags-replay`` and ``cgags-demo``.
 
 Pure bookkeeping: numpy, the geometry metrics and (lazily, Agg backend) matplotlib.
 Transforms are 4x4 source->target (``p_target = R p_source + t``), metres; stamps are
@@ -70,8 +72,9 @@ class PairRow:
 
     def evaluate(self, criteria: SuccessCriteria) -> None:
         """
-        Fill RE/TE/success from ``ground_truth`` (no-op without it). A pair without an
-        estimate, or with an invalid one, is a failure.
+        Fill RE/TE/success from ``ground_truth`` (no-op without it).
+
+        A pair without an estimate, or with an invalid one, is a failure.
         """
         if self.ground_truth is None:
             return
@@ -236,7 +239,7 @@ def plot_report(report: BagReport, path: str | Path) -> Path:
 # --- tables ---------------------------------------------------------------------------------
 
 def markdown_table(headers: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
-    """A GitHub markdown table; floats are formatted compactly, None as '-'."""
+    """Format a GitHub markdown table; floats are formatted compactly, None as '-'."""
     lines = ['| ' + ' | '.join(headers) + ' |', '|' + '|'.join('---' for _ in headers) + '|']
     lines += ['| ' + ' | '.join(fmt(v) for v in row) + ' |' for row in rows]
     return '\n'.join(lines)
