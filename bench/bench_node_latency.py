@@ -100,7 +100,7 @@ def main() -> int:
             time.sleep(0.02)
     time.sleep(3.0)  # let the last pairs finish
     stats = node.statistics()
-    lat = np.array(node._latencies)
+    lat = np.array(node._health.latencies)
 
     executor.shutdown(timeout_sec=2.0)
     node.destroy_node()

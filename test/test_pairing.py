@@ -1,4 +1,4 @@
-"""cgags_ros.pairing: both modes, waiting sources, bounded queue, drop counters."""
+"""cgags_ros.pipeline.pairing: both modes, waiting sources, bounded queue, drop counters."""
 
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ import threading
 
 from cgags_ros.io.bag import read_messages
 from cgags_ros.pipeline.pairing import Pairer
+import numpy as np
 import pytest
 
 S = 1_000_000_000  # ns per second
@@ -113,7 +114,7 @@ def test_reset_counts_discarded_and_keeps_latched_target():
     p.add_target(0, 'm', 'T')
     p.add_source(1, 'a', 's')
     p.reset()
-    assert p.drops['reset'] == 1 and p.has_target
+    assert p.drops['source_reset'] == 1 and p.has_target
 
 
 def test_invalid_arguments():
@@ -121,3 +122,64 @@ def test_invalid_arguments():
         Pairer('nearest')
     with pytest.raises(ValueError):
         Pairer(queue_depth=0)
+
+
+def balanced(p):
+    """Check the accounting invariant of both sides; return the counters."""
+    c = p.counters()
+    assert c['received_sources'] == (c['dropped_sources'] + c['waiting_sources']
+                                     + c['pending'] + c['taken']), c
+    assert c['received_targets'] == (c['dropped_targets'] + c['targets_held']
+                                     + c['targets_used']), c
+    return c
+
+
+@pytest.mark.parametrize('mode', ['latest_target', 'synchronized'])
+def test_every_cloud_is_accounted_for(mode):
+    rng = np.random.default_rng(4)
+    p = Pairer(mode, slop=0.03, queue_depth=2, max_waiting_sources=2, max_waiting_targets=3)
+    stamp = 0
+    for _ in range(400):
+        stamp += int(rng.integers(0, 40_000_000))
+        if rng.random() < 0.05:
+            stamp -= 2_000_000_000  # a clock reset now and then
+        (p.add_source if rng.random() < 0.6 else p.add_target)(stamp, 'f', None)
+        if rng.random() < 0.3:
+            p.pop()
+        balanced(p)
+    c = balanced(p)
+    assert c['taken'] > 20 and c['dropped'] > 0 and sum(p.clock_resets.values()) > 5
+
+
+def test_bag_loop_resets_waiting_but_keeps_the_latched_map_and_ready_pairs():
+    p = Pairer('latest_target', queue_depth=5)
+    p.add_target(0, 'map', 'M')
+    for t in (10, 20, 30):
+        p.add_source(t, 's', t)
+    p.add_source(10, 's', 'loop')  # the bag starts again
+    assert p.clock_resets['source_stamp_backwards'] == 1
+    assert [p.pop().source.payload for _ in range(4)] == [10, 20, 30, 'loop']
+    assert p.has_target and balanced(p)['dropped'] == 0
+
+
+def test_stale_target_from_before_a_clock_reset_is_not_used():
+    p = Pairer('latest_target', queue_depth=5)
+    p.add_target(100, 'odom', 'T100')
+    p.add_source(100, 's', 'a')
+    p.add_source(5, 's', 'b')  # the clock restarted: the target is from the old clock
+    assert p.pop().target.payload == 'T100' and p.pop() is None
+    assert not p.has_target and p.waiting_sources == 1
+    p.add_target(6, 'odom', 'T6')
+    assert p.pop().target.payload == 'T6'
+    c = balanced(p)
+    assert c['targets_used'] == 1 and c['clock_resets.source_stamp_backwards'] == 1
+
+
+def test_synchronized_target_clock_reset_drops_unmatched_targets():
+    p = Pairer('synchronized', slop=0.01, queue_depth=5, max_waiting_targets=5)
+    p.add_target(50_000_000, 't', 'x')
+    p.add_target(10_000_000, 't', 'y')  # backwards: 'x' is from before the jump
+    assert p.drops['target_reset'] == 1
+    p.add_source(10_000_000, 's', 's')
+    assert p.pop().target.payload == 'y'
+    balanced(p)

@@ -5,11 +5,25 @@ Clouds in, result out: the one registration path of the node, the CLIs and bench
 validity gates (``gates.py``); features of recent clouds are cached (``cache.py``);
 ``covariance.py`` turns a result into a pose covariance, ``pairing.py`` pairs sources with
 targets for the node and the replay tool, ``runtime.py`` holds the thread settings.
+
+``register_clouds``, ``warm_up`` and the cache functions are imported on first use: they
+bring in Open3D, which the node's own process (pairing, covariance, unpickling results
+from its registration process) never needs.
 """
 
-from .cache import cached_features, clear_feature_cache
-from .register import register_clouds, warm_up
+import importlib
+from typing import Any
+
 from .result import PipelineResult
+
+_LAZY = {'register_clouds': 'register', 'warm_up': 'register',
+         'cached_features': 'cache', 'clear_feature_cache': 'cache'}
 
 __all__ = ['PipelineResult', 'cached_features', 'clear_feature_cache', 'register_clouds',
            'warm_up']
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(f'.{_LAZY[name]}', __name__), name)
+    raise AttributeError(f'module {__name__!r} has no attribute {name!r}')

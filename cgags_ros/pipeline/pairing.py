@@ -7,37 +7,11 @@ Feed it ``(stamp_ns, frame_id, payload)`` for every source and target as they ar
 ready :class:`Pair` objects out with :meth:`Pairer.pop` (or :meth:`Pairer.wait_pop` from a
 worker thread). Payloads are opaque (the node passes numpy arrays).
 
-Modes
------
-``latest_target`` (scan-to-map)
-    Every source is paired with the most recently *received* target (receipt order, not
-    stamp order, so a latched map with an old stamp still counts). A target may serve any
-    number of sources. A source that arrives before any target waits; at most
-    ``max_waiting_sources`` sources wait (the newest ones; older ones are dropped with
-    reason ``source_superseded_before_target``), and they are paired, oldest first, as
-    soon as a target arrives. A target replaced before any source used it is counted as
-    ``target_replaced_unused``.
-
-``synchronized`` (approximate time)
-    Each source is paired with the buffered target whose stamp is nearest to its own,
-    provided ``|dt| <= slop``; each target is used by at most one source (like
-    message_filters' ApproximateTime, greedy per source in stamp order). A match is
-    final once a target with a stamp at or after the source's exists: with per-topic
-    stamps that do not go backwards no later target can be closer. A source is dropped
-    (``source_no_target_within_slop``) once the newest target is more than ``slop``
-    after it without a match; a target is dropped (``target_no_source_within_slop``)
-    once the newest source is more than ``slop`` after it and no waiting source can use
-    it. Each side buffers at most ``max_waiting_sources`` / ``max_waiting_targets``
-    messages; the oldest is dropped when full (``source_buffer_full`` /
-    ``target_buffer_full``).
-
-Ready queue
-    Ready pairs wait in a FIFO of at most ``queue_depth`` pairs. When it is full the
-    *oldest* pair is dropped (``queue_full``): for localization a fresh pose is worth more
-    than a stale one.
-
-Nothing is dropped silently: every drop increments ``drops[reason]``; ``received_*`` and
-``paired`` count the rest.
+The two modes (``latest_target`` for scan-to-map, ``synchronized`` for approximate-time
+pairs), the bounded ready queue (the oldest pair is dropped when full: for localization a
+fresh pose is worth more than a stale one) and the reset when stamps go backwards are
+specified in docs/pairing.md. Nothing is dropped silently: every drop increments
+``drops[reason]``, and :meth:`Pairer.counters` accounts for every source and target.
 """
 
 from __future__ import annotations
@@ -110,12 +84,15 @@ class Pairer:
         self.received_sources = 0
         self.received_targets = 0
         self.paired = 0
+        self.taken = 0  # pairs handed out by pop()/wait_pop()
+        self.targets_used = 0  # targets retired after serving at least one pair
+        self.clock_resets: collections.Counter[str] = collections.Counter()
         self.drops: collections.Counter[str] = collections.Counter()
         self._ready: collections.deque[Pair] = collections.deque()
         self._sources: list[Stamped] = []  # waiting sources, oldest first
         self._targets: list[Stamped] = []  # latest: [newest]; synchronized: unmatched
         self._target_used = False
-        self._newest_source_ns: int | None = None  # newest stamps ever seen (synchronized)
+        self._newest_source_ns: int | None = None  # newest stamps since the last reset
         self._newest_target_ns: int | None = None
         self._receipts = 0
         self._cond = threading.Condition()
@@ -127,10 +104,14 @@ class Pairer:
     # ------------------------------------------------------------------ input
 
     def add_source(self, stamp_ns: int, frame_id: str, payload: Any) -> None:
+        """Add a source cloud; it waits, or is paired at once (then ready to pop)."""
         with self._cond:
             self.received_sources += 1
             item = self._stamped(stamp_ns, frame_id, payload)
+            if self._newest_source_ns is not None and item.stamp_ns < self._newest_source_ns:
+                self._clock_reset('source_stamp_backwards', item.stamp_ns)
             if self.mode == 'latest_target':
+                self._newest_source_ns = _newest(self._newest_source_ns, item.stamp_ns)
                 if self._targets:
                     self._emit(item, self._targets[-1])
                 else:
@@ -142,18 +123,22 @@ class Pairer:
                 self._match()
 
     def add_target(self, stamp_ns: int, frame_id: str, payload: Any) -> None:
+        """Add a target cloud; waiting sources it completes become ready to pop."""
         with self._cond:
             self.received_targets += 1
             item = self._stamped(stamp_ns, frame_id, payload)
             if self.mode == 'latest_target':
-                if self._targets and not self._target_used:
-                    self.drops['target_replaced_unused'] += 1
+                # A latched map may be re-sent with an old stamp: no clock check here.
+                self._retire_target()
                 self._targets = [item]
                 self._target_used = False
                 waiting, self._sources = self._sources, []
                 for source in waiting:
                     self._emit(source, item)
             else:
+                if (self._newest_target_ns is not None
+                        and item.stamp_ns < self._newest_target_ns):
+                    self._clock_reset('target_stamp_backwards', item.stamp_ns)
                 self._newest_target_ns = _newest(self._newest_target_ns, item.stamp_ns)
                 self._push(self._targets, item, self.max_waiting_targets, 'target_buffer_full')
                 self._match()
@@ -163,14 +148,21 @@ class Pairer:
     def pop(self) -> Pair | None:
         """Return the oldest ready pair, or None."""
         with self._cond:
-            return self._ready.popleft() if self._ready else None
+            return self._take()
 
     def wait_pop(self, timeout: float | None = None) -> Pair | None:
         """Block until a pair is ready (or ``timeout`` seconds pass, or :meth:`wake`)."""
         with self._cond:
             if not self._ready:
                 self._cond.wait(timeout)
-            return self._ready.popleft() if self._ready else None
+            return self._take()
+
+    def wait_ready(self, timeout: float | None = None) -> bool:
+        """Block until a pair is ready, without taking it; False after ``timeout`` s."""
+        with self._cond:
+            if not self._ready:
+                self._cond.wait(timeout)
+            return bool(self._ready)
 
     def wake(self) -> None:
         """Release threads blocked in :meth:`wait_pop` (used on shutdown)."""
@@ -181,17 +173,11 @@ class Pairer:
         """
         Forget waiting sources, unmatched targets (synchronized mode) and ready pairs.
 
-        Used e.g. after a clock jump. The latest target of latest_target mode is kept: a
-        latched map is not sent again. Discarded items are counted as ``reset``.
+        The latest target of latest_target mode is kept: a latched map is not sent again.
+        Discarded items are counted as ``source_reset`` and ``target_reset``.
         """
         with self._cond:
-            self.drops['reset'] += len(self._ready) + len(self._sources)
-            self._ready.clear()
-            self._sources = []
-            if self.mode == 'synchronized':
-                self.drops['reset'] += len(self._targets)
-                self._targets = []
-            self._newest_source_ns = self._newest_target_ns = None
+            self._reset(keep_target_before=None)
 
     @property
     def pending(self) -> int:
@@ -210,17 +196,77 @@ class Pairer:
             return bool(self._targets)
 
     def counters(self) -> dict[str, int]:
-        """Snapshot: received, paired, pending, and ``dropped.<reason>`` for every drop."""
+        """
+        Return a consistent snapshot of the counters.
+
+        Every source received is exactly one of: dropped (a ``source_*`` reason or
+        ``queue_full``), waiting for a target, ready (``pending``) or ``taken``. Every
+        target is dropped (``target_*``), held (the latest or an unmatched one) or
+        ``targets_used`` (retired after serving a pair). ``clock_resets.<reason>`` counts
+        the resets that stamps going backwards caused.
+        """
         with self._cond:
+            held = len(self._targets)
             out = {'received_sources': self.received_sources,
                    'received_targets': self.received_targets,
                    'paired': self.paired, 'pending': len(self._ready),
-                   'waiting_sources': len(self._sources),
-                   'dropped': sum(self.drops.values())}
+                   'waiting_sources': len(self._sources), 'taken': self.taken,
+                   'targets_held': held, 'targets_used': self.targets_used,
+                   'dropped': sum(self.drops.values()),
+                   'dropped_sources': sum(v for k, v in self.drops.items()
+                                          if is_source_drop(k)),
+                   'dropped_targets': sum(v for k, v in self.drops.items()
+                                          if not is_source_drop(k))}
             out.update({f'dropped.{k}': v for k, v in sorted(self.drops.items())})
+            out.update({f'clock_resets.{k}': v for k, v in sorted(self.clock_resets.items())})
             return out
 
     # ------------------------------------------------------------------ internals
+
+    def _take(self) -> Pair | None:
+        if not self._ready:
+            return None
+        self.taken += 1
+        return self._ready.popleft()
+
+    def _retire_target(self) -> None:
+        """Count the latest target (latest_target mode) as used or dropped unused."""
+        if self._targets:
+            if self._target_used:
+                self.targets_used += 1
+            else:
+                self.drops['target_replaced_unused'] += 1
+        self._target_used = False
+
+    def _clock_reset(self, reason: str, stamp_ns: int) -> None:
+        """
+        Start over after a stamp went backwards (a bag replayed in a loop, a clock reset).
+
+        Unpaired data from before the jump must not meet data from after it: waiting
+        sources and unmatched targets are dropped, and the latest target (latest_target
+        mode) is kept only when it is not newer than the new stamp, as a latched map is.
+        Pairs already formed stay ready: each is consistent in itself.
+        """
+        self.clock_resets[reason] += 1
+        self._reset(keep_target_before=stamp_ns, keep_ready=True)
+
+    def _reset(self, keep_target_before: int | None, keep_ready: bool = False) -> None:
+        if not keep_ready:
+            self.drops['source_reset'] += len(self._ready)
+            self._ready.clear()
+        self.drops['source_reset'] += len(self._sources)
+        self._sources = []
+        if self.mode == 'synchronized':
+            self.drops['target_reset'] += len(self._targets)
+            self._targets = []
+        elif (self._targets and keep_target_before is not None
+                and self._targets[-1].stamp_ns > keep_target_before):
+            if self._target_used:
+                self.targets_used += 1
+            else:
+                self.drops['target_reset'] += 1
+            self._targets, self._target_used = [], False
+        self._newest_source_ns = self._newest_target_ns = None
 
     def _stamped(self, stamp_ns: int, frame_id: str, payload: Any) -> Stamped:
         self._receipts += 1
@@ -234,6 +280,8 @@ class Pairer:
 
     def _emit(self, source: Stamped, target: Stamped) -> None:
         self._target_used = True
+        if self.mode == 'synchronized':
+            self.targets_used += 1  # each target serves one source
         self.paired += 1
         self._ready.append(Pair(source, target))
         while len(self._ready) > self.queue_depth:
@@ -274,6 +322,11 @@ class Pairer:
             else:
                 remaining.append(target)
         self._targets = remaining
+
+
+def is_source_drop(reason: str) -> bool:
+    """Tell whether a drop reason discards a source (the others discard a target)."""
+    return reason.startswith('source_') or reason == 'queue_full'
 
 
 def _newest(current: int | None, stamp_ns: int) -> int:

@@ -3,12 +3,14 @@ The node's /diagnostics: one flat key space, built here and read back by live re
 
 :func:`build_statistics` makes the keys the node publishes; :func:`accounted_sources` and
 :func:`last_result` read them back (from the string values a DiagnosticStatus carries),
-so the names are defined once.
+so the names are defined once. ``sources.*`` and ``targets.*`` are the accounting buckets
+of :mod:`.health` (``accounting.ok``: they balance); ``worker.*`` and ``memory.*`` the
+registration process and the resident memory (MB).
 """
 
 from __future__ import annotations
 
-from typing import Any, Iterable, Mapping
+from typing import Any, Mapping
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
@@ -18,14 +20,19 @@ PAIRING = 'pairing.'  # pairing.<counter> of cgags_ros.pipeline.pairing.Pairer.c
 DROPPED = PAIRING + 'dropped.'  # pairing.dropped.<reason>
 LAST = 'last_'  # last_<field>: the most recent registration
 LAST_TIMING = 'last_timing.'  # last_timing.<stage>: its stage times, seconds
-# Pairing drop reasons that end a source's life (see cgags_ros.pipeline.pairing).
-SOURCE_DROPS = ('source_', 'queue_full', 'reset')
+ACCOUNTING_OK = 'accounting.ok'
 
 
-def build_statistics(counts: Mapping[str, int], rejected: Mapping[str, int],
-                     last: Mapping[str, Any], latencies: Iterable[float], voxel_size: float,
-                     pairing: Mapping[str, int]) -> dict[str, Any]:
-    """Return the flat statistics of the node (what /diagnostics carries)."""
+def build_statistics(snapshot: Mapping[str, Any], voxel_size: float,
+                     extra: Mapping[str, Any]) -> dict[str, Any]:
+    """
+    Return the flat statistics of the node (what /diagnostics carries).
+
+    ``snapshot`` is :meth:`.health.NodeHealth.snapshot`; ``extra`` holds the worker's and
+    the memory's keys.
+    """
+    counts, rejected, last = snapshot['counts'], snapshot['rejected'], snapshot['last']
+    latencies, pairing = snapshot['latencies'], snapshot['pairing']
     stats: dict[str, Any] = dict(counts)
     stats.update({f'{REJECTED}{k}': v for k, v in sorted(rejected.items())})
     stats['rejected'] = sum(rejected.values())
@@ -40,6 +47,12 @@ def build_statistics(counts: Mapping[str, int], rejected: Mapping[str, int],
         stats['latency_p50_s'] = float(np.percentile(lat, 50))
         stats['latency_p95_s'] = float(np.percentile(lat, 95))
     stats.update({f'{PAIRING}{k}': v for k, v in pairing.items()})
+    for side in ('sources', 'targets'):
+        stats.update({f'{side}.{k}': v for k, v in snapshot['accounting'][side].items()})
+    stats[ACCOUNTING_OK] = snapshot['accounting']['ok']
+    if snapshot['failing']:
+        stats['worker.failing'] = snapshot['failing']
+    stats.update(extra)
     return stats
 
 
@@ -47,7 +60,14 @@ def diagnostic_array(stats: Mapping[str, Any], name: str, hardware_id: str,
                      stamp: Any) -> DiagnosticArray:
     """Return the /diagnostics message of ``stats``, with a level and a one-line message."""
     status = DiagnosticStatus(name=name, hardware_id=hardware_id)
-    if not stats.get('received_source') or not stats.get('received_target'):
+    if not stats.get(ACCOUNTING_OK, True):
+        status.level = DiagnosticStatus.ERROR
+        status.message = 'internal error: received clouds do not balance the counted outcomes'
+    elif stats.get('worker.failing'):
+        status.level = DiagnosticStatus.ERROR
+        status.message = (f"registration worker failed ({stats['worker.failing']}); "
+                          'restarted, no pair has succeeded since')
+    elif not stats.get('received_source') or not stats.get('received_target'):
         status.level = DiagnosticStatus.STALE
         status.message = 'waiting for source and target clouds'
     elif stats.get(f'{LAST}valid') is False:
@@ -66,14 +86,8 @@ def diagnostic_array(stats: Mapping[str, Any], name: str, hardware_id: str,
 
 def accounted_sources(values: Mapping[str, str]) -> int:
     """Count the sources the node is done with: published + rejected + dropped + waiting."""
-    n = 0
-    for key, value in values.items():
-        if (key == 'published'
-                or (key.startswith(REJECTED) and not key.startswith(f'{REJECTED}target_'))
-                or (key.startswith(DROPPED) and key[len(DROPPED):].startswith(SOURCE_DROPS))
-                or key == f'{PAIRING}waiting_sources'):
-            n += as_int(value)
-    return n
+    return (sum(as_int(values.get(f'sources.{k}')) for k in ('published', 'rejected', 'dropped'))
+            + as_int(values.get(f'{PAIRING}waiting_sources')))
 
 
 def last_result(values: Mapping[str, str]) -> dict[str, Any]:

@@ -33,7 +33,6 @@ pairer's bounded queue drops the oldest pair).
 
 from __future__ import annotations
 
-import collections
 import threading
 import time
 import traceback
@@ -50,9 +49,11 @@ from std_msgs.msg import Header
 
 from . import diagnostics
 from .conversions import transform_to_pose, transform_to_transform_stamped, xyz_to_pointcloud2
+from .health import LOG_REPEAT_S, NodeHealth
 from .parameters import descriptor
 from .qos import source_qos, target_qos
-from .worker import IsolatedRegistration, load_pipeline, RegisterFn, RegistrationTimeout
+from .worker import (IsolatedRegistration, load_pipeline, RegisterFn, RegistrationTimeout,
+                     rss_mb, WorkerCrashed)
 from ..config.node import configs_from_parameters, NodeConfig, parameter_descriptions
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError, EmptyCloudError, InvalidConfigError, InvalidInputError
@@ -60,8 +61,6 @@ from ..geometry import apply_transform
 from ..io.pointcloud2 import pointcloud2_to_xyz, stamp_to_ns
 from ..pipeline.covariance import inlier_pairs, pose_covariance
 from ..pipeline.pairing import Pair, Pairer
-
-_LOG_REPEAT_S = 30.0  # a cause already logged is logged again at most this often
 
 
 class _Cloud:
@@ -95,14 +94,10 @@ class RegisterNode(Node):
             self._register = self._isolated
         else:  # import the pipeline (and Open3D) now, so the first pair is not slowed by it
             self._register = load_pipeline()
-        self._lock = threading.Lock()  # guards configs and statistics
+        self._lock = threading.Lock()  # guards the configs
         cfg = self._node_cfg
         self._pairer = Pairer.from_config(cfg)
-        self._rejected: collections.Counter[str] = collections.Counter()
-        self._counts: collections.Counter[str] = collections.Counter()
-        self._last: dict[str, Any] = {}
-        self._latencies: collections.deque[float] = collections.deque(maxlen=200)
-        self._logged: dict[str, float] = {}
+        self._health = NodeHealth(self._pairer)
         self._tf_broadcaster: Any = None
         self._tf_missing_logged = False
 
@@ -156,74 +151,78 @@ class RegisterNode(Node):
 
     # ------------------------------------------------------------------ input
 
-    def _decode(self, msg: PointCloud2, role: str) -> _Cloud | None:
+    def _receive(self, msg: PointCloud2, role: str) -> None:
         receipt = time.monotonic_ns()
         with self._lock:
-            self._counts[f'received_{role}'] += 1
             max_points = self._node_cfg.max_cloud_points
         try:
-            xyz = pointcloud2_to_xyz(msg, max_points=max_points)
+            cloud = _Cloud(pointcloud2_to_xyz(msg, max_points=max_points), msg.header, receipt)
+            stamp = stamp_to_ns(msg.header.stamp)
         except InvalidInputError as exc:
-            kind = 'empty' if isinstance(exc, EmptyCloudError) else 'malformed'
-            self._reject(f'{role}_{kind}', f'{role} cloud rejected: {exc}')
-            return None
-        return _Cloud(xyz, msg.header, receipt)
+            cause = f"{role}_{'empty' if isinstance(exc, EmptyCloudError) else 'malformed'}"
+            self._health.receive(role, 0, '', None, rejection=cause)
+            self._log_rejection(cause, f'{role} cloud rejected: {exc}')
+            return
+        self._health.receive(role, stamp, str(msg.header.frame_id), cloud)
 
     def _on_source(self, msg: PointCloud2) -> None:
-        cloud = self._decode(msg, 'source')
-        if cloud is not None:
-            self._pairer.add_source(stamp_to_ns(msg.header.stamp), msg.header.frame_id, cloud)
+        self._receive(msg, 'source')
 
     def _on_target(self, msg: PointCloud2) -> None:
-        cloud = self._decode(msg, 'target')
-        if cloud is not None:
-            self._pairer.add_target(stamp_to_ns(msg.header.stamp), msg.header.frame_id, cloud)
+        self._receive(msg, 'target')
 
     # ------------------------------------------------------------------ worker
 
     def _work(self) -> None:
         while not self._stop.is_set():
-            pair = self._pairer.wait_pop(timeout=0.2)
+            pair = self._health.take(timeout=0.2)
             if pair is None:
                 continue
+            cause, message = 'internal_error', ''
             try:
-                self._process(pair)
+                cause, message = self._process(pair)
             except Exception as exc:  # noqa: BLE001 - the worker must outlive any bad pair
-                if not self._stop.is_set() and self.context.ok():
-                    self._reject('internal_error',
-                                 f'pair failed: {exc!r}\n{traceback.format_exc()}')
+                message = f'pair failed: {exc!r}\n{traceback.format_exc()}'
+            finally:
+                latency = (time.monotonic_ns() - pair.source.payload.receipt_ns) * 1e-9
+                self._health.finish(cause, latency)
+            if cause and not self._stop.is_set() and self.context.ok():
+                self._log_rejection(cause, message)
 
-    def _process(self, pair: Pair) -> None:
+    def _process(self, pair: Pair) -> tuple[str, str]:
+        """Register and publish a pair; return ('', '') or its rejection (cause, message)."""
         source, target = pair.source.payload, pair.target.payload
         with self._lock:
             pipe_cfg, cfg = self._pipeline_cfg, self._node_cfg
         try:
             result = self._register(source.xyz, target.xyz, config=pipe_cfg)
         except InvalidInputError as exc:
-            self._reject('pipeline_input', f'pair rejected by the pipeline: {exc}')
-            return
+            return 'pipeline_input', f'pair rejected by the pipeline: {exc}'
         except RegistrationTimeout as exc:
-            self._reject('timeout', str(exc))
-            return
+            return 'timeout', str(exc)
+        except WorkerCrashed as exc:
+            self._health.failing = 'worker_crashed'
+            return 'worker_crashed', str(exc)
         except CgagsError as exc:
-            self._reject('pipeline_error', f'registration failed: {exc}')
-            return
+            return 'pipeline_error', f'registration failed: {exc}'
         T = np.asarray(result.transform, dtype=np.float64)
         valid = bool(result.valid) and np.isfinite(T).all()
-        with self._lock:
-            self._last = {'valid': valid, 'reason': str(getattr(result, 'reason', '')),
-                          'inliers': int(result.num_inliers),
-                          'fitness': float(getattr(result, 'fitness', float('nan'))),
-                          'voxel_size': pipe_cfg.voxel_size,
-                          'timings': dict(getattr(result, 'timings', {}) or {}),
-                          'source_stamp_ns': pair.source.stamp_ns}
+        with self._health.lock:
+            self._health.failing = ''
+            self._health.last = {
+                'valid': valid, 'reason': str(getattr(result, 'reason', '')),
+                'inliers': int(result.num_inliers),
+                'fitness': float(getattr(result, 'fitness', float('nan'))),
+                'voxel_size': pipe_cfg.voxel_size,
+                'timings': dict(getattr(result, 'timings', {}) or {}),
+                'source_stamp_ns': pair.source.stamp_ns}
         if not valid:
             if not cfg.publish_invalid or not np.isfinite(T).all():
-                self._reject('invalid_result', f'invalid registration: {result.reason}')
-                return
-            with self._lock:
-                self._counts['published_invalid'] += 1
+                return 'invalid_result', f'invalid registration: {result.reason}'
+            with self._health.lock:
+                self._health.counts['published_invalid'] += 1
         self._publish(pair, T, result, pipe_cfg, cfg)
+        return '', ''
 
     def _publish(self, pair: Pair, T: np.ndarray, result: Any, pipe_cfg: PipelineConfig,
                  cfg: NodeConfig) -> None:
@@ -245,10 +244,6 @@ class RegisterNode(Node):
             self._send(self._aligned_pub, xyz_to_pointcloud2(aligned, header))
         if cfg.broadcast_tf:
             self._broadcast(T, header, cfg.tf_child_frame or source.header.frame_id)
-        latency = (time.monotonic_ns() - source.receipt_ns) * 1e-9
-        with self._lock:
-            self._counts['published'] += 1
-            self._latencies.append(latency)
 
     def _broadcast(self, T: np.ndarray, header: Header, child: str) -> None:
         if self._tf_broadcaster is None:
@@ -265,31 +260,28 @@ class RegisterNode(Node):
 
     # ------------------------------------------------------------------ health
 
-    def _reject(self, cause: str, message: str) -> None:
-        """Count a rejection and log it, once per cause and then at most every 30 s."""
-        now = time.monotonic()
-        with self._lock:
-            self._rejected[cause] += 1
-            n = self._rejected[cause]
-            last = self._logged.get(cause)
-            due = last is None or now - last >= _LOG_REPEAT_S
-            if due:
-                self._logged[cause] = now
+    def _log_rejection(self, cause: str, message: str) -> None:
+        """Log a counted rejection, once per cause and then at most every 30 s."""
+        n, due = self._health.reject_count(cause)
         if due:
-            suffix = (f' ({n} so far; repeats are logged every {_LOG_REPEAT_S:.0f} s)'
+            suffix = (f' ({n} so far; repeats are logged every {LOG_REPEAT_S:.0f} s)'
                       if n > 1 else '')
             self.get_logger().warning(message + suffix)
 
     def statistics(self) -> dict[str, Any]:
         """Return a flat snapshot of the node's counters (what /diagnostics carries)."""
         with self._lock:
-            counts, rejected = dict(self._counts), dict(self._rejected)
-            last, latencies = dict(self._last), list(self._latencies)
             voxel = self._pipeline_cfg.voxel_size
-        return diagnostics.build_statistics(counts, rejected, last, latencies, voxel,
-                                            self._pairer.counters())
+        extra = {'memory.node_rss_mb': round(rss_mb() or 0.0, 1)}
+        if self._isolated is not None:
+            extra.update(self._isolated.health())
+        return diagnostics.build_statistics(self._health.snapshot(), voxel, extra)
 
     def _publish_diagnostics(self) -> None:
+        if self._isolated is not None and self._isolated.supervise():
+            self._health.failing = 'worker_crashed'
+            self.get_logger().warning('the registration process had died while idle; '
+                                      'a fresh one was started')
         msg = diagnostics.diagnostic_array(
             self.statistics(), f'{self.get_name()}: registration',
             self.get_fully_qualified_name(), self.get_clock().now().to_msg())

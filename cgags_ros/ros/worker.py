@@ -1,8 +1,10 @@
 """
-The registration worker: ``register_clouds`` in a child process, with a time limit.
+The registration worker: ``register_clouds`` in a supervised child process.
 
 ROS-free by itself, but it exists for the node: a pathological input that makes the
-pipeline loop (or crash natively) costs one pair, not the node.
+pipeline loop costs one pair (the child is killed past the time limit), and a child that
+dies (the OOM killer, a native crash in a library, ``kill -9``), idle or busy, is replaced
+by a fresh one; the node keeps registering.
 """
 
 from __future__ import annotations
@@ -11,6 +13,8 @@ from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
 from concurrent.futures.process import BrokenProcessPool
 import multiprocessing
+import os
+import threading
 from typing import Any, Callable
 
 import numpy as np
@@ -25,6 +29,10 @@ _WARM_UP_LIMIT_S = 120.0  # starting a registration process (imports Open3D) may
 
 class RegistrationTimeout(CgagsError):
     """A registration ran past ``registration_timeout`` and its process was killed."""
+
+
+class WorkerCrashed(CgagsError):
+    """The registration process died while it registered a pair; a fresh one was started."""
 
 
 _child_target: np.ndarray | None = None  # in the registration process: the last target
@@ -58,23 +66,166 @@ def _warm_up_in_child() -> Any:
     return warm_up()
 
 
+def rss_mb(pid: int | None = None) -> float | None:
+    """Return the resident memory of process ``pid`` (default: this one) in MB, if known."""
+    try:
+        with open(f"/proc/{pid or 'self'}/statm", encoding='ascii') as f:
+            pages = int(f.read().split()[1])
+    except (OSError, ValueError, IndexError):
+        return None  # not Linux, or the process is gone
+    return pages * os.sysconf('SC_PAGE_SIZE') / 1e6
+
+
+def _running(pid: int) -> bool:
+    """Tell whether process ``pid`` exists and is not a zombie."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:
+        with open(f'/proc/{pid}/stat', encoding='ascii') as f:
+            return f.read().rsplit(')', 1)[1].split()[0] not in ('Z', 'X')
+    except (OSError, IndexError):
+        return True  # no /proc: the signal test is all there is
+
+
 class IsolatedRegistration:
     """
-    Runs ``register_clouds`` in one spawned child process with a time limit.
+    Run ``register_clouds`` in one spawned child process, supervised, with a time limit.
 
-    A pathological input that makes the pipeline loop (or crash natively) costs one pair:
-    the child is killed and a fresh one started. Spawn, not fork: forking a process that
-    runs DDS threads is unsafe. Results and typed errors come back pickled. The child keeps
-    the last target: a target that is the same array object as the previous call's is not
-    sent again (the node never writes to a decoded cloud).
+    Spawn, not fork: forking a process that runs DDS threads is unsafe. Results and typed
+    errors come back pickled. The child keeps the last target: a target that is the same
+    array object as the previous call's is not sent again (the node never writes to a
+    decoded cloud).
+
+    Supervision: a child found dead before a pair is sent (it died idle) is replaced and
+    the pair runs on the fresh one; a child that dies during a pair is replaced and that
+    pair fails with :class:`WorkerCrashed`. :meth:`supervise` replaces a dead idle child
+    early, so that the next pair does not wait for the fresh one's start-up. ``crashes``
+    counts deaths, ``restarts`` every replacement (crashes and timeouts).
     """
 
     def __init__(self, timeout_s: float):
         self.timeout_s = timeout_s
+        self.crashes = 0
+        self.restarts = 0
         self._pool: Any = None
         self._closed = False
+        self._busy = False
+        self._lock = threading.Lock()  # guards the pool between the worker and supervise()
         self._sent_target: np.ndarray | None = None  # what the child holds (by identity)
         self._start()
+
+    @property
+    def pid(self) -> int | None:
+        """Return the child's process id (None before it started or after close)."""
+        processes = getattr(self._pool, '_processes', None) or {}
+        return next(iter(processes), None)
+
+    def health(self) -> dict[str, Any]:
+        """Return the worker's counters and resident memory, for /diagnostics."""
+        pid = self.pid
+        return {'worker.pid': pid or 0, 'worker.alive': self._alive(),
+                'worker.crashes': self.crashes, 'worker.restarts': self.restarts,
+                'memory.worker_rss_mb': round(rss_mb(pid) or 0.0, 1) if pid else 0.0}
+
+    def supervise(self) -> bool:
+        """Replace a child that died while idle; return True when one was replaced."""
+        with self._lock:
+            if self._closed or self._busy or self._pool is None or self._alive():
+                return False
+            self._crashed()
+            return True
+
+    def __call__(self, source: np.ndarray, target: np.ndarray, *, config: PipelineConfig) -> Any:
+        with self._lock:
+            if self._pool is None:
+                raise RegistrationTimeout('the registration process is shut down')
+            if not self._alive():  # died while idle: nothing of this pair is lost
+                self._crashed()
+            warm = self._warm
+            self._busy = True
+        try:
+            self._wait_for_warm_up(warm)
+            return self._run(source, target, config)
+        finally:
+            with self._lock:
+                self._busy = False
+
+    def _run(self, source: np.ndarray, target: np.ndarray, config: PipelineConfig) -> Any:
+        held = target is self._sent_target
+        # Only a completed call proves the child holds this target; after any failure it
+        # is sent again.
+        self._sent_target = None
+        try:
+            future = self._submit(self._fn, source, None if held else target, config=config)
+            result = future.result(timeout=self.timeout_s)
+        except _TargetNotHeld:  # not expected (a restart forgets what was sent); resend
+            return self._run(source, target, config)
+        except FutureTimeout:
+            self.restart()
+            raise RegistrationTimeout(
+                f'registration took longer than registration_timeout = {self.timeout_s:g} s; '
+                'its process was restarted') from None
+        except BrokenProcessPool:
+            with self._lock:
+                if not self._closed:
+                    self._crashed()
+            raise WorkerCrashed('the registration process died during this pair '
+                                '(killed, out of memory or a native crash); restarted') from None
+        self._sent_target = target
+        return result
+
+    def _submit(self, *args: Any, **kwargs: Any) -> Any:
+        """Submit to the child; one that died since the last check (idle) is replaced."""
+        with self._lock:
+            if self._pool is None:
+                raise RegistrationTimeout('the registration process is shut down')
+            try:
+                return self._pool.submit(*args, **kwargs)
+            except BrokenProcessPool:
+                self._crashed()
+                warm = self._warm
+        self._wait_for_warm_up(warm)
+        with self._lock:
+            if self._pool is None:
+                raise RegistrationTimeout('the registration process is shut down')
+            return self._pool.submit(*args, **kwargs)
+
+    def _wait_for_warm_up(self, warm: Any) -> None:
+        if warm is None:
+            return
+        try:
+            warm.result(timeout=_WARM_UP_LIMIT_S)
+        except Exception:  # noqa: BLE001 - a failed warm-up shows again on the real pair
+            pass
+        with self._lock:
+            if self._warm is warm:
+                self._warm = None
+
+    def _alive(self) -> bool:
+        if self._pool is None or getattr(self._pool, '_broken', False):
+            return False
+        # By pid, not Process.is_alive(): once the pool's manager thread has reaped a dead
+        # child, is_alive() in another thread reports it as running.
+        return all(_running(pid) for pid in list(getattr(self._pool, '_processes', {})))
+
+    def _crashed(self) -> None:
+        self.crashes += 1
+        self._replace()
+
+    def restart(self) -> None:
+        """Kill the child and start a fresh one (a registration in flight fails)."""
+        with self._lock:
+            self._replace()
+
+    def _replace(self) -> None:
+        self._kill()
+        if not self._closed:
+            self.restarts += 1
+            self._start()
 
     def _start(self) -> None:
         self._fn = _register_in_child
@@ -85,46 +236,14 @@ class IsolatedRegistration:
         # small synthetic pair, so no start-up cost is counted against a real pair's limit.
         self._warm = self._pool.submit(_warm_up_in_child)
 
-    def __call__(self, source: np.ndarray, target: np.ndarray, *, config: PipelineConfig) -> Any:
-        if self._pool is None:
-            raise RegistrationTimeout('the registration process is shut down')
-        if self._warm is not None:
-            try:
-                self._warm.result(timeout=_WARM_UP_LIMIT_S)
-            except Exception:  # noqa: BLE001 - a failed warm-up shows again on the real pair
-                pass
-            self._warm = None
-        held = target is self._sent_target
-        # Only a completed call proves the child holds this target; after any failure it
-        # is sent again.
-        self._sent_target = None
-        future = self._pool.submit(self._fn, source, None if held else target, config=config)
-        try:
-            result = future.result(timeout=self.timeout_s)
-            self._sent_target = target
-            return result
-        except _TargetNotHeld:  # not expected (a restart forgets what was sent); resend
-            return self(source, target, config=config)
-        except FutureTimeout:
-            self.restart()
-            raise RegistrationTimeout(
-                f'registration took longer than registration_timeout = {self.timeout_s:g} s; '
-                'its process was restarted') from None
-        except BrokenProcessPool:
-            self.restart()
-            raise RegistrationTimeout('the registration process died; restarted') from None
-
-    def restart(self) -> None:
-        self._kill()
-        if not self._closed:
-            self._start()
-
     def close(self) -> None:
-        self._closed = True
-        # Wait for the pool's manager thread: one still running at interpreter exit races
-        # concurrent.futures' atexit hook, which then prints "OSError: handle is closed".
-        # The child is killed first, so this returns at once.
-        self._kill(wait=True)
+        """Stop the child and the pool for good."""
+        with self._lock:
+            self._closed = True
+            # Wait for the pool's manager thread: one still running at interpreter exit
+            # races concurrent.futures' atexit hook, which then prints "OSError: handle is
+            # closed". The child is killed first, so this returns at once.
+            self._kill(wait=True)
 
     def _kill(self, wait: bool = False) -> None:
         pool, self._pool = self._pool, None
