@@ -130,12 +130,19 @@ def open3d_ransac(src: np.ndarray, dst: np.ndarray, tau: float) -> np.ndarray:
 # --------------------------------------------------------------------------- KISS-Matcher
 
 
-def kiss_config(tau: float, *, robin_gain: float = 1.0, solver_gain: float = 1.0):
-    """Return a KISSMatcherConfig whose ROBIN and solver noise bounds both equal ``tau``."""
+def kiss_config(tau: float, *, robin_gain: float = 1.0, solver_gain: float = 1.0,
+                quatro: bool = False):
+    """
+    Return a KISSMatcherConfig whose ROBIN and solver noise bounds both equal ``tau``.
+
+    ``quatro=True`` sets ``use_quatro=True``: the 4-DoF (yaw + translation) Quatro solver
+    instead of TEASER's 6-DoF GNC-TLS rotation.
+    """
     import kiss_matcher as km
 
     return km.KISSMatcherConfig(
-        voxel_size=float(tau), use_voxel_sampling=True, use_quatro=False, thr_linearity=1.0,
+        voxel_size=float(tau), use_voxel_sampling=True, use_quatro=bool(quatro),
+        thr_linearity=1.0,
         num_max_corr=5000, normal_r_gain=3.0, fpfh_r_gain=5.0,
         robin_noise_bound_gain=float(robin_gain), solver_noise_bound_gain=float(solver_gain),
         enable_noise_bound_clamping=True)
@@ -148,12 +155,17 @@ def _kiss_transform(solution) -> np.ndarray:
     return T
 
 
-def kiss_prune_and_solve_detailed(src: np.ndarray, dst: np.ndarray, tau: float) -> BaselineResult:
-    """KISS-Matcher ROBIN pruning + GNC-TLS/COTE solve with noise bounds = tau."""
+def kiss_prune_and_solve_detailed(src: np.ndarray, dst: np.ndarray, tau: float, *,
+                                  quatro: bool = False) -> BaselineResult:
+    """
+    KISS-Matcher ROBIN pruning + GNC-TLS/COTE solve with noise bounds = tau.
+
+    ``quatro=True``: ``KISSMatcherConfig(use_quatro=True)``, its 4-DoF mode.
+    """
     import kiss_matcher as km
 
     src, dst = _check(src, dst)
-    cfg = kiss_config(tau)
+    cfg = kiss_config(tau, quatro=quatro)
     matcher = km.KISSMatcher(cfg)
     src32 = np.ascontiguousarray(src, dtype=np.float32)
     dst32 = np.ascontiguousarray(dst, dtype=np.float32)
@@ -170,6 +182,11 @@ def kiss_prune_and_solve_detailed(src: np.ndarray, dst: np.ndarray, tau: float) 
 def kiss_prune_and_solve(src: np.ndarray, dst: np.ndarray, tau: float) -> np.ndarray:
     """(src, dst, tau) -> 4x4 with KISS-Matcher ``prune_and_solve`` (noise bounds = tau)."""
     return kiss_prune_and_solve_detailed(src, dst, tau).transform
+
+
+def kiss_quatro_prune_and_solve(src: np.ndarray, dst: np.ndarray, tau: float) -> np.ndarray:
+    """(src, dst, tau) -> 4x4 with KISS-Matcher + Quatro (``use_quatro=True``, 4-DoF)."""
+    return kiss_prune_and_solve_detailed(src, dst, tau, quatro=True).transform
 
 
 def kiss_prune_and_solve_breakdown(src: np.ndarray, dst: np.ndarray, tau: float,
@@ -215,4 +232,5 @@ def kiss_prune_and_solve_breakdown(src: np.ndarray, dst: np.ndarray, tau: float,
 BASELINES: dict[str, Callable[[np.ndarray, np.ndarray, float], np.ndarray]] = {
     'open3d': open3d_ransac,
     'kiss': kiss_prune_and_solve,
+    'kiss-quatro': kiss_quatro_prune_and_solve,
 }

@@ -31,12 +31,19 @@ Solvers are pluggable: ``--solvers`` takes built-in names (``ours``, ``open3d``,
 ``module:function`` entries, where the function is ``(src, dst, tau) -> 4x4``. A built-in solver
 that cannot be imported (e.g. ``ours`` before the core lands) is skipped with a note.
 
+``--motion 4dof`` (issue 14): yaw-only problems (yaw uniform in [-180, 180) deg about +z,
+translation uniform in [-1, 1]^3, plus an optional ``--tilt-noise`` in degrees about a random
+horizontal axis), default solvers ``ours-4dof`` (``CoreConfig(motion_model='4dof')``),
+``ours-6dof`` (the default 6-DoF core) and ``kiss-quatro`` (KISS-Matcher with
+``KISSMatcherConfig(use_quatro=True)``), all on the same problems.
+
 Examples::
 
     .venv/bin/python bench/bench_core.py --quick
     .venv/bin/python bench/bench_core.py --solvers open3d,kiss \
         --output docs/bench_core.md --json /tmp/b.json
     .venv/bin/python bench/bench_core.py --outliers surface --trials 10
+    .venv/bin/python bench/bench_core.py --motion 4dof --output docs/bench_core_4dof.md
 """
 
 from __future__ import annotations
@@ -74,6 +81,7 @@ QUICK_SIZES = (1000, 5000)
 DEFAULT_SOLVERS = ('ours', 'open3d', 'kiss')
 DEFAULT_SOLVER_TRIALS = 'open3d=1'
 DEFAULT_SOLVER_MAX_N = 'open3d=1000'
+DEFAULT_SOLVERS_4DOF = ('ours-4dof', 'ours-6dof', 'kiss-quatro')
 
 
 # ------------------------------------------------------------------------------- solvers
@@ -96,11 +104,14 @@ class Solver:
     description: str
 
 
-def _make_ours() -> Solver:
-    from cgags_ros.registration import register_correspondences
+def _make_ours(motion: str = '6dof', name: str = 'ours') -> Solver:
+    from cgags_ros.registration import CoreConfig, register_correspondences
+
+    config = CoreConfig(motion_model=motion)
 
     def run(src, dst, tau, seed):
-        res = register_correspondences(src, dst, inlier_threshold=tau, seed=seed)
+        res = register_correspondences(src, dst, inlier_threshold=tau, seed=seed,
+                                       config=config)
         return SolverOutput(np.asarray(res.transform, dtype=float), bool(res.valid), {
             'reason': res.reason,
             'num_inliers': int(len(res.inliers)),
@@ -108,8 +119,10 @@ def _make_ours() -> Solver:
             'core_total_s': float(res.timings.get('total', float('nan'))),
         })
 
-    return Solver('ours', run, 'cgags_ros.registration.register_correspondences('
-                  'src, dst, inlier_threshold=tau, seed=problem seed), default CoreConfig')
+    return Solver(name, run, 'cgags_ros.registration.register_correspondences('
+                  'src, dst, inlier_threshold=tau, seed=problem seed), '
+                  + ('default CoreConfig' if motion == '6dof'
+                     else f"CoreConfig(motion_model='{motion}'), gravity +z"))
 
 
 def _make_open3d() -> Solver:
@@ -134,6 +147,36 @@ def _make_kiss() -> Solver:
     return Solver('kiss', run, 'KISS-Matcher 1.0.2 KISSMatcher(KISSMatcherConfig(voxel_size=tau, '
                   'robin_noise_bound_gain=1, solver_noise_bound_gain=1))'
                   '.prune_and_solve(src, dst) (ROBIN and solver noise bounds = tau)')
+
+
+def _make_ours_variant(name: str) -> Solver:
+    """``ours-4dof[key=value;...]``: the 4-DoF core with CoreConfig overrides (ablation)."""
+    from cgags_ros.config import fields
+    from cgags_ros.registration import CoreConfig, register_correspondences
+
+    items = [item for item in name[len('ours-4dof['):-1].split(';') if item]
+    config = fields.update_from_flat(CoreConfig(motion_model='4dof'),
+                                     fields.parse_key_values(items))
+
+    def run(src, dst, tau, seed):
+        res = register_correspondences(src, dst, inlier_threshold=tau, seed=seed,
+                                       config=config)
+        return SolverOutput(np.asarray(res.transform, dtype=float), bool(res.valid), {
+            'reason': res.reason, 'num_inliers': int(len(res.inliers)),
+            'num_hypotheses': int(res.num_hypotheses)})
+
+    return Solver(name, run, f"CoreConfig(motion_model='4dof', {', '.join(items)})")
+
+
+def _make_kiss_quatro() -> Solver:
+    import kiss_matcher  # noqa: F401
+
+    def run(src, dst, tau, seed):
+        r = baselines.kiss_prune_and_solve_detailed(src, dst, tau, quatro=True)
+        return SolverOutput(r.transform, r.valid, r.info)
+
+    return Solver('kiss-quatro', run, 'as kiss, with KISSMatcherConfig(use_quatro=True): '
+                  'Quatro 4-DoF rotation (yaw about +z) instead of GNC-TLS 6-DoF')
 
 
 def _make_kiss_scaled(factor: float) -> Solver:
@@ -162,6 +205,9 @@ BUILTIN_SOLVERS: dict[str, Callable[[], Solver]] = {
     'ours': _make_ours,
     'open3d': _make_open3d,
     'kiss': _make_kiss,
+    'kiss-quatro': _make_kiss_quatro,
+    'ours-6dof': lambda: _make_ours('6dof', 'ours-6dof'),
+    'ours-4dof': lambda: _make_ours('4dof', 'ours-4dof'),
 }
 
 
@@ -172,6 +218,8 @@ def load_solvers(names: list[str]) -> tuple[list[Solver], dict[str, str]]:
         try:
             if name in BUILTIN_SOLVERS:
                 solvers.append(BUILTIN_SOLVERS[name]())
+            elif name.startswith('ours-4dof[') and name.endswith(']'):
+                solvers.append(_make_ours_variant(name))
             elif name.startswith('kiss@'):
                 solvers.append(_make_kiss_scaled(float(name[5:])))
             elif ':' in name:
@@ -194,6 +242,27 @@ def problem_seed(seed: int, ratio: float, n: int, trial: int) -> int:
     """Per-problem seed that depends only on (seed, ratio, N, trial), not on the cells run."""
     ss = np.random.SeedSequence([int(seed), int(round(ratio * 10000)), int(n), int(trial)])
     return int(ss.generate_state(1, dtype=np.uint32)[0])
+
+
+def problem_transform(args: argparse.Namespace, seed: int) -> np.ndarray | None:
+    """
+    Return the ground truth of a ``--motion 4dof`` problem (None: a random 6-DoF one).
+
+    Yaw uniform about +z, translation uniform in [-1, 1]^3, then a tilt of ``--tilt-noise``
+    degrees about a random horizontal axis. Drawn from its own stream of the problem seed,
+    so the correspondences are drawn as for 6-DoF.
+    """
+    if args.motion != '4dof':
+        return None
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng([seed, 4])
+    T = np.eye(4)
+    axis = np.r_[rng.normal(size=2), 0.0]
+    tilt = Rotation.from_rotvec(np.radians(args.tilt_noise) * axis / np.linalg.norm(axis))
+    T[:3, :3] = (tilt * Rotation.from_euler('z', rng.uniform(-np.pi, np.pi))).as_matrix()
+    T[:3, 3] = rng.uniform(-1.0, 1.0, 3)
+    return T
 
 
 def run_one(solver: Solver, src, dst, tau, seed, gt, max_re, max_te) -> dict[str, Any]:
@@ -274,7 +343,8 @@ def run_benchmark(args: argparse.Namespace) -> dict[str, Any]:
             for trial in range(args.trials):
                 seed = problem_seed(args.seed, ratio, n, trial)
                 p = make_correspondences(model, n, ratio, noise_sigma=args.noise, rng=seed,
-                                         outliers=args.outliers)
+                                         outliers=args.outliers,
+                                         transform=problem_transform(args, seed))
                 active = [s for s in solvers
                           if trial < caps[s.name] and n <= max_n.get(s.name, n)]
                 k = trial % len(active) if active else 0
@@ -303,7 +373,7 @@ def run_benchmark(args: argparse.Namespace) -> dict[str, Any]:
                   f'[{time.perf_counter() - t_start:.0f}s]', file=sys.stderr, flush=True)
 
     breakdown = {}
-    if any(s.name == 'kiss' for s in solvers) and not args.no_breakdown:
+    if any(s.name == 'kiss' for s in solvers) and not args.no_breakdown:  # 6-DoF only
         for n in args.sizes:
             ratio = args.ratios[len(args.ratios) // 2]
             p = make_correspondences(model, n, ratio, noise_sigma=args.noise,
@@ -317,7 +387,8 @@ def run_benchmark(args: argparse.Namespace) -> dict[str, Any]:
             'ratios': list(args.ratios), 'sizes': list(args.sizes), 'trials': args.trials,
             'trials_per_solver': caps, 'max_n_per_solver': max_n, 'noise_sigma': args.noise,
             'tau': args.tau,
-            'outliers': args.outliers, 'seed': args.seed, 'max_re_deg': args.max_re,
+            'outliers': args.outliers, 'seed': args.seed, 'motion': args.motion,
+            'tilt_noise_deg': args.tilt_noise, 'max_re_deg': args.max_re,
             'max_te': args.max_te, 'quick': args.quick, 'model': 'Stanford bunny bun_zipper_res3, '
             '1889 points, unit-scaled (largest extent 1)',
         },
@@ -376,7 +447,10 @@ def to_markdown(res: dict[str, Any]) -> str:
     lines = [
         f"### Core benchmark: {', '.join(names)}",
         '',
-        f"Bunny (1889 pts, unit-scaled), noise sigma = {st['noise_sigma']}, tau = {st['tau']}, "
+        f"Bunny (1889 pts, unit-scaled), motion = {st.get('motion', '6dof')}"
+        + (f" (yaw about +z, tilt noise {st['tilt_noise_deg']} deg)"
+           if st.get('motion') == '4dof' else ' (any rotation)')
+        + f", noise sigma = {st['noise_sigma']}, tau = {st['tau']}, "
         f"outliers = {st['outliers']}, seed = {st['seed']}; success = RE < {st['max_re_deg']} deg "
         f"and TE < {st['max_te']}; time = wall ms per problem (whole solver call). "
         f"{st['trials']} trials per cell" + ''.join(
@@ -458,9 +532,14 @@ def _ints(text: str) -> tuple[int, ...]:
 def parse_args(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument('--solvers', default=','.join(DEFAULT_SOLVERS),
-                    help='comma list of ours, open3d, kiss and/or module:function '
-                         '(default: %(default)s)')
+    ap.add_argument('--solvers', default=None,
+                    help='comma list of ours, ours-6dof, ours-4dof, open3d, kiss, kiss-quatro '
+                         f"and/or module:function (default: {','.join(DEFAULT_SOLVERS)}; "
+                         f"with --motion 4dof: {','.join(DEFAULT_SOLVERS_4DOF)})")
+    ap.add_argument('--motion', choices=('6dof', '4dof'), default='6dof',
+                    help='6dof: random rotations; 4dof: yaw-only problems (issue 14)')
+    ap.add_argument('--tilt-noise', type=float, default=0.0,
+                    help='with --motion 4dof: tilt (deg) about a random horizontal axis')
     ap.add_argument('--ratios', type=_floats, default=None,
                     help=f"outlier ratios (default {','.join(map(str, DEFAULT_RATIOS))})")
     ap.add_argument('--sizes', type=_ints, default=None,
@@ -489,6 +568,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument('--no-breakdown', action='store_true',
                     help='skip the KISS-Matcher prune_and_solve time split')
     args = ap.parse_args(argv)
+    if args.solvers is None:
+        args.solvers = ','.join(DEFAULT_SOLVERS_4DOF if args.motion == '4dof'
+                                else DEFAULT_SOLVERS)
     args.solvers = [s.strip() for s in args.solvers.split(',') if s.strip()]
     args.ratios = args.ratios or (QUICK_RATIOS if args.quick else DEFAULT_RATIOS)
     args.sizes = args.sizes or (QUICK_SIZES if args.quick else DEFAULT_SIZES)

@@ -25,6 +25,11 @@ ground truth, paired with its target exactly as ``cgags-replay`` pairs them
     (kiss-matcher 1.0.2; its own voxelization, FasterPFH, ROBIN and GNC; float32 input;
     no refinement). Its config refuses ``voxel_size < 5e-3`` ("Too small voxel size"),
     so object-scale data fails as is.
+``cgags_4dof``
+    The same with ``core.motion_model='4dof'`` (yaw about +z + translation; issue 14).
+``kiss_matcher_quatro``
+    ``KISSMatcherConfig(voxel_size=v, use_quatro=True)`` (its 4-DoF mode), otherwise as
+    ``kiss_matcher``.
 ``kiss_matcher_rescaled``
     The same with both clouds and the voxel multiplied by ``s = 0.3 / v`` (KISS-Matcher's
     default 0.3 m voxel), the translation divided by ``s`` afterwards. Only run where
@@ -74,13 +79,16 @@ Method = Callable[[np.ndarray, np.ndarray, float], np.ndarray]
 
 # --- methods: (source (N,3), target (M,3), voxel metres) -> 4x4 source->target ----------------
 
-def run_cgags(src: np.ndarray, tgt: np.ndarray, voxel: float) -> np.ndarray:
+def run_cgags(src: np.ndarray, tgt: np.ndarray, voxel: float,
+              motion: str = '6dof') -> np.ndarray:
+    from cgags_ros.config.fields import update_from_flat
     from cgags_ros.pipeline import clear_feature_cache, register_clouds
 
     # Cold: the baselines featurise both clouds every pair, so ours does too (the node,
     # with a latched target, would reuse the target's features and be faster).
     clear_feature_cache()
-    result = register_clouds(src, tgt, voxel_size=voxel)
+    config = update_from_flat(PipelineConfig(), {'core.motion_model': motion})
+    result = register_clouds(src, tgt, voxel_size=voxel, config=config)
     if not result.valid:
         raise CgagsError(f'invalid: {result.reason}')
     return result.transform
@@ -111,11 +119,17 @@ def run_open3d(src: np.ndarray, tgt: np.ndarray, voxel: float, seed: int = 0) ->
     return np.asarray(result.transformation, dtype=np.float64)
 
 
-def run_kiss(src: np.ndarray, tgt: np.ndarray, voxel: float, scale: float = 1.0) -> np.ndarray:
+def run_cgags_4dof(src: np.ndarray, tgt: np.ndarray, voxel: float) -> np.ndarray:
+    return run_cgags(src, tgt, voxel, '4dof')
+
+
+def run_kiss(src: np.ndarray, tgt: np.ndarray, voxel: float, scale: float = 1.0,
+             quatro: bool = False) -> np.ndarray:
     """KISS-Matcher on clouds (and voxel) multiplied by ``scale``; returns the unscaled T."""
     import kiss_matcher
 
-    matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(voxel * scale))
+    matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(voxel * scale,
+                                                                      use_quatro=quatro))
     solution = matcher.estimate((src * scale).astype(np.float32),
                                 (tgt * scale).astype(np.float32))
     T = np.eye(4)
@@ -130,11 +144,17 @@ def run_kiss_rescaled(src: np.ndarray, tgt: np.ndarray, voxel: float) -> np.ndar
     return run_kiss(src, tgt, voxel, KISS_DEFAULT_VOXEL / voxel)
 
 
+def run_kiss_quatro(src: np.ndarray, tgt: np.ndarray, voxel: float) -> np.ndarray:
+    return run_kiss(src, tgt, voxel, quatro=True)
+
+
 METHODS: dict[str, Method] = {
     'cgags': run_cgags,
+    'cgags_4dof': run_cgags_4dof,
     'open3d_fpfh_ransac': run_open3d,
     'kiss_matcher': run_kiss,
     'kiss_matcher_rescaled': run_kiss_rescaled,
+    'kiss_matcher_quatro': run_kiss_quatro,
 }
 
 

@@ -109,3 +109,37 @@ def spread(points: np.ndarray) -> np.ndarray:
     leaves the rotation about it undetermined; ``s[0]`` near 0 means identical points.
     """
     return np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
+
+
+class GravityFrame:
+    """
+    The rotation ``A`` with ``A @ g = e_z``, and the maps into and out of its frame.
+
+    For g = +z, ``A`` is the identity exactly (no rounding is introduced).
+    """
+
+    def __init__(self, gravity: tuple[float, float, float]):
+        g = np.asarray(gravity, dtype=np.float64)
+        g = g / np.linalg.norm(g)
+        # x' = the world axis least aligned with g, made orthogonal to it; y' = g x x'.
+        seed = np.eye(3)[int(np.argmin(np.abs(g)))] if abs(g[0]) > 0.9 else np.eye(3)[0]
+        x = seed - (seed @ g) * g
+        x /= np.linalg.norm(x)
+        self.A = np.stack([x, np.cross(g, x), g])
+        self.identity = bool(np.array_equal(self.A, np.eye(3)))
+
+    def to_gravity(self, points: np.ndarray) -> np.ndarray:
+        """Express (N, 3) points in the gravity frame."""
+        return points if self.identity else points @ self.A.T
+
+    def from_gravity(self, T: np.ndarray) -> np.ndarray:
+        """Express a 4x4 transform of the gravity frame in the clouds' frames."""
+        if self.identity:
+            return T
+        return make_transform(self.A.T @ T[:3, :3] @ self.A, self.A.T @ T[:3, 3])
+
+    def to_gravity_transform(self, T: np.ndarray) -> np.ndarray:
+        """Express a 4x4 transform of the clouds' frames in the gravity frame."""
+        if self.identity:
+            return T
+        return make_transform(self.A @ T[:3, :3] @ self.A.T, self.A @ T[:3, 3])

@@ -40,6 +40,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
+from waiting import stop_process, wait_for  # noqa: E402
 
 DOMAIN_ID = 53  # distinct from the other DDS test modules
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -48,18 +49,6 @@ RELIABLE = QoSProfile(depth=500, reliability=ReliabilityPolicy.RELIABLE)
 LIDAR = {'voxel_size': 0.4, 'source_qos': 'reliable', 'source_depth': 500,
          'target_depth': 500, 'target_durability': 'transient_local',
          'queue_depth': 50, 'diagnostics_period': 0.1}
-
-
-def wait_for(predicate, timeout, what, detail=None):
-    """Poll until ``predicate()`` is truthy and return its value; fail after ``timeout``."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.02)
-    pytest.fail(f'timed out after {timeout} s waiting for {what}'
-                + (f'; node state: {detail()}' if detail else ''))
 
 
 class Wire:
@@ -372,15 +361,7 @@ def test_separate_process_node_survives_a_worker_kill_quietly(wire, lidar, tmp_p
         balanced(wait_for(lambda: io.values.get('published') == '1' and io.values, 10,
                           'diagnostics after the pose'))
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-        log.seek(0)
-        out = log.read()
-        log.close()
+        out = stop_process(proc, log)
         io.values, io.level = {}, None
     assert proc.returncode == 0, out
     assert 'Traceback' not in out and 'KeyError' not in out, out

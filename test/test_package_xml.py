@@ -123,7 +123,9 @@ def test_installed_code_imports_are_exec_depends():
 
 def test_test_imports_are_declared():
     paths = sorted((REPO / 'test').glob('*.py'))
-    problems = undeclared(paths, dependencies(TEST_TAGS), 'test_depend')
+    helpers = {p.stem for p in paths}  # the tests' own helper modules (waiting.py)
+    problems = [p for p in undeclared(paths, dependencies(TEST_TAGS), 'test_depend')
+                if p.split("'")[1] not in helpers]
     assert not problems, '\n'.join(problems)
 
 

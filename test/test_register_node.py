@@ -15,7 +15,6 @@ os.environ['ROS_DOMAIN_ID'] = '47'  # before rclpy.init; distinct from other tes
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 from pathlib import Path  # noqa: E402
-import signal  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import threading  # noqa: E402
@@ -45,6 +44,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
+from waiting import stop_process, wait_for  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 LIMITS = {'bunny': (5.0, 0.01), 'redkitchen': (15.0, 0.3), 'lidar': (5.0, 0.6),
@@ -52,23 +52,6 @@ LIMITS = {'bunny': (5.0, 0.01), 'redkitchen': (15.0, 0.3), 'lidar': (5.0, 0.6),
 VOXEL = {'bunny': 0.003, 'redkitchen': 0.05, 'lidar': 0.4, 'faulty': 0.003}
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
-
-
-def wait_for(predicate, timeout, what, detail=None):
-    """
-    Poll until ``predicate()`` is truthy and return its value.
-
-    Fail after ``timeout`` seconds instead of hanging, with ``detail()`` (e.g. the node's
-    counters and last rejection reason) in the message.
-    """
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.02)
-    pytest.fail(f'timed out after {timeout} s waiting for {what}'
-                + (f'; node state: {detail()}' if detail else ''))
 
 
 class Bag:
@@ -427,14 +410,6 @@ def test_separate_process_synchronized_lidar_then_sigterm(ros, data_dir, tmp_pat
                         .get('pairing.dropped.source_no_target_within_slop'), 10, 'diagnostics')
         assert diag == '1'
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-        log.seek(0)
-        out = log.read()
-        log.close()
+        out = stop_process(proc, log)
     assert proc.returncode == 0, out
     assert 'Traceback' not in out, out

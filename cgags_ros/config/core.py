@@ -9,6 +9,7 @@ the measurements that chose their defaults.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 from .fields import option
 from ..errors import InvalidConfigError
@@ -17,6 +18,37 @@ from ..errors import InvalidConfigError
 @dataclasses.dataclass
 class CoreConfig:
     """Options of the registration core; the defaults are the paper's where it has one."""
+
+    # --- motion model (docs/method.md, "4-DoF mode") -------------------------------------
+    motion_model: str = option(
+        '6dof', "Unknowns of the transform: '6dof' (any rotation and translation) or '4dof' "
+        '(yaw about the gravity axis and translation, for clouds already levelled, e.g. by '
+        'an IMU: roll and pitch of the result are exactly zero).', choices=('6dof', '4dof'))
+    gravity_x: float = option(
+        0.0, "x component of the gravity (up) axis in both clouds' frames, used with "
+        "motion_model='4dof'. The axis (gravity_x, gravity_y, gravity_z) may have any "
+        'nonzero length (it is normalised) and either sign; a zero axis is refused.')
+    gravity_y: float = option(0.0, 'y component of the gravity axis (see gravity_x).')
+    gravity_z: float = option(1.0, 'z component of the gravity axis (see gravity_x).')
+    max_tilt_deg: float = option(
+        3.0, "With motion_model='4dof': largest tilt (degrees) between the clouds' gravity "
+        'axes that is accepted. The tilt is measured by a 6-DoF re-fit of the 4-DoF inliers '
+        '(and, in the pipeline, a 6-DoF point-to-plane step on the overlap); a larger tilt '
+        'means the clouds are not levelled and the result is reported valid=False, never '
+        'forced flat.', low=0.0, high=90.0)
+    vertical_compatibility: bool = option(
+        True, 'INFERRED (4dof). Also demand |dz_p - dz_q| < delta for a graph edge (the '
+        'vertical offsets along the gravity axis are preserved by yaw and translation).',
+        advanced=True)
+    score_4dof: str = option(
+        'truncated', "INFERRED (4dof). Hypothesis score with motion_model='4dof' (score is "
+        "the 6-DoF one): 'inlier_count' or 'truncated' (MSAC: sum of max(0, 1 - r^2/tau^2), "
+        'which ranks a few exact inliers above more chance ones).',
+        choices=('inlier_count', 'truncated'), advanced=True)
+    min_edge_length_factor: float = option(
+        1.0, 'INFERRED (4dof). Reject a minimal subset (an edge) whose horizontal length, '
+        'across the gravity axis, is below this many tau in either cloud (its yaw is poorly '
+        'determined). 0 disables.', low=0.0, advanced=True)
 
     # --- thresholds (paper: tau = 6 pr, delta = 10 pr) -----------------------------------
     inlier_threshold_factor: float = option(
@@ -60,7 +92,8 @@ class CoreConfig:
     # --- hypothesis scoring ----------------------------------------------------------------
     score: str = option(
         'inlier_count', "Hypothesis score: 'inlier_count' (paper) or 'truncated' "
-        '(MSAC: sum of max(0, 1 - r^2/tau^2)).', choices=('inlier_count', 'truncated'),
+        "(MSAC: sum of max(0, 1 - r^2/tau^2)). With motion_model='4dof', score_4dof "
+        'applies instead.', choices=('inlier_count', 'truncated'),
         advanced=True)
     batch_size: int = option(
         512, 'Largest number of hypotheses generated and scored per vectorized batch '
@@ -153,3 +186,16 @@ class CoreConfig:
         """Check constraints between fields (called by ``fields.validate``)."""
         if self.guided_sampling and self.preference_length < 1:
             raise InvalidConfigError('preference_length must be >= 1 with guided sampling')
+        norm = math.sqrt(self.gravity_x ** 2 + self.gravity_y ** 2 + self.gravity_z ** 2)
+        if not norm > 1e-9:
+            raise InvalidConfigError(
+                f'the gravity axis (gravity_x, gravity_y, gravity_z) = ({self.gravity_x}, '
+                f'{self.gravity_y}, {self.gravity_z}) has zero length: give the up direction '
+                "of the clouds' frames, e.g. (0, 0, 1)")
+
+    @property
+    def gravity_axis(self) -> tuple[float, float, float]:
+        """Return the unit gravity (up) axis (gravity_x, gravity_y, gravity_z) normalised."""
+        g = (self.gravity_x, self.gravity_y, self.gravity_z)
+        norm = math.sqrt(sum(c * c for c in g))
+        return (g[0] / norm, g[1] / norm, g[2] / norm)

@@ -14,7 +14,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 from ..config.frontend import RefineConfig
-from ..geometry import apply_transform
+from ..geometry import apply_transform, GravityFrame
 
 
 @dataclasses.dataclass
@@ -55,7 +55,8 @@ def evaluate_alignment(source: np.ndarray, target: np.ndarray | cKDTree,
 def refine_transform(source: np.ndarray, target: np.ndarray, initial: np.ndarray, *,
                      voxel_size: float, config: RefineConfig,
                      target_normals: np.ndarray | None = None,
-                     coarse_distance: float | None = None) -> np.ndarray:
+                     coarse_distance: float | None = None,
+                     gravity: np.ndarray | None = None, workers: int = 1) -> np.ndarray:
     """
     Refine the 4x4 source->target transform ``initial``.
 
@@ -65,7 +66,16 @@ def refine_transform(source: np.ndarray, target: np.ndarray, initial: np.ndarray
     estimate off by more than the final distance still converges; point-to-plane's first
     stage stops at ``config.coarse_stage_tolerance`` (GICP runs both stages in full).
     ``config.method == 'none'`` returns ``initial`` unchanged.
+
+    With ``gravity`` (the unit up axis of both clouds, 4-DoF mode) only yaw about it and
+    translation are refined, so roll and pitch stay exactly as in ``initial``:
+    point-to-plane is a yaw + translation Gauss-Newton (:func:`point_to_plane_4dof`);
+    GICP's 6-DoF result is projected onto the nearest yaw-only motion and then polished by
+    the same 4-DoF point-to-plane, whose neighbour queries use ``workers`` threads.
     """
+    if gravity is not None:
+        return _refine_4dof(source, target, initial, voxel_size, config, target_normals,
+                            coarse_distance, gravity, workers)
     final = config.max_correspondence_distance_factor * voxel_size
     stages = ([final] if not coarse_distance or coarse_distance <= final
               else [coarse_distance, final])
@@ -109,3 +119,85 @@ def _gicp(source: np.ndarray, target: np.ndarray, initial: np.ndarray, distance:
                               max_correspondence_distance=distance,
                               max_iterations=config.max_iterations, num_threads=1)
     return np.asarray(result.T_target_source).copy()
+
+
+def _refine_4dof(source, target, initial, voxel_size, config, target_normals, coarse_distance,
+                 gravity, workers) -> np.ndarray:
+    if config.method == 'none':
+        return np.asarray(initial, dtype=np.float64)
+    frame = GravityFrame(tuple(gravity))
+    if target_normals is None:
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target))
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel_size,
+                                                                    max_nn=30))
+        target_normals = np.asarray(cloud.normals)
+    final = config.max_correspondence_distance_factor * voxel_size
+    stages = ([final] if not coarse_distance or coarse_distance <= final
+              else [coarse_distance, final])
+    T = frame.to_gravity_transform(np.asarray(initial, dtype=np.float64))
+    src, dst = frame.to_gravity(source), frame.to_gravity(target)
+    normals = frame.to_gravity(target_normals)
+    if config.method == 'gicp':
+        T6 = frame.to_gravity_transform(_gicp(source, target, frame.from_gravity(T),
+                                              stages[-1], voxel_size, config))
+        T = nearest_yaw_motion(T6)
+    tree = cKDTree(dst)
+    for distance in stages:
+        tolerance = config.coarse_stage_tolerance if distance > final else 1e-6
+        T = point_to_plane_4dof(src, dst, normals, T, distance, config.max_iterations,
+                                tolerance, tree, workers)
+    return frame.from_gravity(T)
+
+
+def nearest_yaw_motion(T: np.ndarray) -> np.ndarray:
+    """Return the yaw-only (about z) motion nearest to ``T``, with T's translation."""
+    yaw = np.arctan2(T[1, 0] - T[0, 1], T[0, 0] + T[1, 1])
+    c, s = np.cos(yaw), np.sin(yaw)
+    out = np.eye(4)
+    out[:2, :2] = [[c, -s], [s, c]]
+    out[:3, 3] = T[:3, 3]
+    return out
+
+
+def point_to_plane_4dof(source: np.ndarray, target: np.ndarray, normals: np.ndarray,
+                        initial: np.ndarray, distance: float, iterations: int,
+                        tolerance: float, tree: cKDTree | None = None,
+                        workers: int = 1) -> np.ndarray:
+    """
+    Point-to-plane ICP over yaw about z and translation (gravity frame, metres).
+
+    Gauss-Newton on sum (n_q . (R p + t - q))^2 over the nearest target points within
+    ``distance``; the update is a yaw about z composed on the left, so the last row of the
+    rotation stays exactly (0, 0, 1) when ``initial``'s does. Stops when fitness and RMSE
+    change by less than ``tolerance`` (relative) or after ``iterations``.
+    """
+    tree = tree if tree is not None else cKDTree(target)
+    T = np.asarray(initial, dtype=np.float64).copy()
+    previous = None
+    for _ in range(iterations):
+        moved = apply_transform(T, source)
+        dist, nn = tree.query(moved, k=1, distance_upper_bound=distance, workers=workers)
+        close = np.isfinite(dist)
+        if close.sum() < 4:
+            break
+        p, q, n = moved[close], target[nn[close]], normals[nn[close]]
+        r = np.einsum('ij,ij->i', n, p - q)
+        J = np.column_stack([n[:, 1] * p[:, 0] - n[:, 0] * p[:, 1], n])
+        H = J.T @ J
+        H += 1e-12 * np.trace(H) * np.eye(4)
+        dx = np.linalg.solve(H, -J.T @ r)
+        c, s = np.cos(dx[0]), np.sin(dx[0])
+        step = np.eye(4)
+        step[:2, :2] = [[c, -s], [s, c]]
+        step[:3, 3] = dx[1:]
+        T = step @ T
+        state = (close.mean(), np.sqrt(np.mean(dist[close] ** 2)))
+        if previous is not None and all(abs(a - b) <= tolerance * max(abs(b), 1e-12)
+                                        for a, b in zip(state, previous)):
+            break
+        # A step far below the correspondence distance changes no pairing: converged.
+        if abs(dx[0]) * np.sqrt(np.mean(np.sum(p[:, :2] ** 2, axis=1))) + np.linalg.norm(
+                dx[1:]) < 1e-5 * distance:
+            break
+        previous = state
+    return T

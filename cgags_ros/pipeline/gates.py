@@ -2,7 +2,8 @@
 Validity gates: why a final estimate must not be trusted, with the values behind it.
 
 Each gate returns a reason ('' when it passes): a line-like cloud, chance-level inliers,
-degenerate overlap geometry (planes, lines, spheres), low fitness.
+degenerate overlap geometry (planes, lines, spheres), low fitness; in 4-DoF mode also a
+tilt between the clouds' gravity axes (clouds not levelled).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from ..config.pipeline import PipelineConfig
 from ..frontend.features import CloudFeatures
 from ..frontend.matching import Correspondences
 from ..frontend.refine import Alignment, evaluate_alignment
-from ..geometry import apply_transform, spread
+from ..geometry import apply_transform, GravityFrame, spread
 from ..registration import poisson_isf
 
 
@@ -45,10 +46,17 @@ def gate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences, result: Pi
     result.chance_inliers = chance_inliers(fs.points[corr.source_index],
                                            ft.points[corr.target_index], result.coarse_transform,
                                            result.inlier_threshold)
-    result.observability = observability(fs.points, ft.normals, align)
-    return (_significance_reason(result, cfg.refine.significance)
+    members = 3
+    if cfg.core.motion_model == '4dof':  # yaw + translation only: no roll/pitch motion
+        frame, members = GravityFrame(cfg.core.gravity_axis), 2
+        result.observability = observability(fs.points, ft.normals, align, frame)
+        result.tilt_deg = residual_tilt(fs.points, ft.points, ft.normals, align, frame)
+    else:
+        result.observability = observability(fs.points, ft.normals, align)
+    return (_significance_reason(result, cfg.refine.significance, members)
             or _observability_reason(result, cfg.refine.min_observability)
-            or _fitness_reason(result, cfg.refine.min_fitness, distance))
+            or _fitness_reason(result, cfg.refine.min_fitness, distance)
+            or _tilt_reason(result, cfg.core.max_tilt_deg))
 
 
 def chance_inliers(src: np.ndarray, dst: np.ndarray, transform: np.ndarray, tau: float) -> float:
@@ -64,9 +72,13 @@ def chance_inliers(src: np.ndarray, dst: np.ndarray, transform: np.ndarray, tau:
     return float(np.sum(counts) / max(len(src), 1))
 
 
-def observability(source: np.ndarray, target_normals: np.ndarray, align: Alignment) -> float:
+def observability(source: np.ndarray, target_normals: np.ndarray, align: Alignment,
+                  frame: GravityFrame | None = None) -> float:
     """
     Return the smallest / largest eigenvalue of the 6x6 point-to-plane information matrix.
+
+    With ``frame`` (4-DoF mode) the 4x4 one of yaw about its gravity axis and translation:
+    roll and pitch are not estimated, so they cannot be unconstrained.
 
     Rows are ``[(p - c) x n / L, n]`` over the overlapping points (p: moved source point,
     n: normal of its nearest target point, c, L: centroid and RMS radius of the overlap,
@@ -83,23 +95,58 @@ def observability(source: np.ndarray, target_normals: np.ndarray, align: Alignme
     if radius <= 0:
         return 0.0
     J = np.hstack([np.cross(centred / radius, n), n])
+    if frame is not None:
+        J = np.column_stack([J[:, :3] @ frame.A[2], J[:, 3:]])
     eig = np.linalg.eigvalsh(J.T @ J / len(J))
     return float(max(eig[0], 0.0) / eig[-1]) if eig[-1] > 0 else 0.0
 
 
-def _significance_reason(result: PipelineResult, significance: float) -> str:
+def residual_tilt(source: np.ndarray, target: np.ndarray, target_normals: np.ndarray,
+                  align: Alignment, frame: GravityFrame) -> float:
+    """
+    Return the tilt (degrees) one 6-DoF point-to-plane step adds to a 4-DoF estimate.
+
+    The Gauss-Newton step over the overlap (``align``'s pairs) of all six degrees of
+    freedom; its rotation about the horizontal axes (across gravity) is the tilt the
+    levelled estimate cannot represent. NaN with fewer than 6 overlapping points.
+    """
+    if len(align.source_index) < 6:
+        return float('nan')
+    p = apply_transform(align.transform, source[align.source_index])
+    q, n = target[align.target_index], target_normals[align.target_index]
+    c = p.mean(axis=0)
+    J = np.hstack([np.cross(p - c, n), n])
+    r = np.einsum('ij,ij->i', n, p - q)
+    H = J.T @ J
+    H += 1e-12 * np.trace(H) * np.eye(6)
+    omega = np.linalg.solve(H, -J.T @ r)[:3]
+    horizontal = omega - (omega @ frame.A[2]) * frame.A[2]
+    return float(np.degrees(np.linalg.norm(horizontal)))
+
+
+def _tilt_reason(result: PipelineResult, max_tilt_deg: float) -> str:
+    if not result.tilt_deg > max_tilt_deg:  # NaN: 6-DoF mode, or not measurable
+        return ''
+    return ('the clouds are not levelled: a 6-DoF point-to-plane step tilts the gravity axis '
+            f'by {result.tilt_deg:.2f} deg (> core.max_tilt_deg={max_tilt_deg:g}); the yaw-only '
+            "estimate is not trusted: level the clouds or use core.motion_model='6dof'")
+
+
+def _significance_reason(result: PipelineResult, significance: float,
+                         members: int = 3) -> str:
     """
     Gate on chance level: return why the inliers are no better than chance, or ''.
 
     If all N correspondences were outliers, the inliers of a fixed transform are
-    ~Poisson(mu) (mu = chance_inliers), plus the 3 that define a hypothesis; the best of H
+    ~Poisson(mu) (mu = chance_inliers), plus the ``members`` (3; 2 for a 4-DoF edge) that
+    define a hypothesis; the best of H
     hypotheses then exceeds the Poisson 1 - significance/H quantile with probability
     ~significance (union bound).
     """
     if significance <= 0:
         return ''
     hypotheses = max(result.num_hypotheses, 1)
-    bound = 3 + poisson_isf(significance / hypotheses, result.chance_inliers)
+    bound = members + poisson_isf(significance / hypotheses, result.chance_inliers)
     if result.num_inliers > bound:
         return ''
     return (f'{result.num_inliers} inliers of {result.num_correspondences} correspondences '

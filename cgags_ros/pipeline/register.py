@@ -4,7 +4,10 @@ Clouds in, result out: the one registration path of the node, the CLIs and bench
 ``register_clouds(source, target)`` runs: input checks -> voxel downsampling -> normals ->
 FPFH -> mutual-nearest-neighbour correspondences -> the CGAGS core (global, no initial
 guess) -> optional ICP/GICP refinement -> validity gating. Numpy in, numpy out; transforms
-are 4x4 source->target (``p_target = R p_source + t``), metres.
+are 4x4 source->target (``p_target = R p_source + t``), metres. With
+``core.motion_model='4dof'`` the core, the refinement and the gates solve yaw + translation
+only (roll and pitch stay zero about the gravity axis) and a tilt between the clouds is
+reported.
 """
 
 from __future__ import annotations
@@ -83,10 +86,12 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
     result.inlier_target_points = ft.points[corr.target_index[core.inliers]]
     if core.reason:  # nothing worth refining or gating further
         return result.finish(start, core.reason)
+    gravity = cfg.core.gravity_axis if cfg.core.motion_model == '4dof' else None
     with timed(result.timings, 'refinement'):
         result.transform = refine_transform(
             fs.points, ft.points, core.transform, voxel_size=v, config=cfg.refine,
-            target_normals=ft.normals, coarse_distance=core.inlier_threshold)
+            target_normals=ft.normals, coarse_distance=core.inlier_threshold, gravity=gravity,
+            workers=workers)
         result.refined = cfg.refine.method != 'none'
     with timed(result.timings, 'validation'):
         reason = gate(fs, ft, corr, result, cfg)
@@ -120,8 +125,9 @@ def _effective_config(config: PipelineConfig | None, voxel_size: float | None) -
 def _global_estimate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
                      resolution: float, cfg: PipelineConfig) -> RegistrationResult | str:
     """Return the core's estimate, or the reason there is none (too few/degenerate matches)."""
-    if len(corr) < 3:
-        return (f'only {len(corr)} putative correspondence(s) (need 3): the FPFH features '
+    need = 2 if cfg.core.motion_model == '4dof' else 3
+    if len(corr) < need:
+        return (f'only {len(corr)} putative correspondence(s) (need {need}): the FPFH features '
                 'do not match; check the voxel size and that the clouds overlap')
     tau = cfg.frontend.inlier_threshold or None
     try:

@@ -38,6 +38,9 @@ class PipelineResult(RegistrationResult):
     :ivar num_target_points: target points after voxel downsampling.
     :ivar voxel_size: voxel size v, metres.
     :ivar resolution: point resolution pr (metres) given to the core.
+    :ivar tilt_deg: 4-DoF mode only (else NaN): the tilt (degrees) between the clouds'
+        gravity axes measured by one 6-DoF point-to-plane step from the final estimate over
+        the overlap; above ``core.max_tilt_deg`` the result is invalid.
     """
 
     coarse_transform: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
@@ -53,6 +56,7 @@ class PipelineResult(RegistrationResult):
     num_target_points: int = 0
     voxel_size: float = float('nan')
     resolution: float = float('nan')
+    tilt_deg: float = float('nan')
 
     def summary(self) -> dict[str, Any]:
         out = super().summary()
@@ -64,5 +68,6 @@ class PipelineResult(RegistrationResult):
             chance_inliers=float(self.chance_inliers),
             num_source_points=int(self.num_source_points),
             num_target_points=int(self.num_target_points),
-            voxel_size=float(self.voxel_size), resolution=float(self.resolution))
+            voxel_size=float(self.voxel_size), resolution=float(self.resolution),
+            tilt_deg=float(self.tilt_deg))
         return out

@@ -14,9 +14,12 @@ import numpy as np
 
 from .blas import with_single_blas_thread
 from .compatibility import build_compatibility_graph
+from .compatibility_4dof import build_vertical_compatibility_graph
 from .hypotheses import refit
 from .result import RegistrationResult
 from .search import Search
+from .search_4dof import EdgeSearch
+from .yaw import GravityFrame, measure_tilt, vertical_offsets
 from ..config import fields
 from ..config.core import CoreConfig
 from ..errors import DegenerateCorrespondencesError, InvalidInputError
@@ -37,33 +40,56 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
     :param resolution: point resolution pr in metres (mean nearest-neighbour distance of the
         clouds the keypoints come from). With only ``resolution``, tau = 6 pr and the
         compatibility threshold delta = 10 pr, as in the paper.
-    :param config: :class:`CoreConfig`; defaults are the paper's parameters.
+    :param config: :class:`CoreConfig`; defaults are the paper's parameters. With
+        ``motion_model='4dof'`` the rotation is a yaw about ``gravity_axis`` (roll and
+        pitch exactly zero) and the minimal subsets are compatible edges.
     :param seed: random seed; the result is deterministic for a given seed.
     :returns: :class:`RegistrationResult` with ``transform`` (source -> target), ``inliers``,
         ``valid``/``reason``, and per-stage ``stats``/``timings``.
     :raises InvalidInputError: wrong shapes, mismatched rows, NaN/Inf, missing thresholds.
-    :raises DegenerateCorrespondencesError: fewer than 3 correspondences, or all source or
-        all target points identical or collinear (a rigid transform is then undetermined).
+    :raises DegenerateCorrespondencesError: fewer than 3 correspondences (4-DoF: 2), or all
+        source or all target points identical or collinear (4-DoF: on one vertical line);
+        a rigid transform is then undetermined.
+    :raises InvalidConfigError: a configuration value is out of range (a zero gravity axis).
     """
     start = time.perf_counter()
     cfg = fields.validate(dataclasses.replace(config) if config else CoreConfig())
-    src, dst = _check_correspondences(src, dst)
+    yaw_only = cfg.motion_model == '4dof'
+    src, dst = _check_correspondences(src, dst, 2 if yaw_only else 3)
     tau, delta = _thresholds(cfg, inlier_threshold, resolution)
     result = RegistrationResult(num_correspondences=len(src), inlier_threshold=tau,
                                 compatibility_threshold=delta)
+    # 0. (4-DoF) Both clouds in the gravity frame, where the rotation is a yaw about z.
+    frame = GravityFrame(cfg.gravity_axis) if yaw_only else None
+    if frame:
+        src, dst = frame.to_gravity(src), frame.to_gravity(dst)
+        _check_horizontal_spread(src, dst)
+        # Sorted by the vertical offset they imply, vertical partners are contiguous.
+        order = np.argsort(vertical_offsets(src, dst), kind='stable')
+        src, dst = src[order], dst[order]
 
-    # 1. Compatibility graph (rigid length consistency, delta).
+    # 1. Compatibility graph (rigid length consistency, delta; 4-DoF: and vertical offsets).
     with timed(result.timings, 'compatibility_graph'):
-        graph = build_compatibility_graph(src, dst, delta, cfg.min_pair_distance_factor * tau)
+        if yaw_only and cfg.vertical_compatibility:
+            graph = build_vertical_compatibility_graph(
+                src, dst, delta, vertical_offsets(src, dst), cfg.min_pair_distance_factor * tau)
+        else:
+            graph = build_compatibility_graph(src, dst, delta,
+                                              cfg.min_pair_distance_factor * tau)
     result.stats.update(graph_edges=graph.num_edges, graph_density=graph.density)
     if graph.num_edges == 0:
         return result.finish(start, (
             f'no two correspondences are length-consistent within delta={delta:.4g} m: '
             'they are all outliers, or the thresholds are too small for the noise'))
 
-    search = Search(src, dst, graph, cfg, tau, delta, np.random.default_rng(seed))
+    if yaw_only:
+        search = EdgeSearch(src, dst, graph, dataclasses.replace(cfg, score=cfg.score_4dof),
+                            tau, delta, np.random.default_rng(seed))
+    else:
+        search = Search(src, dst, graph, cfg, tau, delta, np.random.default_rng(seed))
     while True:
-        # 2-3. Minimal compatible subsets (edge + common-neighbour vertex) until the P1 bound.
+        # 2-3. Minimal compatible subsets (edge + common-neighbour vertex; 4-DoF: the edge)
+        # until the P1 bound.
         with timed(result.timings, 'compatible_sampling'):
             search.compatible_stage()
         # 4-5. Preference-based accelerated guided sampling until the P2 bound.
@@ -78,34 +104,34 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
     result.num_hypotheses = search.num_hypotheses
     result.stats.update(search.stats)
     if search.best_inliers is None:
-        if search.stats['rejected_collinear']:
-            return result.finish(start, (
-                'every compatible triangle of correspondences is nearly collinear: the scene '
-                '(or its matched keypoints) is a line, and the rotation about it is undetermined'))
-        return result.finish(start, (
-            'no compatible triangle of correspondences was found: the compatibility graph '
-            'has edges but no 3-cliques (too few inliers or thresholds too small)'))
+        return result.finish(start, _no_model_reason(search, yaw_only))
 
     # 6. Final least-squares re-fit on the inliers of the best hypothesis.
     with timed(result.timings, 'refit'):
         T, inliers = search.best_T, search.best_inliers
         if cfg.refit != 'none':
             iters = cfg.refit_iterations if cfg.refit == 'iterative' else 1
-            T, inliers, done = refit(src, dst, T, tau, iters)
+            T, inliers, done = refit(src, dst, T, tau, iters, *search.REFIT)
             result.stats['refits'] = done
     result.transform, result.inliers = T, inliers
     chance, runner_up = search.chance_level(), search.runner_up(inliers)
     result.stats.update(chance_level=chance, runner_up=runner_up)
-    reason = _validity_reason(src, inliers, cfg, tau)
+    reason = _validity_reason(src, inliers, cfg, tau, yaw_only)
     if not reason and not search.significant(inliers):
         reason = (f'the best consensus ({len(inliers)} inliers) does not stand out: chance '
                   f'level {chance}, best distinct alternative {runner_up} (x{cfg.distinct_ratio}'
                   ' required); no rigid motion is clearly supported')
+    if frame:
+        # 7. (4-DoF) Levelled input? The best 6-DoF fit of the inliers measures the tilt.
+        tilt = measure_tilt(src, dst, inliers, tau, cfg.refit_iterations)
+        result.stats['tilt_deg'] = tilt
+        reason = reason or _tilt_reason(tilt, cfg.max_tilt_deg)
+        result.transform, result.inliers = frame.from_gravity(T), np.sort(order[inliers])
     return result.finish(start, reason)
 
 
 # --- helpers ------------------------------------------------------------------------------------
-def _check_correspondences(src, dst) -> tuple[np.ndarray, np.ndarray]:
+def _check_correspondences(src, dst, minimum: int) -> tuple[np.ndarray, np.ndarray]:
     try:
         src = np.asarray(src, dtype=np.float64)
         dst = np.asarray(dst, dtype=np.float64)
@@ -124,17 +150,28 @@ def _check_correspondences(src, dst) -> tuple[np.ndarray, np.ndarray]:
         raise InvalidInputError(
             f'{len(rows)} correspondence(s) contain NaN or Inf (first rows: {rows[:5].tolist()}); '
             'drop non-finite points before matching')
-    if len(src) < 3:
+    if len(src) < minimum:
+        model = 'a rigid transform' if minimum == 3 else 'a 4-DoF (yaw + translation) transform'
         raise DegenerateCorrespondencesError(
-            f'need at least 3 correspondences for a rigid transform, got {len(src)}')
+            f'need at least {minimum} correspondences for {model}, got {len(src)}')
     for name, a in (('source', src), ('target', dst)):
         s = spread(a)
         if s[0] <= 1e-12 * max(1.0, np.abs(a).max()):
             raise DegenerateCorrespondencesError(f'all {name} points are identical')
-        if s[1] <= 1e-9 * s[0]:
+        if minimum == 3 and s[1] <= 1e-9 * s[0]:
             raise DegenerateCorrespondencesError(
                 f'all {name} points are collinear: the rotation about their line is undetermined')
     return src, dst
+
+
+def _check_horizontal_spread(src: np.ndarray, dst: np.ndarray) -> None:
+    """Raise when all points of a cloud lie on one vertical line (gravity frame): no yaw."""
+    for name, a in (('source', src), ('target', dst)):
+        s = spread(a)
+        if spread(a[:, :2])[0] <= 1e-9 * s[0]:
+            raise DegenerateCorrespondencesError(
+                f'all {name} points lie on one vertical line (along the gravity axis): the '
+                'yaw about it is undetermined')
 
 
 def _thresholds(cfg: CoreConfig, tau: float | None, pr: float | None) -> tuple[float, float]:
@@ -154,11 +191,42 @@ def _thresholds(cfg: CoreConfig, tau: float | None, pr: float | None) -> tuple[f
     return float(tau), float(delta)
 
 
-def _validity_reason(src: np.ndarray, inliers: np.ndarray, cfg: CoreConfig, tau: float) -> str:
+def _no_model_reason(search: Search, yaw_only: bool) -> str:
+    subset = 'edge' if yaw_only else 'triangle'
+    if search.stats['rejected_collinear']:
+        if yaw_only:
+            return ('every compatible edge of correspondences is nearly vertical (shorter '
+                    'across the gravity axis than min_edge_length_factor * tau): the yaw is '
+                    'undetermined')
+        return ('every compatible triangle of correspondences is nearly collinear: the scene '
+                '(or its matched keypoints) is a line, and the rotation about it is undetermined')
+    if yaw_only:
+        return ('no usable compatible edge of correspondences was found (too few inliers or '
+                'thresholds too small)')
+    return (f'no compatible {subset} of correspondences was found: the compatibility graph '
+            'has edges but no 3-cliques (too few inliers or thresholds too small)')
+
+
+def _tilt_reason(tilt: float, max_tilt_deg: float) -> str:
+    if not tilt > max_tilt_deg:  # NaN (tilt not measurable) passes
+        return ''
+    return ('the clouds are not levelled: the best 6-DoF fit of the inliers tilts the '
+            f'gravity axis by {tilt:.2f} deg (> max_tilt_deg={max_tilt_deg:g}); a yaw-only '
+            "estimate would be wrong: level the clouds or use motion_model='6dof'")
+
+
+def _validity_reason(src: np.ndarray, inliers: np.ndarray, cfg: CoreConfig, tau: float,
+                     yaw_only: bool = False) -> str:
     if len(inliers) < cfg.min_inliers:
         return (f'only {len(inliers)} inliers (< min_inliers={cfg.min_inliers}): no rigid '
                 'motion is supported by enough correspondences')
     pts = src[inliers]
+    if yaw_only:  # a line determines the yaw unless it is vertical
+        horizontal = pts[:, :2] - pts[:, :2].mean(axis=0)
+        if np.sqrt(np.mean(np.sum(horizontal ** 2, axis=1))) < tau:
+            return ('the inliers lie (nearly) on one vertical line: the yaw about it is '
+                    'undetermined')
+        return ''
     s = spread(pts)
     # RMS spread orthogonal to the main axis below tau: the inliers are (nearly) collinear.
     if s[1] / np.sqrt(len(pts)) < tau:

@@ -26,7 +26,12 @@ class CompatibilityGraph:
         row i (little bit order) set iff i ~ j.
     :ivar degree: (N,) int64 number of compatible partners of each correspondence.
     :ivar num_edges: undirected edge count |E|.
+    :ivar windows: None, or (lo, hi) per row: every neighbour j of row i has
+        lo[i] <= j < hi[i] (the 4-DoF graph of :mod:`.compatibility_4dof`); samplers then
+        propose partners inside the window only.
     """
+
+    windows: tuple[np.ndarray, np.ndarray] | None = None
 
     def __init__(self, packed: np.ndarray, n: int):
         # Rows padded to whole 64-bit words: ANDs and popcounts then run on uint64.

@@ -57,7 +57,8 @@ def residual_matrix(src: np.ndarray, dst: np.ndarray, R: np.ndarray, t: np.ndarr
 
 
 def refit(src: np.ndarray, dst: np.ndarray, T: np.ndarray, tau: float,
-          iterations: int) -> tuple[np.ndarray, np.ndarray, int]:
+          iterations: int, fit=kabsch, min_points: int = 3
+          ) -> tuple[np.ndarray, np.ndarray, int]:
     """
     Weighted least-squares re-fit on the inliers, repeated while the inlier set changes.
 
@@ -66,7 +67,9 @@ def refit(src: np.ndarray, dst: np.ndarray, T: np.ndarray, tau: float,
     such point would otherwise tilt the rotation by degrees). A re-fit is kept only if it
     does not lower the truncated score sum max(0, 1 - r^2/tau^2) (whatever the search's
     score: an inlier count would prefer a tilted fit that grazes one more outlier over an
-    accurate fit of the true inliers), so it never makes the estimate worse.
+    accurate fit of the true inliers), so it never makes the estimate worse. ``fit``
+    ``(src, dst, weights) -> 4x4`` is the weighted least-squares solver of the motion model
+    (6-DoF Kabsch, or :func:`~.yaw.fit_yaw` for 4-DoF), which needs ``min_points``.
     Returns (T, inlier indices, re-fits done).
     """
     res = residuals(T, src, dst)
@@ -74,10 +77,10 @@ def refit(src: np.ndarray, dst: np.ndarray, T: np.ndarray, tau: float,
     inliers = np.flatnonzero(res <= tau)
     done = 0
     for _ in range(iterations):
-        if len(inliers) < 3:
+        if len(inliers) < min_points:
             break
         weights = (1.0 - (res[inliers] / tau) ** 2) ** 2 + 1e-12
-        T_new = kabsch(src[inliers], dst[inliers], weights)
+        T_new = fit(src[inliers], dst[inliers], weights)
         res_new = residuals(T_new, src, dst)
         score_new = score_values(res_new, tau, 'truncated').sum()
         new_inliers = np.flatnonzero(res_new <= tau)

@@ -119,7 +119,11 @@ def _edges_by_rejection(graph: CompatibilityGraph, rng: np.random.Generator, cou
     exact fallback for rows where all tries missed.
     """
     i = rng.choice(graph.n, size=count, p=graph.degree / graph.degree.sum())
-    cand = rng.integers(0, graph.n, size=(count, tries))
+    if graph.windows is None:
+        cand = rng.integers(0, graph.n, size=(count, tries))
+    else:  # every partner of i lies in its window: propose there (still uniform over N(i))
+        lo, width = graph.windows[0][i], graph.windows[1][i] - graph.windows[0][i]
+        cand = lo[:, None] + (rng.random((count, tries)) * width[:, None]).astype(np.int64)
     hit = graph.has_edge(np.repeat(i[:, None], tries, 1), cand)
     found = hit.any(axis=1)
     j = cand[np.arange(count), np.argmax(hit, axis=1)]

@@ -42,6 +42,9 @@ _CHANCE_PER_BATCH = 2  # hypotheses per batch scored exactly whatever their pre-
 class Search:
     """Sampling state of Algorithm 1: best hypothesis, preference lists, counters."""
 
+    SUBSET_SIZE = 3  # correspondences per minimal subset (a triangle)
+    REFIT = ()  # extra arguments of hypotheses.refit: the 6-DoF defaults (Kabsch)
+
     def __init__(self, src, dst, graph: CompatibilityGraph, cfg: CoreConfig, tau: float,
                  delta: float, rng: np.random.Generator):
         self.src, self.dst, self.graph, self.cfg = src, dst, graph, cfg
@@ -57,7 +60,7 @@ class Search:
         self.vertex_weights = (graph.degree.astype(np.float64)
                                if cfg.vertex_sampling == 'degree' else None)
         self.sampled: list[np.ndarray] = []  # stage-one triples, to estimate w1 empirically
-        self.consensus = ConsensusRecord(graph.n, tau)
+        self.consensus = ConsensusRecord(graph.n, tau, self.SUBSET_SIZE)
         self.start = time.perf_counter()
         self.csr_weights: np.ndarray | None = None  # soft edge weights over neighbour lists
         self.stats = {'compatible_samples': 0, 'guided_samples': 0, 'rejected_collinear': 0,
@@ -122,6 +125,26 @@ class Search:
         non-collinear triples and, when known, their common-neighbour counts.
         """
         cfg = self.cfg
+        i, j, csr = self.compatible_edges(count)
+        if cfg.vertex_sampling == 'tournament':
+            k, ok, support = sample_vertex_tournament(self.graph, self.rng, i, j,
+                                                      cfg.vertex_tournament, csr=csr)
+        else:
+            k, ok = sample_common_vertex(self.graph, self.rng, i, j,
+                                         weights=self.vertex_weights, csr=csr)
+            support = None
+        self.stats['empty_common_neighbourhood'] += int((~ok).sum())
+        triples = np.stack([i, j, k], axis=1)[ok]
+        self.sampled.append(triples)
+        return self._keep_non_collinear(triples, None if support is None else support[ok])
+
+    def compatible_edges(self, count: int):
+        """
+        Draw ``count`` compatible edges (i, j), uniformly or by tournament (graph edge sampling).
+
+        Returns i, j and the neighbour lists when the search uses them (else None).
+        """
+        cfg = self.cfg
         s = cfg.edge_tournament if cfg.edge_sampling == 'tournament' else 1
         # Neighbour lists make draws O(1) but cost about one graph build: only worth it
         # once the search turns out to be long.
@@ -137,17 +160,7 @@ class Search:
                             delta=self.delta, soft=soft, csr=csr, csr_weights=self.csr_weights)
         if s > 1:
             i, j = tournament(self.graph, (i, j), count, s)
-        if cfg.vertex_sampling == 'tournament':
-            k, ok, support = sample_vertex_tournament(self.graph, self.rng, i, j,
-                                                      cfg.vertex_tournament, csr=csr)
-        else:
-            k, ok = sample_common_vertex(self.graph, self.rng, i, j,
-                                         weights=self.vertex_weights, csr=csr)
-            support = None
-        self.stats['empty_common_neighbourhood'] += int((~ok).sum())
-        triples = np.stack([i, j, k], axis=1)[ok]
-        self.sampled.append(triples)
-        return self._keep_non_collinear(triples, None if support is None else support[ok])
+        return i, j, csr
 
     def _keep_non_collinear(self, triples: np.ndarray, support: np.ndarray | None = None
                             ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -161,6 +174,10 @@ class Search:
         return triples[ok], None if support is None else support[ok]
 
     # --- hypotheses -------------------------------------------------------------------------
+    def fit(self, triples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return the closed-form fits R (B, 3, 3), t (B, 3) of minimal subsets (rows)."""
+        return fit_triples(self.src, self.dst, *triples.T)
+
     def evaluate(self, triples: np.ndarray, support: np.ndarray | None = None) -> bool:
         """
         Fit and score a batch of triples; update the best model and the preference lists.
@@ -185,7 +202,7 @@ class Search:
                 kept = 4 * cfg.exact_per_batch
                 cand = np.argpartition(-support, kept - 1)[:kept]
             fitted = np.concatenate([np.arange(_CHANCE_PER_BATCH), cand])
-            R, t = fit_triples(self.src, self.dst, *triples[fitted].T)
+            R, t = self.fit(triples[fitted])
             Rc, tc = R[_CHANCE_PER_BATCH:], t[_CHANCE_PER_BATCH:]
             if support[cand].mean() >= _DENSE_PRESCREEN * self.graph.n:
                 # Common neighbourhoods span much of N: the full residuals (float32, no
@@ -199,7 +216,7 @@ class Search:
             top = np.concatenate([np.arange(_CHANCE_PER_BATCH), _CHANCE_PER_BATCH + top])
             R, t = R[top], t[top]
         else:
-            R, t = fit_triples(self.src, self.dst, *triples.T)
+            R, t = self.fit(triples)
         res = residual_matrix(self.src, self.dst, R, t)
         # Random hypotheses' inlier counts measure the chance consensus level.
         self.consensus.add(res, _CHANCE_PER_BATCH)
@@ -212,7 +229,8 @@ class Search:
         self.best_score = float(scores[best])
         self.best_T = make_transform(R[best], t[best])
         if cfg.max_up_mode == 'local_refits' and cfg.max_up > 0:
-            T, _, _ = refit(self.src, self.dst, self.best_T, self.tau, cfg.max_up)
+            T, _, _ = refit(self.src, self.dst, self.best_T, self.tau, cfg.max_up,
+                            *self.REFIT)
             self.best_T = T
             res_best = residuals(T, self.src, self.dst)
             self.best_score = float(score_values(res_best, self.tau, cfg.score).sum())
@@ -262,7 +280,7 @@ class Search:
         while self.num_drawn < cfg.max_iterations and not self.out_of_time():
             batch = min(batch, cfg.max_iterations - self.num_drawn)
             self.num_drawn += batch
-            li, lj, lk, ok = sample_guided(self.rng, kernel, adjacency, seed_w, batch, cfg.xi)
+            li, lj, lk, ok = self.draw_guided(kernel, adjacency, seed_w, batch)
             drawn_now = np.stack([members[li], members[lj], members[lk]], 1)[ok]
             triples, _ = self._keep_non_collinear(drawn_now)
             self.stats['guided_samples'] += batch
@@ -294,6 +312,10 @@ class Search:
                 break
             batch = min(2 * batch, cfg.batch_size)
         self.stats['kernel_refreshes'] = refreshes
+
+    def draw_guided(self, kernel, adjacency, seed_w, count):
+        """Draw ``count`` guided minimal subsets (local indices i, j, k and an ok mask)."""
+        return sample_guided(self.rng, kernel, adjacency, seed_w, count, self.cfg.xi)
 
     def _kernel(self):
         """

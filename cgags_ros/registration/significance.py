@@ -19,8 +19,10 @@ _TOP_MODELS = 32  # consensus sets kept for the runner-up
 class ConsensusRecord:
     """The inlier counts of unselected hypotheses and the largest consensus sets seen."""
 
-    def __init__(self, n: int, tau: float):
-        self.n, self.tau = n, tau
+    def __init__(self, n: int, tau: float, members: int = 3):
+        # members: correspondences of a minimal subset (3; 2 for 4-DoF edges), which
+        # every hypothesis fits by construction and so are no chance inliers.
+        self.n, self.tau, self.members = n, tau, members
         self.chance_counts: list[int] = []  # extra inliers of unselected hypotheses
         self.num_exact = 0
         self.top_models: list[tuple[int, np.ndarray]] = []
@@ -33,7 +35,7 @@ class ConsensusRecord:
         measure the chance consensus level.
         """
         inside = res <= self.tau
-        self.chance_counts.extend(np.maximum(inside[:unselected].sum(axis=1) - 3, 0))
+        self.chance_counts.extend(np.maximum(inside[:unselected].sum(axis=1) - self.members, 0))
         self.num_exact += len(res)
         counts = inside.sum(axis=1)
         floor = self.top_models[-1][0] if len(self.top_models) >= _TOP_MODELS else -1
@@ -55,7 +57,7 @@ class ConsensusRecord:
         zeros = float((counts == 0).sum()) if len(counts) else 0.0
         lam = -np.log(max(zeros, 1.0) / (len(counts) + 3.0))
         alpha = (1.0 - p1) / max(self.num_exact, 1)
-        return 3 + poisson_isf(alpha, lam) + 1
+        return self.members + poisson_isf(alpha, lam) + 1
 
     def runner_up(self, inliers: np.ndarray) -> int:
         """

@@ -32,6 +32,7 @@ The transform maps SOURCE into the TARGET frame: p_target = R p_source + t.
 Exit status: 0 valid estimate, {EXIT_INVALID} estimate marked invalid (see 'reason'),
 {EXIT_ERROR} unreadable input or bad option.
 example: cgags-register bun045.ply bun000.ply --voxel-size 0.003 --set refine.method=gicp
+levelled LiDAR scans (yaw + translation only): cgags-register a.ply b.ply --voxel-size 0.3 --4dof
 """
 
 
@@ -60,6 +61,12 @@ def build_parser() -> argparse.ArgumentParser:
                              'frontend.max_correspondences=3000 (repeatable; YAML values)')
     parser.add_argument('--no-refine', action='store_true',
                         help='skip ICP/GICP refinement (same as --set refine.method=none)')
+    parser.add_argument('--4dof', action='store_true', dest='yaw_only',
+                        help='levelled clouds: solve yaw about the gravity axis + translation '
+                             'only (same as --set core.motion_model=4dof)')
+    parser.add_argument('--gravity', type=float, nargs=3, metavar=('X', 'Y', 'Z'),
+                        help="with --4dof: the up axis in both clouds' frames (default 0 0 1; "
+                             'any nonzero length)')
     parser.add_argument('--seed', type=int, metavar='N', help='random seed of the sampler')
     parser.add_argument('--json', action='store_true',
                         help='print the full result as JSON on stdout instead of text')
@@ -97,6 +104,10 @@ def _config(args: argparse.Namespace) -> PipelineConfig:
         values['voxel_size'] = args.voxel_size
     if args.no_refine:
         values['refine.method'] = 'none'
+    if args.yaw_only:
+        values['core.motion_model'] = '4dof'
+    if args.gravity is not None:
+        values.update(zip(('core.gravity_x', 'core.gravity_y', 'core.gravity_z'), args.gravity))
     if args.seed is not None:
         values['seed'] = args.seed
     return pipeline_config_from(values)

@@ -77,6 +77,9 @@ def build_parser() -> argparse.ArgumentParser:
                    '(ROS format or a plain mapping), e.g. config/register_node.yaml')
     p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
                    help='override one parameter (repeatable), e.g. --set core.p1=0.95')
+    p.add_argument('--4dof', action='store_true', dest='yaw_only',
+                   help='levelled clouds: yaw + translation only (same as --set '
+                   'core.motion_model=4dof)')
     p.add_argument('--pairing', choices=MODES, default=None,
                    help="how sources meet targets, as the node's pairing_mode (default: "
                    "the parameters', latest_target)")
@@ -110,7 +113,10 @@ def options_from_args(args: argparse.Namespace) -> tuple[ReplayOptions, LiveOpti
         bag=args.bag, source_topic=args.source_topic, target_topic=args.target_topic,
         ground_truth_topic=args.ground_truth_topic or DEFAULT_GT_TOPIC,
         require_ground_truth=args.ground_truth_topic is not None,
-        parameters=user_parameters(args.params, args.set, args.voxel_size, args.pairing),
+        parameters=user_parameters(args.params,
+                                   args.set + (['core.motion_model=4dof'] if args.yaw_only
+                                               else []),
+                                   args.voxel_size, args.pairing),
         output=args.output, pose_topic=args.pose_topic, max_re_deg=args.max_re_deg,
         max_te=args.max_te, quiet=args.quiet)
     live = LiveOptions(rate=args.rate, spawn=args.spawn, node_name=args.node_name,

@@ -1,0 +1,90 @@
+"""
+4-DoF sampling state of Algorithm 1: edges as minimal subsets (steps 2, 5 and 7).
+
+Adapts the paper's minimal compatible subset (METHOD.md step 2), its guided sampling
+(step 5) and the stopping bound's all-inlier probability (step 7) to the yaw + translation
+model of :mod:`.yaw`: two correspondences determine a hypothesis, so a minimal subset is a
+compatible edge (i, j), drawn by graph edge sampling exactly as the first half of the 6-DoF
+triangle (no vertex step). Guided sampling draws the seed i and its partner j by the
+preference kernel, and the P1/P2 bounds count all-inlier edges.
+
+An edge is stored as the triple (i, j, j), so the scoring, pre-screening (on
+N(i) ∩ N(j)), preference lists, consensus record and the all-inlier counts of
+:class:`~.search.Search` apply to it unchanged.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .sampling import weighted_choice_rows
+from .search import Search
+from .stopping import empirical_inlier_probability
+from .yaw import fit_edges, fit_yaw, horizontal_lengths
+
+
+class EdgeSearch(Search):
+    """Search of Algorithm 1 whose minimal subsets are compatible edges (4-DoF)."""
+
+    SUBSET_SIZE = 2
+    REFIT = (fit_yaw, 2)  # hypotheses.refit solves yaw + translation from >= 2 inliers
+
+    def fit(self, triples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return the closed-form yaw + translation fits of edges stored as (i, j, j)."""
+        return fit_edges(self.src, self.dst, triples[:, 0], triples[:, 1])
+
+    def minimal_compatible_subsets(self, count: int) -> tuple[np.ndarray, None]:
+        """
+        Draw ``count`` minimal subsets of the 4-DoF model: compatible edges, as (i, j, j).
+
+        Edges too short across the gravity axis to fix the yaw are dropped.
+        """
+        i, j, _ = self.compatible_edges(count)
+        edges = np.stack([i, j, j], axis=1)
+        self.sampled.append(edges)
+        return self._keep_non_collinear(edges)
+
+    def _keep_non_collinear(self, triples: np.ndarray, support: np.ndarray | None = None
+                            ) -> tuple[np.ndarray, np.ndarray | None]:
+        min_length = self.cfg.min_edge_length_factor * self.tau
+        if min_length <= 0 or len(triples) == 0:
+            return triples, support
+        i, j = triples[:, 0], triples[:, 1]
+        ok = ((horizontal_lengths(self.src, i, j) >= min_length)
+              & (horizontal_lengths(self.dst, i, j) >= min_length))
+        self.stats['rejected_collinear'] += int((~ok).sum())
+        return triples[ok], None if support is None else support[ok]
+
+    def _stage_one_inlier_probability(self) -> float:
+        """
+        Return w1, the probability that one stage-one edge is all-inlier.
+
+        Uniform edge sampling gives |E(I)| / |E| for the best model's inliers I; the
+        'observed' estimate takes the larger of that and the share of drawn edges inside I.
+        """
+        e_in = self.graph.count_edges_within(self.best_inliers)
+        analytic = e_in / self.graph.num_edges if self.graph.num_edges else 0.0
+        if self.cfg.stage_one_estimate == 'analytic':
+            return analytic
+        return max(analytic, empirical_inlier_probability(self.sampled, self.best_mask))
+
+    def draw_guided(self, kernel, adjacency, seed_w, count):
+        """Guided edges (local indices i, j, j): j in N(i) with p ∝ K(i, j) + xi."""
+        i, j, ok = sample_guided_edges(self.rng, kernel, adjacency, seed_w, count, self.cfg.xi)
+        return i, j, j, ok
+
+
+def sample_guided_edges(rng: np.random.Generator, kernel: np.ndarray, adjacency: np.ndarray,
+                        seed_weights: np.ndarray, count: int, xi: float
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """
+    Preference-guided edges on a subset of M correspondences (local indices).
+
+    Seed i with probability proportional to ``seed_weights``, then j in N(i) with
+    probability proportional to K(i, j) + xi (the first two draws of the 6-DoF guided
+    triple). Returns i, j and a mask of seeds with a compatible partner.
+    """
+    m = len(seed_weights)
+    i = rng.choice(m, size=count, p=seed_weights / seed_weights.sum())
+    j, ok = weighted_choice_rows((kernel[i] + xi) * adjacency[i], rng)
+    return i, j, ok
