@@ -39,3 +39,24 @@ def test_inlier_pairs_prefers_the_results_inliers_then_nearest_neighbours():
     far[:3, 3] += 10.0  # nothing within the distance: no pairs, no error
     src, dst = inlier_pairs(object(), source, target, far, 0.01)
     assert len(src) == len(dst) == 0
+
+
+def test_4dof_covariance_has_no_roll_or_pitch_and_matches_the_yaw_only_fit():
+    rng = np.random.default_rng(2)
+    src = rng.normal(size=(300, 3)) * [2.0, 1.0, 0.3]
+    noise = rng.normal(scale=0.01, size=src.shape)
+    cov6 = pose_covariance(src, src + noise, np.eye(4))
+    cov4 = pose_covariance(src, src + noise, np.eye(4), gravity=np.array([0.0, 0.0, 2.0]))
+    assert np.allclose(cov4, cov4.T)
+    assert np.all(cov4[3:5] == 0) and np.all(cov4[:, 3:5] == 0)  # roll, pitch fixed
+    assert cov4[5, 5] > 0 and np.all(np.diag(cov4)[:3] > 0)
+    # Fixing roll and pitch can only tighten the others (Schur complement), up to the
+    # residual variance's degrees of freedom (3K - 4 instead of 3K - 6).
+    scale = (3 * 300 - 6) / (3 * 300 - 4)
+    keep = [0, 1, 2, 5]
+    assert np.all(np.diag(cov4)[keep] <= np.diag(cov6)[keep] * (1 + 1e-9) / scale)
+    # A tilted up axis: the yaw variance lies along it.
+    g = np.array([0.0, 1.0, 1.0]) / np.sqrt(2)
+    tilted = pose_covariance(src, src + noise, np.eye(4), gravity=g)
+    rot = tilted[3:, 3:]
+    assert np.allclose(rot, rot[1, 1] * 2 * np.outer(g, g))

@@ -10,9 +10,10 @@ from scipy.spatial import cKDTree
 from ..geometry import apply_transform
 
 
-def pose_covariance(src: np.ndarray, dst: np.ndarray, T: np.ndarray) -> np.ndarray:
+def pose_covariance(src: np.ndarray, dst: np.ndarray, T: np.ndarray,
+                    gravity: np.ndarray | None = None) -> np.ndarray:
     """
-    6x6 covariance of a rigid pose estimated from matched points, ROS order.
+    Return the 6x6 covariance of a rigid pose estimated from matched points, ROS order.
 
     Row-major, ordered (x, y, z, rotation about X, Y, Z) as geometry_msgs/
     PoseWithCovariance wants: a perturbation ``t' = t + dt`` (metres, target frame) and
@@ -25,6 +26,11 @@ def pose_covariance(src: np.ndarray, dst: np.ndarray, T: np.ndarray) -> np.ndarr
     (3K - 6)``. It reflects geometry (a planar scene leaves some directions weak) and fit
     quality; it ignores wrong correspondences and correlation between points, so treat it
     as optimistic. Fewer than 3 pairs or a singular information: variances of 1e6.
+
+    With ``gravity`` (the unit up axis of a 4-DoF estimate) the rotation is a yaw about it,
+    ``dphi = g dyaw``: the information of (dt, dyaw) is ``B^T info B`` with
+    ``B = [[I, 0], [0, g]]``, ``sigma^2`` has 3K - 4 degrees of freedom, and the result is
+    ``B cov4 B^T``, so roll and pitch have zero variance.
     """
     src = np.asarray(src, dtype=np.float64).reshape(-1, 3)
     dst = np.asarray(dst, dtype=np.float64).reshape(-1, 3)
@@ -34,7 +40,8 @@ def pose_covariance(src: np.ndarray, dst: np.ndarray, T: np.ndarray) -> np.ndarr
     R, t = T[:3, :3], T[:3, 3]
     rotated = src[:k] @ R.T
     residuals = rotated + t - dst[:k]
-    sigma2 = max(float(np.sum(residuals**2)) / max(3 * k - 6, 1), 1e-12)
+    unknowns = 6 if gravity is None else 4
+    sigma2 = max(float(np.sum(residuals**2)) / max(3 * k - unknowns, 1), 1e-12)
     # J_i^T J_i summed in closed form: [[K I, -S^T], [-S, sum(|p|^2 I - p p^T)]],
     # with S = sum [p]x (p = R src_i); -[p]x^T = [p]x, so the off-diagonal block is [sum p]x.
     p_sum = rotated.sum(axis=0)
@@ -45,6 +52,14 @@ def pose_covariance(src: np.ndarray, dst: np.ndarray, T: np.ndarray) -> np.ndarr
     info[:3, 3:] = skew
     info[3:, :3] = skew.T
     info[3:, 3:] = np.sum(rotated**2) * np.eye(3) - rotated.T @ rotated
+    if gravity is not None:
+        B = np.zeros((6, 4))
+        B[:3, :3] = np.eye(3)
+        B[3:, 3] = np.asarray(gravity, dtype=np.float64) / np.linalg.norm(gravity)
+        info4 = B.T @ info @ B
+        if np.linalg.cond(info4) > 1e12:
+            return B @ np.diag([1e6] * 4) @ B.T
+        return sigma2 * B @ np.linalg.inv(info4) @ B.T
     if np.linalg.cond(info) > 1e12:
         return np.diag([1e6] * 6)
     return sigma2 * np.linalg.inv(info)

@@ -237,7 +237,10 @@ class RegisterNode(Node):
         if not np.isfinite(threshold) or threshold <= 0:
             threshold = 1.5 * pipe_cfg.voxel_size
         src, dst = inlier_pairs(result, source.xyz, target.xyz, T, threshold)
-        cov_msg.pose.covariance = [float(v) for v in pose_covariance(src, dst, T).ravel()]
+        core = pipe_cfg.core
+        gravity = core.gravity_axis if core.motion_model == '4dof' else None
+        cov = pose_covariance(src, dst, T, gravity)
+        cov_msg.pose.covariance = [float(v) for v in cov.ravel()]
         self._send(self._pose_cov_pub, cov_msg)
         if cfg.publish_aligned_cloud:
             aligned = apply_transform(T, source.xyz)
