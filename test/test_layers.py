@@ -27,7 +27,7 @@ LAYERS = {  # top-level part of the module name -> layer (higher imports lower)
 }
 ROS_MODULES = {'rclpy', 'tf2_ros', 'builtin_interfaces', 'rcl_interfaces', 'std_msgs',
                'sensor_msgs', 'geometry_msgs', 'diagnostic_msgs', 'nav_msgs', 'std_srvs'}
-CORE_THIRD_PARTY = {'numpy', 'scipy', 'threadpoolctl'}
+CORE_THIRD_PARTY = {'numba', 'numpy', 'scipy', 'threadpoolctl'}
 MAX_LINES = 350
 
 

@@ -81,7 +81,7 @@ def imported_modules(path: Path):
             name = func.attr if isinstance(func, ast.Attribute) else getattr(func, 'id', None)
             arg = node.args[0]
             if (name in DYNAMIC_IMPORTS and isinstance(arg, ast.Constant)
-                    and isinstance(arg.value, str)):
+                    and isinstance(arg.value, str) and not arg.value.startswith('.')):
                 yield node.lineno, arg.value.partition('.')[0]
 
 

@@ -6,15 +6,17 @@ a rigid motion preserves lengths, so two inliers are always compatible (up to no
 an outlier is compatible with a given correspondence only by chance.
 
 The graph is stored as a bit-packed N x N adjacency matrix (N^2 / 8 bytes: 50 MB at
-N = 20 000), built in row blocks small enough to stay in cache, so no N x N float matrix is
-ever held in memory.
+N = 20 000), built by a compiled kernel, so no N x N float matrix is ever held in memory.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-# float32 elements per scratch block: two blocks stay in L2 (docs/implementation.md).
+from . import kernels_graph
+
+# float32 elements per scratch block of the 4-DoF graph (compatibility_4dof): two blocks stay
+# in L2 (docs/implementation.md).
 _BLOCK_ELEMENTS = 1 << 16
 
 
@@ -39,31 +41,35 @@ class CompatibilityGraph:
         self.packed = np.ascontiguousarray(np.pad(packed, ((0, 0), (0, pad))) if pad else packed)
         self._flat = self.packed.reshape(-1)
         self._words = self.packed.view(np.uint64)
+        self.words = self._words  # (N, W) uint64: the compiled kernels' view
         self.n = n
         self.degree = self.popcount(self.packed)
         self.num_edges = int(self.degree.sum() // 2)
 
-    _MAX_LIST_ENTRIES = 40_000_000  # int32 neighbour lists up to 160 MB
+    _MAX_LIST_ENTRIES = 20_000_000  # (row, column) int32 pairs up to 160 MB
 
     def neighbour_lists(self) -> tuple[np.ndarray, np.ndarray] | None:
         """
         Return the CSR neighbour lists (indptr, indices), built on first use.
 
-        None if they would exceed the memory cap; samplers then fall back to rejection on
-        the bit matrix.
+        None if they would exceed the memory cap; samplers then draw on the bit matrix.
         """
-        if not hasattr(self, '_csr'):
-            if 2 * self.num_edges > self._MAX_LIST_ENTRIES:
-                self._csr = None
-            else:
-                indptr = np.concatenate([[0], np.cumsum(self.degree)])
-                indices = np.empty(indptr[-1], dtype=np.int32)
-                block = max(1, (1 << 22) // max(self.n, 1))
-                for start in range(0, self.n, block):
-                    _, cols = np.nonzero(self.rows(np.arange(start, min(self.n, start + block))))
-                    indices[indptr[start]:indptr[min(self.n, start + block)]] = cols
-                self._csr = (indptr, indices)
-        return self._csr
+        pairs = self.entry_lists()
+        return None if pairs is None else (self.indptr, pairs[:, 1])
+
+    def entry_lists(self) -> np.ndarray | None:
+        """Return every directed adjacency entry as a (2|E|, 2) int32 (row, column) pair."""
+        if not hasattr(self, '_pairs'):
+            self._pairs = (None if 2 * self.num_edges > self._MAX_LIST_ENTRIES
+                           else kernels_graph.neighbour_lists(self._words, self.indptr))
+        return self._pairs
+
+    @property
+    def indptr(self) -> np.ndarray:
+        """Cumulative degrees (N + 1,): row i's entries of the directed adjacency start here."""
+        if not hasattr(self, '_indptr'):
+            self._indptr = np.concatenate([[0], np.cumsum(self.degree)])
+        return self._indptr
 
     @property
     def density(self) -> float:
@@ -130,34 +136,11 @@ def build_compatibility_graph(src: np.ndarray, dst: np.ndarray, delta: float,
     """
     Build the graph with edges ``d_ij < delta`` (and ``||p_i - p_j|| >= min_pair_distance``).
 
-    Squared distances are computed in float32 from centred coordinates, a block of rows at
-    a time (cache-resident scratch), as one 5-deep matrix product (``_expansion_factors``;
-    memory bound, so a second BLAS thread would not help).
+    One compiled pass over the pairs (:func:`~.kernels_graph.compatibility_words`): float64
+    squared lengths, no N x N scratch.
     """
-    n = len(src)
-    x = (src - src.mean(axis=0)).astype(np.float32)
-    y = (dst - dst.mean(axis=0)).astype(np.float32)
-    (x, xt), (y, yt) = _expansion_factors(x), _expansion_factors(y)
-    packed = np.empty((n, (n + 7) // 8), dtype=np.uint8)
-    block = max(8, min(n, _BLOCK_ELEMENTS // max(n, 1)))
-    a = np.empty((block, n), np.float32)
-    b = np.empty((block, n), np.float32)
-    min_sq = np.float32(min_pair_distance) ** 2
-    for start in range(0, n, block):
-        stop = min(n, start + block)
-        m = stop - start
-        A, B = a[:m], b[:m]
-        for pts, pts_t, out in ((x, xt, A), (y, yt, B)):
-            np.matmul(pts[start:stop], pts_t, out=out)
-            np.maximum(out, 0.0, out=out)
-        edge = A >= min_sq if min_pair_distance > 0 else None
-        np.sqrt(A, out=A)
-        np.sqrt(B, out=B)
-        A -= B
-        np.abs(A, out=A)
-        ok = A < delta
-        if edge is not None:
-            ok &= edge
-        ok[np.arange(m), np.arange(start, stop)] = False  # no self loops
-        packed[start:stop] = np.packbits(ok, axis=1, bitorder='little')
-    return CompatibilityGraph(packed, n)
+    src = np.ascontiguousarray(src, dtype=np.float64)
+    dst = np.ascontiguousarray(dst, dtype=np.float64)
+    words = kernels_graph.compatibility_words(src, dst, float(delta),
+                                              float(min_pair_distance) ** 2)
+    return CompatibilityGraph(words.view(np.uint8), len(src))

@@ -12,6 +12,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import sparse
 
+from . import kernels_scoring
+
 _DENSE_LIMIT = 2_000_000  # members x distinct hypotheses for the dense kernel product
 
 
@@ -27,23 +29,10 @@ class PreferenceLists:
         e = len(residuals)
         if e == 0:
             return
-        new_ids = np.arange(self.num_hypotheses, self.num_hypotheses + e)
-        filled = self.num_hypotheses  # every hypothesis enters every list until they are full
+        kernels_scoring.merge_preferences(self.residuals, self.ids,
+                                          np.ascontiguousarray(residuals, dtype=np.float32),
+                                          self.num_hypotheses)
         self.num_hypotheses += e
-        if filled + e <= self.b:  # free slots: no ranking needed yet
-            self.residuals[:, filled:filled + e] = residuals.T
-            self.ids[:, filled:filled + e] = new_ids
-            return
-        new_res = residuals.T.astype(np.float32)
-        # Only lists that some new hypothesis enters need merging (few, once lists fill).
-        rows = np.flatnonzero(new_res.min(axis=1) < self.residuals.max(axis=1))
-        if len(rows) == 0:
-            return
-        res = np.concatenate([self.residuals[rows], new_res[rows]], axis=1)
-        ids = np.concatenate([self.ids[rows], np.broadcast_to(new_ids, (len(rows), e))], axis=1)
-        keep = np.argpartition(res, self.b - 1, axis=1)[:, : self.b]
-        self.residuals[rows] = np.take_along_axis(res, keep, axis=1)
-        self.ids[rows] = np.take_along_axis(ids, keep, axis=1)
 
     def quality(self) -> np.ndarray:
         """Median residual over each correspondence's list (inf until the list is full)."""

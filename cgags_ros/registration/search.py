@@ -13,13 +13,12 @@ import time
 
 import numpy as np
 
+from . import kernels
 from .compatibility import CompatibilityGraph
-from .hypotheses import (fit_triples, refit, residual_matrix, score_in_common_neighbourhood,
-                         score_values)
+from .hypotheses import refit, score_values
 from .preference import PreferenceLists
 from .rigid import residuals
-from .sampling import (sample_common_vertex, sample_edges, sample_guided,
-                       sample_vertex_tournament, soft_edge_weights, tournament, triangle_areas)
+from .sampling import sample_common_vertex, triangle_areas
 from .significance import ConsensusRecord
 from .stopping import (compatible_sample_inlier_probability, empirical_inlier_probability,
                        ransac_bound)
@@ -32,9 +31,12 @@ _MIN_BATCH = 32
 # gather costs more than full residuals; at high outlier ratios neighbourhoods are small
 # and stay restricted (docs/implementation.md).
 _DENSE_PRESCREEN = 0.2
-# CSR neighbour lists cost ~N^2 bit scans; build them once ~N^2/2000 triples were drawn
-# (about when rejection sampling would have spent as much).
-_LISTS_BUILD_RATIO = 2000
+# Entry lists cost about a graph build; without them each draw scans a bit row (same
+# draws). Build them once ~N^2/6000 triples were drawn, about when the row scans would have
+# cost as much, and only while they stay cache-sized: beyond, their cache misses cost more
+# than the scans (docs/implementation.md).
+_LISTS_BUILD_RATIO = 6000
+_LISTS_MAX_ENTRIES = 1 << 19
 _GIVE_UP_DRAWS = 4096  # draws without a single usable (non-collinear) triangle: give up
 _CHANCE_PER_BATCH = 2  # hypotheses per batch scored exactly whatever their pre-score
 
@@ -47,6 +49,8 @@ class Search:
 
     def __init__(self, src, dst, graph: CompatibilityGraph, cfg: CoreConfig, tau: float,
                  delta: float, rng: np.random.Generator):
+        kernels.compile_kernels()  # once per process (the warm-up pair), from the disk cache
+        src, dst = np.ascontiguousarray(src, np.float64), np.ascontiguousarray(dst, np.float64)
         self.src, self.dst, self.graph, self.cfg = src, dst, graph, cfg
         self.tau, self.delta, self.rng = tau, delta, rng
         self.num_hypotheses = 0  # minimal subsets generated (the pre-screen fits the best)
@@ -62,7 +66,7 @@ class Search:
         self.sampled: list[np.ndarray] = []  # stage-one triples, to estimate w1 empirically
         self.consensus = ConsensusRecord(graph.n, tau, self.SUBSET_SIZE)
         self.start = time.perf_counter()
-        self.csr_weights: np.ndarray | None = None  # soft edge weights over neighbour lists
+        self.no_lists = np.zeros((0, 2), np.int32)
         self.stats = {'compatible_samples': 0, 'guided_samples': 0, 'rejected_collinear': 0,
                       'empty_common_neighbourhood': 0, 'kernel_refreshes': 0,
                       'best_updates': 0, 'stage_one_bound': float('inf'),
@@ -125,18 +129,39 @@ class Search:
         non-collinear triples and, when known, their common-neighbour counts.
         """
         cfg = self.cfg
-        i, j, csr = self.compatible_edges(count)
-        if cfg.vertex_sampling == 'tournament':
-            k, ok, support = sample_vertex_tournament(self.graph, self.rng, i, j,
-                                                      cfg.vertex_tournament, csr=csr)
-        else:
+        if cfg.vertex_sampling != 'tournament':
+            i, j, csr = self.compatible_edges(count)
             k, ok = sample_common_vertex(self.graph, self.rng, i, j,
                                          weights=self.vertex_weights, csr=csr)
-            support = None
-        self.stats['empty_common_neighbourhood'] += int((~ok).sum())
-        triples = np.stack([i, j, k], axis=1)[ok]
-        self.sampled.append(triples)
-        return self._keep_non_collinear(triples, None if support is None else support[ok])
+            self.stats['empty_common_neighbourhood'] += int((~ok).sum())
+            triples = np.stack([i, j, k], axis=1)[ok]
+            self.sampled.append(triples)
+            return self._keep_non_collinear(triples)
+        i, j, k, support, status = kernels.draw_triples(
+            self.rng, self.graph, self.lists(), self.src, self.dst, self.delta,
+            cfg.compatibility == 'soft', count, self.edge_tournament_size(),
+            cfg.vertex_tournament, cfg.min_triangle_area_factor * self.tau ** 2)
+        self.stats['empty_common_neighbourhood'] += int((status == kernels.EMPTY).sum())
+        self.stats['rejected_collinear'] += int((status == kernels.COLLINEAR).sum())
+        triples = np.stack([i, j, k], axis=1)
+        self.sampled.append(triples[status != kernels.EMPTY])
+        keep = status == 0
+        return triples[keep], support[keep]
+
+    def edge_tournament_size(self) -> int:
+        return self.cfg.edge_tournament if self.cfg.edge_sampling == 'tournament' else 1
+
+    def lists(self) -> np.ndarray:
+        """
+        Return the CSR neighbour indices once the search turns out long (else empty).
+
+        The samplers then draw without scanning bit rows; they draw the same either way.
+        """
+        if (self.num_drawn <= self.graph.n ** 2 // _LISTS_BUILD_RATIO
+                or 2 * self.graph.num_edges > _LISTS_MAX_ENTRIES):
+            return self.no_lists
+        pairs = self.graph.entry_lists()
+        return self.no_lists if pairs is None else pairs
 
     def compatible_edges(self, count: int):
         """
@@ -144,23 +169,11 @@ class Search:
 
         Returns i, j and the neighbour lists when the search uses them (else None).
         """
-        cfg = self.cfg
-        s = cfg.edge_tournament if cfg.edge_sampling == 'tournament' else 1
-        # Neighbour lists make draws O(1) but cost about one graph build: only worth it
-        # once the search turns out to be long.
-        long_search = self.num_drawn > max(256, self.graph.n ** 2 // _LISTS_BUILD_RATIO)
-        csr = self.graph.neighbour_lists() if long_search else None
-        soft = cfg.compatibility == 'soft'
-        # Soft weights of all neighbour-list entries cost about as much as weighing
-        # 2|E| proposals: precompute them once the search has weighed that many.
-        if (csr is not None and soft and self.csr_weights is None
-                and self.num_drawn * s >= len(csr[1])):
-            self.csr_weights = soft_edge_weights(csr, self.src, self.dst, self.delta)
-        i, j = sample_edges(self.graph, self.rng, count * s, src=self.src, dst=self.dst,
-                            delta=self.delta, soft=soft, csr=csr, csr_weights=self.csr_weights)
-        if s > 1:
-            i, j = tournament(self.graph, (i, j), count, s)
-        return i, j, csr
+        lists = self.lists()
+        i, j = kernels.draw_edges(self.rng, self.graph, lists, self.src, self.dst, self.delta,
+                                  self.cfg.compatibility == 'soft', count,
+                                  self.edge_tournament_size())
+        return i, j, ((self.graph.indptr, lists[:, 1]) if len(lists) else None)
 
     def _keep_non_collinear(self, triples: np.ndarray, support: np.ndarray | None = None
                             ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -176,7 +189,7 @@ class Search:
     # --- hypotheses -------------------------------------------------------------------------
     def fit(self, triples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return the closed-form fits R (B, 3, 3), t (B, 3) of minimal subsets (rows)."""
-        return fit_triples(self.src, self.dst, *triples.T)
+        return kernels.fit_triples(self.src, self.dst, triples)
 
     def evaluate(self, triples: np.ndarray, support: np.ndarray | None = None) -> bool:
         """
@@ -197,27 +210,23 @@ class Search:
             # random order, so these are unselected hypotheses (the chance level).
             cand = np.arange(len(triples))
             if support is None:
-                support = self.graph.popcount(self.graph.common(*triples.T))
+                support = kernels.common_support(self.graph, triples)
             if len(triples) > 4 * cfg.exact_per_batch:
                 kept = 4 * cfg.exact_per_batch
                 cand = np.argpartition(-support, kept - 1)[:kept]
             fitted = np.concatenate([np.arange(_CHANCE_PER_BATCH), cand])
             R, t = self.fit(triples[fitted])
             Rc, tc = R[_CHANCE_PER_BATCH:], t[_CHANCE_PER_BATCH:]
-            if support[cand].mean() >= _DENSE_PRESCREEN * self.graph.n:
-                # Common neighbourhoods span much of N: the full residuals (float32, no
-                # gather) are cheaper than the restricted ones, and exactly the score.
-                pre = score_values(residual_matrix(self.src, self.dst, Rc, tc),
-                                   self.tau, cfg.score).sum(axis=1)
-            else:
-                pre = score_in_common_neighbourhood(self.graph, self.src, self.dst, Rc, tc,
-                                                    triples[cand], self.tau, cfg.score)
+            # Common neighbourhoods spanning much of N: score on all N (the exact score).
+            dense = support[cand].mean() >= _DENSE_PRESCREEN * self.graph.n
+            pre = kernels.prescreen_scores(self.graph, self.src, self.dst, Rc, tc,
+                                           triples[cand], self.tau, cfg.score, dense)
             top = np.argpartition(-pre, cfg.exact_per_batch - 1)[: cfg.exact_per_batch]
             top = np.concatenate([np.arange(_CHANCE_PER_BATCH), _CHANCE_PER_BATCH + top])
             R, t = R[top], t[top]
         else:
             R, t = self.fit(triples)
-        res = residual_matrix(self.src, self.dst, R, t)
+        res = kernels.residual_matrix(self.src, self.dst, R, t)
         # Random hypotheses' inlier counts measure the chance consensus level.
         self.consensus.add(res, _CHANCE_PER_BATCH)
         if cfg.guided_sampling:
@@ -315,7 +324,7 @@ class Search:
 
     def draw_guided(self, kernel, adjacency, seed_w, count):
         """Draw ``count`` guided minimal subsets (local indices i, j, k and an ok mask)."""
-        return sample_guided(self.rng, kernel, adjacency, seed_w, count, self.cfg.xi)
+        return kernels.draw_guided(self.rng, kernel, adjacency, seed_w, count, self.cfg.xi)
 
     def _kernel(self):
         """

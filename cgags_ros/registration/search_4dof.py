@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import kernels
 from .sampling import weighted_choice_rows
 from .search import Search
 from .stopping import empirical_inlier_probability
@@ -70,8 +71,8 @@ class EdgeSearch(Search):
 
     def draw_guided(self, kernel, adjacency, seed_w, count):
         """Guided edges (local indices i, j, j): j in N(i) with p ∝ K(i, j) + xi."""
-        i, j, ok = sample_guided_edges(self.rng, kernel, adjacency, seed_w, count, self.cfg.xi)
-        return i, j, j, ok
+        return kernels.draw_guided(self.rng, kernel, adjacency, seed_w, count, self.cfg.xi,
+                                   edges_only=True)
 
 
 def sample_guided_edges(rng: np.random.Generator, kernel: np.ndarray, adjacency: np.ndarray,

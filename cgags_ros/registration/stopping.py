@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import special
 
-from .compatibility import CompatibilityGraph
+if TYPE_CHECKING:  # annotations only: importing the graph would load the numba kernels
+    from .compatibility import CompatibilityGraph
 
 
 def ransac_bound(confidence: float, w: float) -> float:

@@ -1,0 +1,125 @@
+"""
+The compiled kernels of the core (numba), and their compilation at start-up.
+
+Which paper step each kernel implements (METHOD.md numbering):
+
+- step 1, compatibility graph: :func:`.kernels_graph.compatibility_words`, and its CSR
+  neighbour lists :func:`.kernels_graph.neighbour_lists`;
+- step 2, minimal compatible subsets (edge and vertex tournaments, collinearity test):
+  :func:`.kernels_sampling.draw_triples`, :func:`.kernels_sampling.draw_edges`;
+- step 3, hypotheses (3-point fits, pre-screen on common neighbourhoods, residuals):
+  :mod:`.kernels_scoring`;
+- step 4, preference lists: :func:`.kernels_scoring.merge_preferences`;
+- step 5, guided sampling: :func:`.kernels_sampling.draw_guided`.
+
+Every kernel is compiled with ``cache=True``: numba stores the machine code in
+``__pycache__`` next to these modules, or under ``NUMBA_CACHE_DIR`` when set (and falls back
+to a user cache directory where the package directory is read-only).
+:func:`compile_kernels` runs each kernel once on tiny inputs of the types the search uses;
+the first :class:`~.search.Search` calls it, so a process pays compilation (or the cache
+load) on its warm-up pair, never on a later one.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import kernels_graph, kernels_sampling, kernels_scoring
+from .kernels_sampling import COLLINEAR, EMPTY
+
+__all__ = ['COLLINEAR', 'EMPTY', 'compile_kernels', 'draw_edges', 'draw_triples', 'draw_guided',
+           'common_support', 'fit_triples', 'prescreen_scores', 'residual_matrix']
+
+_compiled = False
+_VERTEX_PROPOSALS = 64  # uniform members of N(i) proposed per vertex tournament
+
+
+def _f64(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
+def _i64(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.int64)
+
+
+def draw_edges(rng, graph, lists, src, dst, delta: float, soft: bool, count: int,
+               size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Edge tournament of ``size`` uniform edges, ``count`` times (step 2): i, j."""
+    return kernels_sampling.draw_edges(rng, graph.words, graph.indptr, lists, src, dst,
+                                       float(delta), bool(soft), int(count), int(size))
+
+
+def draw_triples(rng, graph, lists, src, dst, delta: float, soft: bool, count: int,
+                 edge_size: int, vertex_size: int, min_area: float):
+    """Minimal compatible subsets by edge and vertex tournament (step 2), see the kernel."""
+    return kernels_sampling.draw_triples(
+        rng, graph.words, graph.indptr, lists, src, dst, float(delta), bool(soft),
+        int(count), int(edge_size), int(vertex_size), _VERTEX_PROPOSALS, float(min_area))
+
+
+def draw_guided(rng, kernel: np.ndarray, adjacency: np.ndarray, seed_weights: np.ndarray,
+                count: int, xi: float, edges_only: bool = False):
+    """Preference-guided subsets on the kernel's members (step 5), see the kernel."""
+    return kernels_sampling.draw_guided(
+        rng, np.ascontiguousarray(kernel, dtype=np.float32),
+        np.ascontiguousarray(adjacency, dtype=bool), np.cumsum(seed_weights, dtype=np.float64),
+        int(count), float(xi), bool(edges_only))
+
+
+def common_support(graph, triples: np.ndarray) -> np.ndarray:
+    """Return |N(i) ∩ N(j) ∩ N(k)| per row (i, j, k) of ``triples``."""
+    return kernels_graph.common_support(graph.words, _i64(triples))
+
+
+def fit_triples(src: np.ndarray, dst: np.ndarray, triples: np.ndarray):
+    """Closed-form rigid fits (R (B, 3, 3), t (B, 3)) of the rows of ``triples`` (step 3)."""
+    return kernels_scoring.fit_triples(src, dst, _i64(triples))
+
+
+def prescreen_scores(graph, src, dst, R, t, triples, tau: float, score: str,
+                     dense: bool) -> np.ndarray:
+    """Scores on the triples' common neighbourhoods (all N with ``dense``), step 3."""
+    return kernels_scoring.prescreen_scores(graph.words, src, dst, _f64(R), _f64(t),
+                                            _i64(triples), float(tau), score == 'truncated',
+                                            bool(dense))
+
+
+def residual_matrix(src, dst, R, t) -> np.ndarray:
+    """Residuals of all N correspondences under E hypotheses: (E, N) float32 (step 3)."""
+    return kernels_scoring.residual_matrix(src, dst, _f64(R), _f64(t))
+
+
+def compile_kernels() -> None:
+    """Compile (or load from the on-disk cache) every kernel of the core, once per process."""
+    global _compiled
+    if _compiled:
+        return
+    rng = np.random.default_rng(0)
+    # A 70-point rigid problem: enough for a graph with edges and triangles.
+    src = rng.random((70, 3))
+    dst = src[:, ::-1].copy()
+    words = kernels_graph.compatibility_words(src, dst, 0.05, 0.0)
+    degree = kernels_graph.row_degrees(words)
+    indptr = np.concatenate([[0], np.cumsum(degree)])
+    pairs = kernels_graph.neighbour_lists(words, indptr)
+    kernels_graph.common_support(words, np.zeros((2, 3), np.int64))
+    for lists in (pairs, pairs[:0]):
+        for soft in (True, False):
+            kernels_sampling.draw_edges(rng, words, indptr, lists, src, dst, 0.05, soft, 2, 2)
+            i, j, k, _, _ = kernels_sampling.draw_triples(
+                rng, words, indptr, lists, src, dst, 0.05, soft, 2, 2, 2, 4, 1e-9)
+    triples = np.stack([i, j, k], axis=1)
+    R, t = kernels_scoring.fit_triples(src, dst, triples)
+    for truncated in (True, False):
+        for dense in (True, False):
+            kernels_scoring.prescreen_scores(words, src, dst, R, t, triples, 0.05, truncated,
+                                             dense)
+    res = kernels_scoring.residual_matrix(src, dst, R, t)
+    kernels_scoring.merge_preferences(np.full((70, 3), np.inf, np.float32),
+                                      np.full((70, 3), -1, np.int64), res, 0)
+    kernel = np.ones((5, 5), np.float32)
+    adjacency = ~np.eye(5, dtype=bool)
+    for edges_only in (True, False):
+        kernels_sampling.draw_guided(rng, kernel, adjacency, np.arange(1.0, 6.0), 2, 1e-6,
+                                     edges_only)
+    _compiled = True

@@ -1,0 +1,192 @@
+"""
+Compiled kernels (numba) of the compatibility graph: step 1 of Algorithm 1 (METHOD.md).
+
+The graph is the bit matrix of :class:`~.compatibility.CompatibilityGraph` as 64-bit words
+(bit j of row i in word j >> 6, bit j & 63: on a little-endian machine the same bytes as its
+uint8 rows). Loops over pairs and set bits run here because in numpy each would be a pass
+over the whole N x N matrix per call (docs/implementation.md, "Compiled kernels").
+
+Every kernel is compiled on first use and cached on disk (``cache=True``);
+:func:`~.kernels.compile_kernels` runs them all once on tiny inputs.
+"""
+
+from __future__ import annotations
+
+from numba import njit, types
+from numba.extending import intrinsic
+import numpy as np
+
+_ONE = np.uint64(1)
+_LOW6 = np.uint64(63)
+
+
+@intrinsic
+def _ctpop(typingctx, word):
+    """LLVM ``ctpop`` of a uint64 (the popcnt instruction where the CPU has one)."""
+    def codegen(context, builder, signature, args):
+        return builder.ctpop(args[0])
+    return types.uint64(types.uint64), codegen
+
+
+@intrinsic
+def _cttz(typingctx, word):
+    """LLVM ``cttz`` of a uint64: index of the lowest set bit (64 for zero)."""
+    def codegen(context, builder, signature, args):
+        return builder.cttz(args[0], context.get_constant(types.boolean, False))
+    return types.uint64(types.uint64), codegen
+
+
+@njit(cache=True, nogil=True, inline='always')
+def popcount(word):
+    """Return the set bits of a uint64 word."""
+    return np.int64(_ctpop(word))
+
+
+@njit(cache=True, nogil=True, inline='always')
+def lowest_bit(word):
+    """Return the index of the lowest set bit of a nonzero uint64 word."""
+    return np.int64(_cttz(word))
+
+
+@njit(cache=True, nogil=True, inline='always')
+def has_edge(words, i, j):
+    """Return True when bit j of row i is set (i ~ j)."""
+    return (words[i, j >> 6] >> (np.uint64(j) & _LOW6)) & _ONE != 0
+
+
+@njit(cache=True, nogil=True)
+def compatibility_words(src, dst, delta, min_sq):
+    """
+    Build the compatibility graph (step 1): edge iff | |p_i - p_j| - |q_i - q_j| | < delta.
+
+    Also requires |p_i - p_j|^2 >= ``min_sq`` (min_pair_distance squared; 0 keeps all).
+    With squared lengths A, B and c = A + B - delta^2, |a - b| < delta iff c < 0 or
+    4 A B > c^2 (square both sides of 2 a b > c): float64 products only, no square root,
+    so the loop vectorizes; the test flips only within ~1e-15 (relative) of the threshold.
+    The upper triangle is computed, the lower one is its bit transpose.
+
+    :param src, dst: (N, 3) float64 C-contiguous, metres.
+    :returns: (N, ceil(N / 64)) uint64 words, symmetric, no self loops.
+    """
+    n = src.shape[0]
+    w = (n + 63) // 64
+    words = np.zeros((n, w), np.uint64)
+    # Separate, NaN-padded columns: the inner loop vectorizes and padding is never an edge.
+    pts = np.full((6, w * 64), np.nan)
+    pts[:3, :n] = src.T
+    pts[3:, :n] = dst.T
+    px, py, pz, qx, qy, qz = pts[0], pts[1], pts[2], pts[3], pts[4], pts[5]
+    d2 = delta * delta
+    for i in range(n):
+        x0, y0, z0, u0, v0, s0 = px[i], py[i], pz[i], qx[i], qy[i], qz[i]
+        for k in range(i >> 6, w):
+            word = np.uint64(0)
+            for b in range(64):
+                j = (k << 6) + b
+                ax, ay, az = px[j] - x0, py[j] - y0, pz[j] - z0
+                bx, by, bz = qx[j] - u0, qy[j] - v0, qz[j] - s0
+                a2 = ax * ax + ay * ay + az * az
+                b2 = bx * bx + by * by + bz * bz
+                c = a2 + b2 - d2
+                edge = ((c < 0.0) | (4.0 * a2 * b2 > c * c)) & (a2 >= min_sq)
+                word |= np.uint64(edge) << np.uint64(b)
+            if k == i >> 6:  # keep j > i only
+                word &= ~((np.uint64(2) << (np.uint64(i) & _LOW6)) - _ONE)
+            words[i, k] = word
+    _or_transpose(words)
+    return words
+
+
+@njit(cache=True, nogil=True)
+def _transpose64(x):
+    """Transpose a 64 x 64 bit block in place (bit b of x[r] is entry (r, b))."""
+    j = np.uint64(32)
+    m = np.uint64(0x00000000FFFFFFFF)
+    while j != 0:
+        k = 0
+        while k < 64:
+            t = ((x[k] >> j) ^ x[k + j]) & m
+            x[k] ^= t << j
+            x[k + j] ^= t
+            k = (k + j + 1) & ~j
+        j >>= _ONE
+        m ^= m << j
+
+
+@njit(cache=True, nogil=True)
+def _or_transpose(words):
+    """Set bit (j, i) wherever bit (i, j) is set, by 64 x 64 block transposes."""
+    n, w = words.shape
+    x = np.empty(64, np.uint64)
+    for bi in range(w):  # rows 64 bi .. 64 bi + 63 hold the source bits (j > i)
+        for bj in range(bi, w):
+            for r in range(64):
+                row = (bi << 6) + r
+                x[r] = words[row, bj] if row < n else np.uint64(0)
+            _transpose64(x)
+            for r in range(64):
+                row = (bj << 6) + r
+                if row < n:
+                    words[row, bi] |= x[r]
+
+
+@njit(cache=True, nogil=True)
+def row_degrees(words):
+    """Return the number of set bits per row (the vertex degrees)."""
+    n, w = words.shape
+    out = np.zeros(n, np.int64)
+    for i in range(n):
+        s = 0
+        for k in range(w):
+            s += popcount(words[i, k])
+        out[i] = s
+    return out
+
+
+@njit(cache=True, nogil=True)
+def neighbour_lists(words, indptr):
+    """
+    Return the entries of the bit matrix as (2|E|, 2) int32 (row, column) pairs.
+
+    Rows in order, columns ascending: column 1 is the CSR index array of ``indptr``, and
+    entry e's row is at hand without a bisection of ``indptr``.
+    """
+    n, w = words.shape
+    pairs = np.empty((indptr[n], 2), np.int32)
+    for i in range(n):
+        pos = indptr[i]
+        for k in range(w):
+            word = words[i, k]
+            while word:
+                pairs[pos, 0] = i
+                pairs[pos, 1] = (k << 6) + lowest_bit(word)
+                pos += 1
+                word &= word - _ONE
+    return pairs
+
+
+@njit(cache=True, nogil=True)
+def common_support(words, triples):
+    """Return |N(i) ∩ N(j) ∩ N(k)| per row (i, j, k) of ``triples`` ((i, j, j): of N(i) ∩ N(j))."""
+    out = np.empty(len(triples), np.int64)
+    for m in range(len(triples)):
+        i, j, c = triples[m, 0], triples[m, 1], triples[m, 2]
+        s = 0
+        for k in range(words.shape[1]):
+            s += popcount(words[i, k] & words[j, k] & words[c, k])
+        out[m] = s
+    return out
+
+
+@njit(cache=True, nogil=True)
+def nth_set_bit(row, r):
+    """Return the column of the r-th (0-based) set bit of a word row (-1 if fewer)."""
+    for k in range(len(row)):
+        c = popcount(row[k])
+        if r < c:
+            word = row[k]
+            for _ in range(r):
+                word &= word - _ONE
+            return (k << 6) + lowest_bit(word)
+        r -= c
+    return -1

@@ -1,0 +1,287 @@
+"""
+The compiled kernels (registration/kernels*.py) against plain numpy on small inputs.
+
+Each kernel must give what the numpy computation of the same step gives: the same graph,
+the same draws from the same random stream, the same inliers and scores, transforms equal
+to 1e-9. Draw-by-draw references consume the generator in the kernels' order.
+"""
+
+from __future__ import annotations
+
+import math
+
+from cgags_ros.datasets.synthetic import load_bunny, make_correspondences
+from cgags_ros.registration import kernels, register_correspondences
+from cgags_ros.registration.compatibility import build_compatibility_graph
+from cgags_ros.registration.hypotheses import score_in_common_neighbourhood, score_values
+from cgags_ros.registration.kernels_graph import compatibility_words, neighbour_lists
+from cgags_ros.registration.kernels_sampling import (COLLINEAR, draw_edges, draw_guided,
+                                                     draw_triples, EMPTY)
+from cgags_ros.registration.kernels_scoring import (fit_triples, merge_preferences,
+                                                    prescreen_scores, residual_matrix)
+from cgags_ros.registration.rigid import kabsch_batch
+from cgags_ros.registration.sampling import triangle_areas
+import numpy as np
+import pytest
+
+DELTA = 0.15
+
+
+def _problem(n=150, seed=0, inliers=40):
+    """Return a rigid motion of ``inliers`` points plus uniform outliers, metres."""
+    rng = np.random.default_rng(seed)
+    src = rng.uniform(-1, 1, (n, 3))
+    angle = 0.7
+    R = np.array([[math.cos(angle), -math.sin(angle), 0], [math.sin(angle), math.cos(angle), 0],
+                  [0, 0, 1.0]])
+    dst = rng.uniform(-1, 1, (n, 3))
+    dst[:inliers] = src[:inliers] @ R.T + [0.3, -0.2, 0.1] + rng.normal(0, 0.005, (inliers, 3))
+    return src, dst
+
+
+def _numpy_graph(src, dst, delta, min_sq=0.0):
+    a = np.linalg.norm(src[:, None] - src[None], axis=2)
+    b = np.linalg.norm(dst[:, None] - dst[None], axis=2)
+    adj = (np.abs(a - b) < delta) & (a ** 2 >= min_sq)
+    np.fill_diagonal(adj, False)
+    return adj
+
+
+def _unpack(words, n):
+    return np.unpackbits(words.view(np.uint8), axis=1, count=n, bitorder='little').view(bool)
+
+
+@pytest.mark.parametrize('n', [3, 63, 64, 65, 150, 300])
+@pytest.mark.parametrize('min_sq', [0.0, 0.2])
+def test_graph_equals_numpy(n, min_sq):
+    src, dst = _problem(n, inliers=min(n, 40))
+    words = compatibility_words(src, dst, DELTA, min_sq)
+    assert words.shape == (n, (n + 63) // 64)
+    assert np.array_equal(_unpack(words, n), _numpy_graph(src, dst, DELTA, min_sq))
+    # Bits past column N stay zero (popcounts over whole words count no padding).
+    full = np.unpackbits(words.view(np.uint8), axis=1, bitorder='little')
+    assert not full[:, n:].any()
+
+
+def test_graph_object_and_lists():
+    src, dst = _problem(200)
+    graph = build_compatibility_graph(src, dst, DELTA)
+    adj = _numpy_graph(src, dst, DELTA)
+    assert np.array_equal(graph.rows(np.arange(200)), adj)
+    assert np.array_equal(graph.degree, adj.sum(axis=1))
+    pairs = neighbour_lists(graph.words, graph.indptr)
+    rows, cols = np.nonzero(adj)
+    assert np.array_equal(pairs[:, 0], rows) and np.array_equal(pairs[:, 1], cols)
+    triples = np.random.default_rng(1).integers(0, 200, (50, 3))
+    expected = graph.popcount(graph.common(*triples.T))
+    assert np.array_equal(kernels.common_support(graph, triples), expected)
+
+
+def _reference_edges(rng, graph, src, dst, delta, soft, count, size):
+    """Edge tournament as the kernel draws it, in plain numpy/Python."""
+    indptr = graph.indptr
+    cols = np.nonzero(graph.rows(np.arange(graph.n)))[1]
+    total = indptr[-1]
+    out = []
+    for _ in range(count):
+        best, pick = -1, None
+        for _ in range(size):
+            while True:
+                e = min(int(rng.random() * total), total - 1)
+                i = int(np.searchsorted(indptr, e, side='right') - 1)
+                j = int(cols[e])
+                if not soft:
+                    break
+                d = abs(np.linalg.norm(src[i] - src[j]) - np.linalg.norm(dst[i] - dst[j]))
+                if rng.random() < 1.0 - (d / delta) ** 2:
+                    break
+            s = int(graph.popcount(graph.common(np.array([i]), np.array([j])))[0])
+            if size == 1 or s > best:
+                best, pick = s, (i, j)
+        out.append(pick)
+    return np.array(out).reshape(-1, 2)
+
+
+@pytest.mark.parametrize('soft', [False, True])
+@pytest.mark.parametrize('size', [1, 4])
+@pytest.mark.parametrize('with_lists', [False, True])
+def test_edges_equal_numpy_draws(soft, size, with_lists):
+    src, dst = _problem(150)
+    graph = build_compatibility_graph(src, dst, DELTA)
+    lists = graph.entry_lists() if with_lists else np.zeros((0, 2), np.int32)
+    i, j = draw_edges(np.random.default_rng(5), graph.words, graph.indptr, lists, src, dst,
+                      DELTA, soft, 40, size)
+    ref = _reference_edges(np.random.default_rng(5), graph, src, dst, DELTA, soft, 40, size)
+    assert np.array_equal(np.stack([i, j], 1), ref)
+
+
+def _reference_triples(rng, graph, src, dst, count, edge_size, vertex_size, proposals,
+                       min_area):
+    edges = _reference_edges(rng, graph, src, dst, DELTA, True, count, edge_size)
+    rows = graph.rows(np.arange(graph.n))
+    out = []
+    for i, j in edges:
+        nbrs = np.flatnonzero(rows[i])
+        common = rows[i] & rows[j]
+        best, k, hits = -1, 0, 0
+        for _ in range(proposals):
+            c = nbrs[min(int(rng.random() * len(nbrs)), len(nbrs) - 1)]
+            if rows[j, c]:
+                s = int((common & rows[c]).sum())
+                if s > best:
+                    best, k = s, c
+                hits += 1
+                if hits == vertex_size:
+                    break
+        status = 0
+        if hits == 0:
+            members = np.flatnonzero(common)
+            if len(members) == 0:
+                out.append((i, j, 0, 0, EMPTY))
+                continue
+            k = members[min(int(rng.random() * len(members)), len(members) - 1)]
+            best = int((common & rows[k]).sum())
+        ijk = (np.array([i]), np.array([j]), np.array([k]))
+        if min(triangle_areas(src, *ijk)[0], triangle_areas(dst, *ijk)[0]) < min_area:
+            status = COLLINEAR
+        out.append((i, j, k, best, status))
+    return np.array(out)
+
+
+@pytest.mark.parametrize('with_lists', [False, True])
+def test_triples_equal_numpy_draws(with_lists):
+    src, dst = _problem(150)
+    graph = build_compatibility_graph(src, dst, DELTA)
+    lists = graph.entry_lists() if with_lists else np.zeros((0, 2), np.int32)
+    got = draw_triples(np.random.default_rng(3), graph.words, graph.indptr, lists, src, dst,
+                       DELTA, True, 60, 4, 3, 16, 0.05)
+    ref = _reference_triples(np.random.default_rng(3), graph, src, dst, 60, 4, 3, 16, 0.05)
+    got = np.stack([np.asarray(a, dtype=np.int64) for a in got], axis=1)
+    usable = ref[:, 4] != EMPTY
+    assert np.array_equal(got[:, 4], ref[:, 4])
+    assert np.array_equal(got[usable], ref[usable])
+    assert (got[:, 4] == 0).sum() > 10  # the check saw usable triangles
+
+
+def test_fits_equal_kabsch():
+    src, dst = _problem(100)
+    triples = np.random.default_rng(2).integers(0, 100, (80, 3))
+    triples = triples[(triples[:, 0] != triples[:, 1]) & (triples[:, 1] != triples[:, 2])
+                      & (triples[:, 0] != triples[:, 2])]
+    R, t = fit_triples(src, dst, triples)
+    R_ref, t_ref = kabsch_batch(src[triples], dst[triples])
+    np.testing.assert_allclose(R, R_ref, atol=1e-9)
+    np.testing.assert_allclose(t, t_ref, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-12)
+
+
+@pytest.mark.parametrize('score', ['inlier_count', 'truncated'])
+def test_prescreen_and_residuals_equal_numpy(score):
+    src, dst = _problem(150)
+    graph = build_compatibility_graph(src, dst, DELTA)
+    rng = np.random.default_rng(4)
+    triples = np.concatenate([rng.permutation(40)[:30].reshape(10, 3),
+                              rng.integers(0, 150, (20, 3))])
+    triples[-3:, 2] = triples[-3:, 1]  # 4-DoF edges stored as (i, j, j)
+    R, t = kabsch_batch(src[triples], dst[triples])
+    tau = 0.05
+    truncated = score == 'truncated'
+    pre = prescreen_scores(graph.words, src, dst, R, t, triples, tau, truncated, False)
+    ref = score_in_common_neighbourhood(graph, src, dst, R, t, triples, tau, score)
+    np.testing.assert_allclose(pre, ref, atol=1e-9)
+    res = residual_matrix(src, dst, R, t)
+    res_ref = np.linalg.norm(np.einsum('bij,nj->bni', R, src) + t[:, None] - dst[None], axis=2)
+    np.testing.assert_allclose(res, res_ref, rtol=1e-6, atol=1e-7)
+    dense = prescreen_scores(graph.words, src, dst, R, t, triples, tau, truncated, True)
+    np.testing.assert_allclose(dense, score_values(res_ref, tau, score).sum(axis=1), atol=1e-9)
+    assert dense[:10].max() >= 30  # the inlier triples found their inliers
+
+
+def test_preference_merge_equals_numpy():
+    rng = np.random.default_rng(6)
+    n, b = 50, 5
+    res = np.full((n, b), np.inf, np.float32)
+    ids = np.full((n, b), -1, np.int64)
+    ref_res, ref_ids, first = res.copy(), ids.copy(), 0
+    for e in (3, 4, 7, 1, 12):
+        new = rng.random((e, n)).astype(np.float32)
+        merge_preferences(res, ids, new, first)
+        both = np.concatenate([ref_res, new.T], axis=1)
+        both_ids = np.concatenate([ref_ids, np.broadcast_to(np.arange(first, first + e),
+                                                            (n, e))], axis=1)
+        keep = np.argsort(both, axis=1, kind='stable')[:, :b]
+        ref_res = np.take_along_axis(both, keep, axis=1)
+        ref_ids = np.take_along_axis(both_ids, keep, axis=1)
+        first += e
+        assert np.array_equal(np.sort(ids, axis=1), np.sort(ref_ids, axis=1))
+        assert np.array_equal(np.sort(res, axis=1), np.sort(ref_res, axis=1))
+
+
+@pytest.mark.parametrize('edges_only', [False, True])
+def test_guided_equals_numpy_draws(edges_only):
+    rng = np.random.default_rng(7)
+    m, xi = 12, 1e-6
+    kernel = rng.random((m, m)).astype(np.float32)
+    adjacency = rng.random((m, m)) < 0.5
+    np.fill_diagonal(adjacency, False)
+    adjacency[3] = False  # a seed without partners
+    seed_w = rng.random(m)
+    i, j, k, ok = draw_guided(np.random.default_rng(8), kernel, adjacency, np.cumsum(seed_w),
+                              50, xi, edges_only)
+    r = np.random.default_rng(8)
+    cdf = np.cumsum(seed_w)
+
+    def pick(weights):
+        u = r.random()  # drawn whether or not a partner exists, as the kernel does
+        if weights.sum() <= 0:
+            return -1
+        return int(np.argmax(np.cumsum(weights) > u * weights.sum()))
+
+    for b in range(50):
+        si = min(int(np.searchsorted(cdf, r.random() * cdf[-1], side='right')), m - 1)
+        assert i[b] == si
+        sj = pick((kernel[si].astype(np.float64) + xi) * adjacency[si])
+        if sj < 0:
+            assert not ok[b]
+            continue
+        assert j[b] == sj
+        if edges_only:
+            assert ok[b] and k[b] == sj
+            continue
+        wk = (kernel[si].astype(np.float64) * kernel[sj] + xi) * (adjacency[si] & adjacency[sj])
+        sk = pick(wk)
+        assert ok[b] == (sk >= 0) and (sk < 0 or k[b] == sk)
+
+
+def test_core_deterministic_for_a_seed():
+    model = load_bunny(None)
+    p = make_correspondences(model, 600, 0.97, noise_sigma=0.01, rng=11)
+    a = register_correspondences(p.src, p.dst, inlier_threshold=0.05, seed=3)
+    b = register_correspondences(p.src, p.dst, inlier_threshold=0.05, seed=3)
+    assert a.valid and np.array_equal(a.transform, b.transform)
+    assert np.array_equal(a.inliers, b.inliers) and a.num_hypotheses == b.num_hypotheses
+
+
+def test_compile_kernels_is_idempotent():
+    kernels.compile_kernels()
+    kernels.compile_kernels()
+    for fn in (compatibility_words, draw_triples, draw_edges, draw_guided, fit_triples,
+               prescreen_scores, residual_matrix, merge_preferences):
+        assert fn.signatures, fn  # compiled (or loaded from the cache)
+
+
+def test_searches_use_only_the_compiled_signatures():
+    """compile_kernels (the warm-up) compiles every specialization a search needs."""
+    from cgags_ros.registration import CoreConfig, kernels_graph, kernels_sampling, kernels_scoring
+
+    kernels.compile_kernels()
+    dispatchers = [getattr(m, name) for m in (kernels_graph, kernels_sampling, kernels_scoring)
+                   for name in dir(m) if hasattr(getattr(m, name), 'signatures')]
+    before = {d: len(d.signatures) for d in dispatchers}
+    model = load_bunny(None)
+    p = make_correspondences(model, 800, 0.98, noise_sigma=0.01, rng=2)
+    for motion in ('6dof', '4dof'):
+        src = np.asfortranarray(p.src)  # any layout: the core hands kernels C arrays
+        register_correspondences(src, p.dst, inlier_threshold=0.05, seed=1,
+                                 config=CoreConfig(motion_model=motion))
+    assert {d: len(d.signatures) for d in dispatchers} == before
