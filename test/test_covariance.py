@@ -60,3 +60,42 @@ def test_4dof_covariance_has_no_roll_or_pitch_and_matches_the_yaw_only_fit():
     tilted = pose_covariance(src, src + noise, np.eye(4), gravity=g)
     rot = tilted[3:, 3:]
     assert np.allclose(rot, rot[1, 1] * 2 * np.outer(g, g))
+
+
+def test_moved_covariance_matches_sampled_base_poses():
+    from cgags_ros.geometry import make_transform
+    from cgags_ros.pipeline.covariance import moved_covariance
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(5)
+    T = make_transform(Rotation.from_euler('xyz', [5, -10, 40], degrees=True).as_matrix(),
+                       [1.0, 2.0, 0.5])
+    sensor_base = make_transform(Rotation.from_euler('z', 30, degrees=True).as_matrix(),
+                                 [-0.4, 0.1, -1.2])  # base 1.2 m below the sensor
+    A = rng.normal(size=(6, 6)) * 1e-2
+    cov = A @ A.T
+    moved = moved_covariance(cov, T, sensor_base)
+    # Monte Carlo with the same perturbation model: t' = t + dt, R' = exp([dphi]x) R.
+    d = rng.multivariate_normal(np.zeros(6), cov, size=20000)
+    base = T @ sensor_base
+    samples = []
+    for dt, dphi in zip(d[:, :3], d[:, 3:]):
+        Tp = make_transform(Rotation.from_rotvec(dphi).as_matrix() @ T[:3, :3], T[:3, 3] + dt)
+        Bp = Tp @ sensor_base
+        rot = Rotation.from_matrix(Bp[:3, :3] @ base[:3, :3].T).as_rotvec()
+        samples.append(np.concatenate([Bp[:3, 3] - base[:3, 3], rot]))
+    np.testing.assert_allclose(np.cov(np.array(samples).T), moved, atol=2e-5)
+    assert not np.allclose(moved[:3, :3], cov[:3, :3])  # the lever arm matters
+
+
+def test_map_to_odom_composes_back_to_the_base_pose():
+    from cgags_ros.geometry import make_transform
+    from cgags_ros.pipeline.covariance import map_to_odom
+    from scipy.spatial.transform import Rotation
+
+    T_map_base = make_transform(Rotation.from_euler('z', 70, degrees=True).as_matrix(),
+                                [5.0, -3.0, 0.0])
+    T_odom_base = make_transform(Rotation.from_euler('z', -20, degrees=True).as_matrix(),
+                                 [1.0, 0.5, 0.0])
+    np.testing.assert_allclose(map_to_odom(T_map_base, T_odom_base) @ T_odom_base, T_map_base,
+                               atol=1e-12)

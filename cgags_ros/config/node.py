@@ -11,6 +11,7 @@ written twice.
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any, Mapping
 
 from . import fields
@@ -79,13 +80,93 @@ class NodeConfig:
         'when that frame already has a parent in your TF tree.')
     diagnostics_period: float = option(
         1.0, 'Seconds between /diagnostics messages.', low=0.05, high=3600.0)
+    mode: str = option(
+        'continuous', "'continuous' registers every source scan; 'on_demand' registers "
+        'nothing until the ~/relocalize service (std_srvs/Trigger) is called, then the '
+        'latest scan received within max_scan_age, or else the next one.',
+        choices=('continuous', 'on_demand'))
+    map_file: str = option(
+        '', 'Prior map (PLY, PCD, NPY, XYZ/CSV/TXT; metres, in map_frame) every source scan '
+        "is registered onto; target_cloud is then not subscribed. '' uses the target_cloud "
+        'topic as the map (or reference).')
+    map_frame: str = option(
+        'map', 'Frame of map_file, of ~/candidates and of the initial pose (with map_file; '
+        "without it the target cloud's frame is used).")
+    map_cache_dir: str = option(
+        '~/.cache/cgags_ros/maps', 'Directory of the map feature cache (keyed by the map '
+        "file's content and every setting that changes the features); '' disables it.")
+    map_load_timeout: float = option(
+        600.0, 'Seconds loading map_file (features computed or read from the cache) may '
+        'take before the attempt is abandoned.', low=1.0, high=86400.0)
+    max_scan_age: float = option(
+        1.0, 'on_demand mode: a ~/relocalize call uses the latest scan if it was received at '
+        'most this many seconds before the call; otherwise it waits for the next scan.',
+        low=0.0, high=3600.0)
+    relocalize_timeout: float = option(
+        10.0, 'on_demand mode: seconds a ~/relocalize call waits for a scan before it '
+        'answers failure.', low=0.1, high=3600.0)
+    publish_initial_pose: bool = option(
+        False, 'Publish the robot base pose on initialpose (geometry_msgs/'
+        'PoseWithCovarianceStamped, frame map_frame, for Nav2/AMCL) when every initial_pose_* '
+        'guard passes.')
+    initial_pose_min_inliers: int = option(
+        20, 'Initial-pose guard: fewest inlier correspondences of the estimate.', low=0)
+    initial_pose_min_ratio: float = option(
+        2.0, 'Initial-pose guard: smallest best / runner-up candidate inlier ratio (how '
+        'clearly the pose beats every distinct alternative).', low=1.0, high=1e6)
+    initial_pose_min_fitness: float = option(
+        0.3, 'Initial-pose guard: smallest fitness (share of scan points with a map point '
+        'within the refinement distance).', low=0.0, high=1.0)
+    initial_pose_cooldown: float = option(
+        5.0, 'Initial-pose guard: seconds between two publishes.', low=0.0, high=86400.0)
+    initial_pose_max_auto: int = option(
+        1, 'Initial-pose guard: most publishes in continuous mode (each ~/relocalize call '
+        'may publish once more); 0 publishes only on ~/relocalize.', low=0)
+    base_from_sensor: str = option(
+        '', "Sensor pose in the robot base frame, 'x y z qx qy qz qw' (metres, unit "
+        'quaternion): p_base = T p_sensor. The initial pose is that of the base: '
+        "T_map_base = T_map_sensor inv(T). '' takes it from TF (base_frame <- sensor frame) "
+        'when tf2_ros is importable, else the identity (sensor = base).')
+    base_frame: str = option(
+        'base_link', 'Robot base frame (TF lookup of the extrinsic when base_from_sensor is '
+        "'', and of odom -> base for broadcast_map_to_odom).")
+    broadcast_map_to_odom: bool = option(
+        False, "With each published initial pose, broadcast Nav2's map -> odom on /tf from "
+        'it and the odom -> base transform at the scan stamp (needs tf2_ros; without it the '
+        'node says so once and broadcasts nothing).')
+    odom_frame: str = option('odom', 'Odometry frame of broadcast_map_to_odom.')
+
+    def check(self) -> None:
+        """Validate the values that need more than a range (base_from_sensor)."""
+        parse_pose7(self.base_from_sensor)
+
+
+def parse_pose7(text: str) -> tuple[float, ...] | None:
+    """
+    Parse 'x y z qx qy qz qw' (spaces or commas) into seven floats (None for '').
+
+    :raises InvalidConfigError: for anything but seven finite numbers with a nonzero
+        quaternion.
+    """
+    if not text.strip():
+        return None
+    try:
+        values = tuple(float(v) for v in text.replace(',', ' ').split())
+    except ValueError:
+        values = ()
+    if (len(values) != 7 or not all(math.isfinite(v) for v in values)
+            or math.hypot(*values[3:]) < 1e-9):
+        raise InvalidConfigError(f"base_from_sensor must be 'x y z qx qy qz qw' (seven "
+                                 f'numbers, a nonzero quaternion), got {text!r}')
+    return values
 
 
 # Parameters that shape subscriptions or the pairing queue: fixed once the node runs.
 READ_ONLY = frozenset({
     'pairing_mode', 'queue_depth', 'max_waiting_sources', 'max_waiting_targets',
     'source_qos', 'source_depth', 'target_durability', 'target_depth',
-    'diagnostics_period', 'registration_timeout',
+    'diagnostics_period', 'registration_timeout', 'mode', 'map_file', 'map_frame',
+    'map_cache_dir', 'map_load_timeout', 'base_frame',
 })
 
 

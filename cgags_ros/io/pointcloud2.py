@@ -140,8 +140,9 @@ def pointcloud2_to_xyz(msg: Any, *, max_points: int = MAX_POINTS) -> np.ndarray:
         rows = np.ascontiguousarray(data.reshape(height, row_step)[:, :width * point_step])
     structured = rows.view(dtype).reshape(-1)
     xyz = np.empty((n, 3), dtype=np.float64)
-    for i, axis in enumerate('xyz'):
-        xyz[:, i] = structured[axis]
+    with np.errstate(invalid='ignore'):  # signalling NaNs in the data: dropped just below
+        for i, axis in enumerate('xyz'):
+            xyz[:, i] = structured[axis]
     finite = np.isfinite(xyz).all(axis=1)
     if not finite.all():
         xyz = xyz[finite]

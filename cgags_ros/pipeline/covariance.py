@@ -65,6 +65,28 @@ def pose_covariance(src: np.ndarray, dst: np.ndarray, T: np.ndarray,
     return sigma2 * np.linalg.inv(info)
 
 
+def moved_covariance(cov: np.ndarray, T_map_sensor: np.ndarray,
+                     T_sensor_frame: np.ndarray) -> np.ndarray:
+    """
+    Return the covariance of ``T_map_sensor @ T_sensor_frame`` from that of ``T_map_sensor``.
+
+    Same perturbation model as :func:`pose_covariance` (``t' = t + dt``, ``R' = exp([dphi]x)
+    R`` in the map frame): a frame rigidly attached to the sensor at lever arm ``l`` (its
+    origin in the sensor frame) moves by ``dt + dphi x (R l)``, so ``J = [[I, -[R l]x],
+    [0, I]]`` and the result is ``J cov J^T``; the rotation part is unchanged.
+    """
+    arm = np.asarray(T_map_sensor, dtype=np.float64)[:3, :3] @ np.asarray(T_sensor_frame)[:3, 3]
+    J = np.eye(6)
+    J[:3, 3:] = -np.array([[0.0, -arm[2], arm[1]], [arm[2], 0.0, -arm[0]],
+                           [-arm[1], arm[0], 0.0]])
+    return J @ np.asarray(cov, dtype=np.float64) @ J.T
+
+
+def map_to_odom(T_map_base: np.ndarray, T_odom_base: np.ndarray) -> np.ndarray:
+    """Return ``T_map_odom`` (Nav2's map -> odom) from the base pose in both frames."""
+    return np.asarray(T_map_base) @ np.linalg.inv(T_odom_base)
+
+
 def inlier_pairs(result: Any, source: np.ndarray, target: np.ndarray,
                  T: np.ndarray, max_distance: float, max_points: int = 2000
                  ) -> tuple[np.ndarray, np.ndarray]:

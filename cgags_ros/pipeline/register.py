@@ -18,13 +18,15 @@ import time
 import numpy as np
 
 from .cache import cached_features
+from .candidates import ambiguity_reason, find_candidates
 from .gates import gate, line_reason
+from .map import matches_config, PreparedMap
 from .result import PipelineResult
 from .runtime import blas_guard
 from ..config import fields
 from ..config.pipeline import PipelineConfig
 from ..datasets.synthetic import terrain_patch
-from ..errors import DegenerateCorrespondencesError, EmptyCloudError
+from ..errors import DegenerateCorrespondencesError, EmptyCloudError, InvalidConfigError
 from ..frontend.features import CloudFeatures, finite_points
 from ..frontend.matching import Correspondences, match_features
 from ..frontend.refine import refine_transform
@@ -32,24 +34,28 @@ from ..registration import register_correspondences, RegistrationResult
 from ..timing import timed
 
 
-def register_clouds(source: np.ndarray, target: np.ndarray, *, voxel_size: float | None = None,
+def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
+                    voxel_size: float | None = None,
                     config: PipelineConfig | None = None) -> PipelineResult:
     """
     Register ``source`` onto ``target`` with no initial guess.
 
     :param source, target: (N, 3) points in metres, each in its own frame; non-finite rows
-        are dropped.
+        are dropped. ``target`` may also be a map's :class:`~.map.PreparedMap`
+        (:func:`~.map.load_map`), whose features are then used as they are.
     :param voxel_size: metres; overrides ``config.voxel_size`` (every radius derives from
         it).
     :param config: :class:`PipelineConfig`; defaults when None.
     :returns: a :class:`PipelineResult`. ``valid`` is False, with a ``reason``, when the
         clouds are too small after downsampling, yield too few or degenerate
-        correspondences, or when the estimate fails a validity gate (core inliers,
-        chance-level inliers, degenerate overlap geometry, fitness). Never raises for such
-        data-dependent failures.
+        correspondences, when the estimate fails a validity gate (core inliers,
+        chance-level inliers, degenerate overlap geometry, fitness) or is ambiguous (see
+        :mod:`.candidates`). ``candidates`` holds up to ``num_candidates`` distinct poses,
+        best first. Never raises for such data-dependent failures.
     :raises InvalidInputError: when an array is not (N, 3) numeric.
     :raises EmptyCloudError: when a cloud has no finite point.
-    :raises InvalidConfigError: when a configuration value is out of range.
+    :raises InvalidConfigError: when a configuration value is out of range, or a prepared
+        map was computed with other feature settings than ``config``'s.
     """
     guard, workers = blas_guard()
     with guard:
@@ -61,11 +67,17 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
     start = time.perf_counter()
     cfg = _effective_config(config, voxel_size)
     v = cfg.voxel_size
-    src, dst = finite_points(source, 'source'), finite_points(target, 'target')
+    src = finite_points(source, 'source')
+    if isinstance(target, PreparedMap) and not matches_config(target, cfg):
+        raise InvalidConfigError(
+            f'the map {target.path} was prepared with other feature settings '
+            f'({target.settings}) than this registration; load it again with this config')
+    dst = None if isinstance(target, PreparedMap) else finite_points(target, 'target')
     result = PipelineResult(voxel_size=v)
     try:
         fs = cached_features(src, v, cfg.frontend, 'source', result.timings)
-        ft = cached_features(dst, v, cfg.frontend, 'target', result.timings)
+        ft = (target.features if dst is None
+              else cached_features(dst, v, cfg.frontend, 'target', result.timings))
     except EmptyCloudError as exc:  # data too small for this voxel size: not a crash
         return result.finish(start, str(exc))
     result.num_source_points, result.num_target_points = len(fs.points), len(ft.points)
@@ -85,7 +97,7 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
     result.inlier_source_points = fs.points[corr.source_index[core.inliers]]
     result.inlier_target_points = ft.points[corr.target_index[core.inliers]]
     if core.reason:  # nothing worth refining or gating further
-        return result.finish(start, core.reason)
+        return result.finish(start, _candidates(fs, ft, corr, result, cfg) or core.reason)
     gravity = cfg.core.gravity_axis if cfg.core.motion_model == '4dof' else None
     with timed(result.timings, 'refinement'):
         result.transform = refine_transform(
@@ -95,7 +107,16 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
         result.refined = cfg.refine.method != 'none'
     with timed(result.timings, 'validation'):
         reason = gate(fs, ft, corr, result, cfg)
+    reason = _candidates(fs, ft, corr, result, cfg) or reason
     return result.finish(start, reason)
+
+
+def _candidates(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
+                result: PipelineResult, cfg: PipelineConfig) -> str:
+    """Search the ranked candidates; return the ambiguity reason ('' when not ambiguous)."""
+    with timed(result.timings, 'candidates'):
+        find_candidates(fs, ft, corr, result, cfg)
+    return ambiguity_reason(result, cfg)
 
 
 def warm_up(config: PipelineConfig | None = None) -> PipelineResult:

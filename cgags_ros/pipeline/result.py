@@ -11,6 +11,31 @@ from ..registration import RegistrationResult
 
 
 @dataclasses.dataclass
+class Candidate:
+    """
+    One candidate pose of the source in the target frame, with its support.
+
+    :ivar transform: 4x4 source->target (refined when refinement is on), metres.
+    :ivar num_inliers: putative correspondences within tau of the candidate's coarse
+        (core) transform.
+    :ivar fitness: share of downsampled source points with a target point within the
+        refinement distance under ``transform``.
+    :ivar ratio: ``num_inliers`` / the best candidate's (1 for the best).
+    """
+
+    transform: np.ndarray
+    num_inliers: int
+    fitness: float
+    ratio: float = 1.0
+
+    def summary(self) -> dict[str, Any]:
+        """Return a JSON-friendly dict of the candidate."""
+        return {'transform': np.asarray(self.transform, dtype=float).tolist(),
+                'num_inliers': int(self.num_inliers), 'fitness': float(self.fitness),
+                'ratio': float(self.ratio)}
+
+
+@dataclasses.dataclass
 class PipelineResult(RegistrationResult):
     """
     :class:`RegistrationResult` of the whole pipeline.
@@ -41,6 +66,12 @@ class PipelineResult(RegistrationResult):
     :ivar tilt_deg: 4-DoF mode only (else NaN): the tilt (degrees) between the clouds'
         gravity axes measured by one 6-DoF point-to-plane step from the final estimate over
         the overlap; above ``core.max_tilt_deg`` the result is invalid.
+    :ivar candidates: up to ``num_candidates`` distinct :class:`Candidate` poses, best
+        first (the first is ``transform``); empty when the core gave no estimate.
+    :ivar ambiguous: True when the runner-up candidate is nearly as well supported as the
+        best (best/runner-up inliers below ``ambiguity_ratio``); the result is then
+        invalid.
+    :ivar runner_up_ratio: best / runner-up inlier count (inf without a runner-up).
     """
 
     coarse_transform: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
@@ -57,6 +88,9 @@ class PipelineResult(RegistrationResult):
     voxel_size: float = float('nan')
     resolution: float = float('nan')
     tilt_deg: float = float('nan')
+    candidates: list[Candidate] = dataclasses.field(default_factory=list)
+    ambiguous: bool = False
+    runner_up_ratio: float = float('inf')
 
     def summary(self) -> dict[str, Any]:
         out = super().summary()
@@ -69,5 +103,7 @@ class PipelineResult(RegistrationResult):
             num_source_points=int(self.num_source_points),
             num_target_points=int(self.num_target_points),
             voxel_size=float(self.voxel_size), resolution=float(self.resolution),
-            tilt_deg=float(self.tilt_deg))
+            tilt_deg=float(self.tilt_deg),
+            candidates=[c.summary() for c in self.candidates], ambiguous=bool(self.ambiguous),
+            runner_up_ratio=float(self.runner_up_ratio))
         return out

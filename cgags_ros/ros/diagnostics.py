@@ -63,6 +63,9 @@ def diagnostic_array(stats: Mapping[str, Any], name: str, hardware_id: str,
     if not stats.get(ACCOUNTING_OK, True):
         status.level = DiagnosticStatus.ERROR
         status.message = 'internal error: received clouds do not balance the counted outcomes'
+    elif stats.get('map.error'):
+        status.level = DiagnosticStatus.ERROR
+        status.message = str(stats['map.error'])
     elif stats.get('worker.failing'):
         status.level = DiagnosticStatus.ERROR
         status.message = (f"registration worker failed ({stats['worker.failing']}); "

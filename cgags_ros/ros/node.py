@@ -33,13 +33,13 @@ pairer's bounded queue drops the oldest pair).
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 import traceback
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 import numpy as np
 from rcl_interfaces.msg import SetParametersResult
 import rclpy
@@ -48,8 +48,9 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
 from . import diagnostics
-from .conversions import transform_to_pose, transform_to_transform_stamped, xyz_to_pointcloud2
 from .health import LOG_REPEAT_S, NodeHealth
+from .localization import Localization
+from .outputs import Outputs
 from .parameters import descriptor
 from .qos import source_qos, target_qos
 from .worker import (IsolatedRegistration, load_pipeline, RegisterFn, RegistrationTimeout,
@@ -57,9 +58,7 @@ from .worker import (IsolatedRegistration, load_pipeline, RegisterFn, Registrati
 from ..config.node import configs_from_parameters, NodeConfig, parameter_descriptions
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError, EmptyCloudError, InvalidConfigError, InvalidInputError
-from ..geometry import apply_transform
 from ..io.pointcloud2 import pointcloud2_to_xyz, stamp_to_ns
-from ..pipeline.covariance import inlier_pairs, pose_covariance
 from ..pipeline.pairing import Pair, Pairer
 
 
@@ -96,17 +95,18 @@ class RegisterNode(Node):
             self._register = load_pipeline()
         self._lock = threading.Lock()  # guards the configs
         cfg = self._node_cfg
-        self._pairer = Pairer.from_config(cfg)
+        # A map file is one latched target; on demand only the latest pair is kept.
+        self._pairer = Pairer.from_config(dataclasses.replace(
+            cfg, pairing_mode='latest_target' if cfg.map_file else cfg.pairing_mode,
+            queue_depth=1 if cfg.mode == 'on_demand' else cfg.queue_depth))
         self._health = NodeHealth(self._pairer)
-        self._tf_broadcaster: Any = None
-        self._tf_missing_logged = False
+        self._loc = Localization(self, cfg)
 
         self.create_subscription(PointCloud2, 'source_cloud', self._on_source, source_qos(cfg))
-        self.create_subscription(PointCloud2, 'target_cloud', self._on_target, target_qos(cfg))
-        self._pose_pub = self.create_publisher(PoseStamped, '~/pose', 10)
-        self._pose_cov_pub = self.create_publisher(PoseWithCovarianceStamped,
-                                                   '~/pose_with_covariance', 10)
-        self._aligned_pub = self.create_publisher(PointCloud2, '~/aligned_cloud', 1)
+        if not cfg.map_file:
+            self.create_subscription(PointCloud2, 'target_cloud', self._on_target,
+                                     target_qos(cfg))
+        self._outputs = Outputs(self)
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_timer(cfg.diagnostics_period, self._publish_diagnostics)
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -114,8 +114,8 @@ class RegisterNode(Node):
         self._worker = threading.Thread(target=self._work, name='register_worker', daemon=True)
         self._worker.start()
         self.get_logger().info(
-            f'registering source_cloud onto target_cloud ({cfg.pairing_mode}, voxel_size '
-            f'{self._pipeline_cfg.voxel_size} m, target {cfg.target_durability})')
+            f"registering source_cloud onto {cfg.map_file or 'target_cloud'} ({cfg.mode}, "
+            f'{cfg.pairing_mode}, voxel_size {self._pipeline_cfg.voxel_size} m)')
 
     # ------------------------------------------------------------------ parameters
 
@@ -174,8 +174,13 @@ class RegisterNode(Node):
     # ------------------------------------------------------------------ worker
 
     def _work(self) -> None:
+        if self._loc.map_ref is not None and self._loc.load_map(
+                self._register, self.pipeline_config, self.node_config):
+            header = Header(frame_id=self.node_config.map_frame)
+            self._health.receive('target', 0, header.frame_id,
+                                 _Cloud(self._loc.map_ref, header, time.monotonic_ns()))
         while not self._stop.is_set():
-            pair = self._health.take(timeout=0.2)
+            pair = self._health.take(timeout=0.2) if self._loc.ready() else None
             if pair is None:
                 continue
             cause, message = 'internal_error', ''
@@ -186,6 +191,7 @@ class RegisterNode(Node):
             finally:
                 latency = (time.monotonic_ns() - pair.source.payload.receipt_ns) * 1e-9
                 self._health.finish(cause, latency)
+                self._loc.settle(cause, message)
             if cause and not self._stop.is_set() and self.context.ok():
                 self._log_rejection(cause, message)
 
@@ -194,6 +200,9 @@ class RegisterNode(Node):
         source, target = pair.source.payload, pair.target.payload
         with self._lock:
             pipe_cfg, cfg = self._pipeline_cfg, self._node_cfg
+        stale = self._loc.stale(pair, cfg)
+        if stale:
+            return 'on_demand_stale_scan', stale
         try:
             result = self._register(source.xyz, target.xyz, config=pipe_cfg)
         except InvalidInputError as exc:
@@ -207,6 +216,8 @@ class RegisterNode(Node):
             return 'pipeline_error', f'registration failed: {exc}'
         T = np.asarray(result.transform, dtype=np.float64)
         valid = bool(result.valid) and np.isfinite(T).all()
+        self._loc.update_map_info(result)
+        frame = cfg.pose_frame_id or target.header.frame_id
         with self._health.lock:
             self._health.failing = ''
             self._health.last = {
@@ -218,48 +229,18 @@ class RegisterNode(Node):
                 'source_stamp_ns': pair.source.stamp_ns}
         if not valid:
             if not cfg.publish_invalid or not np.isfinite(T).all():
+                self._loc.finish(pair, result, T, None, cfg, frame)
                 return 'invalid_result', f'invalid registration: {result.reason}'
             with self._health.lock:
                 self._health.counts['published_invalid'] += 1
-        self._publish(pair, T, result, pipe_cfg, cfg)
+        cov = self._publish(pair, T, result, pipe_cfg, cfg, frame)
+        self._loc.finish(pair, result, T, cov, cfg, frame)
         return '', ''
 
     def _publish(self, pair: Pair, T: np.ndarray, result: Any, pipe_cfg: PipelineConfig,
-                 cfg: NodeConfig) -> None:
-        source, target = pair.source.payload, pair.target.payload
-        header = Header(stamp=source.header.stamp,
-                        frame_id=cfg.pose_frame_id or target.header.frame_id)
-        pose = transform_to_pose(T)
-        self._send(self._pose_pub, PoseStamped(header=header, pose=pose))
-        cov_msg = PoseWithCovarianceStamped(header=header)
-        cov_msg.pose.pose = pose
-        threshold = float(getattr(result, 'inlier_threshold', float('nan')))
-        if not np.isfinite(threshold) or threshold <= 0:
-            threshold = 1.5 * pipe_cfg.voxel_size
-        src, dst = inlier_pairs(result, source.xyz, target.xyz, T, threshold)
-        core = pipe_cfg.core
-        gravity = core.gravity_axis if core.motion_model == '4dof' else None
-        cov = pose_covariance(src, dst, T, gravity)
-        cov_msg.pose.covariance = [float(v) for v in cov.ravel()]
-        self._send(self._pose_cov_pub, cov_msg)
-        if cfg.publish_aligned_cloud:
-            aligned = apply_transform(T, source.xyz)
-            self._send(self._aligned_pub, xyz_to_pointcloud2(aligned, header))
-        if cfg.broadcast_tf:
-            self._broadcast(T, header, cfg.tf_child_frame or source.header.frame_id)
-
-    def _broadcast(self, T: np.ndarray, header: Header, child: str) -> None:
-        if self._tf_broadcaster is None:
-            try:
-                from tf2_ros import TransformBroadcaster
-            except ImportError:
-                if not self._tf_missing_logged:
-                    self._tf_missing_logged = True
-                    self.get_logger().warning('broadcast_tf is set but tf2_ros is not '
-                                              'importable; no TF is broadcast')
-                return
-            self._tf_broadcaster = TransformBroadcaster(self)
-        self._tf_broadcaster.sendTransform(transform_to_transform_stamped(T, header, child))
+                 cfg: NodeConfig, frame: str | None = None) -> np.ndarray:
+        frame = frame or cfg.pose_frame_id or pair.target.payload.header.frame_id
+        return self._outputs.publish(pair, T, result, pipe_cfg, cfg, frame)
 
     # ------------------------------------------------------------------ health
 
@@ -275,7 +256,8 @@ class RegisterNode(Node):
         """Return a flat snapshot of the node's counters (what /diagnostics carries)."""
         with self._lock:
             voxel = self._pipeline_cfg.voxel_size
-        extra = {'memory.node_rss_mb': round(rss_mb() or 0.0, 1)}
+        extra = {'memory.node_rss_mb': round(rss_mb() or 0.0, 1),
+                 **self._loc.statistics(self.node_config.mode)}
         if self._isolated is not None:
             extra.update(self._isolated.health())
         return diagnostics.build_statistics(self._health.snapshot(), voxel, extra)
@@ -316,6 +298,7 @@ class RegisterNode(Node):
         if self._isolated is not None:
             self._isolated.close()  # ends a registration in flight at once
         self._worker.join(timeout=5.0)
+        self._loc.close()
         super().destroy_node()
 
 

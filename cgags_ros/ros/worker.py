@@ -12,6 +12,7 @@ from __future__ import annotations
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
 from concurrent.futures.process import BrokenProcessPool
+import dataclasses
 import multiprocessing
 import os
 import threading
@@ -35,7 +36,54 @@ class WorkerCrashed(CgagsError):
     """The registration process died while it registered a pair; a fresh one was started."""
 
 
-_child_target: np.ndarray | None = None  # in the registration process: the last target
+_child_target: Any = None  # in the registration process: the last target
+_map_holder: Any = None  # in the process that runs the pipeline: the map of a map_file
+
+
+@dataclasses.dataclass(frozen=True)
+class MapRef:
+    """
+    A target that is a map file: the process running the pipeline loads its features.
+
+    :ivar path: the map file (PLY, PCD, NPY, XYZ/CSV/TXT), metres, map frame.
+    :ivar cache_dir: feature cache directory ('' disables the cache).
+    """
+
+    path: str
+    cache_dir: str = ''
+
+
+def _resolve(target: Any, config: PipelineConfig) -> Any:
+    """Return ``target``, or for a :class:`MapRef` the map's prepared features."""
+    if not isinstance(target, MapRef):
+        return target
+    global _map_holder
+    from ..pipeline.map import MapHolder
+
+    if _map_holder is None:
+        _map_holder = MapHolder()
+    return _map_holder.get(target.path, config, target.cache_dir)
+
+
+def register_any(source: np.ndarray, target: Any, *, config: PipelineConfig) -> Any:
+    """
+    Run ``register_clouds`` onto an array or a :class:`MapRef` (in this process).
+
+    For a map the result's ``stats['map']`` holds the map's summary (cache hit or miss,
+    points, load time).
+    """
+    from ..pipeline import register_clouds
+
+    prepared = _resolve(target, config)
+    result = register_clouds(source, prepared, config=config)
+    if isinstance(target, MapRef):
+        result.stats['map'] = prepared.info()
+    return result
+
+
+def prepare_map(ref: MapRef, config: PipelineConfig) -> dict[str, Any]:
+    """Load (or read from the cache) the map of ``ref`` in this process; return its summary."""
+    return _resolve(ref, config).info()
 
 
 class _TargetNotHeld(Exception):
@@ -51,13 +99,11 @@ def _register_in_child(source: np.ndarray, target: np.ndarray | None, *,
     the pipe once, not every pair.
     """
     global _child_target
-    from ..pipeline import register_clouds  # in the child: the parent needs no Open3D
-
     if target is not None:
         _child_target = target
     elif _child_target is None:
         raise _TargetNotHeld()
-    return register_clouds(source, _child_target, config=config)
+    return register_any(source, _child_target, config=config)  # the parent needs no Open3D
 
 
 def _warm_up_in_child() -> Any:
@@ -150,6 +196,37 @@ class IsolatedRegistration:
         try:
             self._wait_for_warm_up(warm)
             return self._run(source, target, config)
+        finally:
+            with self._lock:
+                self._busy = False
+
+    def prepare_map(self, ref: MapRef, config: PipelineConfig, timeout_s: float) -> dict:
+        """
+        Load the map of ``ref`` in the child (features from the cache or computed).
+
+        :returns: the map's summary (:meth:`~cgags_ros.pipeline.map.PreparedMap.info`).
+        :raises RegistrationTimeout: past ``timeout_s`` (the child is restarted).
+        :raises WorkerCrashed: the child died while loading.
+        :raises CgagsError: the map cannot be read or is empty.
+        """
+        with self._lock:
+            if self._pool is None:
+                raise RegistrationTimeout('the registration process is shut down')
+            warm, self._busy = self._warm, True
+        try:
+            self._wait_for_warm_up(warm)
+            try:
+                return self._submit(prepare_map, ref, config).result(timeout=timeout_s)
+            except FutureTimeout:
+                self.restart()
+                raise RegistrationTimeout(f'loading the map took longer than {timeout_s:g} s; '
+                                          'its process was restarted') from None
+            except BrokenProcessPool:
+                with self._lock:
+                    if not self._closed:
+                        self._crashed()
+                raise WorkerCrashed('the registration process died while loading the map '
+                                    '(out of memory?); restarted') from None
         finally:
             with self._lock:
                 self._busy = False
@@ -256,8 +333,8 @@ class IsolatedRegistration:
 
 
 def load_pipeline() -> RegisterFn:
-    """Import the pipeline (and Open3D) now and warm it up; return ``register_clouds``."""
-    from ..pipeline import register_clouds, warm_up
+    """Import the pipeline (and Open3D) now and warm it up; return :func:`register_any`."""
+    from ..pipeline import warm_up
 
     warm_up()  # pay Open3D's start-up now rather than on the first pair
-    return register_clouds
+    return register_any

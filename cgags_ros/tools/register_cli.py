@@ -20,7 +20,7 @@ from .cli import EXIT_ERROR, run_cli
 from ..config import fields
 from ..config.pipeline import load_yaml, pipeline_config_from, PipelineConfig
 from ..errors import InvalidInputError
-from ..geometry import apply_transform
+from ..geometry import apply_transform, rotation_error_deg
 from ..io.clouds import read_cloud, SUFFIXES, write_cloud
 
 PROG = 'cgags-register'
@@ -68,6 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="with --4dof: the up axis in both clouds' frames (default 0 0 1; "
                              'any nonzero length)')
     parser.add_argument('--seed', type=int, metavar='N', help='random seed of the sampler')
+    parser.add_argument('--candidates', type=int, metavar='K',
+                        help='report the K best distinct candidate poses (same as --set '
+                             'num_candidates=K; default 5)')
     parser.add_argument('--json', action='store_true',
                         help='print the full result as JSON on stdout instead of text')
     parser.add_argument('--output', type=Path, metavar='ALIGNED',
@@ -110,6 +113,8 @@ def _config(args: argparse.Namespace) -> PipelineConfig:
         values.update(zip(('core.gravity_x', 'core.gravity_y', 'core.gravity_z'), args.gravity))
     if args.seed is not None:
         values['seed'] = args.seed
+    if args.candidates is not None:
+        values['num_candidates'] = args.candidates
     return pipeline_config_from(values)
 
 
@@ -126,10 +131,22 @@ def format_result(result) -> str:
     lines.append(f'points after {result.voxel_size:g} m voxels: {result.num_source_points} '
                  f'source, {result.num_target_points} target; '
                  f'resolution {result.resolution:.4g} m')
-    stages = ('downsample', 'normals', 'fpfh', 'matching', 'registration', 'refinement', 'total')
+    stages = ('downsample', 'normals', 'fpfh', 'matching', 'registration', 'refinement',
+              'candidates', 'total')
+    lines.append(f"ambiguous: {'yes' if result.ambiguous else 'no'}, best/runner-up inliers "
+                 f'{result.runner_up_ratio:.2f}')
+    lines += [f'candidate {i}: inliers {c.num_inliers}, fitness {c.fitness:.3f}, ratio '
+              f"{c.ratio:.3f}, t [{' '.join(f'{v:.3f}' for v in c.transform[:3, 3])}] m, "
+              f'rotation {rotation_angle_deg(c.transform):.1f} deg'
+              for i, c in enumerate(result.candidates)]
     lines.append('time [s]: ' + ', '.join(f'{k} {result.timings[k]:.3f}'
                                           for k in stages if k in result.timings))
     return '\n'.join(lines)
+
+
+def rotation_angle_deg(T: np.ndarray) -> float:
+    """Return the rotation angle of the 4x4 transform ``T`` (degrees)."""
+    return rotation_error_deg(T, np.eye(4))
 
 
 def plot_overlay(path: Path, source: np.ndarray, target: np.ndarray,

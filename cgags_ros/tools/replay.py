@@ -90,6 +90,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--max-te', type=float, default=None, help='success: translation error at '
                    f'most this (metres; default {DEFAULT_MAX_TE_VOXELS:g} voxel sizes)')
     p.add_argument('--quiet', action='store_true', help='no progress, no tables')
+    p.add_argument('--map', type=Path, default=None, metavar='FILE',
+                   help='localize every source scan in this prior map (PLY, PCD, NPY, '
+                   'XYZ/CSV/TXT; the target topic is ignored); offline only')
+    p.add_argument('--map-cache-dir', default='', metavar='DIR',
+                   help="with --map: the map's feature cache (default: none)")
     live = p.add_argument_group('live replay through the ROS node')
     live.add_argument('--live', action='store_true',
                       help='publish the bag over DDS into a register_node and record its ~/pose')
@@ -118,7 +123,11 @@ def options_from_args(args: argparse.Namespace) -> tuple[ReplayOptions, LiveOpti
                                                else []),
                                    args.voxel_size, args.pairing),
         output=args.output, pose_topic=args.pose_topic, max_re_deg=args.max_re_deg,
-        max_te=args.max_te, quiet=args.quiet)
+        max_te=args.max_te, quiet=args.quiet, map_file=args.map,
+        map_cache_dir=args.map_cache_dir)
+    if args.map is not None and args.live:
+        raise InvalidConfigError('--map runs offline; for a live node set its map_file '
+                                 'parameter')
     live = LiveOptions(rate=args.rate, spawn=args.spawn, node_name=args.node_name,
                        timeout=args.timeout, startup_timeout=args.startup_timeout)
     return opts, live if args.live else None
@@ -126,6 +135,10 @@ def options_from_args(args: argparse.Namespace) -> tuple[ReplayOptions, LiveOpti
 
 def run(opts: ReplayOptions, live: LiveOptions | None = None) -> BagReport:
     """Replay offline, or through a register_node when ``live`` is given."""
+    if live is None and opts.map_file is not None:
+        from .replay_map import replay_map  # imports the pipeline (Open3D)
+
+        return replay_map(opts)
     if live is None:
         from .replay_offline import replay_offline  # imports the pipeline (Open3D)
 

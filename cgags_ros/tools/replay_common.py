@@ -232,6 +232,8 @@ class ReplayOptions:
     max_re_deg: float = DEFAULT_MAX_RE_DEG
     max_te: float | None = None
     quiet: bool = False
+    map_file: Path | None = None
+    map_cache_dir: str = ''
 
     @property
     def out_dir(self) -> Path:

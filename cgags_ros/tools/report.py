@@ -69,6 +69,7 @@ class PairRow:
     re_deg: float | None = None
     te_m: float | None = None
     success: bool | None = None
+    candidates: list[dict[str, Any]] | None = None
 
     def evaluate(self, criteria: SuccessCriteria) -> None:
         """
@@ -100,6 +101,8 @@ class PairRow:
         out['transform'] = None if self.transform is None else np.asarray(self.transform).tolist()
         out['ground_truth'] = (None if self.ground_truth is None
                                else np.asarray(self.ground_truth).tolist())
+        if self.candidates is not None:
+            out['candidates'] = self.candidates
         return _finite_or_none(out)
 
 

@@ -1,0 +1,112 @@
+"""
+Ranked, distinct candidate poses and the ambiguity flag.
+
+The core returns one estimate. Further candidates are found in the pipeline, without
+touching the core: the correspondences the estimate explains (within tau of its coarse
+transform) are set aside and the core searches again among the rest, up to
+``num_candidates - 1`` times (each search at most ``candidate_max_iterations``
+hypotheses), and no further once a search finds only a chance-level consensus (the core
+reports it invalid: it is the last candidate, the rest of the correspondences support no
+motion). A new estimate is a candidate only when it is distinct from every earlier one:
+its rotation differs by more than ``candidate_min_rotation_deg`` or its translation by more
+than ``candidate_min_translation_factor`` voxel sizes. Every candidate's support is counted
+the same way, on all correspondences: those within tau of its coarse transform. The first
+candidate is the final (refined) estimate; the others are the core's estimates (re-fit on
+their inliers, good to about tau), not refined: ICP from a wrong pose would cost more than
+the search itself.
+
+Ambiguity: with a runner-up, best / runner-up inliers below ``ambiguity_ratio`` means two
+poses are nearly equally supported; the result is then flagged ambiguous and invalid.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .result import Candidate, PipelineResult
+from ..config.pipeline import PipelineConfig
+from ..errors import DegenerateCorrespondencesError
+from ..frontend.features import CloudFeatures
+from ..frontend.matching import Correspondences
+from ..frontend.refine import evaluate_alignment
+from ..geometry import apply_transform, rotation_error_deg, translation_error
+from ..registration import register_correspondences
+
+
+def support(src: np.ndarray, dst: np.ndarray, transform: np.ndarray, tau: float) -> np.ndarray:
+    """Return the mask of correspondences ``src[i] -> dst[i]`` within ``tau`` of ``transform``."""
+    return np.linalg.norm(apply_transform(transform, src) - dst, axis=1) <= tau
+
+
+def distinct(a: np.ndarray, b: np.ndarray, cfg: PipelineConfig) -> bool:
+    """Tell whether transforms ``a`` and ``b`` are distinct candidates (see the module doc)."""
+    return (rotation_error_deg(a, b) > cfg.candidate_min_rotation_deg
+            or translation_error(a, b) > cfg.candidate_min_translation_factor * cfg.voxel_size)
+
+
+def find_candidates(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
+                    result: PipelineResult, cfg: PipelineConfig) -> None:
+    """
+    Fill ``result.candidates``, ``runner_up_ratio`` and ``ambiguous`` (see the module doc).
+
+    ``result`` holds the core's estimate (``coarse_transform``) and the final
+    ``transform`` and ``fitness``; it is the first candidate.
+    """
+    src, dst = fs.points[corr.source_index], ft.points[corr.target_index]
+    tau = float(result.inlier_threshold)
+    explained = support(src, dst, result.coarse_transform, tau)
+    explained[result.inliers] = True
+    best = Candidate(np.asarray(result.transform, dtype=np.float64).copy(),
+                     int(np.count_nonzero(support(src, dst, result.coarse_transform, tau))),
+                     float(result.fitness))
+    found = [best]
+    core_cfg = dataclasses.replace(
+        cfg.core, max_iterations=min(cfg.core.max_iterations, cfg.candidate_max_iterations))
+    distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
+    need = 2 if cfg.core.motion_model == '4dof' else 3
+    for attempt in range(1, 2 * cfg.num_candidates):
+        if len(found) >= cfg.num_candidates:
+            break
+        rest = np.flatnonzero(~explained)
+        if len(rest) < need:
+            break
+        try:
+            core = register_correspondences(
+                src[rest], dst[rest], inlier_threshold=tau,
+                resolution=result.resolution, config=core_cfg, seed=cfg.seed + attempt)
+        except DegenerateCorrespondencesError:
+            break
+        if core.num_inliers < cfg.core.min_inliers:
+            break  # what is left supports no motion
+        mask = support(src, dst, core.transform, tau)
+        explained |= mask
+        explained[rest[core.inliers]] = True
+        T = core.transform
+        if not all(distinct(T, c.transform, cfg) for c in found):
+            continue  # a remnant of an earlier candidate's consensus
+        fitness = evaluate_alignment(fs.points, ft.tree, T, distance).fitness
+        found.append(Candidate(T, int(np.count_nonzero(mask)), fitness))
+        if not core.valid:
+            break  # a chance-level consensus: what is left supports no motion either
+    found[1:] = sorted(found[1:], key=lambda c: -c.num_inliers)
+    for c in found:
+        c.ratio = c.num_inliers / best.num_inliers if best.num_inliers else 0.0
+    result.candidates = found
+    if len(found) > 1 and found[1].num_inliers > 0:
+        result.runner_up_ratio = best.num_inliers / found[1].num_inliers
+        result.ambiguous = result.runner_up_ratio < cfg.ambiguity_ratio
+
+
+def ambiguity_reason(result: PipelineResult, cfg: PipelineConfig) -> str:
+    """Return why ``result`` is ambiguous, or '' when it is not."""
+    if not result.ambiguous:
+        return ''
+    best, runner = result.candidates[0], result.candidates[1]
+    moved = translation_error(best.transform, runner.transform)
+    turned = rotation_error_deg(best.transform, runner.transform)
+    return (f'ambiguous: a distinct pose ({turned:.0f} deg, {moved:.2f} m away) has '
+            f'{runner.num_inliers} inliers against {best.num_inliers} of the best '
+            f'(ratio {result.runner_up_ratio:.2f} < ambiguity_ratio {cfg.ambiguity_ratio:g}); '
+            'the scene looks alike in both poses')

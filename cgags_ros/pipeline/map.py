@@ -1,0 +1,157 @@
+"""
+A prior map from a file: its features computed once, cached on disk, reused by every scan.
+
+:func:`load_map` reads the map file (PLY, PCD, NPY, XYZ/CSV/TXT; metres, map frame), drops
+non-finite points (counted), and returns the map's :class:`PreparedMap`: the downsampled
+points, normals, FPFH descriptors and k-d tree :func:`register_clouds` needs, and nothing
+of the raw cloud (memory is that of the downsampled map). With a cache directory the
+features are stored under a key of the file's content hash and every setting that changes
+them (:data:`FEATURE_SETTINGS`, the voxel size, the Open3D version); a later load with the
+same file and settings reads them back (``cache == 'hit'``), a changed setting or file is a
+``'miss'`` and recomputes. A hit returns exactly the arrays a miss computed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+import time
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..config.pipeline import PipelineConfig
+from ..errors import EmptyCloudError, InvalidInputError
+from ..frontend.features import CloudFeatures, extract_features
+from ..io import map_cache
+from ..io.clouds import read_cloud
+
+# FrontEndConfig fields that change a cloud's features (the matching options do not).
+FEATURE_SETTINGS = ('normal_radius_factor', 'normal_max_nn', 'normal_orientation',
+                    'fpfh_radius_factor', 'fpfh_max_nn', 'min_points')
+
+
+@dataclasses.dataclass
+class PreparedMap:
+    """
+    A map's features and where they came from.
+
+    :ivar features: the downsampled map (points, normals, FPFH, tree; map frame, metres).
+    :ivar settings: the feature settings they were computed with (:func:`feature_settings`).
+    :ivar path: the map file.
+    :ivar digest: blake2b hex digest of the file's bytes.
+    :ivar cache: 'hit' (read from the cache), 'miss' (computed and stored) or 'off' (no
+        cache directory).
+    :ivar cache_path: the cache entry ('' when off).
+    :ivar num_raw_points: points in the file.
+    :ivar num_nonfinite: of those, rows with a NaN or inf coordinate (dropped).
+    :ivar load_s: seconds to read, hash and featurise (or read back) the map.
+    """
+
+    features: CloudFeatures
+    settings: dict[str, Any]
+    path: str
+    digest: str
+    cache: str
+    cache_path: str
+    num_raw_points: int
+    num_nonfinite: int
+    load_s: float
+
+    def info(self) -> dict[str, Any]:
+        """Return a small, picklable summary (what the node reports; no arrays)."""
+        return {'path': self.path, 'digest': self.digest, 'cache': self.cache,
+                'cache_path': self.cache_path, 'raw_points': self.num_raw_points,
+                'nonfinite_points': self.num_nonfinite,
+                'points': len(self.features.points), 'voxel_size': self.settings['voxel_size'],
+                'load_s': round(self.load_s, 3)}
+
+
+def feature_settings(config: PipelineConfig) -> dict[str, Any]:
+    """Return every setting that changes a cloud's features (voxel size, front end, Open3D)."""
+    import open3d
+
+    out = {name: getattr(config.frontend, name) for name in FEATURE_SETTINGS}
+    out.update(voxel_size=float(config.voxel_size), open3d=open3d.__version__)
+    return out
+
+
+def load_map(path: str | Path, config: PipelineConfig,
+             cache_dir: str | Path | None = None) -> PreparedMap:
+    """
+    Read the map file and return its features (from the cache when they are there).
+
+    :param path: the map file, points in the map frame, metres.
+    :param config: the pipeline configuration whose voxel size and front end apply.
+    :param cache_dir: directory of the feature cache; None or '' disables it.
+    :raises InvalidInputError: the file is missing, unreadable or not a point cloud, or the
+        cache directory cannot be written.
+    :raises EmptyCloudError: the map has no finite point, or too few after downsampling.
+    """
+    start = time.perf_counter()
+    path = Path(path)
+    if not path.is_file():
+        raise InvalidInputError(f'map_file {str(path)!r}: no such file')
+    settings = feature_settings(config)
+    digest = map_cache.file_digest(path)
+    key = map_cache.cache_key(digest, settings)
+    stored = map_cache.load_entry(cache_dir, key) if cache_dir else None
+    if stored is not None:
+        features = _features_from(stored)
+        raw, nonfinite = int(stored['raw_points']), int(stored['nonfinite_points'])
+        return PreparedMap(features, settings, str(path), digest, 'hit',
+                           str(map_cache.entry_path(cache_dir, key)), raw, nonfinite,
+                           time.perf_counter() - start)
+    points = read_cloud(path)
+    finite = np.isfinite(points).all(axis=1)
+    raw, nonfinite = len(points), int(len(points) - np.count_nonzero(finite))
+    if not finite.any():
+        raise EmptyCloudError(f'map_file {str(path)!r}: no finite points ({raw} rows, all '
+                              'empty or NaN/inf)')
+    features = extract_features(points[finite], config.voxel_size, config.frontend, 'map')
+    del points, finite
+    status, entry = 'off', ''
+    if cache_dir:
+        arrays = {'points': features.points, 'normals': features.normals,
+                  'descriptors': features.descriptors,
+                  'resolution': np.float64(features.resolution),
+                  'raw_points': np.int64(raw), 'nonfinite_points': np.int64(nonfinite)}
+        status, entry = 'miss', str(map_cache.save_entry(cache_dir, key, arrays))
+    return PreparedMap(features, settings, str(path), digest, status, entry, raw, nonfinite,
+                       time.perf_counter() - start)
+
+
+def matches_config(prepared: PreparedMap, config: PipelineConfig) -> bool:
+    """Tell whether ``prepared`` was computed with the feature settings of ``config``."""
+    return prepared.settings == feature_settings(config)
+
+
+def _features_from(stored: dict[str, np.ndarray]) -> CloudFeatures:
+    points = np.ascontiguousarray(stored['points'], dtype=np.float64)
+    return CloudFeatures(points, stored['normals'], stored['descriptors'],
+                         float(stored['resolution']), cKDTree(points))
+
+
+class MapHolder:
+    """
+    The last map loaded in this process, reloaded when its path or the settings change.
+
+    The registration process keeps one: a restart of the map (new file, new voxel size)
+    replaces it, so at most one map's features are held.
+    """
+
+    def __init__(self) -> None:
+        self.prepared: PreparedMap | None = None
+        self._source: tuple[str, str] | None = None
+
+    def get(self, path: str, config: PipelineConfig, cache_dir: str = '') -> PreparedMap:
+        """Return the map of ``path`` for ``config``, loading (or re-loading) it if needed."""
+        current = self.prepared
+        if (current is not None and self._source == (path, cache_dir)
+                and matches_config(current, config)):
+            return current
+        self.prepared = None  # free the old map before the new one is built
+        self.prepared = load_map(path, config, cache_dir or None)
+        self._source = (path, cache_dir)
+        return self.prepared
