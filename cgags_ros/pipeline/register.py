@@ -28,7 +28,8 @@ from ..config.pipeline import PipelineConfig
 from ..datasets.synthetic import terrain_patch
 from ..errors import DegenerateCorrespondencesError, EmptyCloudError, InvalidConfigError
 from ..frontend.features import CloudFeatures, finite_points
-from ..frontend.matching import Correspondences, match_features
+from ..frontend.keypoints import match_keypoints
+from ..frontend.matching import Correspondences
 from ..frontend.refine import refine_transform
 from ..registration import register_correspondences, RegistrationResult
 from ..timing import timed
@@ -86,7 +87,8 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
     if reason:
         return result.finish(start, reason)
     with timed(result.timings, 'matching'):
-        corr = match_features(fs.descriptors, ft.descriptors, cfg.frontend, workers)
+        corr = match_keypoints(fs.points, fs.descriptors, ft.descriptors, v, cfg.frontend,
+                               workers)
     result.stats.update(num_source_points=len(fs.points), num_target_points=len(ft.points))
     with timed(result.timings, 'registration'):
         core = _global_estimate(fs, ft, corr, result.resolution, cfg)

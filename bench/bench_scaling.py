@@ -1,0 +1,278 @@
+r"""
+Scaling benchmark: time and memory of one registration against points per cloud (issue 11).
+
+Run by hand::
+
+    .venv/bin/python bench/bench_scaling.py [--sizes redkitchen:0.05 lidar:0.3] \
+        [--methods cgags kiss_matcher open3d_fpfh_ransac] [--trials 3] \
+        [--output out/bench_scaling.json] [--markdown docs/bench_scaling.md] \
+        [--plot docs/bench_scaling.png]
+
+Data: the 3DMatch redkitchen fragments 4 -> 0 at 5, 3.5, 2.5 and 1.8 cm voxels and the
+small_gicp LiDAR pair at 0.5, 0.3, 0.2 and 0.12 m. Each trial rotates the source about its
+frame origin by a seeded random rotation (any angle; the ground truth is updated to match).
+
+Methods (as ``bench/bench_pipeline.py`` runs them):
+
+``cgags``
+    :func:`cgags_ros.pipeline.register_clouds`, default parameters, cold
+    (:func:`~cgags_ros.pipeline.clear_feature_cache` before each pair); per-stage seconds
+    from ``result.timings``.
+``kiss_matcher``
+    ``KISSMatcher(KISSMatcherConfig(voxel_size=v)).estimate(src, tgt)`` (its own front end).
+``open3d_fpfh_ransac``
+    Open3D FPFH + RANSAC on our front end's features (``bench_pipeline.run_open3d``).
+
+Each (size, method) runs in its own subprocess, so that its peak resident memory
+(``VmHWM`` of ``/proc/self/status``: native memory included) is that of the registrations
+alone on top of the process's start (``rss_before`` = ``VmRSS`` after imports, loading
+the clouds and one untimed warm-up registration at a 4x coarser voxel, reported too).
+Times are wall seconds from the raw (N, 3) clouds to the 4x4.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+import platform
+import subprocess
+import sys
+import time
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from cgags_ros.datasets.gt_pairs import find_pair  # noqa: E402
+from cgags_ros.datasets.synthetic import shared_data_dir  # noqa: E402
+from cgags_ros.geometry import rotation_error_deg, translation_error  # noqa: E402
+from cgags_ros.io.clouds import read_cloud  # noqa: E402
+from cgags_ros.tools.report import fmt, markdown_table  # noqa: E402
+import numpy as np  # noqa: E402
+
+DATASETS = {'redkitchen': (0.05, 0.035, 0.025, 0.018), 'lidar': (0.5, 0.3, 0.2, 0.12)}
+LIMITS = {'redkitchen': (15.0, 0.3), 'lidar': (5.0, 0.6)}  # success: RE deg, TE m (demo bags)
+METHODS = ('cgags', 'kiss_matcher', 'open3d_fpfh_ransac')
+_MARK = 'BENCH_SCALING_RECORD '
+STAGES = ('downsample', 'normals', 'fpfh', 'matching', 'registration', 'refinement',
+          'validation', 'candidates')
+
+
+def load_dataset(name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return (source, target, 4x4 source->target ground truth) of a dataset, metres."""
+    data = shared_data_dir()
+    if name == 'redkitchen':
+        src, tgt, T = find_pair(data / 'indoor_3dmatch' / 'gt_pairs.txt', 'cloud_bin_4.ply',
+                                'cloud_bin_0.ply')
+        return read_cloud(src), read_cloud(tgt), T
+    folder = data / 'lidar' / 'small_gicp'
+    return (read_cloud(folder / 'source.ply'), read_cloud(folder / 'target.ply'),
+            np.loadtxt(folder / 'T_target_source.txt'))
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """Return a uniformly random 3x3 rotation (any angle)."""
+    q = rng.normal(size=4)
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def _memory_kb(field: str) -> int:
+    for line in Path('/proc/self/status').read_text().splitlines():
+        if line.startswith(field + ':'):
+            return int(line.split()[1])
+    return -1
+
+
+def _run_method(method: str, src: np.ndarray, tgt: np.ndarray, voxel: float) -> dict:
+    """Register once; return the transform, validity, points and per-stage timings."""
+    from bench_pipeline import run_open3d
+    from cgags_ros.pipeline import clear_feature_cache, register_clouds
+
+    if method == 'cgags':
+        clear_feature_cache()
+        r = register_clouds(src, tgt, voxel_size=voxel)
+        return {'T': r.transform, 'valid': bool(r.valid), 'reason': r.reason,
+                'points': [r.num_source_points, r.num_target_points],
+                'stages': {k: float(t) for k, t in r.timings.items()}}
+    if method == 'kiss_matcher':
+        import kiss_matcher
+
+        matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(voxel))
+        sol = matcher.estimate(src.astype(np.float32), tgt.astype(np.float32))
+        T = np.eye(4)
+        T[:3, :3] = np.asarray(sol.rotation, dtype=np.float64).reshape(3, 3)
+        T[:3, 3] = np.asarray(sol.translation, dtype=np.float64).reshape(3)
+        return {'T': T, 'valid': bool(sol.valid), 'reason': ''}
+    return {'T': run_open3d(src, tgt, voxel), 'valid': True, 'reason': ''}
+
+
+def worker(dataset: str, voxel: float, method: str, trials: int, seed: int) -> dict:
+    """Run ``trials`` rotated pairs of one size and method in this process; return a record."""
+    from cgags_ros.frontend.features import downsample
+
+    src, tgt, T_gt = load_dataset(dataset)
+    points = [len(downsample(src, voxel, 3)), len(downsample(tgt, voxel, 3))]
+    # Warm-up at a 4x coarser voxel: imports and one-time initialisation are not timed.
+    _run_method(method, src, tgt, 4.0 * voxel)
+    rss_before = _memory_kb('VmRSS')
+    rng = np.random.default_rng([seed, int(round(voxel * 1e4))])
+    rows = []
+    for trial in range(trials):
+        R = random_rotation(rng)
+        H = np.eye(4)
+        H[:3, :3] = R
+        gt = T_gt @ np.linalg.inv(H)  # ground truth of the rotated source
+        t0 = time.perf_counter()
+        out = _run_method(method, src @ R.T, tgt, voxel)
+        dt = time.perf_counter() - t0
+        re, te = rotation_error_deg(out['T'], gt), translation_error(out['T'], gt)
+        lim = LIMITS[dataset]
+        rows.append({'trial': trial, 'time_s': dt, 're_deg': re, 'te_m': te,
+                     'success': bool(re <= lim[0] and te <= lim[1]), 'valid': out['valid'],
+                     'reason': out['reason'], 'points': out.get('points', points),
+                     'stages': out.get('stages', {})})
+    return {'dataset': dataset, 'voxel': voxel, 'method': method, 'points': points,
+            'rss_before_kb': rss_before, 'peak_rss_kb': _memory_kb('VmHWM'), 'trials': rows}
+
+
+def run_subprocess(dataset: str, voxel: float, method: str, trials: int, seed: int,
+                   timeout: float) -> dict:
+    cmd = [sys.executable, __file__, '--worker', f'{dataset}:{voxel}', '--methods', method,
+           '--trials', str(trials), '--seed', str(seed)]
+    try:
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return {'dataset': dataset, 'voxel': voxel, 'method': method,
+                'error': f'timeout after {timeout:g} s', 'trials': []}
+    # KISS-Matcher's warnings end without a newline: find the record anywhere in a line.
+    lines = [x.split(_MARK, 1)[1] for x in done.stdout.splitlines() if _MARK in x]
+    if done.returncode != 0 or not lines:
+        return {'dataset': dataset, 'voxel': voxel, 'method': method, 'trials': [],
+                'error': ' '.join(done.stderr.strip().splitlines()[-1:]) or 'no result'}
+    return json.loads(lines[-1])
+
+
+def summarize(rec: dict) -> dict:
+    t = rec['trials']
+    if not t:
+        return {'error': rec.get('error', 'no trials')}
+    ok = [r for r in t if r['success']]
+    stages = {}
+    for s in STAGES:
+        vals = [r['stages'].get(s) for r in t if s in r['stages']]
+        if vals:
+            stages[s] = float(np.median(vals))
+    return {'points': float(np.mean([np.mean(r['points']) for r in t])),
+            'median_time_s': float(np.median([r['time_s'] for r in t])),
+            'successes': len(ok), 'trials': len(t),
+            'median_re_deg': float(np.median([r['re_deg'] for r in t])),
+            'median_te_m': float(np.median([r['te_m'] for r in t])),
+            'peak_mb': rec['peak_rss_kb'] / 1024, 'rss_before_mb': rec['rss_before_kb'] / 1024,
+            'stages': stages}
+
+
+def write_report(records: list[dict], markdown: Path | None, plot: Path | None,
+                 trials: int) -> str:
+    rows, stage_rows = [], []
+    for rec in records:
+        s = summarize(rec)
+        size = f"{rec['dataset']} {rec['voxel']:g}"
+        if 'error' in s:
+            rows.append((size, rec['method'], '', '', '', '', '', '', s['error'][:60]))
+            continue
+        rows.append((size, rec['method'], round(s['points']), s['median_time_s'],
+                     f"{s['successes']}/{s['trials']}", s['median_re_deg'], s['median_te_m'],
+                     f"{s['peak_mb']:.0f} ({s['peak_mb'] - s['rss_before_mb']:.0f})", ''))
+        if s['stages']:
+            stage_rows.append((size, round(s['points']),
+                               *(s['stages'].get(k) for k in STAGES)))
+    table = markdown_table(('size (voxel m)', 'method', 'points a cloud', 'median time [s]',
+                            'success', 'median RE [deg]', 'median TE [m]',
+                            'peak RSS MB (above start)', 'error'), rows)
+    stage_table = markdown_table(('size', 'points', *(f'{k} [s]' for k in STAGES)),
+                                 stage_rows)
+    text = (f'# Scaling benchmark (bench/bench_scaling.py)\n\n{trials} random rotation(s) a '
+            f'size; {platform.platform()}, Python {platform.python_version()}.\n'
+            'Points: mean of source and target after our voxel downsampling. Peak RSS: '
+            'VmHWM of one subprocess per row (in brackets: above its RSS after imports, '
+            'loading the clouds and a warm-up at 4x the voxel). Success: RE/TE within '
+            '15 deg / 0.3 m (redkitchen), 5 deg / 0.6 m (LiDAR).\n\n' + table +
+            '\n\n## cgags stages (median seconds, both clouds)\n\n' + stage_table + '\n')
+    if markdown:
+        markdown.parent.mkdir(parents=True, exist_ok=True)
+        markdown.write_text(text)
+    if plot:
+        _plot(records, plot)
+    return text
+
+
+def _plot(records: list[dict], path: Path) -> None:
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    colours = dict(zip(METHODS, ('C0', 'C1', 'C2')))
+    for dataset, style in zip(DATASETS, ('-o', '--s')):
+        for method in METHODS:
+            pts = sorted((summarize(r)['points'], summarize(r)['median_time_s'])
+                         for r in records if r['dataset'] == dataset and r['method'] == method
+                         and r['trials'])
+            if pts:
+                ax.plot(*zip(*pts), style, color=colours[method], label=f'{method} ({dataset})')
+    ax.set_xscale('log')
+    ax.set_yscale('log')
+    ax.set_xlabel('points a cloud after downsampling')
+    ax.set_ylabel('median time a pair [s]')
+    ax.grid(True, which='both', alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
+    p.add_argument('--sizes', nargs='+', default=None,
+                   help='DATASET:VOXEL (e.g. lidar:0.3) or DATASET; default: all')
+    p.add_argument('--methods', nargs='+', choices=METHODS, default=list(METHODS))
+    p.add_argument('--trials', type=int, default=3)
+    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--timeout', type=float, default=900.0, help='seconds per size and method')
+    p.add_argument('--output', type=Path, default=Path('out/bench_scaling.json'))
+    p.add_argument('--markdown', type=Path, default=None)
+    p.add_argument('--plot', type=Path, default=None)
+    p.add_argument('--worker', default=None, help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.worker:
+        dataset, voxel = args.worker.split(':')
+        record = worker(dataset, float(voxel), args.methods[0], args.trials, args.seed)
+        print(_MARK + json.dumps(record))  # libraries may print to stdout too
+        return 0
+    sizes = []
+    for spec in args.sizes or list(DATASETS):
+        name, _, voxel = spec.partition(':')
+        sizes += [(name, float(voxel))] if voxel else [(name, v) for v in DATASETS[name]]
+    records = []
+    for dataset, voxel in sizes:
+        for method in args.methods:
+            rec = run_subprocess(dataset, voxel, method, args.trials, args.seed, args.timeout)
+            records.append(rec)
+            s = summarize(rec)
+            print(f'{dataset} {voxel:g} {method}: ' + (
+                s['error'] if 'error' in s else
+                f"{s['points']:.0f} pts, {fmt(s['median_time_s'])} s, "
+                f"{s['successes']}/{s['trials']} ok, peak {s['peak_mb']:.0f} MB"), flush=True)
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps({'machine': platform.platform(), 'trials': args.trials,
+                                       'records': records}, indent=1))
+    print(write_report(records, args.markdown, args.plot, args.trials))
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
