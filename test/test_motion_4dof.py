@@ -167,9 +167,12 @@ def test_vertical_compatibility_graph_is_the_length_graph_and_the_offset_test(bu
     src, dst, u = p.src[order], p.dst[order], u[order]
     delta = 10 / 6 * TAU
     graph = build_vertical_compatibility_graph(src, dst, delta, u)
-    length = build_compatibility_graph(src, dst, delta).rows(np.arange(len(src)))
-    uc = (u - u.mean()).astype(np.float32)  # as the builder rounds it
-    vertical = np.abs(uc[:, None] - uc[None, :]) < delta
+    a = np.linalg.norm(src[:, None] - src[None], axis=2)  # plain numpy, float64
+    b = np.linalg.norm(dst[:, None] - dst[None], axis=2)
+    length = (np.abs(a - b) < delta) & ~np.eye(len(src), dtype=bool)
+    assert np.array_equal(length, build_compatibility_graph(src, dst, delta).rows(
+        np.arange(len(src))))
+    vertical = np.abs(u[:, None] - u[None, :]) < delta
     np.testing.assert_array_equal(graph.rows(np.arange(len(src))), length & vertical)
     with pytest.raises(ValueError, match='sorted'):
         build_vertical_compatibility_graph(src, dst, delta, u[::-1])

@@ -3,7 +3,8 @@ The compiled kernels of the core (numba), and their compilation at start-up.
 
 Which paper step each kernel implements (METHOD.md numbering):
 
-- step 1, compatibility graph: :func:`.kernels_graph.compatibility_words`, and its CSR
+- step 1, compatibility graph: :func:`.kernels_graph.compatibility_words` (4-DoF:
+  :func:`.kernels_graph.vertical_compatibility_words`), and its CSR
   neighbour lists :func:`.kernels_graph.neighbour_lists`;
 - step 2, minimal compatible subsets (edge and vertex tournaments, collinearity test):
   :func:`.kernels_sampling.draw_triples`, :func:`.kernels_sampling.draw_edges`;
@@ -99,6 +100,9 @@ def compile_kernels() -> None:
     src = rng.random((70, 3))
     dst = src[:, ::-1].copy()
     words = kernels_graph.compatibility_words(src, dst, 0.05, 0.0)
+    u = np.sort(rng.random(70))
+    kernels_graph.vertical_compatibility_words(src, dst, u, np.searchsorted(u, u + 0.05),
+                                               0.05, 0.0)
     degree = kernels_graph.row_degrees(words)
     indptr = np.concatenate([[0], np.cumsum(degree)])
     pairs = kernels_graph.neighbour_lists(words, indptr)

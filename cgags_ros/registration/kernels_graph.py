@@ -98,6 +98,40 @@ def compatibility_words(src, dst, delta, min_sq):
 
 
 @njit(cache=True, nogil=True)
+def vertical_compatibility_words(src, dst, u, hi, delta, min_sq):
+    """
+    Build the 4-DoF compatibility graph (step 1 for yaw + translation motions).
+
+    Edge iff | |p_i - p_j| - |q_i - q_j| | < delta (tested as in
+    :func:`compatibility_words`), |u_i - u_j| < delta and |p_i - p_j|^2 >= ``min_sq``. The
+    correspondences are sorted by their vertical offset u, so the partners j > i of row i
+    lie in i < j < ``hi[i]``: only that window is tested, then mirrored.
+
+    :param src, dst: (N, 3) float64 C-contiguous, gravity frame, metres, sorted by ``u``.
+    :param u: (N,) float64 ascending vertical offsets.
+    :param hi: (N,) int64, one past the last j with u_j < u_i + delta.
+    :returns: (N, ceil(N / 64)) uint64 words, symmetric, no self loops.
+    """
+    n = src.shape[0]
+    w = (n + 63) // 64
+    words = np.zeros((n, w), np.uint64)
+    d2 = delta * delta
+    for i in range(n):
+        for j in range(i + 1, hi[i]):
+            if abs(u[j] - u[i]) >= delta:
+                continue
+            ax, ay, az = src[j, 0] - src[i, 0], src[j, 1] - src[i, 1], src[j, 2] - src[i, 2]
+            bx, by, bz = dst[j, 0] - dst[i, 0], dst[j, 1] - dst[i, 1], dst[j, 2] - dst[i, 2]
+            a2 = ax * ax + ay * ay + az * az
+            b2 = bx * bx + by * by + bz * bz
+            c = a2 + b2 - d2
+            if ((c < 0.0) or (4.0 * a2 * b2 > c * c)) and a2 >= min_sq:
+                words[i, j >> 6] |= _ONE << (np.uint64(j) & _LOW6)
+    _or_transpose(words)
+    return words
+
+
+@njit(cache=True, nogil=True)
 def _transpose64(x):
     """Transpose a 64 x 64 bit block in place (bit b of x[r] is entry (r, b))."""
     j = np.uint64(32)
