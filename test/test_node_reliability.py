@@ -16,7 +16,6 @@ from pathlib import Path
 import signal
 import subprocess
 import sys
-import threading
 import time
 
 from cgags_ros.config import fields
@@ -34,13 +33,11 @@ from cgags_ros.ros.conversions import to_rclpy_pointcloud2, xyz_to_pointcloud2  
 from cgags_ros.ros.node import RegisterNode  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
-from rclpy.context import Context  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
-from waiting import stop_process, wait_for  # noqa: E402
+from waiting import spun_context, stop_process, wait_for  # noqa: E402
 
 DOMAIN_ID = 53  # distinct from the other DDS test modules
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -78,18 +75,8 @@ class Wire:
 
 @pytest.fixture(scope='module')
 def wire():
-    context = Context()
-    rclpy.init(context=context, domain_id=DOMAIN_ID)
-    io = Wire(context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(io.node)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
-    yield context, executor, io
-    executor.shutdown(timeout_sec=2.0)
-    io.node.destroy_node()
-    context.try_shutdown()
-    thread.join(timeout=5.0)
+    with spun_context(DOMAIN_ID, Wire) as spun:
+        yield spun
 
 
 @pytest.fixture(scope='module')

@@ -9,7 +9,6 @@ scan (an unrelated scene). Poses are checked against ground truth.
 
 from __future__ import annotations
 
-import threading
 
 from cgags_ros.geometry import apply_transform, make_transform, quaternion_to_matrix
 from cgags_ros.geometry import rotation_error_deg, translation_error
@@ -25,14 +24,12 @@ from cgags_ros.ros.conversions import xyz_to_pointcloud2  # noqa: E402, I100
 from cgags_ros.ros.node import RegisterNode  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped  # noqa: E402
-from rclpy.context import Context  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
-from waiting import wait_for  # noqa: E402
+from waiting import merged_kitchen_map, spun_context, wait_for  # noqa: E402
 
 DOMAIN_ID = 65  # distinct from the other DDS test modules
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -77,18 +74,8 @@ class Wire:
 
 @pytest.fixture(scope='module')
 def wire():
-    context = Context()
-    rclpy.init(context=context, domain_id=DOMAIN_ID)
-    io = Wire(context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(io.node)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
-    yield context, executor, io
-    executor.shutdown(timeout_sec=2.0)
-    io.node.destroy_node()
-    context.try_shutdown()
-    thread.join(timeout=5.0)
+    with spun_context(DOMAIN_ID, Wire) as spun:
+        yield spun
 
 
 def start(wire, **params):
@@ -115,16 +102,8 @@ def wait_map(io, timeout=300.0):
 @pytest.fixture(scope='module')
 def kitchen(data_dir, tmp_path_factory):
     """Return (merged map file, fragment-6 cloud and GT, fragment-4 cloud and GT)."""
-    folder = data_dir / 'indoor_3dmatch'
-    from cgags_ros.datasets.gt_pairs import find_pair
-
-    f4, f0, T40 = find_pair(folder / 'gt_pairs.txt', 'cloud_bin_4.ply', 'cloud_bin_0.ply')
-    frag4 = read_cloud(f4)
-    merged = np.vstack([read_cloud(f0), apply_transform(T40, frag4)])
-    path = tmp_path_factory.mktemp('map') / 'kitchen.npy'
-    np.save(path, merged)
-    demo = folder / 'geotransformer_demo'
-    return path, (np.load(demo / 'src.npy'), np.load(demo / 'gt.npy')), (frag4, T40), len(merged)
+    path, merged, frag6, frag4 = merged_kitchen_map(data_dir, tmp_path_factory.mktemp('map'))
+    return path, frag6, frag4, len(merged)
 
 
 def random_motion(rng):

@@ -8,7 +8,6 @@ and 4 under random any-angle motions (the scans), checked against ground truth.
 from __future__ import annotations
 
 from cgags_ros.config import pipeline_config_from
-from cgags_ros.datasets.gt_pairs import find_pair
 from cgags_ros.errors import EmptyCloudError, InvalidConfigError, InvalidInputError
 from cgags_ros.geometry import apply_transform, make_transform
 from cgags_ros.geometry import rotation_error_deg, translation_error
@@ -19,6 +18,7 @@ from cgags_ros.tools import register_cli
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from waiting import merged_kitchen_map
 
 INDOOR = (15.0, 0.3)  # RE (deg), TE (m)
 # Scans moved by arbitrary motions: normals oriented to the frame origin would depend on it.
@@ -27,16 +27,8 @@ MOVED = {'voxel_size': 0.05, 'frontend.normal_orientation': 'centroid'}
 
 @pytest.fixture(scope='module')
 def kitchen(data_dir, tmp_path_factory):
-    folder = data_dir / 'indoor_3dmatch'
-    f4, f0, T40 = find_pair(folder / 'gt_pairs.txt', 'cloud_bin_4.ply', 'cloud_bin_0.ply')
-    frag4 = read_cloud(f4)
-    merged = np.vstack([read_cloud(f0), apply_transform(T40, frag4)])
-    path = tmp_path_factory.mktemp('map') / 'kitchen.npy'
-    np.save(path, merged)
-    demo = folder / 'geotransformer_demo'
-    scans = {'fragment 6': (np.load(demo / 'src.npy'), np.load(demo / 'gt.npy')),
-             'fragment 4': (frag4, T40)}
-    return path, merged, scans
+    path, merged, frag6, frag4 = merged_kitchen_map(data_dir, tmp_path_factory.mktemp('map'))
+    return path, merged, {'fragment 6': frag6, 'fragment 4': frag4}
 
 
 def moved(rng):

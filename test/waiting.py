@@ -1,7 +1,9 @@
-"""Helpers of the DDS tests: wait for a condition (fail with context, never hang), stop a node."""
+"""Helpers of the tests: waiting for conditions, ROS contexts, node processes, the kitchen map."""
 
+import contextlib
 import signal
 import subprocess
+import threading
 import time
 
 import pytest
@@ -36,3 +38,53 @@ def stop_process(proc, log) -> str:
     out = log.read()
     log.close()
     return out
+
+
+@contextlib.contextmanager
+def spun_context(domain_id, make_io):
+    """
+    Yield (context, executor, io): an rclpy context on ``domain_id`` spun on a thread.
+
+    ``io = make_io(context)`` is the test's own node wrapper (publishers, recorders); its
+    ``node`` is added to the executor. Everything is shut down on exit.
+    """
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+
+    context = Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    io = make_io(context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(io.node)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+    try:
+        yield context, executor, io
+    finally:
+        executor.shutdown(timeout_sec=2.0)
+        io.node.destroy_node()
+        context.try_shutdown()
+        thread.join(timeout=5.0)
+
+
+def merged_kitchen_map(data_dir, folder):
+    """
+    Write the redkitchen fragments 0 and 4 merged with their ground truth to ``folder``.
+
+    :returns: (map path, merged points, (fragment 6, its GT to 0), (fragment 4, its GT)).
+    """
+    import numpy as np
+
+    from cgags_ros.datasets.gt_pairs import find_pair
+    from cgags_ros.geometry import apply_transform
+    from cgags_ros.io.clouds import read_cloud
+
+    base = data_dir / 'indoor_3dmatch'
+    f4, f0, T40 = find_pair(base / 'gt_pairs.txt', 'cloud_bin_4.ply', 'cloud_bin_0.ply')
+    frag4 = read_cloud(f4)
+    merged = np.vstack([read_cloud(f0), apply_transform(T40, frag4)])
+    path = folder / 'kitchen.npy'
+    np.save(path, merged)
+    demo = base / 'geotransformer_demo'
+    return path, merged, (np.load(demo / 'src.npy'), np.load(demo / 'gt.npy')), (frag4, T40)

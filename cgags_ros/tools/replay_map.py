@@ -4,20 +4,12 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
 from tqdm import tqdm
 
-from .replay_common import (
-    finish_report,
-    load_contents,
-    make_row,
-    ReplayOptions,
-    resolve_configs,
-    start_report,
-)
+from .replay_common import (finish_report, load_contents, make_row, ReplayOptions,
+                            resolve_configs, start_report)
+from .replay_offline import register_row
 from .report import BagReport
-from ..errors import InvalidInputError
-from ..pipeline import register_clouds
 from ..pipeline.map import load_map
 
 
@@ -35,18 +27,6 @@ def replay_map(opts: ReplayOptions) -> BagReport:
     for src in tqdm(contents.sources, disable=opts.quiet or None, unit='scan', leave=False):
         row = make_row(len(report.rows), src, None, contents)
         row.target_frame = 'map'
-        t0 = time.perf_counter()
-        try:
-            result = register_clouds(src.xyz, prepared, config=pipe)
-        except InvalidInputError as exc:
-            row.reason = f'rejected by the pipeline: {exc}'
-        else:
-            row.valid = bool(result.valid)
-            row.reason, row.inliers = result.reason, result.num_inliers
-            row.fitness = float(result.fitness)
-            row.transform = np.asarray(result.transform, dtype=np.float64)
-            row.candidates = [c.summary() for c in result.candidates]
-        row.time_s = time.perf_counter() - t0
-        report.rows.append(row)
+        report.rows.append(register_row(row, src.xyz, prepared, pipe, candidates=True))
     report.wall_time_s = time.perf_counter() - start
     return finish_report(report, opts, contents)

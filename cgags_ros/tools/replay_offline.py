@@ -3,24 +3,16 @@
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
-from .replay_common import (
-    finish_report,
-    iter_pairs,
-    load_contents,
-    make_row,
-    note_pairing_drops,
-    ReplayOptions,
-    resolve_configs,
-    stamp_s,
-    start_report,
-)
-from .report import BagReport
+from .replay_common import (finish_report, iter_pairs, load_contents, make_row, note_pairing_drops,
+                            ReplayOptions, resolve_configs, stamp_s, start_report)
+from .report import BagReport, PairRow
+from ..config.pipeline import PipelineConfig
 from ..errors import InvalidInputError
-from ..pipeline import register_clouds
 from ..pipeline.pairing import Pairer
 
 
@@ -39,19 +31,34 @@ def replay_offline(opts: ReplayOptions) -> BagReport:
         progress.set_postfix_str(f'source {stamp_s(src.stamp_ns)}')
         progress.update()
         row = make_row(len(report.rows), src, tgt, contents)
-        t0 = time.perf_counter()
-        try:
-            result = register_clouds(src.xyz, tgt.xyz, config=pipe)
-        except InvalidInputError as exc:  # the node rejects these pairs too
-            row.reason = f'rejected by the pipeline: {exc}'
-        else:
-            row.valid = bool(result.valid)
-            row.reason, row.inliers = result.reason, result.num_inliers
-            row.fitness = float(getattr(result, 'fitness', float('nan')))
-            row.transform = np.asarray(result.transform, dtype=np.float64)
-        row.time_s = time.perf_counter() - t0
-        report.rows.append(row)
+        report.rows.append(register_row(row, src.xyz, tgt.xyz, pipe))
     progress.close()
     note_pairing_drops(report, pairer)
     report.wall_time_s = time.perf_counter() - start
     return finish_report(report, opts, contents)
+
+
+def register_row(row: PairRow, source: np.ndarray, target: Any, pipe: PipelineConfig,
+                 candidates: bool = False) -> PairRow:
+    """
+    Register ``source`` onto ``target`` (points or a prepared map) and fill ``row``.
+
+    A cloud the pipeline rejects (the node rejects it too) leaves the row invalid with the
+    reason; ``candidates`` also records the ranked candidates.
+    """
+    from ..pipeline import register_clouds  # here: the replay CLI must start without Open3D
+
+    t0 = time.perf_counter()
+    try:
+        result = register_clouds(source, target, config=pipe)
+    except InvalidInputError as exc:
+        row.reason = f'rejected by the pipeline: {exc}'
+    else:
+        row.valid = bool(result.valid)
+        row.reason, row.inliers = result.reason, result.num_inliers
+        row.fitness = float(getattr(result, 'fitness', float('nan')))
+        row.transform = np.asarray(result.transform, dtype=np.float64)
+        if candidates:
+            row.candidates = [c.summary() for c in result.candidates]
+    row.time_s = time.perf_counter() - t0
+    return row
