@@ -13,7 +13,7 @@ import math
 from cgags_ros.datasets.synthetic import load_bunny, make_correspondences
 from cgags_ros.registration import kernels, register_correspondences
 from cgags_ros.registration.compatibility import build_compatibility_graph
-from cgags_ros.registration.hypotheses import score_in_common_neighbourhood, score_values
+from cgags_ros.registration.hypotheses import score_values
 from cgags_ros.registration.kernels_graph import compatibility_words, neighbour_lists
 from cgags_ros.registration.kernels_sampling import (COLLINEAR, draw_edges, draw_guided,
                                                      draw_triples, EMPTY)
@@ -45,6 +45,19 @@ def _numpy_graph(src, dst, delta, min_sq=0.0):
     adj = (np.abs(a - b) < delta) & (a ** 2 >= min_sq)
     np.fill_diagonal(adj, False)
     return adj
+
+
+def score_in_common_neighbourhood(graph, src, dst, R, t, triples, tau, mode):
+    """Score each hypothesis on {i, j, k} ∪ (N(i) ∩ N(j) ∩ N(k)) only: the numpy pre-screen."""
+    i, j, k = triples.T
+    cand = np.unpackbits(graph.common(i, j, k), axis=1, count=graph.n, bitorder='little')
+    rows = np.arange(len(triples))
+    for member in (i, j, k):
+        cand[rows, member] = 1
+    b, m = np.nonzero(cand)
+    moved = np.einsum('bij,bj->bi', R[b], src[m]) + t[b]
+    res = np.linalg.norm(moved - dst[m], axis=1)
+    return np.bincount(b, weights=score_values(res, tau, mode), minlength=len(triples))
 
 
 def _unpack(words, n):

@@ -1,14 +1,16 @@
+"""
+Check that minimal-subset sampling draws the distributions the method asks for.
+
+The compiled edge, tournament and guided draws, and the numpy vertex samplers.
+"""
+
+from cgags_ros.registration import kernels
 from cgags_ros.registration.compatibility import CompatibilityGraph, length_consistency
-from cgags_ros.registration.sampling import (
-    sample_common_vertex,
-    sample_edges,
-    sample_guided,
-    soft_edge_weights,
-    tournament,
-    weighted_choice_rows,
-)
+from cgags_ros.registration.sampling import sample_common_vertex, weighted_choice_rows
 import numpy as np
 import pytest
+
+NO_LISTS = np.zeros((0, 2), np.int32)
 
 
 def _graph(dense: np.ndarray) -> CompatibilityGraph:
@@ -22,14 +24,19 @@ def _random_graph(n=60, p=0.2, seed=0):
     return _graph(np.triu(rng.random((n, n)) < p, 1))
 
 
+def _edges(g, rng, count, src, dst, delta, soft, lists, size=1):
+    """Draw ``count`` edges with the search's kernel (``size`` = 1: uniform over E)."""
+    return kernels.draw_edges(rng, g, g.entry_lists() if lists else NO_LISTS, src, dst, delta,
+                              soft, count, size)
+
+
 @pytest.mark.parametrize('lists', [False, True])
 def test_edges_are_edges_and_uniform_over_E(lists):
     g = _random_graph()
     dense = g.rows(np.arange(g.n))
     rng = np.random.default_rng(1)
     pts = np.zeros((g.n, 3))
-    csr = g.neighbour_lists() if lists else None
-    i, j = sample_edges(g, rng, 200000, src=pts, dst=pts, delta=1.0, soft=False, csr=csr)
+    i, j = _edges(g, rng, 200000, pts, pts, 1.0, False, lists)
     assert dense[i, j].all()
     # undirected edge frequencies: uniform over E within sampling noise
     key = np.minimum(i, j) * g.n + np.maximum(i, j)
@@ -40,19 +47,16 @@ def test_edges_are_edges_and_uniform_over_E(lists):
     assert counts.min() > 0
 
 
-@pytest.mark.parametrize('path', ['rejection', 'lists', 'lists_with_weights'])
-def test_soft_edges_are_drawn_in_proportion_to_their_weight(path):
+@pytest.mark.parametrize('lists', [False, True])
+def test_soft_edges_are_drawn_in_proportion_to_their_weight(lists):
     g = _random_graph(n=40, p=0.3, seed=7)
     dense = g.rows(np.arange(g.n))
     rng = np.random.default_rng(8)
     src, dst = rng.random((g.n, 3)), rng.random((g.n, 3))
     a, b = np.nonzero(np.triu(dense))
     delta = 1.01 * length_consistency(src, dst, a, b).max()  # every edge keeps some weight
-    csr = None if path == 'rejection' else g.neighbour_lists()
-    weights = soft_edge_weights(csr, src, dst, delta) if path == 'lists_with_weights' else None
     draws = 300000
-    i, j = sample_edges(g, rng, draws, src=src, dst=dst, delta=delta, soft=True, csr=csr,
-                        csr_weights=weights)
+    i, j = _edges(g, rng, draws, src, dst, delta, True, lists)
     assert len(i) == draws and dense[i, j].all()
     key = np.minimum(i, j) * g.n + np.maximum(i, j)
     counts = np.bincount(key, minlength=g.n * g.n)[a * g.n + b]
@@ -63,13 +67,13 @@ def test_soft_edges_are_drawn_in_proportion_to_their_weight(path):
     assert np.corrcoef(counts, expected)[0, 1] > 0.98
 
 
-def test_sparse_rows_use_the_exact_fallback():
+def test_sparse_graphs_draw_only_their_edges():
     dense = np.zeros((500, 500), dtype=bool)
     dense[0, 1] = dense[1, 2] = dense[0, 2] = True  # one triangle in a large empty graph
     g = _graph(dense)
     rng = np.random.default_rng(2)
     pts = np.zeros((500, 3))
-    i, j = sample_edges(g, rng, 100, src=pts, dst=pts, delta=1.0, soft=False)
+    i, j = _edges(g, rng, 100, pts, pts, 1.0, False, False)
     assert set(np.unique(np.concatenate([i, j]))) <= {0, 1, 2}
     k, ok = sample_common_vertex(g, rng, i, j)
     assert ok.all()
@@ -91,7 +95,7 @@ def test_common_vertex_is_in_both_neighbourhoods(lists):
     rng = np.random.default_rng(4)
     pts = np.zeros((g.n, 3))
     csr = g.neighbour_lists() if lists else None
-    i, j = sample_edges(g, rng, 2000, src=pts, dst=pts, delta=1.0, soft=False, csr=csr)
+    i, j = _edges(g, rng, 2000, pts, pts, 1.0, False, lists)
     k, ok = sample_common_vertex(g, rng, i, j, csr=csr)
     assert ok.mean() > 0.9
     assert dense[i[ok], k[ok]].all() and dense[j[ok], k[ok]].all()
@@ -99,10 +103,10 @@ def test_common_vertex_is_in_both_neighbourhoods(lists):
 
 def test_tournament_keeps_the_best_supported_candidate():
     g = _random_graph(n=100, p=0.3, seed=5)
-    rng = np.random.default_rng(6)
-    i = rng.integers(0, 100, 40)
-    j = rng.integers(0, 100, 40)
-    wi, wj = tournament(g, (i, j), 10, 4)
+    pts = np.zeros((g.n, 3))
+    # The candidates: the same random stream drawn as uniform edges, 4 per tournament.
+    i, j = _edges(g, np.random.default_rng(6), 40, pts, pts, 1.0, False, False)
+    wi, wj = _edges(g, np.random.default_rng(6), 10, pts, pts, 1.0, False, False, size=4)
     support = np.bitwise_count(g.common(i, j)).sum(axis=1).reshape(10, 4)
     won = np.bitwise_count(g.common(wi, wj)).sum(axis=1)
     assert np.array_equal(won, support.max(axis=1))
@@ -130,7 +134,8 @@ def test_guided_sampling_prefers_high_kernel_partners():
     np.fill_diagonal(kernel, 0)
     seeds = np.zeros(m)
     seeds[group] = 1
-    i, j, k, ok = sample_guided(np.random.default_rng(8), kernel, adjacency, seeds, 5000, 1e-6)
+    i, j, k, ok = kernels.draw_guided(np.random.default_rng(8), kernel, adjacency, seeds, 5000,
+                                      1e-6)
     assert ok.all()
     assert np.isin(i, group).all()
     assert np.isin(j, group).mean() > 0.99 and np.isin(k, group).mean() > 0.99

@@ -15,10 +15,6 @@ import numpy as np
 
 from . import kernels_graph
 
-# float32 elements per scratch block of the 4-DoF graph (compatibility_4dof): two blocks stay
-# in L2 (docs/implementation.md).
-_BLOCK_ELEMENTS = 1 << 16
-
 
 class CompatibilityGraph:
     """
@@ -28,12 +24,7 @@ class CompatibilityGraph:
         row i (little bit order) set iff i ~ j.
     :ivar degree: (N,) int64 number of compatible partners of each correspondence.
     :ivar num_edges: undirected edge count |E|.
-    :ivar windows: None, or (lo, hi) per row: every neighbour j of row i has
-        lo[i] <= j < hi[i] (the 4-DoF graph of :mod:`.compatibility_4dof`); samplers then
-        propose partners inside the window only.
     """
-
-    windows: tuple[np.ndarray, np.ndarray] | None = None
 
     def __init__(self, packed: np.ndarray, n: int):
         # Rows padded to whole 64-bit words: ANDs and popcounts then run on uint64.
@@ -115,20 +106,6 @@ def length_consistency(src: np.ndarray, dst: np.ndarray, i: np.ndarray,
     b = dst[i] - dst[j]
     return np.abs(np.sqrt(np.einsum('...k,...k->...', a, a))
                   - np.sqrt(np.einsum('...k,...k->...', b, b)))
-
-
-def _expansion_factors(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """
-    (U, V) with ``(U @ V)[i, j] = |p_i - p_j|^2``: U = [p, |p|^2, 1], V = [-2 p, 1, |p|^2]^T.
-
-    One 5-deep matrix product per block replaces nine elementwise passes over it, so the
-    work runs in BLAS (docs/implementation.md). float32 rounding moves a squared distance
-    by ~1e-7 of the squared extent, so an edge can only flip within ~1e-5 of the extent of
-    the threshold |d_ij| = delta, far below any noise the thresholds model.
-    """
-    sq = np.einsum('ij,ij->i', p, p)[:, None]
-    one = np.ones_like(sq)
-    return np.hstack([p, sq, one]), np.ascontiguousarray(np.hstack([-2.0 * p, one, sq]).T)
 
 
 def build_compatibility_graph(src: np.ndarray, dst: np.ndarray, delta: float,

@@ -6,9 +6,8 @@ which preserve both lengths and vertical offsets along the gravity axis: an edge
 needs ``| ||p_i - p_j|| - ||q_i - q_j|| | < delta`` and ``|dz_p - dz_q| < delta``. The
 second test is 1-D: ``dz_p - dz_q = u_j - u_i`` with u_i the vertical translation that
 correspondence i implies (:func:`~.yaw.vertical_offsets`). With the correspondences sorted
-by u, the vertical partners of a block of rows are one contiguous column window, and the
-length test is only computed inside it, and edge sampling proposes partners inside it
-(:attr:`~.compatibility.CompatibilityGraph.windows`).
+by u, the vertical partners of a row are one contiguous window of rows, and the length
+test is only computed inside it.
 """
 
 from __future__ import annotations
@@ -37,11 +36,8 @@ def build_vertical_compatibility_graph(src: np.ndarray, dst: np.ndarray, delta: 
     u = np.ascontiguousarray(offsets, dtype=np.float64)
     if n > 1 and np.any(np.diff(u) < 0):
         raise ValueError('offsets must be sorted ascending (sort the correspondences by u)')
-    windows = (np.searchsorted(u, u - delta, side='left'),
-               np.searchsorted(u, u + delta, side='right'))
+    hi = np.searchsorted(u, u + delta, side='right').astype(np.int64)  # end of each window
     words = kernels_graph.vertical_compatibility_words(
         np.ascontiguousarray(src, dtype=np.float64), np.ascontiguousarray(dst, dtype=np.float64),
-        u, windows[1].astype(np.int64), float(delta), float(min_pair_distance) ** 2)
-    graph = CompatibilityGraph(words.view(np.uint8), n)
-    graph.windows = windows
-    return graph
+        u, hi, float(delta), float(min_pair_distance) ** 2)
+    return CompatibilityGraph(words.view(np.uint8), n)

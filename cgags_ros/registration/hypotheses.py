@@ -1,18 +1,10 @@
-"""Hypotheses: fitting minimal subsets, scoring them, and the final least-squares re-fit."""
+"""Hypotheses: score contributions and the final least-squares re-fit (fits: kernels)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from .compatibility import CompatibilityGraph
-from .rigid import kabsch, kabsch_batch, residuals
-
-
-def fit_triples(src: np.ndarray, dst: np.ndarray, i: np.ndarray, j: np.ndarray,
-                k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Closed-form rigid transform of each triple: R (B, 3, 3), t (B, 3)."""
-    idx = np.stack([i, j, k], axis=1)
-    return kabsch_batch(src[idx], dst[idx])
+from .rigid import kabsch, residuals
 
 
 def score_values(res: np.ndarray, tau: float, mode: str) -> np.ndarray:
@@ -25,35 +17,6 @@ def score_values(res: np.ndarray, tau: float, mode: str) -> np.ndarray:
     if mode == 'inlier_count':
         return (res <= tau).astype(np.float64)
     return np.maximum(0.0, 1.0 - (res / tau) ** 2)
-
-
-def score_in_common_neighbourhood(graph: CompatibilityGraph, src: np.ndarray, dst: np.ndarray,
-                                  R: np.ndarray, t: np.ndarray, triples: np.ndarray,
-                                  tau: float, mode: str) -> np.ndarray:
-    """
-    Score each hypothesis on {i, j, k} ∪ (N(i) ∩ N(j) ∩ N(k)) only.
-
-    Every inlier of a correct hypothesis is compatible with its three (inlier) sample
-    members, so for good hypotheses this equals the full score up to noise, at a fraction
-    of the cost; wrong hypotheses can only score lower. Used to pre-screen a batch before
-    the exact (all-N) scoring of its best members.
-    """
-    i, j, k = triples.T
-    cand = np.unpackbits(graph.common(i, j, k), axis=1, count=graph.n, bitorder='little')
-    rows = np.arange(len(triples))
-    for member in (i, j, k):
-        cand[rows, member] = 1
-    b, m = np.nonzero(cand)
-    moved = np.einsum('bij,bj->bi', R[b], src[m]) + t[b]
-    res = np.linalg.norm(moved - dst[m], axis=1)
-    return np.bincount(b, weights=score_values(res, tau, mode), minlength=len(triples))
-
-
-def residual_matrix(src: np.ndarray, dst: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Residuals of all N correspondences under E hypotheses: (E, N) float32."""
-    moved = np.matmul(src.astype(np.float32)[None], R.transpose(0, 2, 1).astype(np.float32))
-    moved += (t.astype(np.float32)[:, None, :] - dst.astype(np.float32)[None])
-    return np.sqrt(np.einsum('eni,eni->en', moved, moved))
 
 
 def refit(src: np.ndarray, dst: np.ndarray, T: np.ndarray, tau: float,
@@ -92,7 +55,3 @@ def refit(src: np.ndarray, dst: np.ndarray, T: np.ndarray, tau: float,
         if not changed:
             break
     return T, inliers, done
-
-
-__all__ = ['fit_triples', 'score_values', 'score_in_common_neighbourhood', 'residual_matrix',
-           'refit']

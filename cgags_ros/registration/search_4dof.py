@@ -18,7 +18,6 @@ from __future__ import annotations
 import numpy as np
 
 from . import kernels
-from .sampling import weighted_choice_rows
 from .search import Search
 from .stopping import empirical_inlier_probability
 from .yaw import fit_edges, fit_yaw, horizontal_lengths
@@ -73,19 +72,3 @@ class EdgeSearch(Search):
         """Guided edges (local indices i, j, j): j in N(i) with p ∝ K(i, j) + xi."""
         return kernels.draw_guided(self.rng, kernel, adjacency, seed_w, count, self.cfg.xi,
                                    edges_only=True)
-
-
-def sample_guided_edges(rng: np.random.Generator, kernel: np.ndarray, adjacency: np.ndarray,
-                        seed_weights: np.ndarray, count: int, xi: float
-                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """
-    Preference-guided edges on a subset of M correspondences (local indices).
-
-    Seed i with probability proportional to ``seed_weights``, then j in N(i) with
-    probability proportional to K(i, j) + xi (the first two draws of the 6-DoF guided
-    triple). Returns i, j and a mask of seeds with a compatible partner.
-    """
-    m = len(seed_weights)
-    i = rng.choice(m, size=count, p=seed_weights / seed_weights.sum())
-    j, ok = weighted_choice_rows((kernel[i] + xi) * adjacency[i], rng)
-    return i, j, ok
