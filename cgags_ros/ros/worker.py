@@ -186,19 +186,23 @@ class IsolatedRegistration:
             return True
 
     def __call__(self, source: np.ndarray, target: np.ndarray, *, config: PipelineConfig) -> Any:
-        with self._lock:
-            if self._pool is None:
-                raise RegistrationTimeout('the registration process is shut down')
-            if not self._alive():  # died while idle: nothing of this pair is lost
-                self._crashed()
-            warm = self._warm
-            self._busy = True
+        def job() -> tuple[Any, tuple, dict]:
+            # Asked once the child is known to be alive: a replaced child holds no target.
+            held = target is self._sent_target
+            # Only a completed call proves the child holds this target; after any failure
+            # it is sent again.
+            self._sent_target = None
+            return self._fn, (source, None if held else target), {'config': config}
+
         try:
-            self._wait_for_warm_up(warm)
-            return self._run(source, target, config)
-        finally:
-            with self._lock:
-                self._busy = False
+            result = self._in_child(
+                job, self.timeout_s,
+                f'registration took longer than registration_timeout = {self.timeout_s:g} s',
+                'during this pair (killed, out of memory or a native crash)')
+        except _TargetNotHeld:  # not expected (a restart forgets what was sent); resend
+            return self(source, target, config=config)
+        self._sent_target = target
+        return result
 
     def prepare_map(self, ref: MapRef, config: PipelineConfig, timeout_s: float) -> dict:
         """
@@ -209,51 +213,42 @@ class IsolatedRegistration:
         :raises WorkerCrashed: the child died while loading.
         :raises CgagsError: the map cannot be read or is empty.
         """
+        return self._in_child(lambda: (prepare_map, (ref, config), {}), timeout_s,
+                              f'loading the map took longer than {timeout_s:g} s',
+                              'while loading the map (out of memory?)')
+
+    def _in_child(self, job: Callable[[], tuple[Any, tuple, dict]], timeout_s: float,
+                  too_long: str, died: str) -> Any:
+        """
+        Run ``fn(*args, **kwargs)`` of ``job()`` in the child, supervised; return the result.
+
+        A child found dead first (idle) is replaced and the call runs on the fresh one
+        after its warm-up. Past ``timeout_s`` the child is restarted and
+        :class:`RegistrationTimeout` (``too_long``) raised; a child dying during the call is
+        replaced and :class:`WorkerCrashed` (``died``) raised.
+        """
         with self._lock:
             if self._pool is None:
                 raise RegistrationTimeout('the registration process is shut down')
-            warm, self._busy = self._warm, True
+            if not self._alive():  # died while idle: nothing of this call is lost
+                self._crashed()
+            warm = self._warm
+            self._busy = True
         try:
             self._wait_for_warm_up(warm)
-            try:
-                return self._submit(prepare_map, ref, config).result(timeout=timeout_s)
-            except FutureTimeout:
-                self.restart()
-                raise RegistrationTimeout(f'loading the map took longer than {timeout_s:g} s; '
-                                          'its process was restarted') from None
-            except BrokenProcessPool:
-                with self._lock:
-                    if not self._closed:
-                        self._crashed()
-                raise WorkerCrashed('the registration process died while loading the map '
-                                    '(out of memory?); restarted') from None
-        finally:
-            with self._lock:
-                self._busy = False
-
-    def _run(self, source: np.ndarray, target: np.ndarray, config: PipelineConfig) -> Any:
-        held = target is self._sent_target
-        # Only a completed call proves the child holds this target; after any failure it
-        # is sent again.
-        self._sent_target = None
-        try:
-            future = self._submit(self._fn, source, None if held else target, config=config)
-            result = future.result(timeout=self.timeout_s)
-        except _TargetNotHeld:  # not expected (a restart forgets what was sent); resend
-            return self._run(source, target, config)
+            fn, args, kwargs = job()
+            return self._submit(fn, *args, **kwargs).result(timeout=timeout_s)
         except FutureTimeout:
             self.restart()
-            raise RegistrationTimeout(
-                f'registration took longer than registration_timeout = {self.timeout_s:g} s; '
-                'its process was restarted') from None
+            raise RegistrationTimeout(f'{too_long}; its process was restarted') from None
         except BrokenProcessPool:
             with self._lock:
                 if not self._closed:
                     self._crashed()
-            raise WorkerCrashed('the registration process died during this pair '
-                                '(killed, out of memory or a native crash); restarted') from None
-        self._sent_target = target
-        return result
+            raise WorkerCrashed(f'the registration process died {died}; restarted') from None
+        finally:
+            with self._lock:
+                self._busy = False
 
     def _submit(self, *args: Any, **kwargs: Any) -> Any:
         """Submit to the child; one that died since the last check (idle) is replaced."""
