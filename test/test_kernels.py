@@ -88,6 +88,9 @@ def test_graph_object_and_lists():
     triples = np.random.default_rng(1).integers(0, 200, (50, 3))
     expected = graph.popcount(graph.common(*triples.T))
     assert np.array_equal(kernels.common_support(graph, triples), expected)
+    members = np.random.default_rng(2).choice(200, 37, replace=False)
+    assert np.array_equal(graph.adjacency(members), adj[np.ix_(members, members)])
+    assert graph.count_edges_within(members) == adj[np.ix_(members, members)].sum() // 2
 
 
 def _reference_edges(rng, graph, src, dst, delta, soft, count, size):

@@ -36,3 +36,27 @@ def test_intersection_kernel():
     K = pref.kernel(np.arange(3))
     assert np.allclose(K, [[0, 0.5, 0], [0.5, 0, 0], [0, 0, 0]])
     assert np.allclose(pref.kernel(np.array([0, 1])), [[0, 0.5], [0.5, 0]])
+
+
+def test_lists_stay_sorted_and_quality_is_their_median():
+    rng = np.random.default_rng(2)
+    for b in (1, 4, 5, 20):
+        pref = PreferenceLists(n=40, b=b)
+        for size in (1, 2, 9, 30, 4):
+            pref.update(rng.random((size, 40)).astype(np.float32))
+            assert np.array_equal(pref.residuals, np.sort(pref.residuals, axis=1))  # inf last
+            assert np.array_equal(pref.quality(), np.median(pref.residuals, axis=1))
+
+
+def test_intersection_kernel_equals_the_incidence_product():
+    rng = np.random.default_rng(3)
+    pref = PreferenceLists(n=120, b=6)
+    for size in (4, 3, 25):  # the first lists stay partly empty (-1 slots)
+        pref.update(rng.random((size, 120)).astype(np.float32))
+    members = rng.choice(120, 50, replace=False)
+    incidence = np.zeros((50, pref.num_hypotheses), dtype=np.float32)
+    rows, slots = np.nonzero(pref.ids[members] >= 0)
+    incidence[rows, pref.ids[members][rows, slots]] = 1.0
+    expected = incidence @ incidence.T / np.float32(6)
+    np.fill_diagonal(expected, 0.0)
+    assert np.array_equal(pref.kernel(members), expected)

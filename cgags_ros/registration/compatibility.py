@@ -95,8 +95,11 @@ class CompatibilityGraph:
         """Return the number of undirected edges among ``members`` (indices)."""
         if len(members) < 2:
             return 0
-        sub = self.rows(members)[:, members]
-        return int(sub.sum() // 2)
+        return int(self.adjacency(members).sum() // 2)
+
+    def adjacency(self, members: np.ndarray) -> np.ndarray:
+        """Return the (M, M) boolean adjacency among ``members`` (indices)."""
+        return kernels_graph.sub_adjacency(self._words, np.asarray(members, dtype=np.int64))
 
 
 def length_consistency(src: np.ndarray, dst: np.ndarray, i: np.ndarray,

@@ -121,6 +121,7 @@ def compile_kernels() -> None:
     res = kernels_scoring.residual_matrix(src, dst, R, t)
     kernels_scoring.merge_preferences(np.full((70, 3), np.inf, np.float32),
                                       np.full((70, 3), -1, np.int64), res, 0)
+    kernels_graph.sub_adjacency(words, np.arange(5, dtype=np.int64))
     kernel = np.ones((5, 5), np.float32)
     adjacency = ~np.eye(5, dtype=bool)
     for edges_only in (True, False):

@@ -105,7 +105,8 @@ def vertical_compatibility_words(src, dst, u, hi, delta, min_sq):
     Edge iff | |p_i - p_j| - |q_i - q_j| | < delta (tested as in
     :func:`compatibility_words`), |u_i - u_j| < delta and |p_i - p_j|^2 >= ``min_sq``. The
     correspondences are sorted by their vertical offset u, so the partners j > i of row i
-    lie in i < j < ``hi[i]``: only that window is tested, then mirrored.
+    lie in i < j < ``hi[i]``: only the words covering that window are tested, 64 columns
+    at a time as in :func:`compatibility_words`, then mirrored.
 
     :param src, dst: (N, 3) float64 C-contiguous, gravity frame, metres, sorted by ``u``.
     :param u: (N,) float64 ascending vertical offsets.
@@ -115,18 +116,31 @@ def vertical_compatibility_words(src, dst, u, hi, delta, min_sq):
     n = src.shape[0]
     w = (n + 63) // 64
     words = np.zeros((n, w), np.uint64)
+    pts = np.full((7, w * 64), np.nan)  # NaN padding is never an edge
+    pts[:3, :n] = src.T
+    pts[3:6, :n] = dst.T
+    pts[6, :n] = u
+    px, py, pz, qx, qy, qz, uu = pts[0], pts[1], pts[2], pts[3], pts[4], pts[5], pts[6]
     d2 = delta * delta
     for i in range(n):
-        for j in range(i + 1, hi[i]):
-            if abs(u[j] - u[i]) >= delta:
-                continue
-            ax, ay, az = src[j, 0] - src[i, 0], src[j, 1] - src[i, 1], src[j, 2] - src[i, 2]
-            bx, by, bz = dst[j, 0] - dst[i, 0], dst[j, 1] - dst[i, 1], dst[j, 2] - dst[i, 2]
-            a2 = ax * ax + ay * ay + az * az
-            b2 = bx * bx + by * by + bz * bz
-            c = a2 + b2 - d2
-            if ((c < 0.0) or (4.0 * a2 * b2 > c * c)) and a2 >= min_sq:
-                words[i, j >> 6] |= _ONE << (np.uint64(j) & _LOW6)
+        if hi[i] <= i + 1:
+            continue
+        x0, y0, z0, u0, v0, s0, w0 = px[i], py[i], pz[i], qx[i], qy[i], qz[i], uu[i]
+        for k in range(i >> 6, ((hi[i] - 1) >> 6) + 1):
+            word = np.uint64(0)
+            for b in range(64):
+                j = (k << 6) + b
+                ax, ay, az = px[j] - x0, py[j] - y0, pz[j] - z0
+                bx, by, bz = qx[j] - u0, qy[j] - v0, qz[j] - s0
+                a2 = ax * ax + ay * ay + az * az
+                b2 = bx * bx + by * by + bz * bz
+                c = a2 + b2 - d2
+                edge = (((c < 0.0) | (4.0 * a2 * b2 > c * c)) & (a2 >= min_sq)
+                        & (abs(uu[j] - w0) < delta))
+                word |= np.uint64(edge) << np.uint64(b)
+            if k == i >> 6:  # keep j > i only
+                word &= ~((np.uint64(2) << (np.uint64(i) & _LOW6)) - _ONE)
+            words[i, k] = word
     _or_transpose(words)
     return words
 
@@ -154,14 +168,30 @@ def _or_transpose(words):
     x = np.empty(64, np.uint64)
     for bi in range(w):  # rows 64 bi .. 64 bi + 63 hold the source bits (j > i)
         for bj in range(bi, w):
+            any_bit = np.uint64(0)
             for r in range(64):
                 row = (bi << 6) + r
                 x[r] = words[row, bj] if row < n else np.uint64(0)
+                any_bit |= x[r]
+            if any_bit == 0:  # nothing to mirror (most blocks of a banded 4-DoF graph)
+                continue
             _transpose64(x)
             for r in range(64):
                 row = (bj << 6) + r
                 if row < n:
                     words[row, bi] |= x[r]
+
+
+@njit(cache=True, nogil=True)
+def sub_adjacency(words, members):
+    """Return the (M, M) boolean adjacency among ``members`` (guided sampling, step 5)."""
+    m = members.shape[0]
+    out = np.zeros((m, m), np.bool_)
+    for a in range(m):
+        row = members[a]
+        for c in range(m):
+            out[a, c] = has_edge(words, row, members[c])
+    return out
 
 
 @njit(cache=True, nogil=True)

@@ -123,21 +123,20 @@ def merge_preferences(pref_res, pref_ids, res, first_id):
     """
     Merge E new hypotheses into the preference lists (step 4, top-b residual ranks).
 
-    Each correspondence keeps the b hypotheses with its smallest residuals: a new one
-    replaces the list's largest residual when it is smaller (empty slots hold inf).
+    Each correspondence keeps the b hypotheses with its smallest residuals, sorted
+    ascending (empty slots hold inf at the end): a new one enters when it beats the last
+    entry, by one insertion shift, and most are rejected by that single comparison. Sorted
+    lists also give each list's median without a sort (:meth:`.PreferenceLists.quality`).
     ``res`` (E, N) float32; ids are ``first_id`` + row.
     """
     n, b = pref_res.shape
     for m in range(n):
-        worst, slot = pref_res[m, 0], 0
-        for c in range(1, b):
-            if pref_res[m, c] > worst:
-                worst, slot = pref_res[m, c], c
         for e in range(res.shape[0]):
             r = res[e, m]
-            if r < worst:
-                pref_res[m, slot], pref_ids[m, slot] = r, first_id + e
-                worst, slot = pref_res[m, 0], 0
-                for c in range(1, b):
-                    if pref_res[m, c] > worst:
-                        worst, slot = pref_res[m, c], c
+            if not r < pref_res[m, b - 1]:
+                continue
+            p = b - 1
+            while p > 0 and pref_res[m, p - 1] > r:
+                pref_res[m, p], pref_ids[m, p] = pref_res[m, p - 1], pref_ids[m, p - 1]
+                p -= 1
+            pref_res[m, p], pref_ids[m, p] = r, first_id + e

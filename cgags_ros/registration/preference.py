@@ -35,8 +35,11 @@ class PreferenceLists:
         self.num_hypotheses += e
 
     def quality(self) -> np.ndarray:
-        """Median residual over each correspondence's list (inf until the list is full)."""
-        return np.median(self.residuals, axis=1)
+        """Median residual over each correspondence's list (inf while it is under half full)."""
+        b = self.b  # lists are sorted ascending (merge_preferences): the middle entries
+        if b % 2:
+            return self.residuals[:, b // 2].copy()
+        return (self.residuals[:, b // 2 - 1] + self.residuals[:, b // 2]) / np.float32(2.0)
 
     def kernel(self, members: np.ndarray) -> np.ndarray:
         """Dense intersection kernel K (M, M) float32 among ``members``; diagonal zeroed."""
