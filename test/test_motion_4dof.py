@@ -8,6 +8,8 @@ pitch in the gravity frame must be exactly zero.
 
 from __future__ import annotations
 
+import dataclasses
+
 from cgags_ros.config import fields
 from cgags_ros.datasets.synthetic import load_bunny, make_correspondences
 from cgags_ros.errors import DegenerateCorrespondencesError, InvalidConfigError
@@ -157,6 +159,19 @@ def test_non_unit_gravity_axis_is_normalised():
     frame = GravityFrame(cfg.gravity_axis)
     np.testing.assert_allclose(frame.A @ [0.0, 0.0, -1.0], [0.0, 0.0, 1.0], atol=1e-15)
     assert GravityFrame((0.0, 0.0, 1.0)).identity
+
+
+def test_pure_outliers_end_by_the_futility_bound_not_the_cap(bunny):
+    rng = np.random.default_rng(9)
+    src = bunny[rng.integers(0, len(bunny), 1000)]
+    dst = rng.uniform(bunny.min(axis=0), bunny.max(axis=0), (1000, 3))
+    futile = dataclasses.replace(FOUR, futility_stop=True)
+    res = register_correspondences(src, dst, inlier_threshold=TAU, config=futile, seed=1)
+    assert not res.valid and res.stats['stopped_by'] == 'no_significant_model'
+    assert res.num_hypotheses < FOUR.max_iterations / 10
+    capped = register_correspondences(src, dst, inlier_threshold=TAU, seed=1,
+                                      config=dataclasses.replace(FOUR, max_iterations=20000))
+    assert not capped.valid and capped.stats['stopped_by'] == 'max_iterations'
 
 
 def test_vertical_compatibility_graph_is_the_length_graph_and_the_offset_test(bunny):

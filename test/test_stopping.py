@@ -4,6 +4,7 @@ from cgags_ros.registration.compatibility import CompatibilityGraph
 from cgags_ros.registration.stopping import (
     compatible_sample_inlier_probability,
     empirical_inlier_probability,
+    futility_draws,
     poisson_isf,
     ransac_bound,
 )
@@ -15,6 +16,17 @@ def test_ransac_bound():
     assert ransac_bound(0.99, 0.0) == math.inf
     assert ransac_bound(0.99, 1.0) == 1.0
     assert ransac_bound(0.99, 1e-4) > ransac_bound(0.99, 1e-3) > ransac_bound(0.9, 1e-3)
+
+
+def test_futility_draws_bound_edges_only():
+    n = 100
+    adj = np.zeros((n, n), dtype=bool)
+    adj[np.arange(n - 1), np.arange(1, n)] = True  # a path: 99 edges
+    graph = CompatibilityGraph(np.packbits(adj | adj.T, axis=1, bitorder='little'), n)
+    # 6 inliers: C(6, 2) = 15 of the 99 edges per uniform draw.
+    assert math.isclose(futility_draws(graph, 6, 0.99, 2), ransac_bound(0.99, 15 / 99))
+    assert futility_draws(graph, 6, 0.99, 3) == math.inf  # triangles: no conservative bound
+    assert futility_draws(graph, 20, 0.99, 2) == 1.0  # more inlier pairs than edges
 
 
 def test_inlier_probability_of_compatible_sampling_on_a_known_graph():

@@ -167,6 +167,13 @@ class CoreConfig:
         "best model's inlier subgraph) or 'observed' (the larger of that and the share of "
         'drawn samples inside the best inlier set).', choices=('analytic', 'observed'),
         advanced=True)
+    futility_stop: bool = option(
+        False, 'INFERRED (4-DoF). End the search without a valid model once enough edges '
+        'were drawn that a motion with the smallest significant consensus (L = '
+        'max(min_inliers, chance level) inliers, C(L, 2) of the graph edges) would have '
+        'been drawn with confidence P1: fast rejections, but it misses more '
+        'sub-significant true motions (docs/method.md). No effect in 6-DoF.',
+        advanced=True)
 
     # --- final re-fit and validity ------------------------------------------------------------
     refit: str = option(

@@ -92,8 +92,9 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
         # until the P1 bound.
         with timed(result.timings, 'compatible_sampling'):
             search.compatible_stage()
-        # 4-5. Preference-based accelerated guided sampling until the P2 bound.
-        if cfg.guided_sampling and search.best_inliers is not None:
+        # 4-5. Preference-based accelerated guided sampling until the P2 bound (not once
+        # stage one has ruled out any significant model: nothing valid is left to refine).
+        if cfg.guided_sampling and search.best_inliers is not None and not search.futile:
             with timed(result.timings, 'guided_sampling'):
                 search.guided_stage()
         # Guided sampling refines around the best model; if that model still does not stand

@@ -21,7 +21,7 @@ from .rigid import residuals
 from .sampling import sample_common_vertex, triangle_areas
 from .significance import ConsensusRecord
 from .stopping import (compatible_sample_inlier_probability, empirical_inlier_probability,
-                       ransac_bound)
+                       futility_draws, ransac_bound)
 from ..config.core import CoreConfig
 from ..geometry import make_transform
 
@@ -60,6 +60,7 @@ class Search:
         self.best_inliers: np.ndarray | None = None
         self.best_mask = np.zeros(graph.n, dtype=bool)
         self.improvements = 0
+        self.futile = False  # stage one ruled out any significant model (futility_draws)
         self.preference = PreferenceLists(graph.n, cfg.preference_length)
         self.vertex_weights = (graph.degree.astype(np.float64)
                                if cfg.vertex_sampling == 'degree' else None)
@@ -95,6 +96,13 @@ class Search:
             if (cfg.stopping == 'adaptive' and n1 >= max(bound, cfg.min_iterations)
                     and self.significant()):
                 self.stats['stopped_by'] = 'p1_bound'
+                break
+            smallest = max(cfg.min_inliers, self.chance_level())  # of a significant model
+            if (cfg.stopping == 'adaptive' and cfg.futility_stop and not self.significant()
+                    and self.stats['compatible_samples'] >= futility_draws(
+                        self.graph, smallest, cfg.p1, self.SUBSET_SIZE)):
+                self.stats['stopped_by'] = 'no_significant_model'
+                self.futile = True
                 break
             if (cfg.guided_sampling and cfg.guided_start == 'after_b_hypotheses'
                     and self.preference.num_hypotheses >= cfg.preference_length
@@ -152,11 +160,7 @@ class Search:
         return self.cfg.edge_tournament if self.cfg.edge_sampling == 'tournament' else 1
 
     def lists(self) -> np.ndarray:
-        """
-        Return the CSR neighbour indices once the search turns out long (else empty).
-
-        The samplers then draw without scanning bit rows; they draw the same either way.
-        """
+        """Return the CSR neighbour indices once the search is long, else empty (same draws)."""
         if (self.num_drawn <= self.graph.n ** 2 // _LISTS_BUILD_RATIO
                 or 2 * self.graph.num_edges > _LISTS_MAX_ENTRIES):
             return self.no_lists
@@ -164,11 +168,7 @@ class Search:
         return self.no_lists if pairs is None else pairs
 
     def compatible_edges(self, count: int):
-        """
-        Draw ``count`` compatible edges (i, j), uniformly or by tournament (graph edge sampling).
-
-        Returns i, j and the neighbour lists when the search uses them (else None).
-        """
+        """Draw ``count`` compatible edges i, j (graph edge sampling); the lists used or None."""
         lists = self.lists()
         i, j = kernels.draw_edges(self.rng, self.graph, lists, self.src, self.dst, self.delta,
                                   self.cfg.compatibility == 'soft', count,
@@ -269,7 +269,7 @@ class Search:
     def exhausted(self) -> bool:
         """Tell whether the hypothesis cap or time budget is used up, or no triangle is usable."""
         return (self.num_drawn >= self.cfg.max_iterations or self.out_of_time()
-                or self.stats['stopped_by'] == 'no_usable_triangle')
+                or self.futile or self.stats['stopped_by'] == 'no_usable_triangle')
 
     def out_of_time(self) -> bool:
         if self.cfg.time_budget > 0 and time.perf_counter() - self.start > self.cfg.time_budget:
@@ -340,7 +340,7 @@ class Search:
             order = np.argsort(self.preference.quality(), kind='stable')
             members = np.union1d(order[: cfg.kernel_subset], self.best_inliers)
         kernel = self.preference.kernel(members)
-        adjacency = self.graph.rows(members)[:, members]
+        adjacency = self.graph.adjacency(members)
         if cfg.guided_seed == 'best_inliers':
             seed_w = np.isin(members, self.best_inliers).astype(np.float64)
         else:
