@@ -54,6 +54,40 @@ def has_edge(words, i, j):
     return (words[i, j >> 6] >> (np.uint64(j) & _LOW6)) & _ONE != 0
 
 
+@njit(cache=True, nogil=True, inline='always')
+def _length_word(cols, k, i, d2, min_sq):
+    """
+    Return the bits j = 64 k .. 64 k + 63 of row i of the length test (see below).
+
+    ``cols`` (6, W * 64): separate, NaN-padded coordinate columns px, py, pz, qx, qy, qz,
+    so the loop vectorizes and padding is never an edge.
+    """
+    px, py, pz, qx, qy, qz = cols[0], cols[1], cols[2], cols[3], cols[4], cols[5]
+    x0, y0, z0, u0, v0, s0 = px[i], py[i], pz[i], qx[i], qy[i], qz[i]
+    word = np.uint64(0)
+    for b in range(64):
+        j = (k << 6) + b
+        ax, ay, az = px[j] - x0, py[j] - y0, pz[j] - z0
+        bx, by, bz = qx[j] - u0, qy[j] - v0, qz[j] - s0
+        a2 = ax * ax + ay * ay + az * az
+        b2 = bx * bx + by * by + bz * bz
+        c = a2 + b2 - d2
+        edge = ((c < 0.0) | (4.0 * a2 * b2 > c * c)) & (a2 >= min_sq)
+        word |= np.uint64(edge) << np.uint64(b)
+    if k == i >> 6:  # keep j > i only
+        word &= ~((np.uint64(2) << (np.uint64(i) & _LOW6)) - _ONE)
+    return word
+
+
+@njit(cache=True, nogil=True)
+def _columns(src, dst, w):
+    """Return the coordinate columns of :func:`_length_word`, NaN-padded to W * 64."""
+    cols = np.full((6, w * 64), np.nan)
+    cols[:3, :src.shape[0]] = src.T
+    cols[3:, :src.shape[0]] = dst.T
+    return cols
+
+
 @njit(cache=True, nogil=True)
 def compatibility_words(src, dst, delta, min_sq):
     """
@@ -71,28 +105,11 @@ def compatibility_words(src, dst, delta, min_sq):
     n = src.shape[0]
     w = (n + 63) // 64
     words = np.zeros((n, w), np.uint64)
-    # Separate, NaN-padded columns: the inner loop vectorizes and padding is never an edge.
-    pts = np.full((6, w * 64), np.nan)
-    pts[:3, :n] = src.T
-    pts[3:, :n] = dst.T
-    px, py, pz, qx, qy, qz = pts[0], pts[1], pts[2], pts[3], pts[4], pts[5]
+    cols = _columns(src, dst, w)
     d2 = delta * delta
     for i in range(n):
-        x0, y0, z0, u0, v0, s0 = px[i], py[i], pz[i], qx[i], qy[i], qz[i]
         for k in range(i >> 6, w):
-            word = np.uint64(0)
-            for b in range(64):
-                j = (k << 6) + b
-                ax, ay, az = px[j] - x0, py[j] - y0, pz[j] - z0
-                bx, by, bz = qx[j] - u0, qy[j] - v0, qz[j] - s0
-                a2 = ax * ax + ay * ay + az * az
-                b2 = bx * bx + by * by + bz * bz
-                c = a2 + b2 - d2
-                edge = ((c < 0.0) | (4.0 * a2 * b2 > c * c)) & (a2 >= min_sq)
-                word |= np.uint64(edge) << np.uint64(b)
-            if k == i >> 6:  # keep j > i only
-                word &= ~((np.uint64(2) << (np.uint64(i) & _LOW6)) - _ONE)
-            words[i, k] = word
+            words[i, k] = _length_word(cols, k, i, d2, min_sq)
     _or_transpose(words)
     return words
 
@@ -106,7 +123,7 @@ def vertical_compatibility_words(src, dst, u, hi, delta, min_sq):
     :func:`compatibility_words`), |u_i - u_j| < delta and |p_i - p_j|^2 >= ``min_sq``. The
     correspondences are sorted by their vertical offset u, so the partners j > i of row i
     lie in i < j < ``hi[i]``: only the words covering that window are tested, 64 columns
-    at a time as in :func:`compatibility_words`, then mirrored.
+    at a time as in :func:`compatibility_words` (plus the offset test), then mirrored.
 
     :param src, dst: (N, 3) float64 C-contiguous, gravity frame, metres, sorted by ``u``.
     :param u: (N,) float64 ascending vertical offsets.
@@ -116,31 +133,18 @@ def vertical_compatibility_words(src, dst, u, hi, delta, min_sq):
     n = src.shape[0]
     w = (n + 63) // 64
     words = np.zeros((n, w), np.uint64)
-    pts = np.full((7, w * 64), np.nan)  # NaN padding is never an edge
-    pts[:3, :n] = src.T
-    pts[3:6, :n] = dst.T
-    pts[6, :n] = u
-    px, py, pz, qx, qy, qz, uu = pts[0], pts[1], pts[2], pts[3], pts[4], pts[5], pts[6]
+    cols = _columns(src, dst, w)
+    uu = np.full(w * 64, np.nan)
+    uu[:n] = u
     d2 = delta * delta
     for i in range(n):
         if hi[i] <= i + 1:
             continue
-        x0, y0, z0, u0, v0, s0, w0 = px[i], py[i], pz[i], qx[i], qy[i], qz[i], uu[i]
         for k in range(i >> 6, ((hi[i] - 1) >> 6) + 1):
-            word = np.uint64(0)
-            for b in range(64):
-                j = (k << 6) + b
-                ax, ay, az = px[j] - x0, py[j] - y0, pz[j] - z0
-                bx, by, bz = qx[j] - u0, qy[j] - v0, qz[j] - s0
-                a2 = ax * ax + ay * ay + az * az
-                b2 = bx * bx + by * by + bz * bz
-                c = a2 + b2 - d2
-                edge = (((c < 0.0) | (4.0 * a2 * b2 > c * c)) & (a2 >= min_sq)
-                        & (abs(uu[j] - w0) < delta))
-                word |= np.uint64(edge) << np.uint64(b)
-            if k == i >> 6:  # keep j > i only
-                word &= ~((np.uint64(2) << (np.uint64(i) & _LOW6)) - _ONE)
-            words[i, k] = word
+            near = np.uint64(0)
+            for b in range(64):  # NaN padding is never near
+                near |= np.uint64(abs(uu[(k << 6) + b] - u[i]) < delta) << np.uint64(b)
+            words[i, k] = _length_word(cols, k, i, d2, min_sq) & near
     _or_transpose(words)
     return words
 
