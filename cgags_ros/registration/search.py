@@ -97,10 +97,10 @@ class Search:
                     and self.significant()):
                 self.stats['stopped_by'] = 'p1_bound'
                 break
-            smallest = max(cfg.min_inliers, self.chance_level())  # of a significant model
             if (cfg.stopping == 'adaptive' and cfg.futility_stop and not self.significant()
                     and self.stats['compatible_samples'] >= futility_draws(
-                        self.graph, smallest, cfg.p1, self.SUBSET_SIZE)):
+                        self.graph, max(cfg.min_inliers, self.chance_level()), cfg.p1,
+                        self.SUBSET_SIZE)):
                 self.stats['stopped_by'] = 'no_significant_model'
                 self.futile = True
                 break

@@ -35,9 +35,9 @@ def futility_draws(graph: CompatibilityGraph, smallest: int, confidence: float,
     ``smallest`` inliers, pairwise compatible: one uniform edge draw lies inside them with
     probability C(smallest, 2) / |E|. After the RANSAC bound for that probability it would
     have been drawn with probability ``confidence``. The edge tournament draws inlier
-    edges more often than that (8-19x on five inliers), so for edges (4-DoF, subset size 2)
-    the bound is conservative; for triangles it is not (the vertex tournament drew five
-    inliers' triangles 0-21x as often as uniform sampling, docs/method.md): inf.
+    edges more often than uniform sampling, so for edges (4-DoF, subset size 2) the bound
+    is conservative; for triangles it is not (the vertex tournament can draw a small
+    inlier set's triangles less often, measured in docs/method.md): inf.
     """
     if subset_size != 2 or graph.num_edges == 0:
         return math.inf
