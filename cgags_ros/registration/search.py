@@ -60,7 +60,6 @@ class Search:
         self.best_inliers: np.ndarray | None = None
         self.best_mask = np.zeros(graph.n, dtype=bool)
         self.improvements = 0
-        self.futile = False  # stage one ruled out any significant model (futility_draws)
         self.preference = PreferenceLists(graph.n, cfg.preference_length)
         self.vertex_weights = (graph.degree.astype(np.float64)
                                if cfg.vertex_sampling == 'degree' else None)
@@ -91,8 +90,7 @@ class Search:
             if self.evaluate(triples, support):
                 w1 = self._stage_one_inlier_probability()
             bound = ransac_bound(cfg.p1, w1)
-            self.stats['stage_one_bound'] = bound
-            self.stats['stage_one_w'] = w1
+            self.stats.update(stage_one_bound=bound, stage_one_w=w1)
             if (cfg.stopping == 'adaptive' and n1 >= max(bound, cfg.min_iterations)
                     and self.significant()):
                 self.stats['stopped_by'] = 'p1_bound'
@@ -102,7 +100,6 @@ class Search:
                         self.graph, max(cfg.min_inliers, self.chance_level()), cfg.p1,
                         self.SUBSET_SIZE)):
                 self.stats['stopped_by'] = 'no_significant_model'
-                self.futile = True
                 break
             if (cfg.guided_sampling and cfg.guided_start == 'after_b_hypotheses'
                     and self.preference.num_hypotheses >= cfg.preference_length
@@ -270,6 +267,11 @@ class Search:
         """Tell whether the hypothesis cap or time budget is used up, or no triangle is usable."""
         return (self.num_drawn >= self.cfg.max_iterations or self.out_of_time()
                 or self.futile or self.stats['stopped_by'] == 'no_usable_triangle')
+
+    @property
+    def futile(self) -> bool:
+        """Tell whether stage one ruled out any significant model (futility_draws)."""
+        return self.stats['stopped_by'] == 'no_significant_model'
 
     def out_of_time(self) -> bool:
         if self.cfg.time_budget > 0 and time.perf_counter() - self.start > self.cfg.time_budget:
