@@ -134,24 +134,24 @@ def test_matches_equal_exact_brute_force(mutual, ratio):
     assert np.all(np.diff(got.distance) >= 0)
 
 
-def test_nearest_rows_blocks_and_second_neighbour():
+def test_nearest_rows_first_and_second_neighbour():
     rng = np.random.default_rng(4)
     q, r = rng.normal(size=(1000, 33)), rng.normal(size=(3000, 33))
     D = cdist(q, r)
     np.testing.assert_array_equal(nearest_rows(q, r, 2), np.argsort(D, axis=1)[:, :2])
     np.testing.assert_array_equal(nearest_rows(r, q, 1)[:, 0], np.argmin(D, axis=0))
-    # rows split over threads (as register_clouds does): the same answer, blocks and all
+    # rows split over threads (as register_clouds does): the same answer
     np.testing.assert_array_equal(nearest_rows(q, r, 2, workers=3), np.argsort(D, axis=1)[:, :2])
     np.testing.assert_array_equal(nearest_rows(r, q, 1, workers=2)[:, 0], np.argmin(D, axis=0))
 
 
-def test_nearest_row_float32_path_is_exact_on_near_ties():
+def test_nearest_rows_is_exact_on_near_ties():
     """
-    Check that the float32 path of nearest_rows ranks near-ties by the exact distance.
+    Check that nearest_rows ranks near-ties by the exact distance.
 
-    k = 1 runs in float32 (squared norms ~1e5 like FPFH, rounding ~1e-2): near-duplicate
-    and exactly duplicated reference rows must still be ranked by the exact distance, ties
-    to the lower index.
+    Squared norms ~1e5 like FPFH: near-duplicate and exactly duplicated reference rows
+    (which also share index cells and sit on their borders) must still be ranked by the
+    exact distance, ties to the lower index.
     """
     rng = np.random.default_rng(7)
     base = rng.uniform(0.0, 200.0, size=(400, 33))

@@ -9,11 +9,14 @@ boundary; each cloud stays in its own frame (nothing is transformed here).
 from __future__ import annotations
 
 import dataclasses
+import threading
 
 import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
+from .descriptor_index import DescriptorIndex
+from .matching import informative_index
 from ..config.frontend import FrontEndConfig
 from ..errors import EmptyCloudError, InvalidInputError
 from ..geometry import point_resolution
@@ -37,6 +40,22 @@ class CloudFeatures:
     descriptors: np.ndarray
     resolution: float
     tree: cKDTree
+    _index: list = dataclasses.field(default_factory=list, repr=False, compare=False)
+    _index_lock: threading.Lock = dataclasses.field(default_factory=threading.Lock,
+                                                    repr=False, compare=False)
+
+    def descriptor_index(self, workers: int = 1) -> DescriptorIndex | None:
+        """
+        Return the index of these descriptors that matching searches as its target.
+
+        Built on the first call and kept: a latched target or a map (these features are
+        cached, :mod:`~cgags_ros.pipeline.cache`) pays for it once. None when no
+        descriptor is informative.
+        """
+        with self._index_lock:
+            if not self._index:
+                self._index.append(informative_index(self.descriptors, workers))
+            return self._index[0]
 
 
 def finite_points(points: np.ndarray, name: str = 'cloud') -> np.ndarray:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .descriptor_index import DescriptorIndex
 from .matching import Correspondences, match_features
 from ..config.frontend import FrontEndConfig
 
@@ -50,7 +51,8 @@ def select_keypoints(points: np.ndarray, max_keypoints: int,
 
 def match_keypoints(source_points: np.ndarray, source_descriptors: np.ndarray,
                     target_descriptors: np.ndarray, voxel_size: float,
-                    config: FrontEndConfig, workers: int = 1) -> Correspondences:
+                    config: FrontEndConfig, workers: int = 1,
+                    target_index: DescriptorIndex | None = None) -> Correspondences:
     """
     Run :func:`match_features` from the source's keypoints to every target point.
 
@@ -58,9 +60,12 @@ def match_keypoints(source_points: np.ndarray, source_descriptors: np.ndarray,
     :func:`match_features` on every point, unchanged. Indices of the result index the
     whole downsampled clouds. Mutual matching is then between the keypoints and the
     target: a target point's nearest source is sought among the keypoints only.
+    ``target_index`` as in :func:`match_features`.
     """
     keep = select_keypoints(source_points, config.max_keypoints, voxel_size)
     if len(keep) == len(source_points):
-        return match_features(source_descriptors, target_descriptors, config, workers)
-    corr = match_features(source_descriptors[keep], target_descriptors, config, workers)
+        return match_features(source_descriptors, target_descriptors, config, workers,
+                              target_index)
+    corr = match_features(source_descriptors[keep], target_descriptors, config, workers,
+                          target_index)
     return Correspondences(keep[corr.source_index], corr.target_index, corr.distance)

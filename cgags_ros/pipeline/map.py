@@ -99,6 +99,7 @@ def load_map(path: str | Path, config: PipelineConfig,
     stored = map_cache.load_entry(cache_dir, key) if cache_dir else None
     if stored is not None:
         features = _features_from(stored)
+        features.descriptor_index()  # built with the map, not on the first scan
         raw, nonfinite = int(stored['raw_points']), int(stored['nonfinite_points'])
         return PreparedMap(features, settings, str(path), digest, 'hit',
                            str(map_cache.entry_path(cache_dir, key)), raw, nonfinite,
@@ -118,6 +119,7 @@ def load_map(path: str | Path, config: PipelineConfig,
                   'resolution': np.float64(features.resolution),
                   'raw_points': np.int64(raw), 'nonfinite_points': np.int64(nonfinite)}
         status, entry = 'miss', str(map_cache.save_entry(cache_dir, key, arrays))
+    features.descriptor_index()
     return PreparedMap(features, settings, str(path), digest, status, entry, raw, nonfinite,
                        time.perf_counter() - start)
 

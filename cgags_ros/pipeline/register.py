@@ -88,7 +88,7 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
         return result.finish(start, reason)
     with timed(result.timings, 'matching'):
         corr = match_keypoints(fs.points, fs.descriptors, ft.descriptors, v, cfg.frontend,
-                               workers)
+                               workers, ft.descriptor_index(workers))
     result.stats.update(num_source_points=len(fs.points), num_target_points=len(ft.points))
     with timed(result.timings, 'registration'):
         core = _global_estimate(fs, ft, corr, result.resolution, cfg)

@@ -1,0 +1,109 @@
+"""
+An exact nearest-neighbour index over descriptors, built once per cloud and queried many times.
+
+Brute force compares every source descriptor with every target descriptor, so its cost
+grows with source x target points. This index (k-means cells with exact pruning bounds, see
+:mod:`.kernels_index`) answers the same queries, exactly, while computing a small share of
+those distances; a latched target or a map builds it once and reuses it
+(:meth:`~.features.CloudFeatures.descriptor_index`).
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+import threading
+
+import numpy as np
+
+from . import kernels_index
+
+# Cells ~ sqrt(M) / 2.5, at most 256: the cost of visiting the cells' centres grows with
+# their count and the cost of scanning their members with M / count; measured on the
+# redkitchen and LiDAR features from 5k to 37k points (docs/implementation.md).
+_CELLS_PER_SQRT = 0.4
+_MAX_CELLS = 256
+_SAMPLE_PER_CELL = 64  # k-means runs on at most this many rows a cell
+_ITERATIONS = 8
+_QUERY_CHUNK = 512  # queries per task, so that threads finish close together
+
+_pool: ThreadPoolExecutor | None = None
+_pool_size = 0
+_pool_lock = threading.Lock()
+
+
+class DescriptorIndex:
+    """
+    Exact k-nearest-neighbour search (k = 1 or 2) among the rows of a reference array.
+
+    The answer equals brute force: nearest first by Euclidean distance (float64), ties to
+    the lower reference row. The k-means partition only decides how fast it is found; it is
+    seeded, so building is deterministic too.
+    """
+
+    def __init__(self, reference: np.ndarray, workers: int = 1, seed: int = 0) -> None:
+        """Build the index over the (M, D) ``reference`` rows (finite), on ``workers`` threads."""
+        ref = np.ascontiguousarray(reference, dtype=np.float64)
+        if ref.ndim != 2 or len(ref) == 0:
+            raise ValueError(f'reference must be a non-empty (M, D) array, got {ref.shape}')
+        self.size, self.dim = ref.shape
+        cells = int(np.clip(round(_CELLS_PER_SQRT * np.sqrt(self.size)), 1, _MAX_CELLS))
+        rng = np.random.default_rng(seed)
+        pick = rng.permutation(self.size)[:min(self.size, _SAMPLE_PER_CELL * cells)]
+        sample = ref[np.sort(pick)]
+        centres = sample[rng.permutation(len(sample))[:cells]].copy()
+        kernels_index.kmeans(sample, centres, _ITERATIONS)
+        labels = np.empty(self.size, dtype=np.int64)
+        ring = np.empty(self.size)
+        centresT = np.ascontiguousarray(centres.T)
+        _run(lambda a, b: kernels_index.assign(ref[a:b], centresT, labels[a:b], ring[a:b]),
+             self.size, workers)
+        # Drop cells without members: a centre that duplicates another gets none (ties go
+        # to the lower one), so every pair of centres left is apart and the plane bound
+        # never divides by zero.
+        used = np.bincount(labels, minlength=cells) > 0
+        renumber = np.cumsum(used) - 1
+        labels = renumber[labels]
+        self.centres = np.ascontiguousarray(centres[used])
+        self.centresT = np.ascontiguousarray(self.centres.T)
+        self.order = np.lexsort((np.arange(self.size), ring, labels))
+        self.starts = np.searchsorted(labels[self.order], np.arange(len(self.centres) + 1))
+        self.ring = np.ascontiguousarray(ring[self.order])
+        self.pointsT = np.ascontiguousarray(ref[self.order].T)
+        self.radius = np.zeros(len(self.centres))
+        np.maximum.at(self.radius, labels, ring)
+        diff = self.centres[:, None, :] - self.centres[None, :, :]
+        self.centre_gap = np.sqrt(np.einsum('ijk,ijk->ij', diff, diff))
+
+    def query(self, queries: np.ndarray, k: int = 1,
+              workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """
+        Return the (len(queries), k) reference rows nearest each query and their distances.
+
+        ``k`` is 1 or 2 (the index holds at least k rows); ``workers`` threads share the
+        queries, with the same result for any number of them.
+        """
+        if k not in (1, 2) or k > self.size:
+            raise ValueError(f'k must be 1 or 2 and at most {self.size}, got {k}')
+        q = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, self.dim)
+        index = np.empty((len(q), k), dtype=np.int64)
+        dist = np.empty((len(q), k))
+        _run(lambda a, b: kernels_index.search(
+            q[a:b], self.centres, self.centresT, self.centre_gap, self.radius, self.starts,
+            self.ring, self.pointsT, self.order, k, index[a:b], dist[a:b]), len(q), workers)
+        return index, dist
+
+
+def _run(task, n: int, workers: int) -> None:
+    """Run ``task(a, b)`` over [0, n) in chunks, on ``workers`` threads (nogil kernels)."""
+    if workers <= 1 or n <= _QUERY_CHUNK:
+        task(0, n)
+        return
+    global _pool, _pool_size
+    with _pool_lock:
+        if _pool is None or _pool_size < workers:
+            _pool = ThreadPoolExecutor(workers, thread_name_prefix='cgags_match')
+            _pool_size = workers
+        pool = _pool
+    bounds = list(range(0, n, _QUERY_CHUNK)) + [n]
+    for part in [pool.submit(task, a, b) for a, b in zip(bounds[:-1], bounds[1:])]:
+        part.result()

@@ -1,0 +1,159 @@
+"""
+Compiled kernels (numba) of descriptor matching: the exact nearest-neighbour search in FPFH space.
+
+Putative correspondences are the step before Algorithm 1 (METHOD.md, "Input"): each source
+descriptor's nearest target descriptor. The index partitions the reference descriptors into
+cells by k-means (:func:`kmeans`, :func:`assign`); a query visits the cells nearest first
+and skips a cell when a lower bound on the distance to any of its members already exceeds
+the k-th best distance found (:func:`search`). The bounds are exact, so the search returns
+what brute force would, at a fraction of its distance computations (docs/implementation.md,
+"Descriptor index").
+
+Distances are float64 sums of squared differences in dimension order; they are compared as
+squares and ties go to the lower reference row. Every kernel is ``nogil`` (the caller
+splits queries over threads) and cached on disk (``cache=True``).
+"""
+
+from __future__ import annotations
+
+from numba import njit
+import numpy as np
+
+# Relative and absolute slack subtracted from each lower bound: the bounds are computed in
+# float64 from the same rounded distances, so without it a bound could exceed the true
+# distance by a few ulps and skip a cell holding the exact nearest row.
+_REL = 1e-9
+_ABS = 1e-12
+
+
+@njit(cache=True, nogil=True)
+def squared_distances_to(rowsT, vector, out):
+    """
+    Set ``out[j] = |vector - rowsT[:, j]|^2`` for every column j of ``rowsT`` (dim x n).
+
+    Dimension-outer order: the inner loop runs along contiguous memory and vectorizes,
+    and every entry is summed in dimension order (the same rounding as a scalar loop).
+    """
+    out[:] = 0.0
+    for t in range(rowsT.shape[0]):
+        value = vector[t]
+        row = rowsT[t]
+        for j in range(rowsT.shape[1]):
+            e = value - row[j]
+            out[j] += e * e
+
+
+@njit(cache=True, nogil=True)
+def assign(points, centresT, labels, dist):
+    """Label each row of ``points`` with its nearest centre (exact, lowest index on ties)."""
+    d = np.empty(centresT.shape[1])
+    for i in range(points.shape[0]):
+        squared_distances_to(centresT, points[i], d)
+        best = 0
+        for j in range(1, len(d)):
+            if d[j] < d[best]:
+                best = j
+        labels[i] = best
+        dist[i] = np.sqrt(d[best])
+
+
+@njit(cache=True, nogil=True)
+def kmeans(sample, centres, iterations):
+    """
+    Run Lloyd's iterations on ``sample`` from the initial ``centres`` (updated in place).
+
+    A centre left without members keeps its position. Only the partition's quality depends
+    on this (how many cells a query visits), never the search's answer.
+    """
+    k, dim = centres.shape
+    labels = np.empty(sample.shape[0], np.int64)
+    dist = np.empty(sample.shape[0])
+    sums = np.empty((k, dim))
+    counts = np.empty(k, np.int64)
+    for _ in range(iterations):
+        assign(sample, np.ascontiguousarray(centres.T), labels, dist)
+        sums[:] = 0.0
+        counts[:] = 0
+        for i in range(sample.shape[0]):
+            counts[labels[i]] += 1
+            for t in range(dim):
+                sums[labels[i], t] += sample[i, t]
+        for j in range(k):
+            if counts[j] > 0:
+                for t in range(dim):
+                    centres[j, t] = sums[j, t] / counts[j]
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _better(s, o, d, i):
+    return s < d or (s == d and o < i)
+
+
+@njit(cache=True, nogil=True)
+def search(queries, centres, centresT, centre_gap, radius, starts, ring, pointsT, order, k,
+           out_index, out_dist):
+    """
+    Find the ``k`` (1 or 2) nearest reference rows of each query, exactly (see module doc).
+
+    Reference rows are stored by cell (``starts``: cell j holds columns starts[j] ..
+    starts[j+1] of ``pointsT``, dim x M) and within a cell by ``ring``, their distance to
+    the centre; ``order`` maps a column back to its reference row. A query q with nearest
+    centre c0 and current k-th best distance b skips cell j when
+    ``max(|q - c_j| - radius_j, (|q - c_j|^2 - |q - c0|^2) / (2 |c_j - c0|)) > b`` (triangle
+    inequality; distance to the bisecting plane, since every member of j is nearer c_j than
+    c0), and in a visited cell scans only members with ``|ring - |q - c_j|| <= b``.
+    """
+    ncell = centres.shape[0]
+    dc = np.empty(ncell)
+    scratch = np.empty(pointsT.shape[1])
+    for i in range(queries.shape[0]):
+        q = queries[i]
+        squared_distances_to(centresT, q, dc)
+        visit = np.argsort(dc)
+        c0 = visit[0]
+        d1 = np.inf
+        d2 = np.inf
+        i1 = -1
+        i2 = -1
+        for v in range(ncell):
+            j = visit[v]
+            b2 = d1 if k == 1 else d2  # squared k-th best so far
+            b = np.sqrt(b2)
+            dj = np.sqrt(dc[j])
+            low = dj - radius[j]
+            if j != c0:
+                plane = (dc[j] - dc[c0]) / (2.0 * centre_gap[j, c0])
+                low = max(low, plane)
+            if low * (1.0 - _REL) - _ABS > b:
+                continue
+            a = starts[j]
+            e = starts[j + 1]
+            if b2 < np.inf:
+                a += np.searchsorted(ring[a:e], (dj - b) * (1.0 - _REL) - _ABS)
+                e = a + np.searchsorted(ring[a:e], (dj + b) * (1.0 + _REL) + _ABS, side='right')
+            if e <= a:
+                continue
+            acc = scratch[:e - a]
+            acc[:] = 0.0
+            for t in range(pointsT.shape[0]):
+                value = q[t]
+                row = pointsT[t, a:e]
+                for p in range(e - a):
+                    diff = value - row[p]
+                    acc[p] += diff * diff
+            for p in range(e - a):
+                s = acc[p]
+                if s > b2:
+                    continue
+                o = order[a + p]
+                if _better(s, o, d1, i1):
+                    d2, i2 = d1, i1
+                    d1, i1 = s, o
+                elif k == 2 and _better(s, o, d2, i2):
+                    d2, i2 = s, o
+                b2 = d1 if k == 1 else d2
+        out_index[i, 0] = i1
+        out_dist[i, 0] = np.sqrt(d1)
+        if k == 2:
+            out_index[i, 1] = i2
+            out_dist[i, 1] = np.sqrt(d2)

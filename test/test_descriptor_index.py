@@ -1,0 +1,72 @@
+"""The exact descriptor index against plain numpy brute force (frontend/descriptor_index.py)."""
+
+import numpy as np
+import pytest
+
+from cgags_ros.config.frontend import FrontEndConfig
+from cgags_ros.frontend.descriptor_index import DescriptorIndex
+from cgags_ros.frontend.matching import informative_index, match_features
+
+
+def _brute(query, reference, k):
+    """Nearest k by exact distance, ties to the lower row (stable sort)."""
+    d = np.sqrt(((query[:, None, :] - reference[None, :, :]) ** 2).sum(axis=2))
+    return np.argsort(d, axis=1, kind='stable')[:, :k]
+
+
+def _clustered(rng, n, dim=33, clusters=12):
+    """FPFH-like rows: clustered, non-negative, with exact duplicates among them."""
+    centres = rng.random((clusters, dim)) * 50
+    rows = centres[rng.integers(0, clusters, n)] + rng.normal(0, 2.0, (n, dim))
+    rows = np.abs(rows)
+    rows[rng.integers(0, n, n // 10)] = rows[0]  # many identical descriptors
+    return rows
+
+
+@pytest.mark.parametrize('seed', range(4))
+@pytest.mark.parametrize('k', [1, 2])
+def test_index_equals_brute_force(seed, k):
+    rng = np.random.default_rng(seed)
+    ref = _clustered(rng, 1500)
+    query = np.vstack([_clustered(rng, 700), ref[:50], ref[:50] + 1e-13])
+    index = DescriptorIndex(ref, workers=2, seed=seed)
+    assert len(index.centres) > 1  # the pruning bounds are exercised
+    got, dist = index.query(query, k, workers=2)
+    np.testing.assert_array_equal(got, _brute(query, ref, k))
+    np.testing.assert_allclose(dist, np.linalg.norm(query[:, None, :] - ref[got], axis=2),
+                               rtol=1e-12, atol=1e-12)
+
+
+def test_index_result_independent_of_seed_and_workers():
+    rng = np.random.default_rng(7)
+    ref, query = _clustered(rng, 3000, dim=8), _clustered(rng, 2000, dim=8)
+    a = DescriptorIndex(ref, workers=1, seed=0).query(query, 2, workers=1)[0]
+    b = DescriptorIndex(ref, workers=3, seed=99).query(query, 2, workers=3)[0]
+    np.testing.assert_array_equal(a, b)
+
+
+def test_index_of_identical_rows_and_tiny_references():
+    same = np.ones((300, 5))
+    np.testing.assert_array_equal(DescriptorIndex(same).query(same, 2)[0][:, :2],
+                                  np.tile([0, 1], (300, 1)))
+    one = np.arange(4.0)[None, :]
+    assert DescriptorIndex(one).query(np.zeros((3, 4)), 1)[0].ravel().tolist() == [0, 0, 0]
+    with pytest.raises(ValueError):
+        DescriptorIndex(one).query(np.zeros((1, 4)), 2)
+    with pytest.raises(ValueError):
+        DescriptorIndex(np.zeros((0, 4)))
+
+
+def test_match_features_with_a_kept_index_and_a_wrong_one():
+    rng = np.random.default_rng(3)
+    src, dst = _clustered(rng, 800), _clustered(rng, 900)
+    dst[:20] = 0.0  # uninformative rows are left out of the index
+    cfg = FrontEndConfig()
+    kept = informative_index(dst)
+    fresh = match_features(src, dst, cfg)
+    again = match_features(src, dst, cfg, target_index=kept)
+    for field in ('source_index', 'target_index', 'distance'):
+        np.testing.assert_array_equal(getattr(fresh, field), getattr(again, field))
+    assert informative_index(np.zeros((5, 33))) is None
+    with pytest.raises(ValueError, match='not an index of this target'):
+        match_features(src, dst, cfg, target_index=informative_index(src))
