@@ -1,11 +1,10 @@
 """The exact descriptor index against plain numpy brute force (frontend/descriptor_index.py)."""
 
-import numpy as np
-import pytest
-
 from cgags_ros.config.frontend import FrontEndConfig
 from cgags_ros.frontend.descriptor_index import DescriptorIndex
 from cgags_ros.frontend.matching import informative_index, match_features
+import numpy as np
+import pytest
 
 
 def _brute(query, reference, k):

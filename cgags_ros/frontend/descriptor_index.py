@@ -10,12 +10,10 @@ those distances; a latched target or a map builds it once and reuses it
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-import threading
-
 import numpy as np
 
 from . import kernels_index
+from .parallel import run_chunks
 
 # Cells ~ sqrt(M) / 2.5, at most 256: the cost of visiting the cells' centres grows with
 # their count and the cost of scanning their members with M / count; measured on the
@@ -24,11 +22,6 @@ _CELLS_PER_SQRT = 0.4
 _MAX_CELLS = 256
 _SAMPLE_PER_CELL = 64  # k-means runs on at most this many rows a cell
 _ITERATIONS = 8
-_QUERY_CHUNK = 512  # queries per task, so that threads finish close together
-
-_pool: ThreadPoolExecutor | None = None
-_pool_size = 0
-_pool_lock = threading.Lock()
 
 
 class DescriptorIndex:
@@ -55,8 +48,8 @@ class DescriptorIndex:
         labels = np.empty(self.size, dtype=np.int64)
         ring = np.empty(self.size)
         centresT = np.ascontiguousarray(centres.T)
-        _run(lambda a, b: kernels_index.assign(ref[a:b], centresT, labels[a:b], ring[a:b]),
-             self.size, workers)
+        run_chunks(lambda a, b: kernels_index.assign(ref[a:b], centresT, labels[a:b],
+                                                     ring[a:b]), self.size, workers)
         # Drop cells without members: a centre that duplicates another gets none (ties go
         # to the lower one), so every pair of centres left is apart and the plane bound
         # never divides by zero.
@@ -87,23 +80,7 @@ class DescriptorIndex:
         q = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, self.dim)
         index = np.empty((len(q), k), dtype=np.int64)
         dist = np.empty((len(q), k))
-        _run(lambda a, b: kernels_index.search(
+        run_chunks(lambda a, b: kernels_index.search(
             q[a:b], self.centres, self.centresT, self.centre_gap, self.radius, self.starts,
             self.ring, self.pointsT, self.order, k, index[a:b], dist[a:b]), len(q), workers)
         return index, dist
-
-
-def _run(task, n: int, workers: int) -> None:
-    """Run ``task(a, b)`` over [0, n) in chunks, on ``workers`` threads (nogil kernels)."""
-    if workers <= 1 or n <= _QUERY_CHUNK:
-        task(0, n)
-        return
-    global _pool, _pool_size
-    with _pool_lock:
-        if _pool is None or _pool_size < workers:
-            _pool = ThreadPoolExecutor(workers, thread_name_prefix='cgags_match')
-            _pool_size = workers
-        pool = _pool
-    bounds = list(range(0, n, _QUERY_CHUNK)) + [n]
-    for part in [pool.submit(task, a, b) for a, b in zip(bounds[:-1], bounds[1:])]:
-        part.result()

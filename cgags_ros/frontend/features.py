@@ -15,8 +15,10 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
+from . import kernels_fpfh
 from .descriptor_index import DescriptorIndex
 from .matching import informative_index
+from .parallel import run_chunks
 from ..config.frontend import FrontEndConfig
 from ..errors import EmptyCloudError, InvalidInputError
 from ..geometry import point_resolution
@@ -121,27 +123,50 @@ def estimate_normals(points: np.ndarray, voxel_size: float,
 
 
 def compute_fpfh(points: np.ndarray, normals: np.ndarray, voxel_size: float,
-                 config: FrontEndConfig) -> np.ndarray:
+                 config: FrontEndConfig, workers: int = 1) -> np.ndarray:
     """
     Compute the (M, 33) FPFH descriptors with radius ``fpfh_radius_factor * v``.
 
-    Open3D's tensor implementation (hybrid search, float64) gives the same values as the
-    legacy ``pipelines.registration.compute_fpfh_feature`` and is faster; tensor normals
-    likewise match the legacy ones (docs/implementation.md).
+    Open3D's definition (the ``fpfh_max_nn`` nearest within the radius), computed by the
+    kernels of :mod:`.kernels_fpfh` with one neighbour search for both passes, on
+    ``workers`` threads; values equal Open3D's to rounding (docs/implementation.md).
     """
-    cloud = _tensor_cloud(points, normals)
-    feature = o3d.t.pipelines.registration.compute_fpfh_feature(
-        cloud, max_nn=config.fpfh_max_nn, radius=config.fpfh_radius_factor * voxel_size)
-    return feature.numpy().astype(np.float64, copy=False)
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    nrm = np.ascontiguousarray(normals, dtype=np.float64)
+    radius = config.fpfh_radius_factor * voxel_size
+    max_nn = min(config.fpfh_max_nn, len(pts))
+    cell = radius * (1.0 + 1e-9)  # every neighbour within radius is in the 3x3x3 cells
+    lower = pts.min(axis=0)
+    cells = np.floor((pts - lower) / cell).astype(np.int64) + 1
+    ny, nz = cells[:, 1].max() + 2, cells[:, 2].max() + 2
+    keys = (cells[:, 0] * ny + cells[:, 1]) * nz + cells[:, 2]
+    order = np.argsort(keys, kind='stable')
+    cell_key, cell_start = np.unique(keys[order], return_index=True)
+    cell_start = np.append(cell_start, len(pts))
+    sorted_points = np.ascontiguousarray(pts[order])
+    nbr = np.empty((len(pts), max_nn), dtype=np.int64)
+    d2 = np.empty((len(pts), max_nn))
+    count = np.empty(len(pts), dtype=np.int64)
+    run_chunks(lambda a, b: kernels_fpfh.radius_neighbours(
+        pts, a, b, cells, order, sorted_points, cell_key, cell_start, ny, nz, lower, cell,
+        radius, max_nn, nbr, d2, count), len(pts), workers)
+    spf = np.zeros((len(pts), 33))
+    run_chunks(lambda a, b: kernels_fpfh.spfh(pts, nrm, a, b, nbr, count, spf), len(pts),
+               workers)
+    out = np.zeros((len(pts), 33))
+    run_chunks(lambda a, b: kernels_fpfh.fpfh(spf, a, b, nbr, d2, count, out), len(pts),
+               workers)
+    return out
 
 
 def extract_features(points: np.ndarray, voxel_size: float, config: FrontEndConfig,
-                     name: str = 'cloud',
-                     timings: dict[str, float] | None = None) -> CloudFeatures:
+                     name: str = 'cloud', timings: dict[str, float] | None = None,
+                     workers: int = 1) -> CloudFeatures:
     """
     Extract features: finite points -> downsample -> normals -> FPFH.
 
-    Each stage's seconds are added to ``timings``.
+    Each stage's seconds are added to ``timings``; FPFH runs on ``workers`` threads (the
+    result does not depend on it).
     """
     timings = {} if timings is None else timings
     with timed(timings, 'downsample'):
@@ -149,7 +174,7 @@ def extract_features(points: np.ndarray, voxel_size: float, config: FrontEndConf
     with timed(timings, 'normals'):
         normals = estimate_normals(down, voxel_size, config)
     with timed(timings, 'fpfh'):
-        descriptors = compute_fpfh(down, normals, voxel_size, config)
+        descriptors = compute_fpfh(down, normals, voxel_size, config, workers)
     tree = cKDTree(down)
     return CloudFeatures(down, normals, descriptors, point_resolution(down, tree), tree)
 

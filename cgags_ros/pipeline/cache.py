@@ -18,8 +18,8 @@ _cache_lock = threading.Lock()
 
 
 def cached_features(points: np.ndarray, voxel_size: float, config: FrontEndConfig,
-                    name: str = 'cloud',
-                    timings: dict[str, float] | None = None) -> CloudFeatures:
+                    name: str = 'cloud', timings: dict[str, float] | None = None,
+                    workers: int = 1) -> CloudFeatures:
     """
     Run :func:`extract_features`, remembered for the last two clouds.
 
@@ -39,7 +39,7 @@ def cached_features(points: np.ndarray, voxel_size: float, config: FrontEndConfi
         for stage in ('downsample', 'normals', 'fpfh') if timings is not None else ():
             timings.setdefault(stage, 0.0)  # no time spent, but keep the keys
         return hit
-    features = extract_features(points, voxel_size, config, name, timings)
+    features = extract_features(points, voxel_size, config, name, timings, workers)
     with _cache_lock:
         _cache[key] = features
         while len(_cache) > _CACHE_SIZE:

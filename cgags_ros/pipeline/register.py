@@ -76,9 +76,9 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
     dst = None if isinstance(target, PreparedMap) else finite_points(target, 'target')
     result = PipelineResult(voxel_size=v)
     try:
-        fs = cached_features(src, v, cfg.frontend, 'source', result.timings)
+        fs = cached_features(src, v, cfg.frontend, 'source', result.timings, workers)
         ft = (target.features if dst is None
-              else cached_features(dst, v, cfg.frontend, 'target', result.timings))
+              else cached_features(dst, v, cfg.frontend, 'target', result.timings, workers))
     except EmptyCloudError as exc:  # data too small for this voxel size: not a crash
         return result.finish(start, str(exc))
     result.num_source_points, result.num_target_points = len(fs.points), len(ft.points)

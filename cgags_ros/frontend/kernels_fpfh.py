@@ -1,0 +1,210 @@
+"""
+Compiled kernels (numba) of the FPFH descriptors the correspondences are matched on.
+
+FPFH (Rusu et al., ICRA 2009) is the feature the paper matches to get its putative
+correspondences (METHOD.md, "Input"). These kernels compute Open3D's definition of it
+(``pipelines/registration/Feature.cpp``: pair features, 11 bins per angle, SPFH weights
+100 / neighbours, FPFH = own SPFH + neighbours' SPFH weighted by 1 / squared distance, each
+block scaled to 100) with two shortcuts that change no value:
+
+- one neighbour search serves both passes (Open3D searches twice), on a voxel grid of
+  cell size r, whose neighbour cells are ranges of one sorted key array
+  (:func:`radius_neighbours`);
+- every SPFH is computed once, before the FPFH pass reads it (as Open3D does).
+
+Neighbours are the ``max_nn`` nearest within the radius, the point itself included, as in
+Open3D's hybrid search; ties at the ``max_nn``-th distance go to the lower row.
+All kernels are ``nogil`` over a range of points (the caller splits them over threads) and
+cached on disk (``cache=True``).
+"""
+
+from __future__ import annotations
+
+from numba import njit
+import numpy as np
+
+
+@njit(cache=True, nogil=True)
+def radius_neighbours(points, first, last, cells, order, sorted_points, cell_key, cell_start,
+                      ny, nz, lower, cell, radius, max_nn, nbr, d2, count):
+    """
+    Fill rows ``first`` .. ``last`` of ``nbr``/``d2``/``count`` with each point's neighbours.
+
+    ``cells``: each point's integer cell (ix, iy, iz) >= 1 on a grid of cell size ``cell``
+    >= radius (cell ix spans ``lower + (ix - 1) * cell`` to the next), whose linear key
+    is ``(ix * ny + iy) * nz + iz`` (ny, nz leave a free cell on each side, so
+    neighbouring keys never wrap); ``order``: the rows sorted by key, and
+    ``sorted_points`` = ``points[order]`` (read in memory order);
+    ``cell_key``/``cell_start``: the occupied keys, ascending, and where their points start
+    in ``order``. Row i gets the ``max_nn`` nearest points within ``radius`` (itself
+    included; not sorted), their squared distances and their count.
+    """
+    r2 = radius * radius
+    buf_j = np.empty(len(order), np.int64)
+    buf_d = np.empty(len(order))
+    for i in range(first, last):
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        ix, iy, iz = cells[i, 0], cells[i, 1], cells[i, 2]
+        n = 0
+        for dx in range(-1, 2):
+            gx = _gap(px, lower[0] + (ix + dx - 1) * cell, cell)
+            for dy in range(-1, 2):
+                gxy = gx + _gap(py, lower[1] + (iy + dy - 1) * cell, cell)
+                if gxy > r2:
+                    continue  # the whole row of cells is out of reach
+                base = ((ix + dx) * ny + (iy + dy)) * nz + iz
+                lo = np.searchsorted(cell_key, base - 1)
+                hi = np.searchsorted(cell_key, base + 1, side='right')
+                for c in range(lo, hi):
+                    z = iz + cell_key[c] - base
+                    if gxy + _gap(pz, lower[2] + (z - 1) * cell, cell) > r2:
+                        continue
+                    for s in range(cell_start[c], cell_start[c + 1]):
+                        ex = sorted_points[s, 0] - px
+                        ey = sorted_points[s, 1] - py
+                        ez = sorted_points[s, 2] - pz
+                        e = ex * ex + ey * ey + ez * ez
+                        if e <= r2:
+                            buf_j[n] = order[s]
+                            buf_d[n] = e
+                            n += 1
+        if n > max_nn:
+            _select(buf_d, buf_j, n, max_nn)
+            n = max_nn
+        nbr[i, :n] = buf_j[:n]
+        d2[i, :n] = buf_d[:n]
+        count[i] = n
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _gap(x, start, size):
+    """Squared distance from x to the interval [start, start + size]."""
+    g = max(start - x, x - start - size, 0.0)
+    return g * g
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _before(d, j, s, t):
+    return d[s] < d[t] or (d[s] == d[t] and j[s] < j[t])
+
+
+@njit(cache=True, nogil=True)
+def _select(d, j, n, m):
+    """Move the m smallest (d, j) of the first n entries to the front (quickselect, in place)."""
+    lo, hi = 0, n - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        # median of three as the pivot, kept at hi
+        if _before(d, j, mid, lo):
+            d[mid], d[lo] = d[lo], d[mid]
+            j[mid], j[lo] = j[lo], j[mid]
+        if _before(d, j, hi, lo):
+            d[hi], d[lo] = d[lo], d[hi]
+            j[hi], j[lo] = j[lo], j[hi]
+        if _before(d, j, mid, hi):
+            d[mid], d[hi] = d[hi], d[mid]
+            j[mid], j[hi] = j[hi], j[mid]
+        store = lo
+        for s in range(lo, hi):
+            if _before(d, j, s, hi):
+                d[s], d[store] = d[store], d[s]
+                j[s], j[store] = j[store], j[s]
+                store += 1
+        d[store], d[hi] = d[hi], d[store]
+        j[store], j[hi] = j[hi], j[store]
+        if store == m - 1 or store == m:
+            return
+        if store < m:
+            lo = store + 1
+        else:
+            hi = store - 1
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _bin(x):
+    return min(max(np.int64(np.floor(x)), 0), 10)
+
+
+@njit(cache=True, nogil=True)
+def spfh(points, normals, first, last, nbr, count, out):
+    """
+    Set rows ``first`` .. ``last`` of ``out`` to the simplified point feature histograms.
+
+    Open3D's ``ComputePairFeatures`` (Darboux frame at the point whose normal is more
+    orthogonal to the connecting line) per neighbour pair; a degenerate pair (coincident
+    points, or a normal along the line) counts with zero features, as there.
+    """
+    two_pi = 2.0 * np.pi
+    for i in range(first, last):
+        c = count[i]
+        if c <= 1:
+            continue
+        inc = 100.0 / (c - 1)
+        for k in range(c):
+            j = nbr[i, k]
+            if j == i:
+                continue
+            f0 = 0.0
+            f1 = 0.0
+            f2 = 0.0
+            dx = points[j, 0] - points[i, 0]
+            dy = points[j, 1] - points[i, 1]
+            dz = points[j, 2] - points[i, 2]
+            dn = np.sqrt(dx * dx + dy * dy + dz * dz)
+            if dn > 0.0:
+                a0, a1, a2 = normals[i, 0], normals[i, 1], normals[i, 2]
+                b0, b1, b2 = normals[j, 0], normals[j, 1], normals[j, 2]
+                angle1 = (a0 * dx + a1 * dy + a2 * dz) / dn
+                angle2 = (b0 * dx + b1 * dy + b2 * dz) / dn
+                if np.arccos(abs(angle1)) > np.arccos(abs(angle2)):
+                    a0, a1, a2, b0, b1, b2 = b0, b1, b2, a0, a1, a2
+                    dx, dy, dz = -dx, -dy, -dz
+                    f2 = -angle2
+                else:
+                    f2 = angle1
+                v0 = dy * a2 - dz * a1
+                v1 = dz * a0 - dx * a2
+                v2 = dx * a1 - dy * a0
+                vn = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+                if vn > 0.0:
+                    v0 /= vn
+                    v1 /= vn
+                    v2 /= vn
+                    w0 = a1 * v2 - a2 * v1
+                    w1 = a2 * v0 - a0 * v2
+                    w2 = a0 * v1 - a1 * v0
+                    f1 = v0 * b0 + v1 * b1 + v2 * b2
+                    f0 = np.arctan2(w0 * b0 + w1 * b1 + w2 * b2, a0 * b0 + a1 * b1 + a2 * b2)
+                else:
+                    f2 = 0.0
+            out[i, _bin(11.0 * (f0 + np.pi) / two_pi)] += inc
+            out[i, 11 + _bin(11.0 * (f1 + 1.0) * 0.5)] += inc
+            out[i, 22 + _bin(11.0 * (f2 + 1.0) * 0.5)] += inc
+
+
+@njit(cache=True, nogil=True)
+def fpfh(spf, first, last, nbr, d2, count, out):
+    """
+    Set rows ``first`` .. ``last`` of ``out`` to the FPFH from the SPFH rows ``spf``.
+
+    Own SPFH plus the neighbours' weighted by 1 / squared distance, each 11-bin block of
+    the neighbours' part scaled to sum to 100 (Open3D's ``ComputeFPFHFeature``).
+    """
+    for i in range(first, last):
+        c = count[i]
+        if c <= 1:
+            continue
+        for k in range(c):
+            if d2[i, k] == 0.0:
+                continue
+            w = 1.0 / d2[i, k]
+            j = nbr[i, k]
+            for t in range(33):
+                out[i, t] += spf[j, t] * w
+        for block in range(3):
+            total = 0.0
+            for t in range(11 * block, 11 * block + 11):
+                total += out[i, t]
+            scale = 100.0 / total if total != 0.0 else 0.0
+            for t in range(11 * block, 11 * block + 11):
+                out[i, t] = out[i, t] * scale + spf[i, t]

@@ -1,0 +1,81 @@
+"""FPFH kernels (frontend/kernels_fpfh.py) against Open3D's FPFH and a k-d tree's neighbours."""
+
+from cgags_ros.config.frontend import FrontEndConfig
+from cgags_ros.frontend import kernels_fpfh
+from cgags_ros.frontend.features import compute_fpfh, downsample, estimate_normals
+from cgags_ros.io.clouds import read_cloud
+import numpy as np
+import open3d as o3d
+import pytest
+from scipy.spatial import cKDTree
+
+
+@pytest.fixture(scope='module', params=[('objects/stanford_bunny_scans/bun000.ply', 0.003),
+                                        ('lidar/small_gicp/source.ply', 0.4)])
+def cloud(request, data_dir):
+    """Downsampled points and oriented normals of a real scan, and its voxel size."""
+    path, voxel = request.param
+    points = downsample(read_cloud(data_dir / path), voxel, 10)
+    return points, estimate_normals(points, voxel, FrontEndConfig()), voxel
+
+
+def _open3d_fpfh(points, normals, voxel, cfg):
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    pcd.normals = o3d.utility.Vector3dVector(normals)
+    param = o3d.geometry.KDTreeSearchParamHybrid(radius=cfg.fpfh_radius_factor * voxel,
+                                                 max_nn=cfg.fpfh_max_nn)
+    return np.asarray(o3d.pipelines.registration.compute_fpfh_feature(pcd, param).data).T
+
+
+@pytest.mark.parametrize('max_nn', [100, 20])
+def test_fpfh_equals_open3d(cloud, max_nn):
+    points, normals, voxel = cloud
+    cfg = FrontEndConfig(fpfh_max_nn=max_nn)
+    ours = compute_fpfh(points, normals, voxel, cfg, workers=2)
+    ref = _open3d_fpfh(points, normals, voxel, cfg)
+    # Rows whose max_nn-th neighbour ties with the next may pick another neighbour than
+    # Open3D (ties go to the lower row here): a handful at most on real scans.
+    close = np.abs(ours - ref).max(axis=1) < 1e-9
+    assert close.mean() > 0.99
+    assert np.array_equal(ours, compute_fpfh(points, normals, voxel, cfg, workers=1))
+
+
+def test_radius_neighbours_are_the_nearest_within_the_radius(cloud):
+    points, _, voxel = cloud
+    radius, max_nn = 5 * voxel, 30
+    tree = cKDTree(points)
+    nbr = np.empty((len(points), max_nn), dtype=np.int64)
+    d2 = np.empty((len(points), max_nn))
+    count = np.empty(len(points), dtype=np.int64)
+    cell = radius * (1 + 1e-9)
+    lower = points.min(axis=0)
+    cells = np.floor((points - lower) / cell).astype(np.int64) + 1
+    ny, nz = cells[:, 1].max() + 2, cells[:, 2].max() + 2
+    keys = (cells[:, 0] * ny + cells[:, 1]) * nz + cells[:, 2]
+    order = np.argsort(keys, kind='stable')
+    cell_key, start = np.unique(keys[order], return_index=True)
+    kernels_fpfh.radius_neighbours(points, 0, len(points), cells, order, points[order],
+                                   cell_key, np.append(start, len(points)), ny, nz, lower,
+                                   cell, radius, max_nn, nbr, d2, count)
+    dist, idx = tree.query(points, k=max_nn + 1, distance_upper_bound=radius)
+    for i in range(0, len(points), 7):
+        within = np.isfinite(dist[i, :max_nn])
+        assert count[i] == within.sum()
+        got = nbr[i, :count[i]]
+        np.testing.assert_allclose(np.sort(d2[i, :count[i]]), dist[i, :max_nn][within] ** 2,
+                                   rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(np.sum((points[got] - points[i]) ** 2, axis=1),
+                                   d2[i, :count[i]], rtol=1e-12, atol=1e-15)
+        if not np.isfinite(dist[i, max_nn]) or dist[i, max_nn] > dist[i, max_nn - 1]:
+            assert set(got) == set(idx[i, :max_nn][within])  # no tie at the cut: the same set
+
+
+def test_select_keeps_the_smallest_with_ties_to_the_lower_row():
+    rng = np.random.default_rng(5)
+    for n, m in [(50, 10), (200, 100), (7, 6), (30, 1)]:
+        d = rng.integers(0, 12, n).astype(float)  # many ties
+        j = rng.permutation(n).astype(np.int64)
+        want = sorted(zip(d, j))[:m]
+        dd, jj = d.copy(), j.copy()
+        kernels_fpfh._select(dd, jj, n, m)
+        assert sorted(zip(dd[:m], jj[:m])) == want
