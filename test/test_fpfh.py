@@ -1,8 +1,9 @@
-"""FPFH kernels (frontend/kernels_fpfh.py) against Open3D's FPFH and a k-d tree's neighbours."""
+"""FPFH (frontend/fpfh.py and its kernels) against Open3D's FPFH and a k-d tree's neighbours."""
 
 from cgags_ros.config.frontend import FrontEndConfig
 from cgags_ros.frontend import kernels_fpfh
-from cgags_ros.frontend.features import compute_fpfh, downsample, estimate_normals
+from cgags_ros.frontend.features import downsample, estimate_normals
+from cgags_ros.frontend.fpfh import compute_fpfh, radius_neighbours
 from cgags_ros.io.clouds import read_cloud
 import numpy as np
 import open3d as o3d
@@ -44,19 +45,7 @@ def test_radius_neighbours_are_the_nearest_within_the_radius(cloud):
     points, _, voxel = cloud
     radius, max_nn = 5 * voxel, 30
     tree = cKDTree(points)
-    nbr = np.empty((len(points), max_nn), dtype=np.int64)
-    d2 = np.empty((len(points), max_nn))
-    count = np.empty(len(points), dtype=np.int64)
-    cell = radius * (1 + 1e-9)
-    lower = points.min(axis=0)
-    cells = np.floor((points - lower) / cell).astype(np.int64) + 1
-    ny, nz = cells[:, 1].max() + 2, cells[:, 2].max() + 2
-    keys = (cells[:, 0] * ny + cells[:, 1]) * nz + cells[:, 2]
-    order = np.argsort(keys, kind='stable')
-    cell_key, start = np.unique(keys[order], return_index=True)
-    kernels_fpfh.radius_neighbours(points, 0, len(points), cells, order, points[order],
-                                   cell_key, np.append(start, len(points)), ny, nz, lower,
-                                   cell, radius, max_nn, nbr, d2, count)
+    nbr, d2, count = radius_neighbours(points, radius, max_nn, workers=2)
     dist, idx = tree.query(points, k=max_nn + 1, distance_upper_bound=radius)
     for i in range(0, len(points), 7):
         within = np.isfinite(dist[i, :max_nn])

@@ -22,6 +22,7 @@ _CELLS_PER_SQRT = 0.4
 _MAX_CELLS = 256
 _SAMPLE_PER_CELL = 64  # k-means runs on at most this many rows a cell
 _ITERATIONS = 8
+_PROJECTED = 8  # principal directions of the screening distance
 
 
 class DescriptorIndex:
@@ -61,7 +62,13 @@ class DescriptorIndex:
         self.order = np.lexsort((np.arange(self.size), ring, labels))
         self.starts = np.searchsorted(labels[self.order], np.arange(len(self.centres) + 1))
         self.ring = np.ascontiguousarray(ring[self.order])
-        self.pointsT = np.ascontiguousarray(ref[self.order].T)
+        self.points = np.ascontiguousarray(ref[self.order])
+        # Leading principal directions of the sample: distances along them bound the full
+        # distance from below and are a fraction of its cost to compute.
+        spread = sample - sample.mean(axis=0)
+        _, vectors = np.linalg.eigh(spread.T @ spread)
+        self.basis = np.ascontiguousarray(vectors[:, ::-1][:, :min(_PROJECTED, self.dim)].T)
+        self.projectedT = np.ascontiguousarray(self.basis @ self.points.T)
         self.radius = np.zeros(len(self.centres))
         np.maximum.at(self.radius, labels, ring)
         diff = self.centres[:, None, :] - self.centres[None, :, :]
@@ -82,5 +89,6 @@ class DescriptorIndex:
         dist = np.empty((len(q), k))
         run_chunks(lambda a, b: kernels_index.search(
             q[a:b], self.centres, self.centresT, self.centre_gap, self.radius, self.starts,
-            self.ring, self.pointsT, self.order, k, index[a:b], dist[a:b]), len(q), workers)
+            self.ring, self.points, self.basis, self.projectedT, self.order, k, index[a:b],
+            dist[a:b]), len(q), workers)
         return index, dist

@@ -15,10 +15,9 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from . import kernels_fpfh
 from .descriptor_index import DescriptorIndex
+from .fpfh import compute_fpfh
 from .matching import informative_index
-from .parallel import run_chunks
 from ..config.frontend import FrontEndConfig
 from ..errors import EmptyCloudError, InvalidInputError
 from ..geometry import point_resolution
@@ -120,43 +119,6 @@ def estimate_normals(points: np.ndarray, voxel_size: float,
     flip = np.einsum('ij,ij->i', normals, viewpoint - points) < 0
     normals[flip] *= -1.0
     return normals
-
-
-def compute_fpfh(points: np.ndarray, normals: np.ndarray, voxel_size: float,
-                 config: FrontEndConfig, workers: int = 1) -> np.ndarray:
-    """
-    Compute the (M, 33) FPFH descriptors with radius ``fpfh_radius_factor * v``.
-
-    Open3D's definition (the ``fpfh_max_nn`` nearest within the radius), computed by the
-    kernels of :mod:`.kernels_fpfh` with one neighbour search for both passes, on
-    ``workers`` threads; values equal Open3D's to rounding (docs/implementation.md).
-    """
-    pts = np.ascontiguousarray(points, dtype=np.float64)
-    nrm = np.ascontiguousarray(normals, dtype=np.float64)
-    radius = config.fpfh_radius_factor * voxel_size
-    max_nn = min(config.fpfh_max_nn, len(pts))
-    cell = radius * (1.0 + 1e-9)  # every neighbour within radius is in the 3x3x3 cells
-    lower = pts.min(axis=0)
-    cells = np.floor((pts - lower) / cell).astype(np.int64) + 1
-    ny, nz = cells[:, 1].max() + 2, cells[:, 2].max() + 2
-    keys = (cells[:, 0] * ny + cells[:, 1]) * nz + cells[:, 2]
-    order = np.argsort(keys, kind='stable')
-    cell_key, cell_start = np.unique(keys[order], return_index=True)
-    cell_start = np.append(cell_start, len(pts))
-    sorted_points = np.ascontiguousarray(pts[order])
-    nbr = np.empty((len(pts), max_nn), dtype=np.int64)
-    d2 = np.empty((len(pts), max_nn))
-    count = np.empty(len(pts), dtype=np.int64)
-    run_chunks(lambda a, b: kernels_fpfh.radius_neighbours(
-        pts, a, b, cells, order, sorted_points, cell_key, cell_start, ny, nz, lower, cell,
-        radius, max_nn, nbr, d2, count), len(pts), workers)
-    spf = np.zeros((len(pts), 33))
-    run_chunks(lambda a, b: kernels_fpfh.spfh(pts, nrm, a, b, nbr, count, spf), len(pts),
-               workers)
-    out = np.zeros((len(pts), 33))
-    run_chunks(lambda a, b: kernels_fpfh.fpfh(spf, a, b, nbr, d2, count, out), len(pts),
-               workers)
-    return out
 
 
 def extract_features(points: np.ndarray, voxel_size: float, config: FrontEndConfig,

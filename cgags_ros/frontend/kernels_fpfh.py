@@ -26,7 +26,7 @@ import numpy as np
 
 @njit(cache=True, nogil=True)
 def radius_neighbours(points, first, last, cells, order, sorted_points, cell_key, cell_start,
-                      ny, nz, lower, cell, radius, max_nn, nbr, d2, count):
+                      ny, nz, lower, cell, reach, radius, max_nn, nbr, d2, count):
     """
     Fill rows ``first`` .. ``last`` of ``nbr``/``d2``/``count`` with each point's neighbours.
 
@@ -46,18 +46,20 @@ def radius_neighbours(points, first, last, cells, order, sorted_points, cell_key
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
         ix, iy, iz = cells[i, 0], cells[i, 1], cells[i, 2]
         n = 0
-        for dx in range(-1, 2):
-            gx = _gap(px, lower[0] + (ix + dx - 1) * cell, cell)
-            for dy in range(-1, 2):
-                gxy = gx + _gap(py, lower[1] + (iy + dy - 1) * cell, cell)
+        for dx in range(-reach, reach + 1):
+            gx = _gap(px, lower[0] + (ix + dx - reach) * cell, cell)
+            if gx > r2:
+                continue
+            for dy in range(-reach, reach + 1):
+                gxy = gx + _gap(py, lower[1] + (iy + dy - reach) * cell, cell)
                 if gxy > r2:
                     continue  # the whole row of cells is out of reach
                 base = ((ix + dx) * ny + (iy + dy)) * nz + iz
-                lo = np.searchsorted(cell_key, base - 1)
-                hi = np.searchsorted(cell_key, base + 1, side='right')
+                lo = np.searchsorted(cell_key, base - reach)
+                hi = np.searchsorted(cell_key, base + reach, side='right')
                 for c in range(lo, hi):
                     z = iz + cell_key[c] - base
-                    if gxy + _gap(pz, lower[2] + (z - 1) * cell, cell) > r2:
+                    if gxy + _gap(pz, lower[2] + (z - reach) * cell, cell) > r2:
                         continue
                     for s in range(cell_start[c], cell_start[c + 1]):
                         ex = sorted_points[s, 0] - px
@@ -121,6 +123,20 @@ def _select(d, j, n, m):
 
 
 @njit(cache=True, nogil=True, inline='always')
+def _acos_greater(x, y):
+    """
+    Return ``acos(x) > acos(y)`` as Open3D computes it, with acos only where it decides.
+
+    acos falls with slope <= -1 and rounds by at most 2.2e-16 on [0, 1], so x and y more
+    than 1e-15 apart compare as ``x < y``; closer ones (e.g. both ~0 on a plane, where acos
+    rounds both to pi/2 and the comparison is False) are compared as Open3D does.
+    """
+    if abs(x - y) > 1e-15:
+        return x < y
+    return np.arccos(x) > np.arccos(y)
+
+
+@njit(cache=True, nogil=True, inline='always')
 def _bin(x):
     return min(max(np.int64(np.floor(x)), 0), 10)
 
@@ -156,7 +172,7 @@ def spfh(points, normals, first, last, nbr, count, out):
                 b0, b1, b2 = normals[j, 0], normals[j, 1], normals[j, 2]
                 angle1 = (a0 * dx + a1 * dy + a2 * dz) / dn
                 angle2 = (b0 * dx + b1 * dy + b2 * dz) / dn
-                if np.arccos(abs(angle1)) > np.arccos(abs(angle2)):
+                if _acos_greater(abs(angle1), abs(angle2)):
                     a0, a1, a2, b0, b1, b2 = b0, b1, b2, a0, a1, a2
                     dx, dy, dz = -dx, -dy, -dz
                     f2 = -angle2

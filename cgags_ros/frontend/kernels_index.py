@@ -90,25 +90,35 @@ def _better(s, o, d, i):
 
 
 @njit(cache=True, nogil=True)
-def search(queries, centres, centresT, centre_gap, radius, starts, ring, pointsT, order, k,
-           out_index, out_dist):
+def search(queries, centres, centresT, centre_gap, radius, starts, ring, points, basis,
+           projectedT, order, k, out_index, out_dist):
     """
     Find the ``k`` (1 or 2) nearest reference rows of each query, exactly (see module doc).
 
-    Reference rows are stored by cell (``starts``: cell j holds columns starts[j] ..
-    starts[j+1] of ``pointsT``, dim x M) and within a cell by ``ring``, their distance to
-    the centre; ``order`` maps a column back to its reference row. A query q with nearest
-    centre c0 and current k-th best distance b skips cell j when
+    Reference rows are stored by cell (``starts``: cell j holds rows starts[j] ..
+    starts[j+1] of ``points``, M x dim) and within a cell by ``ring``, their distance to
+    the centre; ``order`` maps a stored row back to its reference row. A query q with
+    nearest centre c0 and current k-th best distance b skips cell j when
     ``max(|q - c_j| - radius_j, (|q - c_j|^2 - |q - c0|^2) / (2 |c_j - c0|)) > b`` (triangle
     inequality; distance to the bisecting plane, since every member of j is nearer c_j than
-    c0), and in a visited cell scans only members with ``|ring - |q - c_j|| <= b``.
+    c0), and in a visited cell considers only members with ``|ring - |q - c_j|| <= b``.
+    Those are screened by their distance in the few leading principal directions
+    (``basis``, orthonormal rows; ``projectedT`` = basis @ points.T), which never exceeds
+    the full distance; only the members that pass get their exact distance.
     """
     ncell = centres.shape[0]
+    npro = basis.shape[0]
     dc = np.empty(ncell)
-    scratch = np.empty(pointsT.shape[1])
+    qp = np.empty(npro)
+    scratch = np.empty(points.shape[0])
     for i in range(queries.shape[0]):
         q = queries[i]
         squared_distances_to(centresT, q, dc)
+        for r in range(npro):
+            acc_r = 0.0
+            for t in range(q.shape[0]):
+                acc_r += basis[r, t] * q[t]
+            qp[r] = acc_r
         visit = np.argsort(dc)
         c0 = visit[0]
         d1 = np.inf
@@ -135,14 +145,19 @@ def search(queries, centres, centresT, centre_gap, radius, starts, ring, pointsT
                 continue
             acc = scratch[:e - a]
             acc[:] = 0.0
-            for t in range(pointsT.shape[0]):
-                value = q[t]
-                row = pointsT[t, a:e]
+            for r in range(npro):
+                value = qp[r]
+                row = projectedT[r, a:e]
                 for p in range(e - a):
                     diff = value - row[p]
                     acc[p] += diff * diff
             for p in range(e - a):
-                s = acc[p]
+                if acc[p] * (1.0 - _REL) - _ABS > b2:
+                    continue  # a lower bound of the squared distance already exceeds b
+                s = 0.0
+                for t in range(q.shape[0]):
+                    diff = q[t] - points[a + p, t]
+                    s += diff * diff
                 if s > b2:
                     continue
                 o = order[a + p]
