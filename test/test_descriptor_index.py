@@ -42,6 +42,9 @@ def test_index_result_independent_of_seed_and_workers():
     a = DescriptorIndex(ref, workers=1, seed=0).query(query, 2, workers=1)[0]
     b = DescriptorIndex(ref, workers=3, seed=99).query(query, 2, workers=3)[0]
     np.testing.assert_array_equal(a, b)
+    # cells and principal directions borrowed from another cloud's index: same answer
+    c = DescriptorIndex(ref, like=DescriptorIndex(query)).query(query, 2)[0]
+    np.testing.assert_array_equal(a, c)
 
 
 def test_index_of_identical_rows_and_tiny_references():

@@ -34,18 +34,23 @@ class DescriptorIndex:
     seeded, so building is deterministic too.
     """
 
-    def __init__(self, reference: np.ndarray, workers: int = 1, seed: int = 0) -> None:
-        """Build the index over the (M, D) ``reference`` rows (finite), on ``workers`` threads."""
+    def __init__(self, reference: np.ndarray, workers: int = 1, seed: int = 0,
+                 like: DescriptorIndex | None = None) -> None:
+        """
+        Build the index over the (M, D) ``reference`` rows (finite), on ``workers`` threads.
+
+        ``like``: an index of similar descriptors (the other cloud's) whose cell centres
+        and principal directions are reused instead of computing them (k-means) again.
+        """
         ref = np.ascontiguousarray(reference, dtype=np.float64)
         if ref.ndim != 2 or len(ref) == 0:
             raise ValueError(f'reference must be a non-empty (M, D) array, got {ref.shape}')
         self.size, self.dim = ref.shape
-        cells = int(np.clip(round(_CELLS_PER_SQRT * np.sqrt(self.size)), 1, _MAX_CELLS))
-        rng = np.random.default_rng(seed)
-        pick = rng.permutation(self.size)[:min(self.size, _SAMPLE_PER_CELL * cells)]
-        sample = ref[np.sort(pick)]
-        centres = sample[rng.permutation(len(sample))[:cells]].copy()
-        kernels_index.kmeans(sample, centres, _ITERATIONS)
+        if like is not None and like.dim == self.dim:
+            centres, basis = like.centres, like.basis
+        else:
+            centres, basis = self._partition(ref, seed)
+        cells = len(centres)
         labels = np.empty(self.size, dtype=np.int64)
         ring = np.empty(self.size)
         centresT = np.ascontiguousarray(centres.T)
@@ -63,16 +68,27 @@ class DescriptorIndex:
         self.starts = np.searchsorted(labels[self.order], np.arange(len(self.centres) + 1))
         self.ring = np.ascontiguousarray(ring[self.order])
         self.points = np.ascontiguousarray(ref[self.order])
-        # Leading principal directions of the sample: distances along them bound the full
-        # distance from below and are a fraction of its cost to compute.
-        spread = sample - sample.mean(axis=0)
-        _, vectors = np.linalg.eigh(spread.T @ spread)
-        self.basis = np.ascontiguousarray(vectors[:, ::-1][:, :min(_PROJECTED, self.dim)].T)
+        self.basis = basis
         self.projectedT = np.ascontiguousarray(self.basis @ self.points.T)
         self.radius = np.zeros(len(self.centres))
         np.maximum.at(self.radius, labels, ring)
         diff = self.centres[:, None, :] - self.centres[None, :, :]
         self.centre_gap = np.sqrt(np.einsum('ijk,ijk->ij', diff, diff))
+
+    def _partition(self, ref: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        """Return k-means cell centres of ``ref`` and its leading principal directions."""
+        cells = int(np.clip(round(_CELLS_PER_SQRT * np.sqrt(len(ref))), 1, _MAX_CELLS))
+        rng = np.random.default_rng(seed)
+        pick = rng.permutation(len(ref))[:min(len(ref), _SAMPLE_PER_CELL * cells)]
+        sample = ref[np.sort(pick)]
+        centres = sample[rng.permutation(len(sample))[:cells]].copy()
+        kernels_index.kmeans(sample, centres, _ITERATIONS)
+        # Distances along the leading principal directions bound the full distance from
+        # below and cost a fraction of it to compute.
+        spread = sample - sample.mean(axis=0)
+        _, vectors = np.linalg.eigh(spread.T @ spread)
+        basis = np.ascontiguousarray(vectors[:, ::-1][:, :min(_PROJECTED, self.dim)].T)
+        return centres, basis
 
     def query(self, queries: np.ndarray, k: int = 1,
               workers: int = 1) -> tuple[np.ndarray, np.ndarray]:

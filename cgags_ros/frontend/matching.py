@@ -66,7 +66,8 @@ def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfi
         # Only targets that are some source's nearest can pass: ask only them back.
         hit = np.unique(nn[:, 0])
         back = np.full(len(dst), -1)
-        back[hit] = nearest_rows(dst[hit], src, 1, workers)[:, 0]
+        source_index = DescriptorIndex(src, workers, like=target_index)
+        back[hit] = source_index.query(dst[hit], 1, workers)[0][:, 0]
         keep &= back[nn[:, 0]] == np.arange(len(src_ok))
     if k == 2:
         # Lowe: a match is distinctive when its best distance is clearly below the second.
