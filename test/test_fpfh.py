@@ -45,16 +45,14 @@ def test_radius_neighbours_are_the_nearest_within_the_radius(cloud):
     points, _, voxel = cloud
     radius, max_nn = 5 * voxel, 30
     tree = cKDTree(points)
-    nbr, d2, count = radius_neighbours(points, radius, max_nn, workers=2)
+    nbr, count = radius_neighbours(points, radius, max_nn, workers=2)
     dist, idx = tree.query(points, k=max_nn + 1, distance_upper_bound=radius)
     for i in range(0, len(points), 7):
         within = np.isfinite(dist[i, :max_nn])
         assert count[i] == within.sum()
         got = nbr[i, :count[i]]
-        np.testing.assert_allclose(np.sort(d2[i, :count[i]]), dist[i, :max_nn][within] ** 2,
-                                   rtol=1e-12, atol=1e-15)
-        np.testing.assert_allclose(np.sum((points[got] - points[i]) ** 2, axis=1),
-                                   d2[i, :count[i]], rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(np.sort(np.sum((points[got] - points[i]) ** 2, axis=1)),
+                                   dist[i, :max_nn][within] ** 2, rtol=1e-12, atol=1e-15)
         if not np.isfinite(dist[i, max_nn]) or dist[i, max_nn] > dist[i, max_nn - 1]:
             assert set(got) == set(idx[i, :max_nn][within])  # no tie at the cut: the same set
 

@@ -30,25 +30,24 @@ def compute_fpfh(points: np.ndarray, normals: np.ndarray, voxel_size: float,
     """
     pts = np.ascontiguousarray(points, dtype=np.float64)
     nrm = np.ascontiguousarray(normals, dtype=np.float64)
-    nbr, d2, count = radius_neighbours(pts, config.fpfh_radius_factor * voxel_size,
-                                       config.fpfh_max_nn, workers)
+    nbr, count = radius_neighbours(pts, config.fpfh_radius_factor * voxel_size,
+                                   config.fpfh_max_nn, workers)
     spf = np.zeros((len(pts), 33))
     run_chunks(lambda a, b: kernels_fpfh.spfh(pts, nrm, a, b, nbr, count, spf), len(pts),
                workers)
     out = np.zeros((len(pts), 33))
-    run_chunks(lambda a, b: kernels_fpfh.fpfh(spf, a, b, nbr, d2, count, out), len(pts),
+    run_chunks(lambda a, b: kernels_fpfh.fpfh(pts, spf, a, b, nbr, count, out), len(pts),
                workers)
     return out
 
 
 def radius_neighbours(points: np.ndarray, radius: float, max_nn: int,
-                      workers: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                      workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """
     Return each point's ``max_nn`` nearest points within ``radius`` (itself included).
 
-    :returns: (M, max_nn) rows (unsorted; only the first ``count`` of a row are set), their
-        squared distances, and the (M,) counts. Ties at the ``max_nn``-th distance go to the
-        lower row.
+    :returns: (M, max_nn) int32 rows (unsorted; only the first ``count`` of a row are set)
+        and the (M,) counts. Ties at the ``max_nn``-th distance go to the lower row.
     """
     pts = np.ascontiguousarray(points, dtype=np.float64)
     max_nn = max(1, min(int(max_nn), len(pts)))
@@ -61,10 +60,9 @@ def radius_neighbours(points: np.ndarray, radius: float, max_nn: int,
     cell_key, cell_start = np.unique(keys[order], return_index=True)
     cell_start = np.append(cell_start, len(pts))
     sorted_points = np.ascontiguousarray(pts[order])
-    nbr = np.empty((len(pts), max_nn), dtype=np.int64)
-    d2 = np.empty((len(pts), max_nn))
+    nbr = np.empty((len(pts), max_nn), dtype=np.int32)
     count = np.empty(len(pts), dtype=np.int64)
     run_chunks(lambda a, b: kernels_fpfh.radius_neighbours(
         pts, a, b, cells, order, sorted_points, cell_key, cell_start, ny, nz, lower, cell,
-        _REACH, radius, max_nn, nbr, d2, count), len(pts), workers)
-    return nbr, d2, count
+        _REACH, radius, max_nn, nbr, count), len(pts), workers)
+    return nbr, count

@@ -26,9 +26,9 @@ import numpy as np
 
 @njit(cache=True, nogil=True)
 def radius_neighbours(points, first, last, cells, order, sorted_points, cell_key, cell_start,
-                      ny, nz, lower, cell, reach, radius, max_nn, nbr, d2, count):
+                      ny, nz, lower, cell, reach, radius, max_nn, nbr, count):
     """
-    Fill rows ``first`` .. ``last`` of ``nbr``/``d2``/``count`` with each point's neighbours.
+    Fill rows ``first`` .. ``last`` of ``nbr``/``count`` with each point's neighbours.
 
     ``cells``: each point's integer cell (ix, iy, iz) >= 1 on a grid of cell size ``cell``
     >= radius (cell ix spans ``lower + (ix - 1) * cell`` to the next), whose linear key
@@ -37,10 +37,10 @@ def radius_neighbours(points, first, last, cells, order, sorted_points, cell_key
     ``sorted_points`` = ``points[order]`` (read in memory order);
     ``cell_key``/``cell_start``: the occupied keys, ascending, and where their points start
     in ``order``. Row i gets the ``max_nn`` nearest points within ``radius`` (itself
-    included; not sorted), their squared distances and their count.
+    included; not sorted) and their count.
     """
     r2 = radius * radius
-    buf_j = np.empty(len(order), np.int64)
+    buf_j = np.empty(len(order), nbr.dtype)
     buf_d = np.empty(len(order))
     for i in range(first, last):
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
@@ -74,7 +74,6 @@ def radius_neighbours(points, first, last, cells, order, sorted_points, cell_key
             _select(buf_d, buf_j, n, max_nn)
             n = max_nn
         nbr[i, :n] = buf_j[:n]
-        d2[i, :n] = buf_d[:n]
         count[i] = n
 
 
@@ -199,7 +198,7 @@ def spfh(points, normals, first, last, nbr, count, out):
 
 
 @njit(cache=True, nogil=True)
-def fpfh(spf, first, last, nbr, d2, count, out):
+def fpfh(points, spf, first, last, nbr, count, out):
     """
     Set rows ``first`` .. ``last`` of ``out`` to the FPFH from the SPFH rows ``spf``.
 
@@ -211,10 +210,14 @@ def fpfh(spf, first, last, nbr, d2, count, out):
         if c <= 1:
             continue
         for k in range(c):
-            if d2[i, k] == 0.0:
-                continue
-            w = 1.0 / d2[i, k]
             j = nbr[i, k]
+            ex = points[j, 0] - points[i, 0]
+            ey = points[j, 1] - points[i, 1]
+            ez = points[j, 2] - points[i, 2]
+            e = ex * ex + ey * ey + ez * ez  # as in the neighbour search: the same bits
+            if e == 0.0:
+                continue
+            w = 1.0 / e
             for t in range(33):
                 out[i, t] += spf[j, t] * w
         for block in range(3):
