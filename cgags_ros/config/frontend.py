@@ -38,9 +38,9 @@ class FrontEndConfig:
         '0 keeps all.', low=0)
     max_keypoints: int = option(
         0, 'Match at most this many source points (a coarser voxel grid over the '
-        'downsampled source, one point a cell) against every target point: matching then '
-        'grows linearly with the target instead of with source x target points; 0 matches '
-        'every point.', low=0)
+        'downsampled source, one point a cell) against every target point: fewer searches '
+        "in the target's descriptor index, but fewer correspondences; 0 matches every point.",
+        low=0)
     min_points: int = option(
         10, 'Fewer points than this after downsampling is rejected as an empty cloud.', low=3)
     inlier_threshold: float = option(

@@ -6,8 +6,8 @@ descriptor's nearest target descriptor. The index partitions the reference descr
 cells by k-means (:func:`kmeans`, :func:`assign`); a query visits the cells nearest first
 and skips a cell when a lower bound on the distance to any of its members already exceeds
 the k-th best distance found (:func:`search`). The bounds are exact, so the search returns
-what brute force would, at a fraction of its distance computations (docs/implementation.md,
-"Descriptor index").
+what brute force would, at a fraction of its distance computations (measurements in
+docs/implementation.md, "Front end").
 
 Distances are float64 sums of squared differences in dimension order; they are compared as
 squares and ties go to the lower reference row. Every kernel is ``nogil`` (the caller

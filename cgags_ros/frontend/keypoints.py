@@ -1,8 +1,8 @@
 """
 Bounded matching: match at most ``max_keypoints`` source points against the whole target.
 
-Brute-force descriptor matching costs source points x target points; matching a bounded,
-spatially even subset of the source (keypoints) makes it linear in the target's size.
+Matching costs one search of the target's descriptor index per source point; matching a
+bounded, spatially even subset of the source (keypoints) bounds the number of searches.
 The subset is a coarser voxel grid over the downsampled source, one point a cell (the one
 nearest the cell's centroid), with the cell size grown until at most ``max_keypoints``
 cells are occupied: reproducible for the same input (no randomness). Not independent of
