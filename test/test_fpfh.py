@@ -1,7 +1,7 @@
 """FPFH (frontend/fpfh.py and its kernels) against Open3D's FPFH and a k-d tree's neighbours."""
 
 from cgags_ros.config.frontend import FrontEndConfig
-from cgags_ros.frontend import kernels_fpfh
+from cgags_ros.frontend import fpfh, kernels_fpfh
 from cgags_ros.frontend.features import downsample, estimate_normals
 from cgags_ros.frontend.fpfh import compute_fpfh, radius_neighbours
 from cgags_ros.io.clouds import read_cloud
@@ -66,3 +66,26 @@ def test_select_keeps_the_smallest_with_ties_to_the_lower_row():
         dd, jj = d.copy(), j.copy()
         kernels_fpfh._select(dd, jj, n, m)
         assert sorted(zip(dd[:m], jj[:m])) == want
+
+
+def test_fpfh_in_blocks_equals_one_pass(cloud, monkeypatch):
+    """A cloud too large to keep every neighbour list is done in blocks: same values."""
+    points, normals, voxel = cloud
+    cfg = FrontEndConfig()
+    whole = compute_fpfh(points, normals, voxel, cfg, workers=2)
+    monkeypatch.setattr(fpfh, '_NEIGHBOUR_BYTES', 4 * cfg.fpfh_max_nn * 700)  # 700 rows a block
+    assert len(points) > 1400
+    np.testing.assert_array_equal(compute_fpfh(points, normals, voxel, cfg, workers=2), whole)
+
+
+def test_a_stray_point_far_away_falls_back_to_open3d(cloud):
+    """A grid too large to index (a point 1e9 voxels away): Open3D's FPFH, same values."""
+    points, normals, voxel = cloud
+    far = np.vstack([points, points[:1] + 1e9 * voxel])
+    far_normals = np.vstack([normals, normals[:1]])
+    cfg = FrontEndConfig()
+    assert fpfh.NeighbourGrid.build(far, cfg.fpfh_radius_factor * voxel) is None
+    ours = compute_fpfh(far, far_normals, voxel, cfg)
+    assert np.abs(ours - _open3d_fpfh(far, far_normals, voxel, cfg)).max() < 1e-9
+    with pytest.raises(ValueError, match='too far'):
+        radius_neighbours(far, voxel, 10)

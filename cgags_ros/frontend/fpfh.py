@@ -8,6 +8,7 @@ metres, in the cloud's own frame.
 from __future__ import annotations
 
 import numpy as np
+import open3d as o3d
 
 from . import kernels_fpfh
 from .parallel import run_chunks
@@ -17,6 +18,11 @@ from ..config.frontend import FrontEndConfig
 # _REACH cells of its own: smaller cells than the radius test fewer points that are out of
 # it (on the redkitchen 1.8 cm features 1.5x faster than _REACH = 1; 3 is slower again).
 _REACH = 2
+# Neighbour lists of at most this many bytes are kept for both passes; a larger cloud (a
+# big map: 100 neighbours of 640k points) is done in blocks whose lists are searched again
+# for the second pass, so memory stays bounded.
+_NEIGHBOUR_BYTES = 256 << 20
+_MAX_KEY = 1 << 62  # linear cell keys must fit in int64
 
 
 def compute_fpfh(points: np.ndarray, normals: np.ndarray, voxel_size: float,
@@ -26,18 +32,31 @@ def compute_fpfh(points: np.ndarray, normals: np.ndarray, voxel_size: float,
 
     Open3D's definition (the ``fpfh_max_nn`` nearest within the radius), computed by the
     kernels of :mod:`.kernels_fpfh` with one neighbour search for both passes, on
-    ``workers`` threads; values equal Open3D's to rounding (docs/implementation.md).
+    ``workers`` threads; values equal Open3D's to rounding (docs/implementation.md). A cloud
+    spread so far that its neighbour grid cannot be indexed (a stray point kilometres
+    away at a millimetre voxel) is handed to Open3D's own FPFH, which gives the same values.
     """
     pts = np.ascontiguousarray(points, dtype=np.float64)
     nrm = np.ascontiguousarray(normals, dtype=np.float64)
-    nbr, count = radius_neighbours(pts, config.fpfh_radius_factor * voxel_size,
-                                   config.fpfh_max_nn, workers)
+    radius = config.fpfh_radius_factor * voxel_size
+    grid = NeighbourGrid.build(pts, radius)
+    if grid is None:
+        return _open3d_fpfh(pts, nrm, radius, config.fpfh_max_nn)
+    max_nn = max(1, min(config.fpfh_max_nn, len(pts)))
+    block = max(1, _NEIGHBOUR_BYTES // (4 * max_nn))
+    blocks = [(a, min(a + block, len(pts))) for a in range(0, len(pts), block)]
     spf = np.zeros((len(pts), 33))
-    run_chunks(lambda a, b: kernels_fpfh.spfh(pts, nrm, a, b, nbr, count, spf), len(pts),
-               workers)
     out = np.zeros((len(pts), 33))
-    run_chunks(lambda a, b: kernels_fpfh.fpfh(pts, spf, a, b, nbr, count, out), len(pts),
-               workers)
+    kept = None
+    for a, b in blocks:
+        nbr, count = grid.neighbours(a, b, max_nn, workers)
+        run_chunks(lambda lo, hi: kernels_fpfh.spfh(pts, nrm, a + lo, a + hi, a, nbr, count,
+                                                    spf), b - a, workers)
+        kept = (nbr, count) if len(blocks) == 1 else None
+    for a, b in blocks:
+        nbr, count = kept or grid.neighbours(a, b, max_nn, workers)
+        run_chunks(lambda lo, hi: kernels_fpfh.fpfh(pts, spf, a + lo, a + hi, a, nbr, count,
+                                                    out), b - a, workers)
     return out
 
 
@@ -48,21 +67,60 @@ def radius_neighbours(points: np.ndarray, radius: float, max_nn: int,
 
     :returns: (M, max_nn) int32 rows (unsorted; only the first ``count`` of a row are set)
         and the (M,) counts. Ties at the ``max_nn``-th distance go to the lower row.
+    :raises ValueError: when the points are spread too far for a grid of this radius.
     """
     pts = np.ascontiguousarray(points, dtype=np.float64)
-    max_nn = max(1, min(int(max_nn), len(pts)))
-    cell = radius * (1.0 + 1e-9) / _REACH
-    lower = pts.min(axis=0)
-    cells = np.floor((pts - lower) / cell).astype(np.int64) + _REACH
-    ny, nz = cells[:, 1].max() + 1 + _REACH, cells[:, 2].max() + 1 + _REACH
-    keys = (cells[:, 0] * ny + cells[:, 1]) * nz + cells[:, 2]
-    order = np.argsort(keys, kind='stable')
-    cell_key, cell_start = np.unique(keys[order], return_index=True)
-    cell_start = np.append(cell_start, len(pts))
-    sorted_points = np.ascontiguousarray(pts[order])
-    nbr = np.empty((len(pts), max_nn), dtype=np.int32)
-    count = np.empty(len(pts), dtype=np.int64)
-    run_chunks(lambda a, b: kernels_fpfh.radius_neighbours(
-        pts, a, b, cells, order, sorted_points, cell_key, cell_start, ny, nz, lower, cell,
-        _REACH, radius, max_nn, nbr, count), len(pts), workers)
-    return nbr, count
+    grid = NeighbourGrid.build(pts, radius)
+    if grid is None:
+        raise ValueError(f'points spread too far for a neighbour grid of radius {radius:g}')
+    return grid.neighbours(0, len(pts), max(1, min(int(max_nn), len(pts))), workers)
+
+
+class NeighbourGrid:
+    """Points sorted into cells of radius / _REACH, for fixed-radius neighbour searches."""
+
+    def __init__(self, points: np.ndarray, radius: float, cell: float, lower: np.ndarray,
+                 cells: np.ndarray, shape: tuple[int, int]) -> None:
+        """Sort ``points`` by the linear key of their integer ``cells`` (see :meth:`build`)."""
+        self.points, self.radius, self.cell, self.lower = points, radius, cell, lower
+        self.cells = cells
+        self.ny, self.nz = shape
+        keys = (cells[:, 0] * self.ny + cells[:, 1]) * self.nz + cells[:, 2]
+        self.order = np.argsort(keys, kind='stable')
+        self.cell_key, start = np.unique(keys[self.order], return_index=True)
+        self.cell_start = np.append(start, len(points))
+        self.sorted_points = np.ascontiguousarray(points[self.order])
+
+    @classmethod
+    def build(cls, points: np.ndarray, radius: float) -> NeighbourGrid | None:
+        """Return the grid of ``points`` (finite, float64), or None when its keys overflow."""
+        cell = radius * (1.0 + 1e-9) / _REACH
+        lower = points.min(axis=0)
+        span = (points.max(axis=0) - lower) / cell
+        if not np.isfinite(span).all() or span.max() > 2.0 ** 40:
+            return None
+        dims = [int(d) + 1 + 2 * _REACH for d in span]  # Python ints: no overflow here
+        if dims[0] * dims[1] * dims[2] >= _MAX_KEY:
+            return None
+        cells = np.floor((points - lower) / cell).astype(np.int64) + _REACH
+        return cls(points, radius, cell, lower, cells, (dims[1], dims[2]))
+
+    def neighbours(self, first: int, last: int, max_nn: int,
+                   workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """Return the neighbour rows and counts of points ``first`` .. ``last``."""
+        nbr = np.empty((last - first, max_nn), dtype=np.int32)
+        count = np.empty(last - first, dtype=np.int64)
+        run_chunks(lambda lo, hi: kernels_fpfh.radius_neighbours(
+            self.points, first + lo, first + hi, first, self.cells, self.order,
+            self.sorted_points, self.cell_key, self.cell_start, self.ny, self.nz, self.lower,
+            self.cell, _REACH, self.radius, max_nn, nbr, count), last - first, workers)
+        return nbr, count
+
+
+def _open3d_fpfh(points: np.ndarray, normals: np.ndarray, radius: float,
+                 max_nn: int) -> np.ndarray:
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(points))
+    cloud.point.normals = o3d.core.Tensor(normals)
+    feature = o3d.t.pipelines.registration.compute_fpfh_feature(cloud, max_nn=max_nn,
+                                                                radius=radius)
+    return feature.numpy().astype(np.float64, copy=False)

@@ -25,10 +25,12 @@ import numpy as np
 
 
 @njit(cache=True, nogil=True)
-def radius_neighbours(points, first, last, cells, order, sorted_points, cell_key, cell_start,
-                      ny, nz, lower, cell, reach, radius, max_nn, nbr, count):
+def radius_neighbours(points, first, last, offset, cells, order, sorted_points, cell_key,
+                      cell_start, ny, nz, lower, cell, reach, radius, max_nn, nbr, count):
     """
-    Fill rows ``first`` .. ``last`` of ``nbr``/``count`` with each point's neighbours.
+    Fill ``nbr``/``count`` with the neighbours of points ``first`` .. ``last``.
+
+    Point i's neighbours go to row ``i - offset``.
 
     ``cells``: each point's integer cell (ix, iy, iz) >= 1 on a grid of cell size ``cell``
     >= radius (cell ix spans ``lower + (ix - 1) * cell`` to the next), whose linear key
@@ -73,8 +75,8 @@ def radius_neighbours(points, first, last, cells, order, sorted_points, cell_key
         if n > max_nn:
             _select(buf_d, buf_j, n, max_nn)
             n = max_nn
-        nbr[i, :n] = buf_j[:n]
-        count[i] = n
+        nbr[i - offset, :n] = buf_j[:n]
+        count[i - offset] = n
 
 
 @njit(cache=True, nogil=True, inline='always')
@@ -141,9 +143,11 @@ def _bin(x):
 
 
 @njit(cache=True, nogil=True)
-def spfh(points, normals, first, last, nbr, count, out):
+def spfh(points, normals, first, last, offset, nbr, count, out):
     """
     Set rows ``first`` .. ``last`` of ``out`` to the simplified point feature histograms.
+
+    Point i's neighbours are row ``i - offset`` of ``nbr``/``count`` (as for the FPFH pass).
 
     Open3D's ``ComputePairFeatures`` (Darboux frame at the point whose normal is more
     orthogonal to the connecting line) per neighbour pair; a degenerate pair (coincident
@@ -151,12 +155,12 @@ def spfh(points, normals, first, last, nbr, count, out):
     """
     two_pi = 2.0 * np.pi
     for i in range(first, last):
-        c = count[i]
+        c = count[i - offset]
         if c <= 1:
             continue
         inc = 100.0 / (c - 1)
         for k in range(c):
-            j = nbr[i, k]
+            j = nbr[i - offset, k]
             if j == i:
                 continue
             f0 = 0.0
@@ -198,7 +202,7 @@ def spfh(points, normals, first, last, nbr, count, out):
 
 
 @njit(cache=True, nogil=True)
-def fpfh(points, spf, first, last, nbr, count, out):
+def fpfh(points, spf, first, last, offset, nbr, count, out):
     """
     Set rows ``first`` .. ``last`` of ``out`` to the FPFH from the SPFH rows ``spf``.
 
@@ -206,11 +210,11 @@ def fpfh(points, spf, first, last, nbr, count, out):
     the neighbours' part scaled to sum to 100 (Open3D's ``ComputeFPFHFeature``).
     """
     for i in range(first, last):
-        c = count[i]
+        c = count[i - offset]
         if c <= 1:
             continue
         for k in range(c):
-            j = nbr[i, k]
+            j = nbr[i - offset, k]
             ex = points[j, 0] - points[i, 0]
             ey = points[j, 1] - points[i, 1]
             ez = points[j, 2] - points[i, 2]
