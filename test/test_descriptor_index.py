@@ -72,3 +72,15 @@ def test_match_features_with_a_kept_index_and_a_wrong_one():
     assert informative_index(np.zeros((5, 33))) is None
     with pytest.raises(ValueError, match='not an index of this target'):
         match_features(src, dst, cfg, target_index=informative_index(src))
+
+
+def test_index_with_nearly_coincident_cells_stays_exact():
+    """Two tight clusters 1e-9 apart: k-means centres nearly coincide; the plane bound holds."""
+    rng = np.random.default_rng(11)
+    base = rng.random(33) * 100
+    ref = np.vstack([base + rng.normal(0, 1e-9, (400, 33)),
+                     base + 1e-9 + rng.normal(0, 1e-9, (400, 33)),
+                     rng.random((400, 33)) * 100])
+    query = np.vstack([base + rng.normal(0, 2e-9, (300, 33)), rng.random((100, 33)) * 100])
+    got = DescriptorIndex(ref).query(query, 2)[0]
+    np.testing.assert_array_equal(got, _brute(query, ref, 2))

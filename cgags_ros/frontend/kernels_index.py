@@ -24,6 +24,10 @@ import numpy as np
 # distance by a few ulps and skip a cell holding the exact nearest row.
 _REL = 1e-9
 _ABS = 1e-12
+# Rounding of a squared distance of up to ~64 terms, relative to it: the plane bound divides
+# the difference of two such distances by the centres' gap, which can be small, so their
+# rounding is subtracted from it explicitly.
+_SQUARED_ROUNDING = 1e-13
 
 
 @njit(cache=True, nogil=True)
@@ -132,7 +136,8 @@ def search(queries, centres, centresT, centre_gap, radius, starts, ring, points,
             dj = np.sqrt(dc[j])
             low = dj - radius[j]
             if j != c0:
-                plane = (dc[j] - dc[c0]) / (2.0 * centre_gap[j, c0])
+                plane = ((dc[j] - dc[c0] - _SQUARED_ROUNDING * (dc[j] + dc[c0]))
+                         / (2.0 * centre_gap[j, c0]))
                 low = max(low, plane)
             if low * (1.0 - _REL) - _ABS > b:
                 continue
