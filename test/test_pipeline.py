@@ -164,6 +164,27 @@ def test_warm_up_runs_every_stage():
     assert gicp.valid and gicp.refined
 
 
+def test_after_warm_up_a_real_pair_compiles_no_front_end_kernel(data_dir):
+    """The warm-up compiles every front-end kernel specialization a real pair needs."""
+    from cgags_ros.frontend import kernels_fpfh, kernels_index
+
+    warm_up()
+    dispatchers = [getattr(m, name) for m in (kernels_fpfh, kernels_index)
+                   for name in dir(m) if hasattr(getattr(m, name), 'signatures')]
+    before = {d: len(d.signatures) for d in dispatchers}
+    called = (kernels_fpfh.radius_neighbours, kernels_fpfh.spfh, kernels_fpfh.fpfh,
+              kernels_index.kmeans, kernels_index.assign, kernels_index.search)
+    assert all(before[d] for d in called), before  # the ones Python calls (others inline)
+    folder = data_dir / 'lidar' / 'small_gicp'
+    source = np.asfortranarray(read_cloud(folder / 'source.ply'))  # any input layout
+    target = read_cloud(folder / 'target.ply').astype(np.float32)
+    clear_feature_cache()
+    for cfg in ({}, {'frontend.ratio_test': 0.9, 'frontend.max_keypoints': 1000}):
+        result = register_clouds(source, target, voxel_size=0.4, config=pipeline_config_from(cfg))
+        assert result.valid, result.reason
+    assert {d: len(d.signatures) for d in dispatchers} == before
+
+
 # --- degenerate and non-overlapping input: valid=False with a reason -------------------------
 def _plane(rng, n=20000):
     return np.c_[rng.uniform(-1, 1, (n, 2)), rng.normal(0, 0.002, n)]
