@@ -23,6 +23,8 @@ from ..errors import EmptyCloudError, InvalidInputError
 from ..geometry import point_resolution
 from ..timing import timed
 
+_INDEX_LOCK = threading.Lock()
+
 
 @dataclasses.dataclass
 class CloudFeatures:
@@ -42,8 +44,6 @@ class CloudFeatures:
     resolution: float
     tree: cKDTree
     _index: list = dataclasses.field(default_factory=list, repr=False, compare=False)
-    _index_lock: threading.Lock = dataclasses.field(default_factory=threading.Lock,
-                                                    repr=False, compare=False)
 
     def descriptor_index(self, workers: int = 1) -> DescriptorIndex | None:
         """
@@ -53,7 +53,7 @@ class CloudFeatures:
         cached, :mod:`~cgags_ros.pipeline.cache`) pays for it once. None when no
         descriptor is informative.
         """
-        with self._index_lock:
+        with _INDEX_LOCK:  # one module lock: the features stay plain, picklable data
             if not self._index:
                 self._index.append(informative_index(self.descriptors, workers))
             return self._index[0]

@@ -33,8 +33,8 @@ def compute_fpfh(points: np.ndarray, normals: np.ndarray, voxel_size: float,
     Open3D's definition (the ``fpfh_max_nn`` nearest within the radius), computed by the
     kernels of :mod:`.kernels_fpfh` with one neighbour search for both passes, on
     ``workers`` threads; values equal Open3D's to rounding (docs/implementation.md). A cloud
-    spread so far that its neighbour grid cannot be indexed (a stray point kilometres
-    away at a millimetre voxel) is handed to Open3D's own FPFH, which gives the same values.
+    spread so far that its neighbour grid's keys would overflow (a stray point millions of
+    cells out along every axis) is handed to Open3D's own FPFH, which gives the same values.
     """
     pts = np.ascontiguousarray(points, dtype=np.float64)
     nrm = np.ascontiguousarray(normals, dtype=np.float64)

@@ -8,8 +8,8 @@ correspondences (METHOD.md, "Input"). These kernels compute Open3D's definition 
 block scaled to 100) with two shortcuts that change no value:
 
 - one neighbour search serves both passes (Open3D searches twice), on a voxel grid of
-  cell size r, whose neighbour cells are ranges of one sorted key array
-  (:func:`radius_neighbours`);
+  cells a fraction of the radius wide, whose neighbouring cells are ranges of one sorted
+  key array (:func:`radius_neighbours`);
 - every SPFH is computed once, before the FPFH pass reads it (as Open3D does).
 
 Neighbours are the ``max_nn`` nearest within the radius, the point itself included, as in
@@ -32,9 +32,10 @@ def radius_neighbours(points, first, last, offset, cells, order, sorted_points, 
 
     Point i's neighbours go to row ``i - offset``.
 
-    ``cells``: each point's integer cell (ix, iy, iz) >= 1 on a grid of cell size ``cell``
-    >= radius (cell ix spans ``lower + (ix - 1) * cell`` to the next), whose linear key
-    is ``(ix * ny + iy) * nz + iz`` (ny, nz leave a free cell on each side, so
+    ``cells``: each point's integer cell (ix, iy, iz) >= ``reach`` on a grid of cell size
+    ``cell`` >= radius / reach (cell ix spans ``lower + (ix - reach) * cell`` to the next),
+    so a point's neighbours lie within ``reach`` cells of its own; the linear key is
+    ``(ix * ny + iy) * nz + iz`` (ny, nz leave ``reach`` free cells on each side, so
     neighbouring keys never wrap); ``order``: the rows sorted by key, and
     ``sorted_points`` = ``points[order]`` (read in memory order);
     ``cell_key``/``cell_start``: the occupied keys, ascending, and where their points start
