@@ -2,8 +2,9 @@
 
 from cgags_ros.config.frontend import FrontEndConfig
 from cgags_ros.frontend import fpfh, kernels_fpfh
-from cgags_ros.frontend.features import downsample, estimate_normals
+from cgags_ros.frontend.features import downsample, estimate_normals, extract_features
 from cgags_ros.frontend.fpfh import compute_fpfh, radius_neighbours
+from cgags_ros.geometry import point_resolution
 from cgags_ros.io.clouds import read_cloud
 import numpy as np
 import open3d as o3d
@@ -45,8 +46,10 @@ def test_radius_neighbours_are_the_nearest_within_the_radius(cloud):
     points, _, voxel = cloud
     radius, max_nn = 5 * voxel, 30
     tree = cKDTree(points)
-    nbr, count = radius_neighbours(points, radius, max_nn, workers=2)
+    nbr, count, nearest = radius_neighbours(points, radius, max_nn, workers=2)
     dist, idx = tree.query(points, k=max_nn + 1, distance_upper_bound=radius)
+    # the nearest other point: the same distances as the k-d tree's, to the bit
+    np.testing.assert_array_equal(nearest, np.where(np.isfinite(dist[:, 1]), dist[:, 1], np.inf))
     for i in range(0, len(points), 7):
         within = np.isfinite(dist[i, :max_nn])
         assert count[i] == within.sum()
@@ -89,3 +92,12 @@ def test_a_stray_point_far_away_falls_back_to_open3d(cloud):
     assert np.abs(ours - _open3d_fpfh(far, far_normals, voxel, cfg)).max() < 1e-9
     with pytest.raises(ValueError, match='too far'):
         radius_neighbours(far, voxel, 10)
+
+
+def test_resolution_from_the_fpfh_search_equals_the_k_d_tree(cloud):
+    """The features' point resolution is point_resolution's number, isolated points too."""
+    points, _, voxel = cloud
+    stray = np.vstack([points, points.max(axis=0) + 50 * voxel])  # none within the radius
+    for pts in (points, stray):
+        features = extract_features(pts, voxel, FrontEndConfig(), workers=2)
+        assert features.resolution == point_resolution(features.points)

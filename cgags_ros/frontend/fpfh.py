@@ -36,37 +36,51 @@ def compute_fpfh(points: np.ndarray, normals: np.ndarray, voxel_size: float,
     spread so far that its neighbour grid's keys would overflow (a stray point millions of
     cells out along every axis) is handed to Open3D's own FPFH, which gives the same values.
     """
+    return fpfh_with_spacing(points, normals, voxel_size, config, workers)[0]
+
+
+def fpfh_with_spacing(points: np.ndarray, normals: np.ndarray, voxel_size: float,
+                      config: FrontEndConfig,
+                      workers: int = 1) -> tuple[np.ndarray, np.ndarray | None]:
+    """
+    Return :func:`compute_fpfh` and each point's distance to its nearest other point.
+
+    The distances come from the same neighbour search (metres; inf for a point with no
+    other within the FPFH radius), None when Open3D computed the descriptors.
+    """
     pts = np.ascontiguousarray(points, dtype=np.float64)
     nrm = np.ascontiguousarray(normals, dtype=np.float64)
     radius = config.fpfh_radius_factor * voxel_size
     grid = NeighbourGrid.build(pts, radius)
     if grid is None:
-        return _open3d_fpfh(pts, nrm, radius, config.fpfh_max_nn)
+        return _open3d_fpfh(pts, nrm, radius, config.fpfh_max_nn), None
     max_nn = max(1, min(config.fpfh_max_nn, len(pts)))
     block = max(1, _NEIGHBOUR_BYTES // (4 * max_nn))
     blocks = [(a, min(a + block, len(pts))) for a in range(0, len(pts), block)]
     spf = np.zeros((len(pts), 33))
     out = np.zeros((len(pts), 33))
+    spacing = np.empty(len(pts))
     kept = None
     for a, b in blocks:
-        nbr, count = grid.neighbours(a, b, max_nn, workers)
+        nbr, count, spacing[a:b] = grid.neighbours(a, b, max_nn, workers)
         run_chunks(lambda lo, hi: kernels_fpfh.spfh(pts, nrm, a + lo, a + hi, a, nbr, count,
                                                     spf), b - a, workers)
         kept = (nbr, count) if len(blocks) == 1 else None
     for a, b in blocks:
-        nbr, count = kept or grid.neighbours(a, b, max_nn, workers)
+        nbr, count = kept or grid.neighbours(a, b, max_nn, workers)[:2]
         run_chunks(lambda lo, hi: kernels_fpfh.fpfh(pts, spf, a + lo, a + hi, a, nbr, count,
                                                     out), b - a, workers)
-    return out
+    return out, spacing
 
 
 def radius_neighbours(points: np.ndarray, radius: float, max_nn: int,
-                      workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
+                      workers: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """
     Return each point's ``max_nn`` nearest points within ``radius`` (itself included).
 
-    :returns: (M, max_nn) int32 rows (unsorted; only the first ``count`` of a row are set)
-        and the (M,) counts. Ties at the ``max_nn``-th distance go to the lower row.
+    :returns: (M, max_nn) int32 rows (unsorted; only the first ``count`` of a row are set),
+        the (M,) counts, and the (M,) distances to the nearest other point (inf where none
+        is within ``radius``). Ties at the ``max_nn``-th distance go to the lower row.
     :raises ValueError: when the points are spread too far for a grid of this radius.
     """
     pts = np.ascontiguousarray(points, dtype=np.float64)
@@ -106,15 +120,17 @@ class NeighbourGrid:
         return cls(points, radius, cell, lower, cells, (dims[1], dims[2]))
 
     def neighbours(self, first: int, last: int, max_nn: int,
-                   workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
-        """Return the neighbour rows and counts of points ``first`` .. ``last``."""
+                   workers: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return the neighbour rows, counts and nearest distances of rows first .. last."""
         nbr = np.empty((last - first, max_nn), dtype=np.int32)
         count = np.empty(last - first, dtype=np.int64)
+        nearest = np.empty(last - first)
         run_chunks(lambda lo, hi: kernels_fpfh.radius_neighbours(
             self.points, first + lo, first + hi, first, self.cells, self.order,
             self.sorted_points, self.cell_key, self.cell_start, self.ny, self.nz, self.lower,
-            self.cell, _REACH, self.radius, max_nn, nbr, count), last - first, workers)
-        return nbr, count
+            self.cell, _REACH, self.radius, max_nn, nbr, count, nearest), last - first,
+            workers)
+        return nbr, count, nearest
 
 
 def _open3d_fpfh(points: np.ndarray, normals: np.ndarray, radius: float,

@@ -26,7 +26,8 @@ import numpy as np
 
 @njit(cache=True, nogil=True)
 def radius_neighbours(points, first, last, offset, cells, order, sorted_points, cell_key,
-                      cell_start, ny, nz, lower, cell, reach, radius, max_nn, nbr, count):
+                      cell_start, ny, nz, lower, cell, reach, radius, max_nn, nbr, count,
+                      nearest):
     """
     Fill ``nbr``/``count`` with the neighbours of points ``first`` .. ``last``.
 
@@ -40,7 +41,8 @@ def radius_neighbours(points, first, last, offset, cells, order, sorted_points, 
     ``sorted_points`` = ``points[order]`` (read in memory order);
     ``cell_key``/``cell_start``: the occupied keys, ascending, and where their points start
     in ``order``. Row i gets the ``max_nn`` nearest points within ``radius`` (itself
-    included; not sorted) and their count.
+    included; not sorted) and their count, and ``nearest`` the distance to the nearest
+    other point (inf when none is within ``radius``).
     """
     r2 = radius * radius
     buf_j = np.empty(len(order), nbr.dtype)
@@ -49,6 +51,7 @@ def radius_neighbours(points, first, last, offset, cells, order, sorted_points, 
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
         ix, iy, iz = cells[i, 0], cells[i, 1], cells[i, 2]
         n = 0
+        closest = np.inf
         for dx in range(-reach, reach + 1):
             gx = _gap(px, lower[0] + (ix + dx - reach) * cell, cell)
             if gx > r2:
@@ -70,6 +73,8 @@ def radius_neighbours(points, first, last, offset, cells, order, sorted_points, 
                         ez = sorted_points[s, 2] - pz
                         e = ex * ex + ey * ey + ez * ez
                         if e <= r2:
+                            if e < closest and order[s] != i:
+                                closest = e
                             buf_j[n] = order[s]
                             buf_d[n] = e
                             n += 1
@@ -78,6 +83,7 @@ def radius_neighbours(points, first, last, offset, cells, order, sorted_points, 
             n = max_nn
         nbr[i - offset, :n] = buf_j[:n]
         count[i - offset] = n
+        nearest[i - offset] = np.sqrt(closest)
 
 
 @njit(cache=True, nogil=True, inline='always')

@@ -29,7 +29,9 @@ def cached_features(points: np.ndarray, voxel_size: float, config: FrontEndConfi
     returns exactly what recomputing would; the arrays returned are shared and must not be
     written to. Hashing costs far less than featurising.
     """
-    key = (hashlib.blake2b(np.ascontiguousarray(points), digest_size=16).digest(),
+    # SHA-256: the CPU's SHA extensions make it the fastest of hashlib's here (measured in
+    # docs/implementation.md); a cold pair pays it for both clouds.
+    key = (hashlib.sha256(np.ascontiguousarray(points)).digest(),
            points.shape, voxel_size, dataclasses.astuple(config))
     with _cache_lock:
         hit = _cache.get(key)
