@@ -60,16 +60,17 @@ def fpfh_with_spacing(points: np.ndarray, normals: np.ndarray, voxel_size: float
     spf = np.zeros((len(pts), 33))
     out = np.zeros((len(pts), 33))
     spacing = np.empty(len(pts))
+    order = grid.order  # blocks and chunks are ranges of the points in cell order
     kept = None
     for a, b in blocks:
-        nbr, count, spacing[a:b] = grid.neighbours(a, b, max_nn, workers)
-        run_chunks(lambda lo, hi: kernels_fpfh.spfh(pts, nrm, a + lo, a + hi, a, nbr, count,
-                                                    spf), b - a, workers)
+        nbr, count = grid.neighbours(a, b, max_nn, spacing, workers)
+        run_chunks(lambda lo, hi: kernels_fpfh.spfh(pts, nrm, a + lo, a + hi, a, order, nbr,
+                                                    count, spf), b - a, workers)
         kept = (nbr, count) if len(blocks) == 1 else None
     for a, b in blocks:
-        nbr, count = kept or grid.neighbours(a, b, max_nn, workers)[:2]
-        run_chunks(lambda lo, hi: kernels_fpfh.fpfh(pts, spf, a + lo, a + hi, a, nbr, count,
-                                                    out), b - a, workers)
+        nbr, count = kept or grid.neighbours(a, b, max_nn, spacing, workers)
+        run_chunks(lambda lo, hi: kernels_fpfh.fpfh(pts, spf, a + lo, a + hi, a, order, nbr,
+                                                    count, out), b - a, workers)
     return out, spacing
 
 
@@ -87,7 +88,12 @@ def radius_neighbours(points: np.ndarray, radius: float, max_nn: int,
     grid = NeighbourGrid.build(pts, radius)
     if grid is None:
         raise ValueError(f'points spread too far for a neighbour grid of radius {radius:g}')
-    return grid.neighbours(0, len(pts), max(1, min(int(max_nn), len(pts))), workers)
+    nearest = np.empty(len(pts))
+    nbr, count = grid.neighbours(0, len(pts), max(1, min(int(max_nn), len(pts))), nearest,
+                                 workers)
+    rows, counts = np.empty_like(nbr), np.empty_like(count)
+    rows[grid.order], counts[grid.order] = nbr, count  # from cell order back to row order
+    return rows, counts, nearest
 
 
 class NeighbourGrid:
@@ -119,18 +125,22 @@ class NeighbourGrid:
         cells = np.floor((points - lower) / cell).astype(np.int64) + _REACH
         return cls(points, radius, cell, lower, cells, (dims[1], dims[2]))
 
-    def neighbours(self, first: int, last: int, max_nn: int,
-                   workers: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Return the neighbour rows, counts and nearest distances of rows first .. last."""
+    def neighbours(self, first: int, last: int, max_nn: int, nearest: np.ndarray,
+                   workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """
+        Return the neighbour rows and counts of the points at positions first .. last.
+
+        Positions are in :attr:`order`; their rows of ``nearest`` (the full (M,) array)
+        are set too.
+        """
         nbr = np.empty((last - first, max_nn), dtype=np.int32)
         count = np.empty(last - first, dtype=np.int64)
-        nearest = np.empty(last - first)
         run_chunks(lambda lo, hi: kernels_fpfh.radius_neighbours(
             self.points, first + lo, first + hi, first, self.cells, self.order,
             self.sorted_points, self.cell_key, self.cell_start, self.ny, self.nz, self.lower,
             self.cell, _REACH, self.radius, max_nn, nbr, count, nearest), last - first,
             workers)
-        return nbr, count, nearest
+        return nbr, count
 
 
 def _open3d_fpfh(points: np.ndarray, normals: np.ndarray, radius: float,

@@ -29,9 +29,12 @@ def radius_neighbours(points, first, last, offset, cells, order, sorted_points, 
                       cell_start, ny, nz, lower, cell, reach, radius, max_nn, nbr, count,
                       nearest):
     """
-    Fill ``nbr``/``count`` with the neighbours of points ``first`` .. ``last``.
+    Fill ``nbr``/``count`` with the neighbours of the points at positions first .. last.
 
-    Point i's neighbours go to row ``i - offset``.
+    Positions are in ``order``: the point at position s (row i = order[s]) gets row
+    ``s - offset`` of ``nbr``/``count`` and ``nearest[i]``. Points are visited in cell
+    order, so the ranges of the neighbouring cells are looked up once per cell, not once
+    per point.
 
     ``cells``: each point's integer cell (ix, iy, iz) >= ``reach`` on a grid of cell size
     ``cell`` >= radius / reach (cell ix spans ``lower + (ix - reach) * cell`` to the next),
@@ -40,30 +43,43 @@ def radius_neighbours(points, first, last, offset, cells, order, sorted_points, 
     neighbouring keys never wrap); ``order``: the rows sorted by key, and
     ``sorted_points`` = ``points[order]`` (read in memory order);
     ``cell_key``/``cell_start``: the occupied keys, ascending, and where their points start
-    in ``order``. Row i gets the ``max_nn`` nearest points within ``radius`` (itself
+    in ``order``. A point gets the ``max_nn`` nearest points within ``radius`` (itself
     included; not sorted) and their count, and ``nearest`` the distance to the nearest
     other point (inf when none is within ``radius``).
     """
     r2 = radius * radius
     buf_j = np.empty(len(order), nbr.dtype)
     buf_d = np.empty(len(order))
-    for i in range(first, last):
-        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+    side = 2 * reach + 1
+    lo_row = np.empty(side * side, np.int64)
+    hi_row = np.empty(side * side, np.int64)
+    current = -1
+    for s0 in range(first, last):
+        i = order[s0]
         ix, iy, iz = cells[i, 0], cells[i, 1], cells[i, 2]
+        key = (ix * ny + iy) * nz + iz
+        if key != current:  # a new cell: where its neighbouring cells' points are
+            current = key
+            r = 0
+            for dx in range(-reach, reach + 1):
+                for dy in range(-reach, reach + 1):
+                    base = ((ix + dx) * ny + (iy + dy)) * nz + iz
+                    lo_row[r] = np.searchsorted(cell_key, base - reach)
+                    hi_row[r] = np.searchsorted(cell_key, base + reach, side='right')
+                    r += 1
+        px, py, pz = sorted_points[s0, 0], sorted_points[s0, 1], sorted_points[s0, 2]
         n = 0
         closest = np.inf
+        r = -1
         for dx in range(-reach, reach + 1):
             gx = _gap(px, lower[0] + (ix + dx - reach) * cell, cell)
-            if gx > r2:
-                continue
             for dy in range(-reach, reach + 1):
+                r += 1
                 gxy = gx + _gap(py, lower[1] + (iy + dy - reach) * cell, cell)
                 if gxy > r2:
                     continue  # the whole row of cells is out of reach
                 base = ((ix + dx) * ny + (iy + dy)) * nz + iz
-                lo = np.searchsorted(cell_key, base - reach)
-                hi = np.searchsorted(cell_key, base + reach, side='right')
-                for c in range(lo, hi):
+                for c in range(lo_row[r], hi_row[r]):
                     z = iz + cell_key[c] - base
                     if gxy + _gap(pz, lower[2] + (z - reach) * cell, cell) > r2:
                         continue
@@ -81,9 +97,9 @@ def radius_neighbours(points, first, last, offset, cells, order, sorted_points, 
         if n > max_nn:
             _select(buf_d, buf_j, n, max_nn)
             n = max_nn
-        nbr[i - offset, :n] = buf_j[:n]
-        count[i - offset] = n
-        nearest[i - offset] = np.sqrt(closest)
+        nbr[s0 - offset, :n] = buf_j[:n]
+        count[s0 - offset] = n
+        nearest[i] = np.sqrt(closest)
 
 
 @njit(cache=True, nogil=True, inline='always')
@@ -150,24 +166,27 @@ def _bin(x):
 
 
 @njit(cache=True, nogil=True)
-def spfh(points, normals, first, last, offset, nbr, count, out):
+def spfh(points, normals, first, last, offset, order, nbr, count, out):
     """
-    Set rows ``first`` .. ``last`` of ``out`` to the simplified point feature histograms.
+    Set ``out``'s rows of the points at positions first .. last to their SPFH.
 
-    Point i's neighbours are row ``i - offset`` of ``nbr``/``count`` (as for the FPFH pass).
+    Positions are in ``order``, and the SPFH are the simplified point feature histograms.
+    The point at position s (row order[s]) has its neighbours in row ``s - offset`` of
+    ``nbr``/``count``, as :func:`radius_neighbours` left them.
 
     Open3D's ``ComputePairFeatures`` (Darboux frame at the point whose normal is more
     orthogonal to the connecting line) per neighbour pair; a degenerate pair (coincident
     points, or a normal along the line) counts with zero features, as there.
     """
     two_pi = 2.0 * np.pi
-    for i in range(first, last):
-        c = count[i - offset]
+    for s in range(first, last):
+        i = order[s]
+        c = count[s - offset]
         if c <= 1:
             continue
         inc = 100.0 / (c - 1)
         for k in range(c):
-            j = nbr[i - offset, k]
+            j = nbr[s - offset, k]
             if j == i:
                 continue
             f0 = 0.0
@@ -209,19 +228,22 @@ def spfh(points, normals, first, last, offset, nbr, count, out):
 
 
 @njit(cache=True, nogil=True)
-def fpfh(points, spf, first, last, offset, nbr, count, out):
+def fpfh(points, spf, first, last, offset, order, nbr, count, out):
     """
-    Set rows ``first`` .. ``last`` of ``out`` to the FPFH from the SPFH rows ``spf``.
+    Set ``out``'s rows of the points at positions first .. last to their FPFH.
+
+    From the SPFH rows ``spf``; positions and neighbours as in :func:`spfh`.
 
     Own SPFH plus the neighbours' weighted by 1 / squared distance, each 11-bin block of
     the neighbours' part scaled to sum to 100 (Open3D's ``ComputeFPFHFeature``).
     """
-    for i in range(first, last):
-        c = count[i - offset]
+    for s in range(first, last):
+        i = order[s]
+        c = count[s - offset]
         if c <= 1:
             continue
         for k in range(c):
-            j = nbr[i - offset, k]
+            j = nbr[s - offset, k]
             ex = points[j, 0] - points[i, 0]
             ey = points[j, 1] - points[i, 1]
             ez = points[j, 2] - points[i, 2]
