@@ -89,16 +89,26 @@ def is_success(T_est: np.ndarray, T_gt: np.ndarray, max_re_deg: float, max_te: f
             and translation_error(T_est, T_gt) <= max_te)
 
 
-def point_resolution(points: np.ndarray, tree: cKDTree | None = None) -> float:
+def point_resolution(points: np.ndarray, tree: cKDTree | None = None,
+                     nearest: np.ndarray | None = None) -> float:
     """
     Return pr, the mean distance from each point to its nearest other point (metres).
 
-    ``tree`` is a k-d tree over ``points`` when the caller already has one.
+    ``tree`` is a k-d tree over ``points`` when the caller already has one. ``nearest``
+    holds those distances where the caller already found them (inf elsewhere, e.g. the
+    FPFH neighbour search within its radius): only the others are queried, and the result
+    is the same number.
     """
     if len(points) < 2:
         return 0.0
-    d, _ = (tree if tree is not None else cKDTree(points)).query(points, k=2)
-    return float(np.mean(d[:, 1]))
+    tree = tree if tree is not None else cKDTree(points)
+    if nearest is None:
+        return float(np.mean(tree.query(points, k=2)[0][:, 1]))
+    unknown = ~np.isfinite(nearest)
+    if unknown.any():
+        nearest = nearest.copy()
+        nearest[unknown] = tree.query(points[unknown], k=2)[0][:, 1]
+    return float(np.mean(nearest))
 
 
 def spread(points: np.ndarray) -> np.ndarray:

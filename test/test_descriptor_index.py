@@ -5,12 +5,18 @@ from cgags_ros.frontend.descriptor_index import DescriptorIndex
 from cgags_ros.frontend.matching import informative_index, match_features
 import numpy as np
 import pytest
+from scipy.spatial.distance import cdist
 
 
 def _brute(query, reference, k):
     """Nearest k by exact distance, ties to the lower row (stable sort)."""
     d = np.sqrt(((query[:, None, :] - reference[None, :, :]) ** 2).sum(axis=2))
     return np.argsort(d, axis=1, kind='stable')[:, :k]
+
+
+def _nearest(query, reference, k, workers=1):
+    """Return the index's answer, built over ``reference`` for this one query set."""
+    return DescriptorIndex(reference, workers).query(query, k, workers)[0]
 
 
 def _clustered(rng, n, dim=33, clusters=12):
@@ -84,3 +90,37 @@ def test_index_with_nearly_coincident_cells_stays_exact():
     query = np.vstack([base + rng.normal(0, 2e-9, (300, 33)), rng.random((100, 33)) * 100])
     got = DescriptorIndex(ref).query(query, 2)[0]
     np.testing.assert_array_equal(got, _brute(query, ref, 2))
+
+
+def test_first_and_second_neighbour_equal_scipy():
+    rng = np.random.default_rng(4)
+    q, r = rng.normal(size=(1000, 33)), rng.normal(size=(3000, 33))
+    D = cdist(q, r)
+    np.testing.assert_array_equal(_nearest(q, r, 2), np.argsort(D, axis=1)[:, :2])
+    np.testing.assert_array_equal(_nearest(r, q, 1)[:, 0], np.argmin(D, axis=0))
+    # rows split over threads (as register_clouds does): the same answer
+    np.testing.assert_array_equal(_nearest(q, r, 2, workers=3), np.argsort(D, axis=1)[:, :2])
+    np.testing.assert_array_equal(_nearest(r, q, 1, workers=2)[:, 0], np.argmin(D, axis=0))
+
+
+def test_near_ties_are_ranked_by_the_exact_distance():
+    """
+    Check that the index ranks near-ties by the exact distance.
+
+    Squared norms ~1e5 like FPFH: near-duplicate and exactly duplicated reference rows
+    (which also share index cells and sit on their borders) must still be ranked by the
+    exact distance, ties to the lower index.
+    """
+    rng = np.random.default_rng(7)
+    base = rng.uniform(0.0, 200.0, size=(400, 33))
+    r = np.vstack([base,
+                   base[:100] + rng.normal(scale=1e-4, size=(100, 33)),  # near-duplicates
+                   base[100:150]])                                       # exact duplicates
+    q = np.vstack([base[:300] + rng.normal(scale=1e-5, size=(300, 33)),
+                   rng.uniform(0.0, 200.0, size=(300, 33))])
+    D = cdist(q, r)
+    np.testing.assert_array_equal(_nearest(q, r, 1)[:, 0], np.argmin(D, axis=1))
+    np.testing.assert_array_equal(_nearest(q, r, 1, workers=2)[:, 0], np.argmin(D, axis=1))
+    # all descriptors identical (every row ties with every row): lowest index, bounded memory
+    same = np.full((3000, 33), 60.0)
+    np.testing.assert_array_equal(_nearest(same, same, 1)[:, 0], np.zeros(3000))

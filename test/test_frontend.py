@@ -4,7 +4,7 @@ from cgags_ros.config.frontend import FrontEndConfig, RefineConfig
 from cgags_ros.datasets.gt_pairs import find_pair
 from cgags_ros.errors import EmptyCloudError, InvalidInputError
 from cgags_ros.frontend.features import downsample, extract_features, finite_points
-from cgags_ros.frontend.matching import match_features, nearest_rows
+from cgags_ros.frontend.matching import match_features
 from cgags_ros.frontend.refine import evaluate_alignment, refine_transform
 from cgags_ros.geometry import point_resolution, rotation_error_deg, translation_error
 from cgags_ros.io.clouds import read_cloud
@@ -132,40 +132,6 @@ def test_matches_equal_exact_brute_force(mutual, ratio):
     np.testing.assert_allclose(got.distance, np.linalg.norm(
         a[got.source_index] - b[got.target_index], axis=1))
     assert np.all(np.diff(got.distance) >= 0)
-
-
-def test_nearest_rows_first_and_second_neighbour():
-    rng = np.random.default_rng(4)
-    q, r = rng.normal(size=(1000, 33)), rng.normal(size=(3000, 33))
-    D = cdist(q, r)
-    np.testing.assert_array_equal(nearest_rows(q, r, 2), np.argsort(D, axis=1)[:, :2])
-    np.testing.assert_array_equal(nearest_rows(r, q, 1)[:, 0], np.argmin(D, axis=0))
-    # rows split over threads (as register_clouds does): the same answer
-    np.testing.assert_array_equal(nearest_rows(q, r, 2, workers=3), np.argsort(D, axis=1)[:, :2])
-    np.testing.assert_array_equal(nearest_rows(r, q, 1, workers=2)[:, 0], np.argmin(D, axis=0))
-
-
-def test_nearest_rows_is_exact_on_near_ties():
-    """
-    Check that nearest_rows ranks near-ties by the exact distance.
-
-    Squared norms ~1e5 like FPFH: near-duplicate and exactly duplicated reference rows
-    (which also share index cells and sit on their borders) must still be ranked by the
-    exact distance, ties to the lower index.
-    """
-    rng = np.random.default_rng(7)
-    base = rng.uniform(0.0, 200.0, size=(400, 33))
-    r = np.vstack([base,
-                   base[:100] + rng.normal(scale=1e-4, size=(100, 33)),  # near-duplicates
-                   base[100:150]])                                       # exact duplicates
-    q = np.vstack([base[:300] + rng.normal(scale=1e-5, size=(300, 33)),
-                   rng.uniform(0.0, 200.0, size=(300, 33))])
-    D = cdist(q, r)
-    np.testing.assert_array_equal(nearest_rows(q, r, 1)[:, 0], np.argmin(D, axis=1))
-    np.testing.assert_array_equal(nearest_rows(q, r, 1, workers=2)[:, 0], np.argmin(D, axis=1))
-    # all descriptors identical (every row ties with every row): lowest index, bounded memory
-    same = np.full((3000, 33), 60.0)
-    np.testing.assert_array_equal(nearest_rows(same, same, 1)[:, 0], np.zeros(3000))
 
 
 @pytest.mark.parametrize('mutual, ratio', [(True, 1.0), (True, 0.8)])

@@ -137,35 +137,13 @@ def extract_features(points: np.ndarray, voxel_size: float, config: FrontEndConf
     with timed(timings, 'fpfh'):
         descriptors, spacing = fpfh_with_spacing(down, normals, voxel_size, config, workers)
     tree = cKDTree(down)
-    return CloudFeatures(down, normals, descriptors, _resolution(down, tree, spacing), tree)
+    return CloudFeatures(down, normals, descriptors, point_resolution(down, tree, spacing),
+                         tree)
 
 
-def _resolution(points: np.ndarray, tree: cKDTree, spacing: np.ndarray | None) -> float:
-    """
-    Return :func:`~cgags_ros.geometry.point_resolution` of ``points``, the same number.
-
-    ``spacing`` holds the nearest-other-point distances the FPFH search found (inf where it
-    found none within its radius); only those points are looked up in ``tree``.
-    """
-    if spacing is None or len(points) < 2:
-        return point_resolution(points, tree)
-    far = ~np.isfinite(spacing)
-    if far.any():
-        spacing = spacing.copy()
-        spacing[far] = tree.query(points[far], k=2)[0][:, 1]
-    return float(np.mean(spacing))
+def _tensor_cloud(points: np.ndarray) -> o3d.t.geometry.PointCloud:
+    return o3d.t.geometry.PointCloud(o3d.core.Tensor(np.ascontiguousarray(points, np.float64)))
 
 
-def _tensor_cloud(points: np.ndarray,
-                  normals: np.ndarray | None = None) -> o3d.t.geometry.PointCloud:
-    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.ascontiguousarray(points, np.float64)))
-    if normals is not None:
-        cloud.point.normals = o3d.core.Tensor(np.ascontiguousarray(normals, np.float64))
-    return cloud
-
-
-def _o3d_cloud(points: np.ndarray, normals: np.ndarray | None = None) -> o3d.geometry.PointCloud:
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    if normals is not None:
-        cloud.normals = o3d.utility.Vector3dVector(normals)
-    return cloud
+def _o3d_cloud(points: np.ndarray) -> o3d.geometry.PointCloud:
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))

@@ -61,12 +61,11 @@ def fpfh_with_spacing(points: np.ndarray, normals: np.ndarray, voxel_size: float
     out = np.zeros((len(pts), 33))
     spacing = np.empty(len(pts))
     order = grid.order  # blocks and chunks are ranges of the points in cell order
-    kept = None
     for a, b in blocks:
         nbr, count = grid.neighbours(a, b, max_nn, spacing, workers)
         run_chunks(lambda lo, hi: kernels_fpfh.spfh(pts, nrm, a + lo, a + hi, a, order, nbr,
                                                     count, spf), b - a, workers)
-        kept = (nbr, count) if len(blocks) == 1 else None
+    kept = (nbr, count) if len(blocks) == 1 else None  # else searched again, block by block
     for a, b in blocks:
         nbr, count = kept or grid.neighbours(a, b, max_nn, spacing, workers)
         run_chunks(lambda lo, hi: kernels_fpfh.fpfh(pts, spf, a + lo, a + hi, a, order, nbr,

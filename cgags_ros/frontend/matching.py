@@ -75,19 +75,6 @@ def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfi
     return _best(src_ok[keep], dst_ok[nn[keep, 0]], dist[keep, 0], config.max_correspondences)
 
 
-def nearest_rows(query: np.ndarray, reference: np.ndarray, k: int = 1,
-                 workers: int = 1) -> np.ndarray:
-    """
-    Return the indices of the ``k`` rows of ``reference`` nearest to each query row.
-
-    The result is (len(query), k), nearest first by exact Euclidean distance, ties to the
-    lower row; k is 1 or 2 (``reference`` needs at least k rows). Builds a
-    :class:`~.descriptor_index.DescriptorIndex` over ``reference`` for this one call; keep
-    the index to query the same reference again.
-    """
-    return DescriptorIndex(reference, workers).query(query, k, workers)[0]
-
-
 def informative_index(descriptors: np.ndarray, workers: int = 1) -> DescriptorIndex | None:
     """
     Return the index :func:`match_features` searches as ``target_index``, or None.
