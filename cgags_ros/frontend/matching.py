@@ -60,6 +60,8 @@ def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfi
                          f'{len(dst_ok)} informative ones: not an index of this target')
     k = 2 if config.ratio_test < 1.0 and len(dst_ok) > 1 else 1
     nn = target_index.query(src, k, workers)[0]
+    # The index's own distances can differ in the last bit (another summation order); these
+    # keep the best-first order of equal-looking matches what it always was.
     dist = np.linalg.norm(src[:, None, :] - dst[nn], axis=2)
     keep = np.ones(len(src_ok), dtype=bool)
     if config.mutual_filter:
