@@ -76,6 +76,19 @@ def test_graph_equals_numpy(n, min_sq):
     assert not full[:, n:].any()
 
 
+@pytest.mark.parametrize('n', [2000, 2100])
+@pytest.mark.parametrize('workers', [2, 3])
+def test_graph_split_over_threads_equals_numpy(n, workers):
+    """The two passes split into ranges of equal work, on threads, give the same bits."""
+    src, dst = _problem(n, inliers=60)
+    min_distance = 0.3 if n == 2100 else 0.0
+    graph = build_compatibility_graph(src, dst, DELTA, min_distance, workers)
+    assert np.array_equal(graph.rows(np.arange(n)),
+                          _numpy_graph(src, dst, DELTA, min_distance ** 2))
+    single = build_compatibility_graph(src, dst, DELTA, min_distance, 1)
+    assert np.array_equal(graph.packed, single.packed)
+
+
 def test_graph_object_and_lists():
     src, dst = _problem(200)
     graph = build_compatibility_graph(src, dst, DELTA)
@@ -295,9 +308,9 @@ def test_searches_use_only_the_compiled_signatures():
                    for name in dir(m) if hasattr(getattr(m, name), 'signatures')]
     before = {d: len(d.signatures) for d in dispatchers}
     model = load_bunny(None)
-    p = make_correspondences(model, 800, 0.98, noise_sigma=0.01, rng=2)
+    p = make_correspondences(model, 2100, 0.98, noise_sigma=0.01, rng=2)  # a split graph
     for motion in ('6dof', '4dof'):
         src = np.asfortranarray(p.src)  # any layout: the core hands kernels C arrays
         register_correspondences(src, p.dst, inlier_threshold=0.05, seed=1,
-                                 config=CoreConfig(motion_model=motion))
+                                 config=CoreConfig(motion_model=motion), workers=2)
     assert {d: len(d.signatures) for d in dispatchers} == before

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import kernels_index
-from .parallel import run_chunks
+from ..parallel import run_chunks
 
 # Cells ~ sqrt(M) / 2.5, at most 256: the cost of visiting the cells' centres grows with
 # their count and the cost of scanning their members with M / count; measured on the

@@ -11,8 +11,8 @@ import numpy as np
 import open3d as o3d
 
 from . import kernels_fpfh
-from .parallel import run_chunks
 from ..config.frontend import FrontEndConfig
+from ..parallel import run_chunks
 
 # Neighbour grid cells are radius / _REACH wide, and a point's neighbours lie within
 # _REACH cells of its own: smaller cells than the radius test fewer points that are out of

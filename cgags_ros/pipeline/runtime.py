@@ -11,20 +11,18 @@ before numpy and Open3D load.
 from __future__ import annotations
 
 import contextlib
-import os
 
+from ..parallel import DEFAULT_WORKERS
 from ..registration import blas_controller, single_blas_thread
-
-MATCH_WORKERS = max(1, min(4, os.cpu_count() or 1))
 
 
 def blas_guard() -> tuple[contextlib.AbstractContextManager, int]:
     """
     Return (context keeping BLAS to one thread, descriptor-matching threads).
 
-    With threadpoolctl: one BLAS thread and ``MATCH_WORKERS`` matching threads; without it
-    nothing and 1 (BLAS's own threads then match).
+    With threadpoolctl: one BLAS thread and ``DEFAULT_WORKERS`` matching threads; without
+    it nothing and 1 (BLAS's own threads then match).
     """
     if blas_controller() is None:
         return contextlib.nullcontext(), 1
-    return single_blas_thread(), MATCH_WORKERS
+    return single_blas_thread(), DEFAULT_WORKERS

@@ -24,13 +24,15 @@ from ..config import fields
 from ..config.core import CoreConfig
 from ..errors import DegenerateCorrespondencesError, InvalidInputError
 from ..geometry import spread
+from ..parallel import DEFAULT_WORKERS
 from ..timing import timed
 
 
 @with_single_blas_thread
 def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
                              resolution: float | None = None, config: CoreConfig | None = None,
-                             seed: int = 0) -> RegistrationResult:
+                             seed: int = 0, workers: int = DEFAULT_WORKERS
+                             ) -> RegistrationResult:
     """
     Estimate the rigid transform mapping ``src`` onto ``dst`` from putative correspondences.
 
@@ -44,6 +46,7 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
         ``motion_model='4dof'`` the rotation is a yaw about ``gravity_axis`` (roll and
         pitch exactly zero) and the minimal subsets are compatible edges.
     :param seed: random seed; the result is deterministic for a given seed.
+    :param workers: threads for the compatibility graph (the result does not depend on it).
     :returns: :class:`RegistrationResult` with ``transform`` (source -> target), ``inliers``,
         ``valid``/``reason``, and per-stage ``stats``/``timings``.
     :raises InvalidInputError: wrong shapes, mismatched rows, NaN/Inf, missing thresholds.
@@ -75,7 +78,7 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
                 src, dst, delta, vertical_offsets(src, dst), cfg.min_pair_distance_factor * tau)
         else:
             graph = build_compatibility_graph(src, dst, delta,
-                                              cfg.min_pair_distance_factor * tau)
+                                              cfg.min_pair_distance_factor * tau, workers)
     result.stats.update(graph_edges=graph.num_edges, graph_density=graph.density)
     if graph.num_edges == 0:
         return result.finish(start, (

@@ -100,6 +100,9 @@ def compile_kernels() -> None:
     src = rng.random((70, 3))
     dst = src[:, ::-1].copy()
     words = kernels_graph.compatibility_words(src, dst, 0.05, 0.0)
+    split = np.zeros_like(words)  # the graph's passes as threads run them (large N)
+    kernels_graph.length_rows(kernels_graph.columns(src, dst, 2), split, 0, 70, 0.0025, 0.0)
+    kernels_graph.or_transpose_blocks(split, 0, 2)
     u = np.sort(rng.random(70))
     kernels_graph.vertical_compatibility_words(src, dst, u, np.searchsorted(u, u + 0.05),
                                                0.05, 0.0)

@@ -80,7 +80,7 @@ def _length_word(cols, k, i, d2, min_sq):
 
 
 @njit(cache=True, nogil=True)
-def _columns(src, dst, w):
+def columns(src, dst, w):
     """Return the coordinate columns of :func:`_length_word`, NaN-padded to W * 64."""
     cols = np.full((6, w * 64), np.nan)
     cols[:3, :src.shape[0]] = src.T
@@ -105,13 +105,22 @@ def compatibility_words(src, dst, delta, min_sq):
     n = src.shape[0]
     w = (n + 63) // 64
     words = np.zeros((n, w), np.uint64)
-    cols = _columns(src, dst, w)
-    d2 = delta * delta
-    for i in range(n):
+    length_rows(columns(src, dst, w), words, 0, n, delta * delta, min_sq)
+    or_transpose_blocks(words, 0, w)
+    return words
+
+
+@njit(cache=True, nogil=True)
+def length_rows(cols, words, a, b, d2, min_sq):
+    """
+    Fill rows a..b-1 of the upper triangle of :func:`compatibility_words` (its first pass).
+
+    Rows are independent, so row ranges may run on separate threads.
+    """
+    w = words.shape[1]
+    for i in range(a, b):
         for k in range(i >> 6, w):
             words[i, k] = _length_word(cols, k, i, d2, min_sq)
-    _or_transpose(words)
-    return words
 
 
 @njit(cache=True, nogil=True)
@@ -133,7 +142,7 @@ def vertical_compatibility_words(src, dst, u, hi, delta, min_sq):
     n = src.shape[0]
     w = (n + 63) // 64
     words = np.zeros((n, w), np.uint64)
-    cols = _columns(src, dst, w)
+    cols = columns(src, dst, w)
     uu = np.full(w * 64, np.nan)
     uu[:n] = u
     d2 = delta * delta
@@ -145,7 +154,7 @@ def vertical_compatibility_words(src, dst, u, hi, delta, min_sq):
             for b in range(64):  # NaN padding is never near
                 near |= np.uint64(abs(uu[(k << 6) + b] - u[i]) < delta) << np.uint64(b)
             words[i, k] = _length_word(cols, k, i, d2, min_sq) & near
-    _or_transpose(words)
+    or_transpose_blocks(words, 0, w)
     return words
 
 
@@ -166,11 +175,17 @@ def _transpose64(x):
 
 
 @njit(cache=True, nogil=True)
-def _or_transpose(words):
-    """Set bit (j, i) wherever bit (i, j) is set, by 64 x 64 block transposes."""
+def or_transpose_blocks(words, b0, b1):
+    """
+    Set bit (j, i) wherever bit (i, j) is set, for the source rows of blocks b0..b1-1.
+
+    By 64 x 64 block transposes. Block row bi reads words (bi, bj >= bi) and writes only
+    word column bi, so ranges of block rows may run on separate threads once the upper
+    triangle is complete.
+    """
     n, w = words.shape
     x = np.empty(64, np.uint64)
-    for bi in range(w):  # rows 64 bi .. 64 bi + 63 hold the source bits (j > i)
+    for bi in range(b0, b1):  # rows 64 bi .. 64 bi + 63 hold the source bits (j > i)
         for bj in range(bi, w):
             any_bit = np.uint64(0)
             for r in range(64):

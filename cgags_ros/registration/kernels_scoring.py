@@ -19,13 +19,64 @@ from .kernels_graph import lowest_bit
 _ONE = np.uint64(1)
 
 
+@njit(cache=True, nogil=True, inline='always')
+def _jacobi_top_eigenvector(N, V, v):
+    """
+    Write the eigenvector of the largest eigenvalue of the symmetric 4x4 ``N`` into ``v``.
+
+    Cyclic Jacobi rotations until the off-diagonal part is at rounding level (``N`` and
+    the scratch ``V`` are overwritten): a handful of sweeps of 6 rotations, no allocation,
+    accurate to machine precision whatever the eigenvalue spread.
+    """
+    V[:] = 0.0
+    for p in range(4):
+        V[p, p] = 1.0
+    for _ in range(32):
+        off = 0.0
+        scale = 0.0
+        for p in range(4):
+            scale += N[p, p] * N[p, p]
+            for q in range(p + 1, 4):
+                off += N[p, q] * N[p, q]
+        if off <= 1e-30 * scale:
+            break
+        for p in range(3):
+            for q in range(p + 1, 4):
+                if N[p, q] == 0.0:
+                    continue
+                theta = (N[q, q] - N[p, p]) / (2.0 * N[p, q])
+                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                for r in range(4):  # N <- N J (columns p, q)
+                    a, b = N[r, p], N[r, q]
+                    N[r, p], N[r, q] = c * a - s * b, s * a + c * b
+                for r in range(4):  # N <- J^T N (rows p, q)
+                    a, b = N[p, r], N[q, r]
+                    N[p, r], N[q, r] = c * a - s * b, s * a + c * b
+                for r in range(4):
+                    a, b = V[r, p], V[r, q]
+                    V[r, p], V[r, q] = c * a - s * b, s * a + c * b
+    top = 0
+    for p in range(1, 4):
+        if N[p, p] > N[top, top]:
+            top = p
+    for r in range(4):
+        v[r] = V[r, top]
+
+
 @njit(cache=True, nogil=True)
 def fit_triples(src, dst, triples):
     """
     Return the closed-form rigid fits (step 3) of minimal subsets (rows of ``triples``).
 
-    Kabsch / Arun on the three pairs, equal weights, reflection-safe: the same solution as
-    :func:`~.rigid.kabsch_batch` (dst ≈ R src + t).
+    The least-squares rotation of the three pairs (equal weights) by Horn's unit
+    quaternion: the eigenvector of the largest eigenvalue of his 4x4 matrix built from the
+    cross-covariance H. It is the proper rotation Kabsch / Arun with the reflection fix
+    return (:func:`~.rigid.kabsch_batch`, equal to 1e-9: test), without a LAPACK SVD per
+    fit (whose workspace and copies cost several times the arithmetic).
 
     :returns: R (B, 3, 3), t (B, 3).
     """
@@ -33,27 +84,45 @@ def fit_triples(src, dst, triples):
     R = np.empty((count, 3, 3))
     t = np.empty((count, 3))
     H = np.empty((3, 3))
+    N = np.empty((4, 4))
+    V = np.empty((4, 4))
+    q = np.empty(4)
+    cp = np.empty(3)
+    cq = np.empty(3)
     for b in range(count):
-        cp = np.zeros(3)
-        cq = np.zeros(3)
-        for m in range(3):
-            for a in range(3):
-                cp[a] += src[triples[b, m], a] / 3.0
-                cq[a] += dst[triples[b, m], a] / 3.0
+        for a in range(3):
+            cp[a] = (src[triples[b, 0], a] + src[triples[b, 1], a] + src[triples[b, 2], a]) / 3.0
+            cq[a] = (dst[triples[b, 0], a] + dst[triples[b, 1], a] + dst[triples[b, 2], a]) / 3.0
         H[:] = 0.0
         for m in range(3):
             for a in range(3):
                 for c in range(3):
                     H[a, c] += ((src[triples[b, m], a] - cp[a])
-                                * (dst[triples[b, m], c] - cq[c]) / 3.0)
-        U, _, Vt = np.linalg.svd(H)
-        Rb = Vt.T @ U.T
-        if np.linalg.det(Rb) < 0:  # reflection: flip the last singular vector
-            Vt[2, :] = -Vt[2, :]
-            Rb = Vt.T @ U.T
-        R[b] = Rb
+                                * (dst[triples[b, m], c] - cq[c]))
+        sxx, sxy, sxz = H[0, 0], H[0, 1], H[0, 2]
+        syx, syy, syz = H[1, 0], H[1, 1], H[1, 2]
+        szx, szy, szz = H[2, 0], H[2, 1], H[2, 2]
+        N[0, 0], N[1, 1] = sxx + syy + szz, sxx - syy - szz
+        N[2, 2], N[3, 3] = -sxx + syy - szz, -sxx - syy + szz
+        N[0, 1] = N[1, 0] = syz - szy
+        N[0, 2] = N[2, 0] = szx - sxz
+        N[0, 3] = N[3, 0] = sxy - syx
+        N[1, 2] = N[2, 1] = sxy + syx
+        N[1, 3] = N[3, 1] = szx + sxz
+        N[2, 3] = N[3, 2] = syz + szy
+        _jacobi_top_eigenvector(N, V, q)
+        w, x, y, z = q[0], q[1], q[2], q[3]
+        R[b, 0, 0] = w * w + x * x - y * y - z * z
+        R[b, 0, 1] = 2.0 * (x * y - w * z)
+        R[b, 0, 2] = 2.0 * (x * z + w * y)
+        R[b, 1, 0] = 2.0 * (x * y + w * z)
+        R[b, 1, 1] = w * w - x * x + y * y - z * z
+        R[b, 1, 2] = 2.0 * (y * z - w * x)
+        R[b, 2, 0] = 2.0 * (x * z - w * y)
+        R[b, 2, 1] = 2.0 * (y * z + w * x)
+        R[b, 2, 2] = w * w - x * x - y * y + z * z
         for a in range(3):
-            t[b, a] = cq[a] - (Rb[a, 0] * cp[0] + Rb[a, 1] * cp[1] + Rb[a, 2] * cp[2])
+            t[b, a] = cq[a] - (R[b, a, 0] * cp[0] + R[b, a, 1] * cp[1] + R[b, a, 2] * cp[2])
     return R, t
 
 
@@ -124,19 +193,41 @@ def merge_preferences(pref_res, pref_ids, res, first_id):
     Merge E new hypotheses into the preference lists (step 4, top-b residual ranks).
 
     Each correspondence keeps the b hypotheses with its smallest residuals, sorted
-    ascending (empty slots hold inf at the end): a new one enters when it beats the last
-    entry, by one insertion shift, and most are rejected by that single comparison. Sorted
-    lists also give each list's median without a sort (:meth:`.PreferenceLists.quality`).
+    ascending (empty slots hold inf at the end; equal residuals in hypothesis order).
+    Per correspondence the new residuals below its list's last entry (most are not, once
+    the lists fill) are sorted among themselves, then merged with the list in one pass:
+    fewer moves than inserting them one by one. Sorted lists also give each list's median
+    without a sort (:meth:`.PreferenceLists.quality`).
     ``res`` (E, N) float32; ids are ``first_id`` + row.
     """
     n, b = pref_res.shape
+    e_count = res.shape[0]
+    new_res = np.empty(e_count, np.float32)
+    new_ids = np.empty(e_count, np.int64)
+    out_res = np.empty(b, np.float32)
+    out_ids = np.empty(b, np.int64)
     for m in range(n):
-        for e in range(res.shape[0]):
+        last = pref_res[m, b - 1]
+        c = 0
+        for e in range(e_count):
             r = res[e, m]
-            if not r < pref_res[m, b - 1]:
+            if not r < last:
                 continue
-            p = b - 1
-            while p > 0 and pref_res[m, p - 1] > r:
-                pref_res[m, p], pref_ids[m, p] = pref_res[m, p - 1], pref_ids[m, p - 1]
+            p = c  # insertion sort; a later equal residual stays after an earlier one
+            while p > 0 and new_res[p - 1] > r:
+                new_res[p], new_ids[p] = new_res[p - 1], new_ids[p - 1]
                 p -= 1
-            pref_res[m, p], pref_ids[m, p] = r, first_id + e
+            new_res[p], new_ids[p] = r, first_id + e
+            c += 1
+        if c == 0:
+            continue
+        old = new = 0  # merge; on equal residuals the older hypothesis first
+        for p in range(b):
+            if new >= c or pref_res[m, old] <= new_res[new]:
+                out_res[p], out_ids[p] = pref_res[m, old], pref_ids[m, old]
+                old += 1
+            else:
+                out_res[p], out_ids[p] = new_res[new], new_ids[new]
+                new += 1
+        for p in range(b):
+            pref_res[m, p], pref_ids[m, p] = out_res[p], out_ids[p]

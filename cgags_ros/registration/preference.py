@@ -15,24 +15,65 @@ from scipy import sparse
 from . import kernels_scoring
 
 _DENSE_LIMIT = 2_000_000  # members x distinct hypotheses for the dense kernel product
+_PENDING_LIMIT = 1 << 22  # residuals held back before they are merged anyway (16 MB)
 
 
 class PreferenceLists:
+    """
+    The preference lists of N correspondences.
+
+    New hypotheses' residuals are merged when the lists are next read (kernel, quality,
+    ``ids``/``residuals``), in the order they came: the same lists, but the search's last
+    batches, which nothing reads, are never merged (a merge costs ~0.2 ms at N = 1000).
+    """
+
     def __init__(self, n: int, b: int):
         self.b = b
-        self.residuals = np.full((n, b), np.inf, dtype=np.float32)
-        self.ids = np.full((n, b), -1, dtype=np.int64)
+        self._residuals = np.full((n, b), np.inf, dtype=np.float32)
+        self._ids = np.full((n, b), -1, dtype=np.int64)
         self.num_hypotheses = 0
+        self._pending: list[tuple[np.ndarray, int]] = []  # (residual rows, first id)
+        self._pending_size = 0
 
     def update(self, residuals: np.ndarray) -> None:
-        """Merge the residual rows (E, N) of E new hypotheses (ids assigned in order)."""
+        """Add the residual rows (E, N) of E new hypotheses (ids assigned in order)."""
         e = len(residuals)
         if e == 0:
             return
-        kernels_scoring.merge_preferences(self.residuals, self.ids,
-                                          np.ascontiguousarray(residuals, dtype=np.float32),
-                                          self.num_hypotheses)
+        self._pending.append((np.ascontiguousarray(residuals, dtype=np.float32),
+                              self.num_hypotheses))
+        self._pending_size += residuals.size
         self.num_hypotheses += e
+        if self._pending_size > _PENDING_LIMIT:
+            self._merge()
+
+    def _merge(self) -> None:
+        for rows, first in self._pending:
+            kernels_scoring.merge_preferences(self._residuals, self._ids, rows, first)
+        self._pending.clear()
+        self._pending_size = 0
+
+    @property
+    def residuals(self) -> np.ndarray:
+        """(N, b) float32 residuals of each list, ascending; inf in empty slots."""
+        self._merge()
+        return self._residuals
+
+    @residuals.setter
+    def residuals(self, value: np.ndarray) -> None:
+        self._merge()
+        self._residuals = value
+
+    @property
+    def ids(self) -> np.ndarray:
+        """(N, b) int64 hypothesis ids of each list, in residual order; -1 in empty slots."""
+        self._merge()
+        return self._ids
+
+    @ids.setter
+    def ids(self, value: np.ndarray) -> None:
+        self._merge()
+        self._ids = value
 
     def quality(self) -> np.ndarray:
         """Median residual over each correspondence's list (inf while it is under half full)."""

@@ -1,0 +1,68 @@
+"""
+Split a compiled (nogil) kernel's rows over threads: the package's one thread pool.
+
+The front end (FPFH, descriptor index) and the core (compatibility graph) run their
+compiled kernels on it; every task writes disjoint rows, so results do not depend on the
+number of threads.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+import os
+import threading
+from typing import Callable, Sequence
+
+CHUNK = 512  # rows per task, so that threads finish close together
+# Threads a registration uses by default: the machine's cores, at most four (measured on
+# 2 cores; docs/implementation.md).
+DEFAULT_WORKERS = max(1, min(4, os.cpu_count() or 1))
+
+_pool: ThreadPoolExecutor | None = None
+_pool_size = 0
+_pool_lock = threading.Lock()
+
+
+def run_chunks(task: Callable[[int, int], None], n: int, workers: int,
+               chunk: int = CHUNK) -> None:
+    """
+    Run ``task(a, b)`` over the rows [0, n) in chunks of ``chunk``, on ``workers`` threads.
+
+    ``task`` must release the GIL (a ``nogil`` numba kernel) and write disjoint rows; the
+    result then does not depend on ``workers``.
+    """
+    if workers <= 1 or n <= chunk:
+        task(0, n)
+        return
+    pool = _shared_pool(workers)
+    bounds = list(range(0, n, chunk)) + [n]
+    for part in [pool.submit(task, a, b) for a, b in zip(bounds[:-1], bounds[1:])]:
+        part.result()
+
+
+def run_split(task: Callable[[int, int], None], bounds: Sequence[int]) -> None:
+    """
+    Run ``task(a, b)`` for each consecutive pair of ``bounds``, all at once (one thread each).
+
+    The caller runs the last range itself, so k ranges occupy k threads and short tasks
+    (a millisecond) pay one hand-off each, not a queue. Same contract as :func:`run_chunks`.
+    """
+    ranges = list(zip(bounds[:-1], bounds[1:]))
+    if len(ranges) <= 1:
+        for a, b in ranges:
+            task(a, b)
+        return
+    pool = _shared_pool(len(ranges) - 1)
+    parts = [pool.submit(task, a, b) for a, b in ranges[:-1]]
+    task(*ranges[-1])
+    for part in parts:
+        part.result()
+
+
+def _shared_pool(workers: int) -> ThreadPoolExecutor:
+    global _pool, _pool_size
+    with _pool_lock:
+        if _pool is None or _pool_size < workers:
+            _pool = ThreadPoolExecutor(workers, thread_name_prefix='cgags_worker')
+            _pool_size = workers
+        return _pool
