@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 
 from cgags_ros.datasets.synthetic import load_bunny, make_correspondences
-from cgags_ros.registration import kernels, register_correspondences
+from cgags_ros.registration import compatibility, kernels, register_correspondences
 from cgags_ros.registration.compatibility import build_compatibility_graph
 from cgags_ros.registration.hypotheses import score_values
 from cgags_ros.registration.kernels_graph import compatibility_words, neighbour_lists
@@ -76,12 +76,13 @@ def test_graph_equals_numpy(n, min_sq):
     assert not full[:, n:].any()
 
 
-@pytest.mark.parametrize('n', [2000, 2100])
+@pytest.mark.parametrize('n', [130, 700, 1100])
 @pytest.mark.parametrize('workers', [2, 3])
-def test_graph_split_over_threads_equals_numpy(n, workers):
+def test_graph_split_over_threads_equals_numpy(n, workers, monkeypatch):
     """The two passes split into ranges of equal work, on threads, give the same bits."""
+    monkeypatch.setattr(compatibility, '_SPLIT_MIN', 0)  # split whatever N
     src, dst = _problem(n, inliers=60)
-    min_distance = 0.3 if n == 2100 else 0.0
+    min_distance = 0.3 if n == 700 else 0.0
     graph = build_compatibility_graph(src, dst, DELTA, min_distance, workers)
     assert np.array_equal(graph.rows(np.arange(n)),
                           _numpy_graph(src, dst, DELTA, min_distance ** 2))
@@ -299,7 +300,7 @@ def test_compile_kernels_is_idempotent():
         assert fn.signatures, fn  # compiled (or loaded from the cache)
 
 
-def test_searches_use_only_the_compiled_signatures():
+def test_searches_use_only_the_compiled_signatures(monkeypatch):
     """compile_kernels (the warm-up) compiles every specialization a search needs."""
     from cgags_ros.registration import CoreConfig, kernels_graph, kernels_sampling, kernels_scoring
 
@@ -308,7 +309,8 @@ def test_searches_use_only_the_compiled_signatures():
                    for name in dir(m) if hasattr(getattr(m, name), 'signatures')]
     before = {d: len(d.signatures) for d in dispatchers}
     model = load_bunny(None)
-    p = make_correspondences(model, 2100, 0.98, noise_sigma=0.01, rng=2)  # a split graph
+    monkeypatch.setattr(compatibility, '_SPLIT_MIN', 0)  # the graph split over threads too
+    p = make_correspondences(model, 800, 0.98, noise_sigma=0.01, rng=2)
     for motion in ('6dof', '4dof'):
         src = np.asfortranarray(p.src)  # any layout: the core hands kernels C arrays
         register_correspondences(src, p.dst, inlier_threshold=0.05, seed=1,

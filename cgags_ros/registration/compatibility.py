@@ -17,8 +17,8 @@ from . import kernels_graph
 from ..parallel import run_split
 
 # Correspondences below which the graph is built on one thread: waking an idle pool thread
-# costs 0.1-0.2 ms here, as much as the split saves up to ~1500 (docs/implementation.md).
-_SPLIT_MIN = 2000
+# costs 0.1-0.2 ms here, more than the split saves below ~4000 (docs/implementation.md).
+_SPLIT_MIN = 4000
 
 
 class CompatibilityGraph:

@@ -60,15 +60,19 @@ def _length_word(cols, k, i, d2, min_sq):
     Return the bits j = 64 k .. 64 k + 63 of row i of the length test (see below).
 
     ``cols`` (6, W * 64): separate, NaN-padded coordinate columns px, py, pz, qx, qy, qz,
-    so the loop vectorizes and padding is never an edge.
+    so the loop vectorizes and padding is never an edge. The 64 columns are sliced first:
+    indexed as cols[a, 64 k + b], LLVM cannot see the loads are contiguous and gathers
+    them (8x slower, docs/implementation.md).
     """
-    px, py, pz, qx, qy, qz = cols[0], cols[1], cols[2], cols[3], cols[4], cols[5]
-    x0, y0, z0, u0, v0, s0 = px[i], py[i], pz[i], qx[i], qy[i], qz[i]
+    lo, hi = k << 6, (k << 6) + 64
+    px, py, pz = cols[0, lo:hi], cols[1, lo:hi], cols[2, lo:hi]
+    qx, qy, qz = cols[3, lo:hi], cols[4, lo:hi], cols[5, lo:hi]
+    x0, y0, z0 = cols[0, i], cols[1, i], cols[2, i]
+    u0, v0, s0 = cols[3, i], cols[4, i], cols[5, i]
     word = np.uint64(0)
     for b in range(64):
-        j = (k << 6) + b
-        ax, ay, az = px[j] - x0, py[j] - y0, pz[j] - z0
-        bx, by, bz = qx[j] - u0, qy[j] - v0, qz[j] - s0
+        ax, ay, az = px[b] - x0, py[b] - y0, pz[b] - z0
+        bx, by, bz = qx[b] - u0, qy[b] - v0, qz[b] - s0
         a2 = ax * ax + ay * ay + az * az
         b2 = bx * bx + by * by + bz * bz
         c = a2 + b2 - d2
@@ -151,8 +155,9 @@ def vertical_compatibility_words(src, dst, u, hi, delta, min_sq):
             continue
         for k in range(i >> 6, ((hi[i] - 1) >> 6) + 1):
             near = np.uint64(0)
+            block = uu[k << 6:(k << 6) + 64]
             for b in range(64):  # NaN padding is never near
-                near |= np.uint64(abs(uu[(k << 6) + b] - u[i]) < delta) << np.uint64(b)
+                near |= np.uint64(abs(block[b] - u[i]) < delta) << np.uint64(b)
             words[i, k] = _length_word(cols, k, i, d2, min_sq) & near
     or_transpose_blocks(words, 0, w)
     return words
