@@ -17,8 +17,9 @@ from cgags_ros.registration.hypotheses import score_values
 from cgags_ros.registration.kernels_graph import compatibility_words, neighbour_lists
 from cgags_ros.registration.kernels_sampling import (COLLINEAR, draw_edges, draw_guided,
                                                      draw_triples, EMPTY)
-from cgags_ros.registration.kernels_scoring import (fit_triples, merge_preferences,
-                                                    prescreen_scores, residual_matrix)
+from cgags_ros.registration.kernels_scoring import (fit_triples, intersection_kernel,
+                                                    merge_preferences, prescreen_scores,
+                                                    residual_matrix)
 from cgags_ros.registration.rigid import kabsch_batch
 from cgags_ros.registration.sampling import triangle_areas
 import numpy as np
@@ -247,6 +248,26 @@ def test_preference_merge_equals_numpy():
         assert np.array_equal(np.sort(res, axis=1), np.sort(ref_res, axis=1))
 
 
+@pytest.mark.parametrize('b', [1, 5, 20])
+def test_intersection_kernel_equals_numpy(b):
+    """K(a, c) = |T_a ∩ T_c| / b: the bit-row kernel against the dense 0/1 product."""
+    rng = np.random.default_rng(b)
+    n, hypotheses = 120, 150  # > 64 hypotheses in use: several words per bit row
+    ids = np.stack([rng.choice(hypotheses, b, replace=False) for _ in range(n)])
+    ids[rng.random((n, b)) < 0.1] = -1  # empty slots
+    ids[:10] = ids[0]  # identical lists
+    members = rng.choice(n, 70, replace=False)
+    members[:5] = np.arange(5)
+    K = intersection_kernel(ids, members, hypotheses, b)
+    S = np.zeros((len(members), hypotheses), np.float32)
+    rows, slots = np.nonzero(ids[members] >= 0)
+    S[rows, ids[members][rows, slots]] = 1.0
+    ref = (S @ S.T) / np.float32(b)
+    np.fill_diagonal(ref, 0.0)
+    assert K.dtype == np.float32 and np.array_equal(K, ref)
+    assert K[0, 1] == np.float32(np.count_nonzero(ids[0] >= 0)) / np.float32(b)  # all shared
+
+
 @pytest.mark.parametrize('edges_only', [False, True])
 def test_guided_equals_numpy_draws(edges_only):
     rng = np.random.default_rng(7)
@@ -296,7 +317,7 @@ def test_compile_kernels_is_idempotent():
     kernels.compile_kernels()
     kernels.compile_kernels()
     for fn in (compatibility_words, draw_triples, draw_edges, draw_guided, fit_triples,
-               prescreen_scores, residual_matrix, merge_preferences):
+               prescreen_scores, residual_matrix, merge_preferences, intersection_kernel):
         assert fn.signatures, fn  # compiled (or loaded from the cache)
 
 

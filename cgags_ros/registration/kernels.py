@@ -11,7 +11,8 @@ Which paper step each kernel implements (METHOD.md numbering):
 - step 3, hypotheses (3-point fits, pre-screen on common neighbourhoods, residuals):
   :mod:`.kernels_scoring`;
 - step 4, preference lists: :func:`.kernels_scoring.merge_preferences`;
-- step 5, guided sampling: :func:`.kernels_sampling.draw_guided`.
+- step 5, guided sampling: its kernel :func:`.kernels_scoring.intersection_kernel` and
+  :func:`.kernels_sampling.draw_guided`.
 
 Every kernel is compiled with ``cache=True``: numba stores the machine code in
 ``__pycache__`` next to these modules, or under ``NUMBA_CACHE_DIR`` when set (and falls back
@@ -122,8 +123,9 @@ def compile_kernels() -> None:
             kernels_scoring.prescreen_scores(words, src, dst, R, t, triples, 0.05, truncated,
                                              dense)
     res = kernels_scoring.residual_matrix(src, dst, R, t)
-    kernels_scoring.merge_preferences(np.full((70, 3), np.inf, np.float32),
-                                      np.full((70, 3), -1, np.int64), res, 0)
+    ids = np.full((70, 3), -1, np.int64)
+    kernels_scoring.merge_preferences(np.full((70, 3), np.inf, np.float32), ids, res, 0)
+    kernels_scoring.intersection_kernel(ids, np.arange(5, dtype=np.int64), len(res), 3)
     kernels_graph.sub_adjacency(words, np.arange(5, dtype=np.int64))
     kernel = np.ones((5, 5), np.float32)
     adjacency = ~np.eye(5, dtype=bool)

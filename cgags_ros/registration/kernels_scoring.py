@@ -14,7 +14,7 @@ import math
 from numba import njit
 import numpy as np
 
-from .kernels_graph import lowest_bit
+from .kernels_graph import lowest_bit, popcount
 
 _ONE = np.uint64(1)
 
@@ -231,3 +231,41 @@ def merge_preferences(pref_res, pref_ids, res, first_id):
                 new += 1
         for p in range(b):
             pref_res[m, p], pref_ids[m, p] = out_res[p], out_ids[p]
+
+
+@njit(cache=True, nogil=True)
+def intersection_kernel(ids, members, num_hypotheses, b):
+    """
+    Return the intersection kernel K (M, M) float32 of the members' preference lists.
+
+    K(a, c) = |T_a ∩ T_c| / b, diagonal zero (step 5's kernel). The hypotheses present in
+    the members' lists are renumbered 0..H'-1 and each list becomes a bit row of H' bits,
+    so a pair costs H' / 64 AND + popcounts: the dense 0/1 matrix product it replaces
+    multiplied mostly zeros. ``ids`` (N, b) int64, -1 in empty slots.
+    """
+    m = members.shape[0]
+    slot = np.full(num_hypotheses, -1, np.int64)
+    used = 0
+    for a in range(m):
+        for p in range(b):
+            h = ids[members[a], p]
+            if h >= 0 and slot[h] < 0:
+                slot[h] = used
+                used += 1
+    w = max((used + 63) >> 6, 1)
+    bits = np.zeros((m, w), np.uint64)
+    for a in range(m):
+        for p in range(b):
+            h = ids[members[a], p]
+            if h >= 0:
+                s = slot[h]
+                bits[a, s >> 6] |= _ONE << np.uint64(s & 63)
+    K = np.zeros((m, m), np.float32)
+    scale = np.float32(b)
+    for a in range(m):
+        for c in range(a + 1, m):
+            count = 0
+            for k in range(w):
+                count += popcount(bits[a, k] & bits[c, k])
+            K[a, c] = K[c, a] = np.float32(count) / scale
+    return K

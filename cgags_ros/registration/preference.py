@@ -10,11 +10,9 @@ and low elsewhere; guided sampling draws partners in proportion to it.
 from __future__ import annotations
 
 import numpy as np
-from scipy import sparse
 
 from . import kernels_scoring
 
-_DENSE_LIMIT = 2_000_000  # members x distinct hypotheses for the dense kernel product
 _PENDING_LIMIT = 1 << 22  # residuals held back before they are merged anyway (16 MB)
 
 
@@ -84,19 +82,6 @@ class PreferenceLists:
 
     def kernel(self, members: np.ndarray) -> np.ndarray:
         """Dense intersection kernel K (M, M) float32 among ``members``; diagonal zeroed."""
-        ids = self.ids[members]
-        valid = ids >= 0
-        # Only hypotheses present in some list matter: renumber them 0..H'-1.
-        used, cols = np.unique(ids[valid], return_inverse=True)
-        if len(used) * len(members) <= _DENSE_LIMIT:  # few distinct hypotheses: BLAS
-            S = np.zeros((len(members), max(len(used), 1)), dtype=np.float32)
-            S[np.nonzero(valid)[0], cols] = 1.0
-            K = S @ S.T
-        else:
-            indptr = np.concatenate([[0], np.cumsum(valid.sum(axis=1))])
-            S = sparse.csr_matrix((np.ones(len(cols), dtype=np.float32), cols, indptr),
-                                  shape=(len(members), len(used)))
-            K = (S @ S.T).toarray().astype(np.float32)
-        K /= self.b
-        np.fill_diagonal(K, 0.0)
-        return K
+        return kernels_scoring.intersection_kernel(
+            self.ids, np.ascontiguousarray(members, dtype=np.int64), self.num_hypotheses,
+            self.b)
