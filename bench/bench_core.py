@@ -410,10 +410,15 @@ def environment() -> dict[str, Any]:
            'threads_env': {k: os.environ[k]
                            for k in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS')
                            if k in os.environ}}
-    for mod in ('numpy', 'scipy', 'open3d', 'kiss_matcher'):
+    # Versions from the installed metadata: importing Open3D here, when no solver uses it,
+    # made our core run 3x slower right after each KISS-Matcher call (two TBB runtimes in
+    # one process; docs/bench_core.md).
+    from importlib import metadata
+    for mod, dist in (('numpy', 'numpy'), ('scipy', 'scipy'), ('open3d', 'open3d'),
+                      ('kiss_matcher', 'kiss-matcher')):
         try:
-            env[mod] = importlib.import_module(mod).__version__
-        except Exception:
+            env[mod] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
             pass
     try:
         import hashlib
