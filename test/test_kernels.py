@@ -248,6 +248,33 @@ def test_preference_merge_equals_numpy():
         assert np.array_equal(np.sort(res, axis=1), np.sort(ref_res, axis=1))
 
 
+def test_usable_triangles_equal_numpy_areas():
+    src, dst = _problem(60)
+    triples = np.random.default_rng(9).integers(0, 60, (300, 3))
+    triples[:20, 2] = triples[:20, 1]  # degenerate: zero area
+    min_area = 0.05
+    i, j, k = triples.T
+    ref = ((triangle_areas(src, i, j, k) >= min_area) & (triangle_areas(dst, i, j, k) >= min_area))
+    got = kernels.usable_triangles(src, dst, triples, min_area)
+    assert np.array_equal(got, ref) and 0 < ref.sum() < len(ref)
+
+
+def test_common_within_equals_numpy():
+    """|N(i) ∩ N(j)| and its part inside a subset (the stage-one w1), against numpy sets."""
+    src, dst = _problem(150)
+    graph = build_compatibility_graph(src, dst, DELTA)
+    adj = _numpy_graph(src, dst, DELTA)
+    rng = np.random.default_rng(8)
+    i, j = rng.integers(0, 150, 40), rng.integers(0, 150, 40)
+    members = np.concatenate([np.arange(40), rng.choice(150, 20)])  # duplicates too
+    total, inside = graph.common_within(i, j, members)
+    subset = np.zeros(150, bool)
+    subset[members] = True
+    assert np.array_equal(total, (adj[i] & adj[j]).sum(axis=1))
+    assert np.array_equal(inside, (adj[i] & adj[j] & subset).sum(axis=1))
+    assert inside.max() > 0
+
+
 @pytest.mark.parametrize('b', [1, 5, 20])
 def test_intersection_kernel_equals_numpy(b):
     """K(a, c) = |T_a ∩ T_c| / b: the bit-row kernel against the dense 0/1 product."""

@@ -32,3 +32,24 @@ def test_kabsch_least_squares_on_noisy_points_and_residuals():
     est = kabsch(src, dst)
     assert np.allclose(est, T, atol=5e-4)
     assert residuals(est, src, dst).mean() < 0.003
+
+
+def test_weighted_kabsch_equals_the_batch_svd_and_residuals_equal_numpy():
+    """The compiled Horn fit (kabsch) gives the SVD's optimum, weighted or not, mirrors too."""
+    rng = np.random.default_rng(3)
+    for trial in range(40):
+        k = int(rng.integers(3, 60))
+        src = rng.normal(size=(k, 3)) * rng.uniform(0.01, 50)
+        R = Rotation.random(random_state=trial).as_matrix()
+        dst = src @ R.T + rng.normal(size=3) + rng.normal(0, rng.choice([0, 0.01, 1]), (k, 3))
+        if trial % 4 == 0:
+            dst = dst * np.array([-1.0, 1.0, 1.0])  # a mirror image
+        weights = rng.random(k) if trial % 2 else None
+        T = kabsch(src, dst, weights)
+        R_ref, t_ref = kabsch_batch(src[None], dst[None], None if weights is None
+                                    else weights[None])
+        np.testing.assert_allclose(T[:3, :3], R_ref[0], atol=1e-9)
+        np.testing.assert_allclose(T[:3, 3], t_ref[0], atol=1e-9 * max(1.0, np.abs(src).max()))
+        assert np.allclose(T[3], [0, 0, 0, 1]) and np.isclose(np.linalg.det(T[:3, :3]), 1.0)
+        ref = np.linalg.norm(src @ T[:3, :3].T + T[:3, 3] - dst, axis=1)
+        np.testing.assert_allclose(residuals(T, src, dst), ref, rtol=1e-12, atol=1e-12)

@@ -96,6 +96,15 @@ class CompatibilityGraph:
         both = rows.view(np.uint64) & self._words[idx]
         return np.bitwise_count(both).sum(axis=1, dtype=np.int64)
 
+    def common_within(self, i: np.ndarray, j: np.ndarray, members: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """Return |N(i) ∩ N(j)| and |N(i) ∩ N(j) ∩ members| per pair (index arrays)."""
+        subset = np.zeros(self._words.shape[1] * 64, dtype=bool)
+        subset[members] = True
+        row = np.packbits(subset, bitorder='little').view(np.uint64)
+        return kernels_graph.common_within(self._words, np.asarray(i, dtype=np.int64),
+                                           np.asarray(j, dtype=np.int64), row)
+
     def count_edges_within(self, members: np.ndarray) -> int:
         """Return the number of undirected edges among ``members`` (indices)."""
         if len(members) < 2:

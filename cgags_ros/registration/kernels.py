@@ -9,7 +9,8 @@ Which paper step each kernel implements (METHOD.md numbering):
 - step 2, minimal compatible subsets (edge and vertex tournaments, collinearity test):
   :func:`.kernels_sampling.draw_triples`, :func:`.kernels_sampling.draw_edges`;
 - step 3, hypotheses (3-point fits, pre-screen on common neighbourhoods, residuals):
-  :mod:`.kernels_scoring`;
+  :mod:`.kernels_scoring`, whose weighted fit and residuals also serve step 6's re-fits
+  (:func:`.rigid.kabsch`, :func:`.rigid.residuals`);
 - step 4, preference lists: :func:`.kernels_scoring.merge_preferences`;
 - step 5, guided sampling: its kernel :func:`.kernels_scoring.intersection_kernel` and
   :func:`.kernels_sampling.draw_guided`.
@@ -30,7 +31,8 @@ from . import kernels_graph, kernels_sampling, kernels_scoring
 from .kernels_sampling import COLLINEAR, EMPTY
 
 __all__ = ['COLLINEAR', 'EMPTY', 'compile_kernels', 'draw_edges', 'draw_triples', 'draw_guided',
-           'common_support', 'fit_triples', 'prescreen_scores', 'residual_matrix']
+           'common_support', 'fit_triples', 'prescreen_scores', 'residual_matrix',
+           'usable_triangles']
 
 _compiled = False
 _VERTEX_PROPOSALS = 64  # uniform members of N(i) proposed per vertex tournament
@@ -66,6 +68,11 @@ def draw_guided(rng, kernel: np.ndarray, adjacency: np.ndarray, seed_weights: np
         rng, np.ascontiguousarray(kernel, dtype=np.float32),
         np.ascontiguousarray(adjacency, dtype=bool), np.cumsum(seed_weights, dtype=np.float64),
         int(count), float(xi), bool(edges_only))
+
+
+def usable_triangles(src, dst, triples: np.ndarray, min_area: float) -> np.ndarray:
+    """Mask of the triples whose triangles span >= ``min_area`` in both clouds (step 2)."""
+    return kernels_sampling.usable_triangles(src, dst, _i64(triples), float(min_area))
 
 
 def common_support(graph, triples: np.ndarray) -> np.ndarray:
@@ -111,13 +118,17 @@ def compile_kernels() -> None:
     indptr = np.concatenate([[0], np.cumsum(degree)])
     pairs = kernels_graph.neighbour_lists(words, indptr)
     kernels_graph.common_support(words, np.zeros((2, 3), np.int64))
+    kernels_graph.common_within(words, np.zeros(2, np.int64), np.ones(2, np.int64), words[0])
     for lists in (pairs, pairs[:0]):
         for soft in (True, False):
             kernels_sampling.draw_edges(rng, words, indptr, lists, src, dst, 0.05, soft, 2, 2)
             i, j, k, _, _ = kernels_sampling.draw_triples(
                 rng, words, indptr, lists, src, dst, 0.05, soft, 2, 2, 2, 4, 1e-9)
     triples = np.stack([i, j, k], axis=1)
+    kernels_sampling.usable_triangles(src, dst, triples, 1e-9)
     R, t = kernels_scoring.fit_triples(src, dst, triples)
+    T = kernels_scoring.fit_weighted(src, dst, np.ones(70))
+    kernels_scoring.point_residuals(T, src, dst)
     for truncated in (True, False):
         for dense in (True, False):
             kernels_scoring.prescreen_scores(words, src, dst, R, t, triples, 0.05, truncated,

@@ -278,3 +278,21 @@ def nth_set_bit(row, r):
             return (k << 6) + lowest_bit(word)
         r -= c
     return -1
+
+
+@njit(cache=True, nogil=True)
+def common_within(words, i, j, subset):
+    """
+    Return |N(i) ∩ N(j)| and |N(i) ∩ N(j) ∩ S| per pair (i[m], j[m]).
+
+    ``subset`` holds S as one bit row (W uint64 words), like a row of ``words``; the
+    stage-one inlier probability (stopping) reads both counts.
+    """
+    total = np.zeros(len(i), np.int64)
+    inside = np.zeros(len(i), np.int64)
+    for m in range(len(i)):
+        for k in range(words.shape[1]):
+            both = words[i[m], k] & words[j[m], k]
+            total[m] += popcount(both)
+            inside[m] += popcount(both & subset[k])
+    return total, inside

@@ -221,3 +221,13 @@ def draw_guided(rng, kernel, adjacency, seed_cdf, count, xi, edges_only):
         if k >= 0:
             kk[b], ok[b] = k, True
     return ii, jj, kk, ok
+
+
+@njit(cache=True, nogil=True)
+def usable_triangles(src, dst, triples, min_area):
+    """Return, per row (i, j, k), whether its triangle's area is >= ``min_area`` in both clouds."""
+    ok = np.empty(len(triples), np.bool_)
+    for m in range(len(triples)):
+        i, j, k = triples[m, 0], triples[m, 1], triples[m, 2]
+        ok[m] = _area(src, i, j, k) >= min_area and _area(dst, i, j, k) >= min_area
+    return ok

@@ -67,6 +67,38 @@ def _jacobi_top_eigenvector(N, V, v):
         v[r] = V[r, top]
 
 
+@njit(cache=True, nogil=True, inline='always')
+def _horn_rotation(H, N, V, q, R):
+    """
+    Write into ``R`` the proper rotation maximising trace(R H^T) (Horn's unit quaternion).
+
+    ``H`` is the cross-covariance sum p q^T of centred pairs (q ≈ R p); ``N``, ``V``
+    (4x4) and ``q`` (4) are scratch.
+    """
+    sxx, sxy, sxz = H[0, 0], H[0, 1], H[0, 2]
+    syx, syy, syz = H[1, 0], H[1, 1], H[1, 2]
+    szx, szy, szz = H[2, 0], H[2, 1], H[2, 2]
+    N[0, 0], N[1, 1] = sxx + syy + szz, sxx - syy - szz
+    N[2, 2], N[3, 3] = -sxx + syy - szz, -sxx - syy + szz
+    N[0, 1] = N[1, 0] = syz - szy
+    N[0, 2] = N[2, 0] = szx - sxz
+    N[0, 3] = N[3, 0] = sxy - syx
+    N[1, 2] = N[2, 1] = sxy + syx
+    N[1, 3] = N[3, 1] = szx + sxz
+    N[2, 3] = N[3, 2] = syz + szy
+    _jacobi_top_eigenvector(N, V, q)
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    R[0, 0] = w * w + x * x - y * y - z * z
+    R[0, 1] = 2.0 * (x * y - w * z)
+    R[0, 2] = 2.0 * (x * z + w * y)
+    R[1, 0] = 2.0 * (x * y + w * z)
+    R[1, 1] = w * w - x * x + y * y - z * z
+    R[1, 2] = 2.0 * (y * z - w * x)
+    R[2, 0] = 2.0 * (x * z - w * y)
+    R[2, 1] = 2.0 * (y * z + w * x)
+    R[2, 2] = w * w - x * x - y * y + z * z
+
+
 @njit(cache=True, nogil=True)
 def fit_triples(src, dst, triples):
     """
@@ -99,28 +131,7 @@ def fit_triples(src, dst, triples):
                 for c in range(3):
                     H[a, c] += ((src[triples[b, m], a] - cp[a])
                                 * (dst[triples[b, m], c] - cq[c]))
-        sxx, sxy, sxz = H[0, 0], H[0, 1], H[0, 2]
-        syx, syy, syz = H[1, 0], H[1, 1], H[1, 2]
-        szx, szy, szz = H[2, 0], H[2, 1], H[2, 2]
-        N[0, 0], N[1, 1] = sxx + syy + szz, sxx - syy - szz
-        N[2, 2], N[3, 3] = -sxx + syy - szz, -sxx - syy + szz
-        N[0, 1] = N[1, 0] = syz - szy
-        N[0, 2] = N[2, 0] = szx - sxz
-        N[0, 3] = N[3, 0] = sxy - syx
-        N[1, 2] = N[2, 1] = sxy + syx
-        N[1, 3] = N[3, 1] = szx + sxz
-        N[2, 3] = N[3, 2] = syz + szy
-        _jacobi_top_eigenvector(N, V, q)
-        w, x, y, z = q[0], q[1], q[2], q[3]
-        R[b, 0, 0] = w * w + x * x - y * y - z * z
-        R[b, 0, 1] = 2.0 * (x * y - w * z)
-        R[b, 0, 2] = 2.0 * (x * z + w * y)
-        R[b, 1, 0] = 2.0 * (x * y + w * z)
-        R[b, 1, 1] = w * w - x * x + y * y - z * z
-        R[b, 1, 2] = 2.0 * (y * z - w * x)
-        R[b, 2, 0] = 2.0 * (x * z - w * y)
-        R[b, 2, 1] = 2.0 * (y * z + w * x)
-        R[b, 2, 2] = w * w - x * x - y * y + z * z
+        _horn_rotation(H, N, V, q, R[b])
         for a in range(3):
             t[b, a] = cq[a] - (R[b, a, 0] * cp[0] + R[b, a, 1] * cp[1] + R[b, a, 2] * cp[2])
     return R, t
@@ -269,3 +280,51 @@ def intersection_kernel(ids, members, num_hypotheses, b):
                 count += popcount(bits[a, k] & bits[c, k])
             K[a, c] = K[c, a] = np.float32(count) / scale
     return K
+
+
+@njit(cache=True, nogil=True)
+def fit_weighted(src, dst, weights):
+    """
+    Return the weighted least-squares rigid transform (4x4) with dst ≈ R src + t.
+
+    Weighted centroids and cross-covariance, then Horn's quaternion as in
+    :func:`fit_triples`: the re-fits of step 6 without numpy's per-call overhead.
+    """
+    total = 0.0
+    cp = np.zeros(3)
+    cq = np.zeros(3)
+    for m in range(src.shape[0]):
+        total += weights[m]
+        for a in range(3):
+            cp[a] += weights[m] * src[m, a]
+            cq[a] += weights[m] * dst[m, a]
+    for a in range(3):
+        cp[a] /= total
+        cq[a] /= total
+    H = np.zeros((3, 3))
+    for m in range(src.shape[0]):
+        for a in range(3):
+            for c in range(3):
+                H[a, c] += weights[m] * (src[m, a] - cp[a]) * (dst[m, c] - cq[c])
+    T = np.eye(4)
+    R = np.empty((3, 3))
+    _horn_rotation(H, np.empty((4, 4)), np.empty((4, 4)), np.empty(4), R)
+    for a in range(3):
+        for c in range(3):
+            T[a, c] = R[a, c]
+        T[a, 3] = cq[a] - (R[a, 0] * cp[0] + R[a, 1] * cp[1] + R[a, 2] * cp[2])
+    return T
+
+
+@njit(cache=True, nogil=True)
+def point_residuals(T, src, dst):
+    """Return ||dst_m - (R src_m + t)|| per row (float64), T a 4x4 rigid transform."""
+    out = np.empty(src.shape[0])
+    for m in range(src.shape[0]):
+        r2 = 0.0
+        for a in range(3):
+            d = (T[a, 0] * src[m, 0] + T[a, 1] * src[m, 1] + T[a, 2] * src[m, 2] + T[a, 3]
+                 - dst[m, a])
+            r2 += d * d
+        out[m] = math.sqrt(r2)
+    return out

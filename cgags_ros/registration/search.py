@@ -18,7 +18,7 @@ from .compatibility import CompatibilityGraph
 from .hypotheses import refit, score_values
 from .preference import PreferenceLists
 from .rigid import residuals
-from .sampling import sample_common_vertex, triangle_areas
+from .sampling import sample_common_vertex
 from .significance import ConsensusRecord
 from .stopping import (compatible_sample_inlier_probability, empirical_inlier_probability,
                        futility_draws, ransac_bound)
@@ -177,9 +177,7 @@ class Search:
         min_area = self.cfg.min_triangle_area_factor * self.tau ** 2
         if min_area <= 0 or len(triples) == 0:
             return triples, support
-        i, j, k = triples.T
-        ok = ((triangle_areas(self.src, i, j, k) >= min_area)
-              & (triangle_areas(self.dst, i, j, k) >= min_area))
+        ok = kernels.usable_triangles(self.src, self.dst, triples, min_area)
         self.stats['rejected_collinear'] += int((~ok).sum())
         return triples[ok], None if support is None else support[ok]
 

@@ -24,8 +24,10 @@ class ConsensusRecord:
         # every hypothesis fits by construction and so are no chance inliers.
         self.n, self.tau, self.members = n, tau, members
         self.chance_counts: list[int] = []  # extra inliers of unselected hypotheses
+        self.num_zero = 0  # of them without an extra inlier
         self.num_exact = 0
-        self.top_models: list[tuple[int, np.ndarray]] = []
+        self.top_models: list[tuple[int, np.ndarray]] = []  # (count, inlier mask (N,))
+        self._level: tuple[tuple, int] | None = None  # the last chance level and its inputs
 
     def add(self, res: np.ndarray, unselected: int) -> None:
         """
@@ -35,12 +37,14 @@ class ConsensusRecord:
         measure the chance consensus level.
         """
         inside = res <= self.tau
-        self.chance_counts.extend(np.maximum(inside[:unselected].sum(axis=1) - self.members, 0))
+        chance = np.maximum(inside[:unselected].sum(axis=1) - self.members, 0)
+        self.chance_counts.extend(chance)
+        self.num_zero += int(np.count_nonzero(chance == 0))
         self.num_exact += len(res)
         counts = inside.sum(axis=1)
         floor = self.top_models[-1][0] if len(self.top_models) >= _TOP_MODELS else -1
         for e in np.flatnonzero(counts > floor):
-            self.top_models.append((int(counts[e]), np.flatnonzero(inside[e])))
+            self.top_models.append((int(counts[e]), inside[e]))
         self.top_models.sort(key=lambda m: -m[0])
         del self.top_models[_TOP_MODELS:]
 
@@ -53,11 +57,12 @@ class ConsensusRecord:
         to the few of them that happen to be near the true motion), with a +3 pseudo-count
         so that a handful of samples cannot make a small consensus look significant.
         """
-        counts = np.asarray(self.chance_counts)
-        zeros = float((counts == 0).sum()) if len(counts) else 0.0
-        lam = -np.log(max(zeros, 1.0) / (len(counts) + 3.0))
-        alpha = (1.0 - p1) / max(self.num_exact, 1)
-        return self.members + poisson_isf(alpha, lam) + 1
+        key = (self.num_zero, len(self.chance_counts), self.num_exact, p1)
+        if self._level is None or self._level[0] != key:  # the search asks every batch
+            lam = -np.log(max(float(self.num_zero), 1.0) / (len(self.chance_counts) + 3.0))
+            alpha = (1.0 - p1) / max(self.num_exact, 1)
+            self._level = key, self.members + poisson_isf(alpha, lam) + 1
+        return self._level[1]
 
     def runner_up(self, inliers: np.ndarray) -> int:
         """
@@ -65,10 +70,8 @@ class ConsensusRecord:
 
         A real motion stands well above every distinct alternative.
         """
-        inside = np.zeros(self.n, dtype=bool)
-        inside[inliers] = True
         best = 0
-        for count, members in self.top_models:
-            if count > best and 2 * np.count_nonzero(inside[members]) < len(members):
+        for count, mask in self.top_models:
+            if count > best and 2 * np.count_nonzero(mask[inliers]) < count:
                 best = count
         return best

@@ -82,12 +82,7 @@ def compatible_sample_inlier_probability(graph: CompatibilityGraph, inliers: np.
     a, b = np.nonzero(np.triu(rows))
     pick = rng.choice(len(a), size=min(pairs, len(a)), replace=False)
     i, j = inliers[a[pick]], inliers[b[pick]]
-    common = graph.common(i, j)
-    total = graph.popcount(common)
-    mask = np.zeros(graph.n, dtype=bool)
-    mask[inliers] = True
-    unpacked = np.unpackbits(common, axis=1, count=graph.n, bitorder='little').view(bool)
-    inside = (unpacked & mask).sum(axis=1)
+    total, inside = graph.common_within(i, j, inliers)
     ratio = np.where(total > 0, inside / np.maximum(total, 1), 0.0)
     return float(e_in / graph.num_edges * ratio.mean())
 
