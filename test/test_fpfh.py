@@ -101,3 +101,18 @@ def test_resolution_from_the_fpfh_search_equals_the_k_d_tree(cloud):
     for pts in (points, stray):
         features = extract_features(pts, voxel, FrontEndConfig(), workers=2)
         assert features.resolution == point_resolution(features.points)
+
+
+def test_angle_bins_equal_atan2_bins():
+    """The polynomial angle bins equal Open3D's atan2 bins, edges and special values too."""
+    rng = np.random.default_rng(5)
+    y, x = rng.normal(size=(2, 200000)) * rng.choice([1e-9, 1.0, 1e6], (2, 200000))
+    edges = -np.pi + 2 * np.pi * np.arange(12) / 11  # every bin edge, and just beside it
+    angles = np.concatenate([edges, np.nextafter(edges, 10), np.nextafter(edges, -10),
+                             edges + 1e-9, edges - 1e-9])
+    y = np.concatenate([y, np.sin(angles), [0.0, -0.0, 0.0, -0.0, 1.0, np.nan, 0.0]])
+    x = np.concatenate([x, np.cos(angles), [0.0, 0.0, -0.0, -0.0, np.nan, 1.0, -1.0]])
+    expected = np.clip(np.floor(11.0 * (np.arctan2(y, x) + np.pi) / (2.0 * np.pi)), 0, 10)
+    expected[np.isnan(expected)] = 0  # NaN: the kernels' floor-and-clamp gives bin 0
+    got = [kernels_fpfh._angle_bin(a, b) for a, b in zip(y, x)]
+    assert np.array_equal(got, expected)
