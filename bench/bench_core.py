@@ -518,7 +518,7 @@ def to_markdown(res: dict[str, Any]) -> str:
         lines.append(f'- `{k}`: **skipped** ({why})')
     lines += ['', f"Machine: {env.get('cpu_count')} CPUs, shared (load average "
               f"{env['loadavg_before'][0]:.2f} before, {env['loadavg_after'][0]:.2f} after; "
-              'timings include contention). Open3D (TBB) and KISS-Matcher (OpenMP) use all '
+              'timings include contention). Open3D and KISS-Matcher (each its own TBB) use all '
               f"cores. Versions: numpy {env.get('numpy')}, open3d {env.get('open3d')}, "
               f"kiss_matcher {env.get('kiss_matcher')}, git {env.get('git')}, "
               f"registration/*.py sha256 {env.get('core_sources_sha256')}. "
