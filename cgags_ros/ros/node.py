@@ -108,9 +108,9 @@ class RegisterNode(Node):
                                      target_qos(cfg))
         self._outputs = Outputs(self)
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._stop = threading.Event()
         self.create_timer(cfg.diagnostics_period, self._publish_diagnostics)
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        self._stop = threading.Event()
         self._worker = threading.Thread(target=self._work, name='register_worker', daemon=True)
         self._worker.start()
         self.get_logger().info(
@@ -263,6 +263,10 @@ class RegisterNode(Node):
         return diagnostics.build_statistics(self._health.snapshot(), voxel, extra)
 
     def _publish_diagnostics(self) -> None:
+        if self._stop.is_set():
+            # destroy_node has begun: an executor spinning on another thread may still
+            # dispatch this timer, and the node's handle is about to go (InvalidHandle).
+            return
         if self._isolated is not None and self._isolated.supervise():
             self._health.failing = 'worker_crashed'
             self.get_logger().warning('the registration process had died while idle; '
