@@ -70,10 +70,11 @@ def _jacobi_top_eigenvector(N, V, v):
 @njit(cache=True, nogil=True, inline='always')
 def _horn_rotation(H, N, V, q, R):
     """
-    Write into ``R`` the proper rotation maximising trace(R H^T) (Horn's unit quaternion).
+    Write into ``R`` the proper rotation maximising sum q . R p = trace(R H) (Horn).
 
-    ``H`` is the cross-covariance sum p q^T of centred pairs (q ≈ R p); ``N``, ``V``
-    (4x4) and ``q`` (4) are scratch.
+    The unit quaternion is the top eigenvector of Horn's 4x4 matrix. ``H`` is the
+    cross-covariance sum p q^T of centred pairs (q ≈ R p); ``N``, ``V`` (4x4) and ``q``
+    (4) are scratch.
     """
     sxx, sxy, sxz = H[0, 0], H[0, 1], H[0, 2]
     syx, syy, syz = H[1, 0], H[1, 1], H[1, 2]

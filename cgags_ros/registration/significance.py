@@ -44,7 +44,7 @@ class ConsensusRecord:
         counts = inside.sum(axis=1)
         floor = self.top_models[-1][0] if len(self.top_models) >= _TOP_MODELS else -1
         for e in np.flatnonzero(counts > floor):
-            self.top_models.append((int(counts[e]), inside[e]))
+            self.top_models.append((int(counts[e]), inside[e].copy()))  # not the batch
         self.top_models.sort(key=lambda m: -m[0])
         del self.top_models[_TOP_MODELS:]
 
