@@ -1,6 +1,7 @@
 from cgags_ros.geometry import make_transform
 from cgags_ros.registration.rigid import kabsch, kabsch_batch, residuals
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 
@@ -53,3 +54,10 @@ def test_weighted_kabsch_equals_the_batch_svd_and_residuals_equal_numpy():
         assert np.allclose(T[3], [0, 0, 0, 1]) and np.isclose(np.linalg.det(T[:3, :3]), 1.0)
         ref = np.linalg.norm(src @ T[:3, :3].T + T[:3, 3] - dst, axis=1)
         np.testing.assert_allclose(residuals(T, src, dst), ref, rtol=1e-12, atol=1e-12)
+
+
+def test_kabsch_without_weight_is_a_clear_error():
+    with pytest.raises(ValueError, match='positive total weight'):
+        kabsch(np.zeros((0, 3)), np.zeros((0, 3)))
+    with pytest.raises(ValueError, match='positive total weight'):
+        kabsch(np.eye(3), np.eye(3), np.zeros(3))

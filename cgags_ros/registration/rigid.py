@@ -41,6 +41,9 @@ def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) 
     the re-fits call it several times a registration, and numpy's version costs ~60 us.
     """
     w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64)
+    if not w.sum() > 0.0:
+        raise ValueError(f'kabsch needs points with positive total weight, got {len(src)} '
+                         f'point(s) weighing {w.sum()}')
     return kernels_scoring.fit_weighted(_f64(src), _f64(dst), _f64(w))
 
 
