@@ -28,7 +28,6 @@ class ConsensusRecord:
         self.num_exact = 0
         self.top_models: list[tuple[int, np.ndarray]] = []  # (count, inlier mask (N,))
         self._level: tuple[tuple, int] | None = None  # the last chance level and its inputs
-        self._stacked: tuple[np.ndarray, np.ndarray] | None = None  # for runner_up
 
     def add(self, res: np.ndarray, unselected: int) -> None:
         """
@@ -48,7 +47,6 @@ class ConsensusRecord:
             self.top_models.append((int(counts[e]), inside[e].copy()))  # not the batch
         self.top_models.sort(key=lambda m: -m[0])
         del self.top_models[_TOP_MODELS:]
-        self._stacked = None
 
     def chance_level(self, p1: float) -> int:
         """
@@ -72,11 +70,8 @@ class ConsensusRecord:
 
         A real motion stands well above every distinct alternative.
         """
-        if not self.top_models:
-            return 0
-        if self._stacked is None:  # (counts, masks) of the top models, until they change
-            self._stacked = (np.array([count for count, _ in self.top_models]),
-                             np.stack([mask for _, mask in self.top_models]))
-        counts, masks = self._stacked
-        distinct = counts[2 * masks[:, inliers].sum(axis=1) < counts]
-        return int(distinct.max()) if len(distinct) else 0
+        best = 0
+        for count, mask in self.top_models:
+            if count > best and 2 * np.count_nonzero(mask[inliers]) < count:
+                best = count
+        return best
