@@ -30,9 +30,12 @@ def test_lists_fill_free_slots_then_rank():
 
 def test_intersection_kernel():
     pref = PreferenceLists(n=3, b=4)
-    pref.ids = np.array([[0, 1, 2, 3], [2, 3, 4, 5], [6, 7, 8, 9]])
-    pref.residuals = np.zeros((3, 4), dtype=np.float32)
-    pref.num_hypotheses = 10
+    lists = [[0, 1, 2, 3], [2, 3, 4, 5], [6, 7, 8, 9]]
+    residuals = np.ones((10, 3), dtype=np.float32)  # hypothesis h's residual at each m
+    for m, hypotheses in enumerate(lists):
+        residuals[hypotheses, m] = 0.0
+    pref.update(residuals)
+    assert np.array_equal(np.sort(pref.ids, axis=1), lists)
     K = pref.kernel(np.arange(3))
     assert np.allclose(K, [[0, 0.5, 0], [0.5, 0, 0], [0, 0, 0]])
     assert np.allclose(pref.kernel(np.array([0, 1])), [[0, 0.5], [0.5, 0]])

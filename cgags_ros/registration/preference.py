@@ -57,21 +57,11 @@ class PreferenceLists:
         self._merge()
         return self._residuals
 
-    @residuals.setter
-    def residuals(self, value: np.ndarray) -> None:
-        self._merge()
-        self._residuals = value
-
     @property
     def ids(self) -> np.ndarray:
         """(N, b) int64 hypothesis ids of each list, in residual order; -1 in empty slots."""
         self._merge()
         return self._ids
-
-    @ids.setter
-    def ids(self, value: np.ndarray) -> None:
-        self._merge()
-        self._ids = value
 
     def quality(self) -> np.ndarray:
         """Median residual over each correspondence's list (inf while it is under half full)."""
