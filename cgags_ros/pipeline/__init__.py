@@ -4,7 +4,7 @@ Clouds in, result out: the one registration path of the node, the CLIs and bench
 :func:`register_clouds` (``register.py``) runs the front end, the core, refinement and the
 validity gates (``gates.py``); features of recent clouds are cached (``cache.py``);
 ``covariance.py`` turns a result into a pose covariance, ``pairing.py`` pairs sources with
-targets for the node and the replay tool, ``runtime.py`` holds the thread settings.
+targets for the node and the replay tool.
 
 ``register_clouds``, ``warm_up`` and the cache functions are imported on first use: they
 bring in Open3D, which the node's own process (pairing, covariance, unpickling results

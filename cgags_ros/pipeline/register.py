@@ -22,7 +22,6 @@ from .candidates import ambiguity_reason, find_candidates
 from .gates import gate, line_reason
 from .map import matches_config, PreparedMap
 from .result import PipelineResult
-from .runtime import blas_guard
 from ..config import fields
 from ..config.pipeline import PipelineConfig
 from ..datasets.synthetic import terrain_patch
@@ -31,7 +30,8 @@ from ..frontend.features import CloudFeatures, finite_points
 from ..frontend.keypoints import match_keypoints
 from ..frontend.matching import Correspondences
 from ..frontend.refine import refine_transform
-from ..registration import register_correspondences, RegistrationResult
+from ..parallel import DEFAULT_WORKERS
+from ..registration import register_correspondences, RegistrationResult, single_blas_thread
 from ..timing import timed
 
 
@@ -58,9 +58,10 @@ def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
     :raises InvalidConfigError: when a configuration value is out of range, or a prepared
         map was computed with other feature settings than ``config``'s.
     """
-    guard, workers = blas_guard()
-    with guard:
-        return _register_clouds(source, target, voxel_size, config, workers)
+    # BLAS held to one thread: idle OpenBLAS workers would spin into Open3D's time; the
+    # compiled FPFH, descriptor index and graph run on the package's own threads.
+    with single_blas_thread():
+        return _register_clouds(source, target, voxel_size, config, DEFAULT_WORKERS)
 
 
 def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float | None,

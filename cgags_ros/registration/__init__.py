@@ -16,7 +16,7 @@ registration process) never needs.
 import importlib
 from typing import Any
 
-from .blas import blas_controller, single_blas_thread
+from .blas import single_blas_thread
 from .result import RegistrationResult
 from .stopping import poisson_isf
 from ..config.core import CoreConfig
@@ -25,8 +25,7 @@ from ..geometry import rotation_error_deg, translation_error
 
 __all__ = ['register_correspondences', 'CoreConfig', 'RegistrationResult',
            'rotation_error_deg', 'translation_error', 'InvalidInputError',
-           'DegenerateCorrespondencesError', 'poisson_isf', 'single_blas_thread',
-           'blas_controller']
+           'DegenerateCorrespondencesError', 'poisson_isf', 'single_blas_thread']
 
 
 def __getattr__(name: str) -> Any:
