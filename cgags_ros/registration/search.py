@@ -64,7 +64,7 @@ class Search:
         self.vertex_weights = (graph.degree.astype(np.float64)
                                if cfg.vertex_sampling == 'degree' else None)
         self.sampled: list[np.ndarray] = []  # stage-one triples, to estimate w1 empirically
-        self.consensus = ConsensusRecord(graph.n, tau, self.SUBSET_SIZE)
+        self.consensus = ConsensusRecord(tau, self.SUBSET_SIZE)
         self.start = time.perf_counter()
         self.no_lists = np.zeros((0, 2), np.int32)
         self.stats = {'compatible_samples': 0, 'guided_samples': 0, 'rejected_collinear': 0,

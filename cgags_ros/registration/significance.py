@@ -19,11 +19,11 @@ _TOP_MODELS = 32  # consensus sets kept for the runner-up
 class ConsensusRecord:
     """The inlier counts of unselected hypotheses and the largest consensus sets seen."""
 
-    def __init__(self, n: int, tau: float, members: int = 3):
+    def __init__(self, tau: float, members: int = 3):
         # members: correspondences of a minimal subset (3; 2 for 4-DoF edges), which
         # every hypothesis fits by construction and so are no chance inliers.
-        self.n, self.tau, self.members = n, tau, members
-        self.chance_counts: list[int] = []  # extra inliers of unselected hypotheses
+        self.tau, self.members = tau, members
+        self.num_chance = 0  # unselected hypotheses, whose extra inliers are chance ones
         self.num_zero = 0  # of them without an extra inlier
         self.num_exact = 0
         self.top_models: list[tuple[int, np.ndarray]] = []  # (count, inlier mask (N,))
@@ -38,7 +38,7 @@ class ConsensusRecord:
         """
         inside = res <= self.tau
         chance = np.maximum(inside[:unselected].sum(axis=1) - self.members, 0)
-        self.chance_counts.extend(chance)
+        self.num_chance += len(chance)
         self.num_zero += int(np.count_nonzero(chance == 0))
         self.num_exact += len(res)
         counts = inside.sum(axis=1)
@@ -57,9 +57,9 @@ class ConsensusRecord:
         to the few of them that happen to be near the true motion), with a +3 pseudo-count
         so that a handful of samples cannot make a small consensus look significant.
         """
-        key = (self.num_zero, len(self.chance_counts), self.num_exact, p1)
+        key = (self.num_zero, self.num_chance, self.num_exact, p1)
         if self._level is None or self._level[0] != key:  # the search asks every batch
-            lam = -np.log(max(float(self.num_zero), 1.0) / (len(self.chance_counts) + 3.0))
+            lam = -np.log(max(float(self.num_zero), 1.0) / (self.num_chance + 3.0))
             alpha = (1.0 - p1) / max(self.num_exact, 1)
             self._level = key, self.members + poisson_isf(alpha, lam) + 1
         return self._level[1]
