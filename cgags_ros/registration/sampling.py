@@ -1,10 +1,9 @@
 """
-Graph vertex sampling in numpy: k in N(i) ∩ N(j), uniform or by weight, and triangle areas.
+Graph vertex sampling in numpy: k in N(i) ∩ N(j), uniform or by weight.
 
-The search's own draws (edge and vertex tournaments, guided subsets) are compiled kernels
-(:mod:`.kernels_sampling`); this module serves the non-default vertex samplers
-(``core.vertex_sampling`` 'uniform' and 'degree') and the collinearity test of guided
-triples.
+The search's own draws (edge and vertex tournaments, guided subsets) and the collinearity
+test are compiled kernels (:mod:`.kernels_sampling`); this module serves the non-default
+vertex samplers (``core.vertex_sampling`` 'uniform' and 'degree').
 """
 
 from __future__ import annotations
@@ -74,8 +73,3 @@ def sample_common_vertex(graph: CompatibilityGraph, rng: np.random.Generator, i:
     if len(miss):
         k[miss], ok[miss] = _uniform_member(graph.common(i[miss], j[miss]), graph.n, rng, weights)
     return k, ok
-
-
-def triangle_areas(points: np.ndarray, i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
-    """Areas of the triangles (p_i, p_j, p_k)."""
-    return 0.5 * np.linalg.norm(np.cross(points[j] - points[i], points[k] - points[i]), axis=1)
