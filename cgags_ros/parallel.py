@@ -62,7 +62,10 @@ def run_split(task: Callable[[int, int], None], bounds: Sequence[int]) -> None:
 def _shared_pool(workers: int) -> ThreadPoolExecutor:
     global _pool, _pool_size
     with _pool_lock:
+        # Sized for the largest caller from the start (the pool starts threads only as
+        # tasks need them), so the core's one extra thread and the front end's pool are the
+        # same pool rather than a smaller one left behind when a larger one replaces it.
         if _pool is None or _pool_size < workers:
-            _pool = ThreadPoolExecutor(workers, thread_name_prefix='cgags_worker')
-            _pool_size = workers
+            _pool_size = max(workers, DEFAULT_WORKERS)
+            _pool = ThreadPoolExecutor(_pool_size, thread_name_prefix='cgags_worker')
         return _pool
