@@ -124,3 +124,22 @@ def test_near_ties_are_ranked_by_the_exact_distance():
     # all descriptors identical (every row ties with every row): lowest index, bounded memory
     same = np.full((3000, 33), 60.0)
     np.testing.assert_array_equal(_nearest(same, same, 1)[:, 0], np.zeros(3000))
+
+
+def test_is_nearest_equals_brute_force_with_ties():
+    """is_nearest(q, r) is query(q, 1) == r, for nearest rows, beaten ones and exact ties."""
+    rng = np.random.default_rng(5)
+    ref = _clustered(rng, 1200)
+    query = np.vstack([_clustered(rng, 400), ref[:40], ref[:40] + 1e-13])
+    index = DescriptorIndex(ref, seed=1)
+    nearest = _brute(query, ref, 1)[:, 0]
+    rows = np.where(rng.random(len(query)) < 0.5, nearest, rng.integers(0, len(ref), len(query)))
+    tied = np.flatnonzero((ref == ref[0]).all(axis=1))  # identical rows: only the lowest wins
+    rows[400:410] = tied[-1]
+    query[400:410] = ref[0]
+    expected = rows == _brute(query, ref, 1)[:, 0]
+    assert expected.any() and not expected.all()
+    for workers in (1, 2):
+        np.testing.assert_array_equal(index.is_nearest(query, rows, workers), expected)
+    with pytest.raises(ValueError):
+        index.is_nearest(query[:2], np.array([0, len(ref)]))

@@ -48,6 +48,17 @@ def squared_distances_to(rowsT, vector, out):
 
 
 @njit(cache=True, nogil=True)
+def squared_pair_distances(a, b, out):
+    """Set ``out[i] = |a[i] - b[i]|^2``, summed in dimension order as :func:`search` does."""
+    for i in range(a.shape[0]):
+        s = 0.0
+        for t in range(a.shape[1]):
+            diff = a[i, t] - b[i, t]
+            s += diff * diff
+        out[i] = s
+
+
+@njit(cache=True, nogil=True)
 def assign(points, centresT, labels, dist):
     """Label each row of ``points`` with its nearest centre (exact, lowest index on ties)."""
     d = np.empty(centresT.shape[1])
@@ -94,6 +105,92 @@ def _better(s, o, d, i):
 
 
 @njit(cache=True, nogil=True)
+def _nearest(q, centres, centresT, centre_gap, radius, starts, ring, points, basis,
+             projectedT, order, k, d1, i1, d2, i2, stop_when_beaten, dc, visit, qp, acc, cand):
+    """
+    Return ``(d1, i1, d2, i2)``: the squared distances and rows of the ``k`` nearest to ``q``.
+
+    The search starts from the given best (``d1``, ``i1``) and second (``d2``, ``i2``) and
+    only looks for rows that beat them; with ``stop_when_beaten`` it returns as soon as one
+    row beats the first. ``dc``, ``visit``, ``qp``, ``acc`` and ``cand`` are scratch arrays
+    (cells, cells, principal directions, rows, rows).
+    """
+    ncell = centres.shape[0]
+    squared_distances_to(centresT, q, dc)
+    for r in range(basis.shape[0]):
+        acc_r = 0.0
+        for t in range(q.shape[0]):
+            acc_r += basis[r, t] * q[t]
+        qp[r] = acc_r
+    # Cells nearest first (insertion sort, stable: a handful of cells, no allocation).
+    for v in range(ncell):
+        x = dc[v]
+        w = v
+        while w > 0 and dc[visit[w - 1]] > x:
+            visit[w] = visit[w - 1]
+            w -= 1
+        visit[w] = v
+    c0 = visit[0]
+    start = i1
+    for v in range(ncell):
+        j = visit[v]
+        b2 = d1 if k == 1 else d2  # squared k-th best so far
+        b = np.sqrt(b2)
+        dj = np.sqrt(dc[j])
+        low = dj - radius[j]
+        if j != c0:
+            plane = ((dc[j] - dc[c0] - _SQUARED_ROUNDING * (dc[j] + dc[c0]))
+                     / (2.0 * centre_gap[j, c0]))
+            low = max(low, plane)
+        if low * (1.0 - _REL) - _ABS > b:
+            continue
+        a = starts[j]
+        e = starts[j + 1]
+        if b2 < np.inf:
+            a += np.searchsorted(ring[a:e], (dj - b) * (1.0 - _REL) - _ABS)
+            e = a + np.searchsorted(ring[a:e], (dj + b) * (1.0 + _REL) + _ABS, side='right')
+        if e <= a:
+            continue
+        n = e - a
+        acc[:n] = 0.0
+        for r in range(basis.shape[0]):
+            value = qp[r]
+            row = projectedT[r, a:e]
+            for p in range(n):
+                diff = value - row[p]
+                acc[p] += diff * diff
+        # Members whose lower bound (the distance along the principal directions) does not
+        # already exceed b, collected without a branch (most are screened out, and a
+        # mispredicted branch per member cost more than the screening itself).
+        limit = (b2 + _ABS) / (1.0 - _REL)
+        m = 0
+        for p in range(n):
+            cand[m] = p
+            m += acc[p] <= limit
+        for u in range(m):
+            p = cand[u]
+            if acc[p] > limit:
+                continue  # b has shrunk since
+            s = 0.0
+            for t in range(q.shape[0]):
+                diff = q[t] - points[a + p, t]
+                s += diff * diff
+            if s > b2:
+                continue
+            o = order[a + p]
+            if _better(s, o, d1, i1):
+                d2, i2 = d1, i1
+                d1, i1 = s, o
+                if stop_when_beaten and i1 != start:
+                    return d1, i1, d2, i2
+            elif k == 2 and _better(s, o, d2, i2):
+                d2, i2 = s, o
+            b2 = d1 if k == 1 else d2
+            limit = (b2 + _ABS) / (1.0 - _REL)
+    return d1, i1, d2, i2
+
+
+@njit(cache=True, nogil=True)
 def search(queries, centres, centresT, centre_gap, radius, starts, ring, points, basis,
            projectedT, order, k, out_index, out_dist):
     """
@@ -110,70 +207,45 @@ def search(queries, centres, centresT, centre_gap, radius, starts, ring, points,
     (``basis``, orthonormal rows; ``projectedT`` = basis @ points.T), which never exceeds
     the full distance; only the members that pass get their exact distance.
     """
-    ncell = centres.shape[0]
-    npro = basis.shape[0]
-    dc = np.empty(ncell)
-    qp = np.empty(npro)
-    scratch = np.empty(points.shape[0])
+    dc, visit, qp, acc, cand = _scratch(centres.shape[0], basis.shape[0], points.shape[0])
     for i in range(queries.shape[0]):
-        q = queries[i]
-        squared_distances_to(centresT, q, dc)
-        for r in range(npro):
-            acc_r = 0.0
-            for t in range(q.shape[0]):
-                acc_r += basis[r, t] * q[t]
-            qp[r] = acc_r
-        visit = np.argsort(dc)
-        c0 = visit[0]
-        d1 = np.inf
-        d2 = np.inf
-        i1 = -1
-        i2 = -1
-        for v in range(ncell):
-            j = visit[v]
-            b2 = d1 if k == 1 else d2  # squared k-th best so far
-            b = np.sqrt(b2)
-            dj = np.sqrt(dc[j])
-            low = dj - radius[j]
-            if j != c0:
-                plane = ((dc[j] - dc[c0] - _SQUARED_ROUNDING * (dc[j] + dc[c0]))
-                         / (2.0 * centre_gap[j, c0]))
-                low = max(low, plane)
-            if low * (1.0 - _REL) - _ABS > b:
-                continue
-            a = starts[j]
-            e = starts[j + 1]
-            if b2 < np.inf:
-                a += np.searchsorted(ring[a:e], (dj - b) * (1.0 - _REL) - _ABS)
-                e = a + np.searchsorted(ring[a:e], (dj + b) * (1.0 + _REL) + _ABS, side='right')
-            if e <= a:
-                continue
-            acc = scratch[:e - a]
-            acc[:] = 0.0
-            for r in range(npro):
-                value = qp[r]
-                row = projectedT[r, a:e]
-                for p in range(e - a):
-                    diff = value - row[p]
-                    acc[p] += diff * diff
-            for p in range(e - a):
-                if acc[p] * (1.0 - _REL) - _ABS > b2:
-                    continue  # a lower bound of the squared distance already exceeds b
-                s = 0.0
-                for t in range(q.shape[0]):
-                    diff = q[t] - points[a + p, t]
-                    s += diff * diff
-                if s > b2:
-                    continue
-                o = order[a + p]
-                if _better(s, o, d1, i1):
-                    d2, i2 = d1, i1
-                    d1, i1 = s, o
-                elif k == 2 and _better(s, o, d2, i2):
-                    d2, i2 = s, o
-                b2 = d1 if k == 1 else d2
+        d1, i1, d2, i2 = _nearest(queries[i], centres, centresT, centre_gap, radius, starts,
+                                  ring, points, basis, projectedT, order, k, np.inf, -1,
+                                  np.inf, -1, False, dc, visit, qp, acc, cand)
         out_index[i, 0] = i1
         out_dist[i, 0] = np.sqrt(d1)
         if k == 2:
             out_index[i, 1] = i2
             out_dist[i, 1] = np.sqrt(d2)
+
+
+@njit(cache=True, nogil=True)
+def nearest_is(queries, rows, centres, centresT, centre_gap, radius, starts, ring, points,
+               basis, projectedT, order, slot_of, out):
+    """
+    Set ``out[i]`` to whether reference row ``rows[i]`` is the nearest to ``queries[i]``.
+
+    Nearest as :func:`search` ranks (ties to the lower row). The search starts with that
+    row as its best and ends at the first row that beats it: the mutual check of matching
+    asks only this, and most candidates are beaten early. ``slot_of`` is the inverse of
+    ``order``.
+    """
+    dc, visit, qp, acc, cand = _scratch(centres.shape[0], basis.shape[0], points.shape[0])
+    for i in range(queries.shape[0]):
+        q = queries[i]
+        row = rows[i]
+        slot = slot_of[row]  # its stored copy: the squared distance search would compute
+        s = 0.0
+        for t in range(q.shape[0]):
+            diff = q[t] - points[slot, t]
+            s += diff * diff
+        _, i1, _, _ = _nearest(q, centres, centresT, centre_gap, radius, starts, ring, points,
+                               basis, projectedT, order, 1, s, row, np.inf, -1, True, dc,
+                               visit, qp, acc, cand)
+        out[i] = i1 == row
+
+
+@njit(cache=True, nogil=True)
+def _scratch(ncell, npro, nrow):
+    return (np.empty(ncell), np.empty(ncell, np.int64), np.empty(npro), np.empty(nrow),
+            np.empty(nrow, np.int64))

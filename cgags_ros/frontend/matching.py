@@ -12,6 +12,7 @@ import dataclasses
 
 import numpy as np
 
+from . import kernels_index
 from .descriptor_index import DescriptorIndex
 from ..config.frontend import FrontEndConfig
 
@@ -65,12 +66,16 @@ def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfi
     dist = np.linalg.norm(src[:, None, :] - dst[nn], axis=2)
     keep = np.ones(len(src_ok), dtype=bool)
     if config.mutual_filter:
-        # Only targets that are some source's nearest can pass: ask only them back.
-        hit = np.unique(nn[:, 0])
-        back = np.full(len(dst), -1)
+        # Of the sources whose nearest is a target, only the nearest of them (ties to the
+        # lower row) can be that target's nearest source: ask, for it alone, whether any
+        # other source is nearer the target.
+        squared = np.empty(len(src_ok))
+        kernels_index.squared_pair_distances(src, dst[nn[:, 0]], squared)  # as the index ranks
+        best = np.lexsort((np.arange(len(src_ok)), squared, nn[:, 0]))
+        first = best[np.r_[True, nn[best[1:], 0] != nn[best[:-1], 0]]]
         source_index = DescriptorIndex(src, workers, like=target_index)
-        back[hit] = source_index.query(dst[hit], 1, workers)[0][:, 0]
-        keep &= back[nn[:, 0]] == np.arange(len(src_ok))
+        keep[:] = False
+        keep[first] = source_index.is_nearest(dst[nn[first, 0]], first, workers)
     if k == 2:
         # Lowe: a match is distinctive when its best distance is clearly below the second.
         keep &= dist[:, 0] < config.ratio_test * dist[:, 1]
