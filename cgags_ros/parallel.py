@@ -11,7 +11,9 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 import os
 import threading
-from typing import Callable, Sequence
+from typing import Callable, Sequence, TypeVar
+
+T = TypeVar('T')
 
 CHUNK = 512  # rows per task, so that threads finish close together
 # Threads a registration uses by default: the machine's cores, at most four (measured on
@@ -57,6 +59,39 @@ def run_split(task: Callable[[int, int], None], bounds: Sequence[int]) -> None:
     task(*ranges[-1])
     for part in parts:
         part.result()
+
+
+def in_background(task: Callable[[], T], enabled: bool = True) -> Callable[[], T]:
+    """
+    Start ``task()`` on a thread of its own; return a function that waits for its result.
+
+    The returned function re-raises what ``task`` raised. With ``enabled`` False the task
+    runs at once, in this thread. A thread of its own, not the shared pool: the task may
+    itself split kernels over the pool (:func:`run_split`), and waiting inside a pool
+    thread for tasks queued behind it would deadlock a one-thread pool.
+    """
+    if not enabled:
+        value = task()
+        return lambda: value
+    outcome: list = []
+
+    def run() -> None:
+        try:
+            outcome.append((True, task()))
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller
+            outcome.append((False, exc))
+
+    thread = threading.Thread(target=run, name='cgags_background', daemon=True)
+    thread.start()
+
+    def wait() -> T:
+        thread.join()
+        ok, value = outcome[0]
+        if not ok:
+            raise value
+        return value
+
+    return wait
 
 
 def _shared_pool(workers: int) -> ThreadPoolExecutor:

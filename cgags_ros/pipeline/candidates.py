@@ -54,13 +54,25 @@ def find_candidates(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
     ``result`` holds the core's estimate (``coarse_transform``) and the final
     ``transform`` and ``fitness``; it is the first candidate.
     """
+    rank_candidates(result, search_rivals(fs, ft, corr, result, cfg), cfg)
+
+
+def search_rivals(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
+                  result: PipelineResult, cfg: PipelineConfig) -> list[Candidate]:
+    """
+    Return the best candidate (without its fitness: NaN) and the rivals found, in order.
+
+    Reads only the core's estimate (``coarse_transform``, ``inliers``, ``inlier_threshold``,
+    ``resolution``) and the final ``transform`` of ``result``, never what the gates set,
+    so it may run beside them (:func:`rank_candidates` completes the list).
+    """
     src, dst = fs.points[corr.source_index], ft.points[corr.target_index]
     tau = float(result.inlier_threshold)
     explained = support(src, dst, result.coarse_transform, tau)
     explained[result.inliers] = True
     best = Candidate(np.asarray(result.transform, dtype=np.float64).copy(),
                      int(np.count_nonzero(support(src, dst, result.coarse_transform, tau))),
-                     float(result.fitness))
+                     float('nan'))
     found = [best]
     core_cfg = dataclasses.replace(
         cfg.core, max_iterations=min(cfg.core.max_iterations, cfg.candidate_max_iterations))
@@ -90,6 +102,14 @@ def find_candidates(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
         found.append(Candidate(T, int(np.count_nonzero(mask)), fitness))
         if not core.valid:
             break  # a chance-level consensus: what is left supports no motion either
+    return found
+
+
+def rank_candidates(result: PipelineResult, found: list[Candidate],
+                    cfg: PipelineConfig) -> None:
+    """Complete :func:`search_rivals`' list with ``result.fitness`` and set the ambiguity."""
+    best = found[0]
+    best.fitness = float(result.fitness)
     found[1:] = sorted(found[1:], key=lambda c: -c.num_inliers)
     for c in found:
         c.ratio = c.num_inliers / best.num_inliers if best.num_inliers else 0.0

@@ -18,7 +18,7 @@ import time
 import numpy as np
 
 from .cache import cached_features
-from .candidates import ambiguity_reason, find_candidates
+from .candidates import ambiguity_reason, find_candidates, rank_candidates, search_rivals
 from .gates import gate, line_reason
 from .map import matches_config, PreparedMap
 from .result import PipelineResult
@@ -30,7 +30,7 @@ from ..frontend.features import CloudFeatures, finite_points
 from ..frontend.keypoints import match_keypoints
 from ..frontend.matching import Correspondences
 from ..frontend.refine import refine_transform
-from ..parallel import DEFAULT_WORKERS
+from ..parallel import DEFAULT_WORKERS, in_background
 from ..registration import register_correspondences, RegistrationResult, single_blas_thread
 from ..timing import timed
 
@@ -108,10 +108,24 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
             target_normals=ft.normals, coarse_distance=core.inlier_threshold, gravity=gravity,
             workers=workers)
         result.refined = cfg.refine.method != 'none'
+    # The rival search reads only the core's estimate and the final transform, never what
+    # the gates set: it runs beside them (both spend most of their time outside the GIL,
+    # in compiled kernels and k-d tree queries).
+    rivals = in_background(lambda: _search_rivals(fs, ft, corr, result, cfg), workers > 1)
     with timed(result.timings, 'validation'):
         reason = gate(fs, ft, corr, result, cfg)
-    reason = _candidates(fs, ft, corr, result, cfg) or reason
-    return result.finish(start, reason)
+    found, result.timings['candidates'] = rivals()
+    rank_candidates(result, found, cfg)
+    return result.finish(start, ambiguity_reason(result, cfg) or reason)
+
+
+def _search_rivals(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
+                   result: PipelineResult, cfg: PipelineConfig) -> tuple[list, float]:
+    """Return :func:`~.candidates.search_rivals` and its seconds."""
+    timings: dict[str, float] = {}
+    with timed(timings, 'candidates'):
+        found = search_rivals(fs, ft, corr, result, cfg)
+    return found, timings['candidates']
 
 
 def _candidates(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
