@@ -66,13 +66,11 @@ def in_background(task: Callable[[], T], enabled: bool = True) -> Callable[[], T
     Start ``task()`` on a thread of its own; return a function that waits for its result.
 
     The returned function re-raises what ``task`` raised. With ``enabled`` False the task
-    runs at once, in this thread. A thread of its own, not the shared pool: the task may
-    itself split kernels over the pool (:func:`run_split`), and waiting inside a pool
-    thread for tasks queued behind it would deadlock a one-thread pool.
+    runs at once, in this thread (what it raises is still raised by the returned function).
+    A thread of its own, not the shared pool: the task may itself split kernels over the
+    pool (:func:`run_split`), and waiting inside a pool thread for tasks queued behind it
+    would deadlock a one-thread pool.
     """
-    if not enabled:
-        value = task()
-        return lambda: value
     outcome: list = []
 
     def run() -> None:
@@ -82,10 +80,14 @@ def in_background(task: Callable[[], T], enabled: bool = True) -> Callable[[], T
             outcome.append((False, exc))
 
     thread = threading.Thread(target=run, name='cgags_background', daemon=True)
-    thread.start()
+    if enabled:
+        thread.start()
+    else:
+        run()
 
     def wait() -> T:
-        thread.join()
+        if enabled:
+            thread.join()
         ok, value = outcome[0]
         if not ok:
             raise value

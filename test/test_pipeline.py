@@ -115,7 +115,11 @@ def test_result_fields_and_timings(runs):
     stages = {'downsample', 'normals', 'fpfh', 'matching', 'registration', 'refinement',
               'total'}
     assert stages <= set(result.timings)
-    assert result.timings['total'] >= sum(result.timings[k] for k in stages - {'total'}) - 1e-6
+    # The two clouds' front ends run side by side (per-cloud stages are summed over both);
+    # the core and the refinement run after them, one after the other.
+    total = result.timings['total']
+    assert all(0 <= result.timings[k] <= 2 * total for k in stages)
+    assert total >= result.timings['registration'] + result.timings['refinement']
     summary = result.summary()
     assert summary['valid'] and len(summary['coarse_transform']) == 4
 
