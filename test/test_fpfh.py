@@ -116,3 +116,32 @@ def test_angle_bins_equal_atan2_bins():
     expected[np.isnan(expected)] = 0  # NaN: the kernels' floor-and-clamp gives bin 0
     got = [kernels_fpfh._angle_bin(a, b) for a, b in zip(y, x)]
     assert np.array_equal(got, expected)
+
+
+def test_spfh_equals_its_pair_by_pair_reference(cloud):
+    """
+    The branch-free SPFH pass equals Open3D's pair features computed one pair at a time.
+
+    A flat patch with identical normals is added: its pairs tie (both normals orthogonal
+    to the line) and take the exact path; a duplicated point gives degenerate pairs.
+    """
+    points, normals, voxel = cloud
+    rng = np.random.default_rng(2)
+    patch = np.c_[rng.uniform(0, 6 * voxel, (60, 2)), np.zeros(60)]
+    flat = points.min(axis=0) - 20 * voxel + patch
+    pts = np.vstack([points[:800], flat, points[:1]])
+    nrm = np.vstack([normals[:800], np.tile([0.0, 0.0, 1.0], (60, 1)), normals[:1]])
+    nbr, count, _ = radius_neighbours(pts, FrontEndConfig().fpfh_radius_factor * voxel, 100)
+    order = np.arange(len(pts))
+    got = np.zeros((len(pts), 33))
+    kernels_fpfh.spfh(pts, nrm, 0, len(pts), 0, order, nbr, count, got)
+    want = np.zeros((len(pts), 33))
+    for i in range(len(pts)):
+        c = count[i]
+        for j in nbr[i, :c]:
+            if j != i:
+                b0, b1, b2 = kernels_fpfh._pair_bins(pts, nrm, i, j)
+                for b in (b0, 11 + b1, 22 + b2):
+                    want[i, b] += 100.0 / (c - 1)
+    np.testing.assert_array_equal(got, want)
+    assert want[800:860].any()

@@ -10,7 +10,9 @@ block scaled to 100) with two shortcuts that change no value:
 - one neighbour search serves both passes (Open3D searches twice), on a voxel grid of
   cells a fraction of the radius wide, whose neighbouring cells are ranges of one sorted
   key array (:func:`radius_neighbours`);
-- every SPFH is computed once, before the FPFH pass reads it (as Open3D does).
+- every SPFH is computed once, before the FPFH pass reads it (as Open3D does);
+- a point's pair features are computed without branches, in a loop that vectorizes; only
+  the rare pairs whose bins need acos or atan2 to decide go pair by pair (:func:`spfh`).
 
 Neighbours are the ``max_nn`` nearest within the radius, the point itself included, as in
 Open3D's hybrid search; ties at the ``max_nn``-th distance go to the lower row.
@@ -204,7 +206,53 @@ def _angle_bin(y, x):
     return _bin(11.0 * (np.arctan2(y, x) + np.pi) / (2.0 * np.pi))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline='always')
+def _pair_bins(points, normals, i, j):
+    """
+    Return the three bins of the pair (i, j): Open3D's ``ComputePairFeatures``, one pair.
+
+    The Darboux frame sits at the point whose normal is more orthogonal to the connecting
+    line; a degenerate pair (coincident points, or a normal along the line) counts with
+    zero features, as there. :func:`spfh` computes most pairs without branches and asks
+    this for the rest.
+    """
+    bin0 = 5  # a degenerate pair's angle is 0: bin floor(11 pi / 2 pi)
+    f1 = 0.0
+    f2 = 0.0
+    dx = points[j, 0] - points[i, 0]
+    dy = points[j, 1] - points[i, 1]
+    dz = points[j, 2] - points[i, 2]
+    dn = np.sqrt(dx * dx + dy * dy + dz * dz)
+    if dn > 0.0:
+        a0, a1, a2 = normals[i, 0], normals[i, 1], normals[i, 2]
+        b0, b1, b2 = normals[j, 0], normals[j, 1], normals[j, 2]
+        angle1 = (a0 * dx + a1 * dy + a2 * dz) / dn
+        angle2 = (b0 * dx + b1 * dy + b2 * dz) / dn
+        if _acos_greater(abs(angle1), abs(angle2)):
+            a0, a1, a2, b0, b1, b2 = b0, b1, b2, a0, a1, a2
+            dx, dy, dz = -dx, -dy, -dz
+            f2 = -angle2
+        else:
+            f2 = angle1
+        v0 = dy * a2 - dz * a1
+        v1 = dz * a0 - dx * a2
+        v2 = dx * a1 - dy * a0
+        vn = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        if vn > 0.0:
+            v0 /= vn
+            v1 /= vn
+            v2 /= vn
+            w0 = a1 * v2 - a2 * v1
+            w1 = a2 * v0 - a0 * v2
+            w2 = a0 * v1 - a1 * v0
+            f1 = v0 * b0 + v1 * b1 + v2 * b2
+            bin0 = _angle_bin(w0 * b0 + w1 * b1 + w2 * b2, a0 * b0 + a1 * b1 + a2 * b2)
+        else:
+            f2 = 0.0
+    return bin0, _bin(11.0 * (f1 + 1.0) * 0.5), _bin(11.0 * (f2 + 1.0) * 0.5)
+
+
+@njit(cache=True, nogil=True, error_model='numpy')
 def spfh(points, normals, first, last, offset, order, nbr, count, out):
     """
     Set ``out``'s rows of the points at positions first .. last to their SPFH.
@@ -213,56 +261,103 @@ def spfh(points, normals, first, last, offset, order, nbr, count, out):
     The point at position s (row order[s]) has its neighbours in row ``s - offset`` of
     ``nbr``/``count``, as :func:`radius_neighbours` left them.
 
-    Open3D's ``ComputePairFeatures`` (Darboux frame at the point whose normal is more
-    orthogonal to the connecting line) per neighbour pair; a degenerate pair (coincident
-    points, or a normal along the line) counts with zero features, as there.
+    A point's pairs are computed in one loop without branches (selects instead: it
+    vectorizes, ~2.5x faster than pair by pair), with the same operations in the same
+    order as :func:`_pair_bins`, so the same bins. A pair whose bins that loop cannot
+    settle goes to :func:`_pair_bins`: a near-tie of the two normals' angles to the line
+    (the frame's choice needs acos there), a degenerate pair, or an angle within
+    ``_EDGE`` of a bin edge (atan2 decides). ``error_model='numpy'``: the degenerate
+    pairs' divisions by zero give inf/NaN, which only the unused lanes see.
     """
+    m = nbr.shape[1]
+    ex, ey, ez = np.empty(m), np.empty(m), np.empty(m)  # neighbour - point
+    bx, by, bz = np.empty(m), np.empty(m), np.empty(m)  # neighbour normals
+    k0, k1, k2 = np.empty(m, np.int64), np.empty(m, np.int64), np.empty(m, np.int64)
+    ok = np.empty(m, np.bool_)
     for s in range(first, last):
         i = order[s]
         c = count[s - offset]
         if c <= 1:
             continue
         inc = 100.0 / (c - 1)
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        a0, a1, a2 = normals[i, 0], normals[i, 1], normals[i, 2]
+        for k in range(c):
+            j = nbr[s - offset, k]
+            ex[k] = points[j, 0] - px
+            ey[k] = points[j, 1] - py
+            ez[k] = points[j, 2] - pz
+            bx[k] = normals[j, 0]
+            by[k] = normals[j, 1]
+            bz[k] = normals[j, 2]
+        for k in range(c):
+            dx, dy, dz = ex[k], ey[k], ez[k]
+            n0, n1, n2 = bx[k], by[k], bz[k]
+            dn = np.sqrt(dx * dx + dy * dy + dz * dz)
+            angle1 = (a0 * dx + a1 * dy + a2 * dz) / dn
+            angle2 = (n0 * dx + n1 * dy + n2 * dz) / dn
+            x = abs(angle1)
+            y = abs(angle2)
+            swap = x < y
+            sure = abs(x - y) > 1e-15
+            s0 = n0 if swap else a0
+            s1 = n1 if swap else a1
+            s2 = n2 if swap else a2
+            t0 = a0 if swap else n0
+            t1 = a1 if swap else n1
+            t2 = a2 if swap else n2
+            qx = -dx if swap else dx
+            qy = -dy if swap else dy
+            qz = -dz if swap else dz
+            f2 = -angle2 if swap else angle1
+            v0 = qy * s2 - qz * s1
+            v1 = qz * s0 - qx * s2
+            v2 = qx * s1 - qy * s0
+            vn = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+            v0 /= vn
+            v1 /= vn
+            v2 /= vn
+            w0 = s1 * v2 - s2 * v1
+            w1 = s2 * v0 - s0 * v2
+            w2 = s0 * v1 - s1 * v0
+            f1 = v0 * t0 + v1 * t1 + v2 * t2
+            yy = w0 * t0 + w1 * t1 + w2 * t2
+            xx = s0 * t0 + s1 * t1 + s2 * t2
+            # _angle_bin's polynomial path, without its branches
+            ax_, ay_ = abs(xx), abs(yy)
+            lo, hi = min(ax_, ay_), max(ax_, ay_)
+            a = lo / hi
+            q = a * a
+            q2 = q * q
+            q4 = q2 * q2
+            low = (_ATAN[0] + _ATAN[1] * q) + q2 * (_ATAN[2] + _ATAN[3] * q)
+            mid = (_ATAN[4] + _ATAN[5] * q) + q2 * (_ATAN[6] + _ATAN[7] * q)
+            high = (_ATAN[8] + _ATAN[9] * q) + q2 * _ATAN[10]
+            t = a * (low + q4 * (mid + q4 * high))
+            t = 0.5 * np.pi - t if ay_ > ax_ else t
+            t = np.pi - t if xx < 0.0 else t
+            t = -t if yy < 0.0 else t
+            v = 11.0 * (t + np.pi) / (2.0 * np.pi)
+            kf = np.floor(v)
+            clear = v - kf > _EDGE and kf + 1.0 - v > _EDGE
+            ok[k] = (sure and dn > 0.0 and vn > 0.0 and hi > 0.0 and xx == xx and yy == yy
+                     and clear)
+            k0[k] = min(max(np.int64(kf), 0), 10) if clear else 0
+            u1 = np.floor(11.0 * (f1 + 1.0) * 0.5)
+            u2 = np.floor(11.0 * (f2 + 1.0) * 0.5)
+            k1[k] = min(max(np.int64(u1), 0), 10) if u1 == u1 else 0
+            k2[k] = min(max(np.int64(u2), 0), 10) if u2 == u2 else 0
         for k in range(c):
             j = nbr[s - offset, k]
             if j == i:
                 continue
-            bin0 = 5  # a degenerate pair's angle is 0: bin floor(11 pi / 2 pi)
-            f1 = 0.0
-            f2 = 0.0
-            dx = points[j, 0] - points[i, 0]
-            dy = points[j, 1] - points[i, 1]
-            dz = points[j, 2] - points[i, 2]
-            dn = np.sqrt(dx * dx + dy * dy + dz * dz)
-            if dn > 0.0:
-                a0, a1, a2 = normals[i, 0], normals[i, 1], normals[i, 2]
-                b0, b1, b2 = normals[j, 0], normals[j, 1], normals[j, 2]
-                angle1 = (a0 * dx + a1 * dy + a2 * dz) / dn
-                angle2 = (b0 * dx + b1 * dy + b2 * dz) / dn
-                if _acos_greater(abs(angle1), abs(angle2)):
-                    a0, a1, a2, b0, b1, b2 = b0, b1, b2, a0, a1, a2
-                    dx, dy, dz = -dx, -dy, -dz
-                    f2 = -angle2
-                else:
-                    f2 = angle1
-                v0 = dy * a2 - dz * a1
-                v1 = dz * a0 - dx * a2
-                v2 = dx * a1 - dy * a0
-                vn = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-                if vn > 0.0:
-                    v0 /= vn
-                    v1 /= vn
-                    v2 /= vn
-                    w0 = a1 * v2 - a2 * v1
-                    w1 = a2 * v0 - a0 * v2
-                    w2 = a0 * v1 - a1 * v0
-                    f1 = v0 * b0 + v1 * b1 + v2 * b2
-                    bin0 = _angle_bin(w0 * b0 + w1 * b1 + w2 * b2, a0 * b0 + a1 * b1 + a2 * b2)
-                else:
-                    f2 = 0.0
-            out[i, bin0] += inc
-            out[i, 11 + _bin(11.0 * (f1 + 1.0) * 0.5)] += inc
-            out[i, 22 + _bin(11.0 * (f2 + 1.0) * 0.5)] += inc
+            if ok[k]:
+                c0, c1, c2 = k0[k], k1[k], k2[k]
+            else:
+                c0, c1, c2 = _pair_bins(points, normals, i, j)
+            out[i, c0] += inc
+            out[i, 11 + c1] += inc
+            out[i, 22 + c2] += inc
 
 
 @njit(cache=True, nogil=True)
