@@ -370,11 +370,13 @@ def fpfh(points, spf, first, last, offset, order, nbr, count, out):
     Own SPFH plus the neighbours' weighted by 1 / squared distance, each 11-bin block of
     the neighbours' part scaled to sum to 100 (Open3D's ``ComputeFPFHFeature``).
     """
+    acc = np.empty(33)  # the row being summed: a local array, so the sum vectorizes
     for s in range(first, last):
         i = order[s]
         c = count[s - offset]
         if c <= 1:
             continue
+        acc[:] = out[i]
         for k in range(c):
             j = nbr[s - offset, k]
             ex = points[j, 0] - points[i, 0]
@@ -384,12 +386,13 @@ def fpfh(points, spf, first, last, offset, order, nbr, count, out):
             if e == 0.0:
                 continue
             w = 1.0 / e
+            row = spf[j]
             for t in range(33):
-                out[i, t] += spf[j, t] * w
+                acc[t] += row[t] * w
         for block in range(3):
             total = 0.0
             for t in range(11 * block, 11 * block + 11):
-                total += out[i, t]
+                total += acc[t]
             scale = 100.0 / total if total != 0.0 else 0.0
             for t in range(11 * block, 11 * block + 11):
-                out[i, t] = out[i, t] * scale + spf[i, t]
+                out[i, t] = acc[t] * scale + spf[i, t]
