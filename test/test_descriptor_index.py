@@ -143,3 +143,14 @@ def test_is_nearest_equals_brute_force_with_ties():
         np.testing.assert_array_equal(index.is_nearest(query, rows, workers), expected)
     with pytest.raises(ValueError):
         index.is_nearest(query[:2], np.array([0, len(ref)]))
+
+
+@pytest.mark.parametrize('scale', [1e-6, 1e6])
+def test_float32_screen_stays_exact_at_any_magnitude(scale):
+    """The float32 screen's slack scales with the rows' norms: tiny or huge rows, near-ties."""
+    rng = np.random.default_rng(9)
+    ref = _clustered(rng, 1200) * scale
+    near = ref[:200] * (1.0 + rng.normal(0, 1e-7, (200, ref.shape[1])))  # ~float32 spacing
+    query = np.vstack([_clustered(rng, 300) * scale, near, ref[200:260]])
+    got = DescriptorIndex(ref, seed=2).query(query, 2)[0]
+    np.testing.assert_array_equal(got, _brute(query, ref, 2))

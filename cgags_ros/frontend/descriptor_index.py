@@ -22,7 +22,7 @@ _CELLS_PER_SQRT = 0.4
 _MAX_CELLS = 256
 _SAMPLE_PER_CELL = 64  # k-means runs on at most this many rows a cell
 _ITERATIONS = 8
-_PROJECTED = 8  # principal directions of the screening distance
+_PROJECTED = 12  # principal directions of the screening distance (float32)
 
 
 class DescriptorIndex:
@@ -71,7 +71,8 @@ class DescriptorIndex:
         self.ring = np.ascontiguousarray(ring[self.order])
         self.points = np.ascontiguousarray(ref[self.order])
         self.basis = basis
-        self.projectedT = np.ascontiguousarray(self.basis @ self.points.T)
+        self.projectedT = np.ascontiguousarray(self.basis @ self.points.T, dtype=np.float32)
+        self.max_norm = float(np.sqrt(np.einsum('ij,ij->i', ref, ref).max()))
         self.radius = np.zeros(len(self.centres))
         np.maximum.at(self.radius, labels, ring)
         diff = self.centres[:, None, :] - self.centres[None, :, :]
@@ -107,8 +108,8 @@ class DescriptorIndex:
         dist = np.empty((len(q), k))
         run_chunks(lambda a, b: kernels_index.search(
             q[a:b], self.centres, self.centresT, self.centre_gap, self.radius, self.starts,
-            self.ring, self.points, self.basis, self.projectedT, self.order, k, index[a:b],
-            dist[a:b]), len(q), workers)
+            self.ring, self.points, self.basis, self.projectedT, self.max_norm, self.order, k,
+            index[a:b], dist[a:b]), len(q), workers)
         return index, dist
 
     def is_nearest(self, queries: np.ndarray, rows: np.ndarray, workers: int = 1) -> np.ndarray:
@@ -125,6 +126,6 @@ class DescriptorIndex:
         out = np.empty(len(q), dtype=np.bool_)
         run_chunks(lambda a, b: kernels_index.nearest_is(
             q[a:b], rows[a:b], self.centres, self.centresT, self.centre_gap, self.radius,
-            self.starts, self.ring, self.points, self.basis, self.projectedT, self.order,
-            self.slot_of, out[a:b]), len(q), workers)
+            self.starts, self.ring, self.points, self.basis, self.projectedT, self.max_norm,
+            self.order, self.slot_of, out[a:b]), len(q), workers)
         return out

@@ -28,6 +28,11 @@ _ABS = 1e-12
 # the difference of two such distances by the centres' gap, which can be small, so their
 # rounding is subtracted from it explicitly.
 _SQUARED_ROUNDING = 1e-13
+# The screening distance is float32 (half the memory traffic, twice the lanes): relative
+# slack for its rounding (~2^-24 per operation over a dozen terms), and absolute slack per
+# unit of |q| + |p| for rounding the projections to float32 (sqrt(12) * 2 * 2^-24 < 1e-6).
+_REL32 = 1e-5
+_ABS32 = 1e-6
 
 
 @njit(cache=True, nogil=True)
@@ -104,24 +109,37 @@ def _better(s, o, d, i):
     return s < d or (s == d and o < i)
 
 
+@njit(cache=True, nogil=True, inline='always')
+def _screen_limit(b2, slack):
+    """Return the largest float32 screening value (squared) of a row within sqrt(b2)."""
+    r = np.sqrt(b2) * (1.0 + _REL32) + slack
+    return r * r
+
+
 @njit(cache=True, nogil=True)
 def _nearest(q, centres, centresT, centre_gap, radius, starts, ring, points, basis,
-             projectedT, order, k, d1, i1, d2, i2, stop_when_beaten, dc, visit, qp, acc, cand):
+             projectedT, max_norm, order, k, d1, i1, d2, i2, stop_when_beaten, dc, visit, qp,
+             acc, cand):
     """
     Return ``(d1, i1, d2, i2)``: the squared distances and rows of the ``k`` nearest to ``q``.
 
     The search starts from the given best (``d1``, ``i1``) and second (``d2``, ``i2``) and
     only looks for rows that beat them; with ``stop_when_beaten`` it returns as soon as one
     row beats the first. ``dc``, ``visit``, ``qp``, ``acc`` and ``cand`` are scratch arrays
-    (cells, cells, principal directions, rows, rows).
+    (cells, cells, principal directions, rows, rows; ``qp`` and ``acc`` float32).
+    ``max_norm`` is the largest norm of a reference row.
     """
     ncell = centres.shape[0]
     squared_distances_to(centresT, q, dc)
+    norm = 0.0
     for r in range(basis.shape[0]):
         acc_r = 0.0
         for t in range(q.shape[0]):
             acc_r += basis[r, t] * q[t]
         qp[r] = acc_r
+    for t in range(q.shape[0]):
+        norm += q[t] * q[t]
+    slack = _ABS32 * (np.sqrt(norm) + max_norm)
     # Cells nearest first (insertion sort, stable: a handful of cells, no allocation).
     for v in range(ncell):
         x = dc[v]
@@ -162,7 +180,7 @@ def _nearest(q, centres, centresT, centre_gap, radius, starts, ring, points, bas
         # Members whose lower bound (the distance along the principal directions) does not
         # already exceed b, collected without a branch (most are screened out, and a
         # mispredicted branch per member cost more than the screening itself).
-        limit = (b2 + _ABS) / (1.0 - _REL)
+        limit = _screen_limit(b2, slack)
         m = 0
         for p in range(n):
             cand[m] = p
@@ -186,13 +204,13 @@ def _nearest(q, centres, centresT, centre_gap, radius, starts, ring, points, bas
             elif k == 2 and _better(s, o, d2, i2):
                 d2, i2 = s, o
             b2 = d1 if k == 1 else d2
-            limit = (b2 + _ABS) / (1.0 - _REL)
+            limit = _screen_limit(b2, slack)
     return d1, i1, d2, i2
 
 
 @njit(cache=True, nogil=True)
 def search(queries, centres, centresT, centre_gap, radius, starts, ring, points, basis,
-           projectedT, order, k, out_index, out_dist):
+           projectedT, max_norm, order, k, out_index, out_dist):
     """
     Find the ``k`` (1 or 2) nearest reference rows of each query, exactly (see module doc).
 
@@ -204,14 +222,16 @@ def search(queries, centres, centresT, centre_gap, radius, starts, ring, points,
     inequality; distance to the bisecting plane, since every member of j is nearer c_j than
     c0), and in a visited cell considers only members with ``|ring - |q - c_j|| <= b``.
     Those are screened by their distance in the few leading principal directions
-    (``basis``, orthonormal rows; ``projectedT`` = basis @ points.T), which never exceeds
-    the full distance; only the members that pass get their exact distance.
+    (``basis``, orthonormal rows; ``projectedT`` = basis @ points.T in float32), which
+    never exceeds the full distance up to the float32 rounding the screen allows for
+    (``max_norm``: the largest reference row norm); only the members that pass get their
+    exact distance.
     """
     dc, visit, qp, acc, cand = _scratch(centres.shape[0], basis.shape[0], points.shape[0])
     for i in range(queries.shape[0]):
         d1, i1, d2, i2 = _nearest(queries[i], centres, centresT, centre_gap, radius, starts,
-                                  ring, points, basis, projectedT, order, k, np.inf, -1,
-                                  np.inf, -1, False, dc, visit, qp, acc, cand)
+                                  ring, points, basis, projectedT, max_norm, order, k, np.inf,
+                                  -1, np.inf, -1, False, dc, visit, qp, acc, cand)
         out_index[i, 0] = i1
         out_dist[i, 0] = np.sqrt(d1)
         if k == 2:
@@ -221,7 +241,7 @@ def search(queries, centres, centresT, centre_gap, radius, starts, ring, points,
 
 @njit(cache=True, nogil=True)
 def nearest_is(queries, rows, centres, centresT, centre_gap, radius, starts, ring, points,
-               basis, projectedT, order, slot_of, out):
+               basis, projectedT, max_norm, order, slot_of, out):
     """
     Set ``out[i]`` to whether reference row ``rows[i]`` is the nearest to ``queries[i]``.
 
@@ -240,12 +260,12 @@ def nearest_is(queries, rows, centres, centresT, centre_gap, radius, starts, rin
             diff = q[t] - points[slot, t]
             s += diff * diff
         _, i1, _, _ = _nearest(q, centres, centresT, centre_gap, radius, starts, ring, points,
-                               basis, projectedT, order, 1, s, row, np.inf, -1, True, dc,
-                               visit, qp, acc, cand)
+                               basis, projectedT, max_norm, order, 1, s, row, np.inf, -1,
+                               True, dc, visit, qp, acc, cand)
         out[i] = i1 == row
 
 
 @njit(cache=True, nogil=True)
 def _scratch(ncell, npro, nrow):
-    return (np.empty(ncell), np.empty(ncell, np.int64), np.empty(npro), np.empty(nrow),
-            np.empty(nrow, np.int64))
+    return (np.empty(ncell), np.empty(ncell, np.int64), np.empty(npro, np.float32),
+            np.empty(nrow, np.float32), np.empty(nrow, np.int64))
