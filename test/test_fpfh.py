@@ -1,7 +1,7 @@
 """FPFH (frontend/fpfh.py and its kernels) against Open3D's FPFH and a k-d tree's neighbours."""
 
 from cgags_ros.config.frontend import FrontEndConfig
-from cgags_ros.frontend import fpfh, kernels_fpfh
+from cgags_ros.frontend import fpfh, kernels_fpfh, kernels_neighbours
 from cgags_ros.frontend.features import downsample, estimate_normals, extract_features
 from cgags_ros.frontend.fpfh import compute_fpfh, radius_neighbours
 from cgags_ros.geometry import point_resolution
@@ -67,7 +67,7 @@ def test_select_keeps_the_smallest_with_ties_to_the_lower_row():
         j = rng.permutation(n).astype(np.int64)
         want = sorted(zip(d, j))[:m]
         dd, jj = d.copy(), j.copy()
-        kernels_fpfh._select(dd, jj, n, m)
+        kernels_neighbours._select(dd, jj, n, m)
         assert sorted(zip(dd[:m], jj[:m])) == want
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
-from . import kernels_fpfh
+from . import kernels_fpfh, kernels_neighbours
 from ..config.frontend import FrontEndConfig
 from ..parallel import run_chunks
 
@@ -134,7 +134,7 @@ class NeighbourGrid:
         """
         nbr = np.empty((last - first, max_nn), dtype=np.int32)
         count = np.empty(last - first, dtype=np.int64)
-        run_chunks(lambda lo, hi: kernels_fpfh.radius_neighbours(
+        run_chunks(lambda lo, hi: kernels_neighbours.radius_neighbours(
             self.points, first + lo, first + hi, first, self.cells, self.order,
             self.sorted_points, self.cell_key, self.cell_start, self.ny, self.nz, self.lower,
             self.cell, _REACH, self.radius, max_nn, nbr, count, nearest), last - first,
