@@ -253,6 +253,8 @@ def test_isolated_registration_sends_an_unchanged_target_once(monkeypatch):
     """
     Check that the registration process is sent an unchanged target only once.
 
+    It reports ready once warmed up (not while spawning, nor after a restart until warm).
+
     The registration process keeps the last target: the same array object is not sent
     again, a new one is, and after a restart (fresh process) it is sent again. Results equal
     the pipeline run in this process.
@@ -279,18 +281,22 @@ def test_isolated_registration_sends_an_unchanged_target_once(monkeypatch):
 
     iso = IsolatedRegistration(60.0)
     try:
+        assert not iso.ready and iso.health()['worker.ready'] is False  # spawning, warming up
         spy_on(iso)
         first = iso(source, target, config=cfg)
+        assert iso.ready and iso.health()['worker.ready'] is True
         again = iso(source, target, config=cfg)
         changed = iso(source, other, config=cfg)
         assert sent == [True, False, True]
         iso.restart()
+        assert not iso.ready  # the fresh child warms up again
         sent.clear()
         spy_on(iso)
         after = iso(source, other, config=cfg)
         assert sent == [True]
     finally:
         iso.close()
+    assert not iso.ready
     local = register_clouds(source, target, config=cfg)
     for result in (first, again, changed, after):
         assert result.valid, result.reason

@@ -70,6 +70,9 @@ def diagnostic_array(stats: Mapping[str, Any], name: str, hardware_id: str,
         status.level = DiagnosticStatus.ERROR
         status.message = (f"registration worker failed ({stats['worker.failing']}); "
                           'restarted, no pair has succeeded since')
+    elif stats.get('worker.ready') is False:
+        status.level = DiagnosticStatus.STALE
+        status.message = 'registration process warming up; pairs wait for it'
     elif not stats.get('received_source') or not stats.get('received_target'):
         status.level = DiagnosticStatus.STALE
         status.message = 'waiting for source and target clouds'

@@ -174,8 +174,15 @@ class IsolatedRegistration:
         """Return the worker's counters and resident memory, for /diagnostics."""
         pid = self.pid
         return {'worker.pid': pid or 0, 'worker.alive': self._alive(),
+                'worker.ready': self.ready,
                 'worker.crashes': self.crashes, 'worker.restarts': self.restarts,
                 'memory.worker_rss_mb': round(rss_mb(pid) or 0.0, 1) if pid else 0.0}
+
+    @property
+    def ready(self) -> bool:
+        """Tell whether the child has finished its warm-up (a pair then starts at once)."""
+        warm = self._warm
+        return self._pool is not None and (warm is None or warm.done())
 
     def supervise(self) -> bool:
         """Replace a child that died while idle; return True when one was replaced."""
