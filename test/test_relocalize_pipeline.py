@@ -107,13 +107,18 @@ def test_a_map_with_some_nans_loads_and_counts_them(kitchen, tmp_path):
     assert np.isfinite(prepared.features.points).all()
 
 
-def test_a_symmetric_scene_is_ambiguous_and_the_same_scene_once_is_not(kitchen):
-    """The kitchen map twice, the copy turned 180 deg about a vertical axis: two poses fit."""
+def twin_scene(kitchen):
+    """Return a scan, the kitchen map once, and twice (the copy turned 180 deg about z)."""
     _, merged, scans = kitchen
     once = merged[::4]
     centre = once.mean(axis=0) + [5.0, 0.0, 0.0]
     twin = np.vstack([once, (once - centre) @ np.diag([-1.0, -1.0, 1.0]).T + centre])
-    scan, _ = scans['fragment 6']
+    return scans['fragment 6'][0], once, twin
+
+
+def test_a_symmetric_scene_is_ambiguous_and_the_same_scene_once_is_not(kitchen):
+    """The kitchen map twice, the copy turned 180 deg about a vertical axis: two poses fit."""
+    scan, once, twin = twin_scene(kitchen)
     cfg = pipeline_config_from(MOVED)
     result = register_clouds(scan, twin, config=cfg)
     assert result.ambiguous and not result.valid and result.reason.startswith('ambiguous')
@@ -127,11 +132,7 @@ def test_rivals_searched_beside_the_gates_equal_those_searched_after(kitchen, mo
     """The rival search runs in a thread beside the gates; on one thread it runs after them."""
     import cgags_ros.pipeline.register as register
 
-    _, merged, scans = kitchen
-    once = merged[::4]
-    centre = once.mean(axis=0) + [5.0, 0.0, 0.0]
-    twin = np.vstack([once, (once - centre) @ np.diag([-1.0, -1.0, 1.0]).T + centre])
-    scan, _ = scans['fragment 6']
+    scan, _, twin = twin_scene(kitchen)
     cfg = pipeline_config_from(MOVED)
     beside = register_clouds(scan, twin, config=cfg)
     monkeypatch.setattr(register, 'DEFAULT_WORKERS', 1)

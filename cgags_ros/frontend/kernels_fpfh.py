@@ -54,6 +54,35 @@ _EDGE = 1e-6  # bin units: 450x the approximation's error
 
 
 @njit(cache=True, nogil=True, inline='always')
+def _angle_poly(y, x):
+    """
+    Return ``(k, clear)``: the floor of the pair angle's bin value from the polynomial atan.
+
+    ``clear`` says whether it decides the bin: it lies more than ``_EDGE`` from a bin edge
+    and neither argument is zero or NaN. No branches (selects only), so a loop over pairs
+    vectorizes.
+    """
+    ax, ay = abs(x), abs(y)
+    lo, hi = min(ax, ay), max(ax, ay)
+    a = lo / (hi if hi > 0.0 else 1.0)
+    s = a * a
+    s2 = s * s
+    s4 = s2 * s2
+    # Estrin's scheme: a shallower dependency chain than Horner's
+    low = (_ATAN[0] + _ATAN[1] * s) + s2 * (_ATAN[2] + _ATAN[3] * s)
+    mid = (_ATAN[4] + _ATAN[5] * s) + s2 * (_ATAN[6] + _ATAN[7] * s)
+    high = (_ATAN[8] + _ATAN[9] * s) + s2 * _ATAN[10]
+    t = a * (low + s4 * (mid + s4 * high))
+    t = 0.5 * np.pi - t if ay > ax else t
+    t = np.pi - t if x < 0.0 else t
+    t = -t if y < 0.0 else t
+    v = 11.0 * (t + np.pi) / (2.0 * np.pi)
+    k = np.floor(v)
+    clear = (hi > 0.0) & (x == x) & (y == y) & (v - k > _EDGE) & (k + 1.0 - v > _EDGE)
+    return k, clear
+
+
+@njit(cache=True, nogil=True, inline='always')
 def _angle_bin(y, x):
     """
     Return ``_bin(11 (atan2(y, x) + pi) / 2 pi)``, Open3D's bin of the pair's angle.
@@ -62,26 +91,34 @@ def _angle_bin(y, x):
     ``_EDGE`` of a bin edge; there (and for zero or NaN arguments) libm's atan2 decides as
     in Open3D: the same bins, without atan2's cost for all but ~1e-5 of the pairs.
     """
-    ax, ay = abs(x), abs(y)
-    lo, hi = min(ax, ay), max(ax, ay)
-    if hi > 0.0 and x == x and y == y:  # neither zero nor NaN
-        a = lo / hi
-        s = a * a
-        s2 = s * s
-        s4 = s2 * s2
-        # Estrin's scheme: a shallower dependency chain than Horner's
-        low = (_ATAN[0] + _ATAN[1] * s) + s2 * (_ATAN[2] + _ATAN[3] * s)
-        mid = (_ATAN[4] + _ATAN[5] * s) + s2 * (_ATAN[6] + _ATAN[7] * s)
-        high = (_ATAN[8] + _ATAN[9] * s) + s2 * _ATAN[10]
-        t = a * (low + s4 * (mid + s4 * high))
-        t = 0.5 * np.pi - t if ay > ax else t
-        t = np.pi - t if x < 0.0 else t
-        t = -t if y < 0.0 else t
-        v = 11.0 * (t + np.pi) / (2.0 * np.pi)
-        k = np.floor(v)
-        if v - k > _EDGE and k + 1.0 - v > _EDGE:
-            return min(max(np.int64(k), 0), 10)
+    k, clear = _angle_poly(y, x)
+    if clear:
+        return min(max(np.int64(k), 0), 10)
     return _bin(11.0 * (np.arctan2(y, x) + np.pi) / (2.0 * np.pi))
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _darboux(dx, dy, dz, a0, a1, a2, b0, b1, b2):
+    """
+    Return ``(|v|, f1, y, x)`` of a pair in the Darboux frame at its source point.
+
+    a: the source's normal, d: the line to the other point, b: that point's normal;
+    v = d x a, w = a x v / |v|, f1 = v / |v| . b, y = w . b, x = a . b (Open3D's
+    ``ComputePairFeatures``). With |v| = 0 the other three are meaningless, not an error.
+    """
+    v0 = dy * a2 - dz * a1
+    v1 = dz * a0 - dx * a2
+    v2 = dx * a1 - dy * a0
+    vn = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    scale = vn if vn > 0.0 else 1.0
+    v0 /= scale
+    v1 /= scale
+    v2 /= scale
+    w0 = a1 * v2 - a2 * v1
+    w1 = a2 * v0 - a0 * v2
+    w2 = a0 * v1 - a1 * v0
+    return (vn, v0 * b0 + v1 * b1 + v2 * b2, w0 * b0 + w1 * b1 + w2 * b2,
+            a0 * b0 + a1 * b1 + a2 * b2)
 
 
 @njit(cache=True, nogil=True, inline='always')
@@ -112,19 +149,10 @@ def _pair_bins(points, normals, i, j):
             f2 = -angle2
         else:
             f2 = angle1
-        v0 = dy * a2 - dz * a1
-        v1 = dz * a0 - dx * a2
-        v2 = dx * a1 - dy * a0
-        vn = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        vn, f1_, y, x = _darboux(dx, dy, dz, a0, a1, a2, b0, b1, b2)
         if vn > 0.0:
-            v0 /= vn
-            v1 /= vn
-            v2 /= vn
-            w0 = a1 * v2 - a2 * v1
-            w1 = a2 * v0 - a0 * v2
-            w2 = a0 * v1 - a1 * v0
-            f1 = v0 * b0 + v1 * b1 + v2 * b2
-            bin0 = _angle_bin(w0 * b0 + w1 * b1 + w2 * b2, a0 * b0 + a1 * b1 + a2 * b2)
+            f1 = f1_
+            bin0 = _angle_bin(y, x)
         else:
             f2 = 0.0
     return bin0, _bin(11.0 * (f1 + 1.0) * 0.5), _bin(11.0 * (f2 + 1.0) * 0.5)
@@ -188,38 +216,9 @@ def spfh(points, normals, first, last, offset, order, nbr, count, out):
             qy = -dy if swap else dy
             qz = -dz if swap else dz
             f2 = -angle2 if swap else angle1
-            v0 = qy * s2 - qz * s1
-            v1 = qz * s0 - qx * s2
-            v2 = qx * s1 - qy * s0
-            vn = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-            v0 /= vn
-            v1 /= vn
-            v2 /= vn
-            w0 = s1 * v2 - s2 * v1
-            w1 = s2 * v0 - s0 * v2
-            w2 = s0 * v1 - s1 * v0
-            f1 = v0 * t0 + v1 * t1 + v2 * t2
-            yy = w0 * t0 + w1 * t1 + w2 * t2
-            xx = s0 * t0 + s1 * t1 + s2 * t2
-            # _angle_bin's polynomial path, without its branches
-            ax_, ay_ = abs(xx), abs(yy)
-            lo, hi = min(ax_, ay_), max(ax_, ay_)
-            a = lo / hi
-            q = a * a
-            q2 = q * q
-            q4 = q2 * q2
-            low = (_ATAN[0] + _ATAN[1] * q) + q2 * (_ATAN[2] + _ATAN[3] * q)
-            mid = (_ATAN[4] + _ATAN[5] * q) + q2 * (_ATAN[6] + _ATAN[7] * q)
-            high = (_ATAN[8] + _ATAN[9] * q) + q2 * _ATAN[10]
-            t = a * (low + q4 * (mid + q4 * high))
-            t = 0.5 * np.pi - t if ay_ > ax_ else t
-            t = np.pi - t if xx < 0.0 else t
-            t = -t if yy < 0.0 else t
-            v = 11.0 * (t + np.pi) / (2.0 * np.pi)
-            kf = np.floor(v)
-            clear = v - kf > _EDGE and kf + 1.0 - v > _EDGE
-            ok[k] = (sure and dn > 0.0 and vn > 0.0 and hi > 0.0 and xx == xx and yy == yy
-                     and clear)
+            vn, f1, yy, xx = _darboux(qx, qy, qz, s0, s1, s2, t0, t1, t2)
+            kf, clear = _angle_poly(yy, xx)
+            ok[k] = sure & (dn > 0.0) & (vn > 0.0) & clear
             k0[k] = min(max(np.int64(kf), 0), 10) if clear else 0
             u1 = np.floor(11.0 * (f1 + 1.0) * 0.5)
             u2 = np.floor(11.0 * (f2 + 1.0) * 0.5)
