@@ -219,11 +219,13 @@ def spfh(points, normals, first, last, offset, order, nbr, count, out):
             vn, f1, yy, xx = _darboux(qx, qy, qz, s0, s1, s2, t0, t1, t2)
             kf, clear = _angle_poly(yy, xx)
             ok[k] = sure & (dn > 0.0) & (vn > 0.0) & clear
-            k0[k] = min(max(np.int64(kf), 0), 10) if clear else 0
-            u1 = np.floor(11.0 * (f1 + 1.0) * 0.5)
-            u2 = np.floor(11.0 * (f2 + 1.0) * 0.5)
-            k1[k] = min(max(np.int64(u1), 0), 10) if u1 == u1 else 0
-            k2[k] = min(max(np.int64(u2), 0), 10) if u2 == u2 else 0
+            # bins as _pair_bins takes them; NaN (a degenerate pair's, unused) kept out of
+            # the integer conversion
+            u1 = 11.0 * (f1 + 1.0) * 0.5
+            u2 = 11.0 * (f2 + 1.0) * 0.5
+            k0[k] = _bin(kf) if clear else 0
+            k1[k] = _bin(u1) if u1 == u1 else 0
+            k2[k] = _bin(u2) if u2 == u2 else 0
         for k in range(c):
             j = nbr[s - offset, k]
             if j == i:
