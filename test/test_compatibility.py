@@ -1,4 +1,5 @@
-from cgags_ros.registration.compatibility import build_compatibility_graph, length_consistency
+from cgags_ros.registration.compatibility import (build_compatibility_graph, CompatibilityGraph,
+                                                  length_consistency)
 import numpy as np
 from scipy.spatial.distance import cdist
 
@@ -62,3 +63,24 @@ def test_memory_is_bit_packed():
     src, dst, _ = _problem(n=1000, seed=6)
     g = build_compatibility_graph(src, dst, 0.1)
     assert g.packed.nbytes == 1000 * 128  # 125 bytes per row, padded to 16 words
+
+
+def test_member_edges_on_bit_rows_match_the_dense_adjacency():
+    # later_neighbour_counts / numbered_edges replace np.triu + np.nonzero of the members'
+    # dense adjacency in the stopping rule: same counts, same edges in the same order.
+    rng = np.random.default_rng(3)
+    for n, density in ((70, 0.5), (200, 0.1), (300, 0.9)):
+        dense = np.triu(rng.random((n, n)) < density, 1)
+        dense |= dense.T
+        g = CompatibilityGraph(np.packbits(dense, axis=1, bitorder='little'), n)
+        for size in (0, 1, 2, 40, n):
+            members = np.sort(rng.choice(n, size, replace=False))
+            a, b = np.nonzero(np.triu(g.adjacency(members)))
+            counts = g.later_neighbour_counts(members)
+            assert g.count_edges_within(members) == counts.sum() == len(a)
+            i, j = g.numbered_edges(members, counts, np.arange(len(a)))
+            np.testing.assert_array_equal(i, members[a])
+            np.testing.assert_array_equal(j, members[b])
+            picks = rng.permutation(len(a))[:7]
+            i, j = g.numbered_edges(members, counts, picks)
+            np.testing.assert_array_equal(j, members[b[picks]])

@@ -107,13 +107,45 @@ class CompatibilityGraph:
 
     def count_edges_within(self, members: np.ndarray) -> int:
         """Return the number of undirected edges among ``members`` (indices)."""
-        if len(members) < 2:
-            return 0
-        return int(self.adjacency(members).sum() // 2)
+        return int(self.later_neighbour_counts(members).sum())
+
+    def later_neighbour_counts(self, members: np.ndarray) -> np.ndarray:
+        """
+        Return, per member, its neighbours among the members with a larger index.
+
+        ``members``: distinct indices in ascending order (sorted here if they are not).
+        Counted on the bit rows: M x W words, not the M x M adjacency.
+        """
+        members = _ascending(members)
+        return kernels_graph.later_member_counts(
+            self._words, members, kernels_graph.member_mask(members, self._words.shape[1]))
+
+    def numbered_edges(self, members: np.ndarray, counts: np.ndarray,
+                       numbers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """
+        Return the edges (i, j), i < j, among ``members`` with the given ``numbers``.
+
+        Edges are numbered in the order ``np.nonzero(np.triu(self.adjacency(members)))``
+        lists them (row-major), 0 to ``counts.sum()`` - 1; ``counts`` is
+        :meth:`later_neighbour_counts` of the same ``members``.
+        """
+        members = _ascending(members)
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+        return kernels_graph.later_member_pairs(
+            self._words, members, kernels_graph.member_mask(members, self._words.shape[1]),
+            starts, np.asarray(numbers, dtype=np.int64))
 
     def adjacency(self, members: np.ndarray) -> np.ndarray:
         """Return the (M, M) boolean adjacency among ``members`` (indices)."""
         return kernels_graph.sub_adjacency(self._words, np.asarray(members, dtype=np.int64))
+
+
+def _ascending(members: np.ndarray) -> np.ndarray:
+    """Return ``members`` as distinct int64 indices in ascending order."""
+    members = np.asarray(members, dtype=np.int64)
+    if len(members) > 1 and not (members[1:] > members[:-1]).all():
+        members = np.unique(members)
+    return members
 
 
 def length_consistency(src: np.ndarray, dst: np.ndarray, i: np.ndarray,

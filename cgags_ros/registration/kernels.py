@@ -138,6 +138,11 @@ def compile_kernels() -> None:
     kernels_scoring.merge_preferences(np.full((70, 3), np.inf, np.float32), ids, res, 0)
     kernels_scoring.intersection_kernel(ids, np.arange(5, dtype=np.int64), len(res), 3)
     kernels_graph.sub_adjacency(words, np.arange(5, dtype=np.int64))
+    members = np.arange(5, dtype=np.int64)
+    mask = kernels_graph.member_mask(members, words.shape[1])
+    counts = kernels_graph.later_member_counts(words, members, mask)
+    kernels_graph.later_member_pairs(words, members, mask, np.cumsum(counts) - counts,
+                                     np.zeros(1, np.int64))
     kernel = np.ones((5, 5), np.float32)
     adjacency = ~np.eye(5, dtype=bool)
     for edges_only in (True, False):

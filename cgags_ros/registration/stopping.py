@@ -75,13 +75,14 @@ def compatible_sample_inlier_probability(graph: CompatibilityGraph, inliers: np.
     n_in = len(inliers)
     if n_in < 3 or graph.num_edges == 0:
         return 0.0
-    rows = graph.adjacency(inliers)
-    e_in = int(rows.sum() // 2)
+    # The inlier edges counted and picked on the bit rows: a large inlier set's dense M x M
+    # adjacency costs more than the search around it (docs/implementation.md).
+    counts = graph.later_neighbour_counts(inliers)
+    e_in = int(counts.sum())
     if e_in == 0:
         return 0.0
-    a, b = np.nonzero(np.triu(rows))
-    pick = rng.choice(len(a), size=min(pairs, len(a)), replace=False)
-    i, j = inliers[a[pick]], inliers[b[pick]]
+    pick = rng.choice(e_in, size=min(pairs, e_in), replace=False)
+    i, j = graph.numbered_edges(inliers, counts, pick)
     total, inside = graph.common_within(i, j, inliers)
     ratio = np.where(total > 0, inside / np.maximum(total, 1), 0.0)
     return float(e_in / graph.num_edges * ratio.mean())
