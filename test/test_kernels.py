@@ -11,8 +11,9 @@ from __future__ import annotations
 import math
 
 from cgags_ros.datasets.synthetic import load_bunny, make_correspondences
-from cgags_ros.registration import compatibility, kernels, register_correspondences
-from cgags_ros.registration.compatibility import build_compatibility_graph
+from cgags_ros.registration import (compatibility, kernels, kernels_scoring,
+                                    register_correspondences)
+from cgags_ros.registration.compatibility import build_compatibility_graph, CompatibilityGraph
 from cgags_ros.registration.hypotheses import score_values
 from cgags_ros.registration.kernels_graph import compatibility_words, neighbour_lists
 from cgags_ros.registration.kernels_sampling import (COLLINEAR, draw_edges, draw_guided,
@@ -300,6 +301,34 @@ def test_intersection_kernel_equals_numpy(b):
 
 
 @pytest.mark.parametrize('edges_only', [False, True])
+def test_guided_rows_on_first_use_equal_the_full_matrices(edges_only):
+    """Kernel and adjacency rows computed when a draw reads them: the same draws."""
+    rng = np.random.default_rng(5)
+    n, b, hypotheses = 200, 20, 300
+    ids = np.stack([rng.choice(hypotheses, b, replace=False) for _ in range(n)])
+    ids[rng.random((n, b)) < 0.1] = -1
+    dense = np.triu(rng.random((n, n)) < 0.3, 1)
+    graph = CompatibilityGraph(np.packbits(dense | dense.T, axis=1, bitorder='little'), n)
+    members = np.sort(rng.choice(n, 90, replace=False))
+    bits = kernels_scoring.preference_bits(ids, members, hypotheses, b)
+    lazy = kernels.guided_rows(bits, b, graph.words, members)
+    full = kernels.complete_rows(intersection_kernel(ids, members, hypotheses, b),
+                                 graph.adjacency(members))
+    seeds = rng.random(len(members))
+    a = kernels.draw_guided(np.random.default_rng(2), lazy, seeds, 300, 1e-6, edges_only)
+    c = kernels.draw_guided(np.random.default_rng(2), full, seeds, 300, 1e-6, edges_only)
+    for x, y in zip(a, c):
+        np.testing.assert_array_equal(x, y)
+    done = lazy[2]
+    assert 0 < done.sum() < len(members)  # only the rows drawn from were computed
+    np.testing.assert_array_equal(lazy[0][done], full[0][done])
+    np.testing.assert_array_equal(lazy[1][done], full[1][done])
+    kernel, adjacency = kernels.all_rows(lazy)
+    np.testing.assert_array_equal(kernel, full[0])
+    np.testing.assert_array_equal(adjacency, full[1])
+
+
+@pytest.mark.parametrize('edges_only', [False, True])
 def test_guided_equals_numpy_draws(edges_only):
     rng = np.random.default_rng(7)
     m, xi = 12, 1e-6
@@ -308,8 +337,8 @@ def test_guided_equals_numpy_draws(edges_only):
     np.fill_diagonal(adjacency, False)
     adjacency[3] = False  # a seed without partners
     seed_w = rng.random(m)
-    i, j, k, ok = draw_guided(np.random.default_rng(8), kernel, adjacency, np.cumsum(seed_w),
-                              50, xi, edges_only)
+    i, j, k, ok = draw_guided(np.random.default_rng(8), kernels.complete_rows(kernel, adjacency),
+                              np.cumsum(seed_w), 50, xi, edges_only)
     r = np.random.default_rng(8)
     cdf = np.cumsum(seed_w)
 
@@ -354,10 +383,12 @@ def test_compile_kernels_is_idempotent():
 
 def test_searches_use_only_the_compiled_signatures(monkeypatch):
     """compile_kernels (the warm-up) compiles every specialization a search needs."""
-    from cgags_ros.registration import CoreConfig, kernels_graph, kernels_sampling, kernels_scoring
+    from cgags_ros.registration import (CoreConfig, kernels_graph, kernels_sampling,
+                                        kernels_scoring, kernels_subsets)
 
     kernels.compile_kernels()
-    dispatchers = [getattr(m, name) for m in (kernels_graph, kernels_sampling, kernels_scoring)
+    dispatchers = [getattr(m, name)
+                   for m in (kernels_graph, kernels_sampling, kernels_scoring, kernels_subsets)
                    for name in dir(m) if hasattr(getattr(m, name), 'signatures')]
     before = {d: len(d.signatures) for d in dispatchers}
     model = load_bunny(None)

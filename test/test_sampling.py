@@ -134,8 +134,8 @@ def test_guided_sampling_prefers_high_kernel_partners():
     np.fill_diagonal(kernel, 0)
     seeds = np.zeros(m)
     seeds[group] = 1
-    i, j, k, ok = kernels.draw_guided(np.random.default_rng(8), kernel, adjacency, seeds, 5000,
-                                      1e-6)
+    i, j, k, ok = kernels.draw_guided(np.random.default_rng(8),
+                                      kernels.complete_rows(kernel, adjacency), seeds, 5000, 1e-6)
     assert ok.all()
     assert np.isin(i, group).all()
     assert np.isin(j, group).mean() > 0.99 and np.isin(k, group).mean() > 0.99

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import kernels_graph
+from . import kernels_graph, kernels_subsets
 from ..parallel import run_split
 
 # Correspondences below which the graph is built on one thread: waking an idle pool thread
@@ -117,8 +117,8 @@ class CompatibilityGraph:
         Counted on the bit rows: M x W words, not the M x M adjacency.
         """
         members = _ascending(members)
-        return kernels_graph.later_member_counts(
-            self._words, members, kernels_graph.member_mask(members, self._words.shape[1]))
+        return kernels_subsets.later_member_counts(
+            self._words, members, kernels_subsets.member_mask(members, self._words.shape[1]))
 
     def numbered_edges(self, members: np.ndarray, counts: np.ndarray,
                        numbers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -131,8 +131,8 @@ class CompatibilityGraph:
         """
         members = _ascending(members)
         starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-        return kernels_graph.later_member_pairs(
-            self._words, members, kernels_graph.member_mask(members, self._words.shape[1]),
+        return kernels_subsets.later_member_pairs(
+            self._words, members, kernels_subsets.member_mask(members, self._words.shape[1]),
             starts, np.asarray(numbers, dtype=np.int64))
 
     def adjacency(self, members: np.ndarray) -> np.ndarray:

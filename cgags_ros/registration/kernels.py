@@ -12,8 +12,9 @@ Which paper step each kernel implements (METHOD.md numbering):
   :mod:`.kernels_scoring`, whose weighted fit and residuals also serve step 6's re-fits
   (:func:`.rigid.kabsch`, :func:`.rigid.residuals`);
 - step 4, preference lists: :func:`.kernels_scoring.merge_preferences`;
-- step 5, guided sampling: its kernel :func:`.kernels_scoring.intersection_kernel` and
-  :func:`.kernels_sampling.draw_guided`.
+- step 5, guided sampling: its kernel (:func:`.kernels_scoring.preference_bits`, rows
+  by :func:`.kernels_scoring.kernel_row`) and :func:`.kernels_sampling.draw_guided`;
+- step 7, stopping: the edges among the best model's inliers, :mod:`.kernels_subsets`.
 
 Every kernel is compiled with ``cache=True``: numba stores the machine code in
 ``__pycache__`` next to these modules, or under ``NUMBA_CACHE_DIR`` when set (and falls back
@@ -27,12 +28,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import kernels_graph, kernels_sampling, kernels_scoring
+from . import kernels_graph, kernels_sampling, kernels_scoring, kernels_subsets
 from .kernels_sampling import COLLINEAR, EMPTY
 
 __all__ = ['COLLINEAR', 'EMPTY', 'compile_kernels', 'draw_edges', 'draw_triples', 'draw_guided',
-           'common_support', 'fit_triples', 'prescreen_scores', 'residual_matrix',
-           'usable_triangles']
+           'guided_rows', 'complete_rows', 'all_rows', 'common_support', 'fit_triples',
+           'prescreen_scores', 'residual_matrix', 'usable_triangles']
 
 _compiled = False
 _VERTEX_PROPOSALS = 64  # uniform members of N(i) proposed per vertex tournament
@@ -61,13 +62,40 @@ def draw_triples(rng, graph, lists, src, dst, delta: float, soft: bool, count: i
         int(count), int(edge_size), int(vertex_size), _VERTEX_PROPOSALS, float(min_area))
 
 
-def draw_guided(rng, kernel: np.ndarray, adjacency: np.ndarray, seed_weights: np.ndarray,
-                count: int, xi: float, edges_only: bool = False):
-    """Preference-guided subsets on the kernel's members (step 5), see the kernel."""
+def draw_guided(rng, rows: tuple, seed_weights: np.ndarray, count: int, xi: float,
+                edges_only: bool = False):
+    """Preference-guided subsets on the members of ``rows`` (step 5), see the kernel."""
     return kernels_sampling.draw_guided(
-        rng, np.ascontiguousarray(kernel, dtype=np.float32),
-        np.ascontiguousarray(adjacency, dtype=bool), np.cumsum(seed_weights, dtype=np.float64),
-        int(count), float(xi), bool(edges_only))
+        rng, rows, np.cumsum(seed_weights, dtype=np.float64), int(count), float(xi),
+        bool(edges_only))
+
+
+def guided_rows(bits: np.ndarray, b: int, words: np.ndarray, members: np.ndarray) -> tuple:
+    """
+    Return the members' kernel and adjacency rows, each computed on first use (step 5).
+
+    ``bits``: the members' preference lists as bit rows
+    (:func:`.kernels_scoring.preference_bits`), ``b`` their length; ``words``: the graph's
+    bit rows. Unused rows stay unwritten (their pages are never touched).
+    """
+    m = len(members)
+    return (np.empty((m, m), np.float32), np.empty((m, m), np.bool_), np.zeros(m, np.bool_),
+            bits, np.float32(b), words, _i64(members))
+
+
+def complete_rows(kernel: np.ndarray, adjacency: np.ndarray) -> tuple:
+    """Return given kernel and adjacency matrices as :func:`guided_rows`, every row done."""
+    m = len(kernel)
+    return (np.ascontiguousarray(kernel, dtype=np.float32),
+            np.ascontiguousarray(adjacency, dtype=np.bool_), np.ones(m, np.bool_),
+            np.zeros((m, 1), np.uint64), np.float32(1.0), np.zeros((m, 1), np.uint64),
+            np.arange(m, dtype=np.int64))
+
+
+def all_rows(rows: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """Compute every row of :func:`guided_rows`; return the kernel and the adjacency."""
+    kernels_sampling.fill_rows(rows)
+    return rows[0], rows[1]
 
 
 def usable_triangles(src, dst, triples: np.ndarray, min_area: float) -> np.ndarray:
@@ -137,15 +165,18 @@ def compile_kernels() -> None:
     ids = np.full((70, 3), -1, np.int64)
     kernels_scoring.merge_preferences(np.full((70, 3), np.inf, np.float32), ids, res, 0)
     kernels_scoring.intersection_kernel(ids, np.arange(5, dtype=np.int64), len(res), 3)
+    bits = kernels_scoring.preference_bits(ids, np.arange(5, dtype=np.int64), len(res), 3)
     kernels_graph.sub_adjacency(words, np.arange(5, dtype=np.int64))
     members = np.arange(5, dtype=np.int64)
-    mask = kernels_graph.member_mask(members, words.shape[1])
-    counts = kernels_graph.later_member_counts(words, members, mask)
-    kernels_graph.later_member_pairs(words, members, mask, np.cumsum(counts) - counts,
-                                     np.zeros(1, np.int64))
+    mask = kernels_subsets.member_mask(members, words.shape[1])
+    counts = kernels_subsets.later_member_counts(words, members, mask)
+    kernels_subsets.later_member_pairs(words, members, mask, np.cumsum(counts) - counts,
+                                       np.zeros(1, np.int64))
     kernel = np.ones((5, 5), np.float32)
     adjacency = ~np.eye(5, dtype=bool)
+    rows = guided_rows(bits, 3, words, np.arange(5))
+    kernels_sampling.fill_rows(rows)
     for edges_only in (True, False):
-        kernels_sampling.draw_guided(rng, kernel, adjacency, np.arange(1.0, 6.0), 2, 1e-6,
-                                     edges_only)
+        for r in (rows, complete_rows(kernel, adjacency)):
+            kernels_sampling.draw_guided(rng, r, np.arange(1.0, 6.0), 2, 1e-6, edges_only)
     _compiled = True

@@ -21,6 +21,7 @@ from numba import njit
 import numpy as np
 
 from .kernels_graph import has_edge, nth_set_bit, popcount
+from .kernels_scoring import kernel_row
 
 EMPTY = 1  # status of a draw: N(i) ∩ N(j) empty (no triangle on the edge)
 COLLINEAR = 2  # status of a draw: triangle area below the minimum in either cloud
@@ -185,14 +186,40 @@ def _weighted_pick(u, weights, m):
     return last
 
 
+@njit(cache=True, nogil=True, inline='always')
+def _row(rows, a):
+    """
+    Return rows a of the kernel K and of the adjacency, computing them on first use.
+
+    ``rows`` is :func:`.kernels.guided_rows`' tuple (K, A, done, bits, scale, words,
+    members): a batch draws from a few dozen members' rows, so the M x M matrices are
+    never filled whole (M reaches the thousands with many inliers).
+    """
+    K, A, done, bits, scale, words, members = rows
+    if not done[a]:
+        kernel_row(bits, a, scale, K[a])
+        for c in range(members.shape[0]):
+            A[a, c] = has_edge(words, members[a], members[c])
+        done[a] = True
+    return K[a], A[a]
+
+
 @njit(cache=True, nogil=True)
-def draw_guided(rng, kernel, adjacency, seed_cdf, count, xi, edges_only):
+def fill_rows(rows):
+    """Compute every row of ``rows`` (for seed weights over the whole kernel)."""
+    for a in range(rows[2].shape[0]):
+        _row(rows, a)
+
+
+@njit(cache=True, nogil=True)
+def draw_guided(rng, rows, seed_cdf, count, xi, edges_only):
     """
     Draw ``count`` preference-guided subsets on M members (step 5; local indices).
 
     Seed i by the cumulative seed weights ``seed_cdf``; j in N(i) with probability
     proportional to K(i, j) + xi; then (unless ``edges_only``, the 4-DoF edge) k in
-    N(i) ∩ N(j) proportional to K(i, k) K(j, k) + xi.
+    N(i) ∩ N(j) proportional to K(i, k) K(j, k) + xi. ``rows``: the members' kernel and
+    adjacency rows (:func:`_row`).
 
     :returns: i, j, k (k = j with ``edges_only``) and an ok mask (a partner was found).
     """
@@ -204,8 +231,9 @@ def draw_guided(rng, kernel, adjacency, seed_cdf, count, xi, edges_only):
     weights = np.empty(m)
     for b in range(count):
         i = min(np.searchsorted(seed_cdf, rng.random() * seed_cdf[m - 1], side='right'), m - 1)
+        kernel_i, adjacency_i = _row(rows, i)
         for c in range(m):
-            weights[c] = (np.float64(kernel[i, c]) + xi) if adjacency[i, c] else 0.0
+            weights[c] = (np.float64(kernel_i[c]) + xi) if adjacency_i[c] else 0.0
         j = _weighted_pick(rng.random(), weights, m)
         ii[b] = i
         if j < 0:
@@ -214,9 +242,10 @@ def draw_guided(rng, kernel, adjacency, seed_cdf, count, xi, edges_only):
         if edges_only:
             kk[b], ok[b] = j, True
             continue
+        kernel_j, adjacency_j = _row(rows, j)
         for c in range(m):
-            both = adjacency[i, c] and adjacency[j, c]
-            weights[c] = (np.float64(kernel[i, c]) * kernel[j, c] + xi) if both else 0.0
+            both = adjacency_i[c] and adjacency_j[c]
+            weights[c] = (np.float64(kernel_i[c]) * kernel_j[c] + xi) if both else 0.0
         k = _weighted_pick(rng.random(), weights, m)
         if k >= 0:
             kk[b], ok[b] = k, True

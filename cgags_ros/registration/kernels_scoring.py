@@ -246,14 +246,14 @@ def merge_preferences(pref_res, pref_ids, res, first_id):
 
 
 @njit(cache=True, nogil=True)
-def intersection_kernel(ids, members, num_hypotheses, b):
+def preference_bits(ids, members, num_hypotheses, b):
     """
-    Return the intersection kernel K (M, M) float32 of the members' preference lists.
+    Return the members' preference lists as bit rows (M, W) uint64 (step 5's kernel).
 
-    K(a, c) = |T_a ∩ T_c| / b, diagonal zero (step 5's kernel). The hypotheses present in
-    the members' lists are renumbered 0..H'-1 and each list becomes a bit row of H' bits,
-    so a pair costs H' / 64 AND + popcounts: the dense 0/1 matrix product it replaces
-    multiplied mostly zeros. ``ids`` (N, b) int64, -1 in empty slots.
+    The hypotheses present in the members' lists are renumbered 0..H'-1 and each list
+    becomes a bit row of H' bits, so a kernel entry costs H' / 64 AND + popcounts
+    (:func:`kernel_row`): the dense 0/1 matrix product it replaces multiplied mostly
+    zeros. ``ids`` (N, b) int64, -1 in empty slots.
     """
     m = members.shape[0]
     slot = np.full(num_hypotheses, -1, np.int64)
@@ -272,14 +272,32 @@ def intersection_kernel(ids, members, num_hypotheses, b):
             if h >= 0:
                 s = slot[h]
                 bits[a, s >> 6] |= _ONE << np.uint64(s & 63)
-    K = np.zeros((m, m), np.float32)
-    scale = np.float32(b)
-    for a in range(m):
-        for c in range(a + 1, m):
-            count = 0
-            for k in range(w):
-                count += popcount(bits[a, k] & bits[c, k])
-            K[a, c] = K[c, a] = np.float32(count) / scale
+    return bits
+
+
+@njit(cache=True, nogil=True, inline='always')
+def kernel_row(bits, a, scale, out):
+    """Write row a of the intersection kernel, K(a, c) = |T_a ∩ T_c| / b, to ``out``."""
+    for c in range(bits.shape[0]):
+        count = 0
+        for k in range(bits.shape[1]):
+            count += popcount(bits[a, k] & bits[c, k])
+        out[c] = np.float32(count) / scale
+    out[a] = 0.0
+
+
+@njit(cache=True, nogil=True)
+def intersection_kernel(ids, members, num_hypotheses, b):
+    """
+    Return the intersection kernel K (M, M) float32 of the members' preference lists.
+
+    K(a, c) = |T_a ∩ T_c| / b, diagonal zero (step 5's kernel), every row of it; guided
+    sampling computes only the rows it draws from (:func:`.kernels_sampling.draw_guided`).
+    """
+    bits = preference_bits(ids, members, num_hypotheses, b)
+    K = np.empty((members.shape[0], members.shape[0]), np.float32)
+    for a in range(members.shape[0]):
+        kernel_row(bits, a, np.float32(b), K[a])
     return K
 
 

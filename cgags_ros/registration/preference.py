@@ -70,6 +70,12 @@ class PreferenceLists:
             return self.residuals[:, b // 2].copy()
         return (self.residuals[:, b // 2 - 1] + self.residuals[:, b // 2]) / np.float32(2.0)
 
+    def kernel_bits(self, members: np.ndarray) -> np.ndarray:
+        """Return the members' lists as bit rows (M, W) uint64, whose ANDs give the kernel."""
+        return kernels_scoring.preference_bits(
+            self.ids, np.ascontiguousarray(members, dtype=np.int64), self.num_hypotheses,
+            self.b)
+
     def kernel(self, members: np.ndarray) -> np.ndarray:
         """Dense intersection kernel K (M, M) float32 among ``members``; diagonal zeroed."""
         return kernels_scoring.intersection_kernel(

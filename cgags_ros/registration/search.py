@@ -280,7 +280,7 @@ class Search:
     # --- stage two --------------------------------------------------------------------------
     def guided_stage(self) -> None:
         cfg = self.cfg
-        members, kernel, adjacency, seed_w = self._kernel()
+        members, rows, seed_w = self._kernel()
         refreshes = 1
         start_improvements = self.improvements
         n2 = hits = 0
@@ -289,7 +289,7 @@ class Search:
         while self.num_drawn < cfg.max_iterations and not self.out_of_time():
             batch = min(batch, cfg.max_iterations - self.num_drawn)
             self.num_drawn += batch
-            li, lj, lk, ok = self.draw_guided(kernel, adjacency, seed_w, batch)
+            li, lj, lk, ok = self.draw_guided(rows, seed_w, batch)
             drawn_now = np.stack([members[li], members[lj], members[lk]], 1)[ok]
             triples, _ = self._keep_non_collinear(drawn_now)
             self.stats['guided_samples'] += batch
@@ -309,7 +309,7 @@ class Search:
                     self.stats['stopped_by'] = 'max_up_best_updates'
                     break
                 if cfg.max_up_mode != 'preference_refreshes' or refreshes <= cfg.max_up:
-                    members, kernel, adjacency, seed_w = self._kernel()
+                    members, rows, seed_w = self._kernel()
                     refreshes += 1
             self.stats['guided_hits'], self.stats['guided_n'] = hits, n2
             w2 = max(hits / n2 if n2 else 0.0, getattr(self, 'w1', 0.0))
@@ -322,16 +322,17 @@ class Search:
             batch = min(2 * batch, cfg.batch_size)
         self.stats['kernel_refreshes'] = refreshes
 
-    def draw_guided(self, kernel, adjacency, seed_w, count):
+    def draw_guided(self, rows, seed_w, count):
         """Draw ``count`` guided minimal subsets (local indices i, j, k and an ok mask)."""
-        return kernels.draw_guided(self.rng, kernel, adjacency, seed_w, count, self.cfg.xi)
+        return kernels.draw_guided(self.rng, rows, seed_w, count, self.cfg.xi)
 
     def _kernel(self):
         """
-        Return the members, their kernel, adjacency and seed weights for guided sampling.
+        Return the members, their kernel and adjacency rows, and seed weights.
 
-        The members are the M correspondences guided sampling draws from; the kernel is
-        their intersection kernel K, the adjacency their compatibility adjacency.
+        The members are the M correspondences guided sampling draws from; the rows
+        (:func:`~.kernels.guided_rows`) hold their intersection kernel K and their
+        compatibility adjacency, each row computed when a draw first reads it.
         """
         cfg, n = self.cfg, self.graph.n
         if cfg.kernel_subset == 0 or n <= cfg.kernel_subset:
@@ -339,10 +340,11 @@ class Search:
         else:
             order = np.argsort(self.preference.quality(), kind='stable')
             members = np.union1d(order[: cfg.kernel_subset], self.best_inliers)
-        kernel = self.preference.kernel(members)
-        adjacency = self.graph.adjacency(members)
+        rows = kernels.guided_rows(self.preference.kernel_bits(members), self.preference.b,
+                                   self.graph.words, members)
         if cfg.guided_seed == 'best_inliers':
             seed_w = np.isin(members, self.best_inliers).astype(np.float64)
         else:
+            kernel, adjacency = kernels.all_rows(rows)
             seed_w = (kernel * adjacency).sum(axis=1) + cfg.xi
-        return members, kernel, adjacency, seed_w
+        return members, rows, seed_w

@@ -68,7 +68,7 @@ class EdgeSearch(Search):
             return analytic
         return max(analytic, empirical_inlier_probability(self.sampled, self.best_mask))
 
-    def draw_guided(self, kernel, adjacency, seed_w, count):
+    def draw_guided(self, rows, seed_w, count):
         """Guided edges (local indices i, j, j): j in N(i) with p ∝ K(i, j) + xi."""
-        return kernels.draw_guided(self.rng, kernel, adjacency, seed_w, count, self.cfg.xi,
+        return kernels.draw_guided(self.rng, rows, seed_w, count, self.cfg.xi,
                                    edges_only=True)
