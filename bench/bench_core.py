@@ -7,6 +7,10 @@ largest extent 1; ``cgags_ros.datasets.synthetic.make_correspondences``), one pr
 and are scored with the literature's RE/TE: success = RE < 5 deg and TE < 0.1 (model units).
 Time = wall time of the whole solver call as a user makes it (input conversion included),
 median and p90 over the trials of a cell; CPU time (all threads of the process) goes to --json.
+``--order interleaved`` (default) runs every solver on a problem before the next problem
+(the order rotated across trials); ``--order blocks`` runs each solver on all of a cell's
+problems in a row, so no solver's call follows another library's (whose idle threads and
+cached data slow the next call: docs/bench_core.md).
 
 Defaults: outlier ratios 0.9 0.95 0.98 0.99 0.995, N = 1000 and 5000, 20 trials per cell,
 noise sigma 0.01, inlier threshold tau 0.05 (= 5 sigma; an inlier's residual norm
@@ -323,6 +327,31 @@ def parse_caps(text: str) -> dict[str, int]:
     return caps
 
 
+def _schedule(args, model, solvers, caps, max_n, n, ratio) -> list[tuple]:
+    """
+    Return (trial, seed, solver, problem) in the order the solvers run on a cell's problems.
+
+    'interleaved': problem by problem, every solver on it, the order rotated across trials;
+    'blocks': each solver on all of the cell's problems in a row, so that each runs after
+    its own previous call (as a user's loop would), not after another library's (which
+    leaves its thread pool spinning and the caches full of its data: docs/bench_core.md).
+    """
+    problems = []
+    for trial in range(args.trials):
+        seed = problem_seed(args.seed, ratio, n, trial)
+        problems.append((trial, seed, make_correspondences(
+            model, n, ratio, noise_sigma=args.noise, rng=seed, outliers=args.outliers,
+            transform=problem_transform(args, seed))))
+    order = []
+    for trial, seed, p in problems:
+        active = [s for s in solvers if trial < caps[s.name] and n <= max_n.get(s.name, n)]
+        k = trial % len(active) if active else 0
+        order += [(trial, seed, s, p) for s in active[k:] + active[:k]]
+    if args.order == 'blocks':
+        order.sort(key=lambda run: solvers.index(run[2]))  # stable: trials stay in order
+    return order
+
+
 def run_benchmark(args: argparse.Namespace) -> dict[str, Any]:
     model = load_bunny(args.data_dir)
     solvers, skipped = load_solvers(args.solvers)
@@ -340,19 +369,11 @@ def run_benchmark(args: argparse.Namespace) -> dict[str, Any]:
     for n in args.sizes:
         for ratio in args.ratios:
             per_solver: dict[str, list] = {s.name: [] for s in solvers}
-            for trial in range(args.trials):
-                seed = problem_seed(args.seed, ratio, n, trial)
-                p = make_correspondences(model, n, ratio, noise_sigma=args.noise, rng=seed,
-                                         outliers=args.outliers,
-                                         transform=problem_transform(args, seed))
-                active = [s for s in solvers
-                          if trial < caps[s.name] and n <= max_n.get(s.name, n)]
-                k = trial % len(active) if active else 0
-                for s in active[k:] + active[:k]:  # rotate the order across trials
-                    rec = run_one(s, p.src, p.dst, args.tau, seed, p.transform,
-                                  args.max_re, args.max_te)
-                    rec.update(trial=trial, seed=seed)
-                    per_solver[s.name].append(rec)
+            for trial, seed, s, p in _schedule(args, model, solvers, caps, max_n, n, ratio):
+                rec = run_one(s, p.src, p.dst, args.tau, seed, p.transform,
+                              args.max_re, args.max_te)
+                rec.update(trial=trial, seed=seed)
+                per_solver[s.name].append(rec)
             cell = {'ratio': ratio, 'n': n, 'num_inliers': int(round((1 - ratio) * n)),
                     'summary': {k: summarise(v) for k, v in per_solver.items()}}
             # Fairness for capped solvers: the other solvers on the same (first k) problems.
@@ -388,6 +409,7 @@ def run_benchmark(args: argparse.Namespace) -> dict[str, Any]:
             'trials_per_solver': caps, 'max_n_per_solver': max_n, 'noise_sigma': args.noise,
             'tau': args.tau,
             'outliers': args.outliers, 'seed': args.seed, 'motion': args.motion,
+            'order': args.order,
             'tilt_noise_deg': args.tilt_noise, 'max_re_deg': args.max_re,
             'max_te': args.max_te, 'quick': args.quick, 'model': 'Stanford bunny bun_zipper_res3, '
             '1889 points, unit-scaled (largest extent 1)',
@@ -457,7 +479,8 @@ def to_markdown(res: dict[str, Any]) -> str:
            if st.get('motion') == '4dof' else ' (any rotation)')
         + f", noise sigma = {st['noise_sigma']}, tau = {st['tau']}, "
         f"outliers = {st['outliers']}, seed = {st['seed']}; success = RE < {st['max_re_deg']} deg "
-        f"and TE < {st['max_te']}; time = wall ms per problem (whole solver call). "
+        f"and TE < {st['max_te']}; time = wall ms per problem (whole solver call); solvers run "
+        f"{st.get('order', 'interleaved')}. "
         f"{st['trials']} trials per cell" + ''.join(
             f'; **{k}: {v} trial(s) per cell** (the first {v} problem(s) of each cell)'
             for k, v in caps.items() if v < st['trials']) + ''.join(
@@ -563,6 +586,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument('--tau', type=float, default=0.05,
                     help='inlier threshold given to every solver (default 0.05)')
     ap.add_argument('--outliers', choices=('uniform', 'surface'), default='uniform')
+    ap.add_argument('--order', choices=('interleaved', 'blocks'), default='interleaved',
+                    help='interleaved: every solver on each problem in turn (rotated); blocks: '
+                         "each solver on a cell's problems in a row (default: %(default)s)")
     ap.add_argument('--seed', type=int, default=0)
     ap.add_argument('--max-re', type=float, default=5.0, help='success: RE below (deg)')
     ap.add_argument('--max-te', type=float, default=0.1, help='success: TE below (model units)')
