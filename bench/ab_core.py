@@ -1,0 +1,145 @@
+#!/usr/bin/env python3
+"""
+A/B of the registration core against an earlier git revision: same results, and how fast.
+
+A speed pass on the core should leave every result bit for bit as it was. This script
+imports the core of ``--rev`` next to the working tree's (``git archive`` of the package
+into a temporary directory, renamed ``cgags_prev``), runs both on the same problems with
+the same seeds, alternating, and reports per cell whether every result is identical
+(transform, validity, inliers, hypotheses drawn) and the median time of each.
+
+Problems: the core benchmark's (``bench_core.py``'s seeds: bunny, uniform outliers, noise
+0.01, tau 0.05) and, with ``--pipeline``, the correspondences the pipeline hands the core
+on the LiDAR pair at 0.3 m and the redkitchen pair at 5 cm (one rotation each; their many
+inliers make the dense-graph work visible, which the benchmark's cells do not).
+
+Example::
+
+    .venv/bin/python bench/ab_core.py --rev f288eca --pipeline
+
+Exit status 1 when any result differs (for a pass that must not change any). The old
+revision's kernels compile cold in the temporary directory (~20 s).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+import subprocess
+import sys
+import tempfile
+import time
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT), str(ROOT / 'bench')]
+
+# Imported only after the sys.path set-up above (E402).
+from bench_core import problem_seed  # noqa: E402
+from cgags_ros.datasets.synthetic import load_bunny, make_correspondences  # noqa: E402
+from cgags_ros.registration import register_correspondences  # noqa: E402
+import numpy as np  # noqa: E402, I100
+
+
+def load_previous(rev: str, where: Path):
+    """Return ``register_correspondences`` of the package at git ``rev``, as cgags_prev."""
+    archive = subprocess.run(['git', '-C', str(ROOT), 'archive', rev, 'cgags_ros'],
+                             check=True, capture_output=True).stdout
+    subprocess.run(['tar', '-x', '-C', str(where)], input=archive, check=True)
+    package = where / 'cgags_prev'
+    (where / 'cgags_ros').rename(package)
+    for path in package.rglob('*.py'):
+        text = path.read_text(encoding='utf-8')
+        path.write_text(text.replace('cgags_ros', 'cgags_prev'), encoding='utf-8')
+    sys.path.insert(0, str(where))
+    from cgags_prev.registration import register_correspondences as previous
+
+    return previous
+
+
+def same(a, b) -> bool:
+    """Tell whether two core results are identical in everything a caller reads."""
+    return (np.array_equal(a.transform, b.transform) and a.valid == b.valid
+            and a.num_hypotheses == b.num_hypotheses
+            and np.array_equal(np.asarray(a.inliers), np.asarray(b.inliers)))
+
+
+def compare(label: str, problems: list, new, old, repeats: int) -> bool:
+    """Run ``new`` and ``old`` alternately on (src, dst, kwargs) problems; print one line."""
+    t_new, t_old, differ = [], [], 0
+    for src, dst, kwargs in problems:
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            b = old(src, dst, **kwargs)
+            t_old.append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            a = new(src, dst, **kwargs)
+            t_new.append(time.perf_counter() - t0)
+        differ += not same(a, b)
+    ratio = np.median(t_new) / np.median(t_old)
+    print(f'{label:28s} old {np.median(t_old) * 1e3:8.2f} ms  new {np.median(t_new) * 1e3:8.2f} '
+          f'ms  ({ratio:.2f}x)  results differing: {differ} of {len(problems)}', flush=True)
+    return differ == 0
+
+
+def pipeline_problems() -> list:
+    """Return the correspondences (and thresholds) the pipeline gives the core on two pairs."""
+    from bench_scaling import load_dataset, random_rotation
+    from cgags_ros.pipeline import clear_feature_cache, register_clouds
+    from cgags_ros.pipeline import register as pipeline_register
+
+    captured = []
+
+    def capture(src, dst, **kwargs):
+        captured.append((src.copy(), dst.copy(), kwargs))
+        return register_correspondences(src, dst, **kwargs)
+
+    pipeline_register.register_correspondences = capture
+    try:
+        out = []
+        for name, voxel in (('lidar', 0.3), ('redkitchen', 0.05)):
+            src, tgt, _ = load_dataset(name)
+            clear_feature_cache()
+            captured.clear()
+            register_clouds(src @ random_rotation(np.random.default_rng(0)).T, tgt,
+                            voxel_size=voxel)
+            s, d, kwargs = captured[0]
+            out.append((f'{name} {voxel:g} m pipeline', [(s, d, kwargs)]))
+        return out
+    finally:
+        pipeline_register.register_correspondences = register_correspondences
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
+    ap.add_argument('--rev', required=True, help='git revision to compare against')
+    ap.add_argument('--ratios', default='0.9,0.98,0.99', help='outlier ratios')
+    ap.add_argument('--sizes', default='1000,5000', help='correspondence counts N')
+    ap.add_argument('--trials', type=int, default=6, help='problems a cell')
+    ap.add_argument('--repeats', type=int, default=2, help='timed calls a problem and side')
+    ap.add_argument('--pipeline', action='store_true',
+                    help="also the pipeline's correspondences on the LiDAR and redkitchen pairs")
+    args = ap.parse_args(argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        old = load_previous(args.rev, Path(tmp))
+        model = load_bunny()
+        warm = make_correspondences(model, 300, 0.5, rng=12345)
+        for fn in (old, register_correspondences):
+            fn(warm.src, warm.dst, inlier_threshold=0.05)
+        ok = True
+        for n in (int(x) for x in args.sizes.split(',')):
+            for ratio in (float(x) for x in args.ratios.split(',')):
+                problems = []
+                for trial in range(args.trials):
+                    seed = problem_seed(0, ratio, n, trial)
+                    p = make_correspondences(model, n, ratio, noise_sigma=0.01, rng=seed)
+                    problems.append((p.src, p.dst, {'inlier_threshold': 0.05, 'seed': seed}))
+                ok &= compare(f'N = {n}, {ratio:.1%} outliers', problems,
+                              register_correspondences, old, args.repeats)
+        if args.pipeline:
+            for label, problems in pipeline_problems():
+                ok &= compare(label, problems, register_correspondences, old, 10)
+    return 0 if ok else 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())
