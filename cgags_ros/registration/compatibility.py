@@ -99,11 +99,8 @@ class CompatibilityGraph:
     def common_within(self, i: np.ndarray, j: np.ndarray, members: np.ndarray
                       ) -> tuple[np.ndarray, np.ndarray]:
         """Return |N(i) ∩ N(j)| and |N(i) ∩ N(j) ∩ members| per pair (index arrays)."""
-        subset = np.zeros(self._words.shape[1] * 64, dtype=bool)
-        subset[members] = True
-        row = np.packbits(subset, bitorder='little').view(np.uint64)
         return kernels_graph.common_within(self._words, np.asarray(i, dtype=np.int64),
-                                           np.asarray(j, dtype=np.int64), row)
+                                           np.asarray(j, dtype=np.int64), self._mask(members))
 
     def count_edges_within(self, members: np.ndarray) -> int:
         """Return the number of undirected edges among ``members`` (indices)."""
@@ -117,8 +114,7 @@ class CompatibilityGraph:
         Counted on the bit rows: M x W words, not the M x M adjacency.
         """
         members = _ascending(members)
-        return kernels_subsets.later_member_counts(
-            self._words, members, kernels_subsets.member_mask(members, self._words.shape[1]))
+        return kernels_subsets.later_member_counts(self._words, members, self._mask(members))
 
     def numbered_edges(self, members: np.ndarray, counts: np.ndarray,
                        numbers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -131,9 +127,13 @@ class CompatibilityGraph:
         """
         members = _ascending(members)
         starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-        return kernels_subsets.later_member_pairs(
-            self._words, members, kernels_subsets.member_mask(members, self._words.shape[1]),
-            starts, np.asarray(numbers, dtype=np.int64))
+        return kernels_subsets.later_member_pairs(self._words, members, self._mask(members),
+                                                  starts, np.asarray(numbers, dtype=np.int64))
+
+    def _mask(self, members: np.ndarray) -> np.ndarray:
+        """Return ``members`` (indices) as one bit row of words, like a row of the graph."""
+        return kernels_subsets.member_mask(np.asarray(members, dtype=np.int64),
+                                           self._words.shape[1])
 
     def adjacency(self, members: np.ndarray) -> np.ndarray:
         """Return the (M, M) boolean adjacency among ``members`` (indices)."""

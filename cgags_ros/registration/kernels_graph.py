@@ -206,15 +206,20 @@ def or_transpose_blocks(words, b0, b1):
                     words[row, bi] |= x[r]
 
 
+@njit(cache=True, nogil=True, inline='always')
+def adjacency_row(words, members, a, out):
+    """Write row a of the adjacency among ``members`` (indices) to ``out`` (bool, M)."""
+    for c in range(members.shape[0]):
+        out[c] = has_edge(words, members[a], members[c])
+
+
 @njit(cache=True, nogil=True)
 def sub_adjacency(words, members):
     """Return the (M, M) boolean adjacency among ``members`` (guided sampling, step 5)."""
     m = members.shape[0]
-    out = np.zeros((m, m), np.bool_)
+    out = np.empty((m, m), np.bool_)
     for a in range(m):
-        row = members[a]
-        for c in range(m):
-            out[a, c] = has_edge(words, row, members[c])
+        adjacency_row(words, members, a, out[a])
     return out
 
 

@@ -20,7 +20,7 @@ import math
 from numba import njit
 import numpy as np
 
-from .kernels_graph import has_edge, nth_set_bit, popcount
+from .kernels_graph import adjacency_row, has_edge, nth_set_bit, popcount
 from .kernels_scoring import kernel_row
 
 EMPTY = 1  # status of a draw: N(i) ∩ N(j) empty (no triangle on the edge)
@@ -198,8 +198,7 @@ def _row(rows, a):
     K, A, done, bits, scale, words, members = rows
     if not done[a]:
         kernel_row(bits, a, scale, K[a])
-        for c in range(members.shape[0]):
-            A[a, c] = has_edge(words, members[a], members[c])
+        adjacency_row(words, members, a, A[a])
         done[a] = True
     return K[a], A[a]
 
