@@ -52,15 +52,21 @@ def squared_distances_to(rowsT, vector, out):
             out[j] += e * e
 
 
+@njit(cache=True, nogil=True, inline='always')
+def _squared(q, rows, r):
+    """Return |q - rows[r]|^2 summed in dimension order: every exact distance of the index."""
+    s = 0.0
+    for t in range(q.shape[0]):
+        diff = q[t] - rows[r, t]
+        s += diff * diff
+    return s
+
+
 @njit(cache=True, nogil=True)
 def squared_pair_distances(a, b, out):
     """Set ``out[i] = |a[i] - b[i]|^2``, summed in dimension order as :func:`search` does."""
     for i in range(a.shape[0]):
-        s = 0.0
-        for t in range(a.shape[1]):
-            diff = a[i, t] - b[i, t]
-            s += diff * diff
-        out[i] = s
+        out[i] = _squared(a[i], b, i)
 
 
 @njit(cache=True, nogil=True)
@@ -189,10 +195,7 @@ def _nearest(q, centres, centresT, centre_gap, radius, starts, ring, points, bas
             p = cand[u]
             if acc[p] > limit:
                 continue  # b has shrunk since
-            s = 0.0
-            for t in range(q.shape[0]):
-                diff = q[t] - points[a + p, t]
-                s += diff * diff
+            s = _squared(q, points, a + p)
             if s > b2:
                 continue
             o = order[a + p]
@@ -254,11 +257,7 @@ def nearest_is(queries, rows, centres, centresT, centre_gap, radius, starts, rin
     for i in range(queries.shape[0]):
         q = queries[i]
         row = rows[i]
-        slot = slot_of[row]  # its stored copy: the squared distance search would compute
-        s = 0.0
-        for t in range(q.shape[0]):
-            diff = q[t] - points[slot, t]
-            s += diff * diff
+        s = _squared(q, points, slot_of[row])  # its stored copy, as search would compute
         _, i1, _, _ = _nearest(q, centres, centresT, centre_gap, radius, starts, ring, points,
                                basis, projectedT, max_norm, order, 1, s, row, np.inf, -1,
                                True, dc, visit, qp, acc, cand)
