@@ -234,23 +234,25 @@ def test_prescreen_and_residuals_equal_numpy(score):
 
 
 def test_preference_merge_equals_numpy():
+    """Each list: the b smallest residuals so far, ascending, equal ones in hypothesis order."""
     rng = np.random.default_rng(6)
     n, b = 50, 5
     res = np.full((n, b), np.inf, np.float32)
     ids = np.full((n, b), -1, np.int64)
     ref_res, ref_ids, first = res.copy(), ids.copy(), 0
-    for e in (3, 4, 7, 1, 12):
-        new = rng.random((e, n)).astype(np.float32)
+    for e in (3, 4, 7, 1, 12, 30):
+        new = (np.round(rng.random((e, n)) * 8) / 8).astype(np.float32)  # many ties
+        new[0, :5] = np.inf  # never listed
         merge_preferences(res, ids, new, first)
         both = np.concatenate([ref_res, new.T], axis=1)
         both_ids = np.concatenate([ref_ids, np.broadcast_to(np.arange(first, first + e),
                                                             (n, e))], axis=1)
         keep = np.argsort(both, axis=1, kind='stable')[:, :b]
         ref_res = np.take_along_axis(both, keep, axis=1)
-        ref_ids = np.take_along_axis(both_ids, keep, axis=1)
+        ref_ids = np.where(np.isinf(ref_res), -1, np.take_along_axis(both_ids, keep, axis=1))
         first += e
-        assert np.array_equal(np.sort(ids, axis=1), np.sort(ref_ids, axis=1))
-        assert np.array_equal(np.sort(res, axis=1), np.sort(ref_res, axis=1))
+        assert np.array_equal(ids, ref_ids)
+        assert np.array_equal(res, ref_res)
 
 
 def test_usable_triangles_equal_numpy_areas():

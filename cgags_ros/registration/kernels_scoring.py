@@ -206,43 +206,28 @@ def merge_preferences(pref_res, pref_ids, res, first_id):
 
     Each correspondence keeps the b hypotheses with its smallest residuals, sorted
     ascending (empty slots hold inf at the end; equal residuals in hypothesis order).
-    Per correspondence the new residuals below its list's last entry (most are not, once
-    the lists fill) are sorted among themselves, then merged with the list in one pass:
-    fewer moves than inserting them one by one. Sorted lists also give each list's median
-    without a sort (:meth:`.PreferenceLists.quality`).
+    The rows are streamed in memory order, each residual below its list's last entry
+    (most are not, once the lists fill) inserted from the end: a new hypothesis goes after
+    every equal residual, as its id is the largest. Sorted lists also give each list's
+    median without a sort (:meth:`.PreferenceLists.quality`).
     ``res`` (E, N) float32; ids are ``first_id`` + row.
     """
     n, b = pref_res.shape
-    e_count = res.shape[0]
-    new_res = np.empty(e_count, np.float32)
-    new_ids = np.empty(e_count, np.int64)
-    out_res = np.empty(b, np.float32)
-    out_ids = np.empty(b, np.int64)
-    for m in range(n):
-        last = pref_res[m, b - 1]
-        c = 0
-        for e in range(e_count):
+    last = pref_res[:, b - 1].copy()  # contiguous: the test every residual meets
+    for e in range(res.shape[0]):
+        h = first_id + e
+        for m in range(n):
             r = res[e, m]
-            if not r < last:
+            if not r < last[m]:
                 continue
-            p = c  # insertion sort; a later equal residual stays after an earlier one
-            while p > 0 and new_res[p - 1] > r:
-                new_res[p], new_ids[p] = new_res[p - 1], new_ids[p - 1]
+            p = b - 1
+            while p > 0 and pref_res[m, p - 1] > r:
+                pref_res[m, p] = pref_res[m, p - 1]
+                pref_ids[m, p] = pref_ids[m, p - 1]
                 p -= 1
-            new_res[p], new_ids[p] = r, first_id + e
-            c += 1
-        if c == 0:
-            continue
-        old = new = 0  # merge; on equal residuals the older hypothesis first
-        for p in range(b):
-            if new >= c or pref_res[m, old] <= new_res[new]:
-                out_res[p], out_ids[p] = pref_res[m, old], pref_ids[m, old]
-                old += 1
-            else:
-                out_res[p], out_ids[p] = new_res[new], new_ids[new]
-                new += 1
-        for p in range(b):
-            pref_res[m, p], pref_ids[m, p] = out_res[p], out_ids[p]
+            pref_res[m, p] = r
+            pref_ids[m, p] = h
+            last[m] = pref_res[m, b - 1]
 
 
 @njit(cache=True, nogil=True)
