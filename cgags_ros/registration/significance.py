@@ -26,7 +26,10 @@ class ConsensusRecord:
         self.num_chance = 0  # unselected hypotheses, whose extra inliers are chance ones
         self.num_zero = 0  # of them without an extra inlier
         self.num_exact = 0
-        self.top_models: list[tuple[int, np.ndarray]] = []  # (count, inlier mask (N,))
+        # The largest consensus sets, largest first (older first on ties): counts (K,) and
+        # inlier masks (K, N), K <= _TOP_MODELS.
+        self.top_counts = np.zeros(0, np.int64)
+        self.top_masks: np.ndarray | None = None
         self._level: tuple[tuple, int] | None = None  # the last chance level and its inputs
 
     def add(self, res: np.ndarray, unselected: int) -> None:
@@ -42,11 +45,17 @@ class ConsensusRecord:
         self.num_zero += int(np.count_nonzero(chance == 0))
         self.num_exact += len(res)
         counts = inside.sum(axis=1)
-        floor = self.top_models[-1][0] if len(self.top_models) >= _TOP_MODELS else -1
-        for e in np.flatnonzero(counts > floor):
-            self.top_models.append((int(counts[e]), inside[e].copy()))  # not the batch
-        self.top_models.sort(key=lambda m: -m[0])
-        del self.top_models[_TOP_MODELS:]
+        full = len(self.top_counts) >= _TOP_MODELS
+        new = np.flatnonzero(counts > (self.top_counts[-1] if full else -1))
+        if len(new) == 0:
+            return
+        # One stable sort of the kept and the new sets (the new in batch order): the same
+        # selection as appending each and sorting, without a Python loop over the rows.
+        both = np.concatenate([self.top_counts, counts[new]])
+        keep = np.argsort(-both, kind='stable')[:_TOP_MODELS]
+        masks = inside[new] if self.top_masks is None else np.concatenate(
+            [self.top_masks, inside[new]])
+        self.top_counts, self.top_masks = both[keep], masks[keep]
 
     def chance_level(self, p1: float) -> int:
         """
@@ -70,8 +79,8 @@ class ConsensusRecord:
 
         A real motion stands well above every distinct alternative.
         """
-        best = 0
-        for count, mask in self.top_models:
-            if count > best and 2 * np.count_nonzero(mask[inliers]) < count:
-                best = count
-        return best
+        if self.top_masks is None:
+            return 0
+        shared = np.count_nonzero(self.top_masks[:, inliers], axis=1)
+        distinct = 2 * shared < self.top_counts
+        return int(self.top_counts[distinct].max()) if distinct.any() else 0

@@ -1,0 +1,32 @@
+"""The consensus record: the largest consensus sets kept and the best distinct alternative."""
+
+import numpy as np
+
+from cgags_ros.registration.significance import _TOP_MODELS, ConsensusRecord
+
+
+def test_top_sets_and_runner_up_equal_a_plain_reference():
+    """Against appending every set and one stable sort by size (older first on ties)."""
+    rng = np.random.default_rng(3)
+    n, tau = 80, 0.5
+    record = ConsensusRecord(tau)
+    kept: list[tuple[int, np.ndarray]] = []
+    for batch in range(40):
+        res = rng.random((18, n)) * rng.uniform(0.6, 3.0, (18, 1))  # many equal counts
+        record.add(res, 2)
+        inside = res <= tau
+        floor = kept[-1][0] if len(kept) >= _TOP_MODELS else -1
+        kept += [(int(c), m) for c, m in zip(inside.sum(axis=1), inside) if c > floor]
+        kept.sort(key=lambda model: -model[0])
+        del kept[_TOP_MODELS:]
+        assert record.top_counts.tolist() == [c for c, _ in kept]
+        assert np.array_equal(record.top_masks, np.array([m for _, m in kept]))
+        for inliers in (np.flatnonzero(kept[0][1]), np.flatnonzero(kept[-1][1]),
+                        np.arange(n // 3), np.zeros(0, np.int64)):
+            distinct = [c for c, m in kept if 2 * np.count_nonzero(m[inliers]) < c]
+            assert record.runner_up(inliers) == max(distinct, default=0)
+    assert len(kept) == _TOP_MODELS
+
+
+def test_runner_up_is_zero_before_any_hypothesis():
+    assert ConsensusRecord(0.1).runner_up(np.arange(5)) == 0
