@@ -60,6 +60,22 @@ def test_radius_neighbours_are_the_nearest_within_the_radius(cloud):
             assert set(got) == set(idx[i, :max_nn][within])  # no tie at the cut: the same set
 
 
+def test_neighbours_without_the_column_table_are_the_same(cloud, monkeypatch):
+    """A grid too wide for the column table finds its cells among all keys: same answers."""
+    points, _, voxel = cloud
+    with_table = radius_neighbours(points, 5 * voxel, 30)
+    assert len(fpfh.NeighbourGrid.build(points, 5 * voxel).column_start) > 1
+    monkeypatch.setattr(fpfh, '_MAX_COLUMNS', 0)
+    points_wide = np.vstack([points, points[:1] + 1e4 * voxel])  # a far point: 8 M > 8 n
+    assert len(fpfh.NeighbourGrid.build(points_wide, 5 * voxel).column_start) == 0
+    without = radius_neighbours(points_wide, 5 * voxel, 30)
+    n = len(points)
+    assert np.array_equal(with_table[1], without[1][:n])
+    assert np.array_equal(with_table[2], without[2][:n])
+    for i in range(n):
+        assert np.array_equal(with_table[0][i, :with_table[1][i]], without[0][i, :without[1][i]])
+
+
 def test_select_keeps_the_smallest_with_ties_to_the_lower_row():
     rng = np.random.default_rng(5)
     for n, m in [(50, 10), (200, 100), (7, 6), (30, 1)]:

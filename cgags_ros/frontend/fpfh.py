@@ -23,6 +23,9 @@ _REACH = 2
 # for the second pass, so memory stays bounded.
 _NEIGHBOUR_BYTES = 256 << 20
 _MAX_KEY = 1 << 62  # linear cell keys must fit in int64
+# Columns of cells the lookup table may hold (8 bytes each), beyond which a wide, sparse
+# grid (a large map) finds its neighbouring cells among all keys instead.
+_MAX_COLUMNS = 1 << 22
 
 
 def compute_fpfh(points: np.ndarray, normals: np.ndarray, voxel_size: float,
@@ -108,6 +111,12 @@ class NeighbourGrid:
         self.order = np.argsort(keys, kind='stable')
         self.cell_key, start = np.unique(keys[self.order], return_index=True)
         self.cell_start = np.append(start, len(points))
+        # Keys ascend by column (ix * ny + iy), then iz < nz: each column's keys are a range.
+        columns = (int(cells[:, 0].max()) + _REACH + 1) * self.ny
+        self.column_start = np.zeros(0, np.int64)  # none: rows are found among all keys
+        if columns <= max(_MAX_COLUMNS, 8 * len(points)):
+            per_column = np.bincount(self.cell_key // self.nz, minlength=columns)
+            self.column_start = np.concatenate([[0], np.cumsum(per_column)])
         self.sorted_points = np.ascontiguousarray(points[self.order])
 
     @classmethod
@@ -136,9 +145,9 @@ class NeighbourGrid:
         count = np.empty(last - first, dtype=np.int64)
         run_chunks(lambda lo, hi: kernels_neighbours.radius_neighbours(
             self.points, first + lo, first + hi, first, self.cells, self.order,
-            self.sorted_points, self.cell_key, self.cell_start, self.ny, self.nz, self.lower,
-            self.cell, _REACH, self.radius, max_nn, nbr, count, nearest), last - first,
-            workers)
+            self.sorted_points, self.cell_key, self.cell_start, self.column_start, self.ny,
+            self.nz, self.lower, self.cell, _REACH, self.radius, max_nn, nbr, count, nearest),
+            last - first, workers)
         return nbr, count
 
 
