@@ -1,8 +1,7 @@
 """The consensus record: the largest consensus sets kept and the best distinct alternative."""
 
-import numpy as np
-
 from cgags_ros.registration.significance import _TOP_MODELS, ConsensusRecord
+import numpy as np
 
 
 def test_top_sets_and_runner_up_equal_a_plain_reference():
