@@ -60,8 +60,8 @@ def radius_neighbours(points, first, last, offset, cells, order, sorted_points, 
                     q = (ix + dx) * ny + (iy + dy)
                     base = q * nz + iz
                     # Searched within the row's column (a few keys) when the table is
-                    # there: the same range as among all keys, for ~30 % of the search
-                    # on LiDAR scans (docs/implementation.md).
+                    # there: the same range as among all keys, in a fraction of the steps,
+                    # which were much of the search on sparse scans (docs/implementation.md).
                     a, b = ((column_start[q], column_start[q + 1]) if len(column_start)
                             else (0, len(cell_key)))
                     keys = cell_key[a:b]
