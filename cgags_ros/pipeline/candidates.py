@@ -69,10 +69,9 @@ def search_rivals(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
     src, dst = fs.points[corr.source_index], ft.points[corr.target_index]
     tau = float(result.inlier_threshold)
     explained = support(src, dst, result.coarse_transform, tau)
-    explained[result.inliers] = True
     best = Candidate(np.asarray(result.transform, dtype=np.float64).copy(),
-                     int(np.count_nonzero(support(src, dst, result.coarse_transform, tau))),
-                     float('nan'))
+                     int(np.count_nonzero(explained)), float('nan'))
+    explained[result.inliers] = True
     found = [best]
     core_cfg = dataclasses.replace(
         cfg.core, max_iterations=min(cfg.core.max_iterations, cfg.candidate_max_iterations))
