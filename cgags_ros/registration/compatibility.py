@@ -91,11 +91,6 @@ class CompatibilityGraph:
         """Set bits per packed row (rows shaped like ``packed``: whole words)."""
         return np.bitwise_count(rows.view(np.uint64)).sum(axis=1, dtype=np.int64)
 
-    def common_count(self, rows: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        """Return |rows[m] ∩ N(idx[m])| for packed rows (e.g. from :meth:`common`)."""
-        both = rows.view(np.uint64) & self._words[idx]
-        return np.bitwise_count(both).sum(axis=1, dtype=np.int64)
-
     def common_within(self, i: np.ndarray, j: np.ndarray, members: np.ndarray
                       ) -> tuple[np.ndarray, np.ndarray]:
         """Return |N(i) ∩ N(j)| and |N(i) ∩ N(j) ∩ members| per pair (index arrays)."""
