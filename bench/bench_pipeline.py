@@ -4,15 +4,15 @@ Pipeline benchmark on the bundled bags (issue 3).
 Run by hand::
 
     .venv/bin/python bench/bench_pipeline.py [--bags bunny lidar] \
-        [--output out/bench_pipeline.json]
+        [--set frontend.max_keypoints=5000] [--output out/bench_pipeline.json]
 
 For every bag in ``<shared data>/bags`` (or ``--bags-dir``) and every source cloud with
 ground truth, paired with its target exactly as ``cgags-replay`` pairs them
 (:func:`cgags_ros.tools.replay_common.iter_pairs`, the node's pairing code), it runs:
 
 ``cgags``
-    :func:`cgags_ros.pipeline.register_clouds` with default parameters (includes its
-    point-to-plane ICP refinement).
+    :func:`cgags_ros.pipeline.register_clouds` with default parameters, or those changed by
+    ``--set KEY=VALUE`` (includes its point-to-plane ICP refinement).
 ``open3d_fpfh_ransac``
     Open3D 0.19 ``registration_ransac_based_on_feature_matching`` on the *same* front end
     (:func:`cgags_ros.frontend.features.extract_features`: voxel size, normal and FPFH radii
@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 from pathlib import Path
 import platform
@@ -54,6 +55,7 @@ import time
 from typing import Callable
 
 from cgags_ros.config import PipelineConfig
+from cgags_ros.config.fields import parse_key_values
 from cgags_ros.config.node import NodeConfig
 from cgags_ros.datasets.synthetic import shared_data_dir
 from cgags_ros.errors import CgagsError
@@ -79,15 +81,16 @@ Method = Callable[[np.ndarray, np.ndarray, float], np.ndarray]
 
 # --- methods: (source (N,3), target (M,3), voxel metres) -> 4x4 source->target ----------------
 
-def run_cgags(src: np.ndarray, tgt: np.ndarray, voxel: float,
-              motion: str = '6dof') -> np.ndarray:
+def run_cgags(src: np.ndarray, tgt: np.ndarray, voxel: float, motion: str = '6dof',
+              overrides: dict | None = None) -> np.ndarray:
     from cgags_ros.config.fields import update_from_flat
     from cgags_ros.pipeline import clear_feature_cache, register_clouds
 
     # Cold: the baselines featurise both clouds every pair, so ours does too (the node,
     # with a latched target, would reuse the target's features and be faster).
     clear_feature_cache()
-    config = update_from_flat(PipelineConfig(), {'core.motion_model': motion})
+    config = update_from_flat(PipelineConfig(), {'core.motion_model': motion,
+                                                 **(overrides or {})})
     result = register_clouds(src, tgt, voxel_size=voxel, config=config)
     if not result.valid:
         raise CgagsError(f'invalid: {result.reason}')
@@ -225,8 +228,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--bags-dir', type=Path, default=shared_data_dir() / 'bags')
     p.add_argument('--bags', nargs='+', default=None, help='default: every bag in --bags-dir')
     p.add_argument('--methods', nargs='+', choices=sorted(METHODS), default=list(METHODS))
+    p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
+                   help='change one of our parameters (repeatable; cgags and cgags_4dof), '
+                   'e.g. --set frontend.max_keypoints=5000')
     p.add_argument('--output', type=Path, default=None, help='JSON results path')
     args = p.parse_args(argv)
+    methods = dict(METHODS)
+    if args.set:
+        overrides = parse_key_values(args.set)
+        methods['cgags'] = functools.partial(run_cgags, overrides=overrides)
+        methods['cgags_4dof'] = functools.partial(run_cgags, motion='4dof',
+                                                  overrides=overrides)
     names = args.bags or sorted(d.name for d in args.bags_dir.iterdir()
                                 if (d / 'metadata.yaml').exists())
     trials: list[Trial] = []
@@ -239,7 +251,7 @@ def main(argv: list[str] | None = None) -> int:
         for method in args.methods:
             if method == 'kiss_matcher_rescaled' and np.isclose(voxel, KISS_DEFAULT_VOXEL):
                 continue
-            got = [run_trial(bag, method, METHODS[method], *pair, voxel, limits)
+            got = [run_trial(bag, method, methods[method], *pair, voxel, limits)
                    for pair in pairs]
             trials += got
             s = summarize(got)
@@ -251,11 +263,12 @@ def main(argv: list[str] | None = None) -> int:
                   f"{fmt(s['median_time_s'])} s", flush=True)
     table = markdown_table(('bag', 'method', 'recall', 'mean RE [deg]', 'mean TE [m]',
                             'median time [s]', 'errors'), rows)
-    print('\n' + table)
+    print('\n' + table + (f"\n\nours with --set {' '.join(args.set)}" if args.set else ''))
     if args.output:
         args.output.parent.mkdir(parents=True, exist_ok=True)
         args.output.write_text(json.dumps({
             'machine': {'platform': platform.platform(), 'python': platform.python_version()},
+            'set': args.set,
             'summary': summary, 'table': table,
             'trials': [dataclasses.asdict(t) for t in trials]}, indent=2))
         print(f'\nwrote {args.output}')

@@ -5,6 +5,7 @@ Run by hand::
 
     .venv/bin/python bench/bench_scaling.py [--sizes redkitchen:0.05 lidar:0.3] \
         [--methods cgags kiss_matcher open3d_fpfh_ransac] [--trials 3] \
+        [--set frontend.max_keypoints=5000] \
         [--output out/bench_scaling.json] [--markdown docs/bench_scaling.md] \
         [--plot docs/bench_scaling.png]
 
@@ -15,9 +16,9 @@ frame origin by a seeded random rotation (any angle; the ground truth is updated
 Methods (as ``bench/bench_pipeline.py`` runs them):
 
 ``cgags``
-    :func:`cgags_ros.pipeline.register_clouds`, default parameters, cold
-    (:func:`~cgags_ros.pipeline.clear_feature_cache` before each pair); per-stage seconds
-    from ``result.timings``.
+    :func:`cgags_ros.pipeline.register_clouds`, default parameters or those changed by
+    ``--set KEY=VALUE``, cold (:func:`~cgags_ros.pipeline.clear_feature_cache` before each
+    pair); per-stage seconds from ``result.timings``.
 ``kiss_matcher``
     ``KISSMatcher(KISSMatcherConfig(voxel_size=v)).estimate(src, tgt)`` (its own front end).
 ``open3d_fpfh_ransac``
@@ -87,14 +88,18 @@ def _memory_kb(field: str) -> int:
     return -1
 
 
-def _run_method(method: str, src: np.ndarray, tgt: np.ndarray, voxel: float) -> dict:
+def _run_method(method: str, src: np.ndarray, tgt: np.ndarray, voxel: float,
+                sets: tuple[str, ...] = ()) -> dict:
     """Register once; return the transform, validity, points and per-stage timings."""
     from bench_pipeline import run_open3d
+    from cgags_ros.config import PipelineConfig
+    from cgags_ros.config.fields import parse_key_values, update_from_flat
     from cgags_ros.pipeline import clear_feature_cache, register_clouds
 
     if method == 'cgags':
         clear_feature_cache()
-        r = register_clouds(src, tgt, voxel_size=voxel)
+        config = update_from_flat(PipelineConfig(), parse_key_values(sets))
+        r = register_clouds(src, tgt, voxel_size=voxel, config=config)
         return {'T': r.transform, 'valid': bool(r.valid), 'reason': r.reason,
                 'points': [r.num_source_points, r.num_target_points],
                 'stages': {k: float(t) for k, t in r.timings.items()}}
@@ -110,14 +115,15 @@ def _run_method(method: str, src: np.ndarray, tgt: np.ndarray, voxel: float) -> 
     return {'T': run_open3d(src, tgt, voxel), 'valid': True, 'reason': ''}
 
 
-def worker(dataset: str, voxel: float, method: str, trials: int, seed: int) -> dict:
+def worker(dataset: str, voxel: float, method: str, trials: int, seed: int,
+           sets: tuple[str, ...] = ()) -> dict:
     """Run ``trials`` rotated pairs of one size and method in this process; return a record."""
     from cgags_ros.frontend.features import downsample
 
     src, tgt, T_gt = load_dataset(dataset)
     points = [len(downsample(src, voxel, 3)), len(downsample(tgt, voxel, 3))]
     # Warm-up at a 4x coarser voxel: imports and one-time initialisation are not timed.
-    _run_method(method, src, tgt, 4.0 * voxel)
+    _run_method(method, src, tgt, 4.0 * voxel, sets)
     rss_before = _memory_kb('VmRSS')
     rng = np.random.default_rng([seed, int(round(voxel * 1e4))])
     rows = []
@@ -127,7 +133,7 @@ def worker(dataset: str, voxel: float, method: str, trials: int, seed: int) -> d
         H[:3, :3] = R
         gt = T_gt @ np.linalg.inv(H)  # ground truth of the rotated source
         t0 = time.perf_counter()
-        out = _run_method(method, src @ R.T, tgt, voxel)
+        out = _run_method(method, src @ R.T, tgt, voxel, sets)
         dt = time.perf_counter() - t0
         re, te = rotation_error_deg(out['T'], gt), translation_error(out['T'], gt)
         lim = LIMITS[dataset]
@@ -140,9 +146,11 @@ def worker(dataset: str, voxel: float, method: str, trials: int, seed: int) -> d
 
 
 def run_subprocess(dataset: str, voxel: float, method: str, trials: int, seed: int,
-                   timeout: float) -> dict:
+                   timeout: float, sets: tuple[str, ...] = ()) -> dict:
     cmd = [sys.executable, __file__, '--worker', f'{dataset}:{voxel}', '--methods', method,
            '--trials', str(trials), '--seed', str(seed)]
+    for item in sets:
+        cmd += ['--set', item]
     try:
         done = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -209,7 +217,7 @@ def _floor_rows(records: list[dict]) -> list[tuple]:
 
 
 def write_report(records: list[dict], markdown: Path | None, plot: Path | None,
-                 trials: int) -> str:
+                 trials: int, sets: tuple[str, ...] = ()) -> str:
     rows, stage_rows = [], []
     for rec in records:
         s = summarize(rec)
@@ -233,14 +241,16 @@ def write_report(records: list[dict], markdown: Path | None, plot: Path | None,
             'Points: mean of source and target after our voxel downsampling. Peak RSS: '
             'VmHWM of one subprocess per row (in brackets: above its RSS after imports, '
             'loading the clouds and a warm-up at 4x the voxel). Success: RE/TE within '
-            '15 deg / 0.3 m (redkitchen), 5 deg / 0.6 m (LiDAR).\n\n' + table +
+            '15 deg / 0.3 m (redkitchen), 5 deg / 0.6 m (LiDAR). cgags: '
+            + (f"--set {' '.join(sets)}" if sets else 'default parameters') + '.\n\n' + table +
             '\n\n## cgags stages (median seconds, both clouds)\n\n' + stage_table + '\n')
     floors = _floor_rows(records)
     if floors:
-        text += ('\n## Stages kept exact against KISS-Matcher\n\nFloor: our time a pair less '
-                 'the core and the gates beside the rival search (median over the trials): '
+        text += ('\n## Floor against KISS-Matcher\n\nFloor: our time a pair less the core '
+                 'and the gates beside the rival search (median over the trials): '
                  'downsampling, normals, FPFH, mutual matching, refinement and the glue '
-                 'between them.\n\n' + markdown_table(
+                 'between them (with default parameters, the stages whose results are kept '
+                 'exact).\n\n' + markdown_table(
                      ('size', 'ours [s]', 'floor [s]', 'KISS-Matcher [s]', 'floor / KISS'),
                      floors) + '\n')
     if markdown:
@@ -284,6 +294,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--trials', type=int, default=3)
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--timeout', type=float, default=900.0, help='seconds per size and method')
+    p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
+                   help='change one of our parameters (repeatable), e.g. '
+                   '--set frontend.max_keypoints=5000')
     p.add_argument('--output', type=Path, default=Path('out/bench_scaling.json'))
     p.add_argument('--markdown', type=Path, default=None)
     p.add_argument('--plot', type=Path, default=None)
@@ -291,7 +304,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.worker:
         dataset, voxel = args.worker.split(':')
-        record = worker(dataset, float(voxel), args.methods[0], args.trials, args.seed)
+        record = worker(dataset, float(voxel), args.methods[0], args.trials, args.seed,
+                        tuple(args.set))
         print(_MARK + json.dumps(record))  # libraries may print to stdout too
         return 0
     sizes = []
@@ -301,7 +315,8 @@ def main(argv: list[str] | None = None) -> int:
     records = []
     for dataset, voxel in sizes:
         for method in args.methods:
-            rec = run_subprocess(dataset, voxel, method, args.trials, args.seed, args.timeout)
+            rec = run_subprocess(dataset, voxel, method, args.trials, args.seed, args.timeout,
+                                 tuple(args.set))
             records.append(rec)
             s = summarize(rec)
             print(f'{dataset} {voxel:g} {method}: ' + (
@@ -310,8 +325,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"{s['successes']}/{s['trials']} ok, peak {s['peak_mb']:.0f} MB"), flush=True)
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps({'machine': platform.platform(), 'trials': args.trials,
-                                       'records': records}, indent=1))
-    print(write_report(records, args.markdown, args.plot, args.trials))
+                                       'set': args.set, 'records': records}, indent=1))
+    print(write_report(records, args.markdown, args.plot, args.trials, tuple(args.set)))
     return 0
 
 
