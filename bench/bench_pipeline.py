@@ -55,7 +55,7 @@ import time
 from typing import Callable
 
 from cgags_ros.config import PipelineConfig
-from cgags_ros.config.fields import parse_key_values
+from cgags_ros.config.fields import parse_key_values, update_from_flat
 from cgags_ros.config.node import NodeConfig
 from cgags_ros.datasets.synthetic import shared_data_dir
 from cgags_ros.errors import CgagsError
@@ -83,7 +83,6 @@ Method = Callable[[np.ndarray, np.ndarray, float], np.ndarray]
 
 def run_cgags(src: np.ndarray, tgt: np.ndarray, voxel: float, motion: str = '6dof',
               overrides: dict | None = None) -> np.ndarray:
-    from cgags_ros.config.fields import update_from_flat
     from cgags_ros.pipeline import clear_feature_cache, register_clouds
 
     # Cold: the baselines featurise both clouds every pair, so ours does too (the node,
@@ -236,6 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     methods = dict(METHODS)
     if args.set:
         overrides = parse_key_values(args.set)
+        update_from_flat(PipelineConfig(), overrides)  # a typo fails here, not in every trial
         methods['cgags'] = functools.partial(run_cgags, overrides=overrides)
         methods['cgags_4dof'] = functools.partial(run_cgags, motion='4dof',
                                                   overrides=overrides)

@@ -44,6 +44,8 @@ import time
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from cgags_ros.config import PipelineConfig  # noqa: E402
+from cgags_ros.config.fields import parse_key_values, update_from_flat  # noqa: E402
 from cgags_ros.datasets.gt_pairs import find_pair  # noqa: E402
 from cgags_ros.datasets.synthetic import shared_data_dir  # noqa: E402
 from cgags_ros.geometry import rotation_error_deg, translation_error  # noqa: E402
@@ -92,8 +94,6 @@ def _run_method(method: str, src: np.ndarray, tgt: np.ndarray, voxel: float,
                 sets: tuple[str, ...] = ()) -> dict:
     """Register once; return the transform, validity, points and per-stage timings."""
     from bench_pipeline import run_open3d
-    from cgags_ros.config import PipelineConfig
-    from cgags_ros.config.fields import parse_key_values, update_from_flat
     from cgags_ros.pipeline import clear_feature_cache, register_clouds
 
     if method == 'cgags':
@@ -308,6 +308,8 @@ def main(argv: list[str] | None = None) -> int:
                         tuple(args.set))
         print(_MARK + json.dumps(record))  # libraries may print to stdout too
         return 0
+    if args.set:  # a typo fails here, not in every subprocess
+        update_from_flat(PipelineConfig(), parse_key_values(args.set))
     sizes = []
     for spec in args.sizes or list(DATASETS):
         name, _, voxel = spec.partition(':')
