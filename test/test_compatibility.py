@@ -1,6 +1,7 @@
 from cgags_ros.registration.compatibility import (build_compatibility_graph, CompatibilityGraph,
-                                                  length_consistency)
+                                                  length_consistency, popcount_rows)
 import numpy as np
+import pytest
 from scipy.spatial.distance import cdist
 
 
@@ -84,3 +85,13 @@ def test_member_edges_on_bit_rows_match_the_dense_adjacency():
             picks = rng.permutation(len(a))[:7]
             i, j = g.numbered_edges(members, counts, picks)
             np.testing.assert_array_equal(j, members[b[picks]])
+
+
+@pytest.mark.parametrize('numpy_has_bitwise_count', [True, False])
+def test_popcount_rows_counts_set_bits_with_and_without_numpy_2(monkeypatch,
+                                                                numpy_has_bitwise_count):
+    rows = np.random.default_rng(3).integers(0, 2**63, size=(7, 5), dtype=np.uint64)
+    if not numpy_has_bitwise_count:
+        monkeypatch.delattr(np, 'bitwise_count', raising=False)
+    expected = np.unpackbits(rows.view(np.uint8), axis=1).sum(axis=1)
+    assert np.array_equal(popcount_rows(rows.view(np.uint8)), expected)

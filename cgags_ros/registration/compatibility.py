@@ -21,6 +21,17 @@ from ..parallel import run_split
 _SPLIT_MIN = 4000
 
 
+# Set bits of every byte value, for numpy 1.x (ROS 2 Jazzy's apt numpy), which has no bitwise_count.
+_BYTE_POPCOUNT = np.array([bin(b).count('1') for b in range(256)], dtype=np.uint8)
+
+
+def popcount_rows(rows: np.ndarray) -> np.ndarray:
+    """Set bits per row of a 2-D array of whole 64-bit words (any integer view of them)."""
+    if hasattr(np, 'bitwise_count'):
+        return np.bitwise_count(rows.view(np.uint64)).sum(axis=1, dtype=np.int64)
+    return _BYTE_POPCOUNT[rows.view(np.uint8)].sum(axis=1, dtype=np.int64)
+
+
 class CompatibilityGraph:
     """
     Bit-packed undirected compatibility graph (no self loops).
@@ -89,7 +100,7 @@ class CompatibilityGraph:
 
     def popcount(self, rows: np.ndarray) -> np.ndarray:
         """Set bits per packed row (rows shaped like ``packed``: whole words)."""
-        return np.bitwise_count(rows.view(np.uint64)).sum(axis=1, dtype=np.int64)
+        return popcount_rows(rows)
 
     def common_within(self, i: np.ndarray, j: np.ndarray, members: np.ndarray
                       ) -> tuple[np.ndarray, np.ndarray]:
