@@ -126,9 +126,11 @@ def undeclared(paths, declared, tag):
     for module, where in sorted(third_party_imports(paths).items()):
         key = ROSDEP_KEYS.get(module)
         if module in PIP_ONLY:
-            if not re.search(rf'(?<![\w-]){re.escape(PIP_ONLY[module])}(?![\w-])', comments):
+            named = rf'(?<![\w-]){re.escape(PIP_ONLY[module])}(?![\w-])'
+            if not re.search(named, comments):
                 problems.append(f'{module!r} (imported at {", ".join(where)}) is pip-only: '
-                                f'name {PIP_ONLY[module]!r} in the pip-only comment of package.xml')
+                                f'name {PIP_ONLY[module]!r} in the pip-only comment of '
+                                'package.xml')
         elif key is None:
             problems.append(f'{module!r} (imported at {", ".join(where)}) has no rosdep key: '
                             f'add it to ROSDEP_KEYS in {Path(__file__).name} and to '
