@@ -17,7 +17,7 @@ REQUIRE_DATA = 'CGAGS_REQUIRE_DATA'
 FIXTURES = Path(__file__).resolve().parent / 'fixtures'
 
 
-def require_shared(path: Path, what: str, marker: str = 'README.md') -> Path:
+def require_shared(path: Path, what: str, marker: str = 'README.md', hint: str = '') -> Path:
     """
     Return ``path`` if ``path / marker`` exists; else skip the test (CGAGS_REQUIRE_DATA=1: fail).
 
@@ -28,7 +28,7 @@ def require_shared(path: Path, what: str, marker: str = 'README.md') -> Path:
     reason = f'{what} not found at {path}'
     if os.environ.get(REQUIRE_DATA) == '1':
         pytest.fail(f'{reason}, and {REQUIRE_DATA}=1 requires it', pytrace=False)
-    pytest.skip(f'{reason} (no ../shared beside this clone: set CGAGS_DATA_DIR to run it)')
+    pytest.skip(f'{reason} (no ../shared beside this clone{hint})')
 
 
 @pytest.fixture(scope='session', name='require_shared')
@@ -40,4 +40,5 @@ def require_shared_fixture():
 @pytest.fixture(scope='session')
 def data_dir() -> Path:
     """Return the shared test data folder (../shared/data or CGAGS_DATA_DIR)."""
-    return require_shared(shared_data_dir(), 'shared test data')
+    return require_shared(shared_data_dir(), 'shared test data',
+                          hint='; CGAGS_DATA_DIR names another copy')
