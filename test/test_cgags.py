@@ -173,7 +173,11 @@ def test_nearly_collinear_correspondences_end_quickly_and_invalid():
     res = register_correspondences(line, line + [0.1, 0, 0], inlier_threshold=0.01, seed=0)
     assert not res.valid
     assert 'collinear' in res.reason
-    assert res.timings['total'] < 30
+    # Quickly in draws, not seconds: a fresh clone's first call also compiles the kernels.
+    # The sampling bound stops it, far from the iteration cap.
+    assert res.stats['stopped_by'] not in ('max_iterations', 'time_budget'), res.stats
+    draws = res.stats['compatible_samples'] + res.stats['guided_samples']
+    assert draws < CoreConfig().max_iterations // 100, res.stats
 
 
 def test_blas_runs_single_threaded_during_the_core_and_is_restored(bunny, monkeypatch):

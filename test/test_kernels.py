@@ -366,8 +366,8 @@ def test_guided_equals_numpy_draws(edges_only):
         assert ok[b] == (sk >= 0) and (sk < 0 or k[b] == sk)
 
 
-def test_core_deterministic_for_a_seed():
-    model = load_bunny(None)
+def test_core_deterministic_for_a_seed(data_dir):
+    model = load_bunny(data_dir)
     p = make_correspondences(model, 600, 0.97, noise_sigma=0.01, rng=11)
     a = register_correspondences(p.src, p.dst, inlier_threshold=0.05, seed=3)
     b = register_correspondences(p.src, p.dst, inlier_threshold=0.05, seed=3)
@@ -383,7 +383,7 @@ def test_compile_kernels_is_idempotent():
         assert fn.signatures, fn  # compiled (or loaded from the cache)
 
 
-def test_searches_use_only_the_compiled_signatures(monkeypatch):
+def test_searches_use_only_the_compiled_signatures(monkeypatch, data_dir):
     """compile_kernels (the warm-up) compiles every specialization a search needs."""
     from cgags_ros.registration import (CoreConfig, kernels_graph, kernels_sampling,
                                         kernels_scoring, kernels_subsets)
@@ -393,7 +393,7 @@ def test_searches_use_only_the_compiled_signatures(monkeypatch):
                    for m in (kernels_graph, kernels_sampling, kernels_scoring, kernels_subsets)
                    for name in dir(m) if hasattr(getattr(m, name), 'signatures')]
     before = {d: len(d.signatures) for d in dispatchers}
-    model = load_bunny(None)
+    model = load_bunny(data_dir)
     monkeypatch.setattr(compatibility, '_SPLIT_MIN', 0)  # the graph split over threads too
     p = make_correspondences(model, 800, 0.98, noise_sigma=0.01, rng=2)
     for motion in ('6dof', '4dof'):
