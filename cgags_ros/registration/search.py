@@ -46,6 +46,9 @@ class Search:
 
     SUBSET_SIZE = 3  # correspondences per minimal subset (a triangle)
     REFIT = ()  # extra arguments of hypotheses.refit: the 6-DoF defaults (Kabsch)
+    # Of the rows each batch scores whatever their pre-score, those whose inlier counts
+    # measure the chance level (unselected hypotheses).
+    CHANCE_ROWS = _CHANCE_PER_BATCH
 
     def __init__(self, src, dst, graph: CompatibilityGraph, cfg: CoreConfig, tau: float,
                  delta: float, rng: np.random.Generator):
@@ -75,7 +78,7 @@ class Search:
     # --- stage one ------------------------------------------------------------------------
     def compatible_stage(self) -> None:
         cfg = self.cfg
-        w1 = 0.0
+        w1 = self._resumed_inlier_probability()
         n1 = 0
         batch = _MIN_BATCH
         while self.num_drawn < cfg.max_iterations and not self.out_of_time():
@@ -109,6 +112,10 @@ class Search:
                 break
             batch = min(2 * batch, cfg.batch_size)
         self.w1 = w1
+
+    def _resumed_inlier_probability(self) -> float:
+        """Return the w1 stage one starts from: 0, also when it resumes after a stage two."""
+        return 0.0
 
     def _stage_one_inlier_probability(self) -> float:
         """
@@ -223,7 +230,7 @@ class Search:
             R, t = self.fit(triples)
         res = kernels.residual_matrix(self.src, self.dst, R, t)
         # Random hypotheses' inlier counts measure the chance consensus level.
-        self.consensus.add(res, _CHANCE_PER_BATCH)
+        self.consensus.add(res, self.CHANCE_ROWS)
         if cfg.guided_sampling:
             self.preference.update(res)
         scores = score_values(res, self.tau, cfg.score).sum(axis=1)
