@@ -33,6 +33,10 @@ class EdgeSearch(Search):
     # tournament already picks by consensus, and guided draws start from the best inliers.
     # The chance level comes from uniform edges drawn apart (_record_chance).
     CHANCE_ROWS = 0
+    # Resumed after a stage two whose best model was not yet significant (the chance level
+    # settles as uniform edges accumulate): from 0 its P1 bound would stay infinite until a
+    # better model turned up, so one that became significant ran stage one to the cap.
+    RESUME_W1 = True
 
     def fit(self, triples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return the closed-form yaw + translation fits of edges stored as (i, j, j)."""
@@ -80,16 +84,6 @@ class EdgeSearch(Search):
         ok = self._usable(triples[:, 0], triples[:, 1])
         self.stats['rejected_collinear'] += int((~ok).sum())
         return triples[ok], None if support is None else support[ok]
-
-    def _resumed_inlier_probability(self) -> float:
-        """
-        Return the w1 stage one starts from: the current best model's, when it resumes.
-
-        From 0 its P1 bound would stay infinite until a better model turns up, so a best
-        model that becomes significant while stage one resumes (the chance level settles
-        as uniform edges accumulate) could not end it: it ran to the hypothesis cap.
-        """
-        return 0.0 if self.best_inliers is None else self._stage_one_inlier_probability()
 
     def _stage_one_inlier_probability(self) -> float:
         """
