@@ -10,7 +10,8 @@ preference kernel, and the P1/P2 bounds count all-inlier edges.
 
 An edge is stored as the triple (i, j, j), so the scoring, pre-screening (on
 N(i) ∩ N(j)), preference lists, consensus record and the all-inlier counts of
-:class:`~.search.Search` apply to it unchanged.
+:class:`~.search.Search` apply to it unchanged; only the chance level of the significance
+test is measured apart, on uniformly drawn edges (see ``CHANCE_ROWS``).
 """
 
 from __future__ import annotations
