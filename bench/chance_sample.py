@@ -10,6 +10,8 @@ tournament) and, for comparison, uniform ones (tournament size 1), fits them, an
 the share that is all-inlier (ground truth), lambda as the zero-share estimate reads it from
 all of them, and lambda of the wrong ones alone. When many drawn subsets are all-inlier the
 estimate from all of them is far above the wrong ones' (docs/ablation.md, 4-DoF chance level).
+``--pure K`` also runs the 4-DoF core on K pure-outlier problems a layout (run to the cap):
+how many come back valid, their best consensus and chance level.
 
 Example::
 
@@ -29,7 +31,8 @@ sys.path[:0] = [str(ROOT), str(ROOT / 'bench')]
 # Imported only after the sys.path set-up above (E402).
 from bench_core import problem_seed, problem_transform  # noqa: E402
 from cgags_ros.datasets.synthetic import load_bunny, make_correspondences  # noqa: E402
-from cgags_ros.registration import CoreConfig, kernels  # noqa: E402
+from cgags_ros.registration import (  # noqa: E402
+    CoreConfig, kernels, register_correspondences)
 from cgags_ros.registration.compatibility import build_compatibility_graph  # noqa: E402
 from cgags_ros.registration.compatibility_4dof import (  # noqa: E402
     build_vertical_compatibility_graph)
@@ -74,8 +77,18 @@ def main(argv=None) -> int:
     ap.add_argument('--n', type=int, default=1000)
     ap.add_argument('--trials', type=int, default=4)
     ap.add_argument('--draws', type=int, default=4000)
+    ap.add_argument('--pure', type=int, default=0, help='pure-outlier problems a layout')
     args = ap.parse_args(argv)
     model = load_bunny()
+    for layout in args.outliers.split(',') if args.pure else ():
+        runs = [register_correspondences(p.src, p.dst, inlier_threshold=TAU, seed=s,
+                                         config=CoreConfig(motion_model='4dof'))
+                for s, p in ((s, make_correspondences(model, args.n, 1.0, rng=s,
+                                                      outliers=layout))
+                             for s in range(args.pure))]
+        print(f'pure outliers, {layout}: valid {sum(r.valid for r in runs)} of {len(runs)}; '
+              f'best consensus {[len(r.inliers) for r in runs]}; chance level '
+              f"{[r.stats['chance_level'] for r in runs]}", flush=True)
     print('| outliers | motion | subsets | graph edges | all-inlier share | lambda, all '
           '| lambda, wrong only |\n|---|---|---|---:|---:|---:|---:|')
     for layout in args.outliers.split(','):
