@@ -9,13 +9,16 @@ the same seeds, alternating, and reports per cell whether every result is identi
 (transform, validity, inliers, hypotheses drawn) and the median time of each.
 
 Problems: the core benchmark's (``bench_core.py``'s seeds: bunny, uniform outliers, noise
-0.01, tau 0.05) and, with ``--pipeline``, the correspondences the pipeline hands the core
+0.01, tau 0.05; ``--motion 4dof`` its yaw-only problems and the 4-DoF core, ``--outliers``
+its other layouts), each differing result printed with what changed, and, with
+``--pipeline``, the correspondences the pipeline hands the core
 on the LiDAR pair at 0.3 m and the redkitchen pair at 5 cm (one rotation each; their many
 inliers make the dense-graph work visible, which the benchmark's cells do not).
 
 Example::
 
     .venv/bin/python bench/ab_core.py --rev f288eca --pipeline
+    .venv/bin/python bench/ab_core.py --rev main --motion 4dof --outliers uniform,cube
 
 Exit status 1 when any result differs (for a pass that must not change any). The old
 revision's kernels compile cold in the temporary directory (~20 s).
@@ -34,9 +37,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / 'bench')]
 
 # Imported only after the sys.path set-up above (E402).
-from bench_core import problem_seed  # noqa: E402
+from bench_core import problem_seed, problem_transform  # noqa: E402
 from cgags_ros.datasets.synthetic import load_bunny, make_correspondences  # noqa: E402
-from cgags_ros.registration import register_correspondences  # noqa: E402
+from cgags_ros.registration import CoreConfig, register_correspondences  # noqa: E402
 import numpy as np  # noqa: E402, I100
 
 
@@ -63,18 +66,28 @@ def same(a, b) -> bool:
             and np.array_equal(np.asarray(a.inliers), np.asarray(b.inliers)))
 
 
-def compare(label: str, problems: list, new, old, repeats: int) -> bool:
+def compare(label: str, problems: list, new, old, repeats: int, verbose: bool = True) -> bool:
     """Run ``new`` and ``old`` alternately on (src, dst, kwargs) problems; print one line."""
     t_new, t_old, differ = [], [], 0
     for src, dst, kwargs in problems:
+        # A configuration is each side's own class: kwargs['config'] = (new's, old's).
+        new_kw, old_kw = dict(kwargs), dict(kwargs)
+        if 'config' in kwargs:
+            new_kw['config'], old_kw['config'] = kwargs['config']
         for _ in range(repeats):
             t0 = time.perf_counter()
-            b = old(src, dst, **kwargs)
+            b = old(src, dst, **old_kw)
             t_old.append(time.perf_counter() - t0)
             t0 = time.perf_counter()
-            a = new(src, dst, **kwargs)
+            a = new(src, dst, **new_kw)
             t_new.append(time.perf_counter() - t0)
-        differ += not same(a, b)
+        if not same(a, b):
+            differ += 1
+            if verbose:
+                print(f'  differs: hypotheses {b.num_hypotheses} -> {a.num_hypotheses}, valid '
+                      f'{b.valid} -> {a.valid}, inliers {len(b.inliers)} -> {len(a.inliers)}, '
+                      f'stopped_by {b.stats.get("stopped_by")} -> {a.stats.get("stopped_by")}',
+                      flush=True)
     ratio = np.median(t_new) / np.median(t_old)
     print(f'{label:28s} old {np.median(t_old) * 1e3:8.2f} ms  new {np.median(t_new) * 1e3:8.2f} '
           f'ms  ({ratio:.2f}x)  results differing: {differ} of {len(problems)}', flush=True)
@@ -109,6 +122,20 @@ def pipeline_problems() -> list:
         pipeline_register.register_correspondences = register_correspondences
 
 
+def _problem(model, motion: str, layout: str, n: int, ratio: float, trial: int) -> tuple:
+    """Return (src, dst, kwargs) of bench_core's problem; 4dof: its yaw-only one."""
+    seed = problem_seed(0, ratio, n, trial)
+    kwargs = {'inlier_threshold': 0.05, 'seed': seed}
+    transform = None
+    if motion == '4dof':
+        transform = problem_transform(argparse.Namespace(motion='4dof', tilt_noise=0.0), seed)
+        old_config = sys.modules['cgags_prev.registration'].CoreConfig(motion_model='4dof')
+        kwargs['config'] = (CoreConfig(motion_model='4dof'), old_config)
+    p = make_correspondences(model, n, ratio, noise_sigma=0.01, rng=seed, outliers=layout,
+                             transform=transform)
+    return p.src, p.dst, kwargs
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
     ap.add_argument('--rev', required=True, help='git revision to compare against')
@@ -116,6 +143,10 @@ def main(argv=None) -> int:
     ap.add_argument('--sizes', default='1000,5000', help='correspondence counts N')
     ap.add_argument('--trials', type=int, default=6, help='problems a cell')
     ap.add_argument('--repeats', type=int, default=2, help='timed calls a problem and side')
+    ap.add_argument('--motion', choices=('6dof', '4dof'), default='6dof',
+                    help="the core's motion model; 4dof: bench_core's yaw-only problems")
+    ap.add_argument('--outliers', default='uniform',
+                    help='comma list of outlier layouts (make_correspondences)')
     ap.add_argument('--pipeline', action='store_true',
                     help="also the pipeline's correspondences on the LiDAR and redkitchen pairs")
     args = ap.parse_args(argv)
@@ -126,15 +157,13 @@ def main(argv=None) -> int:
         for fn in (old, register_correspondences):
             fn(warm.src, warm.dst, inlier_threshold=0.05)
         ok = True
-        for n in (int(x) for x in args.sizes.split(',')):
-            for ratio in (float(x) for x in args.ratios.split(',')):
-                problems = []
-                for trial in range(args.trials):
-                    seed = problem_seed(0, ratio, n, trial)
-                    p = make_correspondences(model, n, ratio, noise_sigma=0.01, rng=seed)
-                    problems.append((p.src, p.dst, {'inlier_threshold': 0.05, 'seed': seed}))
-                ok &= compare(f'N = {n}, {ratio:.1%} outliers', problems,
-                              register_correspondences, old, args.repeats)
+        for layout in args.outliers.split(','):
+            for n in (int(x) for x in args.sizes.split(',')):
+                for ratio in (float(x) for x in args.ratios.split(',')):
+                    problems = [_problem(model, args.motion, layout, n, ratio, trial)
+                                for trial in range(args.trials)]
+                    ok &= compare(f'{args.motion} {layout} N = {n}, {ratio:.1%} outliers',
+                                  problems, register_correspondences, old, args.repeats)
         if args.pipeline:
             for label, problems in pipeline_problems():
                 ok &= compare(label, problems, register_correspondences, old, 10)

@@ -16,7 +16,9 @@ Defaults: outlier ratios 0.9 0.95 0.98 0.99 0.995, N = 1000 and 5000, 20 trials 
 noise sigma 0.01, inlier threshold tau 0.05 (= 5 sigma; an inlier's residual norm
 |N(0, sigma^2 I_3)| exceeds 0.05 with probability ~1e-5), outliers 'uniform' (dst uniform in the
 bounding box of the transformed model, TEASER++ protocol) or 'surface' (dst on another model
-point).
+point); 'cube' and 'cube-surface' spread them three times wider than the model (uniform in a
+cube, on the model scaled 3x), as matches into a larger scene. ``--outliers`` takes a comma
+list: each layout is a block of cells in one run.
 Every solver gets the same tau: ours as ``inlier_threshold``, Open3D as
 ``max_correspondence_distance``, KISS-Matcher as both ROBIN and solver noise bounds. The exact
 baseline calls are documented in ``bench/baselines.py``.
@@ -39,7 +41,10 @@ that cannot be imported (e.g. ``ours`` before the core lands) is skipped with a 
 translation uniform in [-1, 1]^3, plus an optional ``--tilt-noise`` in degrees about a random
 horizontal axis), default solvers ``ours-4dof`` (``CoreConfig(motion_model='4dof')``),
 ``ours-6dof`` (the default 6-DoF core) and ``kiss-quatro`` (KISS-Matcher with
-``KISSMatcherConfig(use_quatro=True)``), all on the same problems.
+``KISSMatcherConfig(use_quatro=True)``), all on the same problems, in all four outlier
+layouts (a sparse wide layout changes what a hypothesis explains by chance).
+``ours-4dof@REV`` / ``ours-6dof@REV`` run our core as of git revision REV next to the
+working tree's (a before/after in one run).
 
 Examples::
 
@@ -48,6 +53,8 @@ Examples::
         --output docs/bench_core.md --json /tmp/b.json
     .venv/bin/python bench/bench_core.py --outliers surface --trials 10
     .venv/bin/python bench/bench_core.py --motion 4dof --output docs/bench_core_4dof.md
+    .venv/bin/python bench/bench_core.py --motion 4dof --outliers cube --ratios 0.99 \
+        --solvers ours-4dof@main,ours-4dof,ours-6dof
 """
 
 from __future__ import annotations
@@ -75,7 +82,8 @@ if str(ROOT / 'bench') not in sys.path:
 # Imported only after the sys.path set-up above, which makes bench/ and the repository root
 # importable: hence E402, and I100 for the local module placed before the third-party ones.
 import baselines  # noqa: E402, I100
-from cgags_ros.datasets.synthetic import load_bunny, make_correspondences  # noqa: E402
+from cgags_ros.datasets.synthetic import (  # noqa: E402
+    load_bunny, make_correspondences, OUTLIER_LAYOUTS)
 from cgags_ros.geometry import rotation_error_deg, translation_error  # noqa: E402
 
 DEFAULT_RATIOS = (0.9, 0.95, 0.98, 0.99, 0.995)
@@ -86,6 +94,10 @@ DEFAULT_SOLVERS = ('ours', 'open3d', 'kiss')
 DEFAULT_SOLVER_TRIALS = 'open3d=1'
 DEFAULT_SOLVER_MAX_N = 'open3d=1000'
 DEFAULT_SOLVERS_4DOF = ('ours-4dof', 'ours-6dof', 'kiss-quatro')
+DEFAULT_OUTLIERS = ('uniform',)
+# Both extents (the model's bounding box and a cube three times wider), uniform and on a
+# surface: a sparse wide layout changes what a hypothesis explains by chance.
+DEFAULT_OUTLIERS_4DOF = ('uniform', 'surface', 'cube', 'cube-surface')
 
 
 # ------------------------------------------------------------------------------- solvers
@@ -120,6 +132,9 @@ def _make_ours(motion: str = '6dof', name: str = 'ours') -> Solver:
             'reason': res.reason,
             'num_inliers': int(len(res.inliers)),
             'num_hypotheses': int(res.num_hypotheses),
+            'restarts': int(res.stats.get('restarts', 0)),
+            'chance_level': res.stats.get('chance_level'),
+            'stopped_by': res.stats.get('stopped_by'),
             'core_total_s': float(res.timings.get('total', float('nan'))),
         })
 
@@ -167,9 +182,35 @@ def _make_ours_variant(name: str) -> Solver:
                                        config=config)
         return SolverOutput(np.asarray(res.transform, dtype=float), bool(res.valid), {
             'reason': res.reason, 'num_inliers': int(len(res.inliers)),
-            'num_hypotheses': int(res.num_hypotheses)})
+            'num_hypotheses': int(res.num_hypotheses),
+            'stopped_by': res.stats.get('stopped_by')})
 
     return Solver(name, run, f"CoreConfig(motion_model='4dof', {', '.join(items)})")
+
+
+def _make_ours_at(name: str) -> Solver:
+    """``ours-4dof@REV``, ``ours-6dof@REV``: our core as of git revision REV (before/after)."""
+    import tempfile
+
+    from ab_core import load_previous
+
+    motion, rev = name[len('ours-'):].split('@', 1)
+    previous = load_previous(rev, Path(tempfile.mkdtemp(prefix='bench_core_')))
+    from cgags_prev.registration import CoreConfig  # the package load_previous made importable
+
+    config = CoreConfig(motion_model=motion)
+
+    def run(src, dst, tau, seed):
+        res = previous(src, dst, inlier_threshold=tau, seed=seed, config=config)
+        return SolverOutput(np.asarray(res.transform, dtype=float), bool(res.valid), {
+            'reason': res.reason, 'num_inliers': int(len(res.inliers)),
+            'num_hypotheses': int(res.num_hypotheses),
+            'restarts': int(res.stats.get('restarts', 0)),
+            'chance_level': res.stats.get('chance_level'),
+            'stopped_by': res.stats.get('stopped_by')})
+
+    return Solver(name, run, f'as ours-{motion}, the core of git revision {rev} '
+                  '(bench/ab_core.py load_previous)')
 
 
 def _make_kiss_quatro() -> Solver:
@@ -224,6 +265,8 @@ def load_solvers(names: list[str]) -> tuple[list[Solver], dict[str, str]]:
                 solvers.append(BUILTIN_SOLVERS[name]())
             elif name.startswith('ours-4dof[') and name.endswith(']'):
                 solvers.append(_make_ours_variant(name))
+            elif name.startswith(('ours-4dof@', 'ours-6dof@')):
+                solvers.append(_make_ours_at(name))
             elif name.startswith('kiss@'):
                 solvers.append(_make_kiss_scaled(float(name[5:])))
             elif ':' in name:
@@ -312,6 +355,10 @@ def summarise(records: list[dict[str, Any]]) -> dict[str, Any]:
         'mean_cpu_ms': float(np.mean([r['cpu_ms'] for r in records])),
         'errors': sum('error' in r for r in records),
     }
+    hyps = [r['info']['num_hypotheses'] for r in records if 'num_hypotheses' in r['info']]
+    if len(hyps) == len(records):  # our core: how long the search ran
+        out['median_hypotheses'] = float(np.median(hyps))
+        out['at_cap'] = sum(r['info'].get('stopped_by') == 'max_iterations' for r in records)
     if all(v is not None for v in valid):
         out['valid'] = int(sum(valid))
         out['valid_but_wrong'] = int(sum(v and not s for v, s in zip(valid, succ)))
@@ -327,7 +374,7 @@ def parse_caps(text: str) -> dict[str, int]:
     return caps
 
 
-def _schedule(args, model, solvers, caps, max_n, n, ratio) -> list[tuple]:
+def _schedule(args, model, solvers, caps, max_n, n, ratio, layout) -> list[tuple]:
     """
     Return (trial, seed, solver, problem) in the order the solvers run on a cell's problems.
 
@@ -340,7 +387,7 @@ def _schedule(args, model, solvers, caps, max_n, n, ratio) -> list[tuple]:
     for trial in range(args.trials):
         seed = problem_seed(args.seed, ratio, n, trial)
         problems.append((trial, seed, make_correspondences(
-            model, n, ratio, noise_sigma=args.noise, rng=seed, outliers=args.outliers,
+            model, n, ratio, noise_sigma=args.noise, rng=seed, outliers=layout,
             transform=problem_transform(args, seed))))
     order = []
     for trial, seed, p in problems:
@@ -366,32 +413,34 @@ def run_benchmark(args: argparse.Namespace) -> dict[str, Any]:
 
     cells = []
     t_start = time.perf_counter()
-    for n in args.sizes:
-        for ratio in args.ratios:
-            per_solver: dict[str, list] = {s.name: [] for s in solvers}
-            for trial, seed, s, p in _schedule(args, model, solvers, caps, max_n, n, ratio):
-                rec = run_one(s, p.src, p.dst, args.tau, seed, p.transform,
-                              args.max_re, args.max_te)
-                rec.update(trial=trial, seed=seed)
-                per_solver[s.name].append(rec)
-            cell = {'ratio': ratio, 'n': n, 'num_inliers': int(round((1 - ratio) * n)),
-                    'summary': {k: summarise(v) for k, v in per_solver.items()}}
-            # Fairness for capped solvers: the other solvers on the same (first k) problems.
-            subsets = {}
-            for s in solvers:
-                if caps[s.name] < args.trials and per_solver[s.name]:
-                    subsets[s.name] = {o.name: summarise([r for r in per_solver[o.name]
-                                                          if r['trial'] < caps[s.name]])
-                                       for o in solvers if o.name != s.name}
-            if subsets:
-                cell['on_capped_subset'] = subsets
-            if not args.no_records:
-                cell['records'] = per_solver
-            cells.append(cell)
-            line = '  '.join(f"{k}: {v['success_pct']:.0f}% {v['median_ms']:.0f}ms (n={v['n']})"
-                             for k, v in cell['summary'].items() if v['n'])
-            print(f'[bench_core] ratio={ratio} N={n}: {line}  '
-                  f'[{time.perf_counter() - t_start:.0f}s]', file=sys.stderr, flush=True)
+    for layout, n, ratio in ((lay, n, r) for lay in args.outliers for n in args.sizes
+                             for r in args.ratios):
+        per_solver: dict[str, list] = {s.name: [] for s in solvers}
+        for trial, seed, s, p in _schedule(args, model, solvers, caps, max_n, n, ratio,
+                                           layout):
+            rec = run_one(s, p.src, p.dst, args.tau, seed, p.transform,
+                          args.max_re, args.max_te)
+            rec.update(trial=trial, seed=seed)
+            per_solver[s.name].append(rec)
+        cell = {'outliers': layout, 'ratio': ratio, 'n': n,
+                'num_inliers': int(round((1 - ratio) * n)),
+                'summary': {k: summarise(v) for k, v in per_solver.items()}}
+        # Fairness for capped solvers: the other solvers on the same (first k) problems.
+        subsets = {}
+        for s in solvers:
+            if caps[s.name] < args.trials and per_solver[s.name]:
+                subsets[s.name] = {o.name: summarise([r for r in per_solver[o.name]
+                                                      if r['trial'] < caps[s.name]])
+                                   for o in solvers if o.name != s.name}
+        if subsets:
+            cell['on_capped_subset'] = subsets
+        if not args.no_records:
+            cell['records'] = per_solver
+        cells.append(cell)
+        line = '  '.join(f"{k}: {v['success_pct']:.0f}% {v['median_ms']:.0f}ms (n={v['n']})"
+                         for k, v in cell['summary'].items() if v['n'])
+        print(f'[bench_core] {layout} ratio={ratio} N={n}: {line}  '
+              f'[{time.perf_counter() - t_start:.0f}s]', file=sys.stderr, flush=True)
 
     breakdown = {}
     if any(s.name == 'kiss' for s in solvers) and not args.no_breakdown:  # 6-DoF only
@@ -399,7 +448,7 @@ def run_benchmark(args: argparse.Namespace) -> dict[str, Any]:
             ratio = args.ratios[len(args.ratios) // 2]
             p = make_correspondences(model, n, ratio, noise_sigma=args.noise,
                                      rng=problem_seed(args.seed, ratio, n, 0),
-                                     outliers=args.outliers)
+                                     outliers=args.outliers[0])
             breakdown[str(n)] = dict(ratio=ratio, **baselines.kiss_prune_and_solve_breakdown(
                 p.src, p.dst, args.tau))
 
@@ -471,6 +520,8 @@ def to_markdown(res: dict[str, Any]) -> str:
     st, env = res['settings'], res['environment']
     names = list(res['solvers'])
     caps = st['trials_per_solver']
+    layouts = st['outliers'] if isinstance(st['outliers'], list) else [st['outliers']]
+    by_layout = len(layouts) > 1  # a column of the layout: one table for them all
     lines = [
         f"### Core benchmark: {', '.join(names)}",
         '',
@@ -478,7 +529,8 @@ def to_markdown(res: dict[str, Any]) -> str:
         + (f" (yaw about +z, tilt noise {st['tilt_noise_deg']} deg)"
            if st.get('motion') == '4dof' else ' (any rotation)')
         + f", noise sigma = {st['noise_sigma']}, tau = {st['tau']}, "
-        f"outliers = {st['outliers']}, seed = {st['seed']}; success = RE < {st['max_re_deg']} deg "
+        f"outliers = {', '.join(layouts)}, seed = {st['seed']}; "
+        f"success = RE < {st['max_re_deg']} deg "
         f"and TE < {st['max_te']}; time = wall ms per problem (whole solver call); solvers run "
         f"{st.get('order', 'interleaved')}. "
         f"{st['trials']} trials per cell" + ''.join(
@@ -489,15 +541,16 @@ def to_markdown(res: dict[str, Any]) -> str:
             if any(n > v for n in st['sizes'])) + '.',
         '',
     ]
-    head = '| outlier ratio | N | inliers |'
-    sep = '|---:|---:|---:|'
+    head = ('| outliers ' if by_layout else '') + '| outlier ratio | N | inliers |'
+    sep = ('|---' if by_layout else '') + '|---:|---:|---:|'
     for k in names:
         tag = f' (n={caps[k]})' if caps[k] < st['trials'] else ''
         head += f' {k} succ %{tag} | {k} med ms | {k} p90 ms |'
         sep += '---:|---:|---:|'
     lines += [head, sep]
     for c in res['cells']:
-        row = f"| {c['ratio']} | {c['n']} | {c['num_inliers']} |"
+        row = (f"| {c['outliers']} " if by_layout else '') + \
+            f"| {c['ratio']} | {c['n']} | {c['num_inliers']} |"
         for k in names:
             s = c['summary'][k]
             if not s.get('n'):
@@ -517,13 +570,27 @@ def to_markdown(res: dict[str, Any]) -> str:
         lines.append(f"| {k} | {tot('n')} | {tot('successes')} | "
                      + (f"{tot('valid')} | {tot('valid_but_wrong')} | {tot('invalid_but_right')} |"
                         if has_valid else 'n/a | n/a | n/a |'))
+    ours = [k for k in names if all('median_hypotheses' in c['summary'][k]
+                                    for c in res['cells'] if c['summary'][k].get('n'))]
+    if ours:
+        lines += ['', 'Hypotheses our core drew (median; in brackets the problems that ran '
+                  'to the max_iterations cap):', '',
+                  ('| outliers ' if by_layout else '') + '| outlier ratio | N |'
+                  + ''.join(f' {k} |' for k in ours),
+                  ('|---' if by_layout else '') + '|---:|---:|' + '---:|' * len(ours)]
+        for c in res['cells']:
+            row = (f"| {c['outliers']} " if by_layout else '') + f"| {c['ratio']} | {c['n']} |"
+            for k in ours:
+                s = c['summary'][k]
+                row += f" {s['median_hypotheses']:.0f} ({s['at_cap']}) |" if s.get('n') else ' - |'
+            lines.append(row)
     subs = [(c, k, v) for c in res['cells'] for k, v in c.get('on_capped_subset', {}).items()]
     if subs:
         lines += ['', "Other solvers on the capped solver's problems only (succ % / median ms):",
                   '']
         for c, k, v in subs:
-            lines.append(f"- ratio {c['ratio']}, N {c['n']} ({k}'s {c['summary'][k]['n']} "
-                         'problem(s)): ' + ', '.join(
+            lines.append(f"- {c.get('outliers', layouts[0])} ratio {c['ratio']}, N {c['n']} "
+                         f"({k}'s {c['summary'][k]['n']} problem(s)): " + ', '.join(
                              f"{o} {s['success_pct']:.0f}% / {s['median_ms']:.1f} ms"
                              for o, s in v.items() if s.get('n')))
     if res['kiss_breakdown_ms']:
@@ -585,7 +652,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument('--noise', type=float, default=0.01, help='inlier noise sigma (default 0.01)')
     ap.add_argument('--tau', type=float, default=0.05,
                     help='inlier threshold given to every solver (default 0.05)')
-    ap.add_argument('--outliers', choices=('uniform', 'surface'), default='uniform')
+    ap.add_argument('--outliers', default=None,
+                    help='comma list of outlier layouts, each a block of cells: '
+                         f"{', '.join(OUTLIER_LAYOUTS)} (make_correspondences; default "
+                         f"{','.join(DEFAULT_OUTLIERS)}, with --motion 4dof "
+                         f"{','.join(DEFAULT_OUTLIERS_4DOF)})")
     ap.add_argument('--order', choices=('interleaved', 'blocks'), default='interleaved',
                     help='interleaved: every solver on each problem in turn (rotated); blocks: '
                          "each solver on a cell's problems in a row (default: %(default)s)")
@@ -604,6 +675,12 @@ def parse_args(argv=None) -> argparse.Namespace:
                                 else DEFAULT_SOLVERS)
     args.solvers = [s.strip() for s in args.solvers.split(',') if s.strip()]
     args.ratios = args.ratios or (QUICK_RATIOS if args.quick else DEFAULT_RATIOS)
+    args.outliers = ([x.strip() for x in args.outliers.split(',') if x.strip()]
+                     if args.outliers else
+                     list(DEFAULT_OUTLIERS_4DOF if args.motion == '4dof' else DEFAULT_OUTLIERS))
+    unknown = [x for x in args.outliers if x not in OUTLIER_LAYOUTS]
+    if unknown or not args.outliers:
+        ap.error(f'--outliers takes a comma list of {OUTLIER_LAYOUTS}, got {unknown}')
     args.sizes = args.sizes or (QUICK_SIZES if args.quick else DEFAULT_SIZES)
     args.trials = args.trials or (5 if args.quick else 20)
     args.caps = parse_caps(args.solver_trials)

@@ -29,3 +29,26 @@ def test_top_sets_and_runner_up_equal_a_plain_reference():
 
 def test_runner_up_is_zero_before_any_hypothesis():
     assert ConsensusRecord(0.1).runner_up(np.arange(5)) == 0
+
+
+def test_chance_sample_sets_the_level_and_competes_for_nothing():
+    """
+    Rows scored only for the chance level count as unselected rows of a batch.
+
+    But they are neither consensus sets (runner-up) nor hypotheses of the Bonferroni
+    correction.
+    """
+    rng = np.random.default_rng(4)
+    n, tau = 300, 0.1
+    res = rng.random((64, n))  # ~10 % of each row inside tau: ~30 chance inliers
+    res[:8, :40] = 0.0  # eight rows of a 40-inlier motion, which must read as chance too
+    as_batch, apart = ConsensusRecord(tau, members=2), ConsensusRecord(tau, members=2)
+    as_batch.add(res, len(res))
+    apart.add_chance(res)
+    assert (apart.num_chance, apart.num_zero) == (as_batch.num_chance, as_batch.num_zero)
+    assert apart.num_exact == 0 and apart.top_masks is None
+    assert apart.runner_up(np.arange(40)) == 0
+    scored = rng.random((16, n)) + 0.5 * tau  # sixteen searched hypotheses: ~5 % inside
+    apart.add(scored, 0)  # none of them unselected
+    assert (apart.num_chance, apart.num_exact) == (len(res), 16)
+    assert apart.top_counts.tolist() == sorted((scored <= tau).sum(axis=1), reverse=True)

@@ -60,6 +60,10 @@ def random_transform(rng: np.random.Generator, max_translation: float = 1.0) -> 
     return T
 
 
+OUTLIER_LAYOUTS = ('uniform', 'surface', 'cube', 'cube-surface')
+_WIDE = 3.0  # how much wider than the model the 'cube' layouts spread their outliers
+
+
 @dataclasses.dataclass
 class SyntheticProblem:
     src: np.ndarray
@@ -77,10 +81,14 @@ def make_correspondences(model: np.ndarray, n: int, outlier_ratio: float, *,
     Build N putative correspondences of which round((1 - outlier_ratio) N) are inliers.
 
     Inliers: ``src`` a model point, ``dst = R src + t + N(0, sigma^2 I)``.
-    Outliers (``outliers``): ``'uniform'`` puts ``dst`` uniformly in the bounding box of the
-    transformed model (TEASER++'s protocol); ``'surface'`` puts it on another transformed
-    model point plus noise, like a wrong feature match (harder: outliers are structured).
-    Rows are shuffled so inliers are not first.
+    Outliers (``outliers``, one of :data:`OUTLIER_LAYOUTS`): ``'uniform'`` puts ``dst``
+    uniformly in the bounding box of the transformed model (TEASER++'s protocol);
+    ``'surface'`` puts it on another transformed model point plus noise, like a wrong feature
+    match (harder: outliers are structured). ``'cube'`` and ``'cube-surface'`` spread them
+    wider than the model, as matches into a larger scene: uniformly in a cube three times the
+    model's largest extent, and on the transformed model scaled three times (plus noise),
+    both centred on the transformed model's centroid. Rows are shuffled so inliers are not
+    first.
     """
     rng = np.random.default_rng(rng)
     n_in = int(round((1.0 - outlier_ratio) * n))
@@ -95,14 +103,20 @@ def make_correspondences(model: np.ndarray, n: int, outlier_ratio: float, *,
     src[:n_in] = model[idx_in]
     dst[:n_in] = moved[idx_in] + rng.normal(0.0, noise_sigma, (n_in, 3))
     src[n_in:] = model[rng.integers(0, len(model), n_out)]
+    centre, extent = moved.mean(axis=0), np.ptp(model, axis=0).max()
     if outliers == 'uniform':
         lo, hi = moved.min(axis=0), moved.max(axis=0)
         dst[n_in:] = rng.uniform(lo, hi, (n_out, 3))
     elif outliers == 'surface':
         dst[n_in:] = (moved[rng.integers(0, len(model), n_out)]
                       + rng.normal(0.0, noise_sigma, (n_out, 3)))
+    elif outliers == 'cube-surface':
+        dst[n_in:] = (centre + _WIDE * (moved[rng.integers(0, len(model), n_out)] - centre)
+                      + rng.normal(0.0, noise_sigma, (n_out, 3)))
+    elif outliers == 'cube':
+        dst[n_in:] = centre + rng.uniform(-0.5, 0.5, (n_out, 3)) * _WIDE * extent
     else:
-        raise ValueError(f"outliers must be 'uniform' or 'surface', got {outliers!r}")
+        raise ValueError(f'outliers must be one of {OUTLIER_LAYOUTS}, got {outliers!r}')
     mask = np.zeros(n, dtype=bool)
     mask[:n_in] = True
     perm = rng.permutation(n)

@@ -129,7 +129,10 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
         # 7. (4-DoF) Levelled input? The best 6-DoF fit of the inliers measures the tilt.
         tilt = measure_tilt(src, dst, inliers, tau, cfg.refit_iterations)
         result.stats['tilt_deg'] = tilt
-        reason = reason or _tilt_reason(tilt, cfg.max_tilt_deg)
+        # A tilt also splits a yaw-only consensus into rival parts (no significant one):
+        # then both are said, the tilt being what the user can act on.
+        tilted = _tilt_reason(tilt, cfg.max_tilt_deg)
+        reason = f'{reason}; {tilted}' if reason and tilted else reason or tilted
         result.transform, result.inliers = frame.from_gravity(T), np.sort(order[inliers])
     return result.finish(start, reason)
 

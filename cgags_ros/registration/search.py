@@ -46,6 +46,8 @@ class Search:
 
     SUBSET_SIZE = 3  # correspondences per minimal subset (a triangle)
     REFIT = ()  # extra arguments of hypotheses.refit: the 6-DoF defaults (Kabsch)
+    CHANCE_ROWS = _CHANCE_PER_BATCH  # of those rows, the ones counted for the chance level
+    RESUME_W1 = False  # stage one resumed after stage two: from w1 = 0, not the best's
 
     def __init__(self, src, dst, graph: CompatibilityGraph, cfg: CoreConfig, tau: float,
                  delta: float, rng: np.random.Generator):
@@ -55,8 +57,7 @@ class Search:
         self.tau, self.delta, self.rng = tau, delta, rng
         self.num_hypotheses = 0  # minimal subsets generated (the pre-screen fits the best)
         self.num_drawn = 0  # sampled, including triples rejected before fitting (the cap)
-        self.best_score = -np.inf
-        self.best_T = np.eye(4)
+        self.best_score, self.best_T = -np.inf, np.eye(4)
         self.best_inliers: np.ndarray | None = None
         self.best_mask = np.zeros(graph.n, dtype=bool)
         self.improvements = 0
@@ -74,10 +75,9 @@ class Search:
 
     # --- stage one ------------------------------------------------------------------------
     def compatible_stage(self) -> None:
-        cfg = self.cfg
-        w1 = 0.0
-        n1 = 0
-        batch = _MIN_BATCH
+        cfg, n1, batch = self.cfg, 0, _MIN_BATCH
+        w1 = (self._stage_one_inlier_probability()
+              if self.RESUME_W1 and self.best_inliers is not None else 0.0)
         while self.num_drawn < cfg.max_iterations and not self.out_of_time():
             batch = min(batch, cfg.max_iterations - self.num_drawn)
             self.num_drawn += batch
@@ -223,7 +223,7 @@ class Search:
             R, t = self.fit(triples)
         res = kernels.residual_matrix(self.src, self.dst, R, t)
         # Random hypotheses' inlier counts measure the chance consensus level.
-        self.consensus.add(res, _CHANCE_PER_BATCH)
+        self.consensus.add(res, self.CHANCE_ROWS)
         if cfg.guided_sampling:
             self.preference.update(res)
         scores = score_values(res, self.tau, cfg.score).sum(axis=1)

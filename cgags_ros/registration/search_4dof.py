@@ -10,7 +10,8 @@ preference kernel, and the P1/P2 bounds count all-inlier edges.
 
 An edge is stored as the triple (i, j, j), so the scoring, pre-screening (on
 N(i) ∩ N(j)), preference lists, consensus record and the all-inlier counts of
-:class:`~.search.Search` apply to it unchanged.
+:class:`~.search.Search` apply to it unchanged; only the chance level of the significance
+test is measured apart, on uniformly drawn edges (see ``CHANCE_ROWS``).
 """
 
 from __future__ import annotations
@@ -28,6 +29,15 @@ class EdgeSearch(Search):
 
     SUBSET_SIZE = 2
     REFIT = (fit_yaw, 2)  # hypotheses.refit solves yaw + translation from >= 2 inliers
+    # No scored row is unselected: an edge's common neighbours are nearly the consensus of
+    # its yaw fit (two lengths and a height place a point up to a mirror image), so the edge
+    # tournament already picks by consensus, and guided draws start from the best inliers.
+    # The chance level comes from uniform edges drawn apart (_record_chance).
+    CHANCE_ROWS = 0
+    # Resumed after a stage two whose best model was not yet significant (the chance level
+    # settles as uniform edges accumulate): from 0 its P1 bound would stay infinite until a
+    # better model turned up, so one that became significant ran stage one to the cap.
+    RESUME_W1 = True
 
     def fit(self, triples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return the closed-form yaw + translation fits of edges stored as (i, j, j)."""
@@ -39,19 +49,40 @@ class EdgeSearch(Search):
 
         Edges too short across the gravity axis to fix the yaw are dropped.
         """
+        self._record_chance(self.cfg.exact_per_batch)
         i, j, _ = self.compatible_edges(count)
         edges = np.stack([i, j, j], axis=1)
         self.sampled.append(edges)
         return self._keep_non_collinear(edges)
 
+    def _record_chance(self, count: int) -> None:
+        """
+        Score ``count`` uniformly drawn usable edges for the chance level only.
+
+        Uniform over E (soft: by weight), as the tournament's own candidates: no selection
+        by common neighbours, whose winners are to a large share all-inlier edges when the
+        graph is sparse (outliers spread wider than the model) and would read as chance.
+        """
+        i, j = kernels.draw_edges(self.rng, self.graph, self.lists(), self.src, self.dst,
+                                  self.delta, self.cfg.compatibility == 'soft', count, 1)
+        ok = self._usable(i, j)
+        if ok.any():
+            R, t = fit_edges(self.src, self.dst, i[ok], j[ok])
+            self.consensus.add_chance(kernels.residual_matrix(self.src, self.dst, R, t))
+
+    def _usable(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """Mask of the edges long enough across the gravity axis to fix the yaw."""
+        min_length = self.cfg.min_edge_length_factor * self.tau
+        if min_length <= 0:
+            return np.ones(len(i), dtype=bool)
+        return ((horizontal_lengths(self.src, i, j) >= min_length)
+                & (horizontal_lengths(self.dst, i, j) >= min_length))
+
     def _keep_non_collinear(self, triples: np.ndarray, support: np.ndarray | None = None
                             ) -> tuple[np.ndarray, np.ndarray | None]:
-        min_length = self.cfg.min_edge_length_factor * self.tau
-        if min_length <= 0 or len(triples) == 0:
+        if len(triples) == 0:
             return triples, support
-        i, j = triples[:, 0], triples[:, 1]
-        ok = ((horizontal_lengths(self.src, i, j) >= min_length)
-              & (horizontal_lengths(self.dst, i, j) >= min_length))
+        ok = self._usable(triples[:, 0], triples[:, 1])
         self.stats['rejected_collinear'] += int((~ok).sum())
         return triples[ok], None if support is None else support[ok]
 

@@ -40,9 +40,7 @@ class ConsensusRecord:
         measure the chance consensus level.
         """
         inside = res <= self.tau
-        chance = np.maximum(inside[:unselected].sum(axis=1) - self.members, 0)
-        self.num_chance += len(chance)
-        self.num_zero += int(np.count_nonzero(chance == 0))
+        self._add_chance(inside[:unselected])
         self.num_exact += len(res)
         counts = inside.sum(axis=1)
         full = len(self.top_counts) >= _TOP_MODELS
@@ -56,6 +54,22 @@ class ConsensusRecord:
         masks = inside[new] if self.top_masks is None else np.concatenate(
             [self.top_masks, inside[new]])
         self.top_counts, self.top_masks = both[keep], masks[keep]
+
+    def add_chance(self, res: np.ndarray) -> None:
+        """
+        Record hypotheses drawn and scored only to measure the chance level (residual rows).
+
+        For a search whose every scored hypothesis was selected (4-DoF: an edge tournament
+        that ranks edges by nearly their consensus, guided draws): these rows compete for
+        neither the best model nor the runner-up, and do not count in the Bonferroni
+        correction, which is over the hypotheses that could have won.
+        """
+        self._add_chance(res <= self.tau)
+
+    def _add_chance(self, inside: np.ndarray) -> None:
+        chance = np.maximum(inside.sum(axis=1) - self.members, 0)
+        self.num_chance += len(chance)
+        self.num_zero += int(np.count_nonzero(chance == 0))
 
     def chance_level(self, p1: float) -> int:
         """
