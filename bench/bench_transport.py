@@ -22,6 +22,9 @@ xyz clouds).
 
 The publisher runs as ``--role pub`` in a child process; so does the subscriber
 (``--role sub``). Prints one JSON line per run and writes them all to ``--output``.
+
+``--netns PUB SUB`` runs the two in network namespaces joined by a link, as two hosts
+(discovery range SUBNET; shared memory is then not used); docs/transport.md sets them up.
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ import threading
 import time
 
 REPO = Path(__file__).resolve().parents[1]
-DOMAIN_ID = '79'
+DOMAIN_ID = '79'  # --domain
 SHIPPED = REPO / 'config' / 'fastdds_large_data.xml'
 
 # name -> (transport descriptors, use_builtin_transports) of a generated profile
@@ -72,10 +75,11 @@ def profile_xml(name: str) -> str:
             '</rtps></participant></profiles>')
 
 
-def setting_env(name: str, folder: Path) -> dict[str, str]:
+def setting_env(name: str, folder: Path, two_hosts: bool = False) -> dict[str, str]:
     """Return the environment of one process under setting ``name``."""
-    env = dict(os.environ, ROS_DOMAIN_ID=DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
-               PYTHONUNBUFFERED='1', FASTRTPS_DEFAULT_PROFILES_FILE='')
+    env = dict(os.environ, PYTHONUNBUFFERED='1',
+               ROS_AUTOMATIC_DISCOVERY_RANGE='SUBNET' if two_hosts else 'LOCALHOST',
+               FASTRTPS_DEFAULT_PROFILES_FILE='')
     env.pop('FASTDDS_BUILTIN_TRANSPORTS', None)
     if name == 'shipped':
         env['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(SHIPPED)
@@ -142,7 +146,7 @@ def run_sub(topic: str) -> int:
     threading.Thread(target=executor.spin, daemon=True).start()
     print('ready', flush=True)
     sys.stdin.readline()
-    print(json.dumps({'received': len(stamps)}), flush=True)
+    print(json.dumps({'received': len(stamps), 'stamps_ns': sorted(stamps)}), flush=True)
     os._exit(0)  # the executor thread may be inside a callback: no orderly shutdown needed
 
 
@@ -175,10 +179,10 @@ def run_pub(topic: str, clouds: str, rate: float, count: int, node: bool) -> int
     executor = SingleThreadedExecutor()
     executor.add_node(io)
     threading.Thread(target=executor.spin, daemon=True).start()
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + 180  # a node's registration process warms up first
     while not pub.get_subscription_count() or (node and values.get('worker.ready') != 'True'):
         if time.monotonic() > deadline:
-            print(json.dumps({'error': 'no subscriber matched in 60 s'}), flush=True)
+            print(json.dumps({'error': 'no subscriber ready in 180 s'}), flush=True)
             os._exit(1)
         time.sleep(0.05)
     time.sleep(1.0)  # let every locator of the match be known before the first message
@@ -199,7 +203,7 @@ def run_pub(topic: str, clouds: str, rate: float, count: int, node: bool) -> int
     if node:
         time.sleep(3.0)
         out.update({k: values.get(k) for k in ('sources.received', 'sources.lost_upstream',
-                                               'accounting.ok')})
+                                               'sources.period_s', 'accounting.ok')})
     print(json.dumps(out), flush=True)
     os._exit(0)
 
@@ -207,30 +211,33 @@ def run_pub(topic: str, clouds: str, rate: float, count: int, node: bool) -> int
 # --- one measurement ------------------------------------------------------------------------------
 
 def measure(clouds: str, rate: float, count: int, setting: str, node: bool,
-            folder: Path) -> dict:
+            folder: Path, netns: list[str] | None = None) -> dict:
     """Run one publisher/subscriber pair and return sent, received and the settings."""
     pub_set, _, sub_set = setting.partition('/')
     sub_set = sub_set or pub_set
+    pub_ns, sub_ns = ([['ip', 'netns', 'exec', n] for n in netns] if netns else ([], []))
     me = [sys.executable, str(Path(__file__).resolve())]
+    sub_env = setting_env(sub_set, folder, bool(netns))
     if node:
         sub = subprocess.Popen(
-            [sys.executable, '-m', 'cgags_ros.register_node', '--ros-args',
-             '-p', 'voxel_size:=1.0', '-p', 'target_durability:=transient_local',
-             '-p', 'diagnostics_period:=0.2'],
-            cwd=REPO, env=setting_env(sub_set, folder), stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL)
+            sub_ns + [sys.executable, '-m', 'cgags_ros.register_node', '--ros-args',
+                      '-p', 'voxel_size:=1.0', '-p', 'target_durability:=transient_local',
+                      '-p', 'diagnostics_period:=0.2'],
+            cwd=REPO, env=sub_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     else:
-        sub = subprocess.Popen(me + ['--role', 'sub'], env=setting_env(sub_set, folder),
+        sub = subprocess.Popen(sub_ns + me + ['--role', 'sub'], env=sub_env,
                                stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         while sub.stdout.readline().strip() != 'ready':
             pass
-    pub = subprocess.run(me + ['--role', 'pub', '--clouds', clouds, '--rate', str(rate),
-                               '--count', str(count)] + (['--node'] if node else []),
-                         env=setting_env(pub_set, folder), capture_output=True, text=True,
-                         timeout=120 + count / rate)
+    pub = subprocess.run(pub_ns + me + ['--role', 'pub', '--clouds', clouds, '--rate',
+                                        str(rate), '--count', str(count)]
+                         + (['--node'] if node else []),
+                         env=setting_env(pub_set, folder, bool(netns)), capture_output=True,
+                         text=True, timeout=240 + count / rate)
     lines = [ln for ln in pub.stdout.splitlines() if ln.startswith('{')]
     row = {'clouds': clouds, 'rate_hz': rate, 'pub': pub_set, 'sub': sub_set,
-           'subscriber': 'register_node' if node else 'rclpy'}
+           'subscriber': 'register_node' if node else 'rclpy',
+           'hosts': 'two (netns)' if netns else 'one'}
     row.update(json.loads(lines[-1]) if lines else {'error': pub.stderr[-500:]})
     if node:
         sub.send_signal(signal.SIGINT)
@@ -239,7 +246,12 @@ def measure(clouds: str, rate: float, count: int, setting: str, node: bool,
     else:
         time.sleep(2.0)  # the last message in flight
         out, _ = sub.communicate('stop\n', timeout=30)
-        row.update(json.loads(out.strip().splitlines()[-1]))
+        got = json.loads(out.strip().splitlines()[-1])
+        # how far apart, in sensor periods, the received scans are (1: none lost between)
+        steps = [round((b - a) * rate / 1e9) for a, b in zip(got['stamps_ns'],
+                                                             got['stamps_ns'][1:])]
+        row.update(received=got['received'],
+                   intervals_in_periods={k: steps.count(k) for k in sorted(set(steps))})
     return row
 
 
@@ -253,12 +265,16 @@ def main() -> int:
     parser.add_argument('--node', action='store_true',
                         help="the subscriber is register_node (its sources.received)")
     parser.add_argument('--topic', default='source_cloud')
+    parser.add_argument('--domain', default=DOMAIN_ID, help='ROS_DOMAIN_ID of the runs')
+    parser.add_argument('--netns', nargs=2, metavar=('PUB', 'SUB'),
+                        help='network namespaces of the publisher and the subscriber')
     parser.add_argument('--output', type=Path, default=Path('out/bench/transport.json'))
     args = parser.parse_args()
     if args.role == 'sub':
         return run_sub(args.topic)
     if args.role == 'pub':
         return run_pub(args.topic, args.clouds[0], args.rate[0], args.count, args.node)
+    os.environ['ROS_DOMAIN_ID'] = args.domain
     for s in args.settings:
         if any(part not in SETTINGS for part in s.split('/')):
             parser.error(f'unknown setting {s!r} (one of {", ".join(SETTINGS)}, or PUB/SUB)')
@@ -267,7 +283,8 @@ def main() -> int:
         for clouds in args.clouds:
             for rate in args.rate:
                 for setting in args.settings:
-                    row = measure(clouds, rate, args.count, setting, args.node, Path(tmp))
+                    row = measure(clouds, rate, args.count, setting, args.node, Path(tmp),
+                                  args.netns)
                     print(json.dumps(row), flush=True)
                     rows.append(row)
     args.output.parent.mkdir(parents=True, exist_ok=True)

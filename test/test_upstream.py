@@ -39,6 +39,22 @@ def test_heavy_random_loss_is_counted_between_first_and_last_scan(kept_fraction)
     assert abs(loss.period_ns - PERIOD) < 3 * MS
 
 
+def test_heavy_loss_without_two_scans_back_to_back_still_finds_the_period():
+    rng = np.random.default_rng(5)
+    steps = rng.choice([2, 3, 4, 5, 7], 40)  # no interval of one period
+    kept = np.concatenate([[0], np.cumsum(steps)])
+    loss = feed(kept * PERIOD + rng.integers(-2 * MS, 2 * MS, kept.size))
+    assert loss.lost == kept[-1] + 1 - kept.size
+    assert abs(loss.period_ns - PERIOD) < 1 * MS
+
+
+def test_a_sensor_slower_than_its_gaps_suggest_is_not_divided():
+    # a regular 2.5-Hz stream with a few scans missing: its period stays 400 ms
+    kept = np.delete(np.arange(60), [10, 20, 21, 40])
+    loss = feed(kept * 4 * PERIOD)
+    assert loss.period_ns == 4 * PERIOD and loss.lost == 4
+
+
 def test_jitter_alone_is_not_a_loss_but_one_missing_scan_is():
     rng = np.random.default_rng(0)
     stamps = np.arange(200) * PERIOD + rng.integers(-5 * MS, 5 * MS, 200)

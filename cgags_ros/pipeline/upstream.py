@@ -10,9 +10,11 @@ is a lower bound.
 
 The period is learnt from the stamps themselves: the median of the shortest intervals that
 agree within 25 % (at least two of them, so a single odd interval, e.g. a duplicated scan,
-does not set it); the stamps' jitter must stay well below a quarter period, as a LiDAR's
-does. The period is then refined over the longer intervals as whole numbers of periods;
-the count never goes down.
+does not set it), or a half, third or quarter of it when nearly all intervals are whole
+multiples of that (under heavy loss no two scans may arrive back to back); it is then
+refined over the longer intervals. The stamps' jitter must stay well below a quarter
+period, as a LiDAR's does. Losses that leave only even multiples of the period look like a
+slower sensor, another reason the count is a lower bound; it never goes down.
 Stamps that go backwards (a bag restarted, a clock reset) start a new stream; a gap longer
 than ``pause_s`` is a pause of the sensor, not a loss.
 """
@@ -25,6 +27,10 @@ import statistics
 GAP_PERIODS = 1.5  # an interval above this many periods is a gap
 CLUSTER = 1.25  # intervals within this factor of the shortest are single periods
 MIN_AGREEING = 2  # single-period intervals needed before the period is trusted
+MAX_DIVISOR = 4  # the shortest agreeing intervals may be up to this many periods long
+ON_GRID = 0.2  # an interval within this many periods of a whole number fits a period
+FIT = 0.9  # fraction of intervals that must fit a shorter candidate period
+MIN_FOR_DIVISOR = 5  # intervals needed before a shorter period than the shortest is tried
 
 
 class UpstreamLoss:
@@ -63,12 +69,30 @@ class UpstreamLoss:
         for i, shortest in enumerate(ordered[:1 - MIN_AGREEING]):
             single = [iv for iv in ordered[i:] if iv <= CLUSTER * shortest]
             if len(single) >= MIN_AGREEING:
+                rough = self._divide(statistics.median(single), ordered[i:])
                 # Refined over the longer intervals as whole numbers of periods: long gaps
                 # average the stamps' jitter out of the period.
-                rough = statistics.median(single)
                 periods = sum(round(iv / rough) for iv in ordered[i:])
                 self.period_ns = int(round(sum(ordered[i:]) / periods))
                 return
+
+    @staticmethod
+    def _divide(shortest: float, intervals: list[int]) -> float:
+        """
+        Return the longest period, ``shortest / k``, that the intervals are multiples of.
+
+        When scans are lost at random, no two may arrive back to back for a while: the
+        shortest intervals are then two or three periods, and intervals of 3 and 5 periods
+        betray the true one.
+        """
+        if len(intervals) < MIN_FOR_DIVISOR:
+            return shortest
+        for k in range(1, MAX_DIVISOR + 1):
+            period = shortest / k
+            fits = sum(abs(iv / period - round(iv / period)) <= ON_GRID for iv in intervals)
+            if fits >= FIT * len(intervals):
+                return period
+        return shortest
 
     def _missing(self, interval_ns: int) -> int:
         """Scans missing in one interval (0 until the period is known)."""

@@ -53,6 +53,8 @@ def build_statistics(snapshot: Mapping[str, Any], voxel_size: float,
     stats.update({f'{PAIRING}{k}': v for k, v in pairing.items()})
     for side in ('sources', 'targets'):
         stats.update({f'{side}.{k}': v for k, v in snapshot['accounting'][side].items()})
+    if snapshot.get('source_period_s'):  # learnt from the stamps; lost_upstream relies on it
+        stats['sources.period_s'] = round(snapshot['source_period_s'], 6)
     stats[ACCOUNTING_OK] = snapshot['accounting']['ok']
     if snapshot['failing']:
         stats['worker.failing'] = snapshot['failing']

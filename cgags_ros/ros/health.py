@@ -105,7 +105,7 @@ class NodeHealth:
                     'latencies': list(self.latencies), 'pairing': pairing,
                     'failing': self.failing}
             in_progress = self.in_progress
-            lost_upstream = self.upstream.lost
+            lost_upstream, period_ns = self.upstream.lost, self.upstream.period_ns
         target_rejects = sum(v for k, v in rejected.items() if k.startswith('target_'))
         sources = {'received': counts.get('received_source', 0),
                    'published': counts.get('published', 0),
@@ -116,6 +116,7 @@ class NodeHealth:
         targets = {'received': counts.get('received_target', 0), 'used': pairing['targets_used'],
                    'rejected': target_rejects, 'dropped': pairing['dropped_targets'],
                    'pending': pairing['targets_held']}
+        snap['source_period_s'] = period_ns * 1e-9 if period_ns else None
         snap['accounting'] = {
             'sources': sources, 'targets': targets,
             'ok': (sources['received'] == sources['published'] + sources['rejected']
