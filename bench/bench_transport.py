@@ -208,7 +208,7 @@ def run_pub(topic: str, clouds: str, rate: float, count: int, node: bool) -> int
     os._exit(0)
 
 
-# --- one measurement ------------------------------------------------------------------------------
+# --- one measurement -------------------------------------------------------------------------
 
 def measure(clouds: str, rate: float, count: int, setting: str, node: bool,
             folder: Path, netns: list[str] | None = None) -> dict:
@@ -263,7 +263,7 @@ def main() -> int:
     parser.add_argument('--count', type=int, default=100, help='clouds per run')
     parser.add_argument('--settings', nargs='+', default=['default', 'shipped'])
     parser.add_argument('--node', action='store_true',
-                        help="the subscriber is register_node (its sources.received)")
+                        help='the subscriber is register_node (its sources.received)')
     parser.add_argument('--topic', default='source_cloud')
     parser.add_argument('--domain', default=DOMAIN_ID, help='ROS_DOMAIN_ID of the runs')
     parser.add_argument('--netns', nargs=2, metavar=('PUB', 'SUB'),

@@ -220,8 +220,8 @@ def read_pcd_fields(path: str | Path) -> np.ndarray:
     with open(path, 'rb') as f:
         header = _pcd_header(f, path)
         if header['DATA'][0] != 'binary':
-            raise InvalidInputError(f"{path}: read_pcd_fields reads DATA binary, not "
-                                    f"{header['DATA'][0]}")
+            kind = header['DATA'][0]
+            raise InvalidInputError(f'{path}: read_pcd_fields reads DATA binary, not {kind}')
         table = _pcd_binary_table(f, header, path)
     dtype = np.dtype([(name, table.dtype[name].base) if table.dtype[name].shape == (1,)
                       else (name, table.dtype[name]) for name in table.dtype.names])

@@ -95,7 +95,7 @@ class UpstreamLoss:
         return shortest
 
     def _missing(self, interval_ns: int) -> int:
-        """Scans missing in one interval (0 until the period is known)."""
+        """Return the scans missing in one interval (0 until the period is known)."""
         if self.period_ns is None or interval_ns <= GAP_PERIODS * self.period_ns:
             return 0
         return max(round(interval_ns / self.period_ns) - 1, 1)

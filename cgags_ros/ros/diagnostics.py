@@ -82,6 +82,9 @@ def diagnostic_array(stats: Mapping[str, Any], name: str, hardware_id: str,
     elif not stats.get('received_source') or not stats.get('received_target'):
         status.level = DiagnosticStatus.STALE
         status.message = 'waiting for source and target clouds'
+        if stats.get('received_target'):  # the first thing a user of big scans sees
+            status.message = ('waiting for source clouds (large clouds published without '
+                              f'the Fast DDS profile never arrive: {user_line()})')
     elif as_int(stats.get(LOST_UPSTREAM)):
         status.level = DiagnosticStatus.WARN
         status.message = lost_upstream_message(stats[LOST_UPSTREAM])
