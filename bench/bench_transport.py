@@ -23,7 +23,8 @@ xyz clouds).
 The publisher runs as ``--role pub`` in a child process; so does the subscriber
 (``--role sub``). Prints one JSON line per run and writes them all to ``--output``.
 
-``--netns PUB SUB`` runs the two in network namespaces joined by a link, as two hosts
+``--discovery SUBNET`` (ROS's default; LOCALHOST otherwise, as the tests run) changes
+what Fast DDS does on one host. ``--netns PUB SUB`` runs the two in network namespaces joined by a link, as two hosts
 (discovery range SUBNET; shared memory is then not used); docs/transport.md sets them up.
 """
 
@@ -75,10 +76,9 @@ def profile_xml(name: str) -> str:
             '</rtps></participant></profiles>')
 
 
-def setting_env(name: str, folder: Path, two_hosts: bool = False) -> dict[str, str]:
+def setting_env(name: str, folder: Path, discovery: str) -> dict[str, str]:
     """Return the environment of one process under setting ``name``."""
-    env = dict(os.environ, PYTHONUNBUFFERED='1',
-               ROS_AUTOMATIC_DISCOVERY_RANGE='SUBNET' if two_hosts else 'LOCALHOST',
+    env = dict(os.environ, PYTHONUNBUFFERED='1', ROS_AUTOMATIC_DISCOVERY_RANGE=discovery,
                FASTRTPS_DEFAULT_PROFILES_FILE='')
     env.pop('FASTDDS_BUILTIN_TRANSPORTS', None)
     if name == 'shipped':
@@ -211,13 +211,14 @@ def run_pub(topic: str, clouds: str, rate: float, count: int, node: bool) -> int
 # --- one measurement -------------------------------------------------------------------------
 
 def measure(clouds: str, rate: float, count: int, setting: str, node: bool,
-            folder: Path, netns: list[str] | None = None) -> dict:
+            folder: Path, netns: list[str] | None = None, discovery: str = 'LOCALHOST') -> dict:
     """Run one publisher/subscriber pair and return sent, received and the settings."""
     pub_set, _, sub_set = setting.partition('/')
     sub_set = sub_set or pub_set
     pub_ns, sub_ns = ([['ip', 'netns', 'exec', n] for n in netns] if netns else ([], []))
     me = [sys.executable, str(Path(__file__).resolve())]
-    sub_env = setting_env(sub_set, folder, bool(netns))
+    discovery = 'SUBNET' if netns else discovery
+    sub_env = setting_env(sub_set, folder, discovery)
     if node:
         sub = subprocess.Popen(
             sub_ns + [sys.executable, '-m', 'cgags_ros.register_node', '--ros-args',
@@ -232,12 +233,12 @@ def measure(clouds: str, rate: float, count: int, setting: str, node: bool,
     pub = subprocess.run(pub_ns + me + ['--role', 'pub', '--clouds', clouds, '--rate',
                                         str(rate), '--count', str(count)]
                          + (['--node'] if node else []),
-                         env=setting_env(pub_set, folder, bool(netns)), capture_output=True,
+                         env=setting_env(pub_set, folder, discovery), capture_output=True,
                          text=True, timeout=240 + count / rate)
     lines = [ln for ln in pub.stdout.splitlines() if ln.startswith('{')]
     row = {'clouds': clouds, 'rate_hz': rate, 'pub': pub_set, 'sub': sub_set,
            'subscriber': 'register_node' if node else 'rclpy',
-           'hosts': 'two (netns)' if netns else 'one'}
+           'hosts': 'two (netns)' if netns else 'one', 'discovery': discovery}
     row.update(json.loads(lines[-1]) if lines else {'error': pub.stderr[-500:]})
     if node:
         sub.send_signal(signal.SIGINT)
@@ -266,6 +267,8 @@ def main() -> int:
                         help='the subscriber is register_node (its sources.received)')
     parser.add_argument('--topic', default='source_cloud')
     parser.add_argument('--domain', default=DOMAIN_ID, help='ROS_DOMAIN_ID of the runs')
+    parser.add_argument('--discovery', choices=('LOCALHOST', 'SUBNET'), default='LOCALHOST',
+                        help='ROS_AUTOMATIC_DISCOVERY_RANGE on one host (--netns: SUBNET)')
     parser.add_argument('--netns', nargs=2, metavar=('PUB', 'SUB'),
                         help='network namespaces of the publisher and the subscriber')
     parser.add_argument('--output', type=Path, default=Path('out/bench/transport.json'))
@@ -284,7 +287,7 @@ def main() -> int:
             for rate in args.rate:
                 for setting in args.settings:
                     row = measure(clouds, rate, args.count, setting, args.node, Path(tmp),
-                                  args.netns)
+                                  args.netns, args.discovery)
                     print(json.dumps(row), flush=True)
                     rows.append(row)
     args.output.parent.mkdir(parents=True, exist_ok=True)
