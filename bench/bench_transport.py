@@ -24,8 +24,9 @@ The publisher runs as ``--role pub`` in a child process; so does the subscriber
 (``--role sub``). Prints one JSON line per run and writes them all to ``--output``.
 
 ``--discovery SUBNET`` (ROS's default; LOCALHOST otherwise, as the tests run) changes
-what Fast DDS does on one host. ``--netns PUB SUB`` runs the two in network namespaces joined by a link, as two hosts
-(discovery range SUBNET; shared memory is then not used); docs/transport.md sets them up.
+what Fast DDS does on one host. ``--netns PUB SUB`` runs the two in network namespaces
+joined by a link, as two hosts (discovery range SUBNET; shared memory is then not used);
+docs/transport.md sets them up.
 """
 
 from __future__ import annotations

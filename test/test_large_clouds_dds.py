@@ -128,9 +128,14 @@ def test_fast_dds_defaults_lose_scans_and_the_node_counts_them(diag, data_dir, t
     missing = COUNT - received
     assert missing > 0.01 * COUNT, (f'Fast DDS defaults delivered {received} of {COUNT} '
                                     '4-MB scans: the loss this test shows did not happen')
-    # Counted from gaps in the stamps: never more than went missing (scans lost before the
-    # first or after the last received one leave no gap; test_upstream.py checks the count).
-    assert 0 < lost <= missing, values
+    assert lost <= missing, values  # never more than went missing
+    balanced(values)
+    if received < 3:
+        # Two intervals are the fewest a period is learnt from: with (almost) nothing
+        # arriving, sources.received itself shows the loss (seen: 2 of 100 in one run).
+        return
+    # Counted from gaps in the stamps (scans lost before the first or after the last
+    # received one leave no gap; test_upstream.py checks the count).
+    assert lost > 0, values
     assert 'source scans lost before reaching the node' in log
     assert PROFILE_VARIABLE in log  # the warning names the fix
-    balanced(values)
