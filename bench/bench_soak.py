@@ -164,7 +164,8 @@ def main() -> int:  # noqa: C901 - one linear script: start, publish, sample, re
         'diagnostics_messages': state['messages'], 'unbalanced_messages': state['unbalanced'],
         'final': {key: final.get(key) for key in (
             'sources.received', 'sources.published', 'sources.rejected', 'sources.dropped',
-            'sources.pending', 'worker.crashes', 'accounting.ok')},
+            'sources.pending', 'sources.lost_upstream', 'transport.profile', 'worker.crashes',
+            'accounting.ok')},
         'rss_after_warm_up_mb': {'first': total[0], 'last': total[-1],
                                  'max': max(total), 'growth': total[-1] - total[0]},
         'node_exit_code': proc.returncode}

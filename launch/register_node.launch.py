@@ -7,21 +7,30 @@ Launch the registration node with the package's default parameters.
 
 The YAML (default: share/cgags_ros/config/register_node.yaml, generated from the config
 dataclasses) is loaded first, so any key in ``params_file`` overrides it.
+
+Every node of this launch (add the LiDAR driver here) gets Fast DDS's large-data profile,
+share/cgags_ros/config/fastdds_large_data.xml, unless FASTRTPS_DEFAULT_PROFILES_FILE is
+already set: without it, clouds above about half a megabyte are mostly lost between
+processes (docs/transport.md). A driver started elsewhere needs it in its own shell.
 """
 
 import os
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument
-from launch.substitutions import LaunchConfiguration
+from launch.actions import DeclareLaunchArgument, SetEnvironmentVariable
+from launch.substitutions import EnvironmentVariable, LaunchConfiguration
 from launch_ros.actions import Node
 from launch_ros.parameter_descriptions import ParameterValue
 
 
 def generate_launch_description() -> LaunchDescription:
-    defaults = os.path.join(get_package_share_directory('cgags_ros'), 'config',
-                            'register_node.yaml')
+    config = os.path.join(get_package_share_directory('cgags_ros'), 'config')
+    defaults = os.path.join(config, 'register_node.yaml')
+    profile = SetEnvironmentVariable(
+        'FASTRTPS_DEFAULT_PROFILES_FILE',
+        EnvironmentVariable('FASTRTPS_DEFAULT_PROFILES_FILE',
+                            default_value=os.path.join(config, 'fastdds_large_data.xml')))
     args = [
         DeclareLaunchArgument('source_topic', default_value='source_cloud',
                               description='PointCloud2 to align (sensor frame).'),
@@ -47,4 +56,4 @@ def generate_launch_description() -> LaunchDescription:
         remappings=[('source_cloud', LaunchConfiguration('source_topic')),
                     ('target_cloud', LaunchConfiguration('target_topic'))],
     )
-    return LaunchDescription(args + [node])
+    return LaunchDescription(args + [profile, node])

@@ -304,6 +304,7 @@ def test_colcon_build_installs_a_runnable_node(tmp_path, data_dir, monkeypatch):
     exe = prefix / 'lib' / PACKAGE / 'register_node'
     assert exe.is_file() and os.access(exe, os.X_OK), listing
     for rel in [f'share/{PACKAGE}/package.xml', f'share/{PACKAGE}/config/register_node.yaml',
+                f'share/{PACKAGE}/config/fastdds_large_data.xml',
                 f'share/{PACKAGE}/launch/register_node.launch.py',
                 f'share/ament_index/resource_index/packages/{PACKAGE}']:
         assert (prefix / rel).is_file(), f'{rel} not installed:\n{listing}'

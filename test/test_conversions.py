@@ -9,7 +9,7 @@ from __future__ import annotations
 import types
 
 from cgags_ros import geometry
-from cgags_ros.errors import EmptyCloudError, MalformedCloudError
+from cgags_ros.errors import EmptyCloudError, InvalidInputError, MalformedCloudError
 from cgags_ros.io import pointcloud2 as pc2
 from cgags_ros.io.bag import read_messages
 from cgags_ros.ros import conversions as conv
@@ -167,3 +167,21 @@ def test_pose_round_trip_rclpy_and_duck_typed():
     np.testing.assert_allclose(pc2.pose_to_transform(duck), T, atol=1e-12)
     assert (pc2.stamp_to_ns(conv.ns_to_stamp(1_700_000_000_500_000_001))
             == 1_700_000_000_500_000_001)
+
+
+def test_fields_to_pointcloud2_carries_every_field_and_decodes_to_xyz():
+    table = np.zeros(50, dtype=[('x', '<f4'), ('y', '<f4'), ('z', '<f4'),
+                                ('intensity', '<f4'), ('ring', '<u2'), ('t', '<f8')])
+    xyz = RNG.uniform(-10, 10, (50, 3))
+    for i, c in enumerate('xyz'):
+        table[c] = xyz[:, i]
+    table['ring'] = np.arange(50)
+    msg = conv.fields_to_pointcloud2(table)
+    assert [(f.name, f.offset, f.datatype) for f in msg.fields] == [
+        ('x', 0, 7), ('y', 4, 7), ('z', 8, 7), ('intensity', 12, 7), ('ring', 16, 4),
+        ('t', 18, 8)]
+    assert msg.point_step == 26 and msg.row_step == 26 * 50 and msg.is_dense
+    assert bytes(msg.data) == table.tobytes()
+    np.testing.assert_allclose(pc2.pointcloud2_to_xyz(msg), xyz.astype(np.float32))
+    with pytest.raises(InvalidInputError, match='PointField'):
+        conv.fields_to_pointcloud2(np.zeros(3, dtype=[('x', '<f4'), ('v', '<f4', (3,))]))

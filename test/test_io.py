@@ -2,7 +2,7 @@
 
 from cgags_ros.datasets.gt_pairs import find_pair, parse_gt_pairs, read_gt_pairs
 from cgags_ros.errors import InvalidInputError
-from cgags_ros.io.clouds import read_cloud, write_cloud
+from cgags_ros.io.clouds import read_cloud, read_pcd_fields, write_cloud
 import numpy as np
 import pytest
 
@@ -95,3 +95,15 @@ def test_gt_pairs_format_errors():
         parse_gt_pairs('1 0 0 0\n')
     with pytest.raises(InvalidInputError, match='not a rigid'):
         parse_gt_pairs(good.replace('0 1 0 0', '0 2 0 0'))
+
+
+def test_read_pcd_fields_keeps_every_field_of_a_kitti_scan(data_dir):
+    path = data_dir / 'kitti/seq00_16scans/pcd/000000.pcd'
+    table = read_pcd_fields(path)
+    assert table.dtype.names == ('x', 'y', 'z', 'intensity', 'normal_x', 'normal_y',
+                                 'normal_z', 'curvature')
+    assert table.dtype.itemsize == 32 and table.shape == (124668,)
+    np.testing.assert_array_equal(np.stack([table[c] for c in 'xyz'], axis=1),
+                                  read_cloud(path).astype(np.float32))
+    with pytest.raises(InvalidInputError, match='binary'):
+        read_pcd_fields(data_dir / 'objects/pcl/bun0.pcd')  # an ascii PCD

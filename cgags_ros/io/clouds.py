@@ -204,15 +204,40 @@ def _read_pcd(path: Path) -> np.ndarray:
             table = np.loadtxt(rows[:count], ndmin=2) if count else np.zeros((0, len(columns)))
             return table[:, [columns.index(c) for c in 'xyz']]
         if data == 'binary':
-            dtype = np.dtype([(name, '<' + PCD_TYPES[(t, s)], (int(c),))
-                              for name, s, t, c in zip(fields, header['SIZE'], header['TYPE'],
-                                                       header['COUNT'])])
-            raw = f.read(count * dtype.itemsize)
-            if len(raw) < count * dtype.itemsize:
-                raise InvalidInputError(f'{path}: PCD file is truncated')
-            table = np.frombuffer(raw, dtype=dtype)
+            table = _pcd_binary_table(f, header, path)
             return np.stack([table[c][:, 0] for c in 'xyz'], axis=1).astype(np.float64)
     return _read_pcd_open3d(path, count)
+
+
+def read_pcd_fields(path: str | Path) -> np.ndarray:
+    """
+    Every field of a binary PCD file as a structured array (one record per point).
+
+    Field names, types and order are the file's (e.g. x, y, z, intensity, normals); fields
+    with COUNT 1 are scalars. Units are the file's (metres for x, y, z).
+    """
+    path = Path(path)
+    with open(path, 'rb') as f:
+        header = _pcd_header(f, path)
+        if header['DATA'][0] != 'binary':
+            kind = header['DATA'][0]
+            raise InvalidInputError(f'{path}: read_pcd_fields reads DATA binary, not {kind}')
+        table = _pcd_binary_table(f, header, path)
+    dtype = np.dtype([(name, table.dtype[name].base) if table.dtype[name].shape == (1,)
+                      else (name, table.dtype[name]) for name in table.dtype.names])
+    return table.view(dtype) if dtype.itemsize == table.dtype.itemsize else table
+
+
+def _pcd_binary_table(f, header: dict[str, list[str]], path: Path) -> np.ndarray:
+    """Read the points of a binary PCD after its header (one record per point)."""
+    count = int(header['POINTS'][0])
+    dtype = np.dtype([(name, '<' + PCD_TYPES[(t, s)], (int(c),))
+                      for name, s, t, c in zip(header['FIELDS'], header['SIZE'],
+                                               header['TYPE'], header['COUNT'])])
+    raw = f.read(count * dtype.itemsize)
+    if len(raw) < count * dtype.itemsize:
+        raise InvalidInputError(f'{path}: PCD file is truncated')
+    return np.frombuffer(raw, dtype=dtype)
 
 
 def _pcd_header(f, path: Path) -> dict[str, list[str]]:

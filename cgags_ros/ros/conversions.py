@@ -20,7 +20,7 @@ from std_msgs.msg import Header
 
 from ..errors import InvalidInputError
 from ..geometry import matrix_to_quaternion
-from ..io.pointcloud2 import data_bytes, FLOAT32
+from ..io.pointcloud2 import data_bytes, FLOAT32, POINT_FIELD_TYPES
 
 
 def xyz_to_pointcloud2(points: np.ndarray, header: Any = None) -> Any:
@@ -49,6 +49,43 @@ def xyz_to_pointcloud2(points: np.ndarray, header: Any = None) -> Any:
     # array.array('B') takes rclpy's fast path; a bytes/list value is checked byte by byte.
     buf = array.array('B')
     buf.frombytes(pts32.tobytes())
+    msg.data = buf
+    return msg
+
+
+def fields_to_pointcloud2(table: np.ndarray, header: Any = None) -> Any:
+    """
+    Build a dense, unorganized ``sensor_msgs/PointCloud2`` carrying every field of ``table``.
+
+    ``table`` is a structured array, one record per point, of numeric scalar fields (e.g.
+    :func:`cgags_ros.io.clouds.read_pcd_fields`: x, y, z in metres, intensity, normals...);
+    the layout is the array's, little-endian. ``header`` as in :func:`xyz_to_pointcloud2`.
+
+    :raises InvalidInputError: for a field that is not a numeric scalar of a PointField type.
+    """
+    table = np.ascontiguousarray(table)
+    names = table.dtype.names or ()
+    datatypes = {np.dtype(name.lower()): code for code, (name, _) in POINT_FIELD_TYPES.items()}
+    fields = []
+    for name in names:
+        kind, offset = table.dtype.fields[name][:2]
+        if kind.shape or kind.newbyteorder('<') not in datatypes:
+            raise InvalidInputError(f'field {name!r} of type {kind} has no PointField type')
+        if kind.byteorder == '>':
+            raise InvalidInputError(f'field {name!r} is big-endian')
+        fields.append(PointField(name=name, offset=int(offset),
+                                 datatype=datatypes[kind.newbyteorder('<')], count=1))
+    msg = PointCloud2()
+    if header is not None:
+        msg.header = header
+    msg.height, msg.width = 1, int(table.shape[0])
+    msg.fields = fields
+    msg.is_bigendian = False
+    msg.point_step = table.dtype.itemsize
+    msg.row_step = msg.point_step * msg.width
+    msg.is_dense = all(np.isfinite(table[c]).all() for c in 'xyz' if c in names)
+    buf = array.array('B')
+    buf.frombytes(table.tobytes())
     msg.data = buf
     return msg
 

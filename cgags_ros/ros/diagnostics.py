@@ -4,8 +4,9 @@ The node's /diagnostics: one flat key space, built here and read back by live re
 :func:`build_statistics` makes the keys the node publishes; :func:`accounted_sources` and
 :func:`last_result` read them back (from the string values a DiagnosticStatus carries),
 so the names are defined once. ``sources.*`` and ``targets.*`` are the accounting buckets
-of :mod:`.health` (``accounting.ok``: they balance); ``worker.*`` and ``memory.*`` the
-registration process and the resident memory (MB).
+of :mod:`.health` (``accounting.ok``: they balance; ``sources.lost_upstream``, scans that
+never arrived, stands outside the balance); ``worker.*`` and ``memory.*`` the registration
+process and the resident memory (MB); ``transport.profile`` the Fast DDS profile loaded.
 """
 
 from __future__ import annotations
@@ -15,12 +16,15 @@ from typing import Any, Mapping
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
 
+from .transport import user_line
+
 REJECTED = 'rejected.'  # rejected.<cause>: clouds or pairs the node refused, per cause
 PAIRING = 'pairing.'  # pairing.<counter> of cgags_ros.pipeline.pairing.Pairer.counters()
 DROPPED = PAIRING + 'dropped.'  # pairing.dropped.<reason>
 LAST = 'last_'  # last_<field>: the most recent registration
 LAST_TIMING = 'last_timing.'  # last_timing.<stage>: its stage times, seconds
 ACCOUNTING_OK = 'accounting.ok'
+LOST_UPSTREAM = 'sources.lost_upstream'
 
 
 def build_statistics(snapshot: Mapping[str, Any], voxel_size: float,
@@ -49,6 +53,8 @@ def build_statistics(snapshot: Mapping[str, Any], voxel_size: float,
     stats.update({f'{PAIRING}{k}': v for k, v in pairing.items()})
     for side in ('sources', 'targets'):
         stats.update({f'{side}.{k}': v for k, v in snapshot['accounting'][side].items()})
+    if snapshot.get('source_period_s'):  # learnt from the stamps; lost_upstream relies on it
+        stats['sources.period_s'] = round(snapshot['source_period_s'], 6)
     stats[ACCOUNTING_OK] = snapshot['accounting']['ok']
     if snapshot['failing']:
         stats['worker.failing'] = snapshot['failing']
@@ -76,6 +82,12 @@ def diagnostic_array(stats: Mapping[str, Any], name: str, hardware_id: str,
     elif not stats.get('received_source') or not stats.get('received_target'):
         status.level = DiagnosticStatus.STALE
         status.message = 'waiting for source and target clouds'
+        if stats.get('received_target'):  # the first thing a user of big scans sees
+            status.message = ('waiting for source clouds (large clouds published without '
+                              f'the Fast DDS profile never arrive: {user_line()})')
+    elif as_int(stats.get(LOST_UPSTREAM)):
+        status.level = DiagnosticStatus.WARN
+        status.message = lost_upstream_message(stats[LOST_UPSTREAM])
     elif stats.get(f'{LAST}valid') is False:
         status.level = DiagnosticStatus.WARN
         status.message = f"last registration invalid: {stats.get(f'{LAST}reason', '')}"
@@ -88,6 +100,13 @@ def diagnostic_array(stats: Mapping[str, Any], name: str, hardware_id: str,
     msg = DiagnosticArray(status=[status])
     msg.header.stamp = stamp
     return msg
+
+
+def lost_upstream_message(lost: Any) -> str:
+    """Return the warning for source scans lost before the node, naming the fix."""
+    return (f'{lost} source scans lost before reaching the node (gaps in their stamps); '
+            f'large clouds need the Fast DDS profile in the publishing process too: '
+            f'{user_line()} in its shell (docs/transport.md)')
 
 
 def accounted_sources(values: Mapping[str, str]) -> int:

@@ -5,7 +5,9 @@ Sources: published, rejected (per cause: the cloud could not be decoded, or its 
 or was invalid), dropped (per pairing reason) or pending (waiting for a target, queued, or
 being registered). Targets: used, rejected, dropped or held. The counters change under one
 lock, together with the pairer's, so every snapshot balances exactly; /diagnostics carries
-the buckets and ``accounting.ok``.
+the buckets and ``accounting.ok``. Sources that never arrived are outside that balance:
+``sources.lost_upstream`` counts the gaps in the received source stamps
+(:class:`~cgags_ros.pipeline.upstream.UpstreamLoss`).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import time
 from typing import Any
 
 from ..pipeline.pairing import Pair, Pairer
+from ..pipeline.upstream import UpstreamLoss
 
 LOG_REPEAT_S = 30.0  # a cause already logged is logged again at most this often
 
@@ -26,6 +29,7 @@ class NodeHealth:
     def __init__(self, pairer: Pairer):
         self.lock = threading.Lock()  # held around every change of these and the pairer
         self.pairer = pairer
+        self.upstream = UpstreamLoss()
         self.counts: collections.Counter[str] = collections.Counter()
         self.rejected: collections.Counter[str] = collections.Counter()
         self.last: dict[str, Any] = {}
@@ -35,16 +39,23 @@ class NodeHealth:
         self._logged: dict[str, float] = {}
 
     def receive(self, role: str, stamp_ns: int, frame_id: str, payload: Any,
-                rejection: str = '') -> None:
-        """Count a received cloud: pair it, or count its ``rejection`` cause."""
+                rejection: str = '') -> int:
+        """
+        Count a received cloud: pair it, or count its ``rejection`` cause.
+
+        :returns: how many more sources its stamp shows lost upstream (a stamp of 0, when
+            the header could not be read, shows nothing).
+        """
         with self.lock:
             self.counts[f'received_{role}'] += 1
+            lost = self.upstream.add(stamp_ns) if role == 'source' and stamp_ns > 0 else 0
             if rejection:
                 self.rejected[rejection] += 1
             elif role == 'source':
                 self.pairer.add_source(stamp_ns, frame_id, payload)
             else:
                 self.pairer.add_target(stamp_ns, frame_id, payload)
+            return lost
 
     def take(self, timeout: float) -> Pair | None:
         """Return the next ready pair (now in progress), or None after ``timeout`` s."""
@@ -68,13 +79,22 @@ class NodeHealth:
 
     def reject_count(self, cause: str) -> tuple[int, bool]:
         """Return (rejections of ``cause`` so far, whether to log this one)."""
-        now = time.monotonic()
         with self.lock:
-            last = self._logged.get(cause)
-            due = last is None or now - last >= LOG_REPEAT_S
-            if due:
-                self._logged[cause] = now
-            return self.rejected[cause], due
+            return self.rejected[cause], self._log_due(cause)
+
+    def lost_upstream(self) -> tuple[int, bool]:
+        """Return (sources lost upstream so far, whether to log it now)."""
+        with self.lock:
+            return self.upstream.lost, self._log_due('lost_upstream')
+
+    def _log_due(self, cause: str) -> bool:
+        """Tell whether ``cause`` is to be logged now (first time, then every 30 s)."""
+        now = time.monotonic()
+        last = self._logged.get(cause)
+        due = last is None or now - last >= LOG_REPEAT_S
+        if due:
+            self._logged[cause] = now
+        return due
 
     def snapshot(self) -> dict[str, Any]:
         """Return counts, rejections, last result, latencies, pairing and the balance."""
@@ -85,15 +105,18 @@ class NodeHealth:
                     'latencies': list(self.latencies), 'pairing': pairing,
                     'failing': self.failing}
             in_progress = self.in_progress
+            lost_upstream, period_ns = self.upstream.lost, self.upstream.period_ns
         target_rejects = sum(v for k, v in rejected.items() if k.startswith('target_'))
         sources = {'received': counts.get('received_source', 0),
                    'published': counts.get('published', 0),
                    'rejected': sum(rejected.values()) - target_rejects,
                    'dropped': pairing['dropped_sources'],
-                   'pending': pairing['waiting_sources'] + pairing['pending'] + in_progress}
+                   'pending': pairing['waiting_sources'] + pairing['pending'] + in_progress,
+                   'lost_upstream': lost_upstream}
         targets = {'received': counts.get('received_target', 0), 'used': pairing['targets_used'],
                    'rejected': target_rejects, 'dropped': pairing['dropped_targets'],
                    'pending': pairing['targets_held']}
+        snap['source_period_s'] = period_ns * 1e-9 if period_ns else None
         snap['accounting'] = {
             'sources': sources, 'targets': targets,
             'ok': (sources['received'] == sources['published'] + sources['rejected']

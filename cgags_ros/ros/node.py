@@ -16,8 +16,8 @@ Topics (relative names; remap them):
     ~/aligned_cloud (sensor_msgs/PointCloud2, out, ``publish_aligned_cloud``): the source
         transformed into the target frame, for RViz.
     /diagnostics (diagnostic_msgs/DiagnosticArray, out): status, counts of received,
-        published, rejected (per reason) and dropped (per reason) clouds, last inliers,
-        timings and latency.
+        published, rejected and dropped (per reason) clouds, sources lost before the node
+        (``sources.lost_upstream``), last inliers, timings and latency.
     /tf (``broadcast_tf``, when tf2_ros is importable): target frame -> source frame.
 
 Parameters: every key of PipelineConfig (``voxel_size``, ``core.*``, ``frontend.*``, ``refine.*``,
@@ -29,11 +29,15 @@ Threading: subscription callbacks only decode the cloud (vectorized numpy) and h
 the :class:`~cgags_ros.pipeline.pairing.Pairer`; registration runs on one worker thread
 (in a child process, :mod:`.worker`), so a slow registration never blocks reception (the
 pairer's bounded queue drops the oldest pair).
+
+Transport: :func:`main` points Fast DDS at the package's large-data profile
+(:mod:`.transport`) unless the user chose one; the clouds' publisher needs it too.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import os
 import threading
 import time
 import traceback
@@ -53,6 +57,7 @@ from .localization import Localization
 from .outputs import Outputs
 from .parameters import descriptor
 from .qos import source_qos, target_qos
+from .transport import PROFILE_VARIABLE, use_large_data_profile
 from .worker import (IsolatedRegistration, load_pipeline, RegisterFn, RegistrationTimeout,
                      rss_mb, WorkerCrashed)
 from ..config.node import configs_from_parameters, NodeConfig, parameter_descriptions
@@ -101,6 +106,7 @@ class RegisterNode(Node):
             queue_depth=1 if cfg.mode == 'on_demand' else cfg.queue_depth))
         self._health = NodeHealth(self._pairer)
         self._loc = Localization(self, cfg)
+        self._transport_profile = os.environ.get(PROFILE_VARIABLE, '')
 
         self.create_subscription(PointCloud2, 'source_cloud', self._on_source, source_qos(cfg))
         if not cfg.map_file:
@@ -115,7 +121,8 @@ class RegisterNode(Node):
         self._worker.start()
         self.get_logger().info(
             f"registering source_cloud onto {cfg.map_file or 'target_cloud'} ({cfg.mode}, "
-            f'{cfg.pairing_mode}, voxel_size {self._pipeline_cfg.voxel_size} m)')
+            f'{cfg.pairing_mode}, voxel_size {self._pipeline_cfg.voxel_size} m; '
+            f"Fast DDS profile: {self._transport_profile or 'none'})")
 
     # ------------------------------------------------------------------ parameters
 
@@ -155,15 +162,18 @@ class RegisterNode(Node):
         receipt = time.monotonic_ns()
         with self._lock:
             max_points = self._node_cfg.max_cloud_points
+        stamp = 0
         try:
-            cloud = _Cloud(pointcloud2_to_xyz(msg, max_points=max_points), msg.header, receipt)
             stamp = stamp_to_ns(msg.header.stamp)
+            cloud = _Cloud(pointcloud2_to_xyz(msg, max_points=max_points), msg.header, receipt)
         except InvalidInputError as exc:
             cause = f"{role}_{'empty' if isinstance(exc, EmptyCloudError) else 'malformed'}"
-            self._health.receive(role, 0, '', None, rejection=cause)
+            lost = self._health.receive(role, stamp, '', None, rejection=cause)
             self._log_rejection(cause, f'{role} cloud rejected: {exc}')
-            return
-        self._health.receive(role, stamp, str(msg.header.frame_id), cloud)
+        else:
+            lost = self._health.receive(role, stamp, str(msg.header.frame_id), cloud)
+        if lost:
+            self._log_lost_upstream()
 
     def _on_source(self, msg: PointCloud2) -> None:
         self._receive(msg, 'source')
@@ -252,11 +262,18 @@ class RegisterNode(Node):
                       if n > 1 else '')
             self.get_logger().warning(message + suffix)
 
+    def _log_lost_upstream(self) -> None:
+        """Warn that source scans went missing before the node, at most every 30 s."""
+        n, due = self._health.lost_upstream()
+        if due:
+            self.get_logger().warning(diagnostics.lost_upstream_message(n))
+
     def statistics(self) -> dict[str, Any]:
         """Return a flat snapshot of the node's counters (what /diagnostics carries)."""
         with self._lock:
             voxel = self._pipeline_cfg.voxel_size
         extra = {'memory.node_rss_mb': round(rss_mb() or 0.0, 1),
+                 'transport.profile': self._transport_profile,
                  **self._loc.statistics(self.node_config.mode)}
         if self._isolated is not None:
             extra.update(self._isolated.health())
@@ -313,6 +330,7 @@ def main(args: list[str] | None = None) -> None:
     The ``register_node`` entry point (``ros2 run``, ``python -m cgags_ros.register_node``).
     """
     from rclpy.executors import ExternalShutdownException
+    use_large_data_profile()
     rclpy.init(args=args)
     node = None
     try:

@@ -21,6 +21,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
 from . import diagnostics
+from .transport import use_large_data_profile
 from ..io.pointcloud2 import pose_to_transform, stamp_to_ns
 
 MAX_QUEUE = 1000  # the node config's upper bound for depths
@@ -39,6 +40,7 @@ class LiveSession:
     """An rclpy context with the player node: publishers, pose and diagnostics recorders."""
 
     def __init__(self, source_topic: str, target_topic: str, node_name: str, n_sources: int):
+        use_large_data_profile()  # the clouds' publisher needs it as much as the node
         self.context = Context()
         rclpy.init(context=self.context)
         self.node = rclpy.create_node('cgags_replay_player', context=self.context)

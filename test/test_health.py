@@ -1,0 +1,52 @@
+"""
+cgags_ros.ros.health and .diagnostics: scans lost upstream, beside the balanced buckets.
+
+No DDS: the node's accounting object fed directly, its /diagnostics message built.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+pytest.importorskip('rclpy')
+
+from cgags_ros.pipeline.pairing import Pairer  # noqa: E402, I100
+from cgags_ros.ros import diagnostics  # noqa: E402
+from cgags_ros.ros.health import NodeHealth  # noqa: E402
+from cgags_ros.ros.transport import PROFILE_VARIABLE  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
+
+PERIOD = 100_000_000  # ns, a 10-Hz LiDAR
+
+
+def message(health):
+    stats = diagnostics.build_statistics(health.snapshot(), 0.5, {})
+    status = diagnostics.diagnostic_array(stats, 'n', '/n', None).status[0]
+    return stats, status
+
+
+def test_gaps_in_source_stamps_are_counted_outside_the_balance_with_a_warning():
+    health = NodeHealth(Pairer('latest_target', queue_depth=100))
+    assert health.receive('target', 1, 'map', 'T') == 0
+    kept = [k for k in range(60) if k % 4 != 3]  # every fourth scan lost upstream
+    new = [health.receive('source', 10 * PERIOD + k * PERIOD, 'lidar', k) for k in kept]
+    health.receive('source', 0, '', None, rejection='source_malformed')  # no stamp: no gap
+    stats, status = message(health)
+    assert stats['sources.lost_upstream'] == sum(new) == 14
+    assert stats['sources.period_s'] == pytest.approx(0.1)
+    assert stats['sources.received'] == len(kept) + 1
+    assert stats['sources.received'] == (stats['sources.published'] + stats['sources.rejected']
+                                         + stats['sources.dropped'] + stats['sources.pending'])
+    assert stats['accounting.ok'] is True
+    assert status.level == DiagnosticStatus.WARN
+    assert '14 source scans lost' in status.message and PROFILE_VARIABLE in status.message
+    assert health.lost_upstream() == (14, True)
+    assert health.lost_upstream() == (14, False)  # logged again only after 30 s
+
+
+def test_no_source_yet_names_the_transport_fix():
+    health = NodeHealth(Pairer('latest_target'))
+    health.receive('target', 1, 'map', 'T')
+    stats, status = message(health)
+    assert status.level == DiagnosticStatus.STALE and PROFILE_VARIABLE in status.message
+    assert stats['sources.lost_upstream'] == 0 and 'sources.period_s' not in stats
