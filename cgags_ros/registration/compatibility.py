@@ -21,7 +21,7 @@ from ..parallel import run_split
 _SPLIT_MIN = 4000
 
 
-# Set bits of every byte value, for numpy 1.x (ROS 2 Jazzy's apt numpy), which has no bitwise_count.
+# Set bits of every byte value, for numpy 1.x (Jazzy's apt numpy), which has no bitwise_count.
 _BYTE_POPCOUNT = np.array([bin(b).count('1') for b in range(256)], dtype=np.uint8)
 
 
