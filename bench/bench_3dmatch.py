@@ -52,14 +52,13 @@ import platform
 import sys
 import time
 
-import numpy as np
-
 from cgags_ros.config import PipelineConfig
 from cgags_ros.config.fields import parse_key_values, update_from_flat
 from cgags_ros.datasets import threedmatch as tdm
 from cgags_ros.datasets.synthetic import shared_data_dir
 from cgags_ros.geometry import rotation_error_deg, spread, translation_error
 from cgags_ros.tools.report import fmt, markdown_table
+import numpy as np
 
 MAX_RE_DEG = 15.0
 MAX_TE_M = 0.3
@@ -83,7 +82,7 @@ def run_cgags(src: np.ndarray, tgt: np.ndarray, voxel: float, gt: np.ndarray,
 
 def diagnostics(result, src: np.ndarray, tgt: np.ndarray, gt: np.ndarray,
                 config: PipelineConfig) -> dict:
-    """What the gates and the candidate search saw, with each candidate against the truth."""
+    """Return what the gates and the candidate search saw, each candidate against the truth."""
     from cgags_ros.frontend.refine import evaluate_alignment
     from cgags_ros.pipeline.cache import cached_features
     from cgags_ros.pipeline.gates import observability
@@ -96,6 +95,7 @@ def diagnostics(result, src: np.ndarray, tgt: np.ndarray, gt: np.ndarray,
         'chance_inliers': _num(result.chance_inliers), 'fitness': _num(result.fitness),
         'overlap': _num(result.overlap), 'inlier_rmse': _num(result.inlier_rmse),
         'observability': _num(result.observability),
+        'free_space_violation': _num(result.free_space_violation),
         'runner_up_ratio': _num(result.runner_up_ratio),
         'inlier_threshold': _num(result.inlier_threshold),
         'num_source_points': int(result.num_source_points),
@@ -199,7 +199,8 @@ def run(args, methods: dict) -> list[dict]:
                     src, tgt = fragments[pair.source], fragments[pair.target]
                     for name, fn in methods.items():
                         try:
-                            T, valid, info = fn(src, tgt, args.voxel, tdm.nearest_rigid(pair.transform)) \
+                            gt = tdm.nearest_rigid(pair.transform)
+                            T, valid, info = fn(src, tgt, args.voxel, gt) \
                                 if name == 'cgags' else fn(src, tgt, args.voxel)
                             error = ''
                         except Exception as exc:  # noqa: BLE001 - a failing method is data
@@ -386,7 +387,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.set:
         notes.append('ours with --set ' + ' '.join(args.set))
     if args.warm_features:
-        notes.append("ours with --warm-features: its times are NOT comparable")
+        notes.append('ours with --warm-features: its times are NOT comparable')
     print('\n' + text + '\n\n' + '\n'.join(notes))
     if args.output:
         args.output.parent.mkdir(parents=True, exist_ok=True)

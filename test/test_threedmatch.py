@@ -2,13 +2,12 @@
 
 from pathlib import Path
 
-import numpy as np
-import pytest
-
 from cgags_ros.datasets import threedmatch as tdm
 from cgags_ros.datasets.synthetic import shared_data_dir
 from cgags_ros.errors import InvalidInputError
 from cgags_ros.geometry import rotation_error_deg, translation_error
+import numpy as np
+import pytest
 
 ROOT = shared_data_dir() / '3dmatch_benchmark'
 needs_data = pytest.mark.skipif(not (ROOT / 'benchmarks').is_dir(),
@@ -99,3 +98,32 @@ def test_sample_registers_against_ground_truth(benchmark, floor):
             total += 1
     assert right / total >= floor
     assert valid_wrong <= 1
+
+
+def _room(rng, n=6000, size=(6.0, 4.0, 2.5)):
+    """Points on the inside walls, floor and ceiling of a box room centred at the origin."""
+    half = np.array(size) / 2
+    pts = rng.uniform(-half, half, size=(n, 3))
+    axis = rng.integers(0, 3, size=n)
+    side = rng.choice([-1.0, 1.0], size=n)
+    pts[np.arange(n), axis] = side * half[axis]
+    return pts
+
+
+def test_free_space_violation_tells_a_right_pose_from_a_turned_one():
+    """Inside a 6 x 4 m room seen from two sensor poses: the truth violates no free space."""
+    from cgags_ros.geometry import apply_transform
+    from cgags_ros.pipeline.gates import free_space_violation
+
+    rng = np.random.default_rng(0)
+    room = _room(rng)
+    c, s = np.cos(0.4), np.sin(0.4)
+    T = np.array([[c, -s, 0, 0.5], [s, c, 0, -0.3], [0, 0, 1, 0.1], [0, 0, 0, 1.0]])
+    target = room  # the sensor of the target at the room's centre
+    source = apply_transform(np.linalg.inv(T), _room(rng))  # p_target = T p_source
+    assert free_space_violation(source, target, T, 0.1, 2.0) < 0.05
+    # Turned by 90 degrees about the vertical: the long walls stand inside the room.
+    turn = np.array([[0, -1, 0, 0], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+    assert free_space_violation(source, target, turn @ T, 0.1, 2.0) > 0.3
+    # Against a map only the scan's view counts: still caught.
+    assert free_space_violation(source, target, turn @ T, 0.1, 2.0, target_view=False) > 0.3

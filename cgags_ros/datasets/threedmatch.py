@@ -110,8 +110,9 @@ def scenes(root: str | Path, benchmark: str = '3DMatch') -> list[str]:
     base = Path(root) / 'benchmarks' / benchmark
     if not base.is_dir():
         raise InvalidInputError(f'no benchmark folder {base}')
+    fragments = Path(root) / 'fragments'
     return sorted(d.name for d in base.iterdir()
-                  if (d / 'gt.log').exists() and (Path(root) / 'fragments' / f'{d.name}.npz').exists())
+                  if (d / 'gt.log').exists() and (fragments / f'{d.name}.npz').exists())
 
 
 def registration_pairs(root: str | Path, benchmark: str, scene: str,
@@ -134,6 +135,7 @@ class Fragments:
     """The fragments of one scene (``fragments/<scene>.npz``), loaded lazily and kept."""
 
     def __init__(self, root: str | Path, scene: str):
+        """Open ``<root>/fragments/<scene>.npz``; a missing file is an InvalidInputError."""
         path = Path(root) / 'fragments' / f'{scene}.npz'
         try:
             self._npz = np.load(path)
