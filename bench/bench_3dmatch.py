@@ -379,7 +379,11 @@ def main(argv: list[str] | None = None) -> int:
     records = run(args, methods)
     summary = summaries(records)
     text = tables(summary)
-    notes = [f'voxel {args.voxel:g} m; RR: RE < {MAX_RE_DEG:g} deg and TE < {MAX_TE_M:g} m on '
+    notes = ['command: `.venv/bin/python bench/bench_3dmatch.py '
+             + ' '.join(sys.argv[1:] if argv is None else argv) + '`',
+             f'machine: {platform.platform()}, one pair at a time, methods interleaved pair '
+             f'by pair; wall {time.time() - t0:.0f} s',
+             f'voxel {args.voxel:g} m; RR: RE < {MAX_RE_DEG:g} deg and TE < {MAX_TE_M:g} m on '
              'every estimate; RMSE recall: official gt.info RMSE < 0.2 m; valid keeps: right '
              'and flagged valid / right; open3d_fpfh_ransac has no flag (all count as valid)',
              'pairs: ' + ('all' if args.pairs is None else f'{args.pairs} a scene and list '
