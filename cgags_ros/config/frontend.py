@@ -85,7 +85,7 @@ class RefineConfig:
         'collinear, refine it anyway and let the gates on the whole overlap decide '
         '(observability, free space, chance inliers, ambiguity).', advanced=True)
     max_free_space_violation: float = option(
-        0.2, "Free-space gate (sensor-frame clouds: frontend.normal_orientation 'origin'): "
+        0.3, "Free-space gate (sensor-frame clouds: frontend.normal_orientation 'origin'): "
         "the share of aligned points in front of the other cloud's observed surface (by "
         'over free_space_margin_factor voxels), among those in front or on it, the larger '
         'direction; above this the pose puts surfaces where a sensor saw free space and is '
