@@ -90,6 +90,10 @@ class RefineConfig:
         'over free_space_margin_factor voxels), among those in front or on it, the larger '
         'direction; above this the pose puts surfaces where a sensor saw free space and is '
         'invalid. 1 disables.', low=0.0, high=1.0)
+    free_space_settle_factor: float = option(
+        0.5, 'An estimate the correspondences alone did not settle (a collinear consensus, '
+        'or a rival within ambiguity_ratio) is trusted only below this times '
+        'max_free_space_violation.', low=0.0, high=1.0, advanced=True)
     free_space_margin_factor: float = option(
         2.0, 'Depth margin of the free-space gate in voxel sizes.', low=0.0, high=100.0,
         advanced=True)

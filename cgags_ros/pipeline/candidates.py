@@ -30,7 +30,7 @@ import dataclasses
 
 import numpy as np
 
-from .gates import free_space_violation
+from .gates import free_space_limit, free_space_violation
 from .result import Candidate, PipelineResult
 from ..config.pipeline import PipelineConfig
 from ..errors import DegenerateCorrespondencesError
@@ -139,7 +139,9 @@ def verify_rivals(fs: CloudFeatures, ft: CloudFeatures, result: PipelineResult,
     distance). The estimate stays unless it is implausible or a plausible rival's overlap
     exceeds its own ``ambiguity_ratio`` times: the plausible rival with the largest overlap
     is then returned, for the caller to make it the estimate. ``ambiguous`` stays True only
-    when another plausible pose's overlap is above the chosen one's / ``ambiguity_ratio``.
+    when another plausible pose's overlap is above the chosen one's / ``ambiguity_ratio``,
+    or when the chosen one's free-space violation is above the tighter bound of an
+    unsettled estimate (``refine.free_space_settle_factor``).
     """
     if not (cfg.verify_rivals and result.ambiguous) or cfg.refine.method == 'none':
         return None
@@ -151,6 +153,7 @@ def verify_rivals(fs: CloudFeatures, ft: CloudFeatures, result: PipelineResult,
     best = result.candidates[0]
     # (candidate, overlap) of every plausible pose within the inlier ratio, best first.
     plausible = [] if result.free_space_violation > limit else [(best, result.overlap)]
+    violation = {id(best): result.free_space_violation}
     kept = [best]
     for c in result.candidates[1:]:
         if c.num_inliers * ratio <= best.num_inliers:
@@ -166,9 +169,10 @@ def verify_rivals(fs: CloudFeatures, ft: CloudFeatures, result: PipelineResult,
         back = evaluate_alignment(ft.points, fs.tree, np.linalg.inv(T), distance).fitness
         c.transform, c.fitness = T, ahead
         kept.append(c)
-        if not free_space or free_space_violation(
-                fs.points, ft.points, T, cfg.refine.free_space_margin_factor * v,
-                cfg.refine.free_space_bin_deg, target_view=not map_target) <= limit:
+        violation[id(c)] = free_space_violation(
+            fs.points, ft.points, T, cfg.refine.free_space_margin_factor * v,
+            cfg.refine.free_space_bin_deg, target_view=not map_target) if free_space else 0.0
+        if violation[id(c)] <= limit:
             plausible.append((c, min(ahead, back)))
     chosen, support = best, result.overlap
     if plausible:
@@ -176,7 +180,9 @@ def verify_rivals(fs: CloudFeatures, ft: CloudFeatures, result: PipelineResult,
         if plausible[0][0] is not best or top_support >= ratio * result.overlap:
             chosen, support = top, top_support
     result.candidates = [chosen] + [c for c in kept if c is not chosen]
-    result.ambiguous = any(c is not chosen and o * ratio > support for c, o in plausible)
+    # Settled by the geometry only when the chosen pose clearly passes the free-space test.
+    result.ambiguous = (any(c is not chosen and o * ratio > support for c, o in plausible)
+                        or violation[id(chosen)] > free_space_limit(cfg, unsettled=True))
     rivals = [c.num_inliers for c in result.candidates[1:] if c.num_inliers > 0]
     result.runner_up_ratio = (chosen.num_inliers / max(rivals) if rivals
                               else float('inf'))

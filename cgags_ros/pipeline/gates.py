@@ -37,12 +37,15 @@ def line_reason(points: np.ndarray, name: str, voxel_size: float) -> str:
 
 
 def gate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences, result: PipelineResult,
-         cfg: PipelineConfig, map_target: bool = False) -> str:
+         cfg: PipelineConfig, map_target: bool = False, unsettled: bool = False) -> str:
     """
     Return why the final estimate must not be trusted, or '' when it passes every gate.
 
     ``map_target``: the target is a map fused from many viewpoints, so it has no sensor at
     its origin (the free-space gate then checks the map against the scan's view only).
+    ``unsettled``: the correspondences alone did not settle the estimate (a collinear
+    consensus); the free-space bound is then ``refine.free_space_settle_factor`` times
+    tighter.
     """
     distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
     align = evaluate_alignment(fs.points, ft.tree, result.transform, distance)
@@ -67,8 +70,14 @@ def gate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences, result: Pi
     return (_significance_reason(result, cfg.refine.significance, members)
             or _observability_reason(result, cfg.refine.min_observability)
             or _fitness_reason(result, cfg.refine.min_fitness, distance)
-            or _free_space_reason(result, cfg.refine.max_free_space_violation)
+            or _free_space_reason(result, free_space_limit(cfg, unsettled))
             or _tilt_reason(result, cfg.core.max_tilt_deg))
+
+
+def free_space_limit(cfg: PipelineConfig, unsettled: bool = False) -> float:
+    """Return the free-space bound: tighter for an estimate the correspondences did not settle."""
+    limit = cfg.refine.max_free_space_violation
+    return limit * cfg.refine.free_space_settle_factor if unsettled and limit < 1 else limit
 
 
 def free_space_violation(source: np.ndarray, target: np.ndarray, transform: np.ndarray,
@@ -131,7 +140,8 @@ def _free_space_reason(result: PipelineResult, max_violation: float) -> str:
         return ''
     return (f'free-space violation: {100 * result.free_space_violation:.0f} % of the aligned '
             "points that meet the other cloud's view lie in front of its observed surface "
-            f'(> refine.max_free_space_violation={max_violation:g}): the pose stacks '
+            f'(> {max_violation:g}, refine.max_free_space_violation, times '
+            'refine.free_space_settle_factor for an unsettled estimate): the pose stacks '
             'surfaces where a sensor saw free space')
 
 

@@ -112,7 +112,8 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
     _copy_core(core, result)
     result.inlier_source_points = fs.points[corr.source_index[core.inliers]]
     result.inlier_target_points = ft.points[corr.target_index[core.inliers]]
-    if core.reason and not _collinear_only(fs, corr, core, cfg):
+    unsettled = bool(core.reason) and _collinear_only(fs, corr, core, cfg)
+    if core.reason and not unsettled:
         # nothing worth refining or gating further
         return result.finish(start, _candidates(fs, ft, corr, result, cfg) or core.reason)
     gravity = cfg.core.gravity_axis if cfg.core.motion_model == '4dof' else None
@@ -127,14 +128,15 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
     # in compiled kernels and k-d tree queries).
     rivals = in_background(lambda: _search_rivals(fs, ft, corr, result, cfg), workers > 1)
     with timed(result.timings, 'validation'):
-        reason = gate(fs, ft, corr, result, cfg, isinstance(target, PreparedMap))
+        reason = gate(fs, ft, corr, result, cfg, isinstance(target, PreparedMap), unsettled)
     found, result.timings['candidates'] = rivals()
     rank_candidates(result, found, cfg)
     with timed(result.timings, 'rivals_verified'):
         chosen = verify_rivals(fs, ft, result, cfg, isinstance(target, PreparedMap), workers)
         if chosen is not None:  # the geometry prefers a rival: it is the estimate now
             result.transform = chosen.transform
-            reason = gate(fs, ft, corr, result, cfg, isinstance(target, PreparedMap))
+            reason = gate(fs, ft, corr, result, cfg, isinstance(target, PreparedMap),
+                          unsettled)
             chosen.fitness = result.fitness
     return result.finish(start, ambiguity_reason(result, cfg) or reason)
 
