@@ -77,9 +77,14 @@ def test_bad_log_is_a_clear_error(tmp_path: Path):
 
 
 @needs_data
-@pytest.mark.parametrize('benchmark, floor', [('3DMatch', 0.75), ('3DLoMatch', 0.35)])
+@pytest.mark.parametrize('benchmark, floor', [('3DMatch', 0.7), ('3DLoMatch', 0.3)])
 def test_sample_registers_against_ground_truth(benchmark, floor):
-    """Three pairs a scene (seeded) through the node's path: recall and the valid flag."""
+    """
+    Five pairs a scene (seeded) through the node's path: recall and the valid flag.
+
+    The floors sit well below the full benchmark's recall (docs/benchmarks_3dmatch.md),
+    as a 20-pair sample scatters by about 10 points; a valid pose must be right.
+    """
     from cgags_ros.pipeline import register_clouds
 
     rng = np.random.default_rng(1)
@@ -87,7 +92,7 @@ def test_sample_registers_against_ground_truth(benchmark, floor):
     for scene in tdm.scenes(ROOT, benchmark):
         pairs = tdm.registration_pairs(ROOT, benchmark, scene)
         fragments = tdm.Fragments(ROOT, scene)
-        for k in rng.choice(len(pairs), size=3, replace=False):
+        for k in rng.choice(len(pairs), size=5, replace=False):
             p = pairs[k]
             result = register_clouds(fragments[p.source], fragments[p.target], voxel_size=0.05)
             gt = tdm.nearest_rigid(p.transform)
