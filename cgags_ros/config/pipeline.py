@@ -47,6 +47,11 @@ class PipelineConfig:
         1.5, 'The estimate is ambiguous (reported invalid, flagged ambiguous) when the best '
         "candidate's inlier count is below this times the runner-up's: two poses are then "
         'nearly equally supported (a symmetric room, a corridor).', low=1.0, high=100.0)
+    verify_rivals: bool = option(
+        True, 'Refine the rivals that make an estimate ambiguous; one that converges onto '
+        "it, whose overlap the estimate's exceeds ambiguity_ratio times, or that fails the "
+        'free-space gate is not plausible; only a plausible rival makes it ambiguous.',
+        advanced=True)
     candidate_max_iterations: int = option(
         1000, 'Hypotheses generated in each search for a further candidate (the search for '
         'the estimate itself uses core.max_iterations).', low=1, high=10**8, advanced=True)

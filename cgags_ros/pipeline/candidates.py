@@ -16,7 +16,12 @@ their inliers, good to about tau), not refined: ICP from a wrong pose would cost
 the search itself.
 
 Ambiguity: with a runner-up, best / runner-up inliers below ``ambiguity_ratio`` means two
-poses are nearly equally supported; the result is then flagged ambiguous and invalid.
+poses are nearly equally supported by the correspondences. With ``verify_rivals`` each such
+rival is then refined like the estimate and judged on the geometry as well
+(:func:`verify_rivals`): one that converges onto the estimate supports it, one whose overlap
+the estimate's exceeds ``ambiguity_ratio`` times, or that stacks surfaces where a sensor saw
+free space, is no plausible alternative. The result is flagged ambiguous and invalid only
+when a plausible, distinct rival remains.
 """
 
 from __future__ import annotations
@@ -25,12 +30,13 @@ import dataclasses
 
 import numpy as np
 
+from .gates import free_space_limit, free_space_violation
 from .result import Candidate, PipelineResult
 from ..config.pipeline import PipelineConfig
 from ..errors import DegenerateCorrespondencesError
 from ..frontend.features import CloudFeatures
 from ..frontend.matching import Correspondences
-from ..frontend.refine import evaluate_alignment
+from ..frontend.refine import evaluate_alignment, refine_transform
 from ..geometry import apply_transform, rotation_error_deg, translation_error
 from ..registration import register_correspondences
 
@@ -118,6 +124,71 @@ def rank_candidates(result: PipelineResult, found: list[Candidate],
         result.ambiguous = result.runner_up_ratio < cfg.ambiguity_ratio
 
 
+def verify_rivals(fs: CloudFeatures, ft: CloudFeatures, result: PipelineResult,
+                  cfg: PipelineConfig, map_target: bool = False,
+                  workers: int = 1) -> Candidate | None:
+    """
+    Judge the rivals that make ``result`` ambiguous on the geometry (see the module doc).
+
+    Runs after :func:`rank_candidates` and the gates (it reads ``result.overlap`` and
+    ``result.free_space_violation``). Each rival within ``ambiguity_ratio`` of the best's
+    inliers is refined from its core pose; one that converges onto the estimate is dropped
+    (it is the same pose), the others keep their refined transform and fitness. A pose is
+    plausible when it passes the free-space gate (where that applies); its geometric
+    support is its overlap (the smaller share of both clouds' points within the refinement
+    distance). The estimate stays unless it is implausible or a plausible rival's overlap
+    exceeds its own ``ambiguity_ratio`` times: the plausible rival with the largest overlap
+    is then returned, for the caller to make it the estimate. ``ambiguous`` stays True only
+    when another plausible pose's overlap is above the chosen one's / ``ambiguity_ratio``,
+    or when the chosen one's free-space violation is above the tighter bound of an
+    unsettled estimate (``refine.free_space_settle_factor``).
+    """
+    if not (cfg.verify_rivals and result.ambiguous) or cfg.refine.method == 'none':
+        return None
+    v, ratio = cfg.voxel_size, cfg.ambiguity_ratio
+    distance = cfg.refine.max_correspondence_distance_factor * v
+    gravity = cfg.core.gravity_axis if cfg.core.motion_model == '4dof' else None
+    limit = cfg.refine.max_free_space_violation
+    free_space = cfg.frontend.normal_orientation == 'origin' and limit < 1
+    best = result.candidates[0]
+    # (candidate, overlap) of every plausible pose within the inlier ratio, best first.
+    plausible = [] if result.free_space_violation > limit else [(best, result.overlap)]
+    violation = {id(best): result.free_space_violation}
+    kept = [best]
+    for c in result.candidates[1:]:
+        if c.num_inliers * ratio <= best.num_inliers:
+            kept.append(c)  # clearly less supported: no rival, left as found
+            continue
+        T = refine_transform(fs.points, ft.points, c.transform, voxel_size=v,
+                             config=cfg.refine, target_normals=ft.normals,
+                             coarse_distance=result.inlier_threshold, gravity=gravity,
+                             workers=workers)
+        if not distinct(T, best.transform, cfg):
+            continue  # converged onto the estimate: it supports it
+        ahead = evaluate_alignment(fs.points, ft.tree, T, distance).fitness
+        back = evaluate_alignment(ft.points, fs.tree, np.linalg.inv(T), distance).fitness
+        c.transform, c.fitness = T, ahead
+        kept.append(c)
+        violation[id(c)] = free_space_violation(
+            fs.points, ft.points, T, cfg.refine.free_space_margin_factor * v,
+            cfg.refine.free_space_bin_deg, target_view=not map_target) if free_space else 0.0
+        if violation[id(c)] <= limit:
+            plausible.append((c, min(ahead, back)))
+    chosen, support = best, result.overlap
+    if plausible:
+        top, top_support = max(plausible, key=lambda p: p[1])
+        if plausible[0][0] is not best or top_support >= ratio * result.overlap:
+            chosen, support = top, top_support
+    result.candidates = [chosen] + [c for c in kept if c is not chosen]
+    # Settled by the geometry only when the chosen pose clearly passes the free-space test.
+    result.ambiguous = (any(c is not chosen and o * ratio > support for c, o in plausible)
+                        or violation[id(chosen)] > free_space_limit(cfg, unsettled=True))
+    rivals = [c.num_inliers for c in result.candidates[1:] if c.num_inliers > 0]
+    result.runner_up_ratio = (chosen.num_inliers / max(rivals) if rivals
+                              else float('inf'))
+    return chosen if chosen is not best else None
+
+
 def ambiguity_reason(result: PipelineResult, cfg: PipelineConfig) -> str:
     """Return why ``result`` is ambiguous, or '' when it is not."""
     if not result.ambiguous:
@@ -125,7 +196,9 @@ def ambiguity_reason(result: PipelineResult, cfg: PipelineConfig) -> str:
     best, runner = result.candidates[0], result.candidates[1]
     moved = translation_error(best.transform, runner.transform)
     turned = rotation_error_deg(best.transform, runner.transform)
+    geometry = (' and, refined, overlaps about as well' if cfg.verify_rivals
+                and cfg.refine.method != 'none' else '')
     return (f'ambiguous: a distinct pose ({turned:.0f} deg, {moved:.2f} m away) has '
             f'{runner.num_inliers} inliers against {best.num_inliers} of the best '
-            f'(ratio {result.runner_up_ratio:.2f} < ambiguity_ratio {cfg.ambiguity_ratio:g}); '
+            f'(within ambiguity_ratio {cfg.ambiguity_ratio:g}){geometry}; '
             'the scene looks alike in both poses')

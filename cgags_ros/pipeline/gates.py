@@ -2,8 +2,9 @@
 Validity gates: why a final estimate must not be trusted, with the values behind it.
 
 Each gate returns a reason ('' when it passes): a line-like cloud, chance-level inliers,
-degenerate overlap geometry (planes, lines, spheres), low fitness; in 4-DoF mode also a
-tilt between the clouds' gravity axes (clouds not levelled).
+degenerate overlap geometry (planes, lines, spheres), low fitness, free-space violation
+(clouds in their sensor frames); in 4-DoF mode also a tilt between the clouds' gravity axes
+(clouds not levelled).
 """
 
 from __future__ import annotations
@@ -36,8 +37,16 @@ def line_reason(points: np.ndarray, name: str, voxel_size: float) -> str:
 
 
 def gate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences, result: PipelineResult,
-         cfg: PipelineConfig) -> str:
-    """Return why the final estimate must not be trusted, or '' when it passes every gate."""
+         cfg: PipelineConfig, map_target: bool = False, unsettled: bool = False) -> str:
+    """
+    Return why the final estimate must not be trusted, or '' when it passes every gate.
+
+    ``map_target``: the target is a map fused from many viewpoints, so it has no sensor at
+    its origin (the free-space gate then checks the map against the scan's view only).
+    ``unsettled``: the correspondences alone did not settle the estimate (a collinear
+    consensus); the free-space bound is then ``refine.free_space_settle_factor`` times
+    tighter.
+    """
     distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
     align = evaluate_alignment(fs.points, ft.tree, result.transform, distance)
     back = evaluate_alignment(ft.points, fs.tree, np.linalg.inv(result.transform), distance)
@@ -53,10 +62,87 @@ def gate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences, result: Pi
         result.tilt_deg = residual_tilt(fs.points, ft.points, ft.normals, align, frame)
     else:
         result.observability = observability(fs.points, ft.normals, align)
+    if cfg.frontend.normal_orientation == 'origin' and cfg.refine.max_free_space_violation < 1:
+        result.free_space_violation = free_space_violation(
+            fs.points, ft.points, result.transform,
+            cfg.refine.free_space_margin_factor * cfg.voxel_size,
+            cfg.refine.free_space_bin_deg, target_view=not map_target)
     return (_significance_reason(result, cfg.refine.significance, members)
             or _observability_reason(result, cfg.refine.min_observability)
             or _fitness_reason(result, cfg.refine.min_fitness, distance)
+            or _free_space_reason(result, free_space_limit(cfg, unsettled))
             or _tilt_reason(result, cfg.core.max_tilt_deg))
+
+
+def free_space_limit(cfg: PipelineConfig, unsettled: bool = False) -> float:
+    """Return the free-space bound: tighter for an estimate the correspondences did not settle."""
+    limit = cfg.refine.max_free_space_violation
+    return limit * cfg.refine.free_space_settle_factor if unsettled and limit < 1 else limit
+
+
+def free_space_violation(source: np.ndarray, target: np.ndarray, transform: np.ndarray,
+                         margin: float, bin_deg: float, target_view: bool = True) -> float:
+    """
+    Return the share of points an alignment puts where the other cloud's sensor saw nothing.
+
+    Each cloud is taken as seen from its own origin (its sensor): a depth map of its
+    nearest point per angular bin (``bin_deg`` degrees) says the space in front of that
+    point along the ray was seen to be empty. Under ``transform`` (source -> target,
+    metres), a point of the other cloud landing in an observed bin is *in front* (closer to
+    the sensor by more than ``margin`` metres: a surface where the sensor saw through),
+    *on* the surface (within ``margin``) or behind it (occluded: says nothing). Returns,
+    for the source seen from the target's sensor (when ``target_view``) and the target
+    seen from the source's, the larger share in front / (in front + on); 0 with nothing
+    to compare. A right pose leaves only the misfits at occlusion edges and from the
+    fusion of several views; a wrong one stacks surfaces in front of each other.
+    """
+    T = np.asarray(transform, dtype=np.float64)
+    worst = _in_front_share(apply_transform(np.linalg.inv(T), target), source, margin,
+                            bin_deg)
+    if target_view:
+        worst = max(worst, _in_front_share(apply_transform(T, source), target, margin,
+                                           bin_deg))
+    return worst
+
+
+def _view_bins(points: np.ndarray, bin_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """Return the angular bin key of each point seen from the origin, and its range."""
+    r = np.linalg.norm(points, axis=1)
+    azimuth = np.arctan2(points[:, 1], points[:, 0])
+    elevation = np.arcsin(np.clip(points[:, 2] / np.maximum(r, 1e-12), -1.0, 1.0))
+    ia = np.floor((azimuth + np.pi) / bin_rad).astype(np.int64)
+    ie = np.floor((elevation + np.pi / 2) / bin_rad).astype(np.int64)
+    return ia * (int(np.pi / bin_rad) + 2) + ie, r
+
+
+def _in_front_share(moved: np.ndarray, viewer: np.ndarray, margin: float,
+                    bin_deg: float) -> float:
+    """Share of ``moved`` points in front of ``viewer``'s surface, among those in front or on."""
+    if len(moved) == 0 or len(viewer) == 0:
+        return 0.0
+    bin_rad = np.radians(bin_deg)
+    keys, ranges = _view_bins(viewer, bin_rad)
+    order = np.lexsort((ranges, keys))
+    keys, ranges = keys[order], ranges[order]
+    first = np.r_[True, keys[1:] != keys[:-1]]
+    keys, nearest = keys[first], ranges[first]  # the depth map: nearest range per bin
+    k, r = _view_bins(moved, bin_rad)
+    i = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
+    seen = keys[i] == k
+    depth = nearest[i[seen]] - r[seen]  # > 0: in front of the observed surface
+    in_front = int(np.count_nonzero(depth > margin))
+    on = int(np.count_nonzero(np.abs(depth) <= margin))
+    return in_front / (in_front + on) if in_front + on else 0.0
+
+
+def _free_space_reason(result: PipelineResult, max_violation: float) -> str:
+    if not result.free_space_violation > max_violation:  # NaN: not measured
+        return ''
+    return (f'free-space violation: {100 * result.free_space_violation:.0f} % of the aligned '
+            "points that meet the other cloud's view lie in front of its observed surface "
+            f'(> {max_violation:g}, refine.max_free_space_violation, times '
+            'refine.free_space_settle_factor for an unsettled estimate): the pose stacks '
+            'surfaces where a sensor saw free space')
 
 
 def chance_inliers(src: np.ndarray, dst: np.ndarray, transform: np.ndarray, tau: float) -> float:

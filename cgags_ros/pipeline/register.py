@@ -19,7 +19,8 @@ from typing import Callable
 import numpy as np
 
 from .cache import cached_features
-from .candidates import ambiguity_reason, find_candidates, rank_candidates, search_rivals
+from .candidates import (ambiguity_reason, find_candidates, rank_candidates, search_rivals,
+                         verify_rivals)
 from .gates import gate, line_reason
 from .map import matches_config, PreparedMap
 from .result import PipelineResult
@@ -31,6 +32,7 @@ from ..frontend.features import CloudFeatures, finite_points
 from ..frontend.keypoints import match_keypoints
 from ..frontend.matching import Correspondences
 from ..frontend.refine import refine_transform
+from ..geometry import spread
 from ..parallel import DEFAULT_WORKERS, in_background
 from ..registration import register_correspondences, RegistrationResult, single_blas_thread
 from ..timing import timed
@@ -110,7 +112,9 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
     _copy_core(core, result)
     result.inlier_source_points = fs.points[corr.source_index[core.inliers]]
     result.inlier_target_points = ft.points[corr.target_index[core.inliers]]
-    if core.reason:  # nothing worth refining or gating further
+    unsettled = bool(core.reason) and _collinear_only(fs, corr, core, cfg)
+    if core.reason and not unsettled:
+        # nothing worth refining or gating further
         return result.finish(start, _candidates(fs, ft, corr, result, cfg) or core.reason)
     gravity = cfg.core.gravity_axis if cfg.core.motion_model == '4dof' else None
     with timed(result.timings, 'refinement'):
@@ -124,9 +128,16 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
     # in compiled kernels and k-d tree queries).
     rivals = in_background(lambda: _search_rivals(fs, ft, corr, result, cfg), workers > 1)
     with timed(result.timings, 'validation'):
-        reason = gate(fs, ft, corr, result, cfg)
+        reason = gate(fs, ft, corr, result, cfg, isinstance(target, PreparedMap), unsettled)
     found, result.timings['candidates'] = rivals()
     rank_candidates(result, found, cfg)
+    with timed(result.timings, 'rivals_verified'):
+        chosen = verify_rivals(fs, ft, result, cfg, isinstance(target, PreparedMap), workers)
+        if chosen is not None:  # the geometry prefers a rival: it is the estimate now
+            result.transform = chosen.transform
+            reason = gate(fs, ft, corr, result, cfg, isinstance(target, PreparedMap),
+                          unsettled)
+            chosen.fitness = result.fitness
     return result.finish(start, ambiguity_reason(result, cfg) or reason)
 
 
@@ -206,6 +217,24 @@ def _global_estimate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences
             resolution=resolution, config=cfg.core, seed=cfg.seed)
     except DegenerateCorrespondencesError as exc:
         return f'degenerate correspondences: {exc}'
+
+
+def _collinear_only(fs: CloudFeatures, corr: Correspondences, core: RegistrationResult,
+                    cfg: PipelineConfig) -> bool:
+    """
+    Tell whether the core refused its estimate only because its inliers are nearly collinear.
+
+    Such a consensus leaves the rotation about its line to the correspondences' noise, but
+    the refinement fits the whole overlap, whose geometry may well fix that rotation: with
+    ``refine.collinear_consensus`` it is refined and left to the gates on the overlap
+    (observability, free space, chance inliers, ambiguity) instead.
+    """
+    if not cfg.refine.collinear_consensus or cfg.core.motion_model == '4dof':
+        return False
+    if cfg.refine.method == 'none' or core.num_inliers < cfg.core.min_inliers:
+        return False
+    s = spread(fs.points[corr.source_index[core.inliers]])
+    return bool(s[1] / np.sqrt(core.num_inliers) < core.inlier_threshold)
 
 
 def _copy_core(core: RegistrationResult, result: PipelineResult) -> None:

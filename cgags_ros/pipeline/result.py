@@ -66,6 +66,9 @@ class PipelineResult(RegistrationResult):
     :ivar tilt_deg: 4-DoF mode only (else NaN): the tilt (degrees) between the clouds'
         gravity axes measured by one 6-DoF point-to-plane step from the final estimate over
         the overlap; above ``core.max_tilt_deg`` the result is invalid.
+    :ivar free_space_violation: share of aligned points lying in front of the other
+        cloud's observed surface (see :func:`~.gates.free_space_violation`); NaN when not
+        measured (clouds not in sensor frames, or the gate disabled).
     :ivar candidates: up to ``num_candidates`` distinct :class:`Candidate` poses, best
         first (the first is ``transform``); empty when the core gave no estimate.
     :ivar ambiguous: True when the runner-up candidate is nearly as well supported as the
@@ -88,6 +91,7 @@ class PipelineResult(RegistrationResult):
     voxel_size: float = float('nan')
     resolution: float = float('nan')
     tilt_deg: float = float('nan')
+    free_space_violation: float = float('nan')
     candidates: list[Candidate] = dataclasses.field(default_factory=list)
     ambiguous: bool = False
     runner_up_ratio: float = float('inf')
@@ -104,6 +108,7 @@ class PipelineResult(RegistrationResult):
             num_target_points=int(self.num_target_points),
             voxel_size=float(self.voxel_size), resolution=float(self.resolution),
             tilt_deg=float(self.tilt_deg),
+            free_space_violation=float(self.free_space_violation),
             candidates=[c.summary() for c in self.candidates], ambiguous=bool(self.ambiguous),
             runner_up_ratio=float(self.runner_up_ratio))
         return out

@@ -1,0 +1,134 @@
+"""The 3DMatch benchmark reader against the fragment poses, and a sample of it registered."""
+
+from pathlib import Path
+
+from cgags_ros.datasets import threedmatch as tdm
+from cgags_ros.datasets.synthetic import shared_data_dir
+from cgags_ros.errors import InvalidInputError
+from cgags_ros.geometry import rotation_error_deg, translation_error
+import numpy as np
+import pytest
+
+ROOT = shared_data_dir() / '3dmatch_benchmark'
+needs_data = pytest.mark.skipif(not (ROOT / 'benchmarks').is_dir(),
+                                reason='3dmatch_benchmark not in the shared data')
+
+
+@needs_data
+@pytest.mark.parametrize('benchmark', tdm.BENCHMARKS)
+def test_gt_log_matches_fragment_poses(benchmark):
+    """Every gt.log block i j equals inv(P_i) P_j of the fragment poses: j is the source."""
+    scenes = tdm.scenes(ROOT, benchmark)
+    assert len(scenes) >= 4
+    worst = 0.0
+    count = 0
+    for scene in scenes:
+        pairs = tdm.registration_pairs(ROOT, benchmark, scene)
+        assert pairs and all(p.source - p.target > 1 for p in pairs)
+        for p in pairs:
+            P = [tdm.read_fragment_pose(ROOT / 'fragment_poses' / scene
+                                        / f'cloud_bin_{k}.info.txt')
+                 for k in (p.target, p.source)]
+            T = np.linalg.inv(P[0]) @ P[1]
+            worst = max(worst, np.abs(T - p.transform).max())
+            assert p.info is not None and p.info.shape == (6, 6)
+            assert 0.0 <= p.overlap <= 1.0
+            count += 1
+        # The other direction is wrong: the reading must tell source from target.
+        p = pairs[0]
+        P = [tdm.read_fragment_pose(ROOT / 'fragment_poses' / scene / f'cloud_bin_{k}.info.txt')
+             for k in (p.target, p.source)]
+        assert translation_error(np.linalg.inv(P[1]) @ P[0], p.transform) > 0.05 \
+            or rotation_error_deg(np.linalg.inv(P[1]) @ P[0], p.transform) > 2.0
+    assert worst < 1e-6
+    assert count == {'3DMatch': 782, '3DLoMatch': 1087}[benchmark]
+
+
+@needs_data
+def test_rmse_error_is_zero_at_truth_and_grows_with_error():
+    p = tdm.registration_pairs(ROOT, '3DMatch', tdm.scenes(ROOT)[0])[0]
+    assert tdm.rmse_error(p.transform, p.transform, p.info) < 1e-9
+    shifted = p.transform.copy()
+    shifted[:3, 3] += [0.1, 0.0, 0.0]  # a pure 10 cm shift moves every point by 10 cm
+    assert tdm.rmse_error(shifted, p.transform, p.info) == pytest.approx(0.1, rel=1e-3)
+    c, s = np.cos(np.radians(60)), np.sin(np.radians(60))
+    turned = p.transform @ np.array([[c, -s, 0, 0], [s, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+    assert tdm.rmse_error(turned, p.transform, p.info) > tdm.RMSE_THRESHOLD
+
+
+@needs_data
+def test_nearest_rigid_removes_the_rotation_floor():
+    """Logged rotations are not all orthonormal; projected, truth against itself reads 0."""
+    floor = 0.0
+    for p in tdm.registration_pairs(ROOT, '3DMatch', '7-scenes-redkitchen'):
+        T = tdm.nearest_rigid(p.transform)
+        assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9)
+        assert np.linalg.det(T[:3, :3]) > 0
+        assert np.abs(T - p.transform).max() < 1e-3
+        floor = max(floor, rotation_error_deg(T, p.transform))
+    assert floor > 0.5  # what an exact estimate would read against the raw rotations
+
+
+def test_bad_log_is_a_clear_error(tmp_path: Path):
+    path = tmp_path / 'gt.log'
+    path.write_text('0 2 3\n1 0 0 0\n0 1 0 0\n')
+    with pytest.raises(InvalidInputError, match='block'):
+        tdm.read_gt_log(path)
+
+
+@needs_data
+@pytest.mark.parametrize('benchmark, floor', [('3DMatch', 0.7), ('3DLoMatch', 0.3)])
+def test_sample_registers_against_ground_truth(benchmark, floor):
+    """
+    Five pairs a scene (seeded) through the node's path: recall and the valid flag.
+
+    The floors sit well below the full benchmark's recall (docs/benchmarks_3dmatch.md),
+    as a 20-pair sample scatters by about 10 points; a valid pose must be right.
+    """
+    from cgags_ros.pipeline import register_clouds
+
+    rng = np.random.default_rng(1)
+    right = valid_wrong = total = 0
+    for scene in tdm.scenes(ROOT, benchmark):
+        pairs = tdm.registration_pairs(ROOT, benchmark, scene)
+        fragments = tdm.Fragments(ROOT, scene)
+        for k in rng.choice(len(pairs), size=5, replace=False):
+            p = pairs[k]
+            result = register_clouds(fragments[p.source], fragments[p.target], voxel_size=0.05)
+            gt = tdm.nearest_rigid(p.transform)
+            ok = (rotation_error_deg(result.transform, gt) < 15.0
+                  and translation_error(result.transform, gt) < 0.3)
+            right += ok
+            valid_wrong += result.valid and not ok
+            total += 1
+    assert right / total >= floor
+    assert valid_wrong <= 1
+
+
+def _room(rng, n=6000, size=(6.0, 4.0, 2.5)):
+    """Points on the inside walls, floor and ceiling of a box room centred at the origin."""
+    half = np.array(size) / 2
+    pts = rng.uniform(-half, half, size=(n, 3))
+    axis = rng.integers(0, 3, size=n)
+    side = rng.choice([-1.0, 1.0], size=n)
+    pts[np.arange(n), axis] = side * half[axis]
+    return pts
+
+
+def test_free_space_violation_tells_a_right_pose_from_a_turned_one():
+    """Inside a 6 x 4 m room seen from two sensor poses: the truth violates no free space."""
+    from cgags_ros.geometry import apply_transform
+    from cgags_ros.pipeline.gates import free_space_violation
+
+    rng = np.random.default_rng(0)
+    room = _room(rng)
+    c, s = np.cos(0.4), np.sin(0.4)
+    T = np.array([[c, -s, 0, 0.5], [s, c, 0, -0.3], [0, 0, 1, 0.1], [0, 0, 0, 1.0]])
+    target = room  # the sensor of the target at the room's centre
+    source = apply_transform(np.linalg.inv(T), _room(rng))  # p_target = T p_source
+    assert free_space_violation(source, target, T, 0.1, 2.0) < 0.05
+    # Turned by 90 degrees about the vertical: the long walls stand inside the room.
+    turn = np.array([[0, -1, 0, 0], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+    assert free_space_violation(source, target, turn @ T, 0.1, 2.0) > 0.3
+    # Against a map only the scan's view counts: still caught.
+    assert free_space_violation(source, target, turn @ T, 0.1, 2.0, target_view=False) > 0.3
