@@ -30,7 +30,7 @@ import dataclasses
 
 import numpy as np
 
-from .gates import free_space_limit, free_space_violation
+from .gates import free_space_limit, measured_free_space
 from .result import Candidate, PipelineResult
 from ..config.pipeline import PipelineConfig
 from ..errors import DegenerateCorrespondencesError
@@ -149,7 +149,6 @@ def verify_rivals(fs: CloudFeatures, ft: CloudFeatures, result: PipelineResult,
     distance = cfg.refine.max_correspondence_distance_factor * v
     gravity = cfg.core.gravity_axis if cfg.core.motion_model == '4dof' else None
     limit = cfg.refine.max_free_space_violation
-    free_space = cfg.frontend.normal_orientation == 'origin' and limit < 1
     best = result.candidates[0]
     # (candidate, overlap) of every plausible pose within the inlier ratio, best first.
     plausible = [] if result.free_space_violation > limit else [(best, result.overlap)]
@@ -169,10 +168,8 @@ def verify_rivals(fs: CloudFeatures, ft: CloudFeatures, result: PipelineResult,
         back = evaluate_alignment(ft.points, fs.tree, np.linalg.inv(T), distance).fitness
         c.transform, c.fitness = T, ahead
         kept.append(c)
-        violation[id(c)] = free_space_violation(
-            fs.points, ft.points, T, cfg.refine.free_space_margin_factor * v,
-            cfg.refine.free_space_bin_deg, target_view=not map_target) if free_space else 0.0
-        if violation[id(c)] <= limit:
+        violation[id(c)] = measured_free_space(fs, ft, T, cfg, map_target)
+        if not violation[id(c)] > limit:  # NaN: the gate does not apply
             plausible.append((c, min(ahead, back)))
     chosen, support = best, result.overlap
     if plausible:

@@ -62,16 +62,27 @@ def gate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences, result: Pi
         result.tilt_deg = residual_tilt(fs.points, ft.points, ft.normals, align, frame)
     else:
         result.observability = observability(fs.points, ft.normals, align)
-    if cfg.frontend.normal_orientation == 'origin' and cfg.refine.max_free_space_violation < 1:
-        result.free_space_violation = free_space_violation(
-            fs.points, ft.points, result.transform,
-            cfg.refine.free_space_margin_factor * cfg.voxel_size,
-            cfg.refine.free_space_bin_deg, target_view=not map_target)
+    result.free_space_violation = measured_free_space(fs, ft, result.transform, cfg, map_target)
     return (_significance_reason(result, cfg.refine.significance, members)
             or _observability_reason(result, cfg.refine.min_observability)
             or _fitness_reason(result, cfg.refine.min_fitness, distance)
             or _free_space_reason(result, free_space_limit(cfg, unsettled))
             or _tilt_reason(result, cfg.core.max_tilt_deg))
+
+
+def measured_free_space(fs: CloudFeatures, ft: CloudFeatures, transform: np.ndarray,
+                        cfg: PipelineConfig, map_target: bool = False) -> float:
+    """
+    Return :func:`free_space_violation` of ``transform`` as the config asks for it.
+
+    NaN when the gate does not apply: clouds not in their sensor frames (normals not
+    oriented to the origin) or the gate disabled (``refine.max_free_space_violation`` 1).
+    """
+    if cfg.frontend.normal_orientation != 'origin' or cfg.refine.max_free_space_violation >= 1:
+        return float('nan')
+    return free_space_violation(fs.points, ft.points, transform,
+                                cfg.refine.free_space_margin_factor * cfg.voxel_size,
+                                cfg.refine.free_space_bin_deg, target_view=not map_target)
 
 
 def free_space_limit(cfg: PipelineConfig, unsettled: bool = False) -> float:

@@ -127,16 +127,16 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
     # the gates set: it runs beside them (both spend most of their time outside the GIL,
     # in compiled kernels and k-d tree queries).
     rivals = in_background(lambda: _search_rivals(fs, ft, corr, result, cfg), workers > 1)
+    map_target = isinstance(target, PreparedMap)
     with timed(result.timings, 'validation'):
-        reason = gate(fs, ft, corr, result, cfg, isinstance(target, PreparedMap), unsettled)
+        reason = gate(fs, ft, corr, result, cfg, map_target, unsettled)
     found, result.timings['candidates'] = rivals()
     rank_candidates(result, found, cfg)
     with timed(result.timings, 'rivals_verified'):
-        chosen = verify_rivals(fs, ft, result, cfg, isinstance(target, PreparedMap), workers)
+        chosen = verify_rivals(fs, ft, result, cfg, map_target, workers)
         if chosen is not None:  # the geometry prefers a rival: it is the estimate now
             result.transform = chosen.transform
-            reason = gate(fs, ft, corr, result, cfg, isinstance(target, PreparedMap),
-                          unsettled)
+            reason = gate(fs, ft, corr, result, cfg, map_target, unsettled)
             chosen.fitness = result.fitness
     return result.finish(start, ambiguity_reason(result, cfg) or reason)
 
