@@ -20,7 +20,7 @@ from std_msgs.msg import Header
 
 from ..errors import InvalidInputError
 from ..geometry import matrix_to_quaternion
-from ..io.pointcloud2 import data_bytes, FLOAT32, POINT_FIELD_TYPES
+from ..io.pointcloud2 import data_bytes, POINT_FIELD_TYPES
 
 
 def xyz_to_pointcloud2(points: np.ndarray, header: Any = None) -> Any:
@@ -34,23 +34,9 @@ def xyz_to_pointcloud2(points: np.ndarray, header: Any = None) -> Any:
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise InvalidInputError(f'points must have shape (N, 3), got {pts.shape}')
-    pts32 = np.ascontiguousarray(pts, dtype='<f4')
-    msg = PointCloud2()
-    if header is not None:
-        msg.header = header
-    msg.height = 1
-    msg.width = int(pts32.shape[0])
-    msg.fields = [PointField(name=name, offset=4 * i, datatype=FLOAT32, count=1)
-                  for i, name in enumerate('xyz')]
-    msg.is_bigendian = False
-    msg.point_step = 12
-    msg.row_step = 12 * msg.width
-    msg.is_dense = bool(np.isfinite(pts32).all())
-    # array.array('B') takes rclpy's fast path; a bytes/list value is checked byte by byte.
-    buf = array.array('B')
-    buf.frombytes(pts32.tobytes())
-    msg.data = buf
-    return msg
+    xyz = np.dtype([(name, '<f4') for name in 'xyz'])
+    return fields_to_pointcloud2(np.ascontiguousarray(pts, dtype='<f4').view(xyz).reshape(-1),
+                                 header)
 
 
 def fields_to_pointcloud2(table: np.ndarray, header: Any = None) -> Any:
@@ -84,6 +70,7 @@ def fields_to_pointcloud2(table: np.ndarray, header: Any = None) -> Any:
     msg.point_step = table.dtype.itemsize
     msg.row_step = msg.point_step * msg.width
     msg.is_dense = all(np.isfinite(table[c]).all() for c in 'xyz' if c in names)
+    # array.array('B') takes rclpy's fast path; a bytes/list value is checked byte by byte.
     buf = array.array('B')
     buf.frombytes(table.tobytes())
     msg.data = buf
