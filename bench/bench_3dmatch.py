@@ -133,26 +133,30 @@ def diagnostics(result, src: np.ndarray, tgt: np.ndarray, gt: np.ndarray,
     return out
 
 
+def _bench_pipeline():
+    """Return bench/bench_pipeline.py, whose baselines this benchmark shares (a script)."""
+    here = str(Path(__file__).resolve().parent)
+    if here not in sys.path:
+        sys.path.insert(0, here)
+    import bench_pipeline
+    return bench_pipeline
+
+
 def run_kiss(src: np.ndarray, tgt: np.ndarray, voxel: float) -> tuple[np.ndarray, bool, dict]:
     import kiss_matcher
 
     t0 = time.perf_counter()
     matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(voxel))
     solution = matcher.estimate(src.astype(np.float32), tgt.astype(np.float32))
-    T = np.eye(4)
-    T[:3, :3] = np.asarray(solution.rotation, dtype=np.float64).reshape(3, 3)
-    T[:3, 3] = np.asarray(solution.translation, dtype=np.float64).reshape(3)
+    T = _bench_pipeline().kiss_transform(solution)
     elapsed = time.perf_counter() - t0
     return T, bool(solution.valid), {
         'time_s': elapsed, 'num_final_inliers': int(matcher.get_num_final_inliers())}
 
 
 def run_open3d(src: np.ndarray, tgt: np.ndarray, voxel: float) -> tuple[np.ndarray, bool, dict]:
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from bench_pipeline import run_open3d as open3d_fpfh_ransac
-
     t0 = time.perf_counter()
-    T = open3d_fpfh_ransac(src, tgt, voxel)
+    T = _bench_pipeline().run_open3d(src, tgt, voxel)
     return T, True, {'time_s': time.perf_counter() - t0}
 
 

@@ -134,11 +134,16 @@ def run_kiss(src: np.ndarray, tgt: np.ndarray, voxel: float, scale: float = 1.0,
                                                                       use_quatro=quatro))
     solution = matcher.estimate((src * scale).astype(np.float32),
                                 (tgt * scale).astype(np.float32))
+    if not solution.valid:
+        raise CgagsError('KISS-Matcher reported valid=False')
+    return kiss_transform(solution, scale)
+
+
+def kiss_transform(solution, scale: float = 1.0) -> np.ndarray:
+    """Return a KISS-Matcher solution as a 4x4 source->target transform (unscaled)."""
     T = np.eye(4)
     T[:3, :3] = np.asarray(solution.rotation, dtype=np.float64).reshape(3, 3)
     T[:3, 3] = np.asarray(solution.translation, dtype=np.float64).reshape(3) / scale
-    if not solution.valid:
-        raise CgagsError('KISS-Matcher reported valid=False')
     return T
 
 
