@@ -101,7 +101,7 @@ def load_clouds(which: str) -> list:
     import numpy as np
 
     from cgags_ros.datasets.synthetic import shared_data_dir
-    from cgags_ros.io.clouds import read_pcd_fields
+    from cgags_ros.io.pcd import read_fields as read_pcd_fields
     from cgags_ros.ros.conversions import fields_to_pointcloud2, to_rclpy_pointcloud2
 
     if which == 'kitti':

@@ -85,6 +85,50 @@ def test_the_map_cache_hits_with_the_same_settings_and_misses_on_a_change(kitche
                         config=pipeline_config_from({'voxel_size': 0.09}))
 
 
+def test_a_map_file_with_normals_signs_the_map_normals_and_a_sensor_frame_scan_localizes(
+        data_dir, tmp_path):
+    """
+    Normals in the map file (each fragment's facing its own sensor) sign the map's normals.
+
+    With the defaults (normals facing the sensor, the scan kept in its sensor frame) the map
+    is described as the scan is, and the free-space gate applies (the scan's view).
+    """
+    from scipy.spatial import cKDTree
+
+    from cgags_ros.datasets.gt_pairs import find_pair
+    from cgags_ros.frontend.features import estimate_normals
+    from cgags_ros.io.clouds import write_cloud
+
+    base = data_dir / 'indoor_3dmatch'
+    f4, f0, T40 = find_pair(base / 'gt_pairs.txt', 'cloud_bin_4.ply', 'cloud_bin_0.ply')
+    cfg = pipeline_config_from({'voxel_size': 0.05})
+    frags = [(read_cloud(f0), np.eye(4)), (read_cloud(f4), T40)]
+    turn = moved(np.random.default_rng(5))  # the map's frame is arbitrary
+    points = np.vstack([apply_transform(turn @ T, f) for f, T in frags])
+    sides = np.vstack([estimate_normals(f, 0.05, cfg.frontend) @ (turn @ T)[:3, :3].T
+                       for f, T in frags])
+    write_cloud(tmp_path / 'map.ply', points, sides)
+    write_cloud(tmp_path / 'bare.ply', points)
+    prepared = load_map(tmp_path / 'map.ply', cfg, tmp_path / 'cache')
+    bare = load_map(tmp_path / 'bare.ply', cfg)
+    assert (prepared.oriented_by, bare.oriented_by) == ('file normals', 'origin')
+    assert load_map(tmp_path / 'map.ply', cfg, tmp_path / 'cache').oriented_by == 'file normals'
+    assert load_map(tmp_path / 'map.ply', pipeline_config_from(MOVED)).oriented_by == 'centroid'
+    # Same points; the signs follow the file's normals (near every one), not the frame origin.
+    assert np.array_equal(prepared.features.points, bare.features.points)
+    tree_side = sides[cKDTree(points).query(prepared.features.points)[1]]
+    agree = np.einsum('ij,ij->i', prepared.features.normals, tree_side) > 0
+    assert agree.mean() > 0.95
+    assert np.mean(np.einsum('ij,ij->i', bare.features.normals, tree_side) > 0) < 0.9
+    scan = np.load(base / 'geotransformer_demo' / 'src.npy')  # fragment 6, its sensor frame
+    gt = turn @ np.load(base / 'geotransformer_demo' / 'gt.npy')
+    result = register_clouds(scan, prepared, config=cfg)
+    assert result.valid, result.reason
+    assert rotation_error_deg(result.transform, gt) < 5.0
+    assert translation_error(result.transform, gt) < 0.1
+    assert np.isfinite(result.free_space_violation)
+
+
 def test_bad_map_files_are_clear_errors(tmp_path):
     cfg = pipeline_config_from({'voxel_size': 0.05})
     with pytest.raises(InvalidInputError, match='no such file'):

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InvalidInputError
+from ..geometry import apply_transform
 
 BENCHMARKS = ('3DMatch', '3DLoMatch')
 RMSE_THRESHOLD = 0.2  # metres: the official RMSE recall counts pairs below it
@@ -129,6 +130,32 @@ def registration_pairs(root: str | Path, benchmark: str, scene: str,
         if (folder / 'gt_overlap.log').exists() else {}
     return [GtPair(scene, i, j, T, info.get((i, j)), overlap.get((i, j), float('nan')))
             for (i, j), T in log.items() if j - i >= min_gap]
+
+
+def fragment_poses(root: str | Path, scene: str) -> dict[int, np.ndarray]:
+    """Return ``{k: P_k}`` for every ``fragment_poses/<scene>/cloud_bin_<k>.info.txt``."""
+    folder = Path(root) / 'fragment_poses' / scene
+    if not folder.is_dir():
+        raise InvalidInputError(f'no fragment poses folder {folder}')
+    poses = {}
+    for path in folder.glob('cloud_bin_*.info.txt'):
+        k = path.name[len('cloud_bin_'):-len('.info.txt')]
+        if k.isdigit():
+            poses[int(k)] = read_fragment_pose(path)
+    return dict(sorted(poses.items()))
+
+
+def scene_map(fragments: Fragments, poses: dict[int, np.ndarray],
+              left_out: int | None = None) -> np.ndarray:
+    """
+    Return the scene's prior map: every fragment but ``left_out`` in the world frame.
+
+    ``p_world = P_k p_fragment`` for each fragment ``k`` of ``poses``; (M, 3) float64 metres,
+    the fragments stacked as they are (their overlaps not merged: a map file as a fusion of
+    scans is).
+    """
+    return np.vstack([apply_transform(P, fragments[k]) for k, P in poses.items()
+                      if k != left_out])
 
 
 class Fragments:

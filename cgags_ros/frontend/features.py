@@ -91,22 +91,39 @@ def downsample(points: np.ndarray, voxel_size: float, min_points: int,
 
     :raises EmptyCloudError: when fewer than ``min_points`` remain.
     """
-    down = np.asarray(_o3d_cloud(points).voxel_down_sample(voxel_size).points)
+    return _voxel_means(_o3d_cloud(points), voxel_size, min_points, name)[0]
+
+
+def downsample_with_sides(points: np.ndarray, sides: np.ndarray, voxel_size: float,
+                          min_points: int, name: str = 'cloud'
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """Return :func:`downsample`'s centroids and the mean of ``sides`` (N, 3) in each voxel."""
+    cloud = _o3d_cloud(points)
+    cloud.normals = o3d.utility.Vector3dVector(np.ascontiguousarray(sides, np.float64))
+    return _voxel_means(cloud, voxel_size, min_points, name)
+
+
+def _voxel_means(cloud: o3d.geometry.PointCloud, voxel_size: float, min_points: int,
+                 name: str) -> tuple[np.ndarray, np.ndarray]:
+    cloud = cloud.voxel_down_sample(voxel_size)
+    down = np.asarray(cloud.points)
     if len(down) < min_points:
         raise EmptyCloudError(
             f'{name}: only {len(down)} point(s) left after {voxel_size:g} m voxel downsampling '
             f'(need frontend.min_points = {min_points}); lower the voxel size or check that '
             'the cloud is not a single repeated point')
-    return down
+    return down, np.asarray(cloud.normals)
 
 
-def estimate_normals(points: np.ndarray, voxel_size: float,
-                     config: FrontEndConfig) -> np.ndarray:
+def estimate_normals(points: np.ndarray, voxel_size: float, config: FrontEndConfig,
+                     sides: np.ndarray | None = None) -> np.ndarray:
     """
     Estimate unit PCA normals from the neighbours within ``normal_radius_factor * v``.
 
     They are oriented per ``normal_orientation``: PCA's own sign changes with the frame, and
-    FPFH with it.
+    FPFH with it. ``sides`` (M, 3), when given, overrides that sign wherever it is usable:
+    each normal is turned to agree with its row, e.g. the normals a map file carries, which
+    face the sensors that saw each surface as a scan's face its own sensor.
     """
     cloud = _tensor_cloud(points)
     cloud.estimate_normals(max_nn=config.normal_max_nn,
@@ -116,24 +133,36 @@ def estimate_normals(points: np.ndarray, voxel_size: float,
         return normals
     viewpoint = points.mean(axis=0) if config.normal_orientation == 'centroid' else np.zeros(3)
     flip = np.einsum('ij,ij->i', normals, viewpoint - points) < 0
+    if sides is not None:
+        agree = np.einsum('ij,ij->i', normals, sides)
+        usable = np.isfinite(agree) & (np.abs(agree) > 1e-6)
+        flip = np.where(usable, agree < 0, flip)
     normals[flip] *= -1.0
     return normals
 
 
 def extract_features(points: np.ndarray, voxel_size: float, config: FrontEndConfig,
                      name: str = 'cloud', timings: dict[str, float] | None = None,
-                     workers: int = 1) -> CloudFeatures:
+                     workers: int = 1, sides: np.ndarray | None = None) -> CloudFeatures:
     """
     Extract features: finite points -> downsample -> normals -> FPFH.
 
-    Each stage's seconds are added to ``timings``; FPFH runs on ``workers`` threads (the
-    result does not depend on it).
+    ``sides``: (N, 3) normals stored with ``points`` (rows matching), used for the sign of
+    the estimated normals only (:func:`estimate_normals`). Each stage's seconds are added to
+    ``timings``; FPFH runs on ``workers`` threads (the result does not depend on it).
     """
     timings = {} if timings is None else timings
+    down_sides = None
     with timed(timings, 'downsample'):
-        down = downsample(finite_points(points, name), voxel_size, config.min_points, name)
+        if sides is None:
+            down = downsample(finite_points(points, name), voxel_size, config.min_points, name)
+        else:
+            keep = np.isfinite(points).all(axis=1)
+            down, down_sides = downsample_with_sides(finite_points(points[keep], name),
+                                                     sides[keep], voxel_size,
+                                                     config.min_points, name)
     with timed(timings, 'normals'):
-        normals = estimate_normals(down, voxel_size, config)
+        normals = estimate_normals(down, voxel_size, config, down_sides)
     with timed(timings, 'fpfh'):
         descriptors, spacing = fpfh_with_spacing(down, normals, voxel_size, config, workers)
     tree = cKDTree(down)

@@ -177,9 +177,11 @@ def verify_rivals(fs: CloudFeatures, ft: CloudFeatures, result: PipelineResult,
         if plausible[0][0] is not best or top_support >= ratio * result.overlap:
             chosen, support = top, top_support
     result.candidates = [chosen] + [c for c in kept if c is not chosen]
-    # Settled by the geometry only when the chosen pose clearly passes the free-space test.
-    result.ambiguous = (any(c is not chosen and o * ratio > support for c, o in plausible)
-                        or violation[id(chosen)] > free_space_limit(cfg, unsettled=True))
+    # Settled by the geometry only when the chosen pose clearly passes the free-space test;
+    # when every rival converged onto it, nothing distinct is left to be confused with.
+    result.ambiguous = len(result.candidates) > 1 and (
+        any(c is not chosen and o * ratio > support for c, o in plausible)
+        or violation[id(chosen)] > free_space_limit(cfg, unsettled=True))
     rivals = [c.num_inliers for c in result.candidates[1:] if c.num_inliers > 0]
     result.runner_up_ratio = (chosen.num_inliers / max(rivals) if rivals
                               else float('inf'))

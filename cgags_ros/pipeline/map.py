@@ -9,6 +9,14 @@ features are stored under a key of the file's content hash and every setting tha
 them (:data:`FEATURE_SETTINGS`, the voxel size, the Open3D version); a later load with the
 same file and settings reads them back (``cache == 'hit'``), a changed setting or file is a
 ``'miss'`` and recomputes. A hit returns exactly the arrays a miss computed.
+
+Normal orientation: a scan's normals face its sensor (``normal_orientation`` 'origin'); a
+map fused from many views has no one sensor, so with 'origin' a map file that carries
+normals (PLY ``nx ny nz``, PCD ``normal_x normal_y normal_z``, as mappers write them facing
+the sensors that saw each surface) gives the map's normals their sign; FPFH then describes
+both clouds alike. Without normals in the file the map's face its frame origin, which is
+right for a single scan kept in its sensor frame only: use 'centroid' for both then
+(docs/relocalization.md).
 """
 
 from __future__ import annotations
@@ -25,7 +33,7 @@ from ..config.pipeline import PipelineConfig
 from ..errors import EmptyCloudError, InvalidInputError
 from ..frontend.features import CloudFeatures, extract_features
 from ..io import map_cache
-from ..io.clouds import read_cloud
+from ..io.clouds import read_cloud, read_normals
 
 # FrontEndConfig fields that change a cloud's features (the matching options do not).
 FEATURE_SETTINGS = ('normal_radius_factor', 'normal_max_nn', 'normal_orientation',
@@ -47,6 +55,8 @@ class PreparedMap:
     :ivar num_raw_points: points in the file.
     :ivar num_nonfinite: of those, rows with a NaN or inf coordinate (dropped).
     :ivar load_s: seconds to read, hash and featurise (or read back) the map.
+    :ivar oriented_by: what signed the map's normals: 'file normals' or the configured
+        ``normal_orientation``.
     """
 
     features: CloudFeatures
@@ -58,6 +68,7 @@ class PreparedMap:
     num_raw_points: int
     num_nonfinite: int
     load_s: float
+    oriented_by: str = ''
 
     def info(self) -> dict[str, Any]:
         """Return a small, picklable summary (what the node reports; no arrays)."""
@@ -65,7 +76,7 @@ class PreparedMap:
                 'cache_path': self.cache_path, 'raw_points': self.num_raw_points,
                 'nonfinite_points': self.num_nonfinite,
                 'points': len(self.features.points), 'voxel_size': self.settings['voxel_size'],
-                'load_s': round(self.load_s, 3)}
+                'normals': self.oriented_by, 'load_s': round(self.load_s, 3)}
 
 
 def feature_settings(config: PipelineConfig) -> dict[str, Any]:
@@ -103,25 +114,29 @@ def load_map(path: str | Path, config: PipelineConfig,
         raw, nonfinite = int(stored['raw_points']), int(stored['nonfinite_points'])
         return PreparedMap(features, settings, str(path), digest, 'hit',
                            str(map_cache.entry_path(cache_dir, key)), raw, nonfinite,
-                           time.perf_counter() - start)
+                           time.perf_counter() - start, str(stored.get('oriented_by', '')))
     points = read_cloud(path)
     finite = np.isfinite(points).all(axis=1)
     raw, nonfinite = len(points), int(len(points) - np.count_nonzero(finite))
     if not finite.any():
         raise EmptyCloudError(f'map_file {str(path)!r}: no finite points ({raw} rows, all '
                               'empty or NaN/inf)')
-    features = extract_features(points[finite], config.voxel_size, config.frontend, 'map')
-    del points, finite
+    sides = read_normals(path) if config.frontend.normal_orientation == 'origin' else None
+    oriented_by = config.frontend.normal_orientation if sides is None else 'file normals'
+    features = extract_features(points[finite], config.voxel_size, config.frontend, 'map',
+                                sides=None if sides is None else sides[finite])
+    del points, finite, sides
     status, entry = 'off', ''
     if cache_dir:
         arrays = {'points': features.points, 'normals': features.normals,
                   'descriptors': features.descriptors,
                   'resolution': np.float64(features.resolution),
-                  'raw_points': np.int64(raw), 'nonfinite_points': np.int64(nonfinite)}
+                  'raw_points': np.int64(raw), 'nonfinite_points': np.int64(nonfinite),
+                  'oriented_by': np.str_(oriented_by)}
         status, entry = 'miss', str(map_cache.save_entry(cache_dir, key, arrays))
     features.descriptor_index()
     return PreparedMap(features, settings, str(path), digest, status, entry, raw, nonfinite,
-                       time.perf_counter() - start)
+                       time.perf_counter() - start, oriented_by)
 
 
 def matches_config(prepared: PreparedMap, config: PipelineConfig) -> bool:

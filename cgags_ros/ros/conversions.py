@@ -44,7 +44,7 @@ def fields_to_pointcloud2(table: np.ndarray, header: Any = None) -> Any:
     Build a dense, unorganized ``sensor_msgs/PointCloud2`` carrying every field of ``table``.
 
     ``table`` is a structured array, one record per point, of numeric scalar fields (e.g.
-    :func:`cgags_ros.io.clouds.read_pcd_fields`: x, y, z in metres, intensity, normals...);
+    :func:`cgags_ros.io.pcd.read_fields`: x, y, z in metres, intensity, normals...);
     the layout is the array's, little-endian. ``header`` as in :func:`xyz_to_pointcloud2`.
 
     :raises InvalidInputError: for a field that is not a numeric scalar of a PointField type.
