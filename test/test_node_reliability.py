@@ -23,7 +23,7 @@ from cgags_ros.config.node import parameter_descriptions
 from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.io.bag import read_messages
 from cgags_ros.io.pointcloud2 import pose_to_transform
-from cgags_ros.registration import RegistrationResult
+from cgags_ros.pipeline.result import PipelineResult
 import numpy as np
 import pytest
 
@@ -259,8 +259,8 @@ def test_parameter_fuzzing_applies_or_refuses_and_the_next_pair_uses_what_was_ac
 
     def record(source, target, *, config):
         seen.append(config)
-        return RegistrationResult(transform=np.eye(4), valid=True, inliers=np.arange(10),
-                                  num_correspondences=20, inlier_threshold=0.05)
+        return PipelineResult(transform=np.eye(4), valid=True, inliers=np.arange(10),
+                              num_correspondences=20, inlier_threshold=0.05)
 
     node = start(wire, record, diagnostics_period=0.1)
     try:

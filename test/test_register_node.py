@@ -33,7 +33,7 @@ from cgags_ros.errors import InvalidConfigError  # noqa: E402
 from cgags_ros.geometry import rotation_error_deg, translation_error  # noqa: E402
 from cgags_ros.io.bag import read_messages  # noqa: E402
 from cgags_ros.io.pointcloud2 import pose_to_transform  # noqa: E402
-from cgags_ros.registration import RegistrationResult  # noqa: E402
+from cgags_ros.pipeline.result import PipelineResult  # noqa: E402
 from cgags_ros.ros.conversions import to_rclpy_pointcloud2, xyz_to_pointcloud2  # noqa: E402
 from cgags_ros.ros.node import RegisterNode  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
@@ -152,10 +152,10 @@ def fake_register(source, target, *, config):
     """Stand-in for the pipeline: translation = voxel_size along x; invalid above 1 m."""
     T = np.eye(4)
     T[0, 3] = config.voxel_size
-    return RegistrationResult(transform=T, valid=config.voxel_size <= 1.0,
-                              reason='' if config.voxel_size <= 1.0 else 'fake: too coarse',
-                              inliers=np.arange(12), num_correspondences=20,
-                              inlier_threshold=0.05)
+    return PipelineResult(transform=T, valid=config.voxel_size <= 1.0,
+                          reason='' if config.voxel_size <= 1.0 else 'fake: too coarse',
+                          inliers=np.arange(12), num_correspondences=20,
+                          inlier_threshold=0.05)
 
 
 def test_plumbing_parameters_outputs_and_rejections(ros):

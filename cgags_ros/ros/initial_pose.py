@@ -44,18 +44,18 @@ def extrinsic(cfg: NodeConfig) -> np.ndarray | None:
 
 def quality_refusal(result: Any, cfg: NodeConfig) -> tuple[str, str]:
     """Return (reason key, message) why ``result`` is no confident pose, or ('', '')."""
-    if getattr(result, 'ambiguous', False):
+    if result.ambiguous:
         return 'ambiguous', str(result.reason)
     if not result.valid:
         return 'invalid', str(result.reason)
     if result.num_inliers < cfg.initial_pose_min_inliers:
         return 'few_inliers', (f'{result.num_inliers} inliers < initial_pose_min_inliers '
                                f'{cfg.initial_pose_min_inliers}')
-    ratio = float(getattr(result, 'runner_up_ratio', float('inf')))
+    ratio = float(result.runner_up_ratio)
     if ratio < cfg.initial_pose_min_ratio:
         return 'low_ratio', (f'best/runner-up ratio {ratio:.2f} < initial_pose_min_ratio '
                              f'{cfg.initial_pose_min_ratio:g}')
-    fitness = float(getattr(result, 'fitness', 0.0))
+    fitness = float(result.fitness)
     if fitness < cfg.initial_pose_min_fitness:
         return 'low_fitness', (f'fitness {fitness:.3f} < initial_pose_min_fitness '
                                f'{cfg.initial_pose_min_fitness:g}')

@@ -105,7 +105,7 @@ class Localization:
         """Publish the candidates, offer the initial pose, answer a pending call."""
         source = pair.source.payload
         header = Header(stamp=source.header.stamp, frame_id=frame_id)
-        candidates = list(getattr(result, 'candidates', []) or [])
+        candidates = list(result.candidates)
         msg = PoseArray(header=header)
         msg.poses = [transform_to_pose(c.transform) for c in candidates
                      if np.isfinite(c.transform).all()]
@@ -154,7 +154,7 @@ class Localization:
 
     def update_map_info(self, result: Any) -> None:
         """Take the map summary a registration reports (the map may have been reloaded)."""
-        info = getattr(result, 'stats', {}).get('map') if hasattr(result, 'stats') else None
+        info = result.stats.get('map')
         if info:
             self.map_info = info
 
@@ -167,9 +167,9 @@ class Localization:
 def summary_line(result: Any, T: np.ndarray, key: str, refusal: str, published: bool,
                  why: str) -> str:
     """Return the one-line answer of ``~/relocalize``: pose, inliers, ratio, or why not."""
-    ratio = float(getattr(result, 'runner_up_ratio', math.inf))
+    ratio = float(result.runner_up_ratio)
     scores = (f'{result.num_inliers} inliers, best/runner-up {ratio:.2f}, fitness '
-              f"{float(getattr(result, 'fitness', 0.0)):.3f}")
+              f'{float(result.fitness):.3f}')
     if key:
         return f'not localized ({key}): {refusal}; {scores}'
     x, y, z = (float(v) for v in T[:3, 3])

@@ -231,11 +231,9 @@ class RegisterNode(Node):
         with self._health.lock:
             self._health.failing = ''
             self._health.last = {
-                'valid': valid, 'reason': str(getattr(result, 'reason', '')),
-                'inliers': int(result.num_inliers),
-                'fitness': float(getattr(result, 'fitness', float('nan'))),
-                'voxel_size': pipe_cfg.voxel_size,
-                'timings': dict(getattr(result, 'timings', {}) or {}),
+                'valid': valid, 'reason': str(result.reason),
+                'inliers': int(result.num_inliers), 'fitness': float(result.fitness),
+                'voxel_size': pipe_cfg.voxel_size, 'timings': dict(result.timings),
                 'source_stamp_ns': pair.source.stamp_ns}
         if not valid:
             if not cfg.publish_invalid or not np.isfinite(T).all():

@@ -19,7 +19,6 @@ from .conversions import transform_to_pose, transform_to_transform_stamped, xyz_
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
 from ..geometry import apply_transform
-from ..pipeline.covariance import inlier_pairs, pose_covariance
 from ..pipeline.pairing import Pair
 
 
@@ -41,20 +40,13 @@ class Outputs:
     def publish(self, pair: Pair, T: np.ndarray, result: Any, pipe_cfg: PipelineConfig,
                 cfg: NodeConfig, frame: str) -> np.ndarray:
         """Publish the pose, its covariance, the aligned cloud and TF; return the covariance."""
-        source, target = pair.source.payload, pair.target.payload
+        source = pair.source.payload
         header = Header(stamp=source.header.stamp, frame_id=frame)
         pose = transform_to_pose(T)
         self._send(self._pose_pub, PoseStamped(header=header, pose=pose))
         cov_msg = PoseWithCovarianceStamped(header=header)
         cov_msg.pose.pose = pose
-        threshold = float(getattr(result, 'inlier_threshold', float('nan')))
-        if not np.isfinite(threshold) or threshold <= 0:
-            threshold = 1.5 * pipe_cfg.voxel_size
-        map_xyz = target.xyz if isinstance(target.xyz, np.ndarray) else np.zeros((0, 3))
-        src, dst = inlier_pairs(result, source.xyz, map_xyz, T, threshold)
-        core = pipe_cfg.core
-        gravity = core.gravity_axis if core.motion_model == '4dof' else None
-        cov = pose_covariance(src, dst, T, gravity)
+        cov = np.asarray(result.covariance, dtype=np.float64)
         cov_msg.pose.covariance = [float(v) for v in cov.ravel()]
         self._send(self._pose_cov_pub, cov_msg)
         if cfg.publish_aligned_cloud:

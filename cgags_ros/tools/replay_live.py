@@ -122,7 +122,7 @@ def wait_for_node(session: LiveSession, proc: subprocess.Popen | None, opts: Rep
                 f'a running {session.node_id} (started with --no-spawn)')
             raise ReplayError(f'no connection to {what} within {live.startup_timeout:g} s: '
                               f'nobody subscribes to {opts.source_topic}/{opts.target_topic} '
-                              f'or publishes {session.node_id}/pose')
+                              f'or publishes {session.node_id}/pose_with_covariance')
         session.spin_for(0.1)
     session.spin_for(0.3)  # let the transient-local/reliable handshakes settle
 
@@ -228,6 +228,7 @@ def build_rows(contents: BagContents, expected: dict[int, Any], poses: dict[int,
         if got is not None:
             row.valid = last['valid']
             row.transform, row.target_frame = got.transform, got.frame_id
+            row.covariance = got.covariance
             row.latency_s = got.receipt_s - sent[stamp] if stamp in sent else None
             row.reason = last['reason']
         else:
