@@ -145,7 +145,7 @@ def test_worker_killed_idle_and_busy_is_replaced_and_the_next_pair_is_correct(wi
     targets = [m for t, _, m in records if t == '/target_cloud']
     sources = [(s, m) for t, s, m in records if t == '/source_cloud']
     node = start(wire, **LIDAR)
-    iso = node._isolated
+    iso = node.engine.registration
     try:
         io.target_pub.publish(targets[0])
         stamp, msg = sources[0]

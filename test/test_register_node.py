@@ -228,23 +228,24 @@ def test_callbacks_after_context_shutdown_do_not_raise():
     diagnostics timer or the worker may still publish a pose; that must end quietly, not
     as an RCLError that makes rclpy.spin() raise and the node exit 1 (seen once in CI).
     """
-    from cgags_ros.pipeline.pairing import Pair, Stamped
-    from cgags_ros.ros.node import _Cloud
+    from cgags_ros.ros.interface import Estimate
     from rclpy.context import Context
 
     ctx = Context()
     rclpy.init(context=ctx)
     node = RegisterNode(register_fn=fake_register, context=ctx)
     xyz = np.random.default_rng(0).normal(size=(30, 3))
-    cloud = Stamped(1, 'map', _Cloud(xyz, Header(frame_id='map'), 0))
-    result = fake_register(xyz, xyz, config=node._pipeline_cfg)  # noqa: SLF001
+    result = fake_register(xyz, xyz, config=node.engine.pipeline_config)
+    estimate = Estimate(result.transform, result.covariance, Header(frame_id='lidar'), 'map',
+                        xyz, 'lidar')
+    probe = node.create_publisher(DiagnosticArray, '~/probe', 1)
     ctx.try_shutdown()
     try:
         with pytest.raises(RuntimeError, match='context is invalid'):  # what would escape
-            node._diag_pub.publish(node._diag_pub.msg_type())  # noqa: SLF001
+            probe.publish(DiagnosticArray())
         node._publish_diagnostics()  # noqa: SLF001 - the timer's callback
-        node._publish(Pair(cloud, cloud), result.transform, result,  # noqa: SLF001
-                      node._pipeline_cfg, node._node_cfg)  # noqa: SLF001
+        node.outputs.publish_estimate(estimate)  # the worker's publish
+        node.outputs.publish_diagnostics(node.statistics())
     finally:
         node.destroy_node()
 

@@ -45,17 +45,20 @@ def spun_context(domain_id, make_io):
     """
     Yield (context, executor, io): an rclpy context on ``domain_id`` spun on a thread.
 
+    A multi-threaded executor, as the node's own ``main`` spins: a ~/relocalize call waits
+    for a registration on one thread while the topics go on on the others.
+
     ``io = make_io(context)`` is the test's own node wrapper (publishers, recorders); its
     ``node`` is added to the executor. Everything is shut down on exit.
     """
     import rclpy
     from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.executors import MultiThreadedExecutor
 
     context = Context()
     rclpy.init(context=context, domain_id=domain_id)
     io = make_io(context)
-    executor = SingleThreadedExecutor(context=context)
+    executor = MultiThreadedExecutor(num_threads=4, context=context)
     executor.add_node(io.node)
     thread = threading.Thread(target=executor.spin, daemon=True)
     thread.start()
