@@ -69,9 +69,9 @@ def main() -> int:
     rclpy.init()
     node = RegisterNode(parameter_overrides=[
         Parameter('voxel_size', value=args.voxel_size),
-        Parameter('queue_depth', value=args.queue_depth),
-        Parameter('target_durability', value='transient_local'),
-        Parameter('registration_timeout', value=args.registration_timeout)])
+        Parameter('pairing.queue_depth', value=args.queue_depth),
+        Parameter('pairing.target_durability', value='transient_local'),
+        Parameter('core.registration_timeout', value=args.registration_timeout)])
     io = rclpy.create_node('bench_io')
     latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)

@@ -9,29 +9,24 @@ the bag's ground truth. Its own services are listed for the node and answered.
 
 from __future__ import annotations
 
+from pathlib import Path
+
+from cgags_ros.config.pipeline import load_yaml
 from cgags_ros.geometry import rotation_error_deg, translation_error
-from cgags_ros.io.bag import read_messages
 from cgags_ros.io.pointcloud2 import pose_to_transform
 import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
-from cgags_ros.ros.conversions import to_rclpy_pointcloud2  # noqa: E402, I100
-from cgags_ros.ros.node import RegisterNode  # noqa: E402
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from geometry_msgs.msg import PoseStamped  # noqa: E402
+from cgags_ros.ros.node import RegisterNode  # noqa: E402, I100
 from lifecycle_msgs.msg import Transition  # noqa: E402
 from lifecycle_msgs.srv import ChangeState, GetState  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
-from sensor_msgs.msg import PointCloud2  # noqa: E402
+from rcl_interfaces.srv import ListParameters  # noqa: E402
 from std_srvs.srv import Empty, Trigger  # noqa: E402
-from waiting import spun_context, wait_for  # noqa: E402
+from waiting import CloudWire, lidar_bag, ros_overrides, spun_context, wait_for  # noqa: E402
 
 DOMAIN_ID = 91  # distinct from the other DDS test modules
-RELIABLE = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+REPO = Path(__file__).resolve().parents[1]
 PARAMS = {'autostart': False, 'voxel_size': 0.4, 'source_qos': 'reliable',
           'source_depth': 50, 'target_durability': 'transient_local', 'queue_depth': 10,
           'diagnostics_period': 0.1, 'registration_timeout': 120.0,
@@ -39,27 +34,15 @@ PARAMS = {'autostart': False, 'voxel_size': 0.4, 'source_qos': 'reliable',
           'initial_pose_min_ratio': 1.0, 'initial_pose_min_fitness': 0.0}
 
 
-class Wire:
+class Wire(CloudWire):
     """The test's side: clouds out, lifecycle and service clients, poses and diagnostics in."""
 
     def __init__(self, context):
-        self.node = rclpy.create_node('lifecycle_io', context=context)
-        self.source_pub = self.node.create_publisher(PointCloud2, 'source_cloud', RELIABLE)
-        self.target_pub = self.node.create_publisher(PointCloud2, 'target_cloud', LATCHED)
-        self.poses: list[PoseStamped] = []
-        self.values: dict[str, str] = {}
-        self.node.create_subscription(PoseStamped, '/register_node/pose', self.poses.append,
-                                      RELIABLE)
-        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)
+        super().__init__(context, 'lifecycle_io', 50)
         self.change = self.node.create_client(ChangeState, '/register_node/change_state')
         self.get = self.node.create_client(GetState, '/register_node/get_state')
         self.relocalize = self.node.create_client(Trigger, '/register_node/relocalize')
         self.reinit = self.node.create_client(Empty, '/reinitialize_global_localization')
-
-    def _on_diag(self, msg):
-        for status in msg.status:
-            if status.hardware_id == '/register_node':
-                self.values = {kv.key: kv.value for kv in status.values}
 
     def call(self, client, request, timeout=60.0):
         assert client.wait_for_service(timeout_sec=30.0), client.srv_name
@@ -73,29 +56,11 @@ class Wire:
         assert self.call(self.change, request).success, transition_id
         return self.call(self.get, GetState.Request()).current_state.label
 
-    def pose_at(self, stamp_ns):
-        return next((p for p in list(self.poses)
-                     if p.header.stamp.sec * 10**9 + p.header.stamp.nanosec == stamp_ns), None)
-
 
 @pytest.fixture(scope='module')
 def wire():
     with spun_context(DOMAIN_ID, Wire) as spun:
         yield spun
-
-
-@pytest.fixture(scope='module')
-def lidar(data_dir):
-    """Return (target cloud, [(stamp, source cloud)], ground truth by source stamp)."""
-    targets, sources, gt = [], [], {}
-    for rec in read_messages(data_dir / 'bags' / 'lidar'):
-        if rec.topic == '/ground_truth':
-            gt[rec.stamp_ns] = pose_to_transform(rec.msg)
-        elif rec.topic == '/target_cloud':
-            targets.append(to_rclpy_pointcloud2(rec.msg))
-        else:
-            sources.append((rec.stamp_ns, to_rclpy_pointcloud2(rec.msg)))
-    return targets[0], sources, gt
 
 
 def check(pose, gt, stamp):
@@ -112,7 +77,15 @@ def running(pid):
         return False
 
 
-def test_transitions_through_lifecycle_services(wire, lidar):
+@pytest.fixture(scope='module')
+def scans(data_dir):
+    """Return the LiDAR bag: (target cloud, [(stamp, source cloud)], GT by source stamp)."""
+    records, gt = lidar_bag(data_dir)
+    target = next(m for t, _, m in records if t == '/target_cloud')
+    return target, [(s, m) for t, s, m in records if t == '/source_cloud'], gt
+
+
+def test_transitions_through_lifecycle_services(wire, scans):
     """
     Drive configure, activate, deactivate, activate, deactivate, cleanup over DDS.
 
@@ -120,9 +93,9 @@ def test_transitions_through_lifecycle_services(wire, lidar):
     Active: poses match ground truth. After cleanup the registration process is gone.
     """
     context, executor, io = wire
-    target, sources, gt = lidar
+    target, sources, gt = scans
     node = RegisterNode(context=context,
-                        parameter_overrides=[Parameter(k, value=v) for k, v in PARAMS.items()])
+                        parameter_overrides=ros_overrides(**PARAMS))
     executor.add_node(node)
     try:
         assert io.call(io.get, GetState.Request()).current_state.label == 'unconfigured'
@@ -166,12 +139,12 @@ def test_transitions_through_lifecycle_services(wire, lidar):
         node.destroy_node()
 
 
-def test_both_services_are_the_nodes_own_and_answer(wire, lidar):
+def test_both_services_are_the_nodes_own_and_answer(wire, scans):
     """~/relocalize and reinitialize_global_localization: listed for the node, answered."""
     context, executor, io = wire
-    target, sources, gt = lidar
-    node = RegisterNode(context=context, parameter_overrides=[
-        Parameter(k, value=v) for k, v in dict(PARAMS, autostart=True).items()])
+    target, sources, gt = scans
+    node = RegisterNode(context=context,
+                        parameter_overrides=ros_overrides(**dict(PARAMS, autostart=True)))
     executor.add_node(node)
     try:
         services = dict(io.node.get_service_names_and_types_by_node('register_node', '/'))
@@ -206,6 +179,25 @@ def test_both_services_are_the_nodes_own_and_answer(wire, lidar):
         answer = future.result()
         assert answer.success and answer.message.startswith('localized:'), answer.message
         check(io.pose_at(stamp), gt, stamp)
+    finally:
+        executor.remove_node(node)
+        node.destroy_node()
+
+
+def test_at_most_25_parameters_and_each_is_in_the_generated_yaml(wire):
+    """The node's parameters, listed over DDS: a short list, all in config/register_node.yaml."""
+    context, executor, io = wire
+    node = RegisterNode(context=context, parameter_overrides=ros_overrides(autostart=False))
+    executor.add_node(node)
+    try:
+        client = io.node.create_client(ListParameters, '/register_node/list_parameters')
+        names = set(io.call(client, ListParameters.Request()).result.names)
+        # rclpy's own: the clock source and the type-description service switch
+        ours = names - {'use_sim_time', 'start_type_description_service'}
+        assert 10 <= len(ours) <= 25, sorted(ours)
+        shipped = load_yaml(REPO / 'config' / 'register_node.yaml')
+        assert ours == set(shipped)
+        assert list(shipped)[0] == 'voxel_size'
     finally:
         executor.remove_node(node)
         node.destroy_node()

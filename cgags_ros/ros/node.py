@@ -38,8 +38,11 @@ registration never holds up the topics on a multi-threaded executor):
         the same request, answered at once; its outcome is logged and, with
         ``publish_initial_pose``, published on initialpose.
 
-Parameters: generated from the config dataclasses (:mod:`cgags_ros.config.node`), with
-descriptions and ranges. Changes at run time are validated and apply to the next pair.
+Parameters: the short grouped list of :mod:`cgags_ros.config.ros_parameters` (voxel_size,
+pairing.*, map.*, relocalization.*, output.*, frontend.*/core.*; vectors as arrays), with
+descriptions and ranges from the config dataclasses; every other configuration key is set
+in the YAML of ``config_file``. Changes at run time are validated and apply to the next
+pair; a name of the former flat interface is refused with its new name.
 The node only wires: :class:`~.engine.RegistrationEngine` decides, :class:`~.outputs.Outputs`
 publishes.
 
@@ -68,8 +71,9 @@ from .parameters import descriptor
 from .qos import source_qos, target_qos
 from .transport import PROFILE_VARIABLE, use_large_data_profile
 from .worker import RegisterFn, rss_mb
-from ..config.node import configs_from_parameters, NodeConfig, parameter_descriptions
+from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
+from ..config.ros_parameters import configs_from_ros, migration, ros_parameter_descriptions
 from ..errors import EmptyCloudError, InvalidConfigError, InvalidInputError
 from ..io.pointcloud2 import pointcloud2_to_xyz, stamp_to_ns
 
@@ -89,10 +93,16 @@ class RegisterNode(LifecycleNode):
 
     def __init__(self, node_name: str = 'register_node', *,
                  register_fn: RegisterFn | None = None, **kwargs: Any):
+        # Undeclared names reach _on_set_parameters, which refuses them with a reason.
+        kwargs.setdefault('allow_undeclared_parameters', True)
         super().__init__(node_name, **kwargs)
-        self._descriptions = parameter_descriptions()
+        self._descriptions = ros_parameter_descriptions()
         for name, meta in self._descriptions.items():
             self.declare_parameter(name, meta['default'], descriptor(name, meta))
+        former = sorted(set(self._parameter_overrides) & set(migration()))
+        if former:  # a YAML or -p of the former interface: refused, naming the new name
+            raise InvalidConfigError('former parameters: ' + '; '.join(
+                f'{name} ({migration()[name]})' for name in former))
         _, cfg = self._configs()  # invalid startup values (a choice typo) raise here
         self._register_fn = register_fn
         self._engine: RegistrationEngine | None = None
@@ -191,10 +201,14 @@ class RegisterNode(LifecycleNode):
 
     def _configs(self) -> tuple[PipelineConfig, NodeConfig]:
         """Return the validated configurations of the current parameter values."""
-        return configs_from_parameters(
+        return configs_from_ros(
             {name: self.get_parameter(name).value for name in self._descriptions})
 
     def _on_set_parameters(self, params: list[rclpy.parameter.Parameter]) -> SetParametersResult:
+        for p in params:
+            if not self.has_parameter(p.name):
+                why = migration().get(p.name, 'unknown parameter (docs/parameters.md)')
+                return SetParametersResult(successful=False, reason=f'{p.name}: {why}')
         changes = {p.name: p.value for p in params if p.name in self._descriptions}
         if not changes:
             return SetParametersResult(successful=True)
@@ -202,7 +216,7 @@ class RegisterNode(LifecycleNode):
         try:
             base = ((engine.pipeline_config, engine.node_config) if engine is not None
                     else self._configs())
-            pipe, node = configs_from_parameters(changes, base=base)
+            pipe, node = configs_from_ros(changes, base=base)
         except InvalidConfigError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         if engine is not None:

@@ -42,6 +42,7 @@ from .replay_common import (
     start_report,
 )
 from .report import BagReport, PairRow
+from ..config.ros_parameters import keys_to_ros
 from ..pipeline.pairing import Pairer
 from ..ros import diagnostics
 from ..ros.player import LiveSession, MAX_QUEUE, Received
@@ -96,8 +97,13 @@ def spawn_node(opts: ReplayOptions, live: LiveOptions, params: dict[str, Any],
     values = {'source_qos': 'reliable', 'source_depth': depth, 'queue_depth': depth,
               'diagnostics_period': DIAGNOSTICS_PERIOD_S}
     values.update(params)  # the user's own settings win
+    ros, rest = keys_to_ros(values)
+    if rest:  # the keys that are no ROS parameter: the node's config_file
+        config_file = out / 'node_config.yaml'
+        config_file.write_text(yaml.safe_dump(rest, sort_keys=False))
+        ros['config_file'] = str(config_file)
     params_file = out / 'node_params.yaml'
-    params_file.write_text(yaml.safe_dump({'/**': {'ros__parameters': values}}, sort_keys=False))
+    params_file.write_text(yaml.safe_dump({'/**': {'ros__parameters': ros}}, sort_keys=False))
     cmd = [sys.executable, '-m', 'cgags_ros.register_node', '--ros-args',
            '-r', f'__node:={live.node_name}', '--params-file', str(params_file),
            '-r', f'source_cloud:={opts.source_topic}', '-r', f'target_cloud:={opts.target_topic}']
