@@ -85,6 +85,53 @@ def scans(data_dir):
     return target, [(s, m) for t, s, m in records if t == '/source_cloud'], gt
 
 
+def test_both_services_are_the_nodes_own_and_answer(wire, scans):
+    """~/relocalize and reinitialize_global_localization: listed for the node, answered."""
+    context, executor, io = wire
+    target, sources, gt = scans
+    io.poses.clear()
+    io.values = {}
+    node = RegisterNode(context=context,
+                        parameter_overrides=ros_overrides(**dict(PARAMS, autostart=True)))
+    executor.add_node(node)
+    try:
+        services = dict(io.node.get_service_names_and_types_by_node('register_node', '/'))
+        wait_for(lambda: services.update(io.node.get_service_names_and_types_by_node(
+            'register_node', '/')) or ('/reinitialize_global_localization' in services
+                                       and '/register_node/relocalize' in services),
+                 60, 'the services in the graph', lambda: sorted(services))
+        assert services['/register_node/relocalize'] == ['std_srvs/srv/Trigger']
+        assert services['/reinitialize_global_localization'] == ['std_srvs/srv/Empty']
+        assert services['/register_node/change_state'] == ['lifecycle_msgs/srv/ChangeState']
+        assert 'register_node_relocalize' not in io.node.get_node_names()  # no hidden node
+        wait_for(lambda: io.source_pub.get_subscription_count()
+                 and io.target_pub.get_subscription_count(), 30, 'discovery')
+        io.target_pub.publish(target)
+
+        # Nav2's call: answered at once, the next registration relocalizes
+        io.call(io.reinit, Empty.Request(), timeout=30.0)
+        stamp, msg = sources[1]
+        io.source_pub.publish(msg)
+        check(wait_for(lambda: io.pose_at(stamp), 120, 'the pose', lambda: io.values), gt,
+              stamp)
+        wait_for(lambda: io.values.get('relocalize.succeeded') == '1', 30,
+                 'the reinitialize request answered', lambda: io.values)
+        assert io.values['relocalize.calls'] == '1'
+
+        # ~/relocalize waits for the next registration and answers its summary
+        future = io.relocalize.call_async(Trigger.Request())
+        wait_for(lambda: io.values.get('relocalize.calls') == '2', 30, 'the call queued')
+        stamp, msg = sources[2]
+        io.source_pub.publish(msg)
+        wait_for(future.done, 120, 'the ~/relocalize answer', lambda: io.values)
+        answer = future.result()
+        assert answer.success and answer.message.startswith('localized:'), answer.message
+        check(io.pose_at(stamp), gt, stamp)
+    finally:
+        executor.remove_node(node)
+        node.destroy_node()
+
+
 def test_transitions_through_lifecycle_services(wire, scans):
     """
     Drive configure, activate, deactivate, activate, deactivate, cleanup over DDS.
@@ -94,6 +141,8 @@ def test_transitions_through_lifecycle_services(wire, scans):
     """
     context, executor, io = wire
     target, sources, gt = scans
+    io.poses.clear()
+    io.values = {}
     node = RegisterNode(context=context,
                         parameter_overrides=ros_overrides(**PARAMS))
     executor.add_node(node)
@@ -134,51 +183,6 @@ def test_transitions_through_lifecycle_services(wire, scans):
         assert io.transition(Transition.TRANSITION_CLEANUP) == 'unconfigured'
         assert node.engine is None
         wait_for(lambda: not running(pid), 10, 'the registration process to end')
-    finally:
-        executor.remove_node(node)
-        node.destroy_node()
-
-
-def test_both_services_are_the_nodes_own_and_answer(wire, scans):
-    """~/relocalize and reinitialize_global_localization: listed for the node, answered."""
-    context, executor, io = wire
-    target, sources, gt = scans
-    node = RegisterNode(context=context,
-                        parameter_overrides=ros_overrides(**dict(PARAMS, autostart=True)))
-    executor.add_node(node)
-    try:
-        services = dict(io.node.get_service_names_and_types_by_node('register_node', '/'))
-        wait_for(lambda: services.update(io.node.get_service_names_and_types_by_node(
-            'register_node', '/')) or ('/reinitialize_global_localization' in services
-                                       and '/register_node/relocalize' in services),
-                 30, 'the services in the graph')
-        assert services['/register_node/relocalize'] == ['std_srvs/srv/Trigger']
-        assert services['/reinitialize_global_localization'] == ['std_srvs/srv/Empty']
-        assert services['/register_node/change_state'] == ['lifecycle_msgs/srv/ChangeState']
-        assert 'register_node_relocalize' not in io.node.get_node_names()  # no hidden node
-        wait_for(lambda: io.source_pub.get_subscription_count()
-                 and io.target_pub.get_subscription_count(), 30, 'discovery')
-        io.target_pub.publish(target)
-
-        # Nav2's call: answered at once, the next registration relocalizes
-        io.call(io.reinit, Empty.Request(), timeout=30.0)
-        stamp, msg = sources[1]
-        io.source_pub.publish(msg)
-        check(wait_for(lambda: io.pose_at(stamp), 120, 'the pose', lambda: io.values), gt,
-              stamp)
-        wait_for(lambda: io.values.get('relocalize.succeeded') == '1', 30,
-                 'the reinitialize request answered', lambda: io.values)
-        assert io.values['relocalize.calls'] == '1'
-
-        # ~/relocalize waits for the next registration and answers its summary
-        future = io.relocalize.call_async(Trigger.Request())
-        wait_for(lambda: io.values.get('relocalize.calls') == '2', 30, 'the call queued')
-        stamp, msg = sources[2]
-        io.source_pub.publish(msg)
-        wait_for(future.done, 120, 'the ~/relocalize answer', lambda: io.values)
-        answer = future.result()
-        assert answer.success and answer.message.startswith('localized:'), answer.message
-        check(io.pose_at(stamp), gt, stamp)
     finally:
         executor.remove_node(node)
         node.destroy_node()
