@@ -201,6 +201,12 @@ def test_on_demand_registers_only_when_requested_and_answers():
         stats = engine.statistics()
         assert stats['relocalize.calls'] == 3 and stats['relocalize.succeeded'] == 2
         assert stats['relocalize.failed.inactive'] == 1
+        # a request pending when the node is deactivated fails at once, not at its deadline
+        pending = []
+        engine.relocalize(wait=False, on_answer=lambda *a: pending.append(a))
+        engine.deactivate()
+        assert pending == [(False, 'not localized (inactive): the node was deactivated')]
+        assert engine.statistics()['relocalize.failed.inactive'] == 2
         balanced(engine)
     finally:
         engine.stop()

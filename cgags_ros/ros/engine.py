@@ -95,10 +95,12 @@ class RegistrationEngine:
             self._active = True
 
     def deactivate(self) -> None:
-        """Ignore sources (counted as rejected) and publish nothing; a pair in flight ends."""
+        """Ignore sources (counted as rejected), publish nothing, fail pending requests."""
         with self._lock:
             self._active = False
-        self._calls.wake()
+        self._calls.wake()  # no scan is registered for a pending request until activated
+        self._calls.answer(False, 'not localized (inactive): the node was deactivated',
+                           'inactive')
 
     @property
     def active(self) -> bool:
@@ -108,6 +110,7 @@ class RegistrationEngine:
 
     def stop(self) -> None:
         """End the worker and the registration process; answer pending requests."""
+        self._calls.answer(False, 'the node is shutting down', 'shutdown')
         self.deactivate()
         self._stop.set()
         self._health.wake()
@@ -115,7 +118,6 @@ class RegistrationEngine:
             self.registration.close()  # ends a registration in flight at once
         if self._worker is not None:
             self._worker.join(timeout=5.0)
-        self._calls.answer(False, 'the node is shutting down', 'shutdown')
 
     # ------------------------------------------------------------------ configuration
 
