@@ -69,9 +69,9 @@ def main() -> int:
     rclpy.init()
     node = RegisterNode(parameter_overrides=[
         Parameter('voxel_size', value=args.voxel_size),
-        Parameter('queue_depth', value=args.queue_depth),
-        Parameter('target_durability', value='transient_local'),
-        Parameter('registration_timeout', value=args.registration_timeout)])
+        Parameter('pairing.queue_depth', value=args.queue_depth),
+        Parameter('pairing.target_durability', value='transient_local'),
+        Parameter('core.registration_timeout', value=args.registration_timeout)])
     io = rclpy.create_node('bench_io')
     latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -105,11 +105,11 @@ def main() -> int:
         k += 1
         next_t = start + k * period
         while time.monotonic() < next_t:
-            max_pending = max(max_pending, node._pairer.pending)
+            max_pending = max(max_pending, node.engine.snapshot()['pairing']['pending'])
             time.sleep(0.02)
     time.sleep(3.0)  # let the last pairs finish
     stats = node.statistics()
-    lat = np.array(node._health.latencies)
+    lat = np.array(node.engine.snapshot()['latencies'])
 
     executor.shutdown(timeout_sec=2.0)
     node.destroy_node()

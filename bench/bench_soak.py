@@ -86,7 +86,8 @@ def main() -> int:  # noqa: C901 - one linear script: start, publish, sample, re
     log = open(args.output.with_suffix('.node.log'), 'w')
     proc = subprocess.Popen(
         [sys.executable, '-m', 'cgags_ros.register_node', '--ros-args',
-         '-p', f'voxel_size:={args.voxel_size}', '-p', 'target_durability:=transient_local'],
+         '-p', f'voxel_size:={args.voxel_size}',
+         '-p', 'pairing.target_durability:=transient_local'],
         cwd=repo, env=dict(os.environ, PYTHONUNBUFFERED='1'), stdout=log,
         stderr=subprocess.STDOUT)
     rclpy.init()

@@ -223,8 +223,9 @@ def measure(clouds: str, rate: float, count: int, setting: str, node: bool,
     if node:
         sub = subprocess.Popen(
             sub_ns + [sys.executable, '-m', 'cgags_ros.register_node', '--ros-args',
-                      '-p', 'voxel_size:=1.0', '-p', 'target_durability:=transient_local',
-                      '-p', 'diagnostics_period:=0.2'],
+                      '-p', 'voxel_size:=1.0',
+                      '-p', 'pairing.target_durability:=transient_local',
+                      '-p', 'output.diagnostics_period:=0.2'],
             cwd=REPO, env=sub_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     else:
         sub = subprocess.Popen(sub_ns + me + ['--role', 'sub'], env=sub_env,

@@ -248,8 +248,9 @@ def run_node_on_pair(exe: Path, env: dict, tmp_path: Path, source, target):
             # Deterministic delivery across processes: with the defaults (best-effort
             # sources, volatile target) a 1 MB cloud can be lost on a loaded machine or
             # when sent right at discovery.
-            '-p', 'source_qos:=reliable', '-p', 'target_durability:=transient_local',
-            '-p', 'diagnostics_period:=0.2']
+            '-p', 'pairing.source_qos:=reliable',
+            '-p', 'pairing.target_durability:=transient_local',
+            '-p', 'output.diagnostics_period:=0.2']
     source_stamp = stamp_ns(source.header.stamp)
     # Files, not pipes: a full pipe would block the node.
     with open(tmp_path / 'node.out', 'w+') as out_file, \

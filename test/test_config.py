@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from cgags_ros.config import fields, load_yaml, PipelineConfig
-from cgags_ros.config.files import parameters_markdown, ros_parameters_yaml
+from cgags_ros.config.files import migration_markdown, parameters_markdown, ros_parameters_yaml
 from cgags_ros.config.node import (
     configs_from_parameters,
     default_parameters,
@@ -13,12 +13,20 @@ from cgags_ros.config.node import (
     parameter_descriptions,
     READ_ONLY,
 )
+from cgags_ros.config.ros_parameters import (
+    configs_from_ros,
+    keys_to_ros,
+    migration,
+    ros_parameter_descriptions,
+    ROS_PARAMETERS,
+)
 from cgags_ros.errors import InvalidConfigError
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 YAML = ROOT / 'config' / 'register_node.yaml'
 DOCS = ROOT / 'docs' / 'parameters.md'
+MIGRATION = ROOT / 'docs' / 'parameter_migration.md'
 
 
 def test_checked_in_yaml_and_docs_are_the_generated_ones():
@@ -28,16 +36,50 @@ def test_checked_in_yaml_and_docs_are_the_generated_ones():
     assert DOCS.read_text(encoding='utf-8') == parameters_markdown(), (
         'docs/parameters.md is stale; regenerate it with '
         '`python -m cgags_ros.config.files docs > docs/parameters.md`')
+    assert MIGRATION.read_text(encoding='utf-8') == migration_markdown(), (
+        'docs/parameter_migration.md is stale; regenerate it with '
+        '`python -m cgags_ros.config.files migration > docs/parameter_migration.md`')
 
 
-def test_yaml_holds_the_user_parameters_at_their_defaults():
+def test_yaml_holds_the_ros_parameters_at_their_defaults():
     values = load_yaml(YAML)
-    desc = parameter_descriptions()
-    user = {k: v for k, v in default_parameters().items() if not desc[k]['advanced']}
-    assert values == user
-    assert 'voxel_size' in values and 'core.edge_sampling' not in values
-    pipe, node = configs_from_parameters(values)
+    assert list(values) == list(ros_parameter_descriptions()) == list(ROS_PARAMETERS)
+    assert list(values)[0] == 'voxel_size' and len(values) <= 25
+    assert values['core.gravity'] == [0.0, 0.0, 1.0]
+    assert values['relocalization.base_from_sensor'] == [0.0] * 7
+    assert {name.split('.')[0] for name in values if '.' in name} == {
+        'frontend', 'core', 'pairing', 'map', 'relocalization', 'output'}
+    pipe, node = configs_from_ros(values)
     assert pipe == PipelineConfig() and node == NodeConfig()
+
+
+def test_ros_vectors_config_file_and_former_names(tmp_path):
+    extra = tmp_path / 'extra.yaml'
+    extra.write_text('core:\n  edge_sampling: uniform\nmax_waiting_sources: 4\n')
+    values = dict(load_yaml(YAML), **{
+        'config_file': str(extra), 'core.gravity': [0.0, 2.0, 0.0],
+        'relocalization.base_from_sensor': [0.1, 0.0, 0.5, 0.0, 0.0, 0.0, 1.0]})
+    pipe, node = configs_from_ros(values)
+    assert pipe.core.gravity_axis == (0.0, 1.0, 0.0) and pipe.core.edge_sampling == 'uniform'
+    assert node.max_waiting_sources == 4 and node.base_from_sensor.split()[2] == '0.5'
+    with pytest.raises(InvalidConfigError, match='core.gravity'):
+        configs_from_ros({'core.gravity': [0.0, 1.0]})
+    with pytest.raises(InvalidConfigError, match='base_from_sensor'):
+        configs_from_ros({'relocalization.base_from_sensor': [1.0, 2.0, 3.0]})
+    extra.write_text('pairing_mode: synchronized\n')  # a ROS parameter's key: refused
+    with pytest.raises(InvalidConfigError, match="'pairing.mode'"):
+        configs_from_ros({'config_file': str(extra)})
+    # flat keys split back into ROS values and the rest, losslessly
+    ros, rest = keys_to_ros({'voxel_size': 0.2, 'core.gravity_z': -1.0, 'source_depth': 9})
+    assert ros == {'voxel_size': 0.2, 'core.gravity': [0.0, 0.0, -1.0]}
+    assert rest == {'source_depth': 9}
+    assert migration()['pairing_mode'] == 'renamed: pairing.mode'
+    assert migration()['core.gravity_x'] == 'renamed: core.gravity'
+    assert 'config_file' in migration()['core.edge_sampling']
+    assert not set(migration()) & set(ROS_PARAMETERS)
+    unchanged = set(ROS_PARAMETERS) & set(parameter_descriptions())
+    assert {'voxel_size', 'autostart', 'config_file', 'core.motion_model'} <= unchanged
+    assert set(migration()) == set(parameter_descriptions()) - unchanged
 
 
 def test_every_parameter_is_documented_and_short():

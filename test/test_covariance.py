@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from cgags_ros.pipeline.covariance import inlier_pairs, pose_covariance
+from cgags_ros.pipeline.covariance import pose_covariance
 import numpy as np
 import pytest
 
@@ -19,26 +19,31 @@ def test_pose_covariance_reflects_geometry():
     assert pose_covariance(src[:2], src[:2], np.eye(4))[0, 0] == 1e6
 
 
-def test_inlier_pairs_prefers_the_results_inliers_then_nearest_neighbours():
-    rng = np.random.default_rng(1)
-    target = rng.uniform(-1, 1, size=(500, 3))
-    T = np.eye(4)
-    T[:3, 3] = [0.5, 0.0, 0.0]
-    source = target - T[:3, 3]  # T maps source exactly onto target
+def test_the_pipeline_result_carries_the_covariance_of_its_estimate():
+    """register_clouds() returns the covariance the node publishes, also in summary()."""
+    from cgags_ros.config import PipelineConfig
+    from cgags_ros.datasets.synthetic import terrain_patch
+    from cgags_ros.geometry import make_transform, rotation_error_deg
+    from cgags_ros.pipeline import register_clouds
 
-    class Result:
-        inlier_source_points = source[:10]
-        inlier_target_points = target[:10]
-
-    src, dst = inlier_pairs(Result(), source, target, T, 0.01)
-    assert np.array_equal(src, source[:10]) and np.array_equal(dst, target[:10])
-    src, dst = inlier_pairs(object(), source, target, T, 0.01, max_points=200)
-    assert len(src) == 200
-    np.testing.assert_allclose(src + T[:3, 3], dst, atol=1e-12)
-    far = T.copy()
-    far[:3, 3] += 10.0  # nothing within the distance: no pairs, no error
-    src, dst = inlier_pairs(object(), source, target, far, 0.01)
-    assert len(src) == len(dst) == 0
+    target = terrain_patch(np.random.default_rng(3))
+    c, s = np.cos(0.3), np.sin(0.3)
+    T_gt = make_transform(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]),
+                          [0.4, -0.2, 0.1])
+    source = (target - T_gt[:3, 3]) @ T_gt[:3, :3]  # T_gt maps source onto target
+    result = register_clouds(source, target, config=PipelineConfig(voxel_size=0.15))
+    assert result.valid, result.reason
+    assert rotation_error_deg(result.transform, T_gt) < 2.0
+    cov = result.covariance
+    assert cov.shape == (6, 6) and np.allclose(cov, cov.T)
+    assert np.all(np.linalg.eigvalsh(cov) > 0) and np.all(np.diag(cov) < 1.0)
+    expected = pose_covariance(result.inlier_source_points, result.inlier_target_points,
+                               result.transform)
+    np.testing.assert_allclose(cov, expected)
+    assert np.array(result.summary()['covariance']) == pytest.approx(cov)
+    # No estimate: no support, the "unknown" variances
+    empty = register_clouds(source[:5], target, config=PipelineConfig(voxel_size=0.15))
+    assert not empty.valid and np.all(np.diag(empty.covariance) == 1e6)
 
 
 def test_4dof_covariance_has_no_roll_or_pitch_and_matches_the_yaw_only_fit():

@@ -30,7 +30,7 @@ from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
-from waiting import spun_context, stop_process, wait_for  # noqa: E402
+from waiting import ros_args, spun_context, stop_process, wait_for  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 FIXTURE = REPO / 'test' / 'fixtures' / 'small_gicp'
@@ -97,7 +97,7 @@ def test_fixture_pair_over_dds_meets_ground_truth(tmp_path):
         log = open(tmp_path / 'node.log', 'w+')  # a file, not a pipe: a full pipe would block
         proc = subprocess.Popen(
             [sys.executable, '-m', 'cgags_ros.register_node', '--ros-args']
-            + [a for k, v in params.items() for a in ('-p', f'{k}:={v}')],
+            + ros_args(**params),
             cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, text=True)
         try:
             wait_for(lambda: io.source_pub.get_subscription_count()

@@ -28,7 +28,7 @@ rclpy = pytest.importorskip('rclpy')
 
 from cgags_ros.ros.transport import profile_path, PROFILE_VARIABLE  # noqa: E402, I100
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from waiting import spun_context, stop_process, wait_for  # noqa: E402
+from waiting import ros_args, spun_context, stop_process, wait_for  # noqa: E402
 
 DOMAIN_ID = 89  # distinct from the other DDS test modules
 REPO = Path(__file__).resolve().parents[1]
@@ -73,7 +73,7 @@ def run(diag, data_dir, tmp_path, node_profile, pub_profile):
     log = open(tmp_path / 'node.log', 'w+')
     node = subprocess.Popen(
         [sys.executable, '-m', 'cgags_ros.register_node', '--ros-args']
-        + [a for k, v in NODE_PARAMS.items() for a in ('-p', f'{k}:={v}')],
+        + ros_args(**NODE_PARAMS),
         cwd=REPO, env=env(node_profile), stdout=log, stderr=subprocess.STDOUT, text=True)
     try:
         wait_for(lambda: diag.values.get('worker.ready') == 'True', 180,

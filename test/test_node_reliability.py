@@ -19,24 +19,23 @@ import sys
 import time
 
 from cgags_ros.config import fields
-from cgags_ros.config.node import parameter_descriptions
+from cgags_ros.config.ros_parameters import ros_parameter_descriptions, ros_to_keys
 from cgags_ros.geometry import rotation_error_deg, translation_error
-from cgags_ros.io.bag import read_messages
 from cgags_ros.io.pointcloud2 import pose_to_transform
-from cgags_ros.registration import RegistrationResult
+from cgags_ros.pipeline.result import PipelineResult
 import numpy as np
 import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
-from cgags_ros.ros.conversions import to_rclpy_pointcloud2, xyz_to_pointcloud2  # noqa: E402, I100
+from cgags_ros.ros.conversions import xyz_to_pointcloud2  # noqa: E402, I100
 from cgags_ros.ros.node import RegisterNode  # noqa: E402
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
-from geometry_msgs.msg import PoseStamped  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
+from waiting import CloudWire, lidar_bag, ros_args, ros_overrides  # noqa: E402
 from waiting import spun_context, stop_process, wait_for  # noqa: E402
 
 DOMAIN_ID = 53  # distinct from the other DDS test modules
@@ -48,29 +47,11 @@ LIDAR = {'voxel_size': 0.4, 'source_qos': 'reliable', 'source_depth': 500,
          'queue_depth': 50, 'diagnostics_period': 0.1}
 
 
-class Wire:
+class Wire(CloudWire):
     """The test's side: publishers, the node's poses and its last /diagnostics."""
 
     def __init__(self, context):
-        self.node = rclpy.create_node('reliability_io', context=context)
-        self.source_pub = self.node.create_publisher(PointCloud2, 'source_cloud', RELIABLE)
-        self.target_pub = self.node.create_publisher(PointCloud2, 'target_cloud', LATCHED)
-        self.poses: list[PoseStamped] = []
-        self.values: dict[str, str] = {}
-        self.level = None
-        self.node.create_subscription(PoseStamped, '/register_node/pose', self.poses.append,
-                                      RELIABLE)
-        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)
-
-    def _on_diag(self, msg):
-        for status in msg.status:
-            if status.hardware_id == '/register_node':
-                self.values = {kv.key: kv.value for kv in status.values}
-                self.level = status.level
-
-    def pose_at(self, stamp_ns):
-        return next((p for p in list(self.poses)
-                     if p.header.stamp.sec * 10**9 + p.header.stamp.nanosec == stamp_ns), None)
+        super().__init__(context, 'reliability_io', RELIABLE.depth)
 
 
 @pytest.fixture(scope='module')
@@ -82,19 +63,13 @@ def wire():
 @pytest.fixture(scope='module')
 def lidar(data_dir):
     """Return (records in log order as rclpy clouds, ground truth by source stamp)."""
-    records, gt = [], {}
-    for rec in read_messages(data_dir / 'bags' / 'lidar'):
-        if rec.topic == '/ground_truth':
-            gt[rec.stamp_ns] = pose_to_transform(rec.msg)
-        else:
-            records.append((rec.topic, rec.stamp_ns, to_rclpy_pointcloud2(rec.msg)))
-    return records, gt
+    return lidar_bag(data_dir)
 
 
 def start(wire, register_fn=None, **params):
     context, executor, io = wire
     node = RegisterNode(register_fn=register_fn, context=context,
-                        parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
+                        parameter_overrides=ros_overrides(**params))
     executor.add_node(node)
     wait_for(lambda: io.source_pub.get_subscription_count()
              and io.target_pub.get_subscription_count()
@@ -145,7 +120,7 @@ def test_worker_killed_idle_and_busy_is_replaced_and_the_next_pair_is_correct(wi
     targets = [m for t, _, m in records if t == '/target_cloud']
     sources = [(s, m) for t, s, m in records if t == '/source_cloud']
     node = start(wire, **LIDAR)
-    iso = node._isolated
+    iso = node.engine.registration
     try:
         io.target_pub.publish(targets[0])
         stamp, msg = sources[0]
@@ -251,6 +226,8 @@ def test_malformed_floods_on_both_topics_are_counted_then_a_good_pair_publishes(
 
 FUZZ_VALUES = ['', 'bogus', float('nan'), float('inf'), -1.0, 0.0, 1e9, -5, 0, 3, 10**12,
                True, False, 0.3, 2, 'latest_target', 'gicp', 'none', 'soft']
+VECTOR_FUZZ = [[0.0, 0.0, 0.0], [0.0, 1.0], [0.0, -2.0, 0.5], [float('nan')] * 3, [1.0] * 7,
+               [0.1, 0.2, 0.3, 0.0, 0.0, 0.0, 2.0], [0.0] * 7, []]
 
 
 def test_parameter_fuzzing_applies_or_refuses_and_the_next_pair_uses_what_was_accepted(wire):
@@ -259,23 +236,27 @@ def test_parameter_fuzzing_applies_or_refuses_and_the_next_pair_uses_what_was_ac
 
     def record(source, target, *, config):
         seen.append(config)
-        return RegistrationResult(transform=np.eye(4), valid=True, inliers=np.arange(10),
-                                  num_correspondences=20, inlier_threshold=0.05)
+        return PipelineResult(transform=np.eye(4), valid=True, inliers=np.arange(10),
+                              num_correspondences=20, inlier_threshold=0.05)
 
     node = start(wire, record, diagnostics_period=0.1)
     try:
         rng = np.random.default_rng(7)
-        expected = {name: node.get_parameter(name).value for name in parameter_descriptions()}
-        for name in sorted(expected):
-            for value in rng.permutation(np.array(FUZZ_VALUES, dtype=object))[:8]:
-                value = value.item() if hasattr(value, 'item') else value
-                result = node.set_parameters([Parameter(name, value=value)])[0]
-                if result.successful:
-                    expected[name] = value
-                else:
-                    assert result.reason, (name, value)
+        expected = {name: node.get_parameter(name).value
+                    for name in ros_parameter_descriptions()}
+        tries = [(name, value.item() if hasattr(value, 'item') else value)
+                 for name in sorted(expected)
+                 for value in rng.permutation(np.array(FUZZ_VALUES, dtype=object))[:8]]
+        tries += [(name, value) for name in ('core.gravity', 'relocalization.base_from_sensor')
+                  for value in VECTOR_FUZZ]
+        for name, value in tries:
+            result = node.set_parameters([Parameter(name, value=value)])[0]
+            if result.successful:
+                expected[name] = value
+            else:
+                assert result.reason, (name, value)
         # Settings that would refuse or starve the test's own pair, set back to sane values
-        for name, value in [('max_cloud_points', 20_000_000), ('publish_invalid', True)]:
+        for name, value in [('voxel_size', 0.3), ('output.publish_invalid', True)]:
             assert node.set_parameters([Parameter(name, value=value)])[0].successful
             expected[name] = value
         for name, value in expected.items():
@@ -287,7 +268,9 @@ def test_parameter_fuzzing_applies_or_refuses_and_the_next_pair_uses_what_was_ac
         io.source_pub.publish(msg)
         wait_for(lambda: seen, 20, 'the pair after fuzzing', node.statistics)
         applied = fields.flatten(seen[-1])
-        assert applied == {k: v for k, v in expected.items() if k in applied}
+        expected_keys = {k: v for k, v in ros_to_keys(expected).items() if k in applied}
+        assert {'voxel_size', 'core.gravity_x', 'core.time_budget'} <= set(expected_keys)
+        assert {k: applied[k] for k in expected_keys} == expected_keys
     finally:
         stop(wire, node)
 
@@ -324,11 +307,9 @@ def test_separate_process_node_survives_a_worker_kill_quietly(wire, lidar, tmp_p
     records, gt = lidar
     env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED='1',
                ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
-    args = [f'{k}:={v}' for k, v in LIDAR.items()]
     log = open(tmp_path / 'node.log', 'w+')  # a file, not a pipe: a full pipe would block
     proc = subprocess.Popen(
-        [sys.executable, '-m', 'cgags_ros.register_node', '--ros-args']
-        + [a for arg in args for a in ('-p', arg)],
+        [sys.executable, '-m', 'cgags_ros.register_node', '--ros-args'] + ros_args(**LIDAR),
         cwd=Path(__file__).resolve().parents[1], env=env, stdout=log,
         stderr=subprocess.STDOUT, text=True)
     try:

@@ -35,11 +35,13 @@ INSTALLERS = ('apt', 'pip', 'gem', 'npm', 'source')
 ROSDEP_KEYS = {
     # ROS 2 packages: the key is the package name.
     'ament_index_python': 'ament_index_python',
+    'bondpy': 'bondpy',
     'builtin_interfaces': 'builtin_interfaces',
     'diagnostic_msgs': 'diagnostic_msgs',
     'geometry_msgs': 'geometry_msgs',
     'launch': 'launch',
     'launch_ros': 'launch_ros',
+    'lifecycle_msgs': 'lifecycle_msgs',
     'nav_msgs': 'nav_msgs',
     'rcl_interfaces': 'rcl_interfaces',
     'rclpy': 'rclpy',

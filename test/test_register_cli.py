@@ -42,6 +42,9 @@ def test_json_with_config_set_seed_and_no_refine(bunny_pair, tmp_path, capsys):
     assert data['voxel_size'] == 0.003 and data['num_correspondences'] <= 2000
     E = np.asarray(data['transform'])
     assert rotation_error_deg(E, T) < 5 and translation_error(E, T) < 0.01
+    cov = np.asarray(data['covariance'])  # the pose covariance, ROS order
+    assert cov.shape == (6, 6) and np.allclose(cov, cov.T) and np.all(np.diag(cov) > 0)
+    assert np.all(np.diag(cov) < 1e-3)  # millimetre-scale object, many inliers
 
 
 @pytest.mark.parametrize('args, message', [

@@ -33,7 +33,7 @@ from cgags_ros.errors import InvalidConfigError  # noqa: E402
 from cgags_ros.geometry import rotation_error_deg, translation_error  # noqa: E402
 from cgags_ros.io.bag import read_messages  # noqa: E402
 from cgags_ros.io.pointcloud2 import pose_to_transform  # noqa: E402
-from cgags_ros.registration import RegistrationResult  # noqa: E402
+from cgags_ros.pipeline.result import PipelineResult  # noqa: E402
 from cgags_ros.ros.conversions import to_rclpy_pointcloud2, xyz_to_pointcloud2  # noqa: E402
 from cgags_ros.ros.node import RegisterNode  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
@@ -44,7 +44,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
-from waiting import stop_process, wait_for  # noqa: E402
+from waiting import ros_args, ros_overrides, stop_process, wait_for  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 LIMITS = {'bunny': (5.0, 0.01), 'redkitchen': (15.0, 0.3), 'lidar': (5.0, 0.6),
@@ -134,8 +134,7 @@ def ros():
 
 
 def start_node(executor, register_fn=None, **params) -> RegisterNode:
-    overrides = [Parameter(k, value=v) for k, v in params.items()]
-    node = RegisterNode(register_fn=register_fn, parameter_overrides=overrides)
+    node = RegisterNode(register_fn=register_fn, parameter_overrides=ros_overrides(**params))
     executor.add_node(node)
     return node
 
@@ -152,10 +151,10 @@ def fake_register(source, target, *, config):
     """Stand-in for the pipeline: translation = voxel_size along x; invalid above 1 m."""
     T = np.eye(4)
     T[0, 3] = config.voxel_size
-    return RegistrationResult(transform=T, valid=config.voxel_size <= 1.0,
-                              reason='' if config.voxel_size <= 1.0 else 'fake: too coarse',
-                              inliers=np.arange(12), num_correspondences=20,
-                              inlier_threshold=0.05)
+    return PipelineResult(transform=T, valid=config.voxel_size <= 1.0,
+                          reason='' if config.voxel_size <= 1.0 else 'fake: too coarse',
+                          inliers=np.arange(12), num_correspondences=20,
+                          inlier_threshold=0.05)
 
 
 def test_plumbing_parameters_outputs_and_rejections(ros):
@@ -164,13 +163,14 @@ def test_plumbing_parameters_outputs_and_rejections(ros):
                       publish_aligned_cloud=True)
     try:
         # parameters are generated from the dataclasses, with ranges and read-only flags
-        names = {'voxel_size', 'core.p1', 'frontend.fpfh_radius_factor', 'pairing_mode'}
+        names = {'voxel_size', 'core.gravity', 'pairing.mode', 'output.publish_invalid'}
         assert names <= set(node._parameters)
         d = node.describe_parameter('voxel_size')
         assert d.floating_point_range[0].from_value > 0 and 'metres' in d.description
-        assert node.describe_parameter('pairing_mode').read_only
-        assert 'synchronized' in node.describe_parameter('pairing_mode').additional_constraints
-        assert node.describe_parameter('core.max_iterations').integer_range
+        assert node.describe_parameter('pairing.mode').read_only
+        assert 'synchronized' in node.describe_parameter('pairing.mode').additional_constraints
+        assert node.describe_parameter('pairing.queue_depth').integer_range
+        assert node.get_parameter('core.gravity').value == [0.0, 0.0, 1.0]
 
         rng = np.random.default_rng(1)
         pts = rng.random((500, 3))
@@ -193,16 +193,20 @@ def test_plumbing_parameters_outputs_and_rejections(ros):
         assert stats['rejected.source_malformed'] == 1 and stats['rejected.source_empty'] == 1
 
         # live changes: invalid ones are refused with a reason; valid ones apply next pair
-        for name, value in [('core.compatibility', 'bogus'), ('voxel_size', -1.0),
-                            ('pairing_mode', 'synchronized')]:
+        for name, value, why in [('core.motion_model', 'bogus', 'one of'),
+                                 ('voxel_size', -1.0, 'out of range'),
+                                 ('pairing.mode', 'synchronized', 'read-only'),
+                                 ('pairing_mode', 'synchronized', 'renamed: pairing.mode'),
+                                 ('core.compatibility', 'binary', 'config_file'),
+                                 ('core.gravity', [0.0, 0.0, 0.0], 'zero length')]:
             result = node.set_parameters([Parameter(name, value=value)])[0]
-            assert not result.successful and result.reason
+            assert not result.successful and why in result.reason, (name, result.reason)
         assert node.set_parameters([Parameter('voxel_size', value=2.0)])[0].successful
         good.header.stamp.sec = 8
         io.source_pub.publish(good)  # fake marks voxel_size > 1 invalid: not published
         wait_for(lambda: node.statistics().get('rejected.invalid_result'), 5, 'invalid result')
         assert io.pose_at(8 * 10**9) is None
-        node.set_parameters([Parameter('publish_invalid', value=True)])
+        node.set_parameters([Parameter('output.publish_invalid', value=True)])
         good.header.stamp.sec = 9
         io.source_pub.publish(good)
         wait_for(lambda: io.pose_at(9 * 10**9), 5, 'invalid pose with publish_invalid')
@@ -217,7 +221,11 @@ def test_invalid_startup_parameter_raises(ros):
     executor, _ = ros
     with pytest.raises(InvalidConfigError, match='pairing_mode'):
         RegisterNode(register_fn=fake_register,
-                     parameter_overrides=[Parameter('pairing_mode', value='nearest')])
+                     parameter_overrides=[Parameter('pairing.mode', value='nearest')])
+    # a name of the former flat interface: refused, naming the new one
+    with pytest.raises(InvalidConfigError, match=r'pairing_mode \(renamed: pairing.mode\)'):
+        RegisterNode(register_fn=fake_register,
+                     parameter_overrides=[Parameter('pairing_mode', value='synchronized')])
 
 
 def test_callbacks_after_context_shutdown_do_not_raise():
@@ -228,23 +236,24 @@ def test_callbacks_after_context_shutdown_do_not_raise():
     diagnostics timer or the worker may still publish a pose; that must end quietly, not
     as an RCLError that makes rclpy.spin() raise and the node exit 1 (seen once in CI).
     """
-    from cgags_ros.pipeline.pairing import Pair, Stamped
-    from cgags_ros.ros.node import _Cloud
+    from cgags_ros.ros.interface import Estimate
     from rclpy.context import Context
 
     ctx = Context()
     rclpy.init(context=ctx)
     node = RegisterNode(register_fn=fake_register, context=ctx)
     xyz = np.random.default_rng(0).normal(size=(30, 3))
-    cloud = Stamped(1, 'map', _Cloud(xyz, Header(frame_id='map'), 0))
-    result = fake_register(xyz, xyz, config=node._pipeline_cfg)  # noqa: SLF001
+    result = fake_register(xyz, xyz, config=node.engine.pipeline_config)
+    estimate = Estimate(result.transform, result.covariance, Header(frame_id='lidar'), 'map',
+                        xyz, 'lidar')
+    probe = node.create_publisher(DiagnosticArray, '~/probe', 1)
     ctx.try_shutdown()
     try:
         with pytest.raises(RuntimeError, match='context is invalid'):  # what would escape
-            node._diag_pub.publish(node._diag_pub.msg_type())  # noqa: SLF001
+            probe.publish(DiagnosticArray())
         node._publish_diagnostics()  # noqa: SLF001 - the timer's callback
-        node._publish(Pair(cloud, cloud), result.transform, result,  # noqa: SLF001
-                      node._pipeline_cfg, node._node_cfg)  # noqa: SLF001
+        node.outputs.publish_estimate(estimate)  # the worker's publish
+        node.outputs.publish_diagnostics(node.statistics())
     finally:
         node.destroy_node()
 
@@ -380,13 +389,12 @@ def test_separate_process_synchronized_lidar_then_sigterm(ros, data_dir, tmp_pat
     log = open(tmp_path / 'node.log', 'w+')  # a file, not a pipe: a full pipe would block
     proc = subprocess.Popen(
         [sys.executable, '-m', 'cgags_ros.register_node', '--ros-args',
-         '--params-file', str(REPO / 'config' / 'register_node.yaml'),
-         '-p', 'pairing_mode:=synchronized', '-p', 'sync_slop:=0.02',
-         '-p', f"voxel_size:={VOXEL['lidar']}", '-p', 'queue_depth:=10',
-         '-p', 'max_waiting_sources:=10', '-p', 'diagnostics_period:=0.2',
-         # Reliable here so the test is deterministic: best-effort 1 MB clouds across
-         # processes on a loaded machine lose samples (sensor_data is used in-process).
-         '-p', 'source_qos:=reliable'],
+         '--params-file', str(REPO / 'config' / 'register_node.yaml')] + ros_args(
+            pairing_mode='synchronized', sync_slop=0.02, voxel_size=VOXEL['lidar'],
+            queue_depth=10, max_waiting_sources=10, diagnostics_period=0.2,
+            # Reliable here so the test is deterministic: best-effort 1 MB clouds across
+            # processes on a loaded machine lose samples (sensor_data is used in-process).
+            source_qos='reliable'),
         cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, text=True)
     try:
         wait_for(lambda: io.source_pub.get_subscription_count() and
@@ -398,9 +406,11 @@ def test_separate_process_synchronized_lidar_then_sigterm(ros, data_dir, tmp_pat
         # a live parameter change over the parameter service: invalid refused, valid taken
         client = io.node.create_client(SetParameters, '/register_node/set_parameters')
         assert client.wait_for_service(timeout_sec=10)
-        for value, ok in [('bogus', False), ('binary', True)]:
+        for name, value, ok in [('core.motion_model', 'bogus', False),
+                                ('core.compatibility', 'binary', False),  # config_file's
+                                ('core.time_budget', 30.0, True)]:
             req = SetParameters.Request(parameters=[
-                Parameter('core.compatibility', value=value).to_parameter_msg()])
+                Parameter(name, value=value).to_parameter_msg()])
             future = client.call_async(req)
             wait_for(future.done, 10, 'set_parameters reply')
             assert future.result().results[0].successful is ok

@@ -24,12 +24,11 @@ from cgags_ros.ros.conversions import xyz_to_pointcloud2  # noqa: E402, I100
 from cgags_ros.ros.node import RegisterNode  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
-from waiting import merged_kitchen_map, spun_context, wait_for  # noqa: E402
+from waiting import merged_kitchen_map, ros_overrides, spun_context, wait_for  # noqa: E402
 
 DOMAIN_ID = 65  # distinct from the other DDS test modules
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -84,7 +83,7 @@ def start(wire, **params):
     io.initial.clear()
     io.candidates.clear()
     node = RegisterNode(context=context,
-                        parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
+                        parameter_overrides=ros_overrides(**params))
     executor.add_node(node)
     return node
 

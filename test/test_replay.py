@@ -112,8 +112,14 @@ def test_output_files(offline_reports, live_reports, out, mode):
             [row.source_stamp_ns for row in report.rows]
         assert [r['success'] for r in rows] == [str(int(row.success)) for row in report.rows]
         assert all(float(r['re_deg']) >= 0 for r in rows if r['re_deg'])
-        summary = json.loads((folder / 'results.json').read_text())['summary']
+        results = json.loads((folder / 'results.json').read_text())
+        summary = results['summary']
         assert summary['recall'] == report.recall and summary['pairs'] == len(report.rows)
+        for pair, row in zip(results['pairs'], report.rows):
+            if row.valid:  # the estimate's covariance (offline: the result's; live: the node's)
+                cov = np.asarray(pair['covariance'])
+                assert cov.shape == (6, 6) and np.allclose(cov, cov.T), bag
+                assert np.all(np.diag(cov) > 0), bag
         assert (folder / 'errors.png').stat().st_size > 1000
 
 

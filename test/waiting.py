@@ -26,6 +26,96 @@ def wait_for(predicate, timeout, what, detail=None):
                 + (f'; node state: {detail()}' if detail else ''))
 
 
+class CloudWire:
+    """
+    A test's side of /register_node: clouds out (reliable sources, latched targets).
+
+    Records the node's ~/pose and the values and level of its last /diagnostics.
+    """
+
+    def __init__(self, context, name, depth):
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PoseStamped
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import PointCloud2
+
+        reliable = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.node = rclpy.create_node(name, context=context)
+        self.source_pub = self.node.create_publisher(PointCloud2, 'source_cloud', reliable)
+        self.target_pub = self.node.create_publisher(PointCloud2, 'target_cloud', latched)
+        self.poses = []
+        self.values = {}
+        self.level = None
+        self.node.create_subscription(PoseStamped, '/register_node/pose', self.poses.append,
+                                      reliable)
+        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)
+
+    def _on_diag(self, msg):
+        for status in msg.status:
+            if status.hardware_id == '/register_node':
+                self.values = {kv.key: kv.value for kv in status.values}
+                self.level = status.level
+
+    def pose_at(self, stamp_ns):
+        return pose_at(self.poses, stamp_ns)
+
+
+def pose_at(poses, stamp_ns):
+    """Return the first message of ``poses`` stamped ``stamp_ns``, or None."""
+    return next((p for p in list(poses)
+                 if p.header.stamp.sec * 10**9 + p.header.stamp.nanosec == stamp_ns), None)
+
+
+def lidar_bag(data_dir):
+    """Return the LiDAR bag: (records (topic, stamp, rclpy cloud) in log order, GT by stamp)."""
+    from cgags_ros.io.bag import read_messages
+    from cgags_ros.io.pointcloud2 import pose_to_transform
+    from cgags_ros.ros.conversions import to_rclpy_pointcloud2
+
+    records, gt = [], {}
+    for rec in read_messages(data_dir / 'bags' / 'lidar'):
+        if rec.topic == '/ground_truth':
+            gt[rec.stamp_ns] = pose_to_transform(rec.msg)
+        else:
+            records.append((rec.topic, rec.stamp_ns, to_rclpy_pointcloud2(rec.msg)))
+    return records, gt
+
+
+def ros_values(**flat):
+    """
+    Return the node's ROS parameter values for flat configuration keys.
+
+    Keys that are no ROS parameter go to a YAML file named by ``config_file``.
+    """
+    from pathlib import Path
+    import tempfile
+
+    from cgags_ros.config.ros_parameters import keys_to_ros
+    import yaml
+
+    ros, rest = keys_to_ros(flat)
+    if rest:
+        path = Path(tempfile.mkdtemp(prefix='cgags_test_')) / 'config_file.yaml'
+        path.write_text(yaml.safe_dump(rest), encoding='utf-8')
+        ros['config_file'] = str(path)
+    return ros
+
+
+def ros_overrides(**flat):
+    """Return rclpy parameter overrides for flat configuration keys (see :func:`ros_values`)."""
+    from rclpy.parameter import Parameter
+
+    return [Parameter(k, value=v) for k, v in ros_values(**flat).items()]
+
+
+def ros_args(**flat):
+    """Return ``-p name:=value`` arguments for flat configuration keys."""
+    return [a for k, v in ros_values(**flat).items() for a in ('-p', f'{k}:={v}')]
+
+
 def stop_process(proc, log) -> str:
     """SIGTERM a node process (SIGKILL after 20 s), wait for it; return its log."""
     proc.send_signal(signal.SIGTERM)
@@ -45,17 +135,20 @@ def spun_context(domain_id, make_io):
     """
     Yield (context, executor, io): an rclpy context on ``domain_id`` spun on a thread.
 
+    A multi-threaded executor, as the node's own ``main`` spins: a ~/relocalize call waits
+    for a registration on one thread while the topics go on on the others.
+
     ``io = make_io(context)`` is the test's own node wrapper (publishers, recorders); its
     ``node`` is added to the executor. Everything is shut down on exit.
     """
     import rclpy
     from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.executors import MultiThreadedExecutor
 
     context = Context()
     rclpy.init(context=context, domain_id=domain_id)
     io = make_io(context)
-    executor = SingleThreadedExecutor(context=context)
+    executor = MultiThreadedExecutor(num_threads=4, context=context)
     executor.add_node(io.node)
     thread = threading.Thread(target=executor.spin, daemon=True)
     thread.start()

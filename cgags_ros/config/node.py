@@ -26,6 +26,15 @@ NODE_NAME = 'register_node'
 class NodeConfig:
     """The node's own options: pairing, QoS, the registration worker and outputs."""
 
+    autostart: bool = option(
+        True, 'Configure and activate the lifecycle node at start-up, so that it runs alone '
+        '(ros2 run); false leaves it unconfigured for a lifecycle manager '
+        '(nav2_lifecycle_manager) to drive.')
+    config_file: str = option(
+        '', 'YAML of further configuration keys (the format of cgags-register --config: the '
+        'research switches of the method and rarely changed node options, '
+        'docs/parameters.md), applied under the ROS parameters; none of its keys may be a '
+        "ROS parameter's. '' sets none.")
     pairing_mode: str = option(
         'latest_target', "How sources meet targets: 'latest_target' pairs each source with "
         "the newest target received (scan-to-map); 'synchronized' pairs source and target "
@@ -163,6 +172,7 @@ def parse_pose7(text: str) -> tuple[float, ...] | None:
 
 # Parameters that shape subscriptions or the pairing queue: fixed once the node runs.
 READ_ONLY = frozenset({
+    'autostart', 'config_file',
     'pairing_mode', 'queue_depth', 'max_waiting_sources', 'max_waiting_targets',
     'source_qos', 'source_depth', 'target_durability', 'target_depth',
     'diagnostics_period', 'registration_timeout', 'mode', 'map_file', 'map_frame',

@@ -5,9 +5,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scipy.spatial import cKDTree
-
-from ..geometry import apply_transform
 
 
 def pose_covariance(src: np.ndarray, dst: np.ndarray, T: np.ndarray,
@@ -87,30 +84,12 @@ def map_to_odom(T_map_base: np.ndarray, T_odom_base: np.ndarray) -> np.ndarray:
     return np.asarray(T_map_base) @ np.linalg.inv(T_odom_base)
 
 
-def inlier_pairs(result: Any, source: np.ndarray, target: np.ndarray,
-                 T: np.ndarray, max_distance: float, max_points: int = 2000
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def result_covariance(result: Any, gravity: np.ndarray | None = None) -> np.ndarray:
     """
-    Return the matched (source, target) points behind the estimate.
+    Return the 6x6 covariance (:func:`pose_covariance`) of a pipeline result's estimate.
 
-    They are what :func:`pose_covariance` takes: the pipeline's inlier correspondences when
-    the result carries them (at least 3); otherwise nearest neighbours of a subsample of
-    the aligned source within ``max_distance`` metres.
+    From its inlier correspondences (``inlier_source_points``, ``inlier_target_points``)
+    under its final ``transform``; ``gravity`` is the unit up axis of a 4-DoF estimate.
     """
-    src = getattr(result, 'inlier_source_points', None)
-    dst = getattr(result, 'inlier_target_points', None)
-    if src is not None and dst is not None and len(src) >= 3:
-        return np.asarray(src), np.asarray(dst)
-    rng = np.random.default_rng(0)
-    if len(source) > max_points:
-        source = source[rng.choice(len(source), max_points, replace=False)]
-    src = source
-    aligned = apply_transform(T, src)
-    # Only the target near the aligned source matters; cropping keeps the tree small.
-    lo, hi = aligned.min(axis=0) - max_distance, aligned.max(axis=0) + max_distance
-    near = target[np.all((target >= lo) & (target <= hi), axis=1)]
-    if len(near) == 0:
-        return src[:0], src[:0]
-    dist, idx = cKDTree(near).query(aligned, distance_upper_bound=max_distance)
-    ok = np.isfinite(dist)
-    return src[ok], near[idx[ok]]
+    return pose_covariance(result.inlier_source_points, result.inlier_target_points,
+                           np.asarray(result.transform, dtype=np.float64), gravity)

@@ -21,6 +21,7 @@ import numpy as np
 from .cache import cached_features
 from .candidates import (ambiguity_reason, find_candidates, rank_candidates, search_rivals,
                          verify_rivals)
+from .covariance import result_covariance
 from .gates import gate, line_reason
 from .map import matches_config, PreparedMap
 from .result import PipelineResult
@@ -65,6 +66,14 @@ def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
     # compiled FPFH, descriptor index and graph run on the package's own threads.
     with single_blas_thread():
         return _register_clouds(source, target, voxel_size, config, DEFAULT_WORKERS)
+
+
+def _with_covariance(result: PipelineResult, cfg: PipelineConfig) -> PipelineResult:
+    """Set the covariance of the final estimate (every outcome of the pipeline has one)."""
+    core = cfg.core
+    result.covariance = result_covariance(
+        result, core.gravity_axis if core.motion_model == '4dof' else None)
+    return result
 
 
 def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float | None,
@@ -115,7 +124,8 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
     unsettled = bool(core.reason) and _collinear_only(fs, corr, core, cfg)
     if core.reason and not unsettled:
         # nothing worth refining or gating further
-        return result.finish(start, _candidates(fs, ft, corr, result, cfg) or core.reason)
+        reason = _candidates(fs, ft, corr, result, cfg) or core.reason
+        return _with_covariance(result, cfg).finish(start, reason)
     gravity = cfg.core.gravity_axis if cfg.core.motion_model == '4dof' else None
     with timed(result.timings, 'refinement'):
         result.transform = refine_transform(
@@ -138,7 +148,8 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
             result.transform = chosen.transform
             reason = gate(fs, ft, corr, result, cfg, map_target, unsettled)
             chosen.fitness = result.fitness
-    return result.finish(start, ambiguity_reason(result, cfg) or reason)
+    reason = ambiguity_reason(result, cfg) or reason
+    return _with_covariance(result, cfg).finish(start, reason)
 
 
 def _target_features(target: np.ndarray | PreparedMap, points: np.ndarray | None,

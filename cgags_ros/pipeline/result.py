@@ -75,6 +75,11 @@ class PipelineResult(RegistrationResult):
         best (best/runner-up inliers below ``ambiguity_ratio``); the result is then
         invalid.
     :ivar runner_up_ratio: best / runner-up inlier count (inf without a runner-up).
+    :ivar covariance: 6x6 covariance of ``transform``, row-major in geometry_msgs/
+        PoseWithCovariance order (x, y, z in metres; rotation about the target frame's X, Y,
+        Z in radians), from the inlier correspondences
+        (:func:`~.covariance.result_covariance`); variances of 1e6 when fewer than three
+        support the estimate.
     """
 
     coarse_transform: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
@@ -95,6 +100,7 @@ class PipelineResult(RegistrationResult):
     candidates: list[Candidate] = dataclasses.field(default_factory=list)
     ambiguous: bool = False
     runner_up_ratio: float = float('inf')
+    covariance: np.ndarray = dataclasses.field(default_factory=lambda: np.diag([1e6] * 6))
 
     def summary(self) -> dict[str, Any]:
         out = super().summary()
@@ -110,5 +116,6 @@ class PipelineResult(RegistrationResult):
             tilt_deg=float(self.tilt_deg),
             free_space_violation=float(self.free_space_violation),
             candidates=[c.summary() for c in self.candidates], ambiguous=bool(self.ambiguous),
-            runner_up_ratio=float(self.runner_up_ratio))
+            runner_up_ratio=float(self.runner_up_ratio),
+            covariance=np.asarray(self.covariance, dtype=float).tolist())
         return out

@@ -16,6 +16,7 @@ from typing import Any, Mapping
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
 
+from .health import lost_upstream_message
 from .transport import user_line
 
 REJECTED = 'rejected.'  # rejected.<cause>: clouds or pairs the node refused, per cause
@@ -76,6 +77,9 @@ def diagnostic_array(stats: Mapping[str, Any], name: str, hardware_id: str,
         status.level = DiagnosticStatus.ERROR
         status.message = (f"registration worker failed ({stats['worker.failing']}); "
                           'restarted, no pair has succeeded since')
+    elif stats.get('active') is False:
+        status.level = DiagnosticStatus.STALE
+        status.message = 'inactive (lifecycle): sources are counted, nothing is published'
     elif stats.get('worker.ready') is False:
         status.level = DiagnosticStatus.STALE
         status.message = 'registration process warming up; pairs wait for it'
@@ -100,13 +104,6 @@ def diagnostic_array(stats: Mapping[str, Any], name: str, hardware_id: str,
     msg = DiagnosticArray(status=[status])
     msg.header.stamp = stamp
     return msg
-
-
-def lost_upstream_message(lost: Any) -> str:
-    """Return the warning for source scans lost before the node, naming the fix."""
-    return (f'{lost} source scans lost before reaching the node (gaps in their stamps); '
-            f'large clouds need the Fast DDS profile in the publishing process too: '
-            f'{user_line()} in its shell (docs/transport.md)')
 
 
 def accounted_sources(values: Mapping[str, str]) -> int:

@@ -17,6 +17,7 @@ import threading
 import time
 from typing import Any
 
+from .transport import user_line
 from ..pipeline.pairing import Pair, Pairer
 from ..pipeline.upstream import UpstreamLoss
 
@@ -27,16 +28,41 @@ class NodeHealth:
     """Counters, the last registration and the latencies of one node."""
 
     def __init__(self, pairer: Pairer):
-        self.lock = threading.Lock()  # held around every change of these and the pairer
-        self.pairer = pairer
-        self.upstream = UpstreamLoss()
-        self.counts: collections.Counter[str] = collections.Counter()
-        self.rejected: collections.Counter[str] = collections.Counter()
-        self.last: dict[str, Any] = {}
-        self.latencies: collections.deque[float] = collections.deque(maxlen=200)
-        self.in_progress = 0
-        self.failing = ''  # why the worker failed, until a registration succeeds again
+        self._lock = threading.Lock()  # held around every change of these and the pairer
+        self._pairer = pairer
+        self._upstream = UpstreamLoss()
+        self._counts: collections.Counter[str] = collections.Counter()
+        self._rejected: collections.Counter[str] = collections.Counter()
+        self._last: dict[str, Any] = {}
+        self._latencies: collections.deque[float] = collections.deque(maxlen=200)
+        self._in_progress = 0
+        self._failing = ''  # why the worker failed, until a registration succeeds again
         self._logged: dict[str, float] = {}
+
+    def failed(self, cause: str) -> None:
+        """Mark the registration worker failing (``cause``) until a registration succeeds."""
+        with self._lock:
+            self._failing = cause
+
+    def registered(self, last: dict[str, Any]) -> None:
+        """Record the last registration's summary (``last_*`` keys); the worker works."""
+        with self._lock:
+            self._failing = ''
+            self._last = dict(last)
+
+    def count(self, key: str) -> None:
+        """Count one event outside the balance (e.g. ``published_invalid``)."""
+        with self._lock:
+            self._counts[key] += 1
+
+    def wake(self) -> None:
+        """End a :meth:`take` waiting for a pair (shutting down)."""
+        self._pairer.wake()
+
+    def set_slop(self, slop: float) -> None:
+        """Set the pairer's synchronization slop (seconds) for the next pairs."""
+        with self._lock:
+            self._pairer.set_slop(slop)
 
     def receive(self, role: str, stamp_ns: int, frame_id: str, payload: Any,
                 rejection: str = '') -> int:
@@ -46,46 +72,46 @@ class NodeHealth:
         :returns: how many more sources its stamp shows lost upstream (a stamp of 0, when
             the header could not be read, shows nothing).
         """
-        with self.lock:
-            self.counts[f'received_{role}'] += 1
-            lost = self.upstream.add(stamp_ns) if role == 'source' and stamp_ns > 0 else 0
+        with self._lock:
+            self._counts[f'received_{role}'] += 1
+            lost = self._upstream.add(stamp_ns) if role == 'source' and stamp_ns > 0 else 0
             if rejection:
-                self.rejected[rejection] += 1
+                self._rejected[rejection] += 1
             elif role == 'source':
-                self.pairer.add_source(stamp_ns, frame_id, payload)
+                self._pairer.add_source(stamp_ns, frame_id, payload)
             else:
-                self.pairer.add_target(stamp_ns, frame_id, payload)
+                self._pairer.add_target(stamp_ns, frame_id, payload)
             return lost
 
     def take(self, timeout: float) -> Pair | None:
         """Return the next ready pair (now in progress), or None after ``timeout`` s."""
-        if not self.pairer.wait_ready(timeout):
+        if not self._pairer.wait_ready(timeout):
             return None
-        with self.lock:
-            pair = self.pairer.pop()
-            self.in_progress += pair is not None
+        with self._lock:
+            pair = self._pairer.pop()
+            self._in_progress += pair is not None
             return pair
 
     def finish(self, rejection: str = '', latency_s: float | None = None) -> None:
         """End the pair in progress: published (no ``rejection``) or rejected."""
-        with self.lock:
-            self.in_progress -= 1
+        with self._lock:
+            self._in_progress -= 1
             if rejection:
-                self.rejected[rejection] += 1
+                self._rejected[rejection] += 1
             else:
-                self.counts['published'] += 1
+                self._counts['published'] += 1
                 if latency_s is not None:
-                    self.latencies.append(latency_s)
+                    self._latencies.append(latency_s)
 
     def reject_count(self, cause: str) -> tuple[int, bool]:
         """Return (rejections of ``cause`` so far, whether to log this one)."""
-        with self.lock:
-            return self.rejected[cause], self._log_due(cause)
+        with self._lock:
+            return self._rejected[cause], self._log_due(cause)
 
     def lost_upstream(self) -> tuple[int, bool]:
         """Return (sources lost upstream so far, whether to log it now)."""
-        with self.lock:
-            return self.upstream.lost, self._log_due('lost_upstream')
+        with self._lock:
+            return self._upstream.lost, self._log_due('lost_upstream')
 
     def _log_due(self, cause: str) -> bool:
         """Tell whether ``cause`` is to be logged now (first time, then every 30 s)."""
@@ -98,14 +124,14 @@ class NodeHealth:
 
     def snapshot(self) -> dict[str, Any]:
         """Return counts, rejections, last result, latencies, pairing and the balance."""
-        with self.lock:
-            counts, rejected = dict(self.counts), dict(self.rejected)
-            pairing = self.pairer.counters()
-            snap = {'counts': counts, 'rejected': rejected, 'last': dict(self.last),
-                    'latencies': list(self.latencies), 'pairing': pairing,
-                    'failing': self.failing}
-            in_progress = self.in_progress
-            lost_upstream, period_ns = self.upstream.lost, self.upstream.period_ns
+        with self._lock:
+            counts, rejected = dict(self._counts), dict(self._rejected)
+            pairing = self._pairer.counters()
+            snap = {'counts': counts, 'rejected': rejected, 'last': dict(self._last),
+                    'latencies': list(self._latencies), 'pairing': pairing,
+                    'failing': self._failing}
+            in_progress = self._in_progress
+            lost_upstream, period_ns = self._upstream.lost, self._upstream.period_ns
         target_rejects = sum(v for k, v in rejected.items() if k.startswith('target_'))
         sources = {'received': counts.get('received_source', 0),
                    'published': counts.get('published', 0),
@@ -124,3 +150,10 @@ class NodeHealth:
                    and targets['received'] == targets['used'] + targets['rejected']
                    + targets['dropped'] + targets['pending'])}
         return snap
+
+
+def lost_upstream_message(lost: Any) -> str:
+    """Return the warning for source scans lost before the node, naming the fix."""
+    return (f'{lost} source scans lost before reaching the node (gaps in their stamps); '
+            f'large clouds need the Fast DDS profile in the publishing process too: '
+            f'{user_line()} in its shell (docs/transport.md)')

@@ -1,20 +1,17 @@
 """
-Guarded ``initialpose`` for Nav2/AMCL: the robot base's pose, only when every guard passes.
+The guards of the ``initialpose`` for Nav2/AMCL: the robot base's pose, only when all pass.
 
-Quality guards (:func:`quality_refusal`): a valid, unambiguous estimate with at least
-``initial_pose_min_inliers`` inliers, a best/runner-up candidate ratio of at least
+ROS-free. Quality guards (:func:`quality_refusal`): a valid, unambiguous estimate with at
+least ``initial_pose_min_inliers`` inliers, a best/runner-up candidate ratio of at least
 ``initial_pose_min_ratio`` and a fitness of at least ``initial_pose_min_fitness``. Then
-``initial_pose_cooldown`` seconds since the last publish and, for scans registered in
-continuous mode, at most ``initial_pose_max_auto`` publishes. Every publish and every
-refusal is counted, refusals by reason (``initial_pose.refused.<reason>``).
+``initial_pose_cooldown`` seconds since the last publish and, for scans registered without
+a relocalization request, at most ``initial_pose_max_auto`` publishes. Every publish and
+every refusal is counted, refusals by reason (``initial_pose.refused.<reason>``).
 
 The pose is the base's: ``T_map_base = T_map_sensor inv(T_base_sensor)`` with the
-extrinsic from ``base_from_sensor``, or from TF (``base_frame`` <- the scan's frame) when
-tf2_ros is importable; without either the sensor is taken as the base (said once). Its
-covariance is the sensor pose's moved along the lever arm
-(:func:`~cgags_ros.pipeline.covariance.moved_covariance`). With ``broadcast_map_to_odom``
-and tf2_ros, each published pose also broadcasts Nav2's map -> odom from it and the
-odom -> base transform at the scan's stamp.
+extrinsic from ``base_from_sensor``, or else from the node's TF lookup (``base_frame`` <-
+the scan's frame). Its covariance is the sensor pose's moved along the lever arm
+(:func:`~cgags_ros.pipeline.covariance.moved_covariance`).
 """
 
 from __future__ import annotations
@@ -22,16 +19,17 @@ from __future__ import annotations
 import collections
 import threading
 import time
-from typing import Any
+from typing import Callable
 
-from geometry_msgs.msg import PoseWithCovarianceStamped
 import numpy as np
-from std_msgs.msg import Header
 
-from .conversions import transform_to_pose, transform_to_transform_stamped
 from ..config.node import NodeConfig, parse_pose7
 from ..geometry import make_transform, quaternion_to_matrix
-from ..pipeline.covariance import map_to_odom, moved_covariance
+from ..pipeline.covariance import moved_covariance
+from ..pipeline.result import PipelineResult
+
+# (base frame, sensor frame) -> T_base_sensor (4x4, metres), or None when unknown
+ExtrinsicLookup = Callable[[str, str], 'np.ndarray | None']
 
 
 def extrinsic(cfg: NodeConfig) -> np.ndarray | None:
@@ -42,45 +40,46 @@ def extrinsic(cfg: NodeConfig) -> np.ndarray | None:
     return make_transform(quaternion_to_matrix(values[3:]), values[:3])
 
 
-def quality_refusal(result: Any, cfg: NodeConfig) -> tuple[str, str]:
+def quality_refusal(result: PipelineResult, cfg: NodeConfig) -> tuple[str, str]:
     """Return (reason key, message) why ``result`` is no confident pose, or ('', '')."""
-    if getattr(result, 'ambiguous', False):
+    if result.ambiguous:
         return 'ambiguous', str(result.reason)
     if not result.valid:
         return 'invalid', str(result.reason)
     if result.num_inliers < cfg.initial_pose_min_inliers:
         return 'few_inliers', (f'{result.num_inliers} inliers < initial_pose_min_inliers '
                                f'{cfg.initial_pose_min_inliers}')
-    ratio = float(getattr(result, 'runner_up_ratio', float('inf')))
+    ratio = float(result.runner_up_ratio)
     if ratio < cfg.initial_pose_min_ratio:
         return 'low_ratio', (f'best/runner-up ratio {ratio:.2f} < initial_pose_min_ratio '
                              f'{cfg.initial_pose_min_ratio:g}')
-    fitness = float(getattr(result, 'fitness', 0.0))
+    fitness = float(result.fitness)
     if fitness < cfg.initial_pose_min_fitness:
         return 'low_fitness', (f'fitness {fitness:.3f} < initial_pose_min_fitness '
                                f'{cfg.initial_pose_min_fitness:g}')
     return '', ''
 
 
-class InitialPose:
-    """The ``initialpose`` publisher, its guards and counters."""
+class InitialPoseGuard:
+    """Decides whether an estimate becomes an initial pose; counts publishes and refusals."""
 
-    def __init__(self, node: Any):
-        self._node = node
-        self._pub = node.create_publisher(PoseWithCovarianceStamped, 'initialpose', 10)
+    def __init__(self) -> None:
         self._lock = threading.Lock()
         self.counts: collections.Counter[str] = collections.Counter()
         self._last_publish: float | None = None
-        self._tf_buffer: Any = None
-        self._tf_broadcaster: Any = None
-        self._tf_said = False
 
-    def offer(self, result: Any, T: np.ndarray, cov: np.ndarray, stamp: Any, sensor_frame: str,
-              cfg: NodeConfig, automatic: bool) -> tuple[bool, str]:
+    def offer(self, result: PipelineResult, T: np.ndarray, cov: np.ndarray, sensor_frame: str,
+              cfg: NodeConfig, automatic: bool, lookup: ExtrinsicLookup
+              ) -> tuple[str, np.ndarray | None, np.ndarray | None]:
         """
-        Publish the base pose of ``T`` (map <- sensor) if every guard passes.
+        Return the base pose of ``T`` (map <- sensor) if every guard passes.
 
-        :returns: (published, why not or what was published).
+        :param cov: the 6x6 covariance of ``T`` (ROS order).
+        :param automatic: the scan was registered without a relocalization request.
+        :param lookup: the node's TF lookup of the extrinsic, for an unset
+            ``base_from_sensor``.
+        :returns: (what was published or why not, ``T_map_base`` or None, its covariance
+            or None); a publish is counted as done.
         """
         key, why = quality_refusal(result, cfg)
         now = time.monotonic()
@@ -93,82 +92,23 @@ class InitialPose:
             if not key and automatic and self.counts['auto'] >= cfg.initial_pose_max_auto:
                 key, why = 'max_auto', (f'{self.counts["auto"]} automatic publishes = '
                                         f'initial_pose_max_auto {cfg.initial_pose_max_auto}')
-        base = None if key else self._base_from_sensor(cfg, sensor_frame)
+        base = None
+        if not key:
+            base = extrinsic(cfg)
+            base = lookup(cfg.base_frame, sensor_frame) if base is None else base
         if not key and base is None:
             key, why = 'no_extrinsic', (f'no TF {cfg.base_frame} <- {sensor_frame} (set '
                                         'base_from_sensor)')
         with self._lock:
             if key:
                 self.counts[f'refused.{key}'] += 1
-                return False, why
+                return why, None, None
             self.counts['published'] += 1
             self.counts['auto'] += automatic
             self._last_publish = now
         sensor_base = np.linalg.inv(base)
-        T_map_base = T @ sensor_base
-        msg = PoseWithCovarianceStamped(header=Header(stamp=stamp, frame_id=cfg.map_frame))
-        msg.pose.pose = transform_to_pose(T_map_base)
-        cov_base = moved_covariance(cov, T, sensor_base)
-        msg.pose.covariance = [float(v) for v in cov_base.ravel()]
-        self._node._send(self._pub, msg)
-        if cfg.broadcast_map_to_odom:
-            self._broadcast_map_to_odom(T_map_base, msg.header, cfg)
-        return True, f'initial pose published in {cfg.map_frame}'
-
-    def _broadcast_map_to_odom(self, T_map_base: np.ndarray, header: Header,
-                               cfg: NodeConfig) -> None:
-        if not self._tf_ready():
-            return
-        T_odom_base = self._lookup(cfg.odom_frame, cfg.base_frame, header.stamp)
-        if T_odom_base is None:
-            with self._lock:
-                self.counts['map_to_odom.no_odom_tf'] += 1
-            return
-        if self._tf_broadcaster is None:
-            from tf2_ros import TransformBroadcaster
-
-            self._tf_broadcaster = TransformBroadcaster(self._node)
-        self._tf_broadcaster.sendTransform(transform_to_transform_stamped(
-            map_to_odom(T_map_base, T_odom_base), header, cfg.odom_frame))
-        with self._lock:
-            self.counts['map_to_odom.broadcast'] += 1
-
-    def _tf_ready(self) -> bool:
-        """Start the TF listener once; False (said once) when tf2_ros is not importable."""
-        if self._tf_buffer is not None:
-            return True
-        try:
-            from tf2_ros import Buffer, TransformListener
-        except ImportError:
-            if not self._tf_said:
-                self._tf_said = True
-                self._node.get_logger().warning(
-                    'tf2_ros is not importable: no TF lookup of the extrinsic and no '
-                    'map -> odom broadcast (the sensor pose stands for the base pose unless '
-                    'base_from_sensor is set)')
-            return False
-        self._tf_buffer = Buffer()
-        self._tf_listener = TransformListener(self._tf_buffer, self._node)
-        return True
-
-    def _lookup(self, parent: str, child: str, stamp: Any = None) -> np.ndarray | None:
-        from rclpy.time import Time
-
-        try:
-            tf = self._tf_buffer.lookup_transform(
-                parent, child, Time.from_msg(stamp) if stamp is not None else Time())
-        except Exception:  # noqa: BLE001 - tf2's lookup errors have no common base here
-            return None
-        r, t = tf.transform.rotation, tf.transform.translation
-        return make_transform(quaternion_to_matrix((r.x, r.y, r.z, r.w)), (t.x, t.y, t.z))
-
-    def _base_from_sensor(self, cfg: NodeConfig, sensor_frame: str) -> np.ndarray | None:
-        T = extrinsic(cfg)
-        if T is not None:
-            return T
-        if not self._tf_ready():
-            return np.eye(4)
-        return self._lookup(cfg.base_frame, sensor_frame)
+        return (f'initial pose published in {cfg.map_frame}', T @ sensor_base,
+                moved_covariance(cov, T, sensor_base))
 
     def statistics(self) -> dict[str, int]:
         """Return ``initial_pose.*`` counters for /diagnostics."""

@@ -1,34 +1,50 @@
 """
-ROS 2 node: registers each source cloud onto a target cloud and publishes the pose.
+ROS 2 lifecycle node: registers each source cloud onto a target cloud and publishes the pose.
+
+A managed node (``rclpy.lifecycle``): configure reads the parameters, creates the topics
+and services and starts the registration process (its warm-up and the map load run in
+the background; /diagnostics reports them); activate consumes sources and publishes;
+deactivate ignores sources (counted as ``rejected.source_inactive``) and publishes no pose;
+cleanup ends the registration process; shutdown does what cleanup does. With ``autostart``
+(default) the node configures and activates itself, so ``ros2 run cgags_ros register_node``
+works alone; under ``nav2_lifecycle_manager`` set it false. The bond that manager expects
+is formed with ``bondpy`` when it is importable; otherwise set the manager's
+``bond_timeout: 0.0`` (docs/lifecycle.md).
 
 Topics (relative names; remap them):
     source_cloud (sensor_msgs/PointCloud2, in): the cloud to align, in its sensor frame.
         Sensor-data QoS by default (``source_qos``).
     target_cloud (sensor_msgs/PointCloud2, in): the reference (map or previous scan).
-        Reliable; durability ``target_durability`` ('transient_local' receives a latched
-        map published before the node started, but then only matches transient-local
-        publishers; 'volatile', the default, matches every publisher).
+        Reliable; durability ``target_durability``. Not subscribed with ``map_file``.
     ~/pose (geometry_msgs/PoseStamped, out): pose of the source frame in the target frame
         (``T``: ``p_target = R p_source + t``, metres), stamped with the source's stamp,
         frame_id = target frame (or ``pose_frame_id``).
     ~/pose_with_covariance (geometry_msgs/PoseWithCovarianceStamped, out): the same with
-        the covariance of :func:`cgags_ros.pipeline.covariance.pose_covariance`.
-    ~/aligned_cloud (sensor_msgs/PointCloud2, out, ``publish_aligned_cloud``): the source
-        transformed into the target frame, for RViz.
-    /diagnostics (diagnostic_msgs/DiagnosticArray, out): status, counts of received,
-        published, rejected and dropped (per reason) clouds, sources lost before the node
-        (``sources.lost_upstream``), last inliers, timings and latency.
+        the pipeline result's covariance.
+    ~/aligned_cloud (sensor_msgs/PointCloud2, out, ``publish_aligned_cloud``).
+    ~/candidates (geometry_msgs/PoseArray, out): ranked candidate poses, best first.
+    initialpose (geometry_msgs/PoseWithCovarianceStamped, out, ``publish_initial_pose``):
+        the guarded base pose for Nav2/AMCL (:mod:`.initial_pose`).
+    /diagnostics (diagnostic_msgs/DiagnosticArray, out): status and counters
+        (:mod:`.diagnostics`), also while inactive.
     /tf (``broadcast_tf``, when tf2_ros is importable): target frame -> source frame.
 
-Parameters: every key of PipelineConfig (``voxel_size``, ``core.*``, ``frontend.*``, ``refine.*``,
-``seed``) and of NodeConfig (``pairing_mode``, ``sync_slop``...), declared with descriptions and
-ranges generated from the dataclasses. Changes at run time are validated and apply to the next
-pair. Note ROS parameters are typed: write ``1.0``, not ``1``, for a float.
+Services (served by this node, on its own callback group so that a call waiting for a
+registration never holds up the topics on a multi-threaded executor):
+    ~/relocalize (std_srvs/Trigger): relocalize with the next registration (in
+        ``mode: on_demand`` the only thing that makes the node register); answers success
+        and a one-line summary.
+    reinitialize_global_localization (std_srvs/Empty, relative name, as Nav2 calls it):
+        the same request, answered at once; its outcome is logged and, with
+        ``publish_initial_pose``, published on initialpose.
 
-Threading: subscription callbacks only decode the cloud (vectorized numpy) and hand it to
-the :class:`~cgags_ros.pipeline.pairing.Pairer`; registration runs on one worker thread
-(in a child process, :mod:`.worker`), so a slow registration never blocks reception (the
-pairer's bounded queue drops the oldest pair).
+Parameters: the short grouped list of :mod:`cgags_ros.config.ros_parameters` (voxel_size,
+pairing.*, map.*, relocalization.*, output.*, frontend.*/core.*; vectors as arrays), with
+descriptions and ranges from the config dataclasses; every other configuration key is set
+in the YAML of ``config_file``. Changes at run time are validated and apply to the next
+pair; a name of the former flat interface is refused with its new name.
+The node only wires: :class:`~.engine.RegistrationEngine` decides, :class:`~.outputs.Outputs`
+publishes.
 
 Transport: :func:`main` points Fast DDS at the package's large-data profile
 (:mod:`.transport`) unless the user chose one; the clouds' publisher needs it too.
@@ -36,144 +52,195 @@ Transport: :func:`main` points Fast DDS at the package's large-data profile
 
 from __future__ import annotations
 
-import dataclasses
 import os
-import threading
 import time
-import traceback
 from typing import Any
 
-from diagnostic_msgs.msg import DiagnosticArray
-import numpy as np
 from rcl_interfaces.msg import SetParametersResult
 import rclpy
-from rclpy.node import Node
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from sensor_msgs.msg import PointCloud2
-from std_msgs.msg import Header
+from std_srvs.srv import Empty, Trigger
 
 from . import diagnostics
-from .health import LOG_REPEAT_S, NodeHealth
-from .localization import Localization
+from .engine import RegistrationEngine
+from .interface import Cloud
 from .outputs import Outputs
 from .parameters import descriptor
 from .qos import source_qos, target_qos
 from .transport import PROFILE_VARIABLE, use_large_data_profile
-from .worker import (IsolatedRegistration, load_pipeline, RegisterFn, RegistrationTimeout,
-                     rss_mb, WorkerCrashed)
-from ..config.node import configs_from_parameters, NodeConfig, parameter_descriptions
+from .worker import RegisterFn, rss_mb
+from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
-from ..errors import CgagsError, EmptyCloudError, InvalidConfigError, InvalidInputError
+from ..config.ros_parameters import configs_from_ros, migration, ros_parameter_descriptions
+from ..errors import EmptyCloudError, InvalidConfigError, InvalidInputError
 from ..io.pointcloud2 import pointcloud2_to_xyz, stamp_to_ns
-from ..pipeline.pairing import Pair, Pairer
+
+SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
+# How the node destroys what configure created (so that it leaves the node's lists too).
+_DESTROY = {'Subscription': LifecycleNode.destroy_subscription,
+            'Timer': LifecycleNode.destroy_timer, 'Service': LifecycleNode.destroy_service}
 
 
-class _Cloud:
-    """A decoded cloud: points (N, 3) metres in ``header.frame_id``, receipt time."""
-
-    __slots__ = ('xyz', 'header', 'receipt_ns')
-
-    def __init__(self, xyz: np.ndarray, header: Any, receipt_ns: int):
-        self.xyz, self.header, self.receipt_ns = xyz, header, receipt_ns
-
-
-class RegisterNode(Node):
+class RegisterNode(LifecycleNode):
     """
-    Wires topics, parameters and diagnostics around ``cgags_ros.pipeline.register_clouds``.
+    Wires topics, services, parameters and diagnostics around a :class:`RegistrationEngine`.
 
     ``register_fn`` replaces the pipeline; it exists for unit tests of the plumbing only.
+    Invalid parameters at construction raise :class:`InvalidConfigError`.
     """
 
     def __init__(self, node_name: str = 'register_node', *,
                  register_fn: RegisterFn | None = None, **kwargs: Any):
+        # Undeclared names reach _on_set_parameters, which refuses them with a reason.
+        kwargs.setdefault('allow_undeclared_parameters', True)
         super().__init__(node_name, **kwargs)
-        self._declare_parameters()
-        values = {name: self.get_parameter(name).value for name in self._descriptions}
-        # Invalid startup values (e.g. a choice typo) raise InvalidConfigError here.
-        self._pipeline_cfg, self._node_cfg = configs_from_parameters(values)
-        self._isolated: IsolatedRegistration | None = None
-        if register_fn is not None:  # unit tests of the plumbing only
-            self._register = register_fn
-        elif self._node_cfg.registration_timeout > 0:
-            self._isolated = IsolatedRegistration(self._node_cfg.registration_timeout)
-            self._register = self._isolated
-        else:  # import the pipeline (and Open3D) now, so the first pair is not slowed by it
-            self._register = load_pipeline()
-        self._lock = threading.Lock()  # guards the configs
-        cfg = self._node_cfg
-        # A map file is one latched target; on demand only the latest pair is kept.
-        self._pairer = Pairer.from_config(dataclasses.replace(
-            cfg, pairing_mode='latest_target' if cfg.map_file else cfg.pairing_mode,
-            queue_depth=1 if cfg.mode == 'on_demand' else cfg.queue_depth))
-        self._health = NodeHealth(self._pairer)
-        self._loc = Localization(self, cfg)
+        self._descriptions = ros_parameter_descriptions()
+        for name, meta in self._descriptions.items():
+            self.declare_parameter(name, meta['default'], descriptor(name, meta))
+        former = sorted(set(self._parameter_overrides) & set(migration()))
+        if former:  # a YAML or -p of the former interface: refused, naming the new name
+            raise InvalidConfigError('former parameters: ' + '; '.join(
+                f'{name} ({migration()[name]})' for name in former))
+        _, cfg = self._configs()  # invalid startup values (a choice typo) raise here
+        self._register_fn = register_fn
+        self._engine: RegistrationEngine | None = None
+        self.outputs: Outputs | None = None
+        self._entities: list[Any] = []
+        self._service_group = ReentrantCallbackGroup()
+        self._bond: Any = None
         self._transport_profile = os.environ.get(PROFILE_VARIABLE, '')
-
-        self.create_subscription(PointCloud2, 'source_cloud', self._on_source, source_qos(cfg))
-        if not cfg.map_file:
-            self.create_subscription(PointCloud2, 'target_cloud', self._on_target,
-                                     target_qos(cfg))
-        self._outputs = Outputs(self)
-        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self._stop = threading.Event()
-        self.create_timer(cfg.diagnostics_period, self._publish_diagnostics)
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        self._worker = threading.Thread(target=self._work, name='register_worker', daemon=True)
-        self._worker.start()
+        if cfg.autostart and self.trigger_configure() == SUCCESS:
+            self.trigger_activate()
+
+    @property
+    def engine(self) -> RegistrationEngine | None:
+        """Return the registration object (None while unconfigured)."""
+        return self._engine
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Read the parameters, create topics and services, start the registration process."""
+        try:
+            pipe, cfg = self._configs()
+        except InvalidConfigError as exc:
+            self.get_logger().error(f'cannot configure: {exc}')
+            return FAILURE
+        self.outputs = Outputs(self)
+        self._engine = RegistrationEngine(pipe, cfg, self.outputs, self._register_fn)
+        self._entities = [
+            self.create_subscription(PointCloud2, 'source_cloud', self._on_source,
+                                     source_qos(cfg)),
+            self.create_timer(cfg.diagnostics_period, self._publish_diagnostics),
+            self.create_service(Trigger, '~/relocalize', self._on_relocalize,
+                                callback_group=self._service_group),
+            self.create_service(Empty, 'reinitialize_global_localization',
+                                self._on_reinitialize, callback_group=self._service_group)]
+        if not cfg.map_file:
+            self._entities.append(self.create_subscription(
+                PointCloud2, 'target_cloud', self._on_target, target_qos(cfg)))
+        self._engine.start()
         self.get_logger().info(
             f"registering source_cloud onto {cfg.map_file or 'target_cloud'} ({cfg.mode}, "
-            f'{cfg.pairing_mode}, voxel_size {self._pipeline_cfg.voxel_size} m; '
+            f'{cfg.pairing_mode}, voxel_size {pipe.voxel_size} m; '
             f"Fast DDS profile: {self._transport_profile or 'none'})")
+        return super().on_configure(state)
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Consume sources and publish."""
+        self._engine.activate()
+        self._bond = _start_bond(self)
+        return super().on_activate(state)
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Ignore sources (counted) and publish no pose."""
+        self._engine.deactivate()
+        if self._bond is not None:
+            self._bond.shutdown()
+            self._bond = None
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """End the registration process; destroy the topics and services."""
+        self._teardown()
+        return super().on_cleanup(state)
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Do what cleanup does, from any state."""
+        self._teardown()
+        return super().on_shutdown(state)
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Recover to unconfigured: end everything configure started."""
+        self._teardown()
+        return SUCCESS
+
+    def _teardown(self) -> None:
+        if self._bond is not None:
+            self._bond.shutdown()
+            self._bond = None
+        engine, self._engine = self._engine, None
+        if engine is not None:
+            engine.stop()
+        for entity in self._entities:
+            _DESTROY[type(entity).__name__](self, entity)
+        self._entities = []
+        if self.outputs is not None:
+            self.outputs.destroy()
+            self.outputs = None
+
+    def destroy_node(self) -> None:
+        """End the registration process, then destroy the node."""
+        self._teardown()
+        super().destroy_node()
 
     # ------------------------------------------------------------------ parameters
 
-    def _declare_parameters(self) -> None:
-        self._descriptions = parameter_descriptions()
-        for name, meta in self._descriptions.items():
-            self.declare_parameter(name, meta['default'], descriptor(name, meta))
+    def _configs(self) -> tuple[PipelineConfig, NodeConfig]:
+        """Return the validated configurations of the current parameter values."""
+        return configs_from_ros(
+            {name: self.get_parameter(name).value for name in self._descriptions})
 
     def _on_set_parameters(self, params: list[rclpy.parameter.Parameter]) -> SetParametersResult:
+        for p in params:
+            if not self.has_parameter(p.name):
+                why = migration().get(p.name, 'unknown parameter (docs/parameters.md)')
+                return SetParametersResult(successful=False, reason=f'{p.name}: {why}')
         changes = {p.name: p.value for p in params if p.name in self._descriptions}
         if not changes:
             return SetParametersResult(successful=True)
-        with self._lock:
-            try:
-                pipe, node = configs_from_parameters(
-                    changes, base=(self._pipeline_cfg, self._node_cfg))
-            except InvalidConfigError as exc:
-                return SetParametersResult(successful=False, reason=str(exc))
-            self._pipeline_cfg, self._node_cfg = pipe, node
-            self._pairer.set_slop(node.sync_slop)
+        engine = self._engine
+        try:
+            base = ((engine.pipeline_config, engine.node_config) if engine is not None
+                    else self._configs())
+            pipe, node = configs_from_ros(changes, base=base)
+        except InvalidConfigError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        if engine is not None:
+            engine.set_configs(pipe, node)
         self.get_logger().info(f'parameters changed (next pair): {changes}')
         return SetParametersResult(successful=True)
-
-    @property
-    def pipeline_config(self) -> PipelineConfig:
-        with self._lock:
-            return self._pipeline_cfg
-
-    @property
-    def node_config(self) -> NodeConfig:
-        with self._lock:
-            return self._node_cfg
 
     # ------------------------------------------------------------------ input
 
     def _receive(self, msg: PointCloud2, role: str) -> None:
+        engine = self._engine
+        if engine is None:
+            return
         receipt = time.monotonic_ns()
-        with self._lock:
-            max_points = self._node_cfg.max_cloud_points
         stamp = 0
         try:
             stamp = stamp_to_ns(msg.header.stamp)
-            cloud = _Cloud(pointcloud2_to_xyz(msg, max_points=max_points), msg.header, receipt)
+            xyz = pointcloud2_to_xyz(msg, max_points=engine.node_config.max_cloud_points)
         except InvalidInputError as exc:
             cause = f"{role}_{'empty' if isinstance(exc, EmptyCloudError) else 'malformed'}"
-            lost = self._health.receive(role, stamp, '', None, rejection=cause)
-            self._log_rejection(cause, f'{role} cloud rejected: {exc}')
+            engine.receive(role, stamp, '', None, cause, f'{role} cloud rejected: {exc}')
         else:
-            lost = self._health.receive(role, stamp, str(msg.header.frame_id), cloud)
-        if lost:
-            self._log_lost_upstream()
+            engine.receive(role, stamp, str(msg.header.frame_id),
+                           Cloud(xyz, msg.header, receipt))
 
     def _on_source(self, msg: PointCloud2) -> None:
         self._receive(msg, 'source')
@@ -181,146 +248,61 @@ class RegisterNode(Node):
     def _on_target(self, msg: PointCloud2) -> None:
         self._receive(msg, 'target')
 
-    # ------------------------------------------------------------------ worker
+    # ------------------------------------------------------------------ services
 
-    def _work(self) -> None:
-        if self._loc.map_ref is not None and self._loc.load_map(
-                self._register, self.pipeline_config, self.node_config):
-            header = Header(frame_id=self.node_config.map_frame)
-            self._health.receive('target', 0, header.frame_id,
-                                 _Cloud(self._loc.map_ref, header, time.monotonic_ns()))
-        while not self._stop.is_set():
-            pair = self._health.take(timeout=0.2) if self._loc.ready() else None
-            if pair is None:
-                continue
-            cause, message = 'internal_error', ''
-            try:
-                cause, message = self._process(pair)
-            except Exception as exc:  # noqa: BLE001 - the worker must outlive any bad pair
-                message = f'pair failed: {exc!r}\n{traceback.format_exc()}'
-            finally:
-                latency = (time.monotonic_ns() - pair.source.payload.receipt_ns) * 1e-9
-                self._health.finish(cause, latency)
-                self._loc.settle(cause, message)
-            if cause and not self._stop.is_set() and self.context.ok():
-                self._log_rejection(cause, message)
+    def _on_relocalize(self, request: Any, response: Any) -> Any:
+        engine = self._engine
+        response.success, response.message = (
+            engine.relocalize() if engine is not None
+            else (False, 'not localized (unconfigured): the node is not configured'))
+        return response
 
-    def _process(self, pair: Pair) -> tuple[str, str]:
-        """Register and publish a pair; return ('', '') or its rejection (cause, message)."""
-        source, target = pair.source.payload, pair.target.payload
-        with self._lock:
-            pipe_cfg, cfg = self._pipeline_cfg, self._node_cfg
-        stale = self._loc.stale(pair, cfg)
-        if stale:
-            return 'on_demand_stale_scan', stale
-        try:
-            result = self._register(source.xyz, target.xyz, config=pipe_cfg)
-        except InvalidInputError as exc:
-            return 'pipeline_input', f'pair rejected by the pipeline: {exc}'
-        except RegistrationTimeout as exc:
-            return 'timeout', str(exc)
-        except WorkerCrashed as exc:
-            self._health.failing = 'worker_crashed'
-            return 'worker_crashed', str(exc)
-        except CgagsError as exc:
-            return 'pipeline_error', f'registration failed: {exc}'
-        T = np.asarray(result.transform, dtype=np.float64)
-        valid = bool(result.valid) and np.isfinite(T).all()
-        self._loc.update_map_info(result)
-        frame = cfg.pose_frame_id or target.header.frame_id
-        with self._health.lock:
-            self._health.failing = ''
-            self._health.last = {
-                'valid': valid, 'reason': str(getattr(result, 'reason', '')),
-                'inliers': int(result.num_inliers),
-                'fitness': float(getattr(result, 'fitness', float('nan'))),
-                'voxel_size': pipe_cfg.voxel_size,
-                'timings': dict(getattr(result, 'timings', {}) or {}),
-                'source_stamp_ns': pair.source.stamp_ns}
-        if not valid:
-            if not cfg.publish_invalid or not np.isfinite(T).all():
-                self._loc.finish(pair, result, T, None, cfg, frame)
-                return 'invalid_result', f'invalid registration: {result.reason}'
-            with self._health.lock:
-                self._health.counts['published_invalid'] += 1
-        cov = self._publish(pair, T, result, pipe_cfg, cfg, frame)
-        self._loc.finish(pair, result, T, cov, cfg, frame)
-        return '', ''
+    def _on_reinitialize(self, request: Any, response: Any) -> Any:
+        engine = self._engine
+        if engine is not None:
+            engine.relocalize(wait=False, on_answer=self._log_reinitialized)
+        return response
 
-    def _publish(self, pair: Pair, T: np.ndarray, result: Any, pipe_cfg: PipelineConfig,
-                 cfg: NodeConfig, frame: str | None = None) -> np.ndarray:
-        frame = frame or cfg.pose_frame_id or pair.target.payload.header.frame_id
-        return self._outputs.publish(pair, T, result, pipe_cfg, cfg, frame)
+    def _log_reinitialized(self, success: bool, message: str) -> None:
+        if self.outputs is not None:
+            self.outputs.log('info' if success else 'warning',
+                             f'reinitialize_global_localization: {message}')
 
     # ------------------------------------------------------------------ health
 
-    def _log_rejection(self, cause: str, message: str) -> None:
-        """Log a counted rejection, once per cause and then at most every 30 s."""
-        n, due = self._health.reject_count(cause)
-        if due:
-            suffix = (f' ({n} so far; repeats are logged every {LOG_REPEAT_S:.0f} s)'
-                      if n > 1 else '')
-            self.get_logger().warning(message + suffix)
-
-    def _log_lost_upstream(self) -> None:
-        """Warn that source scans went missing before the node, at most every 30 s."""
-        n, due = self._health.lost_upstream()
-        if due:
-            self.get_logger().warning(diagnostics.lost_upstream_message(n))
-
     def statistics(self) -> dict[str, Any]:
         """Return a flat snapshot of the node's counters (what /diagnostics carries)."""
-        with self._lock:
-            voxel = self._pipeline_cfg.voxel_size
+        engine, outputs = self._engine, self.outputs
+        if engine is None or outputs is None:
+            return {}
         extra = {'memory.node_rss_mb': round(rss_mb() or 0.0, 1),
                  'transport.profile': self._transport_profile,
-                 **self._loc.statistics(self.node_config.mode)}
-        if self._isolated is not None:
-            extra.update(self._isolated.health())
-        return diagnostics.build_statistics(self._health.snapshot(), voxel, extra)
+                 **engine.statistics(), **outputs.statistics()}
+        return diagnostics.build_statistics(engine.snapshot(),
+                                            engine.pipeline_config.voxel_size, extra)
 
     def _publish_diagnostics(self) -> None:
-        if self._stop.is_set():
-            # destroy_node has begun: an executor spinning on another thread may still
-            # dispatch this timer, and the node's handle is about to go (InvalidHandle).
-            return
-        if self._isolated is not None and self._isolated.supervise():
-            self._health.failing = 'worker_crashed'
-            self.get_logger().warning('the registration process had died while idle; '
-                                      'a fresh one was started')
-        msg = diagnostics.diagnostic_array(
-            self.statistics(), f'{self.get_name()}: registration',
-            self.get_fully_qualified_name(), self.get_clock().now().to_msg())
-        self._send(self._diag_pub, msg)
+        engine, outputs = self._engine, self.outputs
+        if engine is None or outputs is None:
+            return  # cleaned up while the executor held this timer's callback
+        engine.supervise()
+        outputs.publish_diagnostics(self.statistics())
 
-    def _send(self, publisher: Any, msg: Any) -> None:
-        """
-        Publish unless the context has been shut down (Ctrl-C / SIGTERM).
 
-        rclpy's signal handler shuts the context down asynchronously: the executor may
-        still dispatch the diagnostics timer, and the worker may still be finishing a
-        pair. A publish then raises RCLError ("publisher's context is invalid"), which
-        from a timer callback would escape rclpy.spin() and end the node with exit 1.
-        Errors while the context is still valid are re-raised.
-        """
-        if not self.context.ok():
-            return
-        try:
-            publisher.publish(msg)
-        except RuntimeError:  # rclpy's RCLError derives from RuntimeError
-            if self.context.ok():
-                raise
-
-    # ------------------------------------------------------------------ shutdown
-
-    def destroy_node(self) -> None:
-        self._stop.set()
-        self._pairer.wake()
-        if self._isolated is not None:
-            self._isolated.close()  # ends a registration in flight at once
-        self._worker.join(timeout=5.0)
-        self._loc.close()
-        super().destroy_node()
+def _start_bond(node: RegisterNode) -> Any:
+    """Form the bond nav2_lifecycle_manager watches, when bondpy is importable (else None)."""
+    try:
+        from bondpy.bondpy import Bond
+    except ImportError:
+        return None
+    try:
+        bond = Bond(node, 'bond', node.get_name())
+        bond.start()
+    except Exception as exc:  # noqa: BLE001 - bondpy's API differs between releases
+        node.get_logger().warning(f'bondpy is importable but the bond failed: {exc!r}; set '
+                                  "the lifecycle manager's bond_timeout: 0.0")
+        return None
+    return bond
 
 
 def main(args: list[str] | None = None) -> None:
@@ -328,14 +310,18 @@ def main(args: list[str] | None = None) -> None:
     Spin the node until Ctrl-C or SIGTERM, then shut down cleanly.
 
     The ``register_node`` entry point (``ros2 run``, ``python -m cgags_ros.register_node``).
+    A multi-threaded executor, so that a relocalization call waiting for a registration
+    runs beside the subscriptions.
     """
-    from rclpy.executors import ExternalShutdownException
+    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
     use_large_data_profile()
     rclpy.init(args=args)
     node = None
+    executor = MultiThreadedExecutor(num_threads=4)
     try:
         node = RegisterNode()
-        rclpy.spin(node)
+        executor.add_node(node)
+        executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except InvalidConfigError as exc:  # e.g. a pairing_mode typo in the YAML
@@ -345,6 +331,7 @@ def main(args: list[str] | None = None) -> None:
         if rclpy.ok():
             raise
     finally:
+        executor.shutdown(timeout_sec=2.0)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()

@@ -1,78 +1,182 @@
 """
-The node's pose outputs: ~/pose, ~/pose_with_covariance, ~/aligned_cloud and /tf.
+The node's outputs: what :class:`~.engine.EngineOutputs` asks for, in ROS messages.
 
-Frames and conventions as in :mod:`.node`: ``T`` maps source-frame points into the target
-(map) frame; outputs carry the source's stamp and the target's (or ``pose_frame_id``'s)
-frame.
+~/pose, ~/pose_with_covariance, ~/aligned_cloud, ~/candidates, initialpose, /tf (when
+tf2_ros is importable) and /diagnostics. Frames and conventions as in :mod:`.node`: a pose
+maps source-frame points into the target (map) frame and carries the source's stamp.
+Pose outputs are lifecycle publishers: they publish only while the node is active.
 """
 
 from __future__ import annotations
 
+import collections
+import threading
 from typing import Any
 
-from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 import numpy as np
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
+from . import diagnostics
 from .conversions import transform_to_pose, transform_to_transform_stamped, xyz_to_pointcloud2
-from ..config.node import NodeConfig
-from ..config.pipeline import PipelineConfig
-from ..geometry import apply_transform
-from ..pipeline.covariance import inlier_pairs, pose_covariance
-from ..pipeline.pairing import Pair
+from .interface import BasePose, Estimate
+from ..geometry import make_transform, quaternion_to_matrix
+from ..pipeline.covariance import map_to_odom
 
 
 class Outputs:
-    """Publishers of one node's estimate (and its TF broadcaster, when tf2_ros imports)."""
+    """Publishers, TF and logging of one node: the engine's :class:`~.engine.EngineOutputs`."""
 
     def __init__(self, node: Any):
         self._node = node
-        self._pose_pub = node.create_publisher(PoseStamped, '~/pose', 10)
-        self._pose_cov_pub = node.create_publisher(PoseWithCovarianceStamped,
-                                                   '~/pose_with_covariance', 10)
-        self._aligned_pub = node.create_publisher(PointCloud2, '~/aligned_cloud', 1)
+        lifecycle = node.create_lifecycle_publisher
+        self._pose_pub = lifecycle(PoseStamped, '~/pose', 10)
+        self._pose_cov_pub = lifecycle(PoseWithCovarianceStamped, '~/pose_with_covariance', 10)
+        self._aligned_pub = lifecycle(PointCloud2, '~/aligned_cloud', 1)
+        self._candidates_pub = lifecycle(PoseArray, '~/candidates', 10)
+        self._initial_pub = lifecycle(PoseWithCovarianceStamped, 'initialpose', 10)
+        self._diag_pub = node.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._lifecycle_publishers = [self._pose_pub, self._pose_cov_pub, self._aligned_pub,
+                                      self._candidates_pub, self._initial_pub]
+        self._lock = threading.Lock()
+        self.counts: collections.Counter[str] = collections.Counter()
+        self._tf_buffer: Any = None
+        self._tf_listener: Any = None
         self._tf_broadcaster: Any = None
-        self._tf_missing_logged = False
+        self._tf_said = False
 
-    def _send(self, publisher: Any, msg: Any) -> None:
-        self._node._send(publisher, msg)
+    # ------------------------------------------------------------------ EngineOutputs
 
-    def publish(self, pair: Pair, T: np.ndarray, result: Any, pipe_cfg: PipelineConfig,
-                cfg: NodeConfig, frame: str) -> np.ndarray:
-        """Publish the pose, its covariance, the aligned cloud and TF; return the covariance."""
-        source, target = pair.source.payload, pair.target.payload
-        header = Header(stamp=source.header.stamp, frame_id=frame)
-        pose = transform_to_pose(T)
+    def publish_estimate(self, estimate: Estimate) -> None:
+        """Publish ~/pose, ~/pose_with_covariance, and ~/aligned_cloud and /tf as asked."""
+        header = Header(stamp=estimate.header.stamp, frame_id=estimate.frame_id)
+        pose = transform_to_pose(estimate.transform)
         self._send(self._pose_pub, PoseStamped(header=header, pose=pose))
         cov_msg = PoseWithCovarianceStamped(header=header)
         cov_msg.pose.pose = pose
-        threshold = float(getattr(result, 'inlier_threshold', float('nan')))
-        if not np.isfinite(threshold) or threshold <= 0:
-            threshold = 1.5 * pipe_cfg.voxel_size
-        map_xyz = target.xyz if isinstance(target.xyz, np.ndarray) else np.zeros((0, 3))
-        src, dst = inlier_pairs(result, source.xyz, map_xyz, T, threshold)
-        core = pipe_cfg.core
-        gravity = core.gravity_axis if core.motion_model == '4dof' else None
-        cov = pose_covariance(src, dst, T, gravity)
-        cov_msg.pose.covariance = [float(v) for v in cov.ravel()]
+        cov_msg.pose.covariance = [float(v) for v in estimate.covariance.ravel()]
         self._send(self._pose_cov_pub, cov_msg)
-        if cfg.publish_aligned_cloud:
-            aligned = apply_transform(T, source.xyz)
-            self._send(self._aligned_pub, xyz_to_pointcloud2(aligned, header))
-        if cfg.broadcast_tf:
-            self._broadcast(T, header, cfg.tf_child_frame or source.header.frame_id)
-        return cov
+        if estimate.aligned is not None:
+            self._send(self._aligned_pub, xyz_to_pointcloud2(estimate.aligned, header))
+        if estimate.tf_child_frame and self._tf_ready('broadcast_tf is set'):
+            self._broadcast(estimate.transform, header, estimate.tf_child_frame)
+
+    def publish_candidates(self, header: Any, frame_id: str,
+                           transforms: list[np.ndarray]) -> None:
+        """Publish ~/candidates (geometry_msgs/PoseArray, best first)."""
+        msg = PoseArray(header=Header(stamp=header.stamp, frame_id=frame_id))
+        msg.poses = [transform_to_pose(T) for T in transforms]
+        self._send(self._candidates_pub, msg)
+
+    def publish_initial_pose(self, pose: BasePose) -> None:
+        """Publish ``initialpose`` and, when asked, Nav2's map -> odom on /tf."""
+        msg = PoseWithCovarianceStamped(header=Header(stamp=pose.header.stamp,
+                                                      frame_id=pose.map_frame))
+        msg.pose.pose = transform_to_pose(pose.transform)
+        msg.pose.covariance = [float(v) for v in pose.covariance.ravel()]
+        self._send(self._initial_pub, msg)
+        if pose.odom_frame and self._tf_ready('broadcast_map_to_odom is set'):
+            T_odom_base = self._lookup(pose.odom_frame, pose.base_frame, msg.header.stamp)
+            if T_odom_base is None:
+                self._count('map_to_odom.no_odom_tf')
+                return
+            self._broadcast(map_to_odom(pose.transform, T_odom_base), msg.header,
+                            pose.odom_frame)
+            self._count('map_to_odom.broadcast')
+
+    def base_from_sensor(self, base_frame: str, sensor_frame: str) -> np.ndarray | None:
+        """Return ``T_base_sensor`` from TF; the identity (said once) without tf2_ros."""
+        if not self._tf_ready('base_from_sensor is not set'):
+            return np.eye(4)
+        return self._lookup(base_frame, sensor_frame)
+
+    def log(self, level: str, message: str) -> None:
+        """Log through the node's logger, unless its context has ended."""
+        if not self._node.context.ok():
+            return
+        # One call site a severity: rclpy's logger refuses a site that changes severity.
+        logger = self._node.get_logger()
+        if level == 'error':
+            logger.error(message)
+        elif level == 'warning':
+            logger.warning(message)
+        else:
+            logger.info(message)
+
+    # ------------------------------------------------------------------ the node's own
+
+    def publish_diagnostics(self, stats: dict[str, Any]) -> None:
+        """Publish /diagnostics from the node's flat statistics."""
+        node = self._node
+        self._send(self._diag_pub, diagnostics.diagnostic_array(
+            stats, f'{node.get_name()}: registration', node.get_fully_qualified_name(),
+            node.get_clock().now().to_msg()))
+
+    def statistics(self) -> dict[str, int]:
+        """Return the ``map_to_odom.*`` counters for /diagnostics."""
+        with self._lock:
+            return {f'initial_pose.{k}': v for k, v in sorted(self.counts.items())}
+
+    def destroy(self) -> None:
+        """Destroy the publishers (the node's cleanup)."""
+        for pub in self._lifecycle_publishers:
+            self._node.destroy_lifecycle_publisher(pub)
+        self._node.destroy_publisher(self._diag_pub)
+
+    def _count(self, key: str) -> None:
+        with self._lock:
+            self.counts[key] += 1
+
+    def _send(self, publisher: Any, msg: Any) -> None:
+        """
+        Publish unless the context has been shut down (Ctrl-C / SIGTERM).
+
+        rclpy's signal handler shuts the context down asynchronously: the executor may
+        still dispatch the diagnostics timer, and the worker may still be finishing a
+        pair. A publish then raises RCLError ("publisher's context is invalid"), which
+        from a timer callback would escape rclpy.spin() and end the node with exit 1.
+        Errors while the context is still valid are re-raised.
+        """
+        if not self._node.context.ok():
+            return
+        try:
+            publisher.publish(msg)
+        except RuntimeError:  # rclpy's RCLError derives from RuntimeError
+            if self._node.context.ok():
+                raise
+
+    # ------------------------------------------------------------------ TF
+
+    def _tf_ready(self, why: str) -> bool:
+        """Start TF once; False (said once) when tf2_ros is not importable."""
+        if self._tf_buffer is not None:
+            return True
+        try:
+            from tf2_ros import Buffer, TransformBroadcaster, TransformListener
+        except ImportError:
+            if not self._tf_said:
+                self._tf_said = True
+                self.log('warning', f'{why} but tf2_ros is not importable: no TF is broadcast '
+                         'or looked up (the sensor pose stands for the base pose unless '
+                         'base_from_sensor is set)')
+            return False
+        self._tf_buffer = Buffer()
+        self._tf_listener = TransformListener(self._tf_buffer, self._node)
+        self._tf_broadcaster = TransformBroadcaster(self._node)
+        return True
 
     def _broadcast(self, T: np.ndarray, header: Header, child: str) -> None:
-        if self._tf_broadcaster is None:
-            try:
-                from tf2_ros import TransformBroadcaster
-            except ImportError:
-                if not self._tf_missing_logged:
-                    self._tf_missing_logged = True
-                    self._node.get_logger().warning(
-                        'broadcast_tf is set but tf2_ros is not importable; no TF is broadcast')
-                return
-            self._tf_broadcaster = TransformBroadcaster(self._node)
         self._tf_broadcaster.sendTransform(transform_to_transform_stamped(T, header, child))
+
+    def _lookup(self, parent: str, child: str, stamp: Any = None) -> np.ndarray | None:
+        from rclpy.time import Time
+
+        try:
+            tf = self._tf_buffer.lookup_transform(
+                parent, child, Time.from_msg(stamp) if stamp is not None else Time())
+        except Exception:  # noqa: BLE001 - tf2's lookup errors have no common base here
+            return None
+        r, t = tf.transform.rotation, tf.transform.translation
+        return make_transform(quaternion_to_matrix((r.x, r.y, r.z, r.w)), (t.x, t.y, t.z))

@@ -33,6 +33,8 @@ def descriptor(name: str, meta: dict[str, Any]) -> ParameterDescriptor:
                                                             step=0.0)]
     elif isinstance(default, str):
         desc.type = ParameterType.PARAMETER_STRING
+    elif isinstance(default, list):  # a vector of numbers (core.gravity, base_from_sensor)
+        desc.type = ParameterType.PARAMETER_DOUBLE_ARRAY
     else:  # None default (optional value): let the YAML decide the type
         desc.dynamic_typing = True
     return desc

@@ -12,7 +12,7 @@ import time
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseWithCovarianceStamped
 import numpy as np
 import rclpy
 from rclpy.context import Context
@@ -29,11 +29,16 @@ MAX_QUEUE = 1000  # the node config's upper bound for depths
 
 @dataclasses.dataclass
 class Received:
-    """A pose from the node: 4x4 source->target, its frame, and when it arrived (s)."""
+    """
+    A pose from the node: 4x4 source->target, its frame, when it arrived (s).
+
+    ``covariance`` is the node's 6x6 pose covariance (ROS order, metres and radians).
+    """
 
     transform: np.ndarray
     frame_id: str
     receipt_s: float
+    covariance: np.ndarray | None = None
 
 
 class LiveSession:
@@ -59,13 +64,17 @@ class LiveSession:
         self.stats: dict[str, str] = {}
         self.last_progress = time.monotonic()
         self.node_id = '/' + node_name.lstrip('/')
+        # ~/pose_with_covariance: the pose of ~/pose and its covariance, one message.
         self.pose_sub = self.node.create_subscription(
-            PoseStamped, f'{self.node_id}/pose', self._on_pose, 100)
+            PoseWithCovarianceStamped, f'{self.node_id}/pose_with_covariance', self._on_pose,
+            100)
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 100)
 
     def _on_pose(self, msg: Any) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
-        self.poses[stamp] = Received(pose_to_transform(msg), msg.header.frame_id, time.monotonic())
+        cov = np.array(msg.pose.covariance, dtype=np.float64).reshape(6, 6)
+        self.poses[stamp] = Received(pose_to_transform(msg), msg.header.frame_id,
+                                     time.monotonic(), cov)
         self.last_progress = time.monotonic()
 
     def _on_diagnostics(self, msg: Any) -> None:

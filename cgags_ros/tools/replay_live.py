@@ -42,6 +42,7 @@ from .replay_common import (
     start_report,
 )
 from .report import BagReport, PairRow
+from ..config.ros_parameters import keys_to_ros
 from ..pipeline.pairing import Pairer
 from ..ros import diagnostics
 from ..ros.player import LiveSession, MAX_QUEUE, Received
@@ -96,8 +97,13 @@ def spawn_node(opts: ReplayOptions, live: LiveOptions, params: dict[str, Any],
     values = {'source_qos': 'reliable', 'source_depth': depth, 'queue_depth': depth,
               'diagnostics_period': DIAGNOSTICS_PERIOD_S}
     values.update(params)  # the user's own settings win
+    ros, rest = keys_to_ros(values)
+    if rest:  # the keys that are no ROS parameter: the node's config_file
+        config_file = out / 'node_config.yaml'
+        config_file.write_text(yaml.safe_dump(rest, sort_keys=False))
+        ros['config_file'] = str(config_file)
     params_file = out / 'node_params.yaml'
-    params_file.write_text(yaml.safe_dump({'/**': {'ros__parameters': values}}, sort_keys=False))
+    params_file.write_text(yaml.safe_dump({'/**': {'ros__parameters': ros}}, sort_keys=False))
     cmd = [sys.executable, '-m', 'cgags_ros.register_node', '--ros-args',
            '-r', f'__node:={live.node_name}', '--params-file', str(params_file),
            '-r', f'source_cloud:={opts.source_topic}', '-r', f'target_cloud:={opts.target_topic}']
@@ -122,7 +128,7 @@ def wait_for_node(session: LiveSession, proc: subprocess.Popen | None, opts: Rep
                 f'a running {session.node_id} (started with --no-spawn)')
             raise ReplayError(f'no connection to {what} within {live.startup_timeout:g} s: '
                               f'nobody subscribes to {opts.source_topic}/{opts.target_topic} '
-                              f'or publishes {session.node_id}/pose')
+                              f'or publishes {session.node_id}/pose_with_covariance')
         session.spin_for(0.1)
     session.spin_for(0.3)  # let the transient-local/reliable handshakes settle
 
@@ -228,6 +234,7 @@ def build_rows(contents: BagContents, expected: dict[int, Any], poses: dict[int,
         if got is not None:
             row.valid = last['valid']
             row.transform, row.target_frame = got.transform, got.frame_id
+            row.covariance = got.covariance
             row.latency_s = got.receipt_s - sent[stamp] if stamp in sent else None
             row.reason = last['reason']
         else:

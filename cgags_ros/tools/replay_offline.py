@@ -56,8 +56,9 @@ def register_row(row: PairRow, source: np.ndarray, target: Any, pipe: PipelineCo
     else:
         row.valid = bool(result.valid)
         row.reason, row.inliers = result.reason, result.num_inliers
-        row.fitness = float(getattr(result, 'fitness', float('nan')))
+        row.fitness = float(result.fitness)
         row.transform = np.asarray(result.transform, dtype=np.float64)
+        row.covariance = np.asarray(result.covariance, dtype=np.float64)
         if candidates:
             row.candidates = [c.summary() for c in result.candidates]
     row.time_s = time.perf_counter() - t0

@@ -50,7 +50,9 @@ class PairRow:
     (live replay: the node published nothing for this source). ``time_s`` is the
     ``register_clouds`` wall time (offline) or the node's reported pipeline time (live);
     ``latency_s`` (live only) the time from publishing the source to receiving its pose.
-    ``re_deg``/``te_m``/``success`` are None without ground truth.
+    ``re_deg``/``te_m``/``success`` are None without ground truth. ``covariance`` is the
+    estimate's 6x6 covariance (ROS order: x, y, z in metres, rotations in radians), in the
+    JSON output only.
     """
 
     index: int
@@ -70,6 +72,7 @@ class PairRow:
     te_m: float | None = None
     success: bool | None = None
     candidates: list[dict[str, Any]] | None = None
+    covariance: np.ndarray | None = None
 
     def evaluate(self, criteria: SuccessCriteria) -> None:
         """
@@ -101,6 +104,8 @@ class PairRow:
         out['transform'] = None if self.transform is None else np.asarray(self.transform).tolist()
         out['ground_truth'] = (None if self.ground_truth is None
                                else np.asarray(self.ground_truth).tolist())
+        out['covariance'] = (None if self.covariance is None
+                             else np.asarray(self.covariance).tolist())
         if self.candidates is not None:
             out['candidates'] = self.candidates
         return _finite_or_none(out)

@@ -1,0 +1,86 @@
+"""
+What the registration engine and its node exchange, without ROS.
+
+The node decodes each message into a :class:`Cloud`; the engine
+(:class:`~.engine.RegistrationEngine`) hands back what to publish (:class:`Estimate`,
+:class:`BasePose`) through :class:`EngineOutputs`, which the node implements
+(:class:`~.outputs.Outputs`). Headers are the messages' own, opaque here: the engine reads
+only their ``frame_id``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Protocol
+
+import numpy as np
+
+
+class Cloud:
+    """A decoded cloud: points (N, 3) metres in its frame, its message header, receipt time."""
+
+    __slots__ = ('xyz', 'header', 'receipt_ns')
+
+    def __init__(self, xyz: np.ndarray, header: Any, receipt_ns: int):
+        self.xyz, self.header, self.receipt_ns = xyz, header, receipt_ns
+
+
+@dataclasses.dataclass(frozen=True)
+class Estimate:
+    """
+    One registered pair, to publish as ~/pose, ~/pose_with_covariance, ~/aligned_cloud, TF.
+
+    :ivar transform: 4x4 ``T`` with ``p_frame = R p_source + t`` (metres).
+    :ivar covariance: 6x6 covariance of ``transform`` (ROS order, metres and radians).
+    :ivar header: the source cloud's message header (its stamp is the outputs').
+    :ivar frame_id: frame of the pose (the target's, or ``pose_frame_id``).
+    :ivar aligned: the source points moved into ``frame_id``, or None (not published).
+    :ivar tf_child_frame: child frame of the TF to broadcast; '' broadcasts none.
+    """
+
+    transform: np.ndarray
+    covariance: np.ndarray
+    header: Any
+    frame_id: str
+    aligned: np.ndarray | None
+    tf_child_frame: str
+
+
+@dataclasses.dataclass(frozen=True)
+class BasePose:
+    """
+    An initial pose that passed every guard: the robot base in the map.
+
+    :ivar transform: 4x4 ``T_map_base`` (metres). :ivar covariance: its 6x6 covariance.
+    :ivar header: the scan's message header (its stamp). :ivar map_frame: frame of the pose.
+    :ivar odom_frame: broadcast map -> odom from it and TF's odom -> ``base_frame`` at the
+        stamp; '' broadcasts nothing.
+    :ivar base_frame: the robot base frame.
+    """
+
+    transform: np.ndarray
+    covariance: np.ndarray
+    header: Any
+    map_frame: str
+    odom_frame: str
+    base_frame: str
+
+
+class EngineOutputs(Protocol):
+    """What the engine needs from its node: publishing, logging and TF."""
+
+    def publish_estimate(self, estimate: Estimate) -> None:
+        """Publish a pose (and its covariance, aligned cloud and TF as it says)."""
+
+    def publish_candidates(self, header: Any, frame_id: str,
+                           transforms: list[np.ndarray]) -> None:
+        """Publish ranked candidate poses (best first) at the scan's stamp."""
+
+    def publish_initial_pose(self, pose: BasePose) -> None:
+        """Publish an initial pose that passed every guard."""
+
+    def base_from_sensor(self, base_frame: str, sensor_frame: str) -> np.ndarray | None:
+        """Return ``T_base_sensor`` from TF (identity without TF), or None when unknown."""
+
+    def log(self, level: str, message: str) -> None:
+        """Log ``message`` at ``level`` ('info', 'warning' or 'error')."""

@@ -1,0 +1,74 @@
+"""
+The map of ``map_file`` as the node's one latched target: loaded where the pipeline runs.
+
+ROS-free. The features are computed (or read from the on-disk cache) in the registration
+process, so the node's process never holds them; the node pairs every scan with a target
+whose points are the :class:`~.worker.MapRef`.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from typing import Any, Callable
+
+from .interface import Cloud
+from .worker import IsolatedRegistration, MapRef, prepare_map
+from ..config.node import NodeConfig
+from ..config.pipeline import PipelineConfig
+from ..errors import CgagsError
+from ..pipeline.result import PipelineResult
+
+
+class FrameHeader:
+    """The header of the map target: a frame and no stamp (the map is not a message)."""
+
+    __slots__ = ('frame_id',)
+
+    def __init__(self, frame_id: str):
+        self.frame_id = frame_id
+
+
+class MapTarget:
+    """The map file, its load summary (``map.*`` of /diagnostics) or why it is unusable."""
+
+    def __init__(self, cfg: NodeConfig):
+        self.ref = MapRef(os.path.expanduser(cfg.map_file), os.path.expanduser(cfg.map_cache_dir))
+        self.info: dict[str, Any] = {}
+        self.error = ''
+
+    def load(self, registration: IsolatedRegistration | None, config: PipelineConfig,
+             cfg: NodeConfig, log: Callable[[str, str], None]) -> Cloud | None:
+        """Load the map where the pipeline runs; return it as a target, or None (unusable)."""
+        ref = self.ref
+        log('info', f'loading map {ref.path} (cache {ref.cache_dir or "off"})')
+        try:
+            if registration is not None:
+                info = registration.prepare_map(ref, config, cfg.map_load_timeout)
+            else:
+                info = prepare_map(ref, config)
+        except CgagsError as exc:
+            self.error = f'map_file cannot be used: {exc}'
+            log('error', self.error + '; no scan is registered until the node is configured '
+                'again with a usable map')
+            return None
+        self.info = info
+        note = (f", {info['nonfinite_points']} non-finite points dropped"
+                if info['nonfinite_points'] else '')
+        log('info', f"map ready: {info['raw_points']} points -> {info['points']} after "
+            f"{info['voxel_size']:g} m voxels, cache {info['cache']} ({info['load_s']:.2f} s)"
+            f'{note}')
+        return Cloud(ref, FrameHeader(cfg.map_frame), time.monotonic_ns())
+
+    def update(self, result: PipelineResult) -> None:
+        """Take the map summary a registration reports (the map may have been reloaded)."""
+        if result.stats.get('map'):
+            self.info = result.stats['map']
+
+    def statistics(self) -> dict[str, Any]:
+        """Return the ``map.*`` keys of /diagnostics."""
+        stats: dict[str, Any] = {'map.file': self.ref.path}
+        stats.update({f'map.{k}': v for k, v in self.info.items() if k != 'path'})
+        if self.error:
+            stats['map.error'] = self.error
+        return stats

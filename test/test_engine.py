@@ -1,0 +1,227 @@
+"""
+cgags_ros.ros.engine without ROS: pairing, accounting, lifecycle states, guards, requests.
+
+The engine is fed decoded clouds directly and publishes into a recorder; the registration
+is a stand-in that returns a known pose (the real pipeline runs in the DDS tests), so these
+check the decisions: what is counted where, what is published, what the guards refuse.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+
+from cgags_ros.config.node import NodeConfig
+from cgags_ros.config.pipeline import PipelineConfig
+from cgags_ros.geometry import make_transform, quaternion_to_matrix
+from cgags_ros.pipeline.result import PipelineResult
+from cgags_ros.ros.engine import RegistrationEngine
+from cgags_ros.ros.interface import Cloud
+import numpy as np
+import pytest
+from waiting import wait_for
+
+T_TRUE = make_transform(quaternion_to_matrix((0.0, 0.0, 0.2588190, 0.9659258)), (1.0, 2.0, 0.5))
+
+
+class Header:
+    """A message header as the engine sees it: a frame (and a stamp it never reads)."""
+
+    def __init__(self, frame_id, stamp=0):
+        self.frame_id, self.stamp = frame_id, stamp
+
+
+class Recorder:
+    """The node's side of EngineOutputs: records what the engine publishes and logs."""
+
+    def __init__(self):
+        self.estimates, self.candidates, self.initial, self.logs = [], [], [], []
+
+    def publish_estimate(self, estimate):
+        self.estimates.append(estimate)
+
+    def publish_candidates(self, header, frame_id, transforms):
+        self.candidates.append((frame_id, transforms))
+
+    def publish_initial_pose(self, pose):
+        self.initial.append(pose)
+
+    def base_from_sensor(self, base_frame, sensor_frame):
+        return np.eye(4)
+
+    def log(self, level, message):
+        self.logs.append((level, message))
+
+
+def fake_register(source, target, *, config):
+    """Return a confident estimate: T_TRUE, 40 inliers, no runner-up; invalid for 7 points."""
+    valid = len(source) != 7
+    return PipelineResult(transform=T_TRUE, valid=valid, reason='' if valid else 'fake: 7',
+                          inliers=np.arange(40), num_correspondences=100, fitness=0.8,
+                          covariance=np.eye(6) * 1e-4)
+
+
+def make(**node):
+    out = Recorder()
+    engine = RegistrationEngine(PipelineConfig(), NodeConfig(**node), out, fake_register)
+    engine.start()
+    return engine, out
+
+
+def send(engine, role, stamp_s, n=50, frame='lidar'):
+    xyz = np.random.default_rng(stamp_s).normal(size=(n, 3))
+    engine.receive(role, int(stamp_s * 1e9), frame,
+                   Cloud(xyz, Header(frame, stamp_s), time.monotonic_ns()))
+
+
+def balanced(engine):
+    acc = engine.snapshot()['accounting']
+    assert acc['ok'], acc
+    return acc
+
+
+def test_the_engine_imports_no_ros():
+    code = ('import sys, cgags_ros.ros.engine, cgags_ros.ros.map_target; '
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in "
+            "('rclpy', 'rcl_interfaces', 'std_msgs', 'sensor_msgs', 'geometry_msgs')))")
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                         check=True).stdout.strip()
+    assert out == '[]'
+
+
+def test_inactive_sources_are_counted_then_pairs_publish_after_activate():
+    engine, out = make()
+    try:
+        send(engine, 'target', 1, frame='map')
+        send(engine, 'source', 2)
+        stats = engine.snapshot()
+        assert stats['rejected'] == {'source_inactive': 1} and not out.estimates
+        assert balanced(engine)['targets']['pending'] == 1  # the target is still held
+        engine.activate()
+        send(engine, 'source', 3)
+        wait_for(lambda: out.estimates, 10, 'an estimate')
+        est = out.estimates[0]
+        np.testing.assert_allclose(est.transform, T_TRUE)
+        assert est.frame_id == 'map' and est.header.stamp == 3
+        np.testing.assert_allclose(est.covariance, np.eye(6) * 1e-4)
+        assert est.aligned is None and est.tf_child_frame == ''
+        assert out.candidates == [('map', [])]
+        acc = wait_for(lambda: engine.snapshot()['counts'].get('published') == 1
+                       and balanced(engine), 10, 'published')
+        assert acc['sources'] == {'received': 2, 'published': 1, 'rejected': 1, 'dropped': 0,
+                                  'pending': 0, 'lost_upstream': 0}
+        engine.deactivate()
+        send(engine, 'source', 4)
+        assert engine.snapshot()['rejected']['source_inactive'] == 2
+        assert len(out.estimates) == 1
+        assert engine.statistics()['active'] is False
+    finally:
+        engine.stop()
+    assert not engine.active
+
+
+def test_invalid_results_are_rejected_unless_publish_invalid():
+    engine, out = make(publish_aligned_cloud=True, broadcast_tf=True)
+    engine.activate()
+    try:
+        send(engine, 'target', 1, frame='map')
+        send(engine, 'source', 2, n=7)
+        wait_for(lambda: engine.snapshot()['rejected'].get('invalid_result'), 10, 'rejection')
+        assert not out.estimates
+        assert any('invalid registration: fake: 7' in m for _, m in out.logs)
+        engine.set_configs(PipelineConfig(), NodeConfig(publish_invalid=True,
+                                                        publish_aligned_cloud=True,
+                                                        broadcast_tf=True))
+        send(engine, 'source', 3, n=7)
+        wait_for(lambda: out.estimates, 10, 'the invalid estimate')
+        assert out.estimates[0].aligned.shape == (7, 3)
+        assert out.estimates[0].tf_child_frame == 'lidar'
+        assert engine.snapshot()['counts']['published_invalid'] == 1
+        balanced(engine)
+    finally:
+        engine.stop()
+
+
+def test_initial_pose_guards_extrinsic_and_max_auto():
+    t, q = (0.3, -0.1, 0.8), (0.0, 0.0, 0.3826834, 0.9238795)
+    engine, out = make(publish_initial_pose=True, initial_pose_cooldown=0.0,
+                       initial_pose_max_auto=1, base_from_sensor=' '.join(map(str, t + q)))
+    engine.activate()
+    try:
+        send(engine, 'target', 1, frame='map')
+        for stamp in (2, 3):
+            send(engine, 'source', stamp)
+            wait_for(lambda: len(out.estimates) == stamp - 1, 10, 'estimate')
+        wait_for(lambda: engine.statistics().get('initial_pose.refused.max_auto'), 10,
+                 'the max_auto refusal')
+        assert len(out.initial) == 1
+        base = out.initial[0]
+        T_bs = make_transform(quaternion_to_matrix(q), t)
+        np.testing.assert_allclose(base.transform, T_TRUE @ np.linalg.inv(T_bs), atol=1e-6)
+        assert base.map_frame == 'map' and base.odom_frame == ''
+        # the lever arm moves the position's uncertainty: larger than the sensor's
+        assert np.trace(base.covariance[:3, :3]) > np.trace(np.eye(3) * 1e-4)
+    finally:
+        engine.stop()
+    strict, out = make(publish_initial_pose=True, initial_pose_min_inliers=41)
+    strict.activate()
+    try:
+        send(strict, 'target', 1, frame='map')
+        send(strict, 'source', 2)
+        wait_for(lambda: strict.statistics().get('initial_pose.refused.few_inliers'), 10,
+                 'the few_inliers refusal')
+        assert not out.initial and out.estimates
+    finally:
+        strict.stop()
+
+
+def test_on_demand_registers_only_when_requested_and_answers():
+    engine, out = make(mode='on_demand', max_scan_age=30.0, relocalize_timeout=20.0)
+    assert engine.relocalize() == (False, 'not localized (inactive): the node is not active')
+    engine.activate()
+    try:
+        send(engine, 'target', 1, frame='map')
+        send(engine, 'source', 2)
+        assert wait_for(lambda: engine.snapshot()['pairing']['pending'], 5, 'a held pair')
+        assert not out.estimates  # nothing registered before a request
+        answers = []
+        caller = threading.Thread(target=lambda: answers.append(engine.relocalize()))
+        caller.start()
+        caller.join(20)
+        assert answers and answers[0][0], answers
+        assert answers[0][1].startswith('localized: x 1.000 y 2.000 z 0.500 m, yaw 30.0 deg')
+        later = []
+        assert engine.relocalize(wait=False, on_answer=lambda *a: later.append(a)) == (
+            True, 'requested')
+        send(engine, 'source', 3)
+        wait_for(lambda: later, 10, 'the answer of a request not waited for')
+        assert later[0][0]
+        stats = engine.statistics()
+        assert stats['relocalize.calls'] == 3 and stats['relocalize.succeeded'] == 2
+        assert stats['relocalize.failed.inactive'] == 1
+        # a request pending when the node is deactivated fails at once, not at its deadline
+        pending = []
+        engine.relocalize(wait=False, on_answer=lambda *a: pending.append(a))
+        engine.deactivate()
+        assert pending == [(False, 'not localized (inactive): the node was deactivated')]
+        assert engine.statistics()['relocalize.failed.inactive'] == 2
+        balanced(engine)
+    finally:
+        engine.stop()
+
+
+@pytest.mark.parametrize('mode', ['latest_target', 'synchronized'])
+def test_pairing_drops_are_accounted(mode):
+    engine, out = make(pairing_mode=mode, sync_slop=0.01, max_waiting_sources=1)
+    engine.activate()
+    try:
+        send(engine, 'source', 1)
+        send(engine, 'source', 2)  # replaces the first, no target yet: dropped
+        send(engine, 'target', 2, frame='map')
+        wait_for(lambda: out.estimates, 10, 'the pair')
+        acc = balanced(engine)
+        assert acc['sources']['dropped'] == 1 and acc['sources']['published'] == 1
+    finally:
+        engine.stop()
