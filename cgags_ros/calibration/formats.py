@@ -98,7 +98,8 @@ def to_text(result: CalibrationResult) -> str:
             static_transform_publisher(result.transform, P, C),
             '', '# URDF:', urdf_joint(result.transform, P, C),
             '', '# YAML:', to_yaml(result).rstrip(),
-            '', '# JSON (with covariance and per-frame agreement): run with --json']
+            '', '# JSON (with the covariance and every frame; --json prints it alone):',
+            to_json(result)]
     else:
         lines.append(f'FAIL: {result.reason}')
     lines.append('')
