@@ -15,8 +15,8 @@ from cgags_ros.calibration import joint, uncertainty
 from cgags_ros.calibration.formats import rpy, static_transform_publisher, urdf_joint
 from cgags_ros.config import PipelineConfig
 from cgags_ros.config.calibration import CalibrationConfig
-from cgags_ros.datasets.rigs import (corridor, KITTI_SCANS, kitti_scans, OPENCALIB,
-                                     opencalib_rig, raycast_planes, REFERENCE, split_scan)
+from cgags_ros.datasets.rigs import (corridor, kitti_depth_rig, kitti_lidar_rig, KITTI_SCANS,
+                                     OPENCALIB, opencalib_rig, raycast_planes, REFERENCE)
 from cgags_ros.geometry import (apply_transform, make_transform, rotation_error_deg,
                                 translation_error)
 import numpy as np
@@ -103,44 +103,30 @@ def test_child_mounted_at_arbitrary_angles(shared, rig, sensor, xyz_deg):
 @pytest.fixture(scope='module')
 def kitti(data_dir, require_shared):
     require_shared(data_dir / KITTI_SCANS, 'KITTI scans', marker='000000.pcd')
-    return kitti_scans(data_dir, [0, 7, 14])
+    return data_dir
 
 
-def _built_rig(scans, extrinsic, seed, **split) -> list[Frame]:
-    rng = np.random.default_rng(seed)
-    frames = []
-    for k, scan in enumerate(scans):
-        parent, child = split_scan(scan, extrinsic, rng, **split)
-        offset = int(rng.uniform(-0.05, 0.05) * 1e9)  # stamps up to 50 ms apart
-        frames.append(Frame(parent, child, f'kitti {k}', 10**9 * (k + 1), 10**9 * (k + 1)
-                            + offset))
-    return frames
+def _frames(rig_frames) -> list[Frame]:
+    return [Frame(f.parent, f.child, f.name, f.parent_stamp_ns, f.child_stamp_ns)
+            for f in rig_frames]
 
 
 def test_second_lidar_built_from_real_scans(kitti):
     # A child LiDAR seeing 150 deg of the parent's 360 (42 %), half the density on other
-    # scan rings, 2 cm noise, turned about every axis.
-    extrinsic = make_transform(_rotation(10, -25, 120), [0.8, -0.4, -0.3])
-    frames = _built_rig(kitti, extrinsic, 0, azimuth_deg=(-30, 120), child_density=0.5,
-                        child_noise=0.02)
-    share = [len(f.child) / len(f.parent) for f in frames]
+    # scan rings, 2 cm noise, turned about every axis, stamps up to 50 ms off.
+    rig, extrinsic = kitti_lidar_rig(kitti)
+    share = [len(f.child) / len(f.parent) for f in rig]
     assert all(0.1 < s < 0.5 for s in share), share
-    result = calibrate(frames, _config(0.3))
+    result = calibrate(_frames(rig), _config(0.3))
     _assert_within(result, extrinsic, 0.5, 0.05)
     offsets = [abs(f.time_offset_s) for f in result.frames]
     assert max(offsets) <= 0.05 and max(offsets) > 0
 
 
 def test_dense_depth_camera_against_sparse_lidar(kitti):
-    # A depth camera (optical frame: z forward, x right, y down) looking right of the car,
-    # 80 x 40 deg, up to 15 m, every point on its rings, 1 cm noise; the LiDAR keeps every
-    # fourth ring (a 16-beam unit).
-    optical = _rotation(-100, 0, -180)  # looking along the parent's -y, 10 deg down
-    extrinsic = make_transform(optical, [1.2, 0.1, -0.5])
-    frames = _built_rig(kitti, extrinsic, 1, azimuth_deg=(-130, -50), elevation_deg=(-30, 10),
-                        max_range=15.0, parent_bands=4, child_density=1.0, child_noise=0.01)
-    assert all(len(f.child) > 0.2 * len(f.parent) for f in frames)
-    result = calibrate(frames, _config(0.2))
+    rig, extrinsic = kitti_depth_rig(kitti)
+    assert all(len(f.child) > 0.2 * len(f.parent) for f in rig)
+    result = calibrate(_frames(rig), _config(0.2))
     _assert_within(result, extrinsic, 0.5, 0.05)
 
 

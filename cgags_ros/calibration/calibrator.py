@@ -151,7 +151,14 @@ def _observability_reason(result: CalibrationResult, cfg: CalibrationConfig) -> 
 def _agreement_reason(result: CalibrationResult, cfg: CalibrationConfig) -> str:
     n, total = result.num_agreeing, len(result.frames)
     if n and n >= cfg.min_agreement * total:
-        return ''
+        if n >= cfg.min_agreeing_frames:
+            return ''
+        alone = [f for f in result.frames if f.agrees]
+        if n == 1 and alone[0].single_frame_valid and alone[0].candidate_rank == 0:
+            return ''  # one frame, and the pipeline's own gates accept that very pose
+        return (f'too little agreement: {n} frame(s) agree (min_agreeing_frames '
+                f'{cfg.min_agreeing_frames}) and the pipeline alone did not accept the pose '
+                f'({alone[0].single_frame_reason or "another pose"}); take more frames')
     return (f'frames disagree: {n} of {total} agree on the pose (min_agreement '
             f'{cfg.min_agreement:g}); ' + '; '.join(
                 f'{f.name}: {f.reason}' for f in result.frames if not f.agrees))

@@ -28,6 +28,10 @@ class CalibrationConfig:
         0.75, 'Share of the frames that must agree on the pose; below it the set disagrees '
         'and the result is a FAIL. Frames that disagree never enter the estimate.',
         low=0.0, high=1.0)
+    min_agreeing_frames: int = option(
+        2, 'Frames that must agree for a valid result: agreement is the evidence that a '
+        'pose is no coincidence of one scene. A single frame is accepted only when the '
+        'pipeline alone accepted it with the same pose.', low=1, high=1000)
     agreement_shift_factor: float = option(
         0.15, 'A frame agrees when refining the joint pose on that frame alone moves its '
         'overlapping points along their normals by at most this many voxel sizes (RMS), '

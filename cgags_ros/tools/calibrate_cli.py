@@ -16,7 +16,7 @@ import sys
 from typing import Iterator, Sequence
 
 from .calibrate_input import bag_frames, file_frames
-from .cli import EXIT_ERROR, run_cli
+from .cli import EXIT_ERROR, Parser, run_cli
 from ..calibration import Calibrator, TRANSFORM_WORDS
 from ..calibration.formats import to_json, to_text
 from ..config import fields
@@ -39,17 +39,11 @@ Exit status: 0 calibrated, {EXIT_FAIL} FAIL (reason printed), {EXIT_ERROR} bad i
 """
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str):
-        """Exit with one line on stderr (argparse would also print the whole usage)."""
-        self.exit(EXIT_ERROR, f'{self.prog}: error: {message} (see --help)\n')
-
-
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog=PROG, epilog=EPILOG,
-                     formatter_class=argparse.RawDescriptionHelpFormatter,
-                     description='Calibrate the extrinsic parent <- child of two sensors from '
-                                 'several synchronized frames, with no initial guess.')
+    parser = Parser(prog=PROG, epilog=EPILOG,
+                    formatter_class=argparse.RawDescriptionHelpFormatter,
+                    description='Calibrate the extrinsic parent <- child of two sensors from '
+                                'several synchronized frames, with no initial guess.')
     parser.add_argument('bag', nargs='?', type=Path, help='rosbag2 directory or .mcap file')
     parser.add_argument('--parent', nargs='+', type=Path, default=[], metavar='CLOUD',
                         help='parent clouds, one per frame (parent sensor frame)')
