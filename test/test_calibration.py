@@ -10,9 +10,13 @@ of the covariance convention and the named directions need no data.
 
 from __future__ import annotations
 
+import dataclasses
+
 from cgags_ros.calibration import calibrate, CalibrationResult, Frame
 from cgags_ros.calibration import joint, uncertainty
+from cgags_ros.calibration.calibrator import solve
 from cgags_ros.calibration.formats import rpy, static_transform_publisher, urdf_joint
+from cgags_ros.calibration.frames import gather
 from cgags_ros.config import PipelineConfig
 from cgags_ros.config.calibration import CalibrationConfig
 from cgags_ros.datasets.rigs import (corridor, kitti_depth_rig, kitti_lidar_rig, KITTI_SCANS,
@@ -147,6 +151,16 @@ def test_planar_scene_is_unobservable():
     assert result.reason.startswith('not observable')
     assert 'translation in the plane normal to z' in result.unobservable
     assert 'rotation about z' in result.unobservable
+
+
+def test_with_no_candidate_the_scans_still_name_what_is_free():
+    config = _config(0.2)
+    frames = _plane_rig([(np.array([0.0, 0.0, 1.0]), 0.0)], 2)
+    evidence = [dataclasses.replace(gather(f, config.pipeline), candidates=[]) for f in frames]
+    result = solve(evidence, config)
+    assert not result.valid and result.transform is None
+    assert 'no frame gave a candidate pose' in result.reason
+    assert result.unobservable == ['translation in the plane normal to z', 'rotation about z']
 
 
 def test_corridor_is_unobservable_along_its_axis():

@@ -96,6 +96,12 @@ def solve(evidence: list[Evidence], cfg: CalibrationConfig) -> CalibrationResult
             f.agrees, f.reason = False, f.reason or 'no candidate pose'
         result.reason = ('no frame gave a candidate pose: ' + '; '.join(
             f'{f.name}: {f.single_frame_reason}' for f in result.frames))
+        scans = [e.clouds for e in evidence if e.clouds is not None]
+        if scans:  # say what the scenes themselves leave free, if anything
+            result.observability, result.unobservable = _scene_observability(scans, cfg)
+            if result.unobservable:
+                result.reason = (_observability_reason(result, cfg)
+                                 + ' (judged on the parent scans: ' + result.reason + ')')
         return result
     found = consensus.hypotheses(usable, cfg)
     T = found[0].transform
@@ -136,6 +142,25 @@ def _uncertainty(result: CalibrationResult, clouds: list, agreeing: list[Evidenc
     result.birge_ratio = uncertainty.birge_ratio(deviations, covariances)
     result.covariance = result.birge_ratio * uncertainty.covariance(H, ssr, count)
     result.std = uncertainty.std_devs(result.covariance)
+
+
+def _scene_observability(scans: list, cfg: CalibrationConfig) -> tuple[float, list[str]]:
+    """
+    Return :func:`.uncertainty.unobservable` of the parent scans' own surfaces.
+
+    With no pose there is no overlap to judge; the overlap is part of the parent's scene,
+    so a motion the parent scans leave free is free in any overlap.
+    """
+    points = np.concatenate([c.parent for c in scans])
+    normals = np.concatenate([c.parent_normals for c in scans])
+    keep = np.isfinite(normals[:, 0])
+    points, normals = points[keep], normals[keep]
+    if len(points) < 6:
+        return 0.0, ['every translation', 'every rotation']
+    centre = points.mean(axis=0)
+    J = np.hstack([normals, np.cross(points, normals)])  # about the parent origin
+    radius = float(np.sqrt(np.mean(np.sum((points - centre) ** 2, axis=1))))
+    return uncertainty.unobservable(J.T @ J, centre, radius, cfg.min_observability)
 
 
 def _observability_reason(result: CalibrationResult, cfg: CalibrationConfig) -> str:
