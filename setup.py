@@ -30,6 +30,7 @@ setup(
             'cgags-register = cgags_ros.tools.register_cli:main',
             'cgags-replay = cgags_ros.tools.replay:main',
             'cgags-demo = cgags_ros.tools.demo:main',
+            'cgags-calibrate = cgags_ros.tools.calibrate_cli:main',
         ],
     },
 )

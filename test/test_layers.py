@@ -1,9 +1,10 @@
 """
 The package's architecture, checked from its sources with ast.
 
-Layers import one way: tools -> ros -> pipeline -> frontend / registration -> geometry,
-config, io, datasets (and errors, timing). Only ros/ imports rclpy and message packages;
-the core (registration/) imports neither ROS nor Open3D. No import cycle, no big module.
+Layers import one way: tools -> ros -> calibration -> pipeline -> frontend /
+registration -> geometry, config, io, datasets (and errors, timing). Only ros/ imports
+rclpy and message packages; the core (registration/) imports neither ROS nor Open3D. No
+import cycle, no big module.
 """
 
 from __future__ import annotations
@@ -22,8 +23,9 @@ LAYERS = {  # top-level part of the module name -> layer (higher imports lower)
     'datasets': 3,
     'frontend': 4, 'registration': 4,  # siblings: neither imports the other
     'pipeline': 5,
-    'ros': 6,
-    'register_node': 7, 'tools': 7,  # entry points
+    'calibration': 6,  # several frames, each through the pipeline
+    'ros': 7,
+    'register_node': 8, 'tools': 8,  # entry points
 }
 ROS_MODULES = {'rclpy', 'tf2_ros', 'builtin_interfaces', 'rcl_interfaces', 'std_msgs',
                'sensor_msgs', 'geometry_msgs', 'diagnostic_msgs', 'nav_msgs', 'std_srvs'}

@@ -1,7 +1,8 @@
-"""The one error helper of the command-line tools: library errors as one line, exit 2."""
+"""The error helpers of the command-line tools: library and usage errors as one line, exit 2."""
 
 from __future__ import annotations
 
+import argparse
 import sys
 from typing import Callable
 
@@ -9,6 +10,14 @@ from ..errors import CgagsError
 
 EXIT_ERROR = 2  # bad input or options: nothing (more) was done
 EXIT_INTERRUPTED = 130
+
+
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line on stderr and exit 2."""
+
+    def error(self, message: str):
+        """Exit with one line on stderr (argparse would also print the whole usage)."""
+        self.exit(EXIT_ERROR, f'{self.prog}: error: {message} (see --help)\n')
 
 
 def error_line(prog: str, exc: BaseException, what: str = '') -> str:

@@ -16,7 +16,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .cli import EXIT_ERROR, run_cli
+from .cli import EXIT_ERROR, Parser, run_cli
 from ..config import fields
 from ..config.pipeline import load_yaml, pipeline_config_from, PipelineConfig
 from ..errors import InvalidInputError
@@ -36,14 +36,8 @@ levelled LiDAR scans (yaw + translation only): cgags-register a.ply b.ply --voxe
 """
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str):
-        """Exit with one line on stderr (argparse would also print the whole usage)."""
-        self.exit(EXIT_ERROR, f'{self.prog}: error: {message} (see --help)\n')
-
-
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(
+    parser = Parser(
         prog=PROG, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
         description='Globally register SOURCE onto TARGET (FPFH correspondences + CGAGS, '
                     'then optional ICP/GICP refinement).')
