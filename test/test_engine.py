@@ -225,3 +225,26 @@ def test_pairing_drops_are_accounted(mode):
         assert acc['sources']['dropped'] == 1 and acc['sources']['published'] == 1
     finally:
         engine.stop()
+
+
+def test_a_map_without_normals_loads_with_a_warning_and_one_with_normals_without(tmp_path):
+    """The map's normals face the map origin unless the file signs them: the log says which."""
+    from cgags_ros.io.clouds import write_cloud
+    from cgags_ros.ros.map_target import MapTarget
+
+    rng = np.random.default_rng(0)
+    normals = rng.normal(size=(3000, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    points = 2.0 * normals  # a sphere of 2 m, seen from inside: normals face the centre
+    write_cloud(tmp_path / 'bare.ply', points)
+    write_cloud(tmp_path / 'signed.ply', points, -normals)
+    config = PipelineConfig(voxel_size=0.2)
+    for name, signed in (('bare.ply', 'origin'), ('signed.ply', 'file normals')):
+        cfg = NodeConfig(map_file=str(tmp_path / name))
+        logs = Recorder()
+        target = MapTarget(cfg).load(None, config, cfg, logs.log)
+        assert target is not None
+        warned = [m for level, m in logs.logs if level == 'warning']
+        assert any(f'normals signed by {signed}' in m for _, m in logs.logs)
+        assert bool(warned) == (signed == 'origin')
+        assert not warned or 'frontend.normal_orientation' in warned[0]

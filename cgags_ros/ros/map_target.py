@@ -56,8 +56,13 @@ class MapTarget:
         note = (f", {info['nonfinite_points']} non-finite points dropped"
                 if info['nonfinite_points'] else '')
         log('info', f"map ready: {info['raw_points']} points -> {info['points']} after "
-            f"{info['voxel_size']:g} m voxels, cache {info['cache']} ({info['load_s']:.2f} s)"
-            f'{note}')
+            f"{info['voxel_size']:g} m voxels, cache {info['cache']} ({info['load_s']:.2f} s), "
+            f"normals signed by {info.get('normals') or 'the cached setting'}{note}")
+        if info.get('normals') == 'origin':
+            log('warning', "the map file carries no normals, so the map's face its frame origin, "
+                "unlike a scan's (its sensor): fine for one scan kept in its sensor frame, "
+                'not for a map fused from many views; write the map with normals facing its '
+                'sensors, or set frontend.normal_orientation to centroid (docs/relocalization.md)')
         return Cloud(ref, FrameHeader(cfg.map_frame), time.monotonic_ns())
 
     def update(self, result: PipelineResult) -> None:
