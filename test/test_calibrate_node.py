@@ -108,4 +108,3 @@ def test_three_frames_publish_the_reference_extrinsic_latched(rig):
         finally:
             executor.remove_node(node)
             node.destroy_node()
-
