@@ -80,7 +80,12 @@ def test_three_synchronized_frames_give_the_reference_extrinsic(rig):
     engine, out = make()
     try:
         for k, f in enumerate(frames[:3]):
-            send_frame(engine, k, f.parent, f.child)
+            if k == 1:  # a deactivate/activate cycle keeps the frames taken so far
+                engine.deactivate()
+                send_frame(engine, 1, f.parent, f.child)
+                assert engine.snapshot()['rejected'] == {'source_inactive': 1}
+                engine.activate()
+            send_frame(engine, k + 2, f.parent, f.child)
             wait_for(taken(engine, k + 1), 300, f'frame {k} taken')
             if k < 2:  # min_frames is 3: nothing before
                 assert not out.calibrations
@@ -100,7 +105,7 @@ def test_three_synchronized_frames_give_the_reference_extrinsic(rig):
         assert stats['calibration.frames_agreeing'] == 3
         # A pair after the end is counted, not used; nothing more is published.
         f = frames[0]
-        send_frame(engine, 5, f.parent, f.child)
+        send_frame(engine, 9, f.parent, f.child)
         wait_for(lambda: engine.snapshot()['rejected'].get('calibration_done') == 1, 30,
                  'the extra pair counted')
         assert len(out.calibrations) == 1
