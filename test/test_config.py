@@ -79,7 +79,9 @@ def test_ros_vectors_config_file_and_former_names(tmp_path):
     assert not set(migration()) & set(ROS_PARAMETERS)
     unchanged = set(ROS_PARAMETERS) & set(parameter_descriptions())
     assert {'voxel_size', 'autostart', 'config_file', 'core.motion_model'} <= unchanged
-    assert set(migration()) == set(parameter_descriptions()) - unchanged
+    assert migration()['relocalization.mode'].startswith('renamed: mode')
+    assert set(migration()) == (set(parameter_descriptions()) - unchanged) | {
+        'relocalization.mode'}
 
 
 def test_every_parameter_is_documented_and_short():
@@ -118,3 +120,22 @@ def test_flat_changes_apply_over_a_base():
     pipe2, node2 = configs_from_parameters({'core.p1': 0.9}, base=(pipe, node))
     assert (pipe2.voxel_size, pipe2.core.p1, node2.sync_slop) == (0.3, 0.9, 0.1)
     assert pipe.core.p1 == PipelineConfig().core.p1  # base untouched
+
+
+def test_calibrate_mode_takes_calibration_keys_from_config_file(tmp_path):
+    from cgags_ros.config.ros_parameters import calibration_config
+    extra = tmp_path / 'calibration.yaml'
+    extra.write_text('calibration:\n  max_frames: 4\n  min_agreement: 1.0\n')
+    pipe, node = configs_from_ros({'mode': 'calibrate', 'voxel_size': 0.25,
+                                   'config_file': str(extra)})
+    cal = calibration_config(pipe, str(extra))
+    assert node.mode == 'calibrate' and cal.max_frames == 4 and cal.min_agreement == 1.0
+    assert cal.pipeline.voxel_size == 0.25  # the node's pipeline
+    extra.write_text('calibration:\n  pipeline:\n    voxel_size: 0.5\n')
+    with pytest.raises(InvalidConfigError, match='top level'):
+        calibration_config(pipe, str(extra))
+    with pytest.raises(InvalidConfigError, match='map.file'):
+        configs_from_ros({'mode': 'calibrate', 'map.file': 'map.ply'})
+    extra.write_text('calibration:\n  max_frames: 0\n')
+    with pytest.raises(InvalidConfigError, match='max_frames'):
+        calibration_config(pipe, str(extra))

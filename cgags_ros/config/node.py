@@ -92,8 +92,10 @@ class NodeConfig:
     mode: str = option(
         'continuous', "'continuous' registers every source scan; 'on_demand' registers "
         'nothing until the ~/relocalize service (std_srvs/Trigger) is called, then the '
-        'latest scan received within max_scan_age, or else the next one.',
-        choices=('continuous', 'on_demand'))
+        "latest scan received within max_scan_age, or else the next one; 'calibrate' "
+        'calibrates target frame <- source frame (source = child sensor, target = parent) '
+        'from synchronized pairs: docs/calibration.md.',
+        choices=('continuous', 'on_demand', 'calibrate'))
     map_file: str = option(
         '', 'Prior map (PLY, PCD, NPY, XYZ/CSV/TXT; metres, in map_frame) every source scan '
         "is registered onto; target_cloud is then not subscribed. '' uses the target_cloud "

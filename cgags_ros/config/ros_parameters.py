@@ -16,6 +16,7 @@ from __future__ import annotations
 from typing import Any, Mapping
 
 from . import fields
+from .calibration import CalibrationConfig
 from .node import configs_from_parameters, NodeConfig, parameter_descriptions, parse_pose7
 from .pipeline import load_yaml, PipelineConfig
 from ..errors import InvalidConfigError
@@ -23,6 +24,7 @@ from ..errors import InvalidConfigError
 # ROS parameter -> the configuration key(s) it sets. Voxel size first; then by group.
 ROS_PARAMETERS: dict[str, tuple[str, ...]] = {
     'voxel_size': ('voxel_size',),
+    'mode': ('mode',),
     'autostart': ('autostart',),
     'config_file': ('config_file',),
     'frontend.normal_orientation': ('frontend.normal_orientation',),
@@ -38,7 +40,6 @@ ROS_PARAMETERS: dict[str, tuple[str, ...]] = {
     'map.file': ('map_file',),
     'map.frame': ('map_frame',),
     'map.cache_dir': ('map_cache_dir',),
-    'relocalization.mode': ('mode',),
     'relocalization.publish_initial_pose': ('publish_initial_pose',),
     'relocalization.base_from_sensor': ('base_from_sensor',),
     'relocalization.min_ratio': ('initial_pose_min_ratio',),
@@ -48,6 +49,10 @@ ROS_PARAMETERS: dict[str, tuple[str, ...]] = {
     'output.broadcast_tf': ('broadcast_tf',),
     'output.diagnostics_period': ('diagnostics_period',),
 }
+# ROS parameters of this interface renamed since -> what to do now.
+RENAMED = {'relocalization.mode': 'renamed: mode (which also takes calibrate)'}
+# Keys of config_file under this prefix configure calibrate mode (CalibrationConfig keys).
+CALIBRATION_PREFIX = 'calibration.'
 # base_from_sensor as a ROS parameter: [x, y, z, qx, qy, qz, qw]; seven zeros leave it unset.
 UNSET_POSE = [0.0] * 7
 
@@ -118,8 +123,31 @@ def configs_from_ros(values: Mapping[str, Any], *,
     keys = ros_to_keys(values)
     if base is None:
         extra = config_file_keys(str(keys.get('config_file', '')))
-        base = configs_from_parameters(extra)
-    return configs_from_parameters(keys, base=base)
+        base = configs_from_parameters(
+            {k: v for k, v in extra.items() if not k.startswith(CALIBRATION_PREFIX)})
+    pipe, node = configs_from_parameters(keys, base=base)
+    if node.mode == 'calibrate' and node.map_file:
+        raise InvalidConfigError('mode calibrate takes two live sensors (source_cloud = child, '
+                                 'target_cloud = parent); map.file must be empty')
+    return pipe, node
+
+
+def calibration_config(pipeline: PipelineConfig, config_file: str) -> CalibrationConfig:
+    """
+    Return the :class:`CalibrationConfig` of calibrate mode.
+
+    Its pipeline is the node's (``voxel_size`` and every pipeline key); the other
+    calibration keys come from ``config_file`` under ``calibration.`` (``calibration.max_frames:
+    5``); a ``calibration.pipeline.*`` key is refused, as the node's own keys set the pipeline.
+    """
+    keys = {k[len(CALIBRATION_PREFIX):]: v for k, v in config_file_keys(config_file).items()
+            if k.startswith(CALIBRATION_PREFIX)}
+    nested = sorted(k for k in keys if k.startswith('pipeline.'))
+    if nested:
+        raise InvalidConfigError(f'config_file {config_file}: calibration.{nested[0]}: set the '
+                                 'pipeline keys at the top level (the node and the calibration '
+                                 'share them)')
+    return fields.update_from_flat(CalibrationConfig(pipeline=pipeline), keys)
 
 
 def config_file_keys(path: str) -> dict[str, Any]:
@@ -160,7 +188,7 @@ def keys_to_ros(flat: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]
 def migration() -> dict[str, str]:
     """Return ``{former ROS parameter: what to do now}`` for every renamed or removed one."""
     renamed = {k: name for name, ks in ROS_PARAMETERS.items() for k in ks if k != name}
-    out = {}
+    out = dict(RENAMED)
     for key in parameter_descriptions():
         if key in ROS_PARAMETERS:
             continue

@@ -70,6 +70,14 @@ def diagnostic_array(stats: Mapping[str, Any], name: str, hardware_id: str,
     if not stats.get(ACCOUNTING_OK, True):
         status.level = DiagnosticStatus.ERROR
         status.message = 'internal error: received clouds do not balance the counted outcomes'
+    elif stats.get('calibration.status') == 'failed':
+        status.level = DiagnosticStatus.ERROR
+        status.message = f"calibration FAILED: {stats.get('calibration.reason', '')}"
+    elif stats.get('calibration.status') in ('converged', 'max_frames'):
+        status.level = DiagnosticStatus.OK
+        status.message = (f"calibrated ({stats['calibration.status']}): "
+                          f"{stats.get('calibration.parent_frame')} <- "
+                          f"{stats.get('calibration.child_frame')} on ~/calibration")
     elif stats.get('map.error'):
         status.level = DiagnosticStatus.ERROR
         status.message = str(stats['map.error'])

@@ -4,7 +4,8 @@ What register_node does, without ROS: pairing, the registration process, the acc
 ROS-free: :class:`RegistrationEngine` owns the pairing of source and target clouds, the
 supervised registration process (:mod:`.worker`), the accounting (:mod:`.health`), the
 map of ``map_file``, the relocalization requests (:mod:`.relocalize`) and the initial-pose
-guards (:mod:`.initial_pose`). The node decodes messages into :class:`Cloud` for
+guards (:mod:`.initial_pose`); in ``mode: calibrate`` the pairs are calibration frames
+(:mod:`.calibration_run`). The node decodes messages into :class:`Cloud` for
 :meth:`~RegistrationEngine.receive` and implements :class:`EngineOutputs`, through which
 the engine publishes, logs and asks for TF; it never reaches into the node.
 
@@ -26,11 +27,12 @@ from typing import Any
 
 import numpy as np
 
+from .calibration_run import CalibrationConfig, CalibrationRun
 from .health import LOG_REPEAT_S, lost_upstream_message, NodeHealth
 from .initial_pose import ExtrinsicLookup, InitialPoseGuard, quality_refusal
 from .interface import BasePose, Cloud, EngineOutputs, Estimate
 from .map_target import MapTarget
-from .relocalize import Answered, RelocalizeCalls, summary_line
+from .relocalize import Answered, RelocalizeCalls, stale_scan, summary_line
 from .worker import (IsolatedRegistration, load_pipeline, RegisterFn, RegistrationTimeout,
                      WorkerCrashed)
 from ..config.node import NodeConfig
@@ -52,7 +54,8 @@ class RegistrationEngine:
     """
 
     def __init__(self, pipeline_cfg: PipelineConfig, node_cfg: NodeConfig,
-                 outputs: EngineOutputs, register_fn: RegisterFn | None = None):
+                 outputs: EngineOutputs, register_fn: RegisterFn | None = None,
+                 calibration: CalibrationConfig | None = None):
         self._lock = threading.Lock()  # guards the configs and the active flag
         self._pipeline_cfg, self._node_cfg = pipeline_cfg, node_cfg
         self._outputs = outputs
@@ -61,8 +64,12 @@ class RegistrationEngine:
         self.registration: IsolatedRegistration | None = None  # the supervised process
         cfg = node_cfg
         # A map file is one latched target; on demand only the latest pair is kept.
+        pairing = ('latest_target' if cfg.map_file else
+                   'synchronized' if cfg.mode == 'calibrate' else cfg.pairing_mode)
+        self._calibration = CalibrationRun.for_mode(cfg.mode, pipeline_cfg, calibration,
+                                                    outputs)
         self._health = NodeHealth(Pairer.from_config(dataclasses.replace(
-            cfg, pairing_mode='latest_target' if cfg.map_file else cfg.pairing_mode,
+            cfg, pairing_mode=pairing,
             queue_depth=1 if cfg.mode == 'on_demand' else cfg.queue_depth)))
         self.on_demand = cfg.mode == 'on_demand'
         self._map = MapTarget(cfg) if cfg.map_file else None
@@ -81,7 +88,7 @@ class RegistrationEngine:
         cfg = self.node_config
         if self._register_fn is not None:  # tests of the plumbing only
             self._register = self._register_fn
-        elif cfg.registration_timeout > 0:
+        elif cfg.registration_timeout > 0 and self._calibration is None:
             self.registration = IsolatedRegistration(cfg.registration_timeout)
             self._register = self.registration
         else:  # import the pipeline (and Open3D) now, so the first pair is not slowed by it
@@ -218,9 +225,12 @@ class RegistrationEngine:
 
     def _process(self, pair: Pair) -> tuple[str, str]:
         """Register and publish a pair; return ('', '') or its rejection (cause, message)."""
+        if self._calibration is not None:
+            return self._calibration.take(pair)
         source, target = pair.source.payload, pair.target.payload
         pipe_cfg, cfg = self.pipeline_config, self.node_config
-        stale = self._stale(pair, cfg)
+        stale = stale_scan(self._calls.waiting() if self.on_demand else None,
+                           source.receipt_ns, cfg.max_scan_age)
         if stale:
             return 'on_demand_stale_scan', stale
         try:
@@ -259,18 +269,6 @@ class RegistrationEngine:
         return '', ''
 
     # ------------------------------------------------------------------ map and requests
-
-    def _stale(self, pair: Pair, cfg: NodeConfig) -> str:
-        """Return why an on-demand pair's scan is too old for the pending request, or ''."""
-        called = self._calls.waiting() if self.on_demand else None
-        if called is None:
-            return ''
-        age = called - pair.source.payload.receipt_ns * 1e-9
-        if age <= cfg.max_scan_age:
-            return ''
-        return (f'on_demand: the latest scan was received {age:.2f} s before the '
-                f'relocalization request (> max_scan_age {cfg.max_scan_age:g} s); waiting '
-                'for the next one')
 
     def _finish(self, pair: Pair, result: PipelineResult, T: np.ndarray, cov: np.ndarray,
                 cfg: NodeConfig, frame_id: str) -> None:
@@ -343,6 +341,7 @@ class RegistrationEngine:
             stats[f'candidates.{i}.ratio'] = round(c.ratio, 4)
         if line:
             stats['last_summary'] = line
+        stats.update(self._calibration.statistics() if self._calibration else {})
         stats.update(self._initial_pose.statistics())
         stats.update(self._calls.statistics())
         if self.registration is not None:

@@ -3,7 +3,7 @@ What the registration engine and its node exchange, without ROS.
 
 The node decodes each message into a :class:`Cloud`; the engine
 (:class:`~.engine.RegistrationEngine`) hands back what to publish (:class:`Estimate`,
-:class:`BasePose`) through :class:`EngineOutputs`, which the node implements
+:class:`BasePose`, :class:`Calibration`) through :class:`EngineOutputs`, which the node implements
 (:class:`~.outputs.Outputs`). Headers are the messages' own, opaque here: the engine reads
 only their ``frame_id``.
 """
@@ -66,6 +66,27 @@ class BasePose:
     base_frame: str
 
 
+@dataclasses.dataclass(frozen=True)
+class Calibration:
+    """
+    A calibration that ended valid: the extrinsic parent <- child, published once, latched.
+
+    :ivar transform: 4x4 ``T`` with ``p_parent = R p_child + t`` (metres).
+    :ivar covariance: its 6x6 covariance, order (x, y, z, rx, ry, rz), metres and radians,
+        rotations about the parent axes (see ``covariance_convention`` in ``report``).
+    :ivar header: the last frame's parent-cloud message header (its stamp is the outputs').
+    :ivar parent_frame, child_frame: the clouds' frame ids (target, source).
+    :ivar report: the whole result as JSON (:func:`cgags_ros.calibration.formats.as_dict`).
+    """
+
+    transform: np.ndarray
+    covariance: np.ndarray
+    header: Any
+    parent_frame: str
+    child_frame: str
+    report: str
+
+
 class EngineOutputs(Protocol):
     """What the engine needs from its node: publishing, logging and TF."""
 
@@ -78,6 +99,9 @@ class EngineOutputs(Protocol):
 
     def publish_initial_pose(self, pose: BasePose) -> None:
         """Publish an initial pose that passed every guard."""
+
+    def publish_calibration(self, calibration: Calibration) -> None:
+        """Publish a valid calibration (latched) and its /tf_static transform."""
 
     def base_from_sensor(self, base_frame: str, sensor_frame: str) -> np.ndarray | None:
         """Return ``T_base_sensor`` from TF (identity without TF), or None when unknown."""

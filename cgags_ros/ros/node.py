@@ -28,6 +28,10 @@ Topics (relative names; remap them):
     /diagnostics (diagnostic_msgs/DiagnosticArray, out): status and counters
         (:mod:`.diagnostics`), also while inactive.
     /tf (``broadcast_tf``, when tf2_ros is importable): target frame -> source frame.
+    ``mode: calibrate`` publishes instead, once, latched: ~/calibration
+    (geometry_msgs/PoseWithCovarianceStamped: child = source sensor in parent = target
+    frame), ~/calibration_report (std_msgs/String, JSON) and /tf_static parent -> child;
+    a FAIL publishes no pose: /diagnostics ERROR (docs/calibration.md).
 
 Services (served by this node, on its own callback group so that a call waiting for a
 registration never holds up the topics on a multi-threaded executor):
@@ -73,7 +77,8 @@ from .transport import PROFILE_VARIABLE, use_large_data_profile
 from .worker import RegisterFn, rss_mb
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
-from ..config.ros_parameters import configs_from_ros, migration, ros_parameter_descriptions
+from ..config.ros_parameters import (calibration_config, configs_from_ros, migration,
+                                     ros_parameter_descriptions)
 from ..errors import EmptyCloudError, InvalidConfigError, InvalidInputError
 from ..io.pointcloud2 import pointcloud2_to_xyz, stamp_to_ns
 
@@ -129,8 +134,15 @@ class RegisterNode(LifecycleNode):
         except InvalidConfigError as exc:
             self.get_logger().error(f'cannot configure: {exc}')
             return FAILURE
-        self.outputs = Outputs(self)
-        self._engine = RegistrationEngine(pipe, cfg, self.outputs, self._register_fn)
+        try:
+            calibration = (calibration_config(pipe, cfg.config_file)
+                           if cfg.mode == 'calibrate' else None)
+        except InvalidConfigError as exc:
+            self.get_logger().error(f'cannot configure: {exc}')
+            return FAILURE
+        self.outputs = Outputs(self, calibrate=calibration is not None)
+        self._engine = RegistrationEngine(pipe, cfg, self.outputs, self._register_fn,
+                                          calibration)
         self._entities = [
             self.create_subscription(PointCloud2, 'source_cloud', self._on_source,
                                      source_qos(cfg)),

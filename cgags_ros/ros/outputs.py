@@ -2,7 +2,8 @@
 The node's outputs: what :class:`~.engine.EngineOutputs` asks for, in ROS messages.
 
 ~/pose, ~/pose_with_covariance, ~/aligned_cloud, ~/candidates, initialpose, /tf (when
-tf2_ros is importable) and /diagnostics. Frames and conventions as in :mod:`.node`: a pose
+tf2_ros is importable) and /diagnostics; in calibrate mode ~/calibration,
+~/calibration_report and /tf_static (latched). Frames and conventions as in :mod:`.node`: a pose
 maps source-frame points into the target (map) frame and carries the source's stamp.
 Pose outputs are lifecycle publishers: they publish only while the node is active.
 """
@@ -17,11 +18,12 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 import numpy as np
 from sensor_msgs.msg import PointCloud2
-from std_msgs.msg import Header
+from std_msgs.msg import Header, String
 
 from . import diagnostics
 from .conversions import transform_to_pose, transform_to_transform_stamped, xyz_to_pointcloud2
-from .interface import BasePose, Estimate
+from .interface import BasePose, Calibration, Estimate
+from .qos import latched_qos
 from ..geometry import make_transform, quaternion_to_matrix
 from ..pipeline.covariance import map_to_odom
 
@@ -29,7 +31,7 @@ from ..pipeline.covariance import map_to_odom
 class Outputs:
     """Publishers, TF and logging of one node: the engine's :class:`~.engine.EngineOutputs`."""
 
-    def __init__(self, node: Any):
+    def __init__(self, node: Any, calibrate: bool = False):
         self._node = node
         lifecycle = node.create_lifecycle_publisher
         self._pose_pub = lifecycle(PoseStamped, '~/pose', 10)
@@ -46,6 +48,13 @@ class Outputs:
         self._tf_listener: Any = None
         self._tf_broadcaster: Any = None
         self._tf_said = False
+        self._static_pub: Any = None  # /tf_static: a broadcaster, a publisher, or False
+        self._calibration_pub = self._report_pub = None
+        if calibrate:
+            self._calibration_pub = lifecycle(PoseWithCovarianceStamped, '~/calibration',
+                                              latched_qos())
+            self._report_pub = lifecycle(String, '~/calibration_report', latched_qos())
+            self._lifecycle_publishers += [self._calibration_pub, self._report_pub]
 
     # ------------------------------------------------------------------ EngineOutputs
 
@@ -86,6 +95,24 @@ class Outputs:
                             pose.odom_frame)
             self._count('map_to_odom.broadcast')
 
+    def publish_calibration(self, calibration: Calibration) -> None:
+        """Publish ~/calibration, ~/calibration_report and /tf_static (parent <- child)."""
+        header = Header(stamp=calibration.header.stamp, frame_id=calibration.parent_frame)
+        msg = PoseWithCovarianceStamped(header=header)
+        msg.pose.pose = transform_to_pose(calibration.transform)
+        msg.pose.covariance = [float(v) for v in calibration.covariance.ravel()]
+        self._send(self._calibration_pub, msg)
+        self._send(self._report_pub, String(data=calibration.report))
+        static = self._static()
+        if static:
+            tf = transform_to_transform_stamped(calibration.transform, header,
+                                                calibration.child_frame)
+            if hasattr(static, 'sendTransform'):
+                static.sendTransform(tf)
+            else:
+                from tf2_msgs.msg import TFMessage
+                self._send(static, TFMessage(transforms=[tf]))
+
     def base_from_sensor(self, base_frame: str, sensor_frame: str) -> np.ndarray | None:
         """Return ``T_base_sensor`` from TF; the identity (said once) without tf2_ros."""
         if not self._tf_ready('base_from_sensor is not set'):
@@ -124,6 +151,8 @@ class Outputs:
         for pub in self._lifecycle_publishers:
             self._node.destroy_lifecycle_publisher(pub)
         self._node.destroy_publisher(self._diag_pub)
+        if self._static_pub and not hasattr(self._static_pub, 'sendTransform'):
+            self._node.destroy_publisher(self._static_pub)
 
     def _count(self, key: str) -> None:
         with self._lock:
@@ -166,6 +195,29 @@ class Outputs:
         self._tf_listener = TransformListener(self._tf_buffer, self._node)
         self._tf_broadcaster = TransformBroadcaster(self._node)
         return True
+
+    def _static(self) -> Any:
+        """
+        Return what publishes /tf_static, made once; False (said once) when nothing can.
+
+        tf2_ros's StaticTransformBroadcaster when it imports; else a latched publisher of
+        tf2_msgs/TFMessage on /tf_static (what that broadcaster is) when tf2_msgs imports.
+        """
+        if self._static_pub is None:
+            try:
+                from tf2_ros import StaticTransformBroadcaster
+                self._static_pub = StaticTransformBroadcaster(self._node)
+            except ImportError:
+                try:
+                    from tf2_msgs.msg import TFMessage
+                    self._static_pub = self._node.create_publisher(TFMessage, '/tf_static',
+                                                                   latched_qos())
+                except ImportError:
+                    self._static_pub = False
+                    self.log('warning', 'neither tf2_ros nor tf2_msgs is importable: the '
+                             'calibration is not broadcast on /tf_static (use ~/calibration or '
+                             'the static_transform_publisher line of ~/calibration_report)')
+        return self._static_pub
 
     def _broadcast(self, T: np.ndarray, header: Header, child: str) -> None:
         self._tf_broadcaster.sendTransform(transform_to_transform_stamped(T, header, child))

@@ -30,3 +30,9 @@ def target_qos(cfg: NodeConfig) -> QoSProfile:
                   else DurabilityPolicy.VOLATILE)
     return QoSProfile(depth=cfg.target_depth, reliability=ReliabilityPolicy.RELIABLE,
                       durability=durability)
+
+
+def latched_qos() -> QoSProfile:
+    """Return the QoS of a one-off result: reliable, transient local, the last one kept."""
+    return QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)

@@ -125,3 +125,20 @@ def summary_line(result: PipelineResult, T: np.ndarray, key: str, refusal: str,
     pose = f'x {x:.3f} y {y:.3f} z {z:.3f} m, yaw {yaw:.1f} deg'
     return (f'localized: {pose}; {scores}; '
             + ('initial pose published' if published else f'initial pose not published: {why}'))
+
+
+def stale_scan(called: float | None, receipt_ns: int, max_scan_age: float) -> str:
+    """
+    Return why a scan is too old for the pending on-demand request, or ''.
+
+    :param called: when the pending request was made (monotonic seconds), None when none.
+    :param receipt_ns: when the scan was received (monotonic nanoseconds).
+    """
+    if called is None:
+        return ''
+    age = called - receipt_ns * 1e-9
+    if age <= max_scan_age:
+        return ''
+    return (f'on_demand: the latest scan was received {age:.2f} s before the '
+            f'relocalization request (> max_scan_age {max_scan_age:g} s); waiting '
+            'for the next one')
