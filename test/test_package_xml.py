@@ -48,6 +48,7 @@ ROSDEP_KEYS = {
     'sensor_msgs': 'sensor_msgs',
     'std_msgs': 'std_msgs',
     'std_srvs': 'std_srvs',
+    'tf2_msgs': 'tf2_msgs',
     'tf2_ros': 'tf2_ros',
     'visualization_msgs': 'visualization_msgs',
     'ament_flake8': 'ament_flake8',
