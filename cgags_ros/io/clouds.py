@@ -36,17 +36,36 @@ def read_cloud(path: str | Path) -> np.ndarray:
     Non-finite points are kept (the pipeline drops them); N may be 0 only when the file
     itself declares no points.
     """
+    return read_cloud_and_normals(path)[0]
+
+
+def read_normals(path: str | Path) -> np.ndarray | None:
+    """Return the normals stored with the points at ``path`` (:func:`read_cloud_and_normals`)."""
+    return read_cloud_and_normals(path)[1]
+
+
+def read_cloud_and_normals(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """
+    Return :func:`read_cloud`'s points and the normals stored with them, from one read.
+
+    Normals, (N, 3) float64 with rows matching the points, come from PLY vertex properties
+    ``nx ny nz`` (or ``normal_x normal_y normal_z``) and PCD fields ``normal_x normal_y
+    normal_z``; other formats carry none (None). A map's normals say which side of each
+    surface its sensors saw.
+    """
     path = Path(path)
     suffix = _suffix(path)
     if not path.is_file():
         raise InvalidInputError(f'cannot read {path}: no such file')
+    normals = None
     try:
-        if suffix == '.ply':
-            points = _xyz(ply.read_vertex_columns(path))
-        elif suffix == '.pcd':
-            columns = pcd.read_columns(path)
-            points = pcd.read_open3d(path, pcd.count(path))[0] if columns is None \
-                else _xyz(columns)
+        if suffix in ('.ply', '.pcd'):
+            columns = ply.read_vertex_columns(path) if suffix == '.ply' \
+                else pcd.read_columns(path)
+            if columns is None:  # binary_compressed PCD
+                points, normals = pcd.read_open3d(path, pcd.count(path))
+            else:
+                points, normals = _named(columns, ('x', 'y', 'z')), _normals(columns)
         elif suffix == '.npy':
             points = _read_npy(path)
         else:
@@ -55,7 +74,7 @@ def read_cloud(path: str | Path) -> np.ndarray:
         raise
     except (OSError, ValueError) as exc:
         raise InvalidInputError(f'cannot read {path}: {exc}') from exc
-    return _as_xyz(points, path)
+    return _as_xyz(points, path), normals
 
 
 def write_cloud(path: str | Path, points: np.ndarray,
@@ -88,34 +107,10 @@ def write_cloud(path: str | Path, points: np.ndarray,
 NORMAL_NAMES = (('nx', 'ny', 'nz'), ('normal_x', 'normal_y', 'normal_z'))
 
 
-def read_normals(path: str | Path) -> np.ndarray | None:
-    """
-    Return the normals stored with the points at ``path`` as (N, 3) float64, or None.
-
-    PLY vertex properties ``nx ny nz`` (or ``normal_x normal_y normal_z``) and PCD fields
-    ``normal_x normal_y normal_z``; other formats carry none. Rows match
-    :func:`read_cloud`'s. A map's normals say which side of each surface its sensors saw.
-    """
-    path = Path(path)
-    suffix = _suffix(path)
-    if suffix not in ('.ply', '.pcd'):
-        return None
-    if not path.is_file():
-        raise InvalidInputError(f'cannot read {path}: no such file')
-    try:
-        if suffix == '.ply':
-            columns = ply.read_vertex_columns(path)
-        else:
-            columns = pcd.read_columns(path)
-            if columns is None:
-                return pcd.read_open3d(path, pcd.count(path))[1]
-    except InvalidInputError:
-        raise
-    except (OSError, ValueError) as exc:
-        raise InvalidInputError(f'cannot read {path}: {exc}') from exc
+def _normals(columns: dict[str, np.ndarray]) -> np.ndarray | None:
     for names in NORMAL_NAMES:
         if set(names) <= set(columns):
-            return np.stack([columns[c] for c in names], axis=1).astype(np.float64)
+            return _named(columns, names)
     return None
 
 
@@ -138,8 +133,8 @@ def _as_xyz(points: np.ndarray, path: Path) -> np.ndarray:
         raise InvalidInputError(f'{path}: point coordinates are not numeric ({exc})') from exc
 
 
-def _xyz(columns: dict[str, np.ndarray]) -> np.ndarray:
-    return np.stack([columns[c] for c in 'xyz'], axis=1).astype(np.float64)
+def _named(columns: dict[str, np.ndarray], names: tuple[str, ...]) -> np.ndarray:
+    return np.stack([columns[c] for c in names], axis=1).astype(np.float64)
 
 
 def _read_npy(path: Path) -> np.ndarray:

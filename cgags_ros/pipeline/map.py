@@ -33,7 +33,7 @@ from ..config.pipeline import PipelineConfig
 from ..errors import EmptyCloudError, InvalidInputError
 from ..frontend.features import CloudFeatures, extract_features
 from ..io import map_cache
-from ..io.clouds import read_cloud, read_normals
+from ..io.clouds import read_cloud_and_normals
 
 # FrontEndConfig fields that change a cloud's features (the matching options do not).
 FEATURE_SETTINGS = ('normal_radius_factor', 'normal_max_nn', 'normal_orientation',
@@ -115,13 +115,14 @@ def load_map(path: str | Path, config: PipelineConfig,
         return PreparedMap(features, settings, str(path), digest, 'hit',
                            str(map_cache.entry_path(cache_dir, key)), raw, nonfinite,
                            time.perf_counter() - start, str(stored.get('oriented_by', '')))
-    points = read_cloud(path)
+    points, sides = read_cloud_and_normals(path)
+    if config.frontend.normal_orientation != 'origin':
+        sides = None  # the file's normals sign the map's only where a scan's face its sensor
     finite = np.isfinite(points).all(axis=1)
     raw, nonfinite = len(points), int(len(points) - np.count_nonzero(finite))
     if not finite.any():
         raise EmptyCloudError(f'map_file {str(path)!r}: no finite points ({raw} rows, all '
                               'empty or NaN/inf)')
-    sides = read_normals(path) if config.frontend.normal_orientation == 'origin' else None
     oriented_by = config.frontend.normal_orientation if sides is None else 'file normals'
     features = extract_features(points[finite], config.voxel_size, config.frontend, 'map',
                                 sides=None if sides is None else sides[finite])
