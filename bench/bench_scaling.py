@@ -192,7 +192,7 @@ def _floor(trial: dict) -> float:
     What is left is downsampling, normals, FPFH, mutual matching, refinement and the glue
     between stages (with default parameters, the stages whose results are kept exact): a
     floor that no change to the core, the gates or the rival search can go below
-    (docs/implementation.md).
+    (docs/design.md, "What bounds the speed").
     """
     st = trial['stages']
     beside = max(st.get('validation', 0.0), st.get('candidates', 0.0))
