@@ -178,7 +178,7 @@ def test_patterns_catch_stale_numbers(text, kind):
     'every SPFH is computed once, before the FPFH pass reads it',
     'Transpose a 64 x 64 bit block in place.',
     'sees 80 x 40 degrees up to 15 m',
-    'bin units: 450x the approximation\'s error',
+    "bin units: 450x the approximation's error",
     'atan(a) ~ a P(a^2) on [0, 1], max error 1.3e-9 rad',
     'float64 (N, 3) points; 12-byte points',
     'Remote Sensing 2024, 16, 2789',
