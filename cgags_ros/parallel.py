@@ -16,8 +16,7 @@ from typing import Callable, Sequence, TypeVar
 T = TypeVar('T')
 
 CHUNK = 512  # rows per task, so that threads finish close together
-# Threads a registration uses by default: the machine's cores, at most four (measured on
-# 2 cores; docs/implementation.md).
+# Threads a registration uses by default: the machine's cores, at most four.
 DEFAULT_WORKERS = max(1, min(4, os.cpu_count() or 1))
 
 _pool: ThreadPoolExecutor | None = None

@@ -36,7 +36,7 @@ REPO = Path(__file__).resolve().parents[1]
 PACKAGE = 'cgags_ros'
 # What a source checkout of the package must ship for colcon; never .venv, build outputs, .git.
 PACKAGE_FILES = ['package.xml', 'setup.py', 'setup.cfg', 'LICENSE', 'README.md']
-PACKAGE_DIRS = ['resource', PACKAGE, 'config', 'launch']
+PACKAGE_DIRS = ['resource', PACKAGE, 'config', 'launch', 'rviz']
 COLCON = Path(sys.executable).parent / 'colcon'
 # Distinct from test_register_node.py (47), test_replay.py (83) and bench/ (58).
 DOMAIN_ID = 61
@@ -307,6 +307,7 @@ def test_colcon_build_installs_a_runnable_node(tmp_path, data_dir, monkeypatch):
     for rel in [f'share/{PACKAGE}/package.xml', f'share/{PACKAGE}/config/register_node.yaml',
                 f'share/{PACKAGE}/config/fastdds_large_data.xml',
                 f'share/{PACKAGE}/launch/register_node.launch.py',
+                f'share/{PACKAGE}/rviz/cgags.rviz',
                 f'share/ament_index/resource_index/packages/{PACKAGE}']:
         assert (prefix / rel).is_file(), f'{rel} not installed:\n{listing}'
 

@@ -76,7 +76,9 @@ def finite_points(points: np.ndarray, name: str = 'cloud') -> np.ndarray:
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise InvalidInputError(f'{name}: expected an (N, 3) array of x, y, z in metres, '
                                 f'got shape {pts.shape}')
-    if not np.isfinite(pts).all():  # one flat pass; the per-row mask costs ~30x more
+    # One flat pass first: the per-row mask is far dearer, and clouds are nearly always
+    # all finite.
+    if not np.isfinite(pts).all():
         pts = pts[np.isfinite(pts).all(axis=1)]
     if len(pts) == 0:
         raise EmptyCloudError(f'{name}: no finite points (got {len(points)} rows, all '

@@ -16,7 +16,7 @@ from ..parallel import run_chunks
 
 # Neighbour grid cells are radius / _REACH wide, and a point's neighbours lie within
 # _REACH cells of its own: smaller cells than the radius test fewer points that are out of
-# it (on the redkitchen 1.8 cm features 1.5x faster than _REACH = 1; 3 is slower again).
+# it, but more cells cost more lookups; 2 balances the two (docs/implementation.md).
 _REACH = 2
 # Neighbour lists of at most this many bytes are kept for both passes; a larger cloud (a
 # big map: 100 neighbours of 640k points) is done in blocks whose lists are searched again

@@ -167,9 +167,9 @@ def spfh(points, normals, first, last, offset, order, nbr, count, out):
     The point at position s (row order[s]) has its neighbours in row ``s - offset`` of
     ``nbr``/``count``, as :func:`.kernels_neighbours.radius_neighbours` left them.
 
-    A point's pairs are computed in one loop without branches (selects instead: it
-    vectorizes, ~2.5x faster than pair by pair), with the same operations in the same
-    order as :func:`_pair_bins`, so the same bins. A pair whose bins that loop cannot
+    A point's pairs are computed in one loop without branches (selects instead, so that
+    it vectorizes), with the same operations in the same order as :func:`_pair_bins`, so
+    the same bins. A pair whose bins that loop cannot
     settle goes to :func:`_pair_bins`: a near-tie of the two normals' angles to the line
     (the frame's choice needs acos there), a degenerate pair, or an angle within
     ``_EDGE`` of a bin edge (atan2 decides). ``error_model='numpy'``: the degenerate
