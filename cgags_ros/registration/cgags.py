@@ -1,8 +1,20 @@
 """
 Algorithm 1: compatibility graph + accelerated guided sampling (Remote Sensing 2024, 16, 2789).
 
-Read :func:`register_correspondences` top to bottom: it is the paper's algorithm, each step
-named as in the paper. :class:`~.search.Search` holds the sampling state of the two stages.
+Read :func:`register_correspondences` top to bottom: it is the paper's algorithm. Its steps
+carry one numbering, shared by the code, its docstrings and docs/method.md:
+
+1. compatibility graph;
+2. minimal compatible subsets (graph edge sampling, then graph vertex sampling);
+3. hypotheses (closed-form fits of minimal subsets, pre-screen, scores);
+4. preference lists and the intersection kernel K;
+5. guided sampling;
+6. max_up (refreshes of K);
+7. stopping (the P1 and P2 bounds, the significance test);
+8. final re-fit;
+
+then the validity of the result (ours). :class:`~.search.Search` holds the sampling state of
+the two stages, :mod:`.motion` what a minimal subset is (a 6-DoF triangle, a 4-DoF edge).
 """
 
 from __future__ import annotations
