@@ -116,10 +116,20 @@ def pipeline_problems() -> list:
             register_clouds(src @ random_rotation(np.random.default_rng(0)).T, tgt,
                             voxel_size=voxel)
             s, d, kwargs = captured[0]
+            kwargs['config'] = (kwargs['config'], _previous_config(kwargs['config']))
             out.append((f'{name} {voxel:g} m pipeline', [(s, d, kwargs)]))
         return out
     finally:
         pipeline_register.register_correspondences = register_correspondences
+
+
+def _previous_config(cfg):
+    """Return the previous revision's CoreConfig with ``cfg``'s values (its own defaults else)."""
+    import dataclasses
+
+    previous = sys.modules['cgags_prev.registration'].CoreConfig
+    return previous(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(previous)
+                       if hasattr(cfg, f.name)})
 
 
 def _problem(model, motion: str, layout: str, n: int, ratio: float, trial: int) -> tuple:
@@ -129,8 +139,8 @@ def _problem(model, motion: str, layout: str, n: int, ratio: float, trial: int) 
     transform = None
     if motion == '4dof':
         transform = problem_transform(argparse.Namespace(motion='4dof', tilt_noise=0.0), seed)
-        old_config = sys.modules['cgags_prev.registration'].CoreConfig(motion_model='4dof')
-        kwargs['config'] = (CoreConfig(motion_model='4dof'), old_config)
+        config = CoreConfig(motion_model='4dof')
+        kwargs['config'] = (config, _previous_config(config))
     p = make_correspondences(model, n, ratio, noise_sigma=0.01, rng=seed, outliers=layout,
                              transform=transform)
     return p.src, p.dst, kwargs

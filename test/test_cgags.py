@@ -84,16 +84,14 @@ def test_result_reports_stages(bunny):
 
 
 @pytest.mark.parametrize('config', [
-    {'edge_sampling': 'uniform', 'vertex_sampling': 'uniform'},
+    {'edge_tournament': 1, 'vertex_tournament': 1},
     {'guided_sampling': False},
-    {'guided_seed': 'kernel', 'guided_start': 'after_b_hypotheses'},
-    {'compatibility': 'binary', 'vertex_sampling': 'degree'},
-    {'max_up_mode': 'local_refits', 'score': 'truncated', 'prescreen': False},
-    {'max_up_mode': 'best_updates', 'refit': 'once', 'stage_one_estimate': 'analytic'},
-    {'guided_count': 'since_improvement'},
+    {'max_up': 0, 'kernel_subset': 0, 'xi': 0.0},
+    {'exact_per_batch': 512, 'batch_size': 64, 'min_triangle_area_factor': 0.0},
+    {'refit_iterations': 1, 'min_pair_distance_factor': 1.0, 'futility_stop': True},
     {'stopping': 'fixed', 'max_iterations': 3000},
 ])
-def test_every_inferred_option_still_registers(bunny, config):
+def test_every_advanced_option_still_registers(bunny, config):
     prob = make_correspondences(bunny, 1000, 0.95, rng=21)
     res = register_correspondences(prob.src, prob.dst, inlier_threshold=TAU,
                                    config=CoreConfig(**config), seed=1)
@@ -152,9 +150,9 @@ def test_invalid_config_is_rejected(bunny):
     with pytest.raises(InvalidConfigError, match='p1'):
         register_correspondences(prob.src, prob.dst, inlier_threshold=TAU,
                                  config=CoreConfig(p1=1.5))
-    with pytest.raises(InvalidConfigError, match='edge_sampling'):
+    with pytest.raises(InvalidConfigError, match='stopping'):
         register_correspondences(prob.src, prob.dst, inlier_threshold=TAU,
-                                 config=CoreConfig(edge_sampling='magic'))
+                                 config=CoreConfig(stopping='magic'))
 
 
 def test_twenty_thousand_correspondences_stay_under_1gb(bunny):
@@ -182,7 +180,7 @@ def test_nearly_collinear_correspondences_end_quickly_and_invalid():
 
 def test_blas_runs_single_threaded_during_the_core_and_is_restored(bunny, monkeypatch):
     threadpoolctl = pytest.importorskip('threadpoolctl')
-    from cgags_ros.registration import cgags
+    from cgags_ros.registration import motion
 
     def blas_threads():
         return [lib['num_threads'] for lib in threadpoolctl.threadpool_info()
@@ -192,13 +190,13 @@ def test_blas_runs_single_threaded_during_the_core_and_is_restored(bunny, monkey
     with threadpoolctl.threadpool_limits(limits=2, user_api='blas'):
         outer = blas_threads()
         seen = []
-        build = cgags.build_compatibility_graph
+        build = motion.build_compatibility_graph
 
         def spy(*args, **kwargs):
             seen.append(blas_threads())
             return build(*args, **kwargs)
 
-        monkeypatch.setattr(cgags, 'build_compatibility_graph', spy)
+        monkeypatch.setattr(motion, 'build_compatibility_graph', spy)
         prob = make_correspondences(bunny, 300, 0.5, rng=3)
         _check_recovery(prob, register_correspondences(prob.src, prob.dst, inlier_threshold=TAU))
         assert seen and all(n == 1 for n in seen[0])

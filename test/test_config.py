@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from cgags_ros.config import fields, load_yaml, PipelineConfig
+from cgags_ros.config.core import CoreConfig
 from cgags_ros.config.files import migration_markdown, parameters_markdown, ros_parameters_yaml
 from cgags_ros.config.node import (
     configs_from_parameters,
@@ -55,17 +56,20 @@ def test_yaml_holds_the_ros_parameters_at_their_defaults():
 
 def test_ros_vectors_config_file_and_former_names(tmp_path):
     extra = tmp_path / 'extra.yaml'
-    extra.write_text('core:\n  edge_sampling: uniform\nmax_waiting_sources: 4\n')
+    extra.write_text('core:\n  edge_tournament: 4\nmax_waiting_sources: 4\n')
     values = dict(load_yaml(YAML), **{
         'config_file': str(extra), 'core.gravity': [0.0, 2.0, 0.0],
         'relocalization.base_from_sensor': [0.1, 0.0, 0.5, 0.0, 0.0, 0.0, 1.0]})
     pipe, node = configs_from_ros(values)
-    assert pipe.core.gravity_axis == (0.0, 1.0, 0.0) and pipe.core.edge_sampling == 'uniform'
+    assert pipe.core.gravity_axis == (0.0, 1.0, 0.0) and pipe.core.edge_tournament == 4
     assert node.max_waiting_sources == 4 and node.base_from_sensor.split()[2] == '0.5'
     with pytest.raises(InvalidConfigError, match='core.gravity'):
         configs_from_ros({'core.gravity': [0.0, 1.0]})
     with pytest.raises(InvalidConfigError, match='base_from_sensor'):
         configs_from_ros({'relocalization.base_from_sensor': [1.0, 2.0, 3.0]})
+    extra.write_text('core:\n  edge_sampling: uniform\n')  # settled by the ablation: gone
+    with pytest.raises(InvalidConfigError, match="'core.edge_sampling' was removed"):
+        configs_from_ros({'config_file': str(extra)})
     extra.write_text('pairing_mode: synchronized\n')  # a ROS parameter's key: refused
     with pytest.raises(InvalidConfigError, match="'pairing.mode'"):
         configs_from_ros({'config_file': str(extra)})
@@ -75,13 +79,16 @@ def test_ros_vectors_config_file_and_former_names(tmp_path):
     assert rest == {'source_depth': 9}
     assert migration()['pairing_mode'] == 'renamed: pairing.mode'
     assert migration()['core.gravity_x'] == 'renamed: core.gravity'
-    assert 'config_file' in migration()['core.edge_sampling']
+    assert 'config_file' in migration()['core.edge_tournament']
+    assert migration()['core.edge_sampling'].startswith('removed')
     assert not set(migration()) & set(ROS_PARAMETERS)
     unchanged = set(ROS_PARAMETERS) & set(parameter_descriptions())
     assert {'voxel_size', 'autostart', 'config_file', 'core.motion_model'} <= unchanged
     assert migration()['relocalization.mode'].startswith('renamed: mode')
+    removed = {f'core.{name}' for name in CoreConfig.REMOVED}
+    assert not removed & set(parameter_descriptions())
     assert set(migration()) == (set(parameter_descriptions()) - unchanged) | {
-        'relocalization.mode'}
+        'relocalization.mode'} | removed
 
 
 def test_every_parameter_is_documented_and_short():
@@ -91,7 +98,7 @@ def test_every_parameter_is_documented_and_short():
         # Descriptions say what a value means; measurements belong in docs/.
         assert len(meta['description']) <= 400, name
     advanced = [k for k, m in parameter_descriptions().items() if m['advanced']]
-    assert 'core.edge_sampling' in advanced and 'voxel_size' not in advanced
+    assert 'core.edge_tournament' in advanced and 'voxel_size' not in advanced
     assert len(advanced) >= 12
 
 

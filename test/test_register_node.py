@@ -197,7 +197,7 @@ def test_plumbing_parameters_outputs_and_rejections(ros):
                                  ('voxel_size', -1.0, 'out of range'),
                                  ('pairing.mode', 'synchronized', 'read-only'),
                                  ('pairing_mode', 'synchronized', 'renamed: pairing.mode'),
-                                 ('core.compatibility', 'binary', 'config_file'),
+                                 ('core.edge_tournament', 4, 'config_file'),
                                  ('core.gravity', [0.0, 0.0, 0.0], 'zero length')]:
             result = node.set_parameters([Parameter(name, value=value)])[0]
             assert not result.successful and why in result.reason, (name, result.reason)
@@ -407,7 +407,7 @@ def test_separate_process_synchronized_lidar_then_sigterm(ros, data_dir, tmp_pat
         client = io.node.create_client(SetParameters, '/register_node/set_parameters')
         assert client.wait_for_service(timeout_sec=10)
         for name, value, ok in [('core.motion_model', 'bogus', False),
-                                ('core.compatibility', 'binary', False),  # config_file's
+                                ('core.edge_tournament', 4, False),  # config_file's
                                 ('core.time_budget', 30.0, True)]:
             req = SetParameters.Request(parameters=[
                 Parameter(name, value=value).to_parameter_msg()])

@@ -1,13 +1,12 @@
 """
 Check that minimal-subset sampling draws the distributions the method asks for.
 
-The compiled edge, tournament and guided draws, and the numpy vertex samplers.
+The compiled edge, tournament and guided draws.
 """
 
 from cgags_ros.registration import kernels
 from cgags_ros.registration.compatibility import (CompatibilityGraph, length_consistency,
                                                   popcount_rows)
-from cgags_ros.registration.sampling import sample_common_vertex, weighted_choice_rows
 import numpy as np
 import pytest
 
@@ -76,30 +75,10 @@ def test_sparse_graphs_draw_only_their_edges():
     pts = np.zeros((500, 3))
     i, j = _edges(g, rng, 100, pts, pts, 1.0, False, False)
     assert set(np.unique(np.concatenate([i, j]))) <= {0, 1, 2}
-    k, ok = sample_common_vertex(g, rng, i, j)
-    assert ok.all()
+    i, j, k, _, status = kernels.draw_triples(rng, g, NO_LISTS, pts, pts, 1.0, False, 100,
+                                              4, 4, 0.0)
+    assert (status == 0).all()
     assert np.all((k != i) & (k != j) & np.isin(k, [0, 1, 2]))
-
-
-def test_common_vertex_reports_empty_neighbourhoods():
-    dense = np.zeros((50, 50), dtype=bool)
-    dense[0, 1] = True
-    g = _graph(dense)
-    k, ok = sample_common_vertex(g, np.random.default_rng(0), np.array([0]), np.array([1]))
-    assert not ok[0]
-
-
-@pytest.mark.parametrize('lists', [False, True])
-def test_common_vertex_is_in_both_neighbourhoods(lists):
-    g = _random_graph(n=200, p=0.3, seed=3)
-    dense = g.rows(np.arange(g.n))
-    rng = np.random.default_rng(4)
-    pts = np.zeros((g.n, 3))
-    csr = g.neighbour_lists() if lists else None
-    i, j = _edges(g, rng, 2000, pts, pts, 1.0, False, lists)
-    k, ok = sample_common_vertex(g, rng, i, j, csr=csr)
-    assert ok.mean() > 0.9
-    assert dense[i[ok], k[ok]].all() and dense[j[ok], k[ok]].all()
 
 
 def test_tournament_keeps_the_best_supported_candidate():
@@ -111,18 +90,6 @@ def test_tournament_keeps_the_best_supported_candidate():
     support = popcount_rows(g.common(i, j)).reshape(10, 4)
     won = popcount_rows(g.common(wi, wj))
     assert np.array_equal(won, support.max(axis=1))
-
-
-def test_weighted_choice_follows_weights():
-    rng = np.random.default_rng(7)
-    w = np.tile(np.array([[0.0, 1.0, 3.0, 0.0]]), (40000, 1))
-    idx, ok = weighted_choice_rows(w, rng)
-    assert ok.all()
-    freq = np.bincount(idx, minlength=4) / len(idx)
-    assert freq[0] == 0 and freq[3] == 0
-    assert abs(freq[2] - 0.75) < 0.01
-    _, ok = weighted_choice_rows(np.zeros((3, 4)), rng)
-    assert not ok.any()
 
 
 def test_guided_sampling_prefers_high_kernel_partners():

@@ -1,15 +1,19 @@
 """
 Configuration of the registration core (``cgags_ros.registration``).
 
-"paper" marks the paper's parameter table (METHOD.md). "INFERRED" marks a reconstruction
-choice the paper does not state; those are advanced switches, and docs/ablation.md gives
-the measurements that chose their defaults.
+"paper" marks the paper's parameter table (docs/method.md). "INFERRED" marks a
+reconstruction choice the paper does not state. The choices the ablation settled
+(docs/ablation.md) are no options: the code does only what the measurements chose (soft
+compatibility, edge and vertex tournaments, pre-screening, guided sampling from the best
+inliers at stage-one confidence, max_up as kernel refreshes, the iterative re-fit; 6-DoF
+scored by inlier count, 4-DoF by the truncated quadratic with vertical compatibility).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from typing import ClassVar
 
 from .fields import option
 from ..errors import InvalidConfigError
@@ -18,6 +22,15 @@ from ..errors import InvalidConfigError
 @dataclasses.dataclass
 class CoreConfig:
     """Options of the registration core; the defaults are the paper's where it has one."""
+
+    # Former options whose question the ablation settled (docs/ablation.md): a
+    # configuration that still sets one is refused with this explanation.
+    REMOVED: ClassVar[dict[str, str]] = dict.fromkeys(
+        ('compatibility', 'edge_sampling', 'vertex_sampling', 'score', 'score_4dof',
+         'prescreen', 'max_up_mode', 'guided_start', 'guided_seed', 'guided_count',
+         'stage_one_estimate', 'refit', 'vertical_compatibility'),
+        'removed: the ablation settled it and its default is the only behaviour '
+        '(docs/ablation.md); delete the key')
 
     # --- motion model (docs/method.md, "4-DoF mode") -------------------------------------
     motion_model: str = option(
@@ -36,15 +49,6 @@ class CoreConfig:
         '(and, in the pipeline, a 6-DoF point-to-plane step on the overlap); a larger tilt '
         'means the clouds are not levelled and the result is reported valid=False, never '
         'forced flat.', low=0.0, high=90.0)
-    vertical_compatibility: bool = option(
-        True, 'INFERRED (4dof). Also demand |dz_p - dz_q| < delta for a graph edge (the '
-        'vertical offsets along the gravity axis are preserved by yaw and translation).',
-        advanced=True)
-    score_4dof: str = option(
-        'truncated', "INFERRED (4dof). Hypothesis score with motion_model='4dof' (score is "
-        "the 6-DoF one): 'inlier_count' or 'truncated' (MSAC: sum of max(0, 1 - r^2/tau^2), "
-        'which ranks a few exact inliers above more chance ones).',
-        choices=('inlier_count', 'truncated'), advanced=True)
     min_edge_length_factor: float = option(
         1.0, 'INFERRED (4dof). Reject a minimal subset (an edge) whose horizontal length, '
         'across the gravity axis, is below this many tau in either cloud (its yaw is poorly '
@@ -60,52 +64,33 @@ class CoreConfig:
         "(the paper's 10/6).", low=1e-3, advanced=True)
 
     # --- compatibility graph (INFERRED) --------------------------------------------------
-    compatibility: str = option(
-        'soft', "INFERRED. 'binary': edge when | |p_i-p_j| - |q_i-q_j| | < delta, edges "
-        "drawn uniformly. 'soft': same edges, drawn with weight 1 - (d_ij/delta)^2.",
-        choices=('binary', 'soft'), advanced=True)
     min_pair_distance_factor: float = option(
         0.0, 'INFERRED. Drop graph edges whose source pair is closer than this many tau '
         '(short edges constrain rotation poorly). 0 keeps all.', low=0.0, advanced=True)
 
     # --- minimal compatible subsets (INFERRED) -------------------------------------------
-    edge_sampling: str = option(
-        'tournament', "INFERRED. How the compatible edge (i, j) is drawn: 'uniform' over all "
-        "edges (favours high-degree vertices), or 'tournament': the edge with the most "
-        'common neighbours |N(i) ∩ N(j)| among edge_tournament uniform draws.',
-        choices=('uniform', 'tournament'), advanced=True)
     edge_tournament: int = option(
-        16, "Uniform edge draws per selected edge with edge_sampling='tournament'.",
+        16, 'INFERRED. Graph edge sampling draws this many uniform edges (by soft weight '
+        '1 - (d_ij/delta)^2) and keeps the one with the most common neighbours '
+        '|N(i) ∩ N(j)|; 1 is uniform sampling.',
         low=1, high=4096, advanced=True)
-    vertex_sampling: str = option(
-        'tournament', "INFERRED. How k is drawn from N(i) ∩ N(j): 'uniform', 'degree' "
-        "(proportional to k's degree), or 'tournament': the k with the largest support "
-        '|N(i) ∩ N(j) ∩ N(k)| among vertex_tournament uniform draws.',
-        choices=('uniform', 'degree', 'tournament'), advanced=True)
     vertex_tournament: int = option(
-        8, "Uniform vertex draws per selected vertex with vertex_sampling='tournament'.",
+        8, 'INFERRED. Graph vertex sampling keeps, of this many uniform k in N(i) ∩ N(j), '
+        'the one with the largest |N(i) ∩ N(j) ∩ N(k)|.',
         low=1, high=4096, advanced=True)
     min_triangle_area_factor: float = option(
         0.5, 'INFERRED. Reject near-collinear triples whose source triangle area is below '
         'factor * tau^2. 0 disables.', low=0.0, advanced=True)
 
     # --- hypothesis scoring ----------------------------------------------------------------
-    score: str = option(
-        'inlier_count', "Hypothesis score: 'inlier_count' (paper) or 'truncated' "
-        "(MSAC: sum of max(0, 1 - r^2/tau^2)). With motion_model='4dof', score_4dof "
-        'applies instead.', choices=('inlier_count', 'truncated'),
-        advanced=True)
     batch_size: int = option(
         512, 'Largest number of hypotheses generated and scored per vectorized batch '
         '(batches start small and double, so easy problems stop early).', low=1,
         high=100000, advanced=True)
-    prescreen: bool = option(
-        True, "INFERRED (speed). Score each hypothesis first on its sample's common "
-        'neighbourhood {i,j,k} ∪ N(i)∩N(j)∩N(k), then score only the best exact_per_batch '
-        'of each batch on all N. False scores every hypothesis on all N.', advanced=True)
     exact_per_batch: int = option(
-        16, 'Hypotheses per batch scored on all N (and fed to the preference lists) when '
-        'prescreen is on.', low=1, high=100000, advanced=True)
+        16, 'Hypotheses per batch scored on all N (and fed to the preference lists); the '
+        'others are pre-screened on their common neighbourhood only.', low=1, high=100000,
+        advanced=True)
 
     # --- preference-based accelerated guided sampling -------------------------------------
     guided_sampling: bool = option(
@@ -118,23 +103,8 @@ class CoreConfig:
         1e-6, 'xi: floor added to kernel sampling weights (paper: 1e-6).', low=0.0,
         advanced=True)
     max_up: int = option(
-        3, 'max_up (paper: 3). See max_up_mode.', low=0, high=1000, advanced=True)
-    max_up_mode: str = option(
-        'preference_refreshes', "INFERRED meaning of max_up: 'preference_refreshes' "
-        "(recompute the kernel at most max_up times), 'best_updates' (stop guiding after "
-        "max_up improvements of the best model), or 'local_refits' (max_up least-squares "
-        're-fits per new best model).',
-        choices=('preference_refreshes', 'best_updates', 'local_refits'), advanced=True)
-    guided_start: str = option(
-        'stage_one_confidence', 'INFERRED. When guided sampling starts: '
-        "'after_b_hypotheses' (as soon as b hypotheses exist) or 'stage_one_confidence' "
-        '(when the P1 bound for compatible sampling is met).',
-        choices=('after_b_hypotheses', 'stage_one_confidence'), advanced=True)
-    guided_seed: str = option(
-        'best_inliers', "INFERRED. Where guided sampling draws its seed i: 'best_inliers' "
-        "(uniformly from the current best model's inliers) or 'kernel' (proportional to "
-        'the kernel support sum_j K(i, j) over compatible j).',
-        choices=('best_inliers', 'kernel'), advanced=True)
+        3, 'max_up (paper: 3): the intersection kernel is recomputed at a new best model '
+        'at most this many times during guided sampling.', low=0, high=1000, advanced=True)
     kernel_subset: int = option(
         400, 'Correspondences (top by preference-kernel support) kept for guided sampling; '
         'bounds the N x M kernel. 0 keeps all.', low=0, advanced=True)
@@ -156,17 +126,6 @@ class CoreConfig:
         'adaptive', "INFERRED. 'adaptive': RANSAC bound log(1-P)/log(1-w) per stage with w "
         "estimated from the best model's inliers inside the compatibility graph; 'fixed': "
         'always max_iterations.', choices=('adaptive', 'fixed'), advanced=True)
-    guided_count: str = option(
-        'all_draws', "INFERRED. Which guided draws the P2 bound counts: 'all_draws' of the "
-        'stage, with w2 re-estimated against each new best model (adaptive RANSAC), or '
-        "'since_improvement' (restart the count at every new best model).",
-        choices=('all_draws', 'since_improvement'), advanced=True)
-    stage_one_estimate: str = option(
-        'observed', 'INFERRED. Estimate of w1 (all-inlier probability of one stage-one '
-        "sample) for the P1 bound: 'analytic' (uniform edge and vertex sampling, from the "
-        "best model's inlier subgraph) or 'observed' (the larger of that and the share of "
-        'drawn samples inside the best inlier set).', choices=('analytic', 'observed'),
-        advanced=True)
     futility_stop: bool = option(
         False, 'INFERRED (4-DoF). End the search without a valid model once enough edges '
         'were drawn that a motion with the smallest significant consensus (L = '
@@ -176,12 +135,9 @@ class CoreConfig:
         advanced=True)
 
     # --- final re-fit and validity ------------------------------------------------------------
-    refit: str = option(
-        'iterative', "INFERRED. Final least-squares re-fit on the best model's inliers: "
-        "'iterative' (repeat while the inlier set changes), 'once', or 'none'.",
-        choices=('iterative', 'once', 'none'), advanced=True)
-    refit_iterations: int = option(10, 'Maximum iterative re-fits.', low=1, high=1000,
-                                   advanced=True)
+    refit_iterations: int = option(
+        10, 'Maximum iterations of the final re-fit (repeated while the inlier set changes).',
+        low=1, high=1000, advanced=True)
     distinct_ratio: float = option(
         1.3, 'A result is significant (search may stop, result may be valid) only if its '
         'inlier count is at least this times that of the best distinct alternative '

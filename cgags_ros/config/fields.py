@@ -127,6 +127,9 @@ def update_from_flat(cfg: Any, values: Mapping[str, Any]) -> Any:
                 raise InvalidConfigError(f'unknown configuration key {key!r}')
             target = getattr(target, part)
         names = {f.name for f in dataclasses.fields(target)}
+        removed = getattr(type(target), 'REMOVED', {})
+        if parts[-1] in removed:
+            raise InvalidConfigError(f'configuration key {key!r} was {removed[parts[-1]]}')
         if parts[-1] not in names or dataclasses.is_dataclass(getattr(target, parts[-1])):
             raise InvalidConfigError(f'unknown configuration key {key!r}')
         setattr(target, parts[-1], value)

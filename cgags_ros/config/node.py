@@ -15,6 +15,7 @@ import math
 from typing import Any, Mapping
 
 from . import fields
+from .core import CoreConfig
 from .fields import option
 from .pipeline import PipelineConfig
 from ..errors import InvalidConfigError
@@ -214,6 +215,8 @@ def split_parameters(values: Mapping[str, Any]) -> tuple[dict[str, Any], dict[st
             node[key] = value
         elif key in pipeline_keys:
             pipe[key] = value
+        elif key.startswith('core.') and key[5:] in CoreConfig.REMOVED:
+            raise InvalidConfigError(f'parameter {key!r} was {CoreConfig.REMOVED[key[5:]]}')
         else:
             raise InvalidConfigError(f'unknown parameter {key!r}')
     return pipe, node

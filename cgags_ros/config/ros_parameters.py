@@ -17,6 +17,7 @@ from typing import Any, Mapping
 
 from . import fields
 from .calibration import CalibrationConfig
+from .core import CoreConfig
 from .node import configs_from_parameters, NodeConfig, parameter_descriptions, parse_pose7
 from .pipeline import load_yaml, PipelineConfig
 from ..errors import InvalidConfigError
@@ -196,4 +197,5 @@ def migration() -> dict[str, str]:
             out[key] = f'renamed: {renamed[key]}'
         else:
             out[key] = 'not a ROS parameter any more: set it in the YAML of config_file'
+    out.update({f'core.{name}': why for name, why in CoreConfig.REMOVED.items()})
     return out

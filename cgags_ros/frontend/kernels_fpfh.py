@@ -2,7 +2,7 @@
 Compiled kernels (numba) of the FPFH descriptors the correspondences are matched on.
 
 FPFH (Rusu et al., ICRA 2009) is the feature the paper matches to get its putative
-correspondences (METHOD.md, "Input"). These kernels compute Open3D's definition of it
+correspondences (docs/method.md, "Input"). These kernels compute Open3D's definition of it
 (``pipelines/registration/Feature.cpp``: pair features, 11 bins per angle, SPFH weights
 100 / neighbours, FPFH = own SPFH + neighbours' SPFH weighted by 1 / squared distance, each
 block scaled to 100) with two shortcuts that change no value:

@@ -1,7 +1,7 @@
 """
 Compiled kernels (numba) of descriptor matching: the exact nearest-neighbour search in FPFH space.
 
-Putative correspondences are the step before Algorithm 1 (METHOD.md, "Input"): each source
+Putative correspondences are the step before Algorithm 1 (docs/method.md, "Input"): each source
 descriptor's nearest target descriptor. The index partitions the reference descriptors into
 cells by k-means (:func:`kmeans`, :func:`assign`); a query visits the cells nearest first
 and skips a cell when a lower bound on the distance to any of its members already exceeds

@@ -2,7 +2,7 @@
 Compiled kernel (numba) of FPFH's neighbour search: the points within a radius, the nearest first.
 
 FPFH (:mod:`.kernels_fpfh`) is the feature the paper matches to get its putative
-correspondences (METHOD.md, "Input"); its neighbours are Open3D's hybrid search: the
+correspondences (docs/method.md, "Input"); its neighbours are Open3D's hybrid search: the
 ``max_nn`` nearest within the radius, the point itself included, ties at the
 ``max_nn``-th distance to the lower row. One search serves both of FPFH's passes. The
 kernel is ``nogil`` over a range of points (the caller splits them over threads) and

@@ -1,8 +1,20 @@
 """
 Algorithm 1: compatibility graph + accelerated guided sampling (Remote Sensing 2024, 16, 2789).
 
-Read :func:`register_correspondences` top to bottom: it is the paper's algorithm, each step
-named as in the paper. :class:`~.search.Search` holds the sampling state of the two stages.
+Read :func:`register_correspondences` top to bottom: it is the paper's algorithm. Its steps
+carry one numbering, shared by the code, its docstrings and docs/method.md:
+
+1. compatibility graph;
+2. minimal compatible subsets (graph edge sampling, then graph vertex sampling);
+3. hypotheses (closed-form fits of minimal subsets, pre-screen, scores);
+4. preference lists and the intersection kernel K;
+5. guided sampling;
+6. max_up (refreshes of K);
+7. stopping (the P1 and P2 bounds, the significance test);
+8. final re-fit;
+
+then the validity of the result (ours). :class:`~.search.Search` holds the sampling state of
+the two stages, :mod:`.motion` what a minimal subset is (a 6-DoF triangle, a 4-DoF edge).
 """
 
 from __future__ import annotations
@@ -13,12 +25,10 @@ import time
 import numpy as np
 
 from .blas import with_single_blas_thread
-from .compatibility import build_compatibility_graph
-from .compatibility_4dof import build_vertical_compatibility_graph
 from .hypotheses import refit
+from .motion import motion_model
 from .result import RegistrationResult
 from .search import Search
-from .search_4dof import EdgeSearch
 from .yaw import GravityFrame, measure_tilt, vertical_offsets
 from ..config import fields
 from ..config.core import CoreConfig
@@ -57,12 +67,13 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
     """
     start = time.perf_counter()
     cfg = fields.validate(dataclasses.replace(config) if config else CoreConfig())
+    motion = motion_model(cfg.motion_model)
     yaw_only = cfg.motion_model == '4dof'
-    src, dst = _check_correspondences(src, dst, 2 if yaw_only else 3)
+    src, dst = _check_correspondences(src, dst, motion.size)
     tau, delta = _thresholds(cfg, inlier_threshold, resolution)
     result = RegistrationResult(num_correspondences=len(src), inlier_threshold=tau,
                                 compatibility_threshold=delta)
-    # 0. (4-DoF) Both clouds in the gravity frame, where the rotation is a yaw about z.
+    # 4-DoF: both clouds in the gravity frame, where the rotation is a yaw about z.
     frame = GravityFrame(cfg.gravity_axis) if yaw_only else None
     if frame:
         src, dst = frame.to_gravity(src), frame.to_gravity(dst)
@@ -71,53 +82,46 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
         order = np.argsort(vertical_offsets(src, dst), kind='stable')
         src, dst = src[order], dst[order]
 
-    # 1. Compatibility graph (rigid length consistency, delta; 4-DoF: and vertical offsets).
+    # Step 1. Compatibility graph: length consistency within delta (4-DoF: and the
+    # vertical offsets).
     with timed(result.timings, 'compatibility_graph'):
-        if yaw_only and cfg.vertical_compatibility:
-            graph = build_vertical_compatibility_graph(
-                src, dst, delta, vertical_offsets(src, dst), cfg.min_pair_distance_factor * tau)
-        else:
-            graph = build_compatibility_graph(src, dst, delta,
-                                              cfg.min_pair_distance_factor * tau, workers)
+        graph = motion.compatibility_graph(src, dst, delta, cfg.min_pair_distance_factor * tau,
+                                           workers)
     result.stats.update(graph_edges=graph.num_edges, graph_density=graph.density)
     if graph.num_edges == 0:
         return result.finish(start, (
             f'no two correspondences are length-consistent within delta={delta:.4g} m: '
             'they are all outliers, or the thresholds are too small for the noise'))
 
-    if yaw_only:
-        search = EdgeSearch(src, dst, graph, dataclasses.replace(cfg, score=cfg.score_4dof),
-                            tau, delta, np.random.default_rng(seed))
-    else:
-        search = Search(src, dst, graph, cfg, tau, delta, np.random.default_rng(seed))
+    search = Search(src, dst, graph, motion, cfg, tau, delta, np.random.default_rng(seed))
     while True:
-        # 2-3. Minimal compatible subsets (edge + common-neighbour vertex; 4-DoF: the edge)
-        # until the P1 bound.
+        # Steps 2-3. Minimal compatible subsets (graph edge and vertex sampling) and their
+        # hypotheses, until the P1 bound (step 7).
         with timed(result.timings, 'compatible_sampling'):
             search.compatible_stage()
-        # 4-5. Preference-based accelerated guided sampling until the P2 bound (not once
-        # stage one has ruled out any significant model: nothing valid is left to refine).
+        # Steps 4-6. Preference lists, the intersection kernel K and guided sampling around
+        # the best model, until the P2 bound (step 7); not once stage one has ruled out
+        # any significant model (nothing valid is left to refine).
         if cfg.guided_sampling and search.best_inliers is not None and not search.futile:
             with timed(result.timings, 'guided_sampling'):
                 search.guided_stage()
-        # Guided sampling refines around the best model; if that model still does not stand
-        # out from chance, explore again with compatible sampling (until the caps).
+        # Step 7. Stop on a model that stands out from chance; otherwise explore again with
+        # compatible sampling (until the caps).
         if search.significant() or search.exhausted() or cfg.stopping == 'fixed':
             break
-        search.stats['restarts'] = search.stats.get('restarts', 0) + 1
+        search.restarts += 1
     result.num_hypotheses = search.num_hypotheses
-    result.stats.update(search.stats)
+    result.stats.update(search.report())
     if search.best_inliers is None:
         return result.finish(start, _no_model_reason(search, yaw_only))
 
-    # 6. Final least-squares re-fit on the inliers of the best hypothesis.
+    # Step 8. Final least-squares re-fit on the inliers of the best hypothesis.
     with timed(result.timings, 'refit'):
-        T, inliers = search.best_T, search.best_inliers
-        if cfg.refit != 'none':
-            iters = cfg.refit_iterations if cfg.refit == 'iterative' else 1
-            T, inliers, done = refit(src, dst, T, tau, iters, *search.REFIT)
-            result.stats['refits'] = done
+        T, inliers, done = refit(src, dst, search.best_T, tau, cfg.refit_iterations,
+                                 *motion.refit_solver)
+        result.stats['refits'] = done
     result.transform, result.inliers = T, inliers
+    # Validity: enough inliers, not degenerate, and significant (step 7's test).
     chance, runner_up = search.chance_level(), search.runner_up(inliers)
     result.stats.update(chance_level=chance, runner_up=runner_up)
     reason = _validity_reason(src, inliers, cfg, tau, yaw_only)
@@ -126,7 +130,7 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
                   f'level {chance}, best distinct alternative {runner_up} (x{cfg.distinct_ratio}'
                   ' required); no rigid motion is clearly supported')
     if frame:
-        # 7. (4-DoF) Levelled input? The best 6-DoF fit of the inliers measures the tilt.
+        # 4-DoF: levelled input? The best 6-DoF fit of the inliers measures the tilt.
         tilt = measure_tilt(src, dst, inliers, tau, cfg.refit_iterations)
         result.stats['tilt_deg'] = tilt
         # A tilt also splits a yaw-only consensus into rival parts (no significant one):

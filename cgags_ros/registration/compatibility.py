@@ -1,5 +1,5 @@
 """
-Compatibility graph over putative correspondences (rigid length consistency).
+Compatibility graph over putative correspondences (step 1: rigid length consistency).
 
 Correspondences i and j are compatible when ``| ||p_i - p_j|| - ||q_i - q_j|| | < delta``:
 a rigid motion preserves lengths, so two inliers are always compatible (up to noise), while

@@ -1,7 +1,7 @@
 """
 The 4-DoF compatibility graph: length and vertical-offset consistency (step 1).
 
-Adapts the paper's compatibility graph (METHOD.md step 1) to yaw + translation motions,
+Adapts the paper's compatibility graph (step 1) to yaw + translation motions,
 which preserve both lengths and vertical offsets along the gravity axis: an edge (i, j)
 needs ``| ||p_i - p_j|| - ||q_i - q_j|| | < delta`` and ``|dz_p - dz_q| < delta``. The
 second test is 1-D: ``dz_p - dz_q = u_j - u_i`` with u_i the vertical translation that

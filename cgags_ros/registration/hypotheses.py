@@ -1,4 +1,4 @@
-"""Hypotheses: score contributions and the final least-squares re-fit (fits: kernels)."""
+"""Hypothesis scores (step 3) and the final least-squares re-fit (step 8)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """
-Preference lists and the intersection kernel (Multi-GS / AGS style).
+Preference lists and the intersection kernel K (step 4; Multi-GS / AGS style).
 
 Each correspondence keeps the b hypotheses under which its residual is smallest (its
 preference list T_i, "top-b residual ranks"). Two inliers of the same rigid motion prefer

@@ -1,4 +1,4 @@
-"""Closed-form rigid transforms (Kabsch / Arun / Horn) for single sets and batches."""
+"""Closed-form rigid transforms (Kabsch / Arun / Horn; steps 3 and 8), single sets and batches."""
 
 from __future__ import annotations
 

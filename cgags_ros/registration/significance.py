@@ -1,5 +1,5 @@
 """
-Significance of a consensus: the chance level and the best distinct alternative.
+Significance of a consensus (step 7): the chance level and the best distinct alternative.
 
 A real motion's consensus must stand above what a wrong hypothesis reaches by chance
 (a non-randomness bound, as in PROSAC) and well above every distinct alternative

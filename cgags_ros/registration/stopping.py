@@ -1,4 +1,4 @@
-"""Adaptive stopping: the RANSAC bound, per sampling stage."""
+"""Adaptive stopping (step 7): the RANSAC bound, per sampling stage."""
 
 from __future__ import annotations
 

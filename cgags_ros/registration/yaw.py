@@ -1,7 +1,7 @@
 """
 The 4-DoF motion model (yaw about gravity + translation): steps 3 and 8 of Algorithm 1.
 
-Adapts the paper's hypothesis step (closed-form fit of a minimal subset, METHOD.md step 3)
+Adapts the paper's hypothesis step (closed-form fit of a minimal subset, step 3)
 and the final least-squares re-fit (step 8) to clouds that are already levelled: the
 rotation is a yaw about the gravity axis g, so a hypothesis has four unknowns and a
 compatible edge (two correspondences) determines it. Everything here works in the
