@@ -17,7 +17,7 @@ from ..parallel import run_chunks
 
 # Cells ~ sqrt(M) / 2.5, at most 256: the cost of visiting the cells' centres grows with
 # their count and the cost of scanning their members with M / count; measured on the
-# redkitchen and LiDAR features from 5k to 37k points (docs/implementation.md).
+# redkitchen and LiDAR features from 5k to 37k points (docs/design.md).
 _CELLS_PER_SQRT = 0.4
 _MAX_CELLS = 256
 _SAMPLE_PER_CELL = 64  # k-means runs on at most this many rows a cell

@@ -16,7 +16,7 @@ from ..parallel import run_chunks
 
 # Neighbour grid cells are radius / _REACH wide, and a point's neighbours lie within
 # _REACH cells of its own: smaller cells than the radius test fewer points that are out of
-# it, but more cells cost more lookups; 2 balances the two (docs/implementation.md).
+# it, but more cells cost more lookups; 2 balances the two (docs/design.md).
 _REACH = 2
 # Neighbour lists of at most this many bytes are kept for both passes; a larger cloud (a
 # big map: 100 neighbours of 640k points) is done in blocks whose lists are searched again
@@ -35,7 +35,7 @@ def compute_fpfh(points: np.ndarray, normals: np.ndarray, voxel_size: float,
 
     Open3D's definition (the ``fpfh_max_nn`` nearest within the radius), computed by the
     kernels of :mod:`.kernels_fpfh` with one neighbour search for both passes, on
-    ``workers`` threads; values equal Open3D's to rounding (docs/implementation.md). A cloud
+    ``workers`` threads; values equal Open3D's to rounding (docs/design.md). A cloud
     spread so far that its neighbour grid's keys would overflow (a stray point millions of
     cells out along every axis) is handed to Open3D's own FPFH, which gives the same values.
     """

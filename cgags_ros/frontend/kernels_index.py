@@ -7,7 +7,7 @@ cells by k-means (:func:`kmeans`, :func:`assign`); a query visits the cells near
 and skips a cell when a lower bound on the distance to any of its members already exceeds
 the k-th best distance found (:func:`search`). The bounds are exact, so the search returns
 what brute force would, at a fraction of its distance computations (measurements in
-docs/implementation.md, "Front end").
+docs/design.md, "Front end").
 
 Distances are float64 sums of squared differences in dimension order; they are compared as
 squares and ties go to the lower reference row. Every kernel is ``nogil`` (the caller

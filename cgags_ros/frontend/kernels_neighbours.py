@@ -61,7 +61,7 @@ def radius_neighbours(points, first, last, offset, cells, order, sorted_points, 
                     base = q * nz + iz
                     # Searched within the row's column (a few keys) when the table is
                     # there: the same range as among all keys, in a fraction of the steps,
-                    # which were much of the search on sparse scans (docs/implementation.md).
+                    # which were much of the search on sparse scans (docs/design.md).
                     a, b = ((column_start[q], column_start[q + 1]) if len(column_start)
                             else (0, len(cell_key)))
                     keys = cell_key[a:b]

@@ -30,7 +30,7 @@ def cached_features(points: np.ndarray, voxel_size: float, config: FrontEndConfi
     written to. Hashing costs far less than featurising.
     """
     # SHA-256: the CPU's SHA extensions make it the fastest of hashlib's here (measured in
-    # docs/implementation.md); a cold pair pays it for both clouds.
+    # docs/design.md); a cold pair pays it for both clouds.
     key = (hashlib.sha256(np.ascontiguousarray(points)).digest(),
            points.shape, voxel_size, dataclasses.astuple(config))
     with _cache_lock:

@@ -3,7 +3,7 @@ Keep BLAS to one thread while the core runs (optional ``threadpoolctl``).
 
 The core's matrix products are small (3x3 fits, 5-deep graph blocks) or memory bound, so a
 second OpenBLAS thread does not shorten them; it only spins and takes CPU time that, on a
-robot, belongs to the other nodes (docs/implementation.md). ``threadpoolctl`` is not a
+robot, belongs to the other nodes (docs/design.md). ``threadpoolctl`` is not a
 dependency of the core (numpy/scipy only): without it this is a no-op.
 """
 

@@ -16,8 +16,8 @@ import numpy as np
 from . import kernels_graph, kernels_subsets
 from ..parallel import run_split
 
-# Correspondences below which the graph is built on one thread: waking an idle pool thread
-# costs 0.1-0.2 ms here, more than the split saves below ~4000 (docs/implementation.md).
+# Correspondences below which the graph is built on one thread: below it, waking idle pool
+# threads costs more than the split saves (docs/design.md, "Compiled kernels").
 _SPLIT_MIN = 4000
 
 

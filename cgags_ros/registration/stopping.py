@@ -76,7 +76,7 @@ def compatible_sample_inlier_probability(graph: CompatibilityGraph, inliers: np.
     if n_in < 3 or graph.num_edges == 0:
         return 0.0
     # The inlier edges counted and picked on the bit rows: a large inlier set's dense M x M
-    # adjacency costs more than the search around it (docs/implementation.md).
+    # adjacency costs more than the search around it (docs/design.md).
     counts = graph.later_neighbour_counts(inliers)
     e_in = int(counts.sum())
     if e_in == 0:
