@@ -62,7 +62,7 @@ def _length_word(cols, k, i, d2, min_sq):
     ``cols`` (6, W * 64): separate, NaN-padded coordinate columns px, py, pz, qx, qy, qz,
     so the loop vectorizes and padding is never an edge. The 64 columns are sliced first:
     indexed as cols[a, 64 k + b], LLVM cannot see the loads are contiguous and gathers
-    them (8x slower, docs/implementation.md).
+    them (docs/design.md, "Compiled kernels").
     """
     lo, hi = k << 6, (k << 6) + 64
     px, py, pz = cols[0, lo:hi], cols[1, lo:hi], cols[2, lo:hi]
