@@ -31,8 +31,8 @@ sys.path[:0] = [str(ROOT), str(ROOT / 'bench')]
 # Imported only after the sys.path set-up above (E402).
 from bench_core import problem_seed, problem_transform  # noqa: E402
 from cgags_ros.datasets.synthetic import load_bunny, make_correspondences  # noqa: E402
-from cgags_ros.registration import (  # noqa: E402
-    CoreConfig, kernels, register_correspondences)
+from cgags_ros.registration import compiled  # noqa: E402
+from cgags_ros.registration import CoreConfig, register_correspondences  # noqa: E402
 from cgags_ros.registration.compatibility import build_compatibility_graph  # noqa: E402
 from cgags_ros.registration.compatibility_4dof import (  # noqa: E402
     build_vertical_compatibility_graph)
@@ -61,7 +61,7 @@ def measure(src, dst, truth: np.ndarray, motion: str, tournament: bool, draws: i
     search = cls(src, dst, graph, cfg, TAU, delta, np.random.default_rng(0))
     subsets, _ = search.minimal_compatible_subsets(draws)
     R, t = search.fit(subsets)
-    inside = kernels.residual_matrix(search.src, search.dst, R, t) <= TAU
+    inside = compiled.residual_matrix(search.corr, R, t) <= TAU
     counts = np.maximum(inside.sum(axis=1) - search.SUBSET_SIZE, 0)
     right = truth[subsets].all(axis=1)
     wrong = counts[~right]

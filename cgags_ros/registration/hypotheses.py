@@ -1,4 +1,4 @@
-"""Hypotheses: score contributions and the final least-squares re-fit (fits: kernels)."""
+"""Hypotheses: score contributions and the final least-squares re-fit (fits: compiled)."""
 
 from __future__ import annotations
 

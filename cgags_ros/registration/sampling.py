@@ -2,7 +2,7 @@
 Graph vertex sampling in numpy: k in N(i) ∩ N(j), uniform or by weight.
 
 The search's own draws (edge and vertex tournaments, guided subsets) and the collinearity
-test are compiled kernels (:mod:`.kernels_sampling`); this module serves the non-default
+test are compiled (:mod:`.compiled.sampling`); this module serves the non-default
 vertex samplers (``core.vertex_sampling`` 'uniform' and 'degree').
 """
 

@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from . import kernels
+from . import compiled
 from .compatibility import CompatibilityGraph
 from .hypotheses import refit, score_values
 from .preference import PreferenceLists
@@ -51,9 +51,9 @@ class Search:
 
     def __init__(self, src, dst, graph: CompatibilityGraph, cfg: CoreConfig, tau: float,
                  delta: float, rng: np.random.Generator):
-        kernels.compile_kernels()  # once per process (the warm-up pair), from the disk cache
-        src, dst = np.ascontiguousarray(src, np.float64), np.ascontiguousarray(dst, np.float64)
-        self.src, self.dst, self.graph, self.cfg = src, dst, graph, cfg
+        self.corr = compiled.correspondences(src, dst)  # (src, dst) as compiled code takes them
+        self.src, self.dst = self.corr
+        self.graph, self.cfg = graph, cfg
         self.tau, self.delta, self.rng = tau, delta, rng
         self.num_hypotheses = 0  # minimal subsets generated (the pre-screen fits the best)
         self.num_drawn = 0  # sampled, including triples rejected before fitting (the cap)
@@ -142,14 +142,14 @@ class Search:
             triples = np.stack([i, j, k], axis=1)[ok]
             self.sampled.append(triples)
             return self._keep_non_collinear(triples)
-        i, j, k, support, status = kernels.draw_triples(
-            self.rng, self.graph, self.lists(), self.src, self.dst, self.delta,
-            cfg.compatibility == 'soft', count, self.edge_tournament_size(),
-            cfg.vertex_tournament, cfg.min_triangle_area_factor * self.tau ** 2)
-        self.stats['empty_common_neighbourhood'] += int((status == kernels.EMPTY).sum())
-        self.stats['rejected_collinear'] += int((status == kernels.COLLINEAR).sum())
+        i, j, k, support, status = compiled.draw_triples(
+            self.rng, self.graph.arrays(self.lists()), self.corr, self.delta, count,
+            self.edge_tournament_size(), cfg.vertex_tournament, compiled.VERTEX_PROPOSALS,
+            cfg.min_triangle_area_factor * self.tau ** 2)
+        self.stats['empty_common_neighbourhood'] += int((status == compiled.EMPTY).sum())
+        self.stats['rejected_collinear'] += int((status == compiled.COLLINEAR).sum())
         triples = np.stack([i, j, k], axis=1)
-        self.sampled.append(triples[status != kernels.EMPTY])
+        self.sampled.append(triples[status != compiled.EMPTY])
         keep = status == 0
         return triples[keep], support[keep]
 
@@ -167,9 +167,8 @@ class Search:
     def compatible_edges(self, count: int):
         """Draw ``count`` compatible edges i, j (graph edge sampling); the lists used or None."""
         lists = self.lists()
-        i, j = kernels.draw_edges(self.rng, self.graph, lists, self.src, self.dst, self.delta,
-                                  self.cfg.compatibility == 'soft', count,
-                                  self.edge_tournament_size())
+        i, j = compiled.draw_edges(self.rng, self.graph.arrays(lists), self.corr, self.delta,
+                                   count, self.edge_tournament_size())
         return i, j, ((self.graph.indptr, lists[:, 1]) if len(lists) else None)
 
     def _keep_non_collinear(self, triples: np.ndarray, support: np.ndarray | None = None
@@ -177,14 +176,14 @@ class Search:
         min_area = self.cfg.min_triangle_area_factor * self.tau ** 2
         if min_area <= 0 or len(triples) == 0:
             return triples, support
-        ok = kernels.usable_triangles(self.src, self.dst, triples, min_area)
+        ok = compiled.usable_triangles(self.corr, triples, min_area)
         self.stats['rejected_collinear'] += int((~ok).sum())
         return triples[ok], None if support is None else support[ok]
 
     # --- hypotheses -------------------------------------------------------------------------
     def fit(self, triples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return the closed-form fits R (B, 3, 3), t (B, 3) of minimal subsets (rows)."""
-        return kernels.fit_triples(self.src, self.dst, triples)
+        return compiled.fit_triples(self.corr, triples)
 
     def evaluate(self, triples: np.ndarray, support: np.ndarray | None = None) -> bool:
         """
@@ -204,8 +203,9 @@ class Search:
             # would never be used), plus the first _CHANCE_PER_BATCH: triples arrive in
             # random order, so these are unselected hypotheses (the chance level).
             cand = np.arange(len(triples))
+            subsets = np.ascontiguousarray(triples[:, :self.SUBSET_SIZE])  # 4-DoF: edges (i, j)
             if support is None:
-                support = kernels.common_support(self.graph, triples)
+                support = compiled.common_support(self.graph.words, subsets)
             if len(triples) > 4 * cfg.exact_per_batch:
                 kept = 4 * cfg.exact_per_batch
                 cand = np.argpartition(-support, kept - 1)[:kept]
@@ -214,14 +214,14 @@ class Search:
             Rc, tc = R[_CHANCE_PER_BATCH:], t[_CHANCE_PER_BATCH:]
             # Common neighbourhoods spanning much of N: score on all N (the exact score).
             dense = support[cand].mean() >= _DENSE_PRESCREEN * self.graph.n
-            pre = kernels.prescreen_scores(self.graph, self.src, self.dst, Rc, tc,
-                                           triples[cand], self.tau, cfg.score, dense)
+            pre = compiled.prescreen_scores(self.graph.words, self.corr, Rc, tc, subsets[cand],
+                                            self.tau, cfg.score == 'truncated', dense)
             top = np.argpartition(-pre, cfg.exact_per_batch - 1)[: cfg.exact_per_batch]
             top = np.concatenate([np.arange(_CHANCE_PER_BATCH), _CHANCE_PER_BATCH + top])
             R, t = R[top], t[top]
         else:
             R, t = self.fit(triples)
-        res = kernels.residual_matrix(self.src, self.dst, R, t)
+        res = compiled.residual_matrix(self.corr, R, t)
         # Random hypotheses' inlier counts measure the chance consensus level.
         self.consensus.add(res, self.CHANCE_ROWS)
         if cfg.guided_sampling:
@@ -324,14 +324,14 @@ class Search:
 
     def draw_guided(self, rows, seed_w, count):
         """Draw ``count`` guided minimal subsets (local indices i, j, k and an ok mask)."""
-        return kernels.draw_guided(self.rng, rows, seed_w, count, self.cfg.xi)
+        return compiled.draw_guided(self.rng, rows, seed_w, count, self.cfg.xi, False)
 
     def _kernel(self):
         """
         Return the members, their kernel and adjacency rows, and seed weights.
 
         The members are the M correspondences guided sampling draws from; the rows
-        (:func:`~.kernels.guided_rows`) hold their intersection kernel K and their
+        (:func:`.compiled.guided_rows`) hold their intersection kernel K and their
         compatibility adjacency, each row computed when a draw first reads it.
         """
         cfg, n = self.cfg, self.graph.n
@@ -340,11 +340,11 @@ class Search:
         else:
             order = np.argsort(self.preference.quality(), kind='stable')
             members = np.union1d(order[: cfg.kernel_subset], self.best_inliers)
-        rows = kernels.guided_rows(self.preference.kernel_bits(members), self.preference.b,
-                                   self.graph.words, members)
+        rows = compiled.guided_rows(self.preference.kernel_bits(members), self.preference.b,
+                                    self.graph.words, members)
         if cfg.guided_seed == 'best_inliers':
             seed_w = np.isin(members, self.best_inliers).astype(np.float64)
         else:
-            kernel, adjacency = kernels.all_rows(rows)
-            seed_w = (kernel * adjacency).sum(axis=1) + cfg.xi
+            kernel, adjacency = self.preference.kernel(members), self.graph.adjacency(members)
+            seed_w = ((kernel * adjacency).sum(axis=1) + cfg.xi).astype(np.float64)
         return members, rows, seed_w

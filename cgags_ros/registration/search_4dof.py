@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import kernels
+from . import compiled
 from .search import Search
 from .stopping import empirical_inlier_probability
 from .yaw import fit_edges, fit_yaw, horizontal_lengths
@@ -63,12 +63,12 @@ class EdgeSearch(Search):
         by common neighbours, whose winners are to a large share all-inlier edges when the
         graph is sparse (outliers spread wider than the model) and would read as chance.
         """
-        i, j = kernels.draw_edges(self.rng, self.graph, self.lists(), self.src, self.dst,
-                                  self.delta, self.cfg.compatibility == 'soft', count, 1)
+        i, j = compiled.draw_edges(self.rng, self.graph.arrays(self.lists()), self.corr,
+                                   self.delta, count, 1)
         ok = self._usable(i, j)
         if ok.any():
             R, t = fit_edges(self.src, self.dst, i[ok], j[ok])
-            self.consensus.add_chance(kernels.residual_matrix(self.src, self.dst, R, t))
+            self.consensus.add_chance(compiled.residual_matrix(self.corr, R, t))
 
     def _usable(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
         """Mask of the edges long enough across the gravity axis to fix the yaw."""
@@ -101,5 +101,4 @@ class EdgeSearch(Search):
 
     def draw_guided(self, rows, seed_w, count):
         """Guided edges (local indices i, j, j): j in N(i) with p ∝ K(i, j) + xi."""
-        return kernels.draw_guided(self.rng, rows, seed_w, count, self.cfg.xi,
-                                   edges_only=True)
+        return compiled.draw_guided(self.rng, rows, seed_w, count, self.cfg.xi, True)
