@@ -13,7 +13,7 @@ import math
 from cgags_ros.datasets.synthetic import load_bunny, make_correspondences
 from cgags_ros.registration import compatibility, compiled, register_correspondences
 from cgags_ros.registration.compatibility import build_compatibility_graph, CompatibilityGraph
-from cgags_ros.registration.compiled import (COLLINEAR, compatibility_words, correspondences,
+from cgags_ros.registration.compiled import (COLLINEAR, compatibility_words, Correspondences,
                                              draw_edges, draw_guided, draw_triples, EMPTY,
                                              fit_triples, intersection_kernel,
                                              merge_preferences, neighbour_lists,
@@ -72,7 +72,7 @@ def _unpack(words, n):
 @pytest.mark.parametrize('min_sq', [0.0, 0.2])
 def test_graph_equals_numpy(n, min_sq):
     src, dst = _problem(n, inliers=min(n, 40))
-    words = compatibility_words(correspondences(src, dst), DELTA, min_sq)
+    words = compatibility_words(Correspondences.of(src, dst), DELTA, min_sq)
     assert words.shape == (n, (n + 63) // 64)
     assert np.array_equal(_unpack(words, n), _numpy_graph(src, dst, DELTA, min_sq))
     # Bits past column N stay zero (popcounts over whole words count no padding).
@@ -145,7 +145,7 @@ def test_edges_equal_numpy_draws(size, with_lists):
     src, dst = _problem(150)
     graph = build_compatibility_graph(src, dst, DELTA)
     lists = graph.entry_lists() if with_lists else None
-    i, j = draw_edges(np.random.default_rng(5), graph.arrays(lists), correspondences(src, dst),
+    i, j = draw_edges(np.random.default_rng(5), graph.arrays(lists), Correspondences.of(src, dst),
                       DELTA, 40, size)
     ref = _reference_edges(np.random.default_rng(5), graph, src, dst, DELTA, 40, size)
     assert np.array_equal(np.stack([i, j], 1), ref)
@@ -189,7 +189,7 @@ def test_triples_equal_numpy_draws(with_lists):
     src, dst = _problem(150)
     graph = build_compatibility_graph(src, dst, DELTA)
     lists = graph.entry_lists() if with_lists else None
-    got = draw_triples(np.random.default_rng(3), graph.arrays(lists), correspondences(src, dst),
+    got = draw_triples(np.random.default_rng(3), graph.arrays(lists), Correspondences.of(src, dst),
                        DELTA, 60, 4, 3, 16, 0.05)
     ref = _reference_triples(np.random.default_rng(3), graph, src, dst, 60, 4, 3, 16, 0.05)
     got = np.stack([np.asarray(a, dtype=np.int64) for a in got], axis=1)
@@ -204,7 +204,7 @@ def test_fits_equal_kabsch():
     triples = np.random.default_rng(2).integers(0, 100, (80, 3))
     triples = triples[(triples[:, 0] != triples[:, 1]) & (triples[:, 1] != triples[:, 2])
                       & (triples[:, 0] != triples[:, 2])]
-    R, t = fit_triples(correspondences(src, dst), triples)
+    R, t = fit_triples(Correspondences.of(src, dst), triples)
     R_ref, t_ref = kabsch_batch(src[triples], dst[triples])
     np.testing.assert_allclose(R, R_ref, atol=1e-9)
     np.testing.assert_allclose(t, t_ref, atol=1e-9)
@@ -222,7 +222,7 @@ def test_prescreen_and_residuals_equal_numpy(score):
     R, t = (np.ascontiguousarray(a) for a in kabsch_batch(src[triples], dst[triples]))
     tau = 0.05
     truncated = score == 'truncated'
-    corr = correspondences(src, dst)
+    corr = Correspondences.of(src, dst)
     pre = prescreen_scores(graph.words, corr, R, t, triples, tau, truncated, False)
     ref = score_in_common_neighbourhood(graph, src, dst, R, t, triples, tau, score)
     np.testing.assert_allclose(pre, ref, atol=1e-9)
@@ -267,7 +267,7 @@ def test_usable_triangles_equal_numpy_areas():
     min_area = 0.05
     i, j, k = triples.T
     ref = ((triangle_areas(src, i, j, k) >= min_area) & (triangle_areas(dst, i, j, k) >= min_area))
-    got = compiled.usable_triangles(correspondences(src, dst), triples, min_area)
+    got = compiled.usable_triangles(Correspondences.of(src, dst), triples, min_area)
     assert np.array_equal(got, ref) and 0 < ref.sum() < len(ref)
 
 
@@ -394,9 +394,9 @@ def test_compiled_at_import_from_the_declared_signatures():
         assert len(fn.signatures) == 1, fn  # compiled (or loaded from the cache) at import
     src, dst = _problem(20, inliers=10)
     R, t = (np.ascontiguousarray(a) for a in kabsch_batch(src[None, :3], dst[None, :3]))
-    residual_matrix(correspondences(src, dst), R, t)
-    for other in (compiled.Correspondences(src.astype(np.float32), dst),  # another dtype
-                  compiled.Correspondences(src, np.asfortranarray(dst))):  # another layout
+    residual_matrix(Correspondences.of(src, dst), R, t)
+    for other in (Correspondences(src.astype(np.float32), dst),  # another dtype
+                  Correspondences(src, np.asfortranarray(dst))):  # another layout
         with pytest.raises(TypeError):
             residual_matrix(other, R, t)
     assert all(len(fn.signatures) == 1 for fn in functions)

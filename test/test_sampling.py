@@ -26,7 +26,7 @@ def _random_graph(n=60, p=0.2, seed=0):
 def _edges(g, rng, count, src, dst, delta, lists, size=1):
     """Draw ``count`` edges as the search does (``size`` = 1: by soft weight over E)."""
     return compiled.draw_edges(rng, g.arrays(g.entry_lists() if lists else None),
-                               compiled.correspondences(src, dst), delta, count, size)
+                               compiled.Correspondences.of(src, dst), delta, count, size)
 
 
 @pytest.mark.parametrize('lists', [False, True])

@@ -178,7 +178,7 @@ def build_compatibility_graph(src: np.ndarray, dst: np.ndarray, delta: float,
     squared lengths, no N x N scratch. With ``workers`` > 1 (and N >= ``_SPLIT_MIN``) its
     two passes are split into ranges of equal work, one thread each; the bits are the same.
     """
-    corr = compiled.correspondences(src, dst)
+    corr = compiled.Correspondences.of(src, dst)
     d2, min_sq = float(delta) ** 2, float(min_pair_distance) ** 2
     n = len(src)
     if workers <= 1 or n < _SPLIT_MIN:

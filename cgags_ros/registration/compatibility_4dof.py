@@ -38,5 +38,5 @@ def build_vertical_compatibility_graph(src: np.ndarray, dst: np.ndarray, delta: 
         raise ValueError('offsets must be sorted ascending (sort the correspondences by u)')
     hi = np.searchsorted(u, u + delta, side='right').astype(np.int64)  # end of each window
     words = compiled.vertical_compatibility_words(
-        compiled.correspondences(src, dst), u, hi, float(delta), float(min_pair_distance) ** 2)
+        compiled.Correspondences.of(src, dst), u, hi, float(delta), float(min_pair_distance) ** 2)
     return CompatibilityGraph(words.view(np.uint8), n)

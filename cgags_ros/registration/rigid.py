@@ -44,11 +44,11 @@ def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) 
     if not w.sum() > 0.0:
         raise ValueError(f'kabsch needs points with positive total weight, got {len(src)} '
                          f'point(s) weighing {w.sum()}')
-    return compiled.fit_weighted(compiled.correspondences(src, dst),
+    return compiled.fit_weighted(compiled.Correspondences.of(src, dst),
                                  compiled.c_array(w, np.float64))
 
 
 def residuals(T: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """Euclidean residuals ``||dst_i - (R src_i + t)||`` (same units as the points)."""
     return compiled.point_residuals(compiled.c_array(T, np.float64),
-                                    compiled.correspondences(src, dst))
+                                    compiled.Correspondences.of(src, dst))

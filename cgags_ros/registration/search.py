@@ -51,7 +51,7 @@ class Search:
 
     def __init__(self, src, dst, graph: CompatibilityGraph, cfg: CoreConfig, tau: float,
                  delta: float, rng: np.random.Generator):
-        self.corr = compiled.correspondences(src, dst)  # (src, dst) as compiled code takes them
+        self.corr = compiled.Correspondences.of(src, dst)  # (src, dst) as compiled code takes them
         self.src, self.dst = self.corr
         self.graph, self.cfg = graph, cfg
         self.tau, self.delta, self.rng = tau, delta, rng

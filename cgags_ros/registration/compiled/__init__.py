@@ -36,12 +36,12 @@ from .sampling import (COLLINEAR, complete_rows, draw_edges, draw_guided, draw_t
 from .scoring import (fit_triples, fit_weighted, point_residuals, prescreen_scores,
                       residual_matrix)
 from .subsets import later_member_counts, later_member_pairs, member_mask
-from .types import c_array, Correspondences, correspondences, GraphArrays, GuidedRows
+from .types import c_array, Correspondences, GraphArrays, GuidedRows
 
 __all__ = [
     'COLLINEAR', 'EMPTY', 'VERTEX_PROPOSALS', 'Correspondences', 'GraphArrays', 'GuidedRows',
     'c_array', 'columns', 'common_support', 'common_within', 'complete_rows',
-    'compatibility_words', 'correspondences', 'draw_edges', 'draw_guided', 'draw_triples',
+    'compatibility_words', 'draw_edges', 'draw_guided', 'draw_triples',
     'fit_triples', 'fit_weighted', 'guided_rows', 'intersection_kernel',
     'later_member_counts', 'later_member_pairs', 'length_rows', 'member_mask',
     'merge_preferences', 'neighbour_lists', 'or_transpose_blocks', 'point_residuals',

@@ -58,6 +58,11 @@ class Correspondences(NamedTuple):
     src: np.ndarray  # (N, 3) float64
     dst: np.ndarray  # (N, 3) float64
 
+    @classmethod
+    def of(cls, src, dst) -> Correspondences:
+        """Return (src, dst) as the compiled functions take them (copied only if needed)."""
+        return cls(c_array(src, np.float64), c_array(dst, np.float64))
+
 
 class GuidedRows(NamedTuple):
     """
@@ -80,8 +85,3 @@ GRAPH_ARRAYS = types.BaseTuple.from_types([U64_2D, I64_1D, I32_2D], GraphArrays)
 CORRESPONDENCES = types.BaseTuple.from_types([F64_2D, F64_2D], Correspondences)
 GUIDED_ROWS = types.BaseTuple.from_types(
     [F32_2D, BOOL_2D, BOOL_1D, U64_2D, types.float32, U64_2D, I64_1D], GuidedRows)
-
-
-def correspondences(src, dst) -> Correspondences:
-    """Return (src, dst) as the compiled functions take them."""
-    return Correspondences(c_array(src, np.float64), c_array(dst, np.float64))
