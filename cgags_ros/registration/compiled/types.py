@@ -41,6 +41,10 @@ BOOL_1D, BOOL_2D = _array(types.boolean, 1), _array(types.boolean, 2)
 
 def c_array(a, dtype) -> np.ndarray:
     """Return ``a`` as a C-contiguous, aligned, writable ``dtype`` array (copied if it is not)."""
+    if type(a) is np.ndarray and a.dtype == dtype:  # the usual case, without np.require's cost
+        flags = a.flags
+        if flags.c_contiguous and flags.aligned and flags.writeable:
+            return a
     return np.require(a, dtype, 'CAW')
 
 
