@@ -1,7 +1,7 @@
 """
 The compiled functions of the core (numba): the loops of Algorithm 1's steps.
 
-Which paper step each module implements (the numbering of :mod:`..cgags` and
+Which paper step each module implements (the numbering of :mod:`.cgags` and
 docs/method.md):
 
 - :mod:`.graph`: step 1, the compatibility graph (:func:`compatibility_words`; 4-DoF

@@ -206,7 +206,7 @@ def guided_rows(bits: np.ndarray, b: int, words: np.ndarray,
     """
     Return the members' rows of K and of the adjacency, each computed on first use (step 5).
 
-    ``bits``: the members' preference lists as bit rows (:func:`.scoring.preference_bits`),
+    ``bits``: the members' preference lists as bit rows (:func:`.preferences.preference_bits`),
     ``b`` their length; ``words``: the graph's bit rows. Built anew at each refresh of the
     kernel (step 6); unused rows stay unwritten (their pages are never touched).
     """

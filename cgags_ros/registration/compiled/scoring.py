@@ -4,7 +4,7 @@ Compiled functions (numba) of the hypotheses: steps 3 and 8 of Algorithm 1.
 Step 3, hypotheses: the minimal fits (:func:`fit_triples`), the pre-screen on common
 neighbourhoods (:func:`prescreen_scores`) and the residuals the scores are taken from
 (:func:`residual_matrix`). Step 8, the final re-fit's weighted fit and residuals
-(:func:`fit_weighted`, :func:`point_residuals`, through :mod:`..rigid`). Each is a loop per
+(:func:`fit_weighted`, :func:`point_residuals`, through :mod:`.rigid`). Each is a loop per
 hypothesis (or per correspondence) that numpy would run as a chain of small array calls
 (docs/implementation.md).
 """
