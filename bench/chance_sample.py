@@ -31,13 +31,10 @@ sys.path[:0] = [str(ROOT), str(ROOT / 'bench')]
 # Imported only after the sys.path set-up above (E402).
 from bench_core import problem_seed, problem_transform  # noqa: E402
 from cgags_ros.datasets.synthetic import load_bunny, make_correspondences  # noqa: E402
-from cgags_ros.registration import (  # noqa: E402
-    CoreConfig, kernels, register_correspondences)
-from cgags_ros.registration.compatibility import build_compatibility_graph  # noqa: E402
-from cgags_ros.registration.compatibility_4dof import (  # noqa: E402
-    build_vertical_compatibility_graph)
+from cgags_ros.registration import compiled  # noqa: E402
+from cgags_ros.registration import CoreConfig, register_correspondences  # noqa: E402
+from cgags_ros.registration.motion import motion_model  # noqa: E402
 from cgags_ros.registration.search import Search  # noqa: E402
-from cgags_ros.registration.search_4dof import EdgeSearch  # noqa: E402
 from cgags_ros.registration.yaw import vertical_offsets  # noqa: E402
 import numpy as np  # noqa: E402, I100
 
@@ -48,21 +45,18 @@ def measure(src, dst, truth: np.ndarray, motion: str, tournament: bool, draws: i
     """Draw ``draws`` stage-one subsets; return the all-inlier share and lambda estimates."""
     delta = TAU * 10 / 6
     cfg = CoreConfig(motion_model=motion)
+    model = motion_model(motion)
     if motion == '4dof':
         order = np.argsort(vertical_offsets(src, dst), kind='stable')
         src, dst, truth = src[order], dst[order], truth[order]
-        graph = build_vertical_compatibility_graph(src, dst, delta, vertical_offsets(src, dst))
-        cls = EdgeSearch
-    else:
-        graph = build_compatibility_graph(src, dst, delta)
-        cls = Search
+    graph = model.compatibility_graph(src, dst, delta, 0.0, 1)
     if not tournament:
         cfg = dataclasses.replace(cfg, edge_tournament=1, vertex_tournament=1)
-    search = cls(src, dst, graph, cfg, TAU, delta, np.random.default_rng(0))
-    subsets, _ = search.minimal_compatible_subsets(draws)
-    R, t = search.fit(subsets)
-    inside = kernels.residual_matrix(search.src, search.dst, R, t) <= TAU
-    counts = np.maximum(inside.sum(axis=1) - search.SUBSET_SIZE, 0)
+    search = Search(src, dst, graph, model, cfg, TAU, delta, np.random.default_rng(0))
+    subsets, _ = model.draw(search, draws)
+    R, t = model.fit(search.corr, subsets)
+    inside = compiled.residual_matrix(search.corr, R, t) <= TAU
+    counts = np.maximum(inside.sum(axis=1) - model.size, 0)
     right = truth[subsets].all(axis=1)
     wrong = counts[~right]
     zero_share = lambda c: -np.log(max(np.count_nonzero(c == 0), 1) / len(c))  # noqa: E731

@@ -171,7 +171,7 @@ def test_nearly_collinear_correspondences_end_quickly_and_invalid():
     res = register_correspondences(line, line + [0.1, 0, 0], inlier_threshold=0.01, seed=0)
     assert not res.valid
     assert 'collinear' in res.reason
-    # Quickly in draws, not seconds: a fresh clone's first call also compiles the kernels.
+    # Quickly in draws, not seconds: a fresh clone's first call also compiles the numba code.
     # The sampling bound stops it, far from the iteration cap.
     assert res.stats['stopped_by'] not in ('max_iterations', 'time_budget'), res.stats
     draws = res.stats['compatible_samples'] + res.stats['guided_samples']

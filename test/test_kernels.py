@@ -1,9 +1,9 @@
 """
-The compiled kernels (registration/kernels*.py) against plain numpy on small inputs.
+The compiled functions (registration/compiled/) against plain numpy on small inputs.
 
-Each kernel must give what the numpy computation of the same step gives: the same graph,
+Each function must give what the numpy computation of the same step gives: the same graph,
 the same draws from the same random stream, the same inliers and scores, transforms equal
-to 1e-9. Draw-by-draw references consume the generator in the kernels' order.
+to 1e-9. Draw-by-draw references consume the generator in the compiled functions' order.
 """
 
 from __future__ import annotations
@@ -11,16 +11,14 @@ from __future__ import annotations
 import math
 
 from cgags_ros.datasets.synthetic import load_bunny, make_correspondences
-from cgags_ros.registration import (compatibility, kernels, kernels_scoring,
-                                    register_correspondences)
+from cgags_ros.registration import compatibility, compiled, register_correspondences
 from cgags_ros.registration.compatibility import build_compatibility_graph, CompatibilityGraph
+from cgags_ros.registration.compiled import (COLLINEAR, compatibility_words, Correspondences,
+                                             draw_edges, draw_guided, draw_triples, EMPTY,
+                                             fit_triples, intersection_kernel,
+                                             merge_preferences, neighbour_lists,
+                                             prescreen_scores, residual_matrix)
 from cgags_ros.registration.hypotheses import score_values
-from cgags_ros.registration.kernels_graph import compatibility_words, neighbour_lists
-from cgags_ros.registration.kernels_sampling import (COLLINEAR, draw_edges, draw_guided,
-                                                     draw_triples, EMPTY)
-from cgags_ros.registration.kernels_scoring import (fit_triples, intersection_kernel,
-                                                    merge_preferences, prescreen_scores,
-                                                    residual_matrix)
 from cgags_ros.registration.rigid import kabsch_batch
 import numpy as np
 import pytest
@@ -74,7 +72,7 @@ def _unpack(words, n):
 @pytest.mark.parametrize('min_sq', [0.0, 0.2])
 def test_graph_equals_numpy(n, min_sq):
     src, dst = _problem(n, inliers=min(n, 40))
-    words = compatibility_words(src, dst, DELTA, min_sq)
+    words = compatibility_words(Correspondences.of(src, dst), DELTA, min_sq)
     assert words.shape == (n, (n + 63) // 64)
     assert np.array_equal(_unpack(words, n), _numpy_graph(src, dst, DELTA, min_sq))
     # Bits past column N stay zero (popcounts over whole words count no padding).
@@ -107,14 +105,19 @@ def test_graph_object_and_lists():
     assert np.array_equal(pairs[:, 0], rows) and np.array_equal(pairs[:, 1], cols)
     triples = np.random.default_rng(1).integers(0, 200, (50, 3))
     expected = graph.popcount(graph.common(*triples.T))
-    assert np.array_equal(kernels.common_support(graph, triples), expected)
+    assert np.array_equal(compiled.common_support(graph.words, triples), expected)
+    edges = np.ascontiguousarray(triples[:, :2])  # 4-DoF minimal subsets: |N(i) ∩ N(j)|
+    expected = graph.popcount(graph.common(*edges.T))
+    assert np.array_equal(compiled.common_support(graph.words, edges), expected)
+    with pytest.raises(ValueError):
+        compiled.common_support(graph.words, np.zeros((2, 4), np.int64))
     members = np.random.default_rng(2).choice(200, 37, replace=False)
     assert np.array_equal(graph.adjacency(members), adj[np.ix_(members, members)])
     assert graph.count_edges_within(members) == adj[np.ix_(members, members)].sum() // 2
 
 
-def _reference_edges(rng, graph, src, dst, delta, soft, count, size):
-    """Edge tournament as the kernel draws it, in plain numpy/Python."""
+def _reference_edges(rng, graph, src, dst, delta, count, size):
+    """Edge tournament as the compiled function draws it, in plain numpy/Python."""
     indptr = graph.indptr
     cols = np.nonzero(graph.rows(np.arange(graph.n)))[1]
     total = indptr[-1]
@@ -126,8 +129,6 @@ def _reference_edges(rng, graph, src, dst, delta, soft, count, size):
                 e = min(int(rng.random() * total), total - 1)
                 i = int(np.searchsorted(indptr, e, side='right') - 1)
                 j = int(cols[e])
-                if not soft:
-                    break
                 d = abs(np.linalg.norm(src[i] - src[j]) - np.linalg.norm(dst[i] - dst[j]))
                 if rng.random() < 1.0 - (d / delta) ** 2:
                     break
@@ -138,22 +139,21 @@ def _reference_edges(rng, graph, src, dst, delta, soft, count, size):
     return np.array(out).reshape(-1, 2)
 
 
-@pytest.mark.parametrize('soft', [False, True])
 @pytest.mark.parametrize('size', [1, 4])
 @pytest.mark.parametrize('with_lists', [False, True])
-def test_edges_equal_numpy_draws(soft, size, with_lists):
+def test_edges_equal_numpy_draws(size, with_lists):
     src, dst = _problem(150)
     graph = build_compatibility_graph(src, dst, DELTA)
-    lists = graph.entry_lists() if with_lists else np.zeros((0, 2), np.int32)
-    i, j = draw_edges(np.random.default_rng(5), graph.words, graph.indptr, lists, src, dst,
-                      DELTA, soft, 40, size)
-    ref = _reference_edges(np.random.default_rng(5), graph, src, dst, DELTA, soft, 40, size)
+    lists = graph.entry_lists() if with_lists else None
+    i, j = draw_edges(np.random.default_rng(5), graph.arrays(lists), Correspondences.of(src, dst),
+                      DELTA, 40, size)
+    ref = _reference_edges(np.random.default_rng(5), graph, src, dst, DELTA, 40, size)
     assert np.array_equal(np.stack([i, j], 1), ref)
 
 
 def _reference_triples(rng, graph, src, dst, count, edge_size, vertex_size, proposals,
                        min_area):
-    edges = _reference_edges(rng, graph, src, dst, DELTA, True, count, edge_size)
+    edges = _reference_edges(rng, graph, src, dst, DELTA, count, edge_size)
     rows = graph.rows(np.arange(graph.n))
     out = []
     for i, j in edges:
@@ -188,9 +188,9 @@ def _reference_triples(rng, graph, src, dst, count, edge_size, vertex_size, prop
 def test_triples_equal_numpy_draws(with_lists):
     src, dst = _problem(150)
     graph = build_compatibility_graph(src, dst, DELTA)
-    lists = graph.entry_lists() if with_lists else np.zeros((0, 2), np.int32)
-    got = draw_triples(np.random.default_rng(3), graph.words, graph.indptr, lists, src, dst,
-                       DELTA, True, 60, 4, 3, 16, 0.05)
+    lists = graph.entry_lists() if with_lists else None
+    got = draw_triples(np.random.default_rng(3), graph.arrays(lists), Correspondences.of(src, dst),
+                       DELTA, 60, 4, 3, 16, 0.05)
     ref = _reference_triples(np.random.default_rng(3), graph, src, dst, 60, 4, 3, 16, 0.05)
     got = np.stack([np.asarray(a, dtype=np.int64) for a in got], axis=1)
     usable = ref[:, 4] != EMPTY
@@ -204,7 +204,7 @@ def test_fits_equal_kabsch():
     triples = np.random.default_rng(2).integers(0, 100, (80, 3))
     triples = triples[(triples[:, 0] != triples[:, 1]) & (triples[:, 1] != triples[:, 2])
                       & (triples[:, 0] != triples[:, 2])]
-    R, t = fit_triples(src, dst, triples)
+    R, t = fit_triples(Correspondences.of(src, dst), triples)
     R_ref, t_ref = kabsch_batch(src[triples], dst[triples])
     np.testing.assert_allclose(R, R_ref, atol=1e-9)
     np.testing.assert_allclose(t, t_ref, atol=1e-9)
@@ -218,17 +218,22 @@ def test_prescreen_and_residuals_equal_numpy(score):
     rng = np.random.default_rng(4)
     triples = np.concatenate([rng.permutation(40)[:30].reshape(10, 3),
                               rng.integers(0, 150, (20, 3))])
-    triples[-3:, 2] = triples[-3:, 1]  # 4-DoF edges stored as (i, j, j)
-    R, t = kabsch_batch(src[triples], dst[triples])
+    triples[-3:, 2] = triples[-3:, 1]  # as the 4-DoF edges (i, j), their reference below
+    R, t = (np.ascontiguousarray(a) for a in kabsch_batch(src[triples], dst[triples]))
     tau = 0.05
     truncated = score == 'truncated'
-    pre = prescreen_scores(graph.words, src, dst, R, t, triples, tau, truncated, False)
+    corr = Correspondences.of(src, dst)
+    pre = prescreen_scores(graph.words, corr, R, t, triples, tau, truncated, False)
     ref = score_in_common_neighbourhood(graph, src, dst, R, t, triples, tau, score)
     np.testing.assert_allclose(pre, ref, atol=1e-9)
-    res = residual_matrix(src, dst, R, t)
+    # Edges (i, j): on {i, j} ∪ (N(i) ∩ N(j)), the same terms in the same order as (i, j, j).
+    edges = np.ascontiguousarray(triples[-3:, :2])
+    got = prescreen_scores(graph.words, corr, R[-3:], t[-3:], edges, tau, truncated, False)
+    assert np.array_equal(got, pre[-3:])
+    res = residual_matrix(corr, R, t)
     res_ref = np.linalg.norm(np.einsum('bij,nj->bni', R, src) + t[:, None] - dst[None], axis=2)
     np.testing.assert_allclose(res, res_ref, rtol=1e-6, atol=1e-7)
-    dense = prescreen_scores(graph.words, src, dst, R, t, triples, tau, truncated, True)
+    dense = prescreen_scores(graph.words, corr, R, t, triples, tau, truncated, True)
     np.testing.assert_allclose(dense, score_values(res_ref, tau, score).sum(axis=1), atol=1e-9)
     assert dense[:10].max() >= 30  # the inlier triples found their inliers
 
@@ -262,7 +267,7 @@ def test_usable_triangles_equal_numpy_areas():
     min_area = 0.05
     i, j, k = triples.T
     ref = ((triangle_areas(src, i, j, k) >= min_area) & (triangle_areas(dst, i, j, k) >= min_area))
-    got = kernels.usable_triangles(src, dst, triples, min_area)
+    got = compiled.usable_triangles(Correspondences.of(src, dst), triples, min_area)
     assert np.array_equal(got, ref) and 0 < ref.sum() < len(ref)
 
 
@@ -304,7 +309,7 @@ def test_intersection_kernel_equals_numpy(b):
 
 @pytest.mark.parametrize('edges_only', [False, True])
 def test_guided_rows_on_first_use_equal_the_full_matrices(edges_only):
-    """Kernel and adjacency rows computed when a draw reads them: the same draws."""
+    """Rows of K and of the adjacency computed when a draw reads them: the same draws."""
     rng = np.random.default_rng(5)
     n, b, hypotheses = 200, 20, 300
     ids = np.stack([rng.choice(hypotheses, b, replace=False) for _ in range(n)])
@@ -312,22 +317,19 @@ def test_guided_rows_on_first_use_equal_the_full_matrices(edges_only):
     dense = np.triu(rng.random((n, n)) < 0.3, 1)
     graph = CompatibilityGraph(np.packbits(dense | dense.T, axis=1, bitorder='little'), n)
     members = np.sort(rng.choice(n, 90, replace=False))
-    bits = kernels_scoring.preference_bits(ids, members, hypotheses, b)
-    lazy = kernels.guided_rows(bits, b, graph.words, members)
-    full = kernels.complete_rows(intersection_kernel(ids, members, hypotheses, b),
-                                 graph.adjacency(members))
+    bits = compiled.preference_bits(ids, members, hypotheses, b)
+    lazy = compiled.guided_rows(bits, b, graph.words, members)
+    full = compiled.complete_rows(intersection_kernel(ids, members, hypotheses, b),
+                                  graph.adjacency(members))
     seeds = rng.random(len(members))
-    a = kernels.draw_guided(np.random.default_rng(2), lazy, seeds, 300, 1e-6, edges_only)
-    c = kernels.draw_guided(np.random.default_rng(2), full, seeds, 300, 1e-6, edges_only)
+    a = draw_guided(np.random.default_rng(2), lazy, seeds, 300, 1e-6, edges_only)
+    c = draw_guided(np.random.default_rng(2), full, seeds, 300, 1e-6, edges_only)
     for x, y in zip(a, c):
         np.testing.assert_array_equal(x, y)
-    done = lazy[2]
+    done = lazy.done
     assert 0 < done.sum() < len(members)  # only the rows drawn from were computed
-    np.testing.assert_array_equal(lazy[0][done], full[0][done])
-    np.testing.assert_array_equal(lazy[1][done], full[1][done])
-    kernel, adjacency = kernels.all_rows(lazy)
-    np.testing.assert_array_equal(kernel, full[0])
-    np.testing.assert_array_equal(adjacency, full[1])
+    np.testing.assert_array_equal(lazy.kernel[done], full.kernel[done])
+    np.testing.assert_array_equal(lazy.adjacency[done], full.adjacency[done])
 
 
 @pytest.mark.parametrize('edges_only', [False, True])
@@ -339,13 +341,13 @@ def test_guided_equals_numpy_draws(edges_only):
     np.fill_diagonal(adjacency, False)
     adjacency[3] = False  # a seed without partners
     seed_w = rng.random(m)
-    i, j, k, ok = draw_guided(np.random.default_rng(8), kernels.complete_rows(kernel, adjacency),
-                              np.cumsum(seed_w), 50, xi, edges_only)
+    i, j, k, ok = draw_guided(np.random.default_rng(8), compiled.complete_rows(kernel, adjacency),
+                              seed_w, 50, xi, edges_only)
     r = np.random.default_rng(8)
     cdf = np.cumsum(seed_w)
 
     def pick(weights):
-        u = r.random()  # drawn whether or not a partner exists, as the kernel does
+        u = r.random()  # drawn whether or not a partner exists, as the compiled draw does
         if weights.sum() <= 0:
             return -1
         return int(np.argmax(np.cumsum(weights) > u * weights.sum()))
@@ -375,29 +377,44 @@ def test_core_deterministic_for_a_seed(data_dir):
     assert np.array_equal(a.inliers, b.inliers) and a.num_hypotheses == b.num_hypotheses
 
 
-def test_compile_kernels_is_idempotent():
-    kernels.compile_kernels()
-    kernels.compile_kernels()
-    for fn in (compatibility_words, draw_triples, draw_edges, draw_guided, fit_triples,
-               prescreen_scores, residual_matrix, merge_preferences, intersection_kernel):
-        assert fn.signatures, fn  # compiled (or loaded from the cache)
+def _compiled_functions():
+    """Every compiled function of the core with a declared signature (not the inlined helpers)."""
+    from cgags_ros.registration.compiled import graph, preferences, sampling, scoring, subsets
+
+    modules = (graph, preferences, sampling, scoring, subsets)
+    return [getattr(m, name) for m in modules for name in dir(m)
+            if hasattr(getattr(m, name), 'signatures')
+            and getattr(m, name).targetoptions.get('inline') != 'always']
+
+
+def test_compiled_at_import_from_the_declared_signatures():
+    functions = _compiled_functions()
+    assert compatibility_words in functions and draw_guided in functions
+    for fn in functions:
+        assert len(fn.signatures) == 1, fn  # compiled (or loaded from the cache) at import
+    src, dst = _problem(20, inliers=10)
+    R, t = (np.ascontiguousarray(a) for a in kabsch_batch(src[None, :3], dst[None, :3]))
+    residual_matrix(Correspondences.of(src, dst), R, t)
+    for other in (Correspondences(src.astype(np.float32), dst),  # another dtype
+                  Correspondences(src, np.asfortranarray(dst))):  # another layout
+        with pytest.raises(TypeError):
+            residual_matrix(other, R, t)
+    assert all(len(fn.signatures) == 1 for fn in functions)
 
 
 def test_searches_use_only_the_compiled_signatures(monkeypatch, data_dir):
-    """compile_kernels (the warm-up) compiles every specialization a search needs."""
-    from cgags_ros.registration import (CoreConfig, kernels_graph, kernels_sampling,
-                                        kernels_scoring, kernels_subsets)
+    """A search calls the compiled functions only with their declared argument types."""
+    from cgags_ros.registration import CoreConfig
 
-    kernels.compile_kernels()
-    dispatchers = [getattr(m, name)
-                   for m in (kernels_graph, kernels_sampling, kernels_scoring, kernels_subsets)
-                   for name in dir(m) if hasattr(getattr(m, name), 'signatures')]
-    before = {d: len(d.signatures) for d in dispatchers}
+    functions = _compiled_functions()
+    before = {fn: list(fn.signatures) for fn in functions}
     model = load_bunny(data_dir)
     monkeypatch.setattr(compatibility, '_SPLIT_MIN', 0)  # the graph split over threads too
     p = make_correspondences(model, 800, 0.98, noise_sigma=0.01, rng=2)
+    dst = p.dst.copy()
+    dst.flags.writeable = False
     for motion in ('6dof', '4dof'):
-        src = np.asfortranarray(p.src)  # any layout: the core hands kernels C arrays
-        register_correspondences(src, p.dst, inlier_threshold=0.05, seed=1,
+        src = np.asfortranarray(p.src)  # any layout, read-only too: the core copies as needed
+        register_correspondences(src, dst, inlier_threshold=0.05, seed=1,
                                  config=CoreConfig(motion_model=motion), workers=2)
-    assert {d: len(d.signatures) for d in dispatchers} == before
+    assert {fn: list(fn.signatures) for fn in functions} == before

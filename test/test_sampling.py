@@ -4,13 +4,11 @@ Check that minimal-subset sampling draws the distributions the method asks for.
 The compiled edge, tournament and guided draws.
 """
 
-from cgags_ros.registration import kernels
+from cgags_ros.registration import compiled
 from cgags_ros.registration.compatibility import (CompatibilityGraph, length_consistency,
                                                   popcount_rows)
 import numpy as np
 import pytest
-
-NO_LISTS = np.zeros((0, 2), np.int32)
 
 
 def _graph(dense: np.ndarray) -> CompatibilityGraph:
@@ -24,10 +22,10 @@ def _random_graph(n=60, p=0.2, seed=0):
     return _graph(np.triu(rng.random((n, n)) < p, 1))
 
 
-def _edges(g, rng, count, src, dst, delta, soft, lists, size=1):
-    """Draw ``count`` edges with the search's kernel (``size`` = 1: uniform over E)."""
-    return kernels.draw_edges(rng, g, g.entry_lists() if lists else NO_LISTS, src, dst, delta,
-                              soft, count, size)
+def _edges(g, rng, count, src, dst, delta, lists, size=1):
+    """Draw ``count`` edges as the search does (``size`` = 1: by soft weight over E)."""
+    return compiled.draw_edges(rng, g.arrays(g.entry_lists() if lists else None),
+                               compiled.Correspondences.of(src, dst), delta, count, size)
 
 
 @pytest.mark.parametrize('lists', [False, True])
@@ -35,8 +33,8 @@ def test_edges_are_edges_and_uniform_over_E(lists):
     g = _random_graph()
     dense = g.rows(np.arange(g.n))
     rng = np.random.default_rng(1)
-    pts = np.zeros((g.n, 3))
-    i, j = _edges(g, rng, 200000, pts, pts, 1.0, False, lists)
+    pts = np.zeros((g.n, 3))  # every edge weighs 1: uniform over E
+    i, j = _edges(g, rng, 200000, pts, pts, 1.0, lists)
     assert dense[i, j].all()
     # undirected edge frequencies: uniform over E within sampling noise
     key = np.minimum(i, j) * g.n + np.maximum(i, j)
@@ -56,7 +54,7 @@ def test_soft_edges_are_drawn_in_proportion_to_their_weight(lists):
     a, b = np.nonzero(np.triu(dense))
     delta = 1.01 * length_consistency(src, dst, a, b).max()  # every edge keeps some weight
     draws = 300000
-    i, j = _edges(g, rng, draws, src, dst, delta, True, lists)
+    i, j = _edges(g, rng, draws, src, dst, delta, lists)
     assert len(i) == draws and dense[i, j].all()
     key = np.minimum(i, j) * g.n + np.maximum(i, j)
     counts = np.bincount(key, minlength=g.n * g.n)[a * g.n + b]
@@ -73,10 +71,11 @@ def test_sparse_graphs_draw_only_their_edges():
     g = _graph(dense)
     rng = np.random.default_rng(2)
     pts = np.zeros((500, 3))
-    i, j = _edges(g, rng, 100, pts, pts, 1.0, False, False)
+    i, j = _edges(g, rng, 100, pts, pts, 1.0, False)
     assert set(np.unique(np.concatenate([i, j]))) <= {0, 1, 2}
-    i, j, k, _, status = kernels.draw_triples(rng, g, NO_LISTS, pts, pts, 1.0, False, 100,
-                                              4, 4, 0.0)
+    i, j, k, _, status = compiled.draw_triples(rng, g.arrays(None),
+                                               compiled.Correspondences.of(pts, pts), 1.0, 100,
+                                               4, 4, compiled.VERTEX_PROPOSALS, 0.0)
     assert (status == 0).all()
     assert np.all((k != i) & (k != j) & np.isin(k, [0, 1, 2]))
 
@@ -85,8 +84,8 @@ def test_tournament_keeps_the_best_supported_candidate():
     g = _random_graph(n=100, p=0.3, seed=5)
     pts = np.zeros((g.n, 3))
     # The candidates: the same random stream drawn as uniform edges, 4 per tournament.
-    i, j = _edges(g, np.random.default_rng(6), 40, pts, pts, 1.0, False, False)
-    wi, wj = _edges(g, np.random.default_rng(6), 10, pts, pts, 1.0, False, False, size=4)
+    i, j = _edges(g, np.random.default_rng(6), 40, pts, pts, 1.0, False)
+    wi, wj = _edges(g, np.random.default_rng(6), 10, pts, pts, 1.0, False, size=4)
     support = popcount_rows(g.common(i, j)).reshape(10, 4)
     won = popcount_rows(g.common(wi, wj))
     assert np.array_equal(won, support.max(axis=1))
@@ -102,8 +101,9 @@ def test_guided_sampling_prefers_high_kernel_partners():
     np.fill_diagonal(kernel, 0)
     seeds = np.zeros(m)
     seeds[group] = 1
-    i, j, k, ok = kernels.draw_guided(np.random.default_rng(8),
-                                      kernels.complete_rows(kernel, adjacency), seeds, 5000, 1e-6)
+    i, j, k, ok = compiled.draw_guided(np.random.default_rng(8),
+                                       compiled.complete_rows(kernel, adjacency), seeds, 5000,
+                                       1e-6, False)
     assert ok.all()
     assert np.isin(i, group).all()
     assert np.isin(j, group).mean() > 0.99 and np.isin(k, group).mean() > 0.99

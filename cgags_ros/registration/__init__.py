@@ -1,5 +1,5 @@
 """
-The ROS-free registration core (numpy/scipy, numba kernels): Algorithm 1 and its steps.
+The ROS-free registration core (numpy/scipy, numba): Algorithm 1 and its steps.
 
 >>> from cgags_ros.registration import register_correspondences
 >>> result = register_correspondences(src, dst, resolution=0.05)   # doctest: +SKIP
@@ -9,7 +9,7 @@ Public API: :func:`register_correspondences`, :class:`CoreConfig`,
 quantile the pipeline's gate shares with the core) and :func:`single_blas_thread`.
 
 ``register_correspondences`` is imported on first use: it brings in numba and the compiled
-kernels, which a process that only handles results (the node's, unpickling them from its
+functions, which a process that only handles results (the node's, unpickling them from its
 registration process) never needs.
 """
 

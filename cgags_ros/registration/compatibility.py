@@ -6,19 +6,20 @@ a rigid motion preserves lengths, so two inliers are always compatible (up to no
 an outlier is compatible with a given correspondence only by chance.
 
 The graph is stored as a bit-packed N x N adjacency matrix (N^2 / 8 bytes: 50 MB at
-N = 20 000), built by a compiled kernel, so no N x N float matrix is ever held in memory.
+N = 20 000), built by a compiled function, so no N x N float matrix is ever held in memory.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from . import kernels_graph, kernels_subsets
+from . import compiled
 from ..parallel import run_split
 
 # Correspondences below which the graph is built on one thread: below it, waking idle pool
-# threads costs more than the split saves (docs/design.md, "Compiled kernels").
+# threads costs more than the split saves (docs/design.md, "Compiled code").
 _SPLIT_MIN = 4000
+_NO_LISTS = np.zeros((0, 2), np.int32)  # entry lists not built: the samplers scan bit rows
 
 
 # Set bits of every byte value, for numpy 1.x (Jazzy's apt numpy), which has no bitwise_count.
@@ -48,7 +49,7 @@ class CompatibilityGraph:
         self.packed = np.ascontiguousarray(np.pad(packed, ((0, 0), (0, pad))) if pad else packed)
         self._flat = self.packed.reshape(-1)
         self._words = self.packed.view(np.uint64)
-        self.words = self._words  # (N, W) uint64: the compiled kernels' view
+        self.words = self._words  # (N, W) uint64: the compiled functions' view
         self.n = n
         self.degree = self.popcount(self.packed)
         self.num_edges = int(self.degree.sum() // 2)
@@ -68,8 +69,13 @@ class CompatibilityGraph:
         """Return every directed adjacency entry as a (2|E|, 2) int32 (row, column) pair."""
         if not hasattr(self, '_pairs'):
             self._pairs = (None if 2 * self.num_edges > self._MAX_LIST_ENTRIES
-                           else kernels_graph.neighbour_lists(self._words, self.indptr))
+                           else compiled.neighbour_lists(self._words, self.indptr))
         return self._pairs
+
+    def arrays(self, lists: np.ndarray | None = None) -> compiled.GraphArrays:
+        """Return the graph as the compiled samplers take it, with ``lists`` when given."""
+        return compiled.GraphArrays(self._words, self.indptr,
+                                    _NO_LISTS if lists is None else lists)
 
     @property
     def indptr(self) -> np.ndarray:
@@ -105,8 +111,8 @@ class CompatibilityGraph:
     def common_within(self, i: np.ndarray, j: np.ndarray, members: np.ndarray
                       ) -> tuple[np.ndarray, np.ndarray]:
         """Return |N(i) ∩ N(j)| and |N(i) ∩ N(j) ∩ members| per pair (index arrays)."""
-        return kernels_graph.common_within(self._words, np.asarray(i, dtype=np.int64),
-                                           np.asarray(j, dtype=np.int64), self._mask(members))
+        return compiled.common_within(self._words, compiled.c_array(i, np.int64),
+                                      compiled.c_array(j, np.int64), self._mask(members))
 
     def count_edges_within(self, members: np.ndarray) -> int:
         """Return the number of undirected edges among ``members`` (indices)."""
@@ -120,7 +126,7 @@ class CompatibilityGraph:
         Counted on the bit rows: M x W words, not the M x M adjacency.
         """
         members = _ascending(members)
-        return kernels_subsets.later_member_counts(self._words, members, self._mask(members))
+        return compiled.later_member_counts(self._words, members, self._mask(members))
 
     def numbered_edges(self, members: np.ndarray, counts: np.ndarray,
                        numbers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -133,22 +139,21 @@ class CompatibilityGraph:
         """
         members = _ascending(members)
         starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-        return kernels_subsets.later_member_pairs(self._words, members, self._mask(members),
-                                                  starts, np.asarray(numbers, dtype=np.int64))
+        return compiled.later_member_pairs(self._words, members, self._mask(members),
+                                           starts, compiled.c_array(numbers, np.int64))
 
     def _mask(self, members: np.ndarray) -> np.ndarray:
         """Return ``members`` (indices) as one bit row of words, like a row of the graph."""
-        return kernels_subsets.member_mask(np.asarray(members, dtype=np.int64),
-                                           self._words.shape[1])
+        return compiled.member_mask(compiled.c_array(members, np.int64), self._words.shape[1])
 
     def adjacency(self, members: np.ndarray) -> np.ndarray:
         """Return the (M, M) boolean adjacency among ``members`` (indices)."""
-        return kernels_graph.sub_adjacency(self._words, np.asarray(members, dtype=np.int64))
+        return compiled.sub_adjacency(self._words, compiled.c_array(members, np.int64))
 
 
 def _ascending(members: np.ndarray) -> np.ndarray:
     """Return ``members`` as distinct int64 indices in ascending order."""
-    members = np.asarray(members, dtype=np.int64)
+    members = compiled.c_array(members, np.int64)
     if len(members) > 1 and not (members[1:] > members[:-1]).all():
         members = np.unique(members)
     return members
@@ -169,24 +174,23 @@ def build_compatibility_graph(src: np.ndarray, dst: np.ndarray, delta: float,
     """
     Build the graph with edges ``d_ij < delta`` (and ``||p_i - p_j|| >= min_pair_distance``).
 
-    One compiled pass over the pairs (:func:`~.kernels_graph.compatibility_words`): float64
+    One compiled pass over the pairs (:func:`.compiled.compatibility_words`): float64
     squared lengths, no N x N scratch. With ``workers`` > 1 (and N >= ``_SPLIT_MIN``) its
     two passes are split into ranges of equal work, one thread each; the bits are the same.
     """
-    src = np.ascontiguousarray(src, dtype=np.float64)
-    dst = np.ascontiguousarray(dst, dtype=np.float64)
+    corr = compiled.Correspondences.of(src, dst)
     d2, min_sq = float(delta) ** 2, float(min_pair_distance) ** 2
     n = len(src)
     if workers <= 1 or n < _SPLIT_MIN:
-        words = kernels_graph.compatibility_words(src, dst, float(delta), min_sq)
+        words = compiled.compatibility_words(corr, float(delta), min_sq)
         return CompatibilityGraph(words.view(np.uint8), n)
     w = (n + 63) // 64
     words = np.zeros((n, w), np.uint64)
-    cols = kernels_graph.columns(src, dst, w)
+    cols = compiled.columns(corr, w)
     # Row i of the upper triangle tests w - i // 64 words; block row b transposes w - b blocks.
-    run_split(lambda a, b: kernels_graph.length_rows(cols, words, a, b, d2, min_sq),
+    run_split(lambda a, b: compiled.length_rows(cols, words, a, b, d2, min_sq),
               _equal_work(w - np.arange(n) // 64, workers))
-    run_split(lambda a, b: kernels_graph.or_transpose_blocks(words, a, b),
+    run_split(lambda a, b: compiled.or_transpose_blocks(words, a, b),
               _equal_work(w - np.arange(w), workers))
     return CompatibilityGraph(words.view(np.uint8), n)
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import kernels_graph
+from . import compiled
 from .compatibility import CompatibilityGraph
 
 
@@ -25,7 +25,7 @@ def build_vertical_compatibility_graph(src: np.ndarray, dst: np.ndarray, delta: 
     Build the graph with edges ``d_ij < delta`` and ``|u_i - u_j| < delta``.
 
     One compiled pass over each row's offset window
-    (:func:`~.kernels_graph.vertical_compatibility_words`): float64 squared lengths.
+    (:func:`.compiled.vertical_compatibility_words`): float64 squared lengths.
 
     :param src, dst: (N, 3) correspondences in the gravity frame, sorted by ``offsets``.
     :param offsets: (N,) u_i = z(q_i) - z(p_i), ascending.
@@ -33,11 +33,10 @@ def build_vertical_compatibility_graph(src: np.ndarray, dst: np.ndarray, delta: 
     :raises ValueError: when ``offsets`` is not sorted.
     """
     n = len(src)
-    u = np.ascontiguousarray(offsets, dtype=np.float64)
+    u = compiled.c_array(offsets, np.float64)
     if n > 1 and np.any(np.diff(u) < 0):
         raise ValueError('offsets must be sorted ascending (sort the correspondences by u)')
     hi = np.searchsorted(u, u + delta, side='right').astype(np.int64)  # end of each window
-    words = kernels_graph.vertical_compatibility_words(
-        np.ascontiguousarray(src, dtype=np.float64), np.ascontiguousarray(dst, dtype=np.float64),
-        u, hi, float(delta), float(min_pair_distance) ** 2)
+    words = compiled.vertical_compatibility_words(
+        compiled.Correspondences.of(src, dst), u, hi, float(delta), float(min_pair_distance) ** 2)
     return CompatibilityGraph(words.view(np.uint8), n)

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import kernels
+from . import compiled
 from .compatibility import build_compatibility_graph
 from .compatibility_4dof import build_vertical_compatibility_graph
 from .rigid import kabsch
@@ -59,14 +59,14 @@ class Triangles(MotionModel):
         Returns the usable triangles and their common-neighbour counts.
         """
         cfg = search.cfg
-        i, j, k, support, status = kernels.draw_triples(
-            search.rng, search.graph, search.lists(), search.src, search.dst, search.delta,
-            True, count, cfg.edge_tournament, cfg.vertex_tournament,
+        i, j, k, support, status = compiled.draw_triples(
+            search.rng, search.graph.arrays(search.lists()), search.corr, search.delta, count,
+            cfg.edge_tournament, cfg.vertex_tournament, compiled.VERTEX_PROPOSALS,
             cfg.min_triangle_area_factor * search.tau ** 2)
-        search.stats['empty_common_neighbourhood'] += int((status == kernels.EMPTY).sum())
-        search.stats['rejected_collinear'] += int((status == kernels.COLLINEAR).sum())
+        search.stats['empty_common_neighbourhood'] += int((status == compiled.EMPTY).sum())
+        search.stats['rejected_collinear'] += int((status == compiled.COLLINEAR).sum())
         triples = np.stack([i, j, k], axis=1)
-        search.sampled.append(triples[status != kernels.EMPTY])
+        search.sampled.append(triples[status != compiled.EMPTY])
         keep = status == 0
         return triples[keep], support[keep]
 
@@ -75,11 +75,11 @@ class Triangles(MotionModel):
         min_area = search.cfg.min_triangle_area_factor * search.tau ** 2
         if min_area <= 0 or len(subsets) == 0:
             return np.ones(len(subsets), dtype=bool)
-        return kernels.usable_triangles(search.src, search.dst, subsets, min_area)
+        return compiled.usable_triangles(search.corr, subsets, min_area)
 
-    def fit(self, src, dst, subsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def fit(self, corr, subsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Step 3: closed-form rigid fits R (B, 3, 3), t (B, 3) of the triangles."""
-        return kernels.fit_triples(src, dst, subsets)
+        return compiled.fit_triples(corr, subsets)
 
     def sample_inlier_probability(self, search) -> float:
         """Step 7: w1 for uniform edge and vertex sampling inside the best inliers."""
@@ -88,7 +88,8 @@ class Triangles(MotionModel):
 
     def guided(self, search, rows, seed_weights, count: int) -> tuple[np.ndarray, np.ndarray]:
         """Step 5: guided triangles (local indices of the members, (B, 3)) and an ok mask."""
-        i, j, k, ok = kernels.draw_guided(search.rng, rows, seed_weights, count, search.cfg.xi)
+        i, j, k, ok = compiled.draw_guided(search.rng, rows, seed_weights, count,
+                                           search.cfg.xi, False)
         return np.stack([i, j, k], axis=1), ok
 
 
@@ -118,9 +119,8 @@ class Edges(MotionModel):
         Edges too short across the gravity axis to fix the yaw are dropped.
         """
         self._record_chance(search, search.cfg.exact_per_batch)
-        i, j = kernels.draw_edges(search.rng, search.graph, search.lists(), search.src,
-                                  search.dst, search.delta, True, count,
-                                  search.cfg.edge_tournament)
+        i, j = compiled.draw_edges(search.rng, search.graph.arrays(search.lists()),
+                                   search.corr, search.delta, count, search.cfg.edge_tournament)
         edges = np.stack([i, j], axis=1)
         search.sampled.append(edges)
         ok = self.usable(search, edges)
@@ -135,12 +135,12 @@ class Edges(MotionModel):
         by common neighbours, whose winners are to a large share all-inlier edges when the
         graph is sparse (outliers spread wider than the model) and would read as chance.
         """
-        i, j = kernels.draw_edges(search.rng, search.graph, search.lists(), search.src,
-                                  search.dst, search.delta, True, count, 1)
+        i, j = compiled.draw_edges(search.rng, search.graph.arrays(search.lists()),
+                                   search.corr, search.delta, count, 1)
         ok = self.usable(search, np.stack([i, j], axis=1))
         if ok.any():
             R, t = fit_edges(search.src, search.dst, i[ok], j[ok])
-            search.consensus.add_chance(kernels.residual_matrix(search.src, search.dst, R, t))
+            search.consensus.add_chance(compiled.residual_matrix(search.corr, R, t))
 
     def usable(self, search, subsets: np.ndarray) -> np.ndarray:
         """Mask of the edges at least min_edge_length_factor * tau long across gravity."""
@@ -151,9 +151,9 @@ class Edges(MotionModel):
         return ((horizontal_lengths(search.src, i, j) >= min_length)
                 & (horizontal_lengths(search.dst, i, j) >= min_length))
 
-    def fit(self, src, dst, subsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def fit(self, corr, subsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Step 3: closed-form yaw + translation fits of the edges."""
-        return fit_edges(src, dst, subsets[:, 0], subsets[:, 1])
+        return fit_edges(corr.src, corr.dst, subsets[:, 0], subsets[:, 1])
 
     def sample_inlier_probability(self, search) -> float:
         """Step 7: w1 = |E(I)| / |E| for uniform edge sampling inside the best inliers I."""
@@ -163,8 +163,8 @@ class Edges(MotionModel):
 
     def guided(self, search, rows, seed_weights, count: int) -> tuple[np.ndarray, np.ndarray]:
         """Step 5: guided edges, j in N(i) with p ∝ K(i, j) + xi (no vertex step)."""
-        i, j, _, ok = kernels.draw_guided(search.rng, rows, seed_weights, count,
-                                          search.cfg.xi, edges_only=True)
+        i, j, _, ok = compiled.draw_guided(search.rng, rows, seed_weights, count,
+                                           search.cfg.xi, True)
         return np.stack([i, j], axis=1), ok
 
 

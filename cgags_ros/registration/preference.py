@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import kernels_scoring
+from . import compiled
 
 _PENDING_LIMIT = 1 << 22  # residuals held back before they are merged anyway (16 MB)
 
@@ -38,7 +38,7 @@ class PreferenceLists:
         e = len(residuals)
         if e == 0:
             return
-        self._pending.append((np.ascontiguousarray(residuals, dtype=np.float32),
+        self._pending.append((compiled.c_array(residuals, np.float32),
                               self.num_hypotheses))
         self._pending_size += residuals.size
         self.num_hypotheses += e
@@ -47,7 +47,7 @@ class PreferenceLists:
 
     def _merge(self) -> None:
         for rows, first in self._pending:
-            kernels_scoring.merge_preferences(self._residuals, self._ids, rows, first)
+            compiled.merge_preferences(self._residuals, self._ids, rows, first)
         self._pending.clear()
         self._pending_size = 0
 
@@ -72,12 +72,10 @@ class PreferenceLists:
 
     def kernel_bits(self, members: np.ndarray) -> np.ndarray:
         """Return the members' lists as bit rows (M, W) uint64, whose ANDs give the kernel."""
-        return kernels_scoring.preference_bits(
-            self.ids, np.ascontiguousarray(members, dtype=np.int64), self.num_hypotheses,
-            self.b)
+        return compiled.preference_bits(self.ids, compiled.c_array(members, np.int64),
+                                        self.num_hypotheses, self.b)
 
     def kernel(self, members: np.ndarray) -> np.ndarray:
         """Dense intersection kernel K (M, M) float32 among ``members``; diagonal zeroed."""
-        return kernels_scoring.intersection_kernel(
-            self.ids, np.ascontiguousarray(members, dtype=np.int64), self.num_hypotheses,
-            self.b)
+        return compiled.intersection_kernel(self.ids, compiled.c_array(members, np.int64),
+                                            self.num_hypotheses, self.b)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import kernels_scoring
+from . import compiled
 
 
 def kabsch_batch(P: np.ndarray, Q: np.ndarray,
@@ -45,13 +45,11 @@ def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) 
     if not w.sum() > 0.0:
         raise ValueError(f'kabsch needs points with positive total weight, got {len(src)} '
                          f'point(s) weighing {w.sum()}')
-    return kernels_scoring.fit_weighted(_f64(src), _f64(dst), _f64(w))
+    return compiled.fit_weighted(compiled.Correspondences.of(src, dst),
+                                 compiled.c_array(w, np.float64))
 
 
 def residuals(T: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """Euclidean residuals ``||dst_i - (R src_i + t)||`` (same units as the points)."""
-    return kernels_scoring.point_residuals(_f64(T), _f64(src), _f64(dst))
-
-
-def _f64(a: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(a, dtype=np.float64)
+    return compiled.point_residuals(compiled.c_array(T, np.float64),
+                                    compiled.Correspondences.of(src, dst))

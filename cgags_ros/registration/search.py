@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from . import kernels
+from . import compiled
 from .compatibility import CompatibilityGraph
 from .hypotheses import score_values
 from .motion import MotionModel
@@ -45,9 +45,9 @@ class Search:
 
     def __init__(self, src, dst, graph: CompatibilityGraph, motion: MotionModel,
                  cfg: CoreConfig, tau: float, delta: float, rng: np.random.Generator):
-        kernels.compile_kernels()  # once per process (the warm-up pair), from the disk cache
-        src, dst = np.ascontiguousarray(src, np.float64), np.ascontiguousarray(dst, np.float64)
-        self.src, self.dst, self.graph, self.motion = src, dst, graph, motion
+        self.corr = compiled.Correspondences.of(src, dst)  # (src, dst) as compiled code takes them
+        self.src, self.dst = self.corr
+        self.graph, self.motion = graph, motion
         self.cfg, self.tau, self.delta, self.rng = cfg, tau, delta, rng
         self.num_hypotheses = 0  # minimal subsets fitted (the pre-screen fits the best)
         self.num_drawn = 0  # sampled, including subsets rejected before fitting (the cap)
@@ -145,26 +145,25 @@ class Search:
             # Only the subsets that pass the first filter are fitted (the others' transforms
             # would never be used), plus the first `chance_rows`: subsets arrive in random
             # order, so these are unselected hypotheses (the chance level, step 7).
-            wide = _as_triples(subsets)
             cand = np.arange(len(subsets))
             if support is None:
-                support = kernels.common_support(self.graph, wide)
+                support = compiled.common_support(self.graph.words, subsets)
             if len(subsets) > 4 * cfg.exact_per_batch:
                 kept = 4 * cfg.exact_per_batch
                 cand = np.argpartition(-support, kept - 1)[:kept]
             fitted = np.concatenate([np.arange(_CHANCE_PER_BATCH), cand])
-            R, t = motion.fit(self.src, self.dst, subsets[fitted])
+            R, t = motion.fit(self.corr, subsets[fitted])
             Rc, tc = R[_CHANCE_PER_BATCH:], t[_CHANCE_PER_BATCH:]
             # Common neighbourhoods spanning much of N: score on all N (the exact score).
             dense = support[cand].mean() >= _DENSE_PRESCREEN * self.graph.n
-            pre = kernels.prescreen_scores(self.graph, self.src, self.dst, Rc, tc, wide[cand],
-                                           self.tau, motion.score, dense)
+            pre = compiled.prescreen_scores(self.graph.words, self.corr, Rc, tc, subsets[cand],
+                                            self.tau, motion.score == 'truncated', dense)
             top = np.argpartition(-pre, cfg.exact_per_batch - 1)[: cfg.exact_per_batch]
             top = np.concatenate([np.arange(_CHANCE_PER_BATCH), _CHANCE_PER_BATCH + top])
             R, t = R[top], t[top]
         else:
-            R, t = motion.fit(self.src, self.dst, subsets)
-        res = kernels.residual_matrix(self.src, self.dst, R, t)
+            R, t = motion.fit(self.corr, subsets)
+        res = compiled.residual_matrix(self.corr, R, t)
         # Random hypotheses' inlier counts measure the chance consensus level.
         self.consensus.add(res, chance)
         if cfg.guided_sampling:
@@ -258,7 +257,7 @@ class Search:
 
         The members are the correspondences guided sampling draws from: at most
         ``kernel_subset`` of them by their preference lists' quality, and the best
-        model's inliers; their rows (:func:`~.kernels.guided_rows`) hold the intersection
+        model's inliers; their rows (:func:`.compiled.guided_rows`) hold the intersection
         kernel K (step 4) and their compatibility, each row computed when a draw first
         reads it. Seeds are drawn uniformly from the best model's inliers.
         """
@@ -268,12 +267,7 @@ class Search:
         else:
             order = np.argsort(self.preference.quality(), kind='stable')
             members = np.union1d(order[: cfg.kernel_subset], self.best_inliers)
-        rows = kernels.guided_rows(self.preference.kernel_bits(members), self.preference.b,
-                                   self.graph.words, members)
+        rows = compiled.guided_rows(self.preference.kernel_bits(members), self.preference.b,
+                                    self.graph.words, members)
         seed_w = np.isin(members, self.best_inliers).astype(np.float64)
         return members, rows, seed_w
-
-
-def _as_triples(subsets: np.ndarray) -> np.ndarray:
-    """Return edges (i, j) as triples (i, j, j) for the compiled pre-screen (same terms)."""
-    return subsets if subsets.shape[1] == 3 else subsets[:, [0, 1, 1]]

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy import special
 
-if TYPE_CHECKING:  # annotations only: importing the graph would load the numba kernels
+if TYPE_CHECKING:  # annotations only: importing the graph would compile the numba code
     from .compatibility import CompatibilityGraph
 
 

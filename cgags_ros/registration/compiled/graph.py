@@ -1,13 +1,15 @@
 """
-Compiled kernels (numba) of the compatibility graph: step 1 of Algorithm 1 (METHOD.md).
+Compiled functions (numba) of step 1 of Algorithm 1, the compatibility graph.
 
-The graph is the bit matrix of :class:`~.compatibility.CompatibilityGraph` as 64-bit words
+The graph is the bit matrix of :class:`.CompatibilityGraph` as 64-bit words
 (bit j of row i in word j >> 6, bit j & 63: on a little-endian machine the same bytes as its
 uint8 rows). Loops over pairs and set bits run here because in numpy each would be a pass
-over the whole N x N matrix per call (docs/implementation.md, "Compiled kernels").
-
-Every kernel is compiled on first use and cached on disk (``cache=True``);
-:func:`~.kernels.compile_kernels` runs them all once on tiny inputs.
+over the whole N x N matrix per call (docs/implementation.md). Besides the graph's build
+(:func:`compatibility_words`, 4-DoF :func:`vertical_compatibility_words`) and its entry
+lists, the bit-row queries the later steps make of it: the common neighbourhoods of
+minimal subsets (step 3's pre-screen, :func:`common_support`), the adjacency among guided
+sampling's members (step 5, :func:`sub_adjacency`) and the common neighbours inside an
+inlier set (step 7's all-inlier probability, :func:`common_within`).
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ from __future__ import annotations
 from numba import njit, types
 from numba.extending import intrinsic
 import numpy as np
+
+from .types import CORRESPONDENCES, F64_1D, F64_2D, FLOAT, I64_1D, I64_2D, INT, U64_1D, U64_2D
 
 _ONE = np.uint64(1)
 _LOW6 = np.uint64(63)
@@ -62,7 +66,7 @@ def _length_word(cols, k, i, d2, min_sq):
     ``cols`` (6, W * 64): separate, NaN-padded coordinate columns px, py, pz, qx, qy, qz,
     so the loop vectorizes and padding is never an edge. The 64 columns are sliced first:
     indexed as cols[a, 64 k + b], LLVM cannot see the loads are contiguous and gathers
-    them (docs/design.md, "Compiled kernels").
+    them (docs/design.md, "Compiled code").
     """
     lo, hi = k << 6, (k << 6) + 64
     px, py, pz = cols[0, lo:hi], cols[1, lo:hi], cols[2, lo:hi]
@@ -83,38 +87,17 @@ def _length_word(cols, k, i, d2, min_sq):
     return word
 
 
-@njit(cache=True, nogil=True)
-def columns(src, dst, w):
+@njit((CORRESPONDENCES, INT), cache=True, nogil=True)
+def columns(corr, w):
     """Return the coordinate columns of :func:`_length_word`, NaN-padded to W * 64."""
+    n = corr.src.shape[0]
     cols = np.full((6, w * 64), np.nan)
-    cols[:3, :src.shape[0]] = src.T
-    cols[3:, :src.shape[0]] = dst.T
+    cols[:3, :n] = corr.src.T
+    cols[3:, :n] = corr.dst.T
     return cols
 
 
-@njit(cache=True, nogil=True)
-def compatibility_words(src, dst, delta, min_sq):
-    """
-    Build the compatibility graph (step 1): edge iff | |p_i - p_j| - |q_i - q_j| | < delta.
-
-    Also requires |p_i - p_j|^2 >= ``min_sq`` (min_pair_distance squared; 0 keeps all).
-    With squared lengths A, B and c = A + B - delta^2, |a - b| < delta iff c < 0 or
-    4 A B > c^2 (square both sides of 2 a b > c): float64 products only, no square root,
-    so the loop vectorizes; the test flips only within ~1e-15 (relative) of the threshold.
-    The upper triangle is computed, the lower one is its bit transpose.
-
-    :param src, dst: (N, 3) float64 C-contiguous, metres.
-    :returns: (N, ceil(N / 64)) uint64 words, symmetric, no self loops.
-    """
-    n = src.shape[0]
-    w = (n + 63) // 64
-    words = np.zeros((n, w), np.uint64)
-    length_rows(columns(src, dst, w), words, 0, n, delta * delta, min_sq)
-    or_transpose_blocks(words, 0, w)
-    return words
-
-
-@njit(cache=True, nogil=True)
+@njit((F64_2D, U64_2D, INT, INT, FLOAT, FLOAT), cache=True, nogil=True)
 def length_rows(cols, words, a, b, d2, min_sq):
     """
     Fill rows a..b-1 of the upper triangle of :func:`compatibility_words` (its first pass).
@@ -127,43 +110,7 @@ def length_rows(cols, words, a, b, d2, min_sq):
             words[i, k] = _length_word(cols, k, i, d2, min_sq)
 
 
-@njit(cache=True, nogil=True)
-def vertical_compatibility_words(src, dst, u, hi, delta, min_sq):
-    """
-    Build the 4-DoF compatibility graph (step 1 for yaw + translation motions).
-
-    Edge iff | |p_i - p_j| - |q_i - q_j| | < delta (tested as in
-    :func:`compatibility_words`), |u_i - u_j| < delta and |p_i - p_j|^2 >= ``min_sq``. The
-    correspondences are sorted by their vertical offset u, so the partners j > i of row i
-    lie in i < j < ``hi[i]``: only the words covering that window are tested, 64 columns
-    at a time as in :func:`compatibility_words` (plus the offset test), then mirrored.
-
-    :param src, dst: (N, 3) float64 C-contiguous, gravity frame, metres, sorted by ``u``.
-    :param u: (N,) float64 ascending vertical offsets.
-    :param hi: (N,) int64, one past the last j with u_j < u_i + delta.
-    :returns: (N, ceil(N / 64)) uint64 words, symmetric, no self loops.
-    """
-    n = src.shape[0]
-    w = (n + 63) // 64
-    words = np.zeros((n, w), np.uint64)
-    cols = columns(src, dst, w)
-    uu = np.full(w * 64, np.nan)
-    uu[:n] = u
-    d2 = delta * delta
-    for i in range(n):
-        if hi[i] <= i + 1:
-            continue
-        for k in range(i >> 6, ((hi[i] - 1) >> 6) + 1):
-            near = np.uint64(0)
-            block = uu[k << 6:(k << 6) + 64]
-            for b in range(64):  # NaN padding is never near
-                near |= np.uint64(abs(block[b] - u[i]) < delta) << np.uint64(b)
-            words[i, k] = _length_word(cols, k, i, d2, min_sq) & near
-    or_transpose_blocks(words, 0, w)
-    return words
-
-
-@njit(cache=True, nogil=True)
+@njit((U64_1D,), cache=True, nogil=True)
 def _transpose64(x):
     """Transpose a 64 x 64 bit block in place (bit b of x[r] is entry (r, b))."""
     j = np.uint64(32)
@@ -179,7 +126,7 @@ def _transpose64(x):
         m ^= m << j
 
 
-@njit(cache=True, nogil=True)
+@njit((U64_2D, INT, INT), cache=True, nogil=True)
 def or_transpose_blocks(words, b0, b1):
     """
     Set bit (j, i) wherever bit (i, j) is set, for the source rows of blocks b0..b1-1.
@@ -206,6 +153,64 @@ def or_transpose_blocks(words, b0, b1):
                     words[row, bi] |= x[r]
 
 
+@njit((CORRESPONDENCES, FLOAT, FLOAT), cache=True, nogil=True)
+def compatibility_words(corr, delta, min_sq):
+    """
+    Build the compatibility graph (step 1): edge iff | |p_i - p_j| - |q_i - q_j| | < delta.
+
+    Also requires |p_i - p_j|^2 >= ``min_sq`` (min_pair_distance squared; 0 keeps all).
+    With squared lengths A, B and c = A + B - delta^2, |a - b| < delta iff c < 0 or
+    4 A B > c^2 (square both sides of 2 a b > c): float64 products only, no square root,
+    so the loop vectorizes; the test flips only within ~1e-15 (relative) of the threshold.
+    The upper triangle is computed, the lower one is its bit transpose.
+
+    :param corr: the correspondences, metres.
+    :returns: (N, ceil(N / 64)) uint64 words, symmetric, no self loops.
+    """
+    n = corr.src.shape[0]
+    w = (n + 63) // 64
+    words = np.zeros((n, w), np.uint64)
+    length_rows(columns(corr, w), words, 0, n, delta * delta, min_sq)
+    or_transpose_blocks(words, 0, w)
+    return words
+
+
+@njit((CORRESPONDENCES, F64_1D, I64_1D, FLOAT, FLOAT), cache=True, nogil=True)
+def vertical_compatibility_words(corr, u, hi, delta, min_sq):
+    """
+    Build the 4-DoF compatibility graph (step 1 for yaw + translation motions).
+
+    Edge iff | |p_i - p_j| - |q_i - q_j| | < delta (tested as in
+    :func:`compatibility_words`), |u_i - u_j| < delta and |p_i - p_j|^2 >= ``min_sq``. The
+    correspondences are sorted by their vertical offset u, so the partners j > i of row i
+    lie in i < j < ``hi[i]``: only the words covering that window are tested, 64 columns
+    at a time as in :func:`compatibility_words` (plus the offset test), then mirrored.
+
+    :param corr: the correspondences in the gravity frame, metres, sorted by ``u``.
+    :param u: (N,) ascending vertical offsets.
+    :param hi: (N,) one past the last j with u_j < u_i + delta.
+    :returns: (N, ceil(N / 64)) uint64 words, symmetric, no self loops.
+    """
+    n = corr.src.shape[0]
+    w = (n + 63) // 64
+    words = np.zeros((n, w), np.uint64)
+    cols = columns(corr, w)
+    uu = np.full(w * 64, np.nan)
+    uu[:n] = u
+    d2 = delta * delta
+    for i in range(n):
+        if hi[i] <= i + 1:
+            continue
+        for k in range(i >> 6, ((hi[i] - 1) >> 6) + 1):
+            near = np.uint64(0)
+            block = uu[k << 6:(k << 6) + 64]
+            for b in range(64):  # NaN padding is never near
+                near |= np.uint64(abs(block[b] - u[i]) < delta) << np.uint64(b)
+            words[i, k] = _length_word(cols, k, i, d2, min_sq) & near
+    or_transpose_blocks(words, 0, w)
+    return words
+
+
 @njit(cache=True, nogil=True, inline='always')
 def adjacency_row(words, members, a, out):
     """Write row a of the adjacency among ``members`` (indices) to ``out`` (bool, M)."""
@@ -213,7 +218,7 @@ def adjacency_row(words, members, a, out):
         out[c] = has_edge(words, members[a], members[c])
 
 
-@njit(cache=True, nogil=True)
+@njit((U64_2D, I64_1D), cache=True, nogil=True)
 def sub_adjacency(words, members):
     """Return the (M, M) boolean adjacency among ``members`` (guided sampling, step 5)."""
     m = members.shape[0]
@@ -223,20 +228,7 @@ def sub_adjacency(words, members):
     return out
 
 
-@njit(cache=True, nogil=True)
-def row_degrees(words):
-    """Return the number of set bits per row (the vertex degrees)."""
-    n, w = words.shape
-    out = np.zeros(n, np.int64)
-    for i in range(n):
-        s = 0
-        for k in range(w):
-            s += popcount(words[i, k])
-        out[i] = s
-    return out
-
-
-@njit(cache=True, nogil=True)
+@njit((U64_2D, I64_1D), cache=True, nogil=True)
 def neighbour_lists(words, indptr):
     """
     Return the entries of the bit matrix as (2|E|, 2) int32 (row, column) pairs.
@@ -258,12 +250,19 @@ def neighbour_lists(words, indptr):
     return pairs
 
 
-@njit(cache=True, nogil=True)
-def common_support(words, triples):
-    """Return |N(i) ∩ N(j) ∩ N(k)| per row (i, j, k) of ``triples`` ((i, j, j): of N(i) ∩ N(j))."""
-    out = np.empty(len(triples), np.int64)
-    for m in range(len(triples)):
-        i, j, c = triples[m, 0], triples[m, 1], triples[m, 2]
+@njit((U64_2D, I64_2D), cache=True, nogil=True)
+def common_support(words, subsets):
+    """
+    Return the size of the common neighbourhood of each minimal subset (a row of ``subsets``).
+
+    Rows are triangles (i, j, k), |N(i) ∩ N(j) ∩ N(k)|, or edges (i, j), |N(i) ∩ N(j)|.
+    """
+    if subsets.shape[1] not in (2, 3):
+        raise ValueError('minimal subsets are rows (i, j, k) or (i, j)')
+    out = np.empty(len(subsets), np.int64)
+    last = subsets.shape[1] - 1
+    for m in range(len(subsets)):
+        i, j, c = subsets[m, 0], subsets[m, 1], subsets[m, last]  # an edge: c = j
         s = 0
         for k in range(words.shape[1]):
             s += popcount(words[i, k] & words[j, k] & words[c, k])
@@ -271,7 +270,7 @@ def common_support(words, triples):
     return out
 
 
-@njit(cache=True, nogil=True)
+@njit((U64_1D, INT), cache=True, nogil=True)
 def nth_set_bit(row, r):
     """Return the column of the r-th (0-based) set bit of a word row (-1 if fewer)."""
     for k in range(len(row)):
@@ -285,7 +284,7 @@ def nth_set_bit(row, r):
     return -1
 
 
-@njit(cache=True, nogil=True)
+@njit((U64_2D, I64_1D, I64_1D, U64_1D), cache=True, nogil=True)
 def common_within(words, i, j, subset):
     """
     Return |N(i) ∩ N(j)| and |N(i) ∩ N(j) ∩ S| per pair (i[m], j[m]).

@@ -1,10 +1,10 @@
 """
-Compiled kernels (numba) over a subset of the graph's vertices: the edges among an inlier set.
+Compiled functions (numba) of step 7 of Algorithm 1, stopping: the edges among an inlier set.
 
-The stopping rule (step 7 of Algorithm 1, METHOD.md) needs the edges among the best
-model's inliers and a few of them drawn at random. Counted on the graph's bit rows they
-cost M x W words; the dense M x M adjacency of a large inlier set cost more than the search
-around it (docs/implementation.md). Cached and compiled like :mod:`.kernels_graph`.
+The P1 bound's all-inlier probability needs the edges among the best model's inliers and
+a few of them drawn at random. Counted on the graph's bit rows they cost M x W words; the
+dense M x M adjacency of a large inlier set cost more than the search around it
+(docs/implementation.md).
 """
 
 from __future__ import annotations
@@ -12,7 +12,8 @@ from __future__ import annotations
 from numba import njit
 import numpy as np
 
-from .kernels_graph import _LOW6, _ONE, lowest_bit, popcount
+from .graph import _LOW6, _ONE, lowest_bit, popcount
+from .types import I64_1D, INT, U64_1D, U64_2D
 
 
 @njit(cache=True, nogil=True, inline='always')
@@ -24,7 +25,7 @@ def _later_members(words, mask, i, k):
     return word
 
 
-@njit(cache=True, nogil=True)
+@njit((I64_1D, INT), cache=True, nogil=True)
 def member_mask(members, w):
     """Return ``members`` (indices) as one bit row of W words, like a row of ``words``."""
     mask = np.zeros(w, np.uint64)
@@ -33,7 +34,7 @@ def member_mask(members, w):
     return mask
 
 
-@njit(cache=True, nogil=True)
+@njit((U64_2D, I64_1D, U64_1D), cache=True, nogil=True)
 def later_member_counts(words, members, mask):
     """
     Return, per member, its neighbours among the members with a larger index.
@@ -52,7 +53,7 @@ def later_member_counts(words, members, mask):
     return out
 
 
-@njit(cache=True, nogil=True)
+@njit((U64_2D, I64_1D, U64_1D, I64_1D, I64_1D), cache=True, nogil=True)
 def later_member_pairs(words, members, mask, starts, picks):
     """
     Return the edges (i, j), i < j, among ``members`` numbered by ``picks``.

@@ -1,10 +1,12 @@
 """
-Compiled kernels (numba) of hypotheses and preferences: steps 3 and 4 of Algorithm 1.
+Compiled functions (numba) of the hypotheses: steps 3 and 8 of Algorithm 1.
 
-The 3-point fits, the pre-screen on common neighbourhoods, the residuals of all N under the
-selected hypotheses and the merge into the preference lists, each a loop per hypothesis
-(or per correspondence) that numpy would run as a chain of small array calls
-(docs/implementation.md, "Compiled kernels").
+Step 3, hypotheses: the minimal fits (:func:`fit_triples`), the pre-screen on common
+neighbourhoods (:func:`prescreen_scores`) and the residuals the scores are taken from
+(:func:`residual_matrix`). Step 8, the final re-fit's weighted fit and residuals
+(:func:`fit_weighted`, :func:`point_residuals`, through :mod:`.rigid`). Each is a loop per
+hypothesis (or per correspondence) that numpy would run as a chain of small array calls
+(docs/implementation.md).
 """
 
 from __future__ import annotations
@@ -14,7 +16,8 @@ import math
 from numba import njit
 import numpy as np
 
-from .kernels_graph import lowest_bit, popcount
+from .graph import lowest_bit
+from .types import BOOL, CORRESPONDENCES, F64_1D, F64_2D, F64_3D, FLOAT, I64_2D, U64_2D
 
 _ONE = np.uint64(1)
 
@@ -100,8 +103,8 @@ def _horn_rotation(H, N, V, q, R):
     R[2, 2] = w * w - x * x - y * y + z * z
 
 
-@njit(cache=True, nogil=True)
-def fit_triples(src, dst, triples):
+@njit((CORRESPONDENCES, I64_2D), cache=True, nogil=True)
+def fit_triples(corr, triples):
     """
     Return the closed-form rigid fits (step 3) of minimal subsets (rows of ``triples``).
 
@@ -113,6 +116,9 @@ def fit_triples(src, dst, triples):
 
     :returns: R (B, 3, 3), t (B, 3).
     """
+    if triples.shape[1] != 3:
+        raise ValueError('fit_triples fits triangles: rows (i, j, k)')
+    src, dst = corr
     count = triples.shape[0]
     R = np.empty((count, 3, 3))
     t = np.empty((count, 3))
@@ -152,19 +158,25 @@ def _score(src, dst, R, t, b, m, tau, truncated):
     return 1.0 if r <= tau else 0.0
 
 
-@njit(cache=True, nogil=True)
-def prescreen_scores(words, src, dst, R, t, triples, tau, truncated, dense):
+@njit((U64_2D, CORRESPONDENCES, F64_3D, F64_2D, I64_2D, FLOAT, BOOL, BOOL), cache=True,
+      nogil=True)
+def prescreen_scores(words, corr, R, t, subsets, tau, truncated, dense):
     """
-    Score each hypothesis on {i, j, k} ∪ (N(i) ∩ N(j) ∩ N(k)) (pre-screen of step 3).
+    Score each hypothesis on its minimal subset and their common neighbourhood (step 3).
 
-    With ``dense``, on all N instead (the exact score). A subset stored as (i, j, j) (the
-    4-DoF edge) counts j once.
+    On {i, j, k} ∪ (N(i) ∩ N(j) ∩ N(k)) for a triangle (i, j, k), on
+    {i, j} ∪ (N(i) ∩ N(j)) for an edge (i, j): the pre-screen. With ``dense``, on all N
+    instead (the exact score). Row b of ``subsets`` is hypothesis b's subset.
     """
-    count = triples.shape[0]
+    if subsets.shape[1] not in (2, 3):
+        raise ValueError('minimal subsets are rows (i, j, k) or (i, j)')
+    src, dst = corr
+    count = subsets.shape[0]
+    last = subsets.shape[1] - 1
     n, w = words.shape
     out = np.zeros(count)
     for b in range(count):
-        i, j, k = triples[b, 0], triples[b, 1], triples[b, 2]
+        i, j, k = subsets[b, 0], subsets[b, 1], subsets[b, last]  # an edge: k = j
         s = 0.0
         if dense:
             for m in range(n):
@@ -183,9 +195,10 @@ def prescreen_scores(words, src, dst, R, t, triples, tau, truncated, dense):
     return out
 
 
-@njit(cache=True, nogil=True)
-def residual_matrix(src, dst, R, t):
+@njit((CORRESPONDENCES, F64_3D, F64_2D), cache=True, nogil=True)
+def residual_matrix(corr, R, t):
     """Residuals ||q_m - (R_e p_m + t_e)|| of all N under E hypotheses: (E, N) float32."""
+    src, dst = corr
     e_count, n = R.shape[0], src.shape[0]
     out = np.empty((e_count, n), np.float32)
     for e in range(e_count):
@@ -199,101 +212,15 @@ def residual_matrix(src, dst, R, t):
     return out
 
 
-@njit(cache=True, nogil=True)
-def merge_preferences(pref_res, pref_ids, res, first_id):
-    """
-    Merge E new hypotheses into the preference lists (step 4, top-b residual ranks).
-
-    Each correspondence keeps the b hypotheses with its smallest residuals, sorted
-    ascending (empty slots hold inf at the end; equal residuals in hypothesis order).
-    The rows are streamed in memory order, each residual below its list's last entry
-    (most are not, once the lists fill) inserted from the end: a new hypothesis goes after
-    every equal residual, as its id is the largest. Sorted lists also give each list's
-    median without a sort (:meth:`.PreferenceLists.quality`).
-    ``res`` (E, N) float32; ids are ``first_id`` + row.
-    """
-    n, b = pref_res.shape
-    last = pref_res[:, b - 1].copy()  # contiguous: the test every residual meets
-    for e in range(res.shape[0]):
-        h = first_id + e
-        for m in range(n):
-            r = res[e, m]
-            if not r < last[m]:
-                continue
-            p = b - 1
-            while p > 0 and pref_res[m, p - 1] > r:
-                pref_res[m, p] = pref_res[m, p - 1]
-                pref_ids[m, p] = pref_ids[m, p - 1]
-                p -= 1
-            pref_res[m, p] = r
-            pref_ids[m, p] = h
-            last[m] = pref_res[m, b - 1]
-
-
-@njit(cache=True, nogil=True)
-def preference_bits(ids, members, num_hypotheses, b):
-    """
-    Return the members' preference lists as bit rows (M, W) uint64 (step 5's kernel).
-
-    The hypotheses present in the members' lists are renumbered 0..H'-1 and each list
-    becomes a bit row of H' bits, so a kernel entry costs H' / 64 AND + popcounts
-    (:func:`kernel_row`): the dense 0/1 matrix product it replaces multiplied mostly
-    zeros. ``ids`` (N, b) int64, -1 in empty slots.
-    """
-    m = members.shape[0]
-    slot = np.full(num_hypotheses, -1, np.int64)
-    used = 0
-    for a in range(m):
-        for p in range(b):
-            h = ids[members[a], p]
-            if h >= 0 and slot[h] < 0:
-                slot[h] = used
-                used += 1
-    w = max((used + 63) >> 6, 1)
-    bits = np.zeros((m, w), np.uint64)
-    for a in range(m):
-        for p in range(b):
-            h = ids[members[a], p]
-            if h >= 0:
-                s = slot[h]
-                bits[a, s >> 6] |= _ONE << np.uint64(s & 63)
-    return bits
-
-
-@njit(cache=True, nogil=True, inline='always')
-def kernel_row(bits, a, scale, out):
-    """Write row a of the intersection kernel, K(a, c) = |T_a ∩ T_c| / b, to ``out``."""
-    for c in range(bits.shape[0]):
-        count = 0
-        for k in range(bits.shape[1]):
-            count += popcount(bits[a, k] & bits[c, k])
-        out[c] = np.float32(count) / scale
-    out[a] = 0.0
-
-
-@njit(cache=True, nogil=True)
-def intersection_kernel(ids, members, num_hypotheses, b):
-    """
-    Return the intersection kernel K (M, M) float32 of the members' preference lists.
-
-    K(a, c) = |T_a ∩ T_c| / b, diagonal zero (step 5's kernel), every row of it; guided
-    sampling computes only the rows it draws from (:func:`.kernels_sampling.draw_guided`).
-    """
-    bits = preference_bits(ids, members, num_hypotheses, b)
-    K = np.empty((members.shape[0], members.shape[0]), np.float32)
-    for a in range(members.shape[0]):
-        kernel_row(bits, a, np.float32(b), K[a])
-    return K
-
-
-@njit(cache=True, nogil=True)
-def fit_weighted(src, dst, weights):
+@njit((CORRESPONDENCES, F64_1D), cache=True, nogil=True)
+def fit_weighted(corr, weights):
     """
     Return the weighted least-squares rigid transform (4x4) with dst ≈ R src + t.
 
     Weighted centroids and cross-covariance, then Horn's quaternion as in
-    :func:`fit_triples`: the re-fits of step 6 without numpy's per-call overhead.
+    :func:`fit_triples`: the re-fits of step 8 without numpy's per-call overhead.
     """
+    src, dst = corr
     total = 0.0
     cp = np.zeros(3)
     cq = np.zeros(3)
@@ -320,9 +247,10 @@ def fit_weighted(src, dst, weights):
     return T
 
 
-@njit(cache=True, nogil=True)
-def point_residuals(T, src, dst):
+@njit((F64_2D, CORRESPONDENCES), cache=True, nogil=True)
+def point_residuals(T, corr):
     """Return ||dst_m - (R src_m + t)|| per row (float64), T a 4x4 rigid transform."""
+    src, dst = corr
     out = np.empty(src.shape[0])
     for m in range(src.shape[0]):
         r2 = 0.0
