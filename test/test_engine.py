@@ -226,8 +226,9 @@ def test_pairing_drops_are_accounted(mode):
         send(engine, 'source', 1)
         send(engine, 'source', 2)  # replaces the first, no target yet: dropped
         send(engine, 'target', 2, frame='map')
-        wait_for(lambda: out.estimates, 10, 'the pair')
-        acc = balanced(engine)
+        # the estimate is published before the pair is accounted: wait for both
+        acc = wait_for(lambda: engine.snapshot()['counts'].get('published') == 1
+                       and balanced(engine), 10, 'the pair published')
         assert acc['sources']['dropped'] == 1 and acc['sources']['published'] == 1
     finally:
         engine.stop()

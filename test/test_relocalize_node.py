@@ -26,7 +26,6 @@ from cgags_ros.ros.node import RegisterNode  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped  # noqa: E402
 from lifecycle_msgs.msg import Transition  # noqa: E402
-from rcl_interfaces.msg import Log  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
@@ -57,12 +56,6 @@ class Wire:
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)
         self.client = self.node.create_client(Trigger, '/register_node/relocalize')
         self.lifecycle = Lifecycle(self.node)
-        self.logs: list[str] = []
-        self.node.create_subscription(Log, '/rosout', self._on_log, 100)
-
-    def _on_log(self, msg):
-        if msg.name == 'register_node' and msg.level >= Log.ERROR:
-            self.logs.append(msg.msg)
 
     def _on_diag(self, msg):
         for status in msg.status:
@@ -240,18 +233,17 @@ def test_lidar_initial_pose_is_the_base_pose(wire, data_dir, tmp_path):
 @pytest.mark.parametrize('case, autostart', [('missing', False), ('empty', True),
                                              ('unreadable', False), ('all_nan', True)])
 def test_a_bad_map_file_fails_configure_and_leaves_nothing_running(
-        wire, tmp_path, data_dir, case, autostart):
+        wire, tmp_path, data_dir, capfd, case, autostart):
     """
     A missing, empty, unreadable or all-NaN map: configure fails, as a lifecycle manager sees it.
 
     change_state answers failure (or autostart's configure fails, the process running on);
-    the node is unconfigured with no registration process left; the reason is logged on
-    /rosout and is the node's last /diagnostics (ERROR). Configured again once the map file
-    is usable, it succeeds.
+    the node is unconfigured with no registration process left; the reason is logged (at
+    ERROR, on the console) and is the node's last /diagnostics (ERROR). Configured again once
+    the map file is usable, it succeeds.
     """
     _, _, io = wire
     path = bad_map(tmp_path, case)
-    io.logs.clear()
     node = start(wire, map_file=str(path), map_cache_dir=str(tmp_path / 'c'),
                  registration_timeout=30.0, voxel_size=0.4, diagnostics_period=0.2,
                  autostart=autostart)
@@ -261,8 +253,10 @@ def test_a_bad_map_file_fails_configure_and_leaves_nothing_running(
             assert io.lifecycle.change(Transition.TRANSITION_CONFIGURE) == (False, 'unconfigured')
         assert io.lifecycle.state() == 'unconfigured' and node.engine is None
         assert multiprocessing.active_children() == []  # the registration process ended
-        logged = wait_for(lambda: [m for m in io.logs if 'cannot configure' in m], 10,
-                          'the reason on /rosout')
+        console = capfd.readouterr()
+        logged = [line for line in (console.err + console.out).splitlines()
+                  if 'register_node' in line and 'cannot configure: ' in line]
+        assert len(logged) == 1 and 'ERROR' in logged[0], logged
         assert 'map_file cannot be used: ' in logged[0] and path.name in logged[0]
         wait_for(lambda: io.values.get('configure.error'), 10, 'the reason on /diagnostics')
         assert io.level == DiagnosticStatus.ERROR and path.name in io.values['configure.error']
