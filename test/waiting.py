@@ -102,7 +102,7 @@ def call(client, request, timeout, detail=None):
 class Lifecycle:
     """/register_node's lifecycle services, called as nav2_lifecycle_manager calls them."""
 
-    # configure answers once the registration process is warm (a cold kernel cache is
+    # configure answers once the registration process is warm (a cold numba cache is
     # compiled first) and the map is loaded
     CONFIGURE_S = 600.0
 

@@ -3,7 +3,7 @@ Starting registration: what a lifecycle node's configure transition waits for.
 
 ROS-free. :func:`start_registration` returns once a pair can be registered at once: the
 registration process (:class:`~.worker.IsolatedRegistration`) has finished its warm-up
-(the pipeline imported, the kernels compiled or read from their cache, one small
+(the pipeline imported, its numba code compiled or read from its cache, one small
 registration) and, with ``map_file``, the map's features are prepared where the pipeline
 runs (:class:`~.map_target.MapTarget`). Otherwise it raises
 :class:`~.interface.StartFailed` with the reason and leaves nothing running, so that

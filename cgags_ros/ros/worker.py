@@ -25,7 +25,7 @@ from ..errors import CgagsError
 
 RegisterFn = Callable[..., Any]  # register_clouds(source, target, *, config) -> PipelineResult
 
-WARM_UP_LIMIT_S = 300.0  # a warm-up on a cold kernel cache compiles every kernel first
+WARM_UP_LIMIT_S = 300.0  # with a cold numba cache the warm-up compiles the numba code first
 
 
 class RegistrationTimeout(CgagsError):
