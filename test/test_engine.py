@@ -8,6 +8,8 @@ check the decisions: what is counted where, what is published, what the guards r
 
 from __future__ import annotations
 
+import os
+import signal
 import subprocess
 import sys
 import threading
@@ -16,12 +18,15 @@ import time
 from cgags_ros.config.node import NodeConfig
 from cgags_ros.config.pipeline import PipelineConfig
 from cgags_ros.geometry import make_transform, quaternion_to_matrix
+from cgags_ros.io.clouds import write_cloud
 from cgags_ros.pipeline.result import PipelineResult
+from cgags_ros.ros import startup
 from cgags_ros.ros.engine import RegistrationEngine
-from cgags_ros.ros.interface import Cloud
+from cgags_ros.ros.interface import Cloud, StartFailed
+from cgags_ros.ros.worker import IsolatedRegistration
 import numpy as np
 import pytest
-from waiting import wait_for
+from waiting import bad_map, running, wait_for
 
 T_TRUE = make_transform(quaternion_to_matrix((0.0, 0.0, 0.2588190, 0.9659258)), (1.0, 2.0, 0.5))
 
@@ -83,7 +88,8 @@ def balanced(engine):
 
 
 def test_the_engine_imports_no_ros():
-    code = ('import sys, cgags_ros.ros.engine, cgags_ros.ros.map_target; '
+    code = ('import sys, cgags_ros.ros.engine, cgags_ros.ros.map_target, '
+            'cgags_ros.ros.startup; '
             "print(sorted(m for m in sys.modules if m.split('.')[0] in "
             "('rclpy', 'rcl_interfaces', 'std_msgs', 'sensor_msgs', 'geometry_msgs')))")
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
@@ -220,22 +226,26 @@ def test_pairing_drops_are_accounted(mode):
         send(engine, 'source', 1)
         send(engine, 'source', 2)  # replaces the first, no target yet: dropped
         send(engine, 'target', 2, frame='map')
-        wait_for(lambda: out.estimates, 10, 'the pair')
-        acc = balanced(engine)
+        # the estimate is published before the pair is accounted: wait for both
+        acc = wait_for(lambda: engine.snapshot()['counts'].get('published') == 1
+                       and balanced(engine), 10, 'the pair published')
         assert acc['sources']['dropped'] == 1 and acc['sources']['published'] == 1
     finally:
         engine.stop()
 
 
+def sphere(n=3000):
+    """Return a sphere of 2 m seen from inside: (points, unit normals facing outwards)."""
+    normals = np.random.default_rng(0).normal(size=(n, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    return 2.0 * normals, normals
+
+
 def test_a_map_without_normals_loads_with_a_warning_and_one_with_normals_without(tmp_path):
     """The map's normals face the map origin unless the file signs them: the log says which."""
-    from cgags_ros.io.clouds import write_cloud
     from cgags_ros.ros.map_target import MapTarget
 
-    rng = np.random.default_rng(0)
-    normals = rng.normal(size=(3000, 3))
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    points = 2.0 * normals  # a sphere of 2 m, seen from inside: normals face the centre
+    points, normals = sphere()
     write_cloud(tmp_path / 'bare.ply', points)
     write_cloud(tmp_path / 'signed.ply', points, -normals)
     config = PipelineConfig(voxel_size=0.2)
@@ -248,3 +258,93 @@ def test_a_map_without_normals_loads_with_a_warning_and_one_with_normals_without
         assert any(f'normals signed by {signed}' in m for _, m in logs.logs)
         assert bool(warned) == (signed == 'origin')
         assert not warned or 'frontend.normal_orientation' in warned[0]
+
+
+@pytest.fixture()
+def processes(monkeypatch):
+    """Record every registration process the engine starts (its pid tells if it still runs)."""
+    started = []
+
+    class Recorded(IsolatedRegistration):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            started.append(self)
+
+    monkeypatch.setattr(startup, 'IsolatedRegistration', Recorded)
+    return started
+
+
+@pytest.mark.parametrize('with_map', [False, True])
+def test_start_returns_once_the_process_is_warm_and_the_map_loaded(
+        tmp_path, processes, with_map):
+    """start() blocks until a pair can be registered: the real process warm, the map ready."""
+    write_cloud(tmp_path / 'map.ply', sphere()[0])
+    out = Recorder()
+    engine = RegistrationEngine(PipelineConfig(voxel_size=0.2), NodeConfig(
+        map_file=str(tmp_path / 'map.ply') if with_map else '', map_cache_dir='',
+        registration_timeout=60.0), out)
+    engine.start()
+    try:
+        (process,) = processes
+        assert engine.registration is process and process.ready
+        pid = process.pid
+        assert running(pid)
+        stats = engine.statistics()
+        assert stats['worker.ready'] is True
+        if with_map:
+            assert stats['map.cache'] == 'off' and 0 < stats['map.points'] <= 3000
+            assert engine.snapshot()['accounting']['targets']['pending'] == 1  # the map
+            assert any(m.startswith('map ready:') for _, m in out.logs)
+    finally:
+        engine.stop()
+    wait_for(lambda: not running(pid), 10, 'the registration process to end')
+
+
+@pytest.mark.parametrize('case', ['missing', 'empty', 'unreadable', 'all_nan'])
+def test_a_bad_map_fails_start_with_its_reason(tmp_path, case):
+    """A missing, empty, unreadable or all-NaN map: StartFailed naming it, no worker thread."""
+    path = bad_map(tmp_path, case)
+    cfg = NodeConfig(map_file=str(path), map_cache_dir=str(tmp_path / 'cache'))
+    engine = RegistrationEngine(PipelineConfig(), cfg, Recorder(), fake_register)
+    with pytest.raises(StartFailed, match='map_file cannot be used') as failure:
+        engine.start()
+    assert path.name in str(failure.value)
+    assert engine.statistics()['map.error'] == str(failure.value)
+    assert 'register_worker' not in [t.name for t in threading.enumerate()]
+    engine.stop()  # what the node's cleanup does: harmless after a failed start
+
+
+def test_a_bad_map_ends_the_registration_process_it_was_loaded_in(tmp_path, processes):
+    """The map is loaded in the real process: start fails and that process is ended."""
+    engine = RegistrationEngine(PipelineConfig(), NodeConfig(
+        map_file=str(bad_map(tmp_path, 'unreadable')), registration_timeout=60.0), Recorder())
+    with pytest.raises(StartFailed, match='map_file cannot be used: .*broken.ply'):
+        engine.start()
+    (process,) = processes
+    assert engine.registration is None and process.pid is None  # closed
+    assert not process.ready
+
+
+def test_a_process_that_dies_while_warming_up_fails_start(processes):
+    """Killed (-9) during its warm-up: StartFailed says so, and nothing is left running."""
+    engine = RegistrationEngine(PipelineConfig(), NodeConfig(registration_timeout=60.0),
+                                Recorder())
+    failures = []
+
+    def start():
+        try:
+            engine.start()
+        except StartFailed as exc:
+            failures.append(exc)
+
+    starter = threading.Thread(target=start)
+    starter.start()
+    pid = wait_for(lambda: processes and processes[0].pid, 30, 'the registration process')
+    os.kill(pid, signal.SIGKILL)
+    starter.join(60)
+    assert not starter.is_alive()
+    assert [str(f) for f in failures] == [
+        'the registration process failed to start (it died)']
+    wait_for(lambda: not running(pid), 10, 'the killed process reaped')
+    assert engine.registration is None and processes[0].pid is None
+    assert 'register_worker' not in [t.name for t in threading.enumerate()]

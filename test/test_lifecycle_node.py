@@ -20,10 +20,10 @@ rclpy = pytest.importorskip('rclpy')
 
 from cgags_ros.ros.node import RegisterNode  # noqa: E402, I100
 from lifecycle_msgs.msg import Transition  # noqa: E402
-from lifecycle_msgs.srv import ChangeState, GetState  # noqa: E402
 from rcl_interfaces.srv import ListParameters  # noqa: E402
 from std_srvs.srv import Empty, Trigger  # noqa: E402
-from waiting import CloudWire, lidar_bag, ros_overrides, spun_context, wait_for  # noqa: E402
+from waiting import (call, CloudWire, lidar_bag, Lifecycle, ros_overrides,  # noqa: E402
+                     running, spun_context, wait_for)
 
 DOMAIN_ID = 91  # distinct from the other DDS test modules
 REPO = Path(__file__).resolve().parents[1]
@@ -39,22 +39,17 @@ class Wire(CloudWire):
 
     def __init__(self, context):
         super().__init__(context, 'lifecycle_io', 50)
-        self.change = self.node.create_client(ChangeState, '/register_node/change_state')
-        self.get = self.node.create_client(GetState, '/register_node/get_state')
+        self.lifecycle = Lifecycle(self.node)
         self.relocalize = self.node.create_client(Trigger, '/register_node/relocalize')
         self.reinit = self.node.create_client(Empty, '/reinitialize_global_localization')
 
     def call(self, client, request, timeout=60.0):
-        assert client.wait_for_service(timeout_sec=30.0), client.srv_name
-        future = client.call_async(request)
-        wait_for(future.done, timeout, f'the answer of {client.srv_name}', lambda: self.values)
-        return future.result()
+        return call(client, request, timeout, lambda: self.values)
 
     def transition(self, transition_id):
-        request = ChangeState.Request()
-        request.transition.id = transition_id
-        assert self.call(self.change, request).success, transition_id
-        return self.call(self.get, GetState.Request()).current_state.label
+        success, state = self.lifecycle.change(transition_id)
+        assert success, transition_id
+        return state
 
 
 @pytest.fixture(scope='module')
@@ -67,14 +62,6 @@ def check(pose, gt, stamp):
     T = pose_to_transform(pose)
     re, te = rotation_error_deg(T, gt[stamp]), translation_error(T, gt[stamp])
     assert re < 5.0 and te < 0.6, f'RE {re:.2f} deg, TE {te:.3f} m'
-
-
-def running(pid):
-    try:
-        with open(f'/proc/{pid}/stat', encoding='ascii') as f:
-            return f.read().rsplit(')', 1)[1].split()[0] not in ('Z', 'X')
-    except OSError:
-        return False
 
 
 @pytest.fixture(scope='module')
@@ -147,11 +134,12 @@ def test_transitions_through_lifecycle_services(wire, scans):
                         parameter_overrides=ros_overrides(**PARAMS))
     executor.add_node(node)
     try:
-        assert io.call(io.get, GetState.Request()).current_state.label == 'unconfigured'
+        assert io.lifecycle.state() == 'unconfigured'
         assert node.engine is None
         assert io.transition(Transition.TRANSITION_CONFIGURE) == 'inactive'
         pid = node.engine.registration.pid
         assert pid and running(pid)
+        assert node.engine.registration.ready  # configure waited for its warm-up
         wait_for(lambda: io.source_pub.get_subscription_count()
                  and io.target_pub.get_subscription_count(), 30, 'discovery')
         io.target_pub.publish(target)

@@ -9,6 +9,7 @@ scan (an unrelated scene). Poses are checked against ground truth.
 
 from __future__ import annotations
 
+import multiprocessing
 
 from cgags_ros.geometry import apply_transform, make_transform, quaternion_to_matrix
 from cgags_ros.geometry import rotation_error_deg, translation_error
@@ -24,11 +25,13 @@ from cgags_ros.ros.conversions import xyz_to_pointcloud2  # noqa: E402, I100
 from cgags_ros.ros.node import RegisterNode  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped  # noqa: E402
+from lifecycle_msgs.msg import Transition  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
-from waiting import merged_kitchen_map, ros_overrides, spun_context, wait_for  # noqa: E402
+from waiting import (bad_map, Lifecycle, merged_kitchen_map, ros_overrides,  # noqa: E402
+                     spun_context, wait_for)
 
 DOMAIN_ID = 65  # distinct from the other DDS test modules
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -52,6 +55,7 @@ class Wire:
                                       self.candidates.append, 10)
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)
         self.client = self.node.create_client(Trigger, '/register_node/relocalize')
+        self.lifecycle = Lifecycle(self.node)
 
     def _on_diag(self, msg):
         for status in msg.status:
@@ -226,27 +230,41 @@ def test_lidar_initial_pose_is_the_base_pose(wire, data_dir, tmp_path):
         stop(wire, node)
 
 
-@pytest.mark.parametrize('case', ['missing', 'empty', 'unreadable', 'all_nan'])
-def test_a_bad_map_file_is_a_clear_error_and_the_node_keeps_running(wire, tmp_path, case):
-    """A missing, empty, unreadable or all-NaN map: ERROR in /diagnostics, scans counted."""
+@pytest.mark.parametrize('case, autostart', [('missing', False), ('empty', True),
+                                             ('unreadable', False), ('all_nan', True)])
+def test_a_bad_map_file_fails_configure_and_leaves_nothing_running(
+        wire, tmp_path, data_dir, capfd, case, autostart):
+    """
+    A missing, empty, unreadable or all-NaN map: configure fails, as a lifecycle manager sees it.
+
+    change_state answers failure (or autostart's configure fails, the process running on);
+    the node is unconfigured with no registration process left; the reason is logged (at
+    ERROR, on the console) and is the node's last /diagnostics (ERROR). Configured again once
+    the map file is usable, it succeeds.
+    """
     _, _, io = wire
-    path = tmp_path / {'missing': 'nothere.ply', 'empty': 'empty.xyz',
-                       'unreadable': 'broken.ply', 'all_nan': 'nan.npy'}[case]
-    if case == 'empty':
-        path.write_text('')
-    elif case == 'unreadable':
-        path.write_bytes(b'ply\nformat binary_little_endian 1.0\ngarbage\n')
-    elif case == 'all_nan':
-        np.save(path, np.full((100, 3), np.nan))
+    path = bad_map(tmp_path, case)
     node = start(wire, map_file=str(path), map_cache_dir=str(tmp_path / 'c'),
-                 registration_timeout=0.0, source_qos='reliable', diagnostics_period=0.2)
+                 registration_timeout=30.0, voxel_size=0.4, diagnostics_period=0.2,
+                 autostart=autostart)
     try:
-        error = wait_map(io, 60.0)
-        assert error.startswith('map_file cannot be used') and str(path.name) in error
-        assert io.level == DiagnosticStatus.ERROR
-        io.send(np.random.default_rng(0).normal(size=(500, 3)))
-        wait_for(lambda: io.values.get('sources.received') == '1', 10.0, 'the scan counted')
-        wait_for(lambda: io.values.get('accounting.ok') == 'True', 10.0, 'accounting')
+        if not autostart:
+            assert io.lifecycle.state() == 'unconfigured'
+            assert io.lifecycle.change(Transition.TRANSITION_CONFIGURE) == (False, 'unconfigured')
+        assert io.lifecycle.state() == 'unconfigured' and node.engine is None
+        assert multiprocessing.active_children() == []  # the registration process ended
+        console = capfd.readouterr()
+        logged = [line for line in (console.err + console.out).splitlines()
+                  if 'register_node' in line and 'cannot configure: ' in line]
+        assert len(logged) == 1 and 'ERROR' in logged[0], logged
+        assert 'map_file cannot be used: ' in logged[0] and path.name in logged[0]
+        wait_for(lambda: io.values.get('configure.error'), 10, 'the reason on /diagnostics')
+        assert io.level == DiagnosticStatus.ERROR and path.name in io.values['configure.error']
         assert node.context.ok()
+        if case == 'missing':  # the file appears: a configure now succeeds
+            write_cloud(path, read_cloud(data_dir / 'lidar' / 'small_gicp' / 'target.ply'))
+            assert io.lifecycle.change(Transition.TRANSITION_CONFIGURE) == (True, 'inactive')
+            assert node.engine.registration.ready
+            assert node.engine.statistics()['map.cache'] == 'miss'
     finally:
         stop(wire, node)

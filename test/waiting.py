@@ -63,6 +63,70 @@ class CloudWire:
         return pose_at(self.poses, stamp_ns)
 
 
+def running(pid):
+    """Tell whether process ``pid`` exists and is not a zombie."""
+    try:
+        with open(f'/proc/{pid}/stat', encoding='ascii') as f:
+            return f.read().rsplit(')', 1)[1].split()[0] not in ('Z', 'X')
+    except OSError:
+        return False
+
+
+def bad_map(folder, case):
+    """
+    Write a map file that cannot be used into ``folder``; return its path.
+
+    ``case``: 'missing' (no file), 'empty', 'unreadable' (a broken PLY header) or 'all_nan'.
+    """
+    import numpy as np
+
+    path = folder / {'missing': 'nothere.ply', 'empty': 'empty.xyz',
+                     'unreadable': 'broken.ply', 'all_nan': 'nan.npy'}[case]
+    if case == 'empty':
+        path.write_text('')
+    elif case == 'unreadable':
+        path.write_bytes(b'ply\nformat binary_little_endian 1.0\ngarbage\n')
+    elif case == 'all_nan':
+        np.save(path, np.full((100, 3), np.nan))
+    return path
+
+
+def call(client, request, timeout, detail=None):
+    """Call a service and return its answer; fail after ``timeout`` seconds."""
+    assert client.wait_for_service(timeout_sec=30.0), client.srv_name
+    future = client.call_async(request)
+    wait_for(future.done, timeout, f'the answer of {client.srv_name}', detail)
+    return future.result()
+
+
+class Lifecycle:
+    """/register_node's lifecycle services, called as nav2_lifecycle_manager calls them."""
+
+    # configure answers once the registration process is warm (a cold numba cache is
+    # compiled first) and the map is loaded
+    CONFIGURE_S = 600.0
+
+    def __init__(self, node):
+        from lifecycle_msgs.srv import ChangeState, GetState
+
+        self._change = node.create_client(ChangeState, '/register_node/change_state')
+        self._get = node.create_client(GetState, '/register_node/get_state')
+
+    def state(self):
+        """Return the node's state label ('unconfigured', 'inactive', 'active', ...)."""
+        from lifecycle_msgs.srv import GetState
+
+        return call(self._get, GetState.Request(), 60.0).current_state.label
+
+    def change(self, transition_id):
+        """Request a transition (lifecycle_msgs/Transition id); return (success, state then)."""
+        from lifecycle_msgs.srv import ChangeState
+
+        request = ChangeState.Request()
+        request.transition.id = transition_id
+        return call(self._change, request, self.CONFIGURE_S).success, self.state()
+
+
 def pose_at(poses, stamp_ns):
     """Return the first message of ``poses`` stamped ``stamp_ns``, or None."""
     return next((p for p in list(poses)

@@ -29,7 +29,8 @@ class NodeConfig:
 
     autostart: bool = option(
         True, 'Configure and activate the lifecycle node at start-up, so that it runs alone '
-        '(ros2 run); false leaves it unconfigured for a lifecycle manager '
+        '(ros2 run); a failed configure (e.g. an unusable map_file) leaves it unconfigured, '
+        'still running. false leaves it unconfigured for a lifecycle manager '
         '(nav2_lifecycle_manager) to drive.')
     config_file: str = option(
         '', 'YAML of further configuration keys (the format of cgags-register --config: the '
@@ -109,7 +110,8 @@ class NodeConfig:
         "file's content and every setting that changes the features); '' disables it.")
     map_load_timeout: float = option(
         600.0, 'Seconds loading map_file (features computed or read from the cache) may '
-        'take before the attempt is abandoned.', low=1.0, high=86400.0)
+        'take in the registration process before the attempt is abandoned and configure '
+        'fails.', low=1.0, high=86400.0)
     max_scan_age: float = option(
         1.0, 'on_demand mode: a ~/relocalize call uses the latest scan if it was received at '
         'most this many seconds before the call; otherwise it waits for the next scan.',

@@ -6,7 +6,8 @@ The node's /diagnostics: one flat key space, built here and read back by live re
 so the names are defined once. ``sources.*`` and ``targets.*`` are the accounting buckets
 of :mod:`.health` (``accounting.ok``: they balance; ``sources.lost_upstream``, scans that
 never arrived, stands outside the balance); ``worker.*`` and ``memory.*`` the registration
-process and the resident memory (MB); ``transport.profile`` the Fast DDS profile loaded.
+process and the resident memory (MB); ``transport.profile`` the Fast DDS profile loaded;
+``configure.error`` why configure failed (the node's last message before it is unconfigured).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ LAST = 'last_'  # last_<field>: the most recent registration
 LAST_TIMING = 'last_timing.'  # last_timing.<stage>: its stage times, seconds
 ACCOUNTING_OK = 'accounting.ok'
 LOST_UPSTREAM = 'sources.lost_upstream'
+CONFIGURE_ERROR = 'configure.error'  # why the configure transition failed
 
 
 def build_statistics(snapshot: Mapping[str, Any], voxel_size: float,
@@ -67,7 +69,10 @@ def diagnostic_array(stats: Mapping[str, Any], name: str, hardware_id: str,
                      stamp: Any) -> DiagnosticArray:
     """Return the /diagnostics message of ``stats``, with a level and a one-line message."""
     status = DiagnosticStatus(name=name, hardware_id=hardware_id)
-    if not stats.get(ACCOUNTING_OK, True):
+    if stats.get(CONFIGURE_ERROR):  # the last message before the node is unconfigured
+        status.level = DiagnosticStatus.ERROR
+        status.message = f'configure failed: {stats[CONFIGURE_ERROR]}'
+    elif not stats.get(ACCOUNTING_OK, True):
         status.level = DiagnosticStatus.ERROR
         status.message = 'internal error: received clouds do not balance the counted outcomes'
     elif stats.get('calibration.status') == 'failed':

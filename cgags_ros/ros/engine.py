@@ -33,8 +33,8 @@ from .initial_pose import ExtrinsicLookup, InitialPoseGuard, quality_refusal
 from .interface import BasePose, Cloud, EngineOutputs, Estimate
 from .map_target import MapTarget
 from .relocalize import Answered, RelocalizeCalls, stale_scan, summary_line
-from .worker import (IsolatedRegistration, load_pipeline, RegisterFn, RegistrationTimeout,
-                     WorkerCrashed)
+from .startup import start_registration
+from .worker import IsolatedRegistration, RegisterFn, RegistrationTimeout, WorkerCrashed
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError, InvalidInputError
@@ -48,9 +48,9 @@ class RegistrationEngine:
     Registers paired clouds and decides what is published (see the module doc).
 
     ``register_fn`` replaces the pipeline; it exists for tests of the plumbing only. The
-    engine is built stopped and inactive: :meth:`start` starts the registration process
-    and the worker (and the map load), :meth:`activate` lets sources in and outputs out,
-    :meth:`stop` ends the process and the worker for good.
+    engine is built stopped and inactive: :meth:`start` starts the registration process,
+    waits for it and the map, and starts the worker; :meth:`activate` lets sources in and
+    outputs out; :meth:`stop` ends the process and the worker for good.
     """
 
     def __init__(self, pipeline_cfg: PipelineConfig, node_cfg: NodeConfig,
@@ -84,15 +84,18 @@ class RegistrationEngine:
     # ------------------------------------------------------------------ lifecycle
 
     def start(self) -> None:
-        """Start the registration process (warming up) and the worker (map load first)."""
-        cfg = self.node_config
-        if self._register_fn is not None:  # tests of the plumbing only
-            self._register = self._register_fn
-        elif cfg.registration_timeout > 0 and self._calibration is None:
-            self.registration = IsolatedRegistration(cfg.registration_timeout)
-            self._register = self.registration
-        else:  # import the pipeline (and Open3D) now, so the first pair is not slowed by it
-            self._register = load_pipeline()
+        """
+        Start registering; return once a pair can be registered (see :mod:`.startup`).
+
+        Blocks while the registration process warms up and the map of ``map_file`` loads.
+
+        :raises StartFailed: why it cannot register; nothing it started is left running.
+        """
+        self._register, self.registration, target = start_registration(
+            self.pipeline_config, self.node_config, self._calibration is not None,
+            self._register_fn, self._map, self._outputs.log)
+        if target is not None:
+            self._health.receive('target', 0, target.header.frame_id, target)
         self._worker = threading.Thread(target=self._work, name='register_worker', daemon=True)
         self._worker.start()
 
@@ -191,11 +194,6 @@ class RegistrationEngine:
     # ------------------------------------------------------------------ worker
 
     def _work(self) -> None:
-        if self._map is not None:
-            target = self._map.load(self.registration, self.pipeline_config, self.node_config,
-                                    self._outputs.log)
-            if target is not None:
-                self._health.receive('target', 0, target.header.frame_id, target)
         while not self._stop.is_set():
             pair = self._health.take(timeout=0.2) if self._ready() else None
             if pair is None:

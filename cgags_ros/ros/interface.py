@@ -5,7 +5,7 @@ The node decodes each message into a :class:`Cloud`; the engine
 (:class:`~.engine.RegistrationEngine`) hands back what to publish (:class:`Estimate`,
 :class:`BasePose`, :class:`Calibration`) through :class:`EngineOutputs`, which the node implements
 (:class:`~.outputs.Outputs`). Headers are the messages' own, opaque here: the engine reads
-only their ``frame_id``.
+only their ``frame_id``. An engine that cannot start raises :class:`StartFailed`.
 """
 
 from __future__ import annotations
@@ -14,6 +14,12 @@ import dataclasses
 from typing import Any, Protocol
 
 import numpy as np
+
+from ..errors import CgagsError
+
+
+class StartFailed(CgagsError):
+    """The engine cannot start registering: its process or its map is unusable."""
 
 
 class Cloud:

@@ -12,7 +12,7 @@ import os
 import time
 from typing import Any, Callable
 
-from .interface import Cloud
+from .interface import Cloud, StartFailed
 from .worker import IsolatedRegistration, MapRef, prepare_map
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
@@ -38,8 +38,17 @@ class MapTarget:
         self.error = ''
 
     def load(self, registration: IsolatedRegistration | None, config: PipelineConfig,
-             cfg: NodeConfig, log: Callable[[str, str], None]) -> Cloud | None:
-        """Load the map where the pipeline runs; return it as a target, or None (unusable)."""
+             cfg: NodeConfig, log: Callable[[str, str], None]) -> Cloud:
+        """
+        Load the map where the pipeline runs (features computed or from the cache).
+
+        In the registration process the load may take ``map_load_timeout``; in this
+        process (no registration process) it cannot be bounded.
+
+        :returns: the map as the target of every scan.
+        :raises StartFailed: the map is missing, unreadable or empty, or its load failed
+            (past the time limit, or the process died); ``error`` says why.
+        """
         ref = self.ref
         log('info', f'loading map {ref.path} (cache {ref.cache_dir or "off"})')
         try:
@@ -49,9 +58,7 @@ class MapTarget:
                 info = prepare_map(ref, config)
         except CgagsError as exc:
             self.error = f'map_file cannot be used: {exc}'
-            log('error', self.error + '; no scan is registered until the node is configured '
-                'again with a usable map')
-            return None
+            raise StartFailed(self.error) from exc
         self.info = info
         note = (f", {info['nonfinite_points']} non-finite points dropped"
                 if info['nonfinite_points'] else '')

@@ -1,14 +1,15 @@
 """
 ROS 2 lifecycle node: registers each source cloud onto a target cloud and publishes the pose.
 
-A managed node (``rclpy.lifecycle``): configure reads the parameters, creates the topics
-and services and starts the registration process (its warm-up and the map load run in
-the background; /diagnostics reports them); activate consumes sources and publishes;
-deactivate ignores sources (counted as ``rejected.source_inactive``) and publishes no pose;
-cleanup ends the registration process; shutdown does what cleanup does. With ``autostart``
-(default) the node configures and activates itself, so ``ros2 run cgags_ros register_node``
-works alone; under ``nav2_lifecycle_manager`` set it false. The bond that manager expects
-is formed with ``bondpy`` when it is importable; otherwise set the manager's
+A managed node (``rclpy.lifecycle``): configure reads the parameters, starts the registration
+process, waits (bounded) for its warm-up and the map load (:mod:`.startup`) and creates the
+topics and services; a failure is logged, reported once on /diagnostics and leaves the node
+unconfigured with nothing running. Activate consumes sources and publishes; deactivate ignores
+sources (``rejected.source_inactive``) and publishes no pose; cleanup ends the registration
+process; shutdown does what cleanup does. With ``autostart`` (default) the node configures and
+activates itself, so ``ros2 run cgags_ros register_node`` works alone (unconfigured, still
+running, if configure fails); under ``nav2_lifecycle_manager`` set it false. The bond that
+manager expects is formed with ``bondpy`` when it is importable; otherwise set the manager's
 ``bond_timeout: 0.0`` (docs/lifecycle.md).
 
 Topics (relative names; remap them):
@@ -79,7 +80,7 @@ from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
 from ..config.ros_parameters import (calibration_config, configs_from_ros, migration,
                                      ros_parameter_descriptions)
-from ..errors import EmptyCloudError, InvalidConfigError, InvalidInputError
+from ..errors import CgagsError, EmptyCloudError, InvalidConfigError, InvalidInputError
 from ..io.pointcloud2 import pointcloud2_to_xyz, stamp_to_ns
 
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
@@ -128,21 +129,21 @@ class RegisterNode(LifecycleNode):
     # ------------------------------------------------------------------ lifecycle
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
-        """Read the parameters, create topics and services, start the registration process."""
+        """Read the parameters, start registering (waits for it), create topics and services."""
         try:
             pipe, cfg = self._configs()
-        except InvalidConfigError as exc:
-            self.get_logger().error(f'cannot configure: {exc}')
-            return FAILURE
-        try:
             calibration = (calibration_config(pipe, cfg.config_file)
                            if cfg.mode == 'calibrate' else None)
-        except InvalidConfigError as exc:
-            self.get_logger().error(f'cannot configure: {exc}')
+            self.outputs = Outputs(self, calibrate=calibration is not None)
+            self._engine = RegistrationEngine(pipe, cfg, self.outputs, self._register_fn,
+                                              calibration)
+            self._engine.start()  # returns once the process is warm and the map loaded
+        except CgagsError as exc:  # a parameter, the registration process or the map
+            self.get_logger().error(f'cannot configure: {exc}; the node stays unconfigured')
+            if self.outputs is not None:
+                self.outputs.publish_configure_failure(self.statistics(), str(exc))
+            self._teardown()
             return FAILURE
-        self.outputs = Outputs(self, calibrate=calibration is not None)
-        self._engine = RegistrationEngine(pipe, cfg, self.outputs, self._register_fn,
-                                          calibration)
         self._entities = [
             self.create_subscription(PointCloud2, 'source_cloud', self._on_source,
                                      source_qos(cfg)),
@@ -154,7 +155,6 @@ class RegisterNode(LifecycleNode):
         if not cfg.map_file:
             self._entities.append(self.create_subscription(
                 PointCloud2, 'target_cloud', self._on_target, target_qos(cfg)))
-        self._engine.start()
         self.get_logger().info(
             f"registering source_cloud onto {cfg.map_file or 'target_cloud'} ({cfg.mode}, "
             f'{cfg.pairing_mode}, voxel_size {pipe.voxel_size} m; '

@@ -141,6 +141,10 @@ class Outputs:
             stats, f'{node.get_name()}: registration', node.get_fully_qualified_name(),
             node.get_clock().now().to_msg()))
 
+    def publish_configure_failure(self, stats: dict[str, Any], reason: str) -> None:
+        """Publish why configure failed: the last /diagnostics before the node is unconfigured."""
+        self.publish_diagnostics({**stats, diagnostics.CONFIGURE_ERROR: reason})
+
     def statistics(self) -> dict[str, int]:
         """Return the ``map_to_odom.*`` counters for /diagnostics."""
         with self._lock:

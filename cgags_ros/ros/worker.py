@@ -25,7 +25,7 @@ from ..errors import CgagsError
 
 RegisterFn = Callable[..., Any]  # register_clouds(source, target, *, config) -> PipelineResult
 
-_WARM_UP_LIMIT_S = 120.0  # starting a registration process (imports Open3D) may take this
+WARM_UP_LIMIT_S = 300.0  # with a cold numba cache the warm-up compiles the numba code first
 
 
 class RegistrationTimeout(CgagsError):
@@ -184,6 +184,10 @@ class IsolatedRegistration:
         warm = self._warm
         return self._pool is not None and (warm is None or warm.done())
 
+    def wait_ready(self) -> None:
+        """Wait for the warm-up; raise :class:`WorkerCrashed` if it failed or did not end."""
+        self._wait_for_warm_up(self._warm, strict=True)
+
     def supervise(self) -> bool:
         """Replace a child that died while idle; return True when one was replaced."""
         with self._lock:
@@ -273,13 +277,16 @@ class IsolatedRegistration:
                 raise RegistrationTimeout('the registration process is shut down')
             return self._pool.submit(*args, **kwargs)
 
-    def _wait_for_warm_up(self, warm: Any) -> None:
+    def _wait_for_warm_up(self, warm: Any, strict: bool = False) -> None:
         if warm is None:
             return
         try:
-            warm.result(timeout=_WARM_UP_LIMIT_S)
-        except Exception:  # noqa: BLE001 - a failed warm-up shows again on the real pair
-            pass
+            warm.result(timeout=WARM_UP_LIMIT_S)
+        except Exception as exc:  # noqa: BLE001 - not strict: it shows again on the real pair
+            if strict:
+                why = (f'not ready after {WARM_UP_LIMIT_S:g} s' if isinstance(exc, FutureTimeout)
+                       else 'it died' if isinstance(exc, BrokenProcessPool) else repr(exc))
+                raise WorkerCrashed(f'the registration process failed to start ({why})') from None
         with self._lock:
             if self._warm is warm:
                 self._warm = None
