@@ -71,10 +71,15 @@ def start(wire, register_fn=None, **params):
     node = RegisterNode(register_fn=register_fn, context=context,
                         parameter_overrides=ros_overrides(**params))
     executor.add_node(node)
-    wait_for(lambda: io.source_pub.get_subscription_count()
-             and io.target_pub.get_subscription_count()
-             and io.node.count_publishers('/register_node/pose'), 60, 'discovery')
-    wait_for(lambda: io.values.get('sources.received') == '0', 60, 'first diagnostics')
+    try:
+        wait_for(lambda: io.source_pub.get_subscription_count()
+                 and io.target_pub.get_subscription_count()
+                 and io.node.count_publishers('/register_node/pose'), 60, 'discovery')
+        wait_for(lambda: io.values.get('sources.received') == '0', 60, 'first diagnostics',
+                 lambda: (io.values, node.statistics()))
+    except BaseException:
+        stop(wire, node)  # its registration process must not outlive the failed test
+        raise
     return node
 
 
