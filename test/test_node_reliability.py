@@ -209,11 +209,13 @@ def test_malformed_floods_on_both_topics_are_counted_then_a_good_pair_publishes(
         for src, tgt in zip(malformed(rng, 200), malformed(rng, 200)):
             io.source_pub.publish(src)
             burst.publish(tgt)
-        wait_for(lambda: node.statistics()['received_target'] == 200, 60, 'the flood')
+        wait_for(lambda: node.statistics().get('received_target') == 200, 60, 'the flood',
+                 lambda: (node.statistics() or 'unconfigured', node._state_machine.current_state))
         target = next(m for t, _, m in records if t == '/target_cloud')
         stamp, source = next((s, m) for t, s, m in records if t == '/source_cloud')
         io.target_pub.publish(target)
-        wait_for(lambda: node.statistics()['received_target'] == 201, 20, 'the good target')
+        wait_for(lambda: node.statistics().get('received_target') == 201, 20, 'the good target',
+                 node.statistics)
         io.source_pub.publish(source)
         check(wait_for(lambda: io.pose_at(stamp), 60, 'the good pose', node.statistics),
               gt, stamp)
