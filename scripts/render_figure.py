@@ -103,7 +103,9 @@ def render(output: Path, source: np.ndarray, target: np.ndarray, transform: np.n
         ax.set_xlabel('x [m]', fontsize=8)
         ax.tick_params(labelsize=7)
         legend = ax.legend(loc='upper right', markerscale=8, fontsize=7, frameon=True)
-        for handle in legend.legend_handles:
+        # legend_handles since matplotlib 3.7; Jazzy's apt matplotlib (3.6) has legendHandles.
+        handles = getattr(legend, 'legend_handles', None) or legend.legendHandles
+        for handle in handles:
             handle.set_alpha(1.0)
     axes[0].set_ylabel('y [m] (target frame, from above)', fontsize=8)
     fig.text(0.5, 0.012, caption, ha='center', va='bottom', fontsize=8, wrap=True)
