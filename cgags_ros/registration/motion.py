@@ -60,7 +60,7 @@ class Triangles(MotionModel):
         """
         cfg = search.cfg
         i, j, k, support, status = compiled.draw_triples(
-            search.rng, search.graph.arrays(search.lists()), search.corr, search.delta, count,
+            search.rng, search.graph_arrays(), search.corr, search.delta, count,
             cfg.edge_tournament, cfg.vertex_tournament, compiled.VERTEX_PROPOSALS,
             cfg.min_triangle_area_factor * search.tau ** 2)
         search.stats['empty_common_neighbourhood'] += int((status == compiled.EMPTY).sum())
@@ -119,8 +119,8 @@ class Edges(MotionModel):
         Edges too short across the gravity axis to fix the yaw are dropped.
         """
         self._record_chance(search, search.cfg.exact_per_batch)
-        i, j = compiled.draw_edges(search.rng, search.graph.arrays(search.lists()),
-                                   search.corr, search.delta, count, search.cfg.edge_tournament)
+        i, j = compiled.draw_edges(search.rng, search.graph_arrays(), search.corr, search.delta,
+                                   count, search.cfg.edge_tournament)
         edges = np.stack([i, j], axis=1)
         search.sampled.append(edges)
         ok = self.usable(search, edges)
@@ -135,8 +135,8 @@ class Edges(MotionModel):
         by common neighbours, whose winners are to a large share all-inlier edges when the
         graph is sparse (outliers spread wider than the model) and would read as chance.
         """
-        i, j = compiled.draw_edges(search.rng, search.graph.arrays(search.lists()),
-                                   search.corr, search.delta, count, 1)
+        i, j = compiled.draw_edges(search.rng, search.graph_arrays(), search.corr, search.delta,
+                                   count, 1)
         ok = self.usable(search, np.stack([i, j], axis=1))
         if ok.any():
             R, t = fit_edges(search.src, search.dst, i[ok], j[ok])

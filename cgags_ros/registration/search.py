@@ -54,12 +54,10 @@ class Search:
         self.best_score, self.best_T = -np.inf, np.eye(4)
         self.best_inliers: np.ndarray | None = None
         self.best_mask = np.zeros(graph.n, dtype=bool)
-        self.improvements = 0
         self.preference = PreferenceLists(graph.n, cfg.preference_length)
         self.sampled: list[np.ndarray] = []  # stage-one subsets, to estimate w1 empirically
         self.consensus = ConsensusRecord(tau, motion.size)
         self.start = time.perf_counter()
-        self.no_lists = np.zeros((0, 2), np.int32)
         self.w1 = 0.0  # all-inlier probability of a stage-one sample, at its last estimate
         self.stopped_by = 'max_iterations'
         self.futile = False  # stage one ruled out any significant model
@@ -119,13 +117,12 @@ class Search:
         observed = empirical_inlier_probability(self.sampled, self.best_mask)
         return max(analytic, observed)
 
-    def lists(self) -> np.ndarray:
-        """Return the CSR neighbour indices once the search is long, else empty (same draws)."""
+    def graph_arrays(self) -> compiled.GraphArrays:
+        """Return the graph for the samplers, with its entry lists once the search is long."""
         if (self.num_drawn <= self.graph.n ** 2 // _LISTS_BUILD_RATIO
                 or 2 * self.graph.num_edges > _LISTS_MAX_ENTRIES):
-            return self.no_lists
-        pairs = self.graph.entry_lists()
-        return self.no_lists if pairs is None else pairs
+            return self.graph.arrays()  # the same draws, by bit-row scans
+        return self.graph.arrays(self.graph.entry_lists())
 
     # --- step 3: hypotheses -----------------------------------------------------------------
     def evaluate(self, subsets: np.ndarray, support: np.ndarray | None = None) -> bool:
@@ -177,7 +174,6 @@ class Search:
         self.best_inliers = np.flatnonzero(res[best] <= self.tau)
         self.best_mask[:] = False
         self.best_mask[self.best_inliers] = True
-        self.improvements += 1
         self.stats['best_updates'] += 1
         return True
 
