@@ -26,6 +26,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped  # noqa: E402
 from std_msgs.msg import Header, String  # noqa: E402
 from waiting import CloudWire, ros_overrides, spun_context, wait_for  # noqa: E402
 
+pytestmark = pytest.mark.ros
 DOMAIN_ID = 96  # distinct from the other DDS test modules
 TOLERANCE = (0.2, 0.03)  # simulated rig: deg, m (the reference spread)
 PARAMS = {'mode': 'calibrate', 'voxel_size': 0.3, 'source_qos': 'reliable',

@@ -27,6 +27,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+pytestmark = pytest.mark.slow
 TOLERANCE = {'carla_data': (0.2, 0.03), 'real_world': (0.5, 0.05)}  # deg, m
 OPENCALIB_VOXEL = 0.3
 _CACHE: dict = {}

@@ -32,6 +32,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 from sensor_msgs.msg import PointCloud2
 
+pytestmark = [pytest.mark.ros, pytest.mark.subprocess, pytest.mark.slow]
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = 'cgags_ros'
 # What a source checkout of the package must ship for colcon; never .venv, build outputs, .git.

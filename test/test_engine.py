@@ -87,6 +87,7 @@ def balanced(engine):
     return acc
 
 
+@pytest.mark.subprocess
 def test_the_engine_imports_no_ros():
     code = ('import sys, cgags_ros.ros.engine, cgags_ros.ros.map_target, '
             'cgags_ros.ros.startup; '
@@ -274,6 +275,7 @@ def processes(monkeypatch):
     return started
 
 
+@pytest.mark.subprocess
 @pytest.mark.parametrize('with_map', [False, True])
 def test_start_returns_once_the_process_is_warm_and_the_map_loaded(
         tmp_path, processes, with_map):
@@ -300,6 +302,7 @@ def test_start_returns_once_the_process_is_warm_and_the_map_loaded(
     wait_for(lambda: not running(pid), 10, 'the registration process to end')
 
 
+@pytest.mark.subprocess
 @pytest.mark.parametrize('case', ['missing', 'empty', 'unreadable', 'all_nan'])
 def test_a_bad_map_fails_start_with_its_reason(tmp_path, case):
     """A missing, empty, unreadable or all-NaN map: StartFailed naming it, no worker thread."""
@@ -314,6 +317,7 @@ def test_a_bad_map_fails_start_with_its_reason(tmp_path, case):
     engine.stop()  # what the node's cleanup does: harmless after a failed start
 
 
+@pytest.mark.subprocess
 def test_a_bad_map_ends_the_registration_process_it_was_loaded_in(tmp_path, processes):
     """The map is loaded in the real process: start fails and that process is ended."""
     engine = RegistrationEngine(PipelineConfig(), NodeConfig(
@@ -325,6 +329,7 @@ def test_a_bad_map_ends_the_registration_process_it_was_loaded_in(tmp_path, proc
     assert not process.ready
 
 
+@pytest.mark.subprocess
 def test_a_process_that_dies_while_warming_up_fails_start(processes):
     """Killed (-9) during its warm-up: StartFailed says so, and nothing is left running."""
     engine = RegistrationEngine(PipelineConfig(), NodeConfig(registration_timeout=60.0),

@@ -25,6 +25,7 @@ from test_calibration import _plane_rig
 from test_engine import balanced, Header, Recorder
 from waiting import wait_for
 
+pytestmark = pytest.mark.slow
 VOXEL = 0.3  # test_calibration's OpenCalib voxel
 TOLERANCE = (0.2, 0.03)  # simulated rig: deg, m (the reference spread)
 

@@ -30,6 +30,7 @@ from cgags_ros.ros.transport import profile_path, PROFILE_VARIABLE  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from waiting import ros_args, spun_context, stop_process, wait_for  # noqa: E402
 
+pytestmark = pytest.mark.ros
 DOMAIN_ID = 89  # distinct from the other DDS test modules
 REPO = Path(__file__).resolve().parents[1]
 RATE_HZ, COUNT = 10.0, 100  # 10 s of a 10-Hz LiDAR

@@ -25,6 +25,7 @@ from std_srvs.srv import Empty, Trigger  # noqa: E402
 from waiting import (call, CloudWire, lidar_bag, Lifecycle, ros_overrides,  # noqa: E402
                      running, spun_context, wait_for)
 
+pytestmark = pytest.mark.ros
 DOMAIN_ID = 91  # distinct from the other DDS test modules
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = {'autostart': False, 'voxel_size': 0.4, 'source_qos': 'reliable',

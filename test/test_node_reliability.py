@@ -38,6 +38,7 @@ from std_msgs.msg import Header  # noqa: E402
 from waiting import CloudWire, lidar_bag, ros_args, ros_overrides  # noqa: E402
 from waiting import spun_context, stop_process, wait_for  # noqa: E402
 
+pytestmark = pytest.mark.ros
 DOMAIN_ID = 53  # distinct from the other DDS test modules
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)

@@ -33,6 +33,7 @@ from std_srvs.srv import Trigger  # noqa: E402
 from waiting import (bad_map, Lifecycle, merged_kitchen_map, ros_overrides,  # noqa: E402
                      spun_context, wait_for)
 
+pytestmark = pytest.mark.ros
 DOMAIN_ID = 65  # distinct from the other DDS test modules
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 INDOOR = (15.0, 0.3)  # RE (deg), TE (m): the indoor thresholds of the other tests

@@ -16,6 +16,7 @@ import sys
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.subprocess
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / 'scripts' / 'render_figure.py'
 COMMITTED = REPO / 'docs' / 'images' / 'registration_pair.png'

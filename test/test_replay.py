@@ -23,6 +23,7 @@ from cgags_ros.tools.replay_common import auto_voxel_size, LiveOptions, ReplayOp
 import numpy as np
 import pytest
 
+pytestmark = [pytest.mark.ros, pytest.mark.subprocess, pytest.mark.slow]
 BAGS = sorted(DEMO_BAGS)  # bunny, lidar, redkitchen with their RE/TE thresholds
 TARGET_FRAMES = {'bunny': 'turntable', 'redkitchen': 'map', 'lidar': 'map'}
 ROS_ENV = {'ROS_DOMAIN_ID': '83', 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}

@@ -76,6 +76,7 @@ def test_bad_log_is_a_clear_error(tmp_path: Path):
         tdm.read_gt_log(path)
 
 
+@pytest.mark.slow
 @needs_data
 @pytest.mark.parametrize('benchmark, floor', [('3DMatch', 0.7), ('3DLoMatch', 0.3)])
 def test_sample_registers_against_ground_truth(benchmark, floor):
@@ -130,6 +131,7 @@ def test_leave_one_out_scene_map_holds_every_other_fragment_where_its_pose_puts_
     assert share[0] > 0.8 and share[1] < 0.2
 
 
+@pytest.mark.slow
 @needs_data
 def test_fragments_relocalize_in_maps_of_their_neighbours(tmp_path: Path):
     """
@@ -170,6 +172,7 @@ def test_fragments_relocalize_in_maps_of_their_neighbours(tmp_path: Path):
     assert right >= total // 2
 
 
+@pytest.mark.slow
 @needs_data
 def test_a_pose_whose_rivals_all_converge_onto_it_is_judged_not_crashed_on(tmp_path: Path):
     """

@@ -1,6 +1,7 @@
 """Helpers of the tests: waiting for conditions, ROS contexts, node processes, the kitchen map."""
 
 import contextlib
+import os
 import signal
 import subprocess
 import threading
@@ -210,6 +211,9 @@ def spun_context(domain_id, make_io):
     from rclpy.context import Context
     from rclpy.executors import MultiThreadedExecutor
 
+    # rcl reads the discovery range when the context starts; every DDS test of this suite
+    # stays on this machine, so setting it process-wide is what each module wants anyway.
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     context = Context()
     rclpy.init(context=context, domain_id=domain_id)
     io = make_io(context)
