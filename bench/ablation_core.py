@@ -5,7 +5,7 @@ Each variant overrides CoreConfig fields; every variant sees the same problems a
 Reports success (RE < 5 deg, TE < 0.1 on the unit-scaled bunny), median/p90 time and median
 hypotheses per cell. Time is noisy on a shared machine; hypotheses are not.
 
-    .venv/bin/python bench/ablation_core.py --trials 20 --output docs/ablation_results.md
+    .venv/bin/python bench/ablation_core.py --trials 20 --output out/ablation_results.md
 """
 
 from __future__ import annotations

@@ -606,7 +606,7 @@ def to_markdown(res: dict[str, Any]) -> str:
     lines += ['', 'Solvers:', ''] + [f'- `{k}`: {d}' for k, d in res['solvers'].items()]
     for k, why in res['skipped'].items():
         lines.append(f'- `{k}`: **skipped** ({why})')
-    lines += ['', f"Machine: {env.get('cpu_count')} CPUs, shared (load average "
+    lines += ['', f"How this was measured: {env.get('cpu_count')} CPUs, shared (load average "
               f"{env['loadavg_before'][0]:.2f} before, {env['loadavg_after'][0]:.2f} after; "
               'timings include contention). Open3D and KISS-Matcher (each its own TBB) use all '
               f"cores. Versions: numpy {env.get('numpy')}, open3d {env.get('open3d')}, "

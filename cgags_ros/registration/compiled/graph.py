@@ -4,7 +4,7 @@ Compiled functions (numba) of step 1 of Algorithm 1, the compatibility graph.
 The graph is the bit matrix of :class:`.CompatibilityGraph` as 64-bit words
 (bit j of row i in word j >> 6, bit j & 63: on a little-endian machine the same bytes as its
 uint8 rows). Loops over pairs and set bits run here because in numpy each would be a pass
-over the whole N x N matrix per call (docs/implementation.md). Besides the graph's build
+over the whole N x N matrix per call (docs/design.md). Besides the graph's build
 (:func:`compatibility_words`, 4-DoF :func:`vertical_compatibility_words`) and its entry
 lists, the bit-row queries the later steps make of it: the common neighbourhoods of
 minimal subsets (step 3's pre-screen, :func:`common_support`), the adjacency among guided

@@ -6,7 +6,7 @@ Each correspondence keeps the b hypotheses with its smallest residuals
 on bit rows of those lists (:func:`preference_bits`, :func:`kernel_row`), whole
 (:func:`intersection_kernel`) or, for guided sampling, row by row as draws read it
 (:func:`.sampling.draw_guided`). Loops per correspondence that numpy would run as chains of
-small array calls (docs/implementation.md).
+small array calls (docs/design.md).
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ intersection kernel K that step 6 refreshes (:class:`.GuidedRows`, :func:`guided
 
 A whole batch of minimal subsets is drawn in one call: per subset, the edge tournament,
 the vertex tournament and the collinearity test are a few dozen bit-row operations, which
-as numpy calls would each pay the per-call overhead (docs/implementation.md). The
+as numpy calls would each pay the per-call overhead (docs/design.md). The
 functions draw from the search's own ``numpy.random.Generator`` (numba shares its bit
 generator state), so a search stays deterministic for its seed.
 

@@ -6,7 +6,7 @@ neighbourhoods (:func:`prescreen_scores`) and the residuals the scores are taken
 (:func:`residual_matrix`). Step 8, the final re-fit's weighted fit and residuals
 (:func:`fit_weighted`, :func:`point_residuals`, through :mod:`.rigid`). Each is a loop per
 hypothesis (or per correspondence) that numpy would run as a chain of small array calls
-(docs/implementation.md).
+(docs/design.md).
 """
 
 from __future__ import annotations

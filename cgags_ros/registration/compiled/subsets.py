@@ -4,7 +4,7 @@ Compiled functions (numba) of step 7 of Algorithm 1, stopping: the edges among a
 The P1 bound's all-inlier probability needs the edges among the best model's inliers and
 a few of them drawn at random. Counted on the graph's bit rows they cost M x W words; the
 dense M x M adjacency of a large inlier set cost more than the search around it
-(docs/implementation.md).
+(docs/design.md).
 """
 
 from __future__ import annotations
