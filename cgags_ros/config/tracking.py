@@ -53,6 +53,12 @@ class TrackingConfig:
         10.0, 'Rotation bound (degrees) of max_correction_factor.', low=0.0, high=180.0,
         advanced=True)
     coarse_distance_factor: float = option(
-        4.0, 'First refinement stage from the prediction matches points within this many '
+        2.0, 'First refinement stage from the prediction matches points within this many '
         'voxel sizes (then the final refinement distance), so that a prediction off by '
-        'about a metre still converges.', low=0.0, high=100.0, advanced=True)
+        'about a metre still converges; 0 runs the final stage only.', low=0.0, high=100.0,
+        advanced=True)
+    refine_tolerance: float = option(
+        1e-3, 'The tracked refinement stops once fitness and inlier RMSE change by less than '
+        'this (relative): from a close start, further iterations move the pose far less than '
+        "the gates or the sensor can tell apart. The global path's final stage keeps 1e-6.",
+        low=0.0, high=1.0, advanced=True)

@@ -137,7 +137,7 @@ class Tracker:
 
     def _pair(self, target: np.ndarray | PreparedMap, cfg: PipelineConfig) -> _PairState:
         """Return the pair's state, new when the target or the configuration changed."""
-        key = _target_key(target)
+        key = target_key(target)
         state = self._state
         if state is None or state.target_key != key or state.config != cfg:
             if state is not None:
@@ -205,7 +205,7 @@ class Tracker:
                 points, ft.points, prediction, voxel_size=v, config=cfg.refine,
                 target_normals=ft.normals,
                 coarse_distance=cfg.tracking.coarse_distance_factor * v, gravity=gravity,
-                workers=DEFAULT_WORKERS)
+                workers=DEFAULT_WORKERS, tolerance=cfg.tracking.refine_tolerance)
             result.refined = True
         with timed(result.timings, 'validation'):
             reason, align = overlap_gate(points, tree, ft, result, cfg,
@@ -297,7 +297,7 @@ def _remember(state: _PairState, stamp: float, result: PipelineResult) -> None:
     state.poses = state.poses[-1:] + [_Pose(stamp, result.transform.copy(), result.fitness)]
 
 
-def _target_key(target: np.ndarray | PreparedMap) -> tuple:
+def target_key(target: np.ndarray | PreparedMap) -> tuple:
     """Identify a target by content (a latched map re-sent unchanged is the same target)."""
     if isinstance(target, PreparedMap):
         return ('map', target.path, target.digest)
