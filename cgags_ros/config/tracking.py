@@ -53,10 +53,11 @@ class TrackingConfig:
         10.0, 'Rotation bound (degrees) of max_correction_factor.', low=0.0, high=180.0,
         advanced=True)
     coarse_distance_factor: float = option(
-        2.0, 'First refinement stage from the prediction matches points within this many '
-        'voxel sizes (then the final refinement distance), so that a prediction off by '
-        'about a metre still converges; 0 runs the final stage only.', low=0.0, high=100.0,
-        advanced=True)
+        0.0, 'When above the final refinement distance: a first refinement stage from the '
+        'prediction matching points within this many voxel sizes, so that a poorer '
+        'prediction (no odometry, hard acceleration) still converges, at several times the '
+        "refinement's cost; 0 runs the final stage only, and a prediction off by more than "
+        'it goes global.', low=0.0, high=100.0, advanced=True)
     refine_tolerance: float = option(
         1e-3, 'The tracked refinement stops once fitness and inlier RMSE change by less than '
         'this (relative): from a close start, further iterations move the pose far less than '
