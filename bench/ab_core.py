@@ -21,7 +21,7 @@ Example::
     .venv/bin/python bench/ab_core.py --rev main --motion 4dof --outliers uniform,cube
 
 Exit status 1 when any result differs (for a pass that must not change any). The old
-revision's kernels compile cold in the temporary directory (~20 s).
+revision's numba code compiles cold in the temporary directory (~20 s).
 """
 
 from __future__ import annotations

@@ -17,7 +17,7 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / 'cgags_ros'
 LAYERS = {  # top-level part of the module name -> layer (higher imports lower)
-    'errors': 0, 'timing': 0, 'parallel': 0,
+    'errors': 0, 'timing': 0, 'parallel': 0, 'compiled_types': 0,
     'geometry': 1, 'config': 1,  # the bottom: typed config, geometry, then files and data
     'io': 2,
     'datasets': 3,

@@ -168,17 +168,17 @@ def test_warm_up_runs_every_stage():
     assert gicp.valid and gicp.refined
 
 
-def test_after_warm_up_a_real_pair_compiles_no_front_end_kernel(data_dir):
-    """The warm-up compiles every front-end kernel specialization a real pair needs."""
-    from cgags_ros.frontend import kernels_fpfh, kernels_index, kernels_neighbours
+def test_after_warm_up_a_real_pair_compiles_nothing_in_the_front_end(data_dir):
+    """The warm-up compiles every front-end function specialization a real pair needs."""
+    from cgags_ros.frontend.compiled import descriptor_index, fpfh, neighbours
 
     warm_up()
-    dispatchers = [getattr(m, name) for m in (kernels_fpfh, kernels_index, kernels_neighbours)
+    dispatchers = [getattr(m, name) for m in (fpfh, descriptor_index, neighbours)
                    for name in dir(m) if hasattr(getattr(m, name), 'signatures')]
     before = {d: len(d.signatures) for d in dispatchers}
-    called = (kernels_neighbours.radius_neighbours, kernels_fpfh.spfh, kernels_fpfh.fpfh,
-              kernels_index.kmeans, kernels_index.assign, kernels_index.search,
-              kernels_index.nearest_is, kernels_index.squared_pair_distances)
+    called = (neighbours.radius_neighbours, fpfh.spfh_pass, fpfh.fpfh_pass,
+              descriptor_index.kmeans, descriptor_index.assign, descriptor_index.search,
+              descriptor_index.nearest_is, descriptor_index.squared_pair_distances)
     assert all(before[d] for d in called), before  # the ones Python calls (others inline)
     folder = data_dir / 'lidar' / 'small_gicp'
     source = np.asfortranarray(read_cloud(folder / 'source.ply'))  # any input layout

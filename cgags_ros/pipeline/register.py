@@ -135,7 +135,7 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
         result.refined = cfg.refine.method != 'none'
     # The rival search reads only the core's estimate and the final transform, never what
     # the gates set: it runs beside them (both spend most of their time outside the GIL,
-    # in compiled kernels and k-d tree queries).
+    # in compiled numba functions and k-d tree queries).
     rivals = in_background(lambda: _search_rivals(fs, ft, corr, result, cfg), workers > 1)
     map_target = isinstance(target, PreparedMap)
     with timed(result.timings, 'validation'):
