@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 
-from cgags_ros.datasets.synthetic import load_bunny, make_correspondences
+from bench.datasets.synthetic import load_bunny, make_correspondences
 from cgags_ros.registration import compatibility, compiled, register_correspondences
 from cgags_ros.registration.compatibility import build_compatibility_graph, CompatibilityGraph
 from cgags_ros.registration.compiled import (COLLINEAR, compatibility_words, Correspondences,

@@ -14,8 +14,8 @@ source; the ground truth then becomes T_gt @ inv(X).
 
 import dataclasses
 
+from bench.datasets.gt_pairs import find_pair
 from cgags_ros.config import pipeline_config_from, PipelineConfig
-from cgags_ros.datasets.gt_pairs import find_pair
 from cgags_ros.errors import EmptyCloudError, InvalidConfigError, InvalidInputError
 from cgags_ros.frontend.refine import evaluate_alignment
 from cgags_ros.geometry import rotation_error_deg, translation_error

@@ -17,10 +17,11 @@ from typing import Any
 from .result import PipelineResult
 
 _LAZY = {'register_clouds': 'register', 'warm_up': 'register',
-         'cached_features': 'cache', 'clear_feature_cache': 'cache'}
+         'cached_features': 'cache', 'clear_feature_cache': 'cache',
+         'set_feature_cache_size': 'cache'}
 
 __all__ = ['PipelineResult', 'cached_features', 'clear_feature_cache', 'register_clouds',
-           'warm_up']
+           'set_feature_cache_size', 'warm_up']
 
 
 def __getattr__(name: str) -> Any:

@@ -1,0 +1,45 @@
+"""
+The registration core of an earlier git revision, imported beside the working tree's.
+
+``git archive`` writes the package of that revision into a folder, renamed ``cgags_prev``
+(every ``cgags_ros`` in its sources too), and it is imported from there under that name,
+so both cores run in one process on the same problems (``bench.ab_core``, the
+``ours-4dof@REV`` solvers of ``bench.core``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import importlib.util
+from pathlib import Path
+import subprocess
+import sys
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = 'cgags_prev'
+
+
+def load_previous(rev: str, where: Path):
+    """Return ``register_correspondences`` of the package at git ``rev``, as cgags_prev."""
+    archive = subprocess.run(['git', '-C', str(ROOT), 'archive', rev, 'cgags_ros'],
+                             check=True, capture_output=True).stdout
+    subprocess.run(['tar', '-x', '-C', str(where)], input=archive, check=True)
+    package = where / PACKAGE
+    (where / 'cgags_ros').rename(package)
+    for path in package.rglob('*.py'):
+        text = path.read_text(encoding='utf-8')
+        path.write_text(text.replace('cgags_ros', PACKAGE), encoding='utf-8')
+    spec = importlib.util.spec_from_file_location(
+        PACKAGE, package / '__init__.py', submodule_search_locations=[str(package)])
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[PACKAGE] = module
+    spec.loader.exec_module(module)
+    return importlib.import_module(f'{PACKAGE}.registration').register_correspondences
+
+
+def previous_config(cfg):
+    """Return the previous revision's CoreConfig with ``cfg``'s values (its own defaults else)."""
+    previous = sys.modules[f'{PACKAGE}.registration'].CoreConfig
+    return previous(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(previous)
+                       if hasattr(cfg, f.name)})
