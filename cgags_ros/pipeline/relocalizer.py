@@ -109,9 +109,9 @@ class Hypothesis:
     A pose of the odometry frame in the map and its checks, one a scan.
 
     :ivar map_from_odom: 4x4 map <- odom as proposed (metres).
-    :ivar scan: the scan whose candidate proposed it; ``rank`` that candidate's rank.
-    :ivar inliers: the proposing candidates' inliers, summed over the scans that proposed
-        it.
+    :ivar scan: the scan whose candidate proposed it; ``rank`` that candidate's rank;
+        ``source`` 'scan' or 'submap' (the scans so far fused, in that scan's frame).
+    :ivar inliers: the proposing candidates' inliers (summed when several proposed it).
     :ivar checks: scan index -> :class:`Check`.
     """
 
@@ -119,6 +119,7 @@ class Hypothesis:
     scan: int
     rank: int
     inliers: int
+    source: str = 'scan'
     checks: dict[int, Check] = dataclasses.field(default_factory=dict)
 
     def summary(self, seq: SequenceConfig, max_free_space: float) -> dict[str, Any]:
@@ -136,14 +137,11 @@ class Answer:
     What the relocalizer says after a scan.
 
     :ivar confirmed: one hypothesis explains every scan used and its rivals are refuted.
-    :ivar done: confirmed, or refused (``max_scans`` used, or no scan usable); else it
-        asks for another scan.
+    :ivar done: confirmed, or refused (``max_scans`` used); else it asks for another scan.
     :ivar transform: 4x4 map <- the latest scan's sensor (the best hypothesis's pose).
     :ivar map_from_odom: 4x4 map <- odom of the best hypothesis.
-    :ivar scans_used: scans taken.
-    :ivar reason: why not confirmed ('' when confirmed).
-    :ivar hypotheses: ranked, best first.
-    :ivar results: each scan's own registration, in order.
+    :ivar scans_used: scans taken; ``reason``: why not confirmed ('' when confirmed).
+    :ivar hypotheses: ranked, best first; ``results``: each scan's own registration.
     """
 
     confirmed: bool
@@ -212,7 +210,7 @@ class Relocalizer:
                      if self.scans else 0.0)
         self.scans.append(_Scan(xyz, features, odom, travelled, result))
         index = len(self.scans) - 1
-        self._propose_all(result, index)
+        self._propose_all(result, index, 'scan')
         if index == 0:
             # One scan is judged as a single registration is.
             return _settle(result.transform, odom,
@@ -222,28 +220,34 @@ class Relocalizer:
             to_latest = np.linalg.inv(odom)
             fused = np.vstack([apply_transform(to_latest @ s.odom, s.xyz) for s in self.scans])
             self.submaps.append(register_clouds(fused, self.prepared, config=self.config))
-            self._propose_all(self.submaps[-1], index)
+            self._propose_all(self.submaps[-1], index, 'submap')
+        limit = self.config.refine.max_free_space_violation
         for h in self.hypotheses:
-            for i in range(len(self.scans)):
+            # Its own scan first; a hypothesis a scan does not explain is refuted: the
+            # other scans need not check it.
+            for i in [h.scan] + [i for i in range(len(self.scans)) if i != h.scan]:
                 if i not in h.checks:
                     h.checks[i] = self._check(h, i)
+                if not h.checks[i].explains(self.sequence, limit):
+                    break
         return judge(self.hypotheses, [s.result for s in self.scans],
                      [s.odom for s in self.scans], self.config, self.sequence)
 
-    def _propose_all(self, result: PipelineResult, index: int) -> None:
-        """Propose the candidates of a registration of scan ``index`` (or of the submap)."""
+    def _propose_all(self, result: PipelineResult, index: int, source: str) -> None:
+        """
+        Propose the candidates of a registration in scan ``index``'s frame as hypotheses.
+
+        One that repeats a hypothesis (the same pose of this scan) is merged into it.
+        """
         odom = self.scans[index].odom
         for rank, c in enumerate(result.candidates):
-            self._propose(c.transform @ np.linalg.inv(odom), index, rank, c.num_inliers)
-
-    def _propose(self, map_from_odom: np.ndarray, index: int, rank: int, inliers: int) -> None:
-        """Add a hypothesis, or merge it into the one it repeats (same pose of this scan)."""
-        pose = map_from_odom @ self.scans[index].odom
-        for h in self.hypotheses:
-            if not distinct(h.map_from_odom @ self.scans[index].odom, pose, self.config):
-                h.inliers += inliers
-                return
-        self.hypotheses.append(Hypothesis(map_from_odom, index, rank, inliers))
+            for h in self.hypotheses:
+                if not distinct(h.map_from_odom @ odom, c.transform, self.config):
+                    h.inliers += c.num_inliers
+                    break
+            else:
+                self.hypotheses.append(Hypothesis(c.transform @ np.linalg.inv(odom), index,
+                                                  rank, c.num_inliers, source))
 
     def _check(self, h: Hypothesis, index: int) -> Check:
         """Put scan ``index`` where ``h`` predicts it and refine it against the map."""
@@ -279,8 +283,7 @@ def _cells(points: np.ndarray, size: float, dilate: bool = False) -> np.ndarray:
         steps = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing='ij'), -1).reshape(-1, 3)
         ijk = (ijk[:, None, :] + steps[None]).reshape(-1, 3)
     ijk += 1 << 20  # non-negative below 2^21 per axis: one key of 63 bits
-    return np.unique((ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]) if dilate else \
-        (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
+    return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
 
 
 def judge(hypotheses: list[Hypothesis], results: list[PipelineResult], odom: list[np.ndarray],
@@ -292,8 +295,8 @@ def judge(hypotheses: list[Hypothesis], results: list[PipelineResult], odom: lis
     """
     n, limit = len(results), config.refine.max_free_space_violation
 
-    def explained(h: Hypothesis) -> list[bool]:
-        return [h.checks[i].explains(seq, limit) for i in range(n)]
+    def explained(h: Hypothesis) -> list[bool]:  # a check left out: refuted earlier
+        return [i in h.checks and h.checks[i].explains(seq, limit) for i in range(n)]
 
     def score(h: Hypothesis) -> tuple:
         return (sum(explained(h)), sum(c.fitness for c in h.checks.values()), h.inliers)
@@ -303,16 +306,18 @@ def judge(hypotheses: list[Hypothesis], results: list[PipelineResult], odom: lis
         return _settle(results[-1].transform, odom[-1], results[-1].reason
                        or 'no scan gave a candidate pose', ranked, results, seq)
     best = ranked[0]
-    last = best.checks[n - 1].transform
+    last = (best.checks[n - 1].transform if n - 1 in best.checks
+            else best.map_from_odom @ odom[-1])
     misses = [i for i, ok in enumerate(explained(best)) if not ok]
     reason = (f'no pose explains every scan (the best misses scan(s) '
               f'{", ".join(map(str, misses))}): the odometry contradicts the scans, or the '
               'place is not in the map') if misses else ''
     for rival in ranked[1:] if not reason else ():
+        if any(not ok or rival.checks[i].fitness * seq.refute_ratio < best.checks[i].fitness
+               for i, ok in enumerate(explained(rival))):
+            continue  # refuted
         pose = rival.checks[n - 1].transform
-        refuted = any(not ok or rival.checks[i].fitness * seq.refute_ratio
-                      < best.checks[i].fitness for i, ok in enumerate(explained(rival)))
-        if distinct(pose, last, config) and not refuted:
+        if distinct(pose, last, config):
             reason = (f'ambiguous over {n} scans: a distinct pose '
                       f'({rotation_error_deg(pose, last):.0f} deg, '
                       f'{translation_error(pose, last):.2f} m away) explains every scan '
