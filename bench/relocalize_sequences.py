@@ -167,7 +167,7 @@ def replay(record: dict, n: int, seq: SequenceConfig, submap: bool, cfg) -> dict
 
 
 def outcome(record: dict, scans: int, policy, cfg) -> dict:
-    """Allowed up to ``scans`` scans, stopping at the first confirmed: what it answers."""
+    """Return the answer when allowed ``scans`` scans, stopping at the first confirmed one."""
     f, r, m, sub = policy
     seq = SequenceConfig(max_scans=LENGTH, min_scans=m, min_fitness=f, refute_ratio=r,
                          submap=sub)
@@ -181,7 +181,7 @@ def outcome(record: dict, scans: int, policy, cfg) -> dict:
 
 
 def table(records: list[dict], policy_of, cfg) -> list[list]:
-    """Rows of 1, 2 and 3 scans: right & confirmed, confirmed wrong, refused, time."""
+    """Return the rows of 1, 2 and 3 scans: right & confirmed, confirmed wrong, refused, time."""
     rows = []
     for scans in range(1, LENGTH + 1):
         got = [outcome(r, scans, policy_of(r), cfg) for r in records
@@ -197,7 +197,7 @@ def table(records: list[dict], policy_of, cfg) -> list[list]:
 
 
 def choose(records: list[dict], cfg):
-    """The policy with the most right & confirmed within 3 scans and none confirmed wrong."""
+    """Return the policy with the most right & confirmed in 3 scans, none confirmed wrong."""
     def merit(policy):
         got = [outcome(r, LENGTH, policy, cfg) for r in records
                if r['overlap'][LENGTH - 1] >= MIN_OVERLAP]
@@ -208,7 +208,7 @@ def choose(records: list[dict], cfg):
 
 
 def report(paths: list[Path]) -> str:
-    """The tables of the recorded scenes: defaults, and leave one scene out (module doc)."""
+    """Return the tables of the recorded scenes: defaults, and leave one scene out."""
     from cgags_ros.tools.report import markdown_table
 
     cfg = pipeline_config_from({'voxel_size': 0.05})
