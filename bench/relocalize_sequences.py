@@ -27,20 +27,20 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 from pathlib import Path
 import tempfile
 import time
 
+from bench.common import argument_parser, markdown_table
+from bench.datasets import threedmatch as tdm
 from cgags_ros.config import pipeline_config_from
-from cgags_ros.datasets import threedmatch as tdm
-from cgags_ros.datasets.synthetic import shared_data_dir
 from cgags_ros.frontend.features import estimate_normals
 from cgags_ros.geometry import apply_transform, make_transform, rotation_error_deg
 from cgags_ros.geometry import translation_error
 from cgags_ros.io.clouds import write_cloud
+from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline.map import load_map
 from cgags_ros.pipeline.relocalizer import Check, Hypothesis, judge, Relocalizer
 from cgags_ros.pipeline.relocalizer import SequenceConfig
@@ -209,8 +209,6 @@ def choose(records: list[dict], cfg):
 
 def report(paths: list[Path]) -> str:
     """Return the tables of the recorded scenes: defaults, and leave one scene out."""
-    from cgags_ros.tools.report import markdown_table
-
     cfg = pipeline_config_from({'voxel_size': 0.05})
     records = [r for p in paths for r in json.loads(p.read_text())['records']]
     scenes = sorted({r['scene'] for r in records})
@@ -233,9 +231,9 @@ def report(paths: list[Path]) -> str:
     return '\n'.join(out)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     """Run the scenes asked for, or report on every scene recorded."""
-    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap = argument_parser(__spec__.name, __doc__)
     ap.add_argument('--root', type=Path, default=None, help='3DMatch benchmark folder')
     ap.add_argument('--scenes', nargs='*', default=None, help='scene folders (default: all)')
     ap.add_argument('--starts', type=int, default=0, help='start fragments a scene (0: all)')
@@ -246,7 +244,7 @@ def main() -> None:
     ap.add_argument('--seed', type=int, default=0)
     ap.add_argument('--output', type=Path, default=Path('out'))
     ap.add_argument('--report', action='store_true', help='report on the recorded scenes')
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     if args.report:
         text = report(sorted(args.output.glob('relocalize_sequences_*.json')))
         (args.output / 'relocalize_sequences.md').write_text(text + '\n', encoding='utf-8')

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import json
 
+from bench.datasets import threedmatch as tdm
 from cgags_ros.config import pipeline_config_from
-from cgags_ros.datasets import threedmatch as tdm
 from cgags_ros.errors import InvalidInputError
 from cgags_ros.frontend.features import estimate_normals
 from cgags_ros.geometry import make_transform, rotation_error_deg
@@ -139,7 +139,9 @@ def test_one_scan_is_judged_as_a_single_registration(easy):
         single = register_clouds(fragments[k], prepared, config=cfg)
         answer = Relocalizer(prepared, cfg, SequenceConfig(max_scans=1)).add(fragments[k])
         assert answer.done and answer.confirmed == single.valid and answer.scans_used == 1
-        assert np.array_equal(answer.transform, single.transform)
+        # Equal up to the last bits of Open3D's multi-threaded ICP sums (docs/design.md,
+        # "Determinism"): the same registration, not a second one.
+        np.testing.assert_allclose(answer.transform, single.transform, atol=1e-9)
         assert answer.reason == single.reason
 
 
