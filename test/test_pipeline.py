@@ -25,9 +25,11 @@ from cgags_ros.pipeline import (
     clear_feature_cache,
     PipelineResult,
     register_clouds,
+    set_feature_cache_size,
     warm_up,
 )
 from cgags_ros.pipeline.gates import chance_inliers, observability
+from cgags_ros.pipeline.register import terrain_patch
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -154,6 +156,24 @@ def test_feature_cache_is_exact_and_keyed_on_content(data_dir):
     clear_feature_cache()
     fresh = register_clouds(source, target, voxel_size=0.003)
     np.testing.assert_array_equal(first.coarse_transform, fresh.coarse_transform)
+
+
+def test_feature_cache_keeps_as_many_clouds_as_set():
+    clouds = [terrain_patch(np.random.default_rng(seed), 1500) for seed in range(3)]
+    cfg = PipelineConfig().frontend
+    clear_feature_cache()
+    default = set_feature_cache_size(3)
+    try:
+        first = [cached_features(c, 0.15, cfg) for c in clouds]
+        assert all(cached_features(c, 0.15, cfg) is f for c, f in zip(clouds, first))
+        assert set_feature_cache_size(2) == 3  # the oldest, clouds[0], is forgotten now
+        assert cached_features(clouds[2], 0.15, cfg) is first[2]
+        assert cached_features(clouds[0], 0.15, cfg) is not first[0]  # and evicts clouds[1]
+        assert cached_features(clouds[1], 0.15, cfg) is not first[1]
+    finally:
+        set_feature_cache_size(default)
+        clear_feature_cache()
+    assert default == 2
 
 
 def test_warm_up_runs_every_stage():
