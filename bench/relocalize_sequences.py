@@ -22,7 +22,7 @@ again.
 Usage::
 
     OMP_NUM_THREADS=1 python -m bench.relocalize_sequences --scenes 7-scenes-redkitchen
-    python -m bench.relocalize_sequences --report      # every scene recorded in out/
+    python -m bench.relocalize_sequences --report      # every scene recorded in --output
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from pathlib import Path
 import tempfile
 import time
 
-from bench.common import argument_parser, markdown_table
+from bench.common import argument_parser, markdown_table, output_path, write_text
 from bench.datasets import threedmatch as tdm
 from cgags_ros.config import pipeline_config_from
 from cgags_ros.frontend.features import estimate_normals
@@ -242,12 +242,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument('--drift-m', type=float, default=0.02)
     ap.add_argument('--drift-fraction', type=float, default=0.01)
     ap.add_argument('--seed', type=int, default=0)
-    ap.add_argument('--output', type=Path, default=Path('out'))
+    ap.add_argument('--output', type=Path, default=output_path('relocalize_sequences'),
+                    help='folder of the records and the report (default: %(default)s)')
     ap.add_argument('--report', action='store_true', help='report on the recorded scenes')
     args = ap.parse_args(argv)
     if args.report:
         text = report(sorted(args.output.glob('relocalize_sequences_*.json')))
-        (args.output / 'relocalize_sequences.md').write_text(text + '\n', encoding='utf-8')
+        write_text(args.output / 'relocalize_sequences.md', text + '\n')
         print(text)
         return
     root = args.root or shared_data_dir() / '3dmatch_benchmark'
