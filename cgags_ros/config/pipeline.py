@@ -16,6 +16,7 @@ from . import fields
 from .core import CoreConfig
 from .fields import option
 from .frontend import FrontEndConfig, RefineConfig
+from .tracking import TrackingConfig
 from ..errors import InvalidConfigError
 
 
@@ -29,6 +30,7 @@ class PipelineConfig:
     frontend: FrontEndConfig = dataclasses.field(default_factory=FrontEndConfig)
     core: CoreConfig = dataclasses.field(default_factory=CoreConfig)
     refine: RefineConfig = dataclasses.field(default_factory=RefineConfig)
+    tracking: TrackingConfig = dataclasses.field(default_factory=TrackingConfig)
     seed: int = option(0, 'Random seed of the sampler (results are deterministic per seed).',
                        low=0)
     num_candidates: int = option(

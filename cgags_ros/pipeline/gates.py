@@ -41,33 +41,54 @@ def gate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences, result: Pi
     """
     Return why the final estimate must not be trusted, or '' when it passes every gate.
 
+    The chance-inlier gate on the correspondences first, then :func:`overlap_gate`.
     ``map_target``: the target is a map fused from many viewpoints, so it has no sensor at
     its origin (the free-space gate then checks the map against the scan's view only).
     ``unsettled``: the correspondences alone did not settle the estimate (a collinear
     consensus); the free-space bound is then ``refine.free_space_settle_factor`` times
     tighter.
     """
-    distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
-    align = evaluate_alignment(fs.points, ft.tree, result.transform, distance)
-    back = evaluate_alignment(ft.points, fs.tree, np.linalg.inv(result.transform), distance)
-    result.fitness, result.inlier_rmse = align.fitness, align.inlier_rmse
-    result.overlap = min(align.fitness, back.fitness)
     result.chance_inliers = chance_inliers(fs.points[corr.source_index],
                                            ft.points[corr.target_index], result.coarse_transform,
                                            result.inlier_threshold)
-    members = 3
+    members = 2 if cfg.core.motion_model == '4dof' else 3
+    overlap, _ = overlap_gate(fs.points, fs.tree, ft, result, cfg, map_target, unsettled)
+    return _significance_reason(result, cfg.refine.significance, members) or overlap
+
+
+def overlap_gate(source: np.ndarray, source_tree: cKDTree, ft: CloudFeatures,
+                 result: PipelineResult, cfg: PipelineConfig, map_target: bool = False,
+                 unsettled: bool = False) -> tuple[str, Alignment]:
+    """
+    Return why ``result.transform`` must not be trusted on its overlap alone, and the overlap.
+
+    The gates that need no correspondences, so that an estimate refined from a prediction
+    (:mod:`.tracking`) is judged as a global one is: degenerate overlap geometry, fitness,
+    free space, and in 4-DoF mode the tilt. ``source`` is the downsampled source (metres,
+    its own frame) and ``source_tree`` a k-d tree over it. Sets ``fitness``,
+    ``inlier_rmse``, ``overlap``, ``observability``, ``free_space_violation`` (and
+    ``tilt_deg``) on ``result``; the reason is '' when every gate passes. The
+    :class:`~cgags_ros.frontend.refine.Alignment` returned pairs the overlapping source
+    points with their nearest target points.
+    """
+    distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
+    align = evaluate_alignment(source, ft.tree, result.transform, distance)
+    back = evaluate_alignment(ft.points, source_tree, np.linalg.inv(result.transform), distance)
+    result.fitness, result.inlier_rmse = align.fitness, align.inlier_rmse
+    result.overlap = min(align.fitness, back.fitness)
     if cfg.core.motion_model == '4dof':  # yaw + translation only: no roll/pitch motion
-        frame, members = GravityFrame(cfg.core.gravity_axis), 2
-        result.observability = observability(fs.points, ft.normals, align, frame)
-        result.tilt_deg = residual_tilt(fs.points, ft.points, ft.normals, align, frame)
+        frame = GravityFrame(cfg.core.gravity_axis)
+        result.observability = observability(source, ft.normals, align, frame)
+        result.tilt_deg = residual_tilt(source, ft.points, ft.normals, align, frame)
     else:
-        result.observability = observability(fs.points, ft.normals, align)
-    result.free_space_violation = measured_free_space(fs, ft, result.transform, cfg, map_target)
-    return (_significance_reason(result, cfg.refine.significance, members)
-            or _observability_reason(result, cfg.refine.min_observability)
-            or _fitness_reason(result, cfg.refine.min_fitness, distance)
-            or _free_space_reason(result, free_space_limit(cfg, unsettled))
-            or _tilt_reason(result, cfg.core.max_tilt_deg))
+        result.observability = observability(source, ft.normals, align)
+    result.free_space_violation = free_space_of(source, ft.points, result.transform, cfg,
+                                                map_target)
+    reason = (_observability_reason(result, cfg.refine.min_observability)
+              or _fitness_reason(result, cfg.refine.min_fitness, distance)
+              or _free_space_reason(result, free_space_limit(cfg, unsettled))
+              or _tilt_reason(result, cfg.core.max_tilt_deg))
+    return reason, align
 
 
 def measured_free_space(fs: CloudFeatures, ft: CloudFeatures, transform: np.ndarray,
@@ -78,9 +99,15 @@ def measured_free_space(fs: CloudFeatures, ft: CloudFeatures, transform: np.ndar
     NaN when the gate does not apply: clouds not in their sensor frames (normals not
     oriented to the origin) or the gate disabled (``refine.max_free_space_violation`` 1).
     """
+    return free_space_of(fs.points, ft.points, transform, cfg, map_target)
+
+
+def free_space_of(source: np.ndarray, target: np.ndarray, transform: np.ndarray,
+                  cfg: PipelineConfig, map_target: bool = False) -> float:
+    """Return :func:`measured_free_space` of the downsampled clouds' points (metres)."""
     if cfg.frontend.normal_orientation != 'origin' or cfg.refine.max_free_space_violation >= 1:
         return float('nan')
-    return free_space_violation(fs.points, ft.points, transform,
+    return free_space_violation(source, target, transform,
                                 cfg.refine.free_space_margin_factor * cfg.voxel_size,
                                 cfg.refine.free_space_bin_deg, target_view=not map_target)
 

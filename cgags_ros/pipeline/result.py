@@ -80,6 +80,10 @@ class PipelineResult(RegistrationResult):
         Z in radians), from the inlier correspondences
         (:func:`~.covariance.result_covariance`); variances of 1e6 when fewer than three
         support the estimate.
+    :ivar path: what produced the result: 'global' (the guess-free search of
+        :func:`~.register.register_clouds`) or 'tracked' (refined from the pose predicted
+        from a stream's last poses and judged by the same overlap gates,
+        :class:`~.tracking.Tracker`; no correspondences, core or candidates then).
     """
 
     coarse_transform: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
@@ -101,6 +105,7 @@ class PipelineResult(RegistrationResult):
     ambiguous: bool = False
     runner_up_ratio: float = float('inf')
     covariance: np.ndarray = dataclasses.field(default_factory=lambda: np.diag([1e6] * 6))
+    path: str = 'global'
 
     def summary(self) -> dict[str, Any]:
         out = super().summary()
@@ -117,5 +122,5 @@ class PipelineResult(RegistrationResult):
             free_space_violation=float(self.free_space_violation),
             candidates=[c.summary() for c in self.candidates], ambiguous=bool(self.ambiguous),
             runner_up_ratio=float(self.runner_up_ratio),
-            covariance=np.asarray(self.covariance, dtype=float).tolist())
+            covariance=np.asarray(self.covariance, dtype=float).tolist(), path=self.path)
         return out
