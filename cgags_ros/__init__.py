@@ -3,7 +3,7 @@ cgags_ros: global point cloud registration for ROS 2.
 
 Layers, each importing only the ones below it (a test checks this)::
 
-    tools -> ros -> pipeline -> frontend, registration -> geometry, config, io, datasets
+    tools -> ros -> pipeline -> frontend, registration -> geometry, config, io
 
 ``registration`` is the ROS-free core (numpy/scipy only), ``frontend`` the Open3D front
 end, ``pipeline`` the one path every tool and the node call, ``ros`` the only code that

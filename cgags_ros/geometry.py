@@ -111,6 +111,35 @@ def point_resolution(points: np.ndarray, tree: cKDTree | None = None,
     return float(np.mean(nearest))
 
 
+def voxel_size_for(points: np.ndarray, occupied: int) -> float:
+    """
+    Return the voxel size (metres) at which about ``occupied`` voxels hold ``points``.
+
+    Found by bisection on a log scale and rounded to two significant digits, so that a
+    cloud's scale, not its sensor's density, picks the size. ``points`` must hold more than
+    ``occupied`` points (InvalidInputError otherwise).
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if len(pts) <= occupied:
+        raise InvalidInputError(f'the cloud has only {len(pts)} points, not more than '
+                                f'the {occupied} voxels asked for')
+    pts = pts - pts.min(axis=0)
+    diag = float(np.linalg.norm(pts.max(axis=0))) or 1.0
+    lo, hi = np.log(diag * 1e-5), np.log(diag)
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        if _occupied_voxels(pts, np.exp(mid)) > occupied:
+            lo = mid
+        else:
+            hi = mid
+    return float(f'{np.exp(0.5 * (lo + hi)):.2g}')
+
+
+def _occupied_voxels(points: np.ndarray, voxel: float) -> int:
+    keys = np.floor(points / voxel).astype(np.int64)
+    return len(np.unique(keys, axis=0))
+
+
 def spread(points: np.ndarray) -> np.ndarray:
     """
     Return the singular values of the centred (N, 3) ``points``, largest first.

@@ -1,8 +1,8 @@
 """
-Split a compiled (nogil) kernel's rows over threads: the package's one thread pool.
+Split a compiled (nogil) function's rows over threads: the package's one thread pool.
 
 The front end (FPFH, descriptor index) and the core (compatibility graph) run their
-compiled kernels on it; every task writes disjoint rows, so results do not depend on the
+compiled functions on it; every task writes disjoint rows, so results do not depend on the
 number of threads.
 """
 
@@ -29,7 +29,7 @@ def run_chunks(task: Callable[[int, int], None], n: int, workers: int,
     """
     Run ``task(a, b)`` over the rows [0, n) in chunks of ``chunk``, on ``workers`` threads.
 
-    ``task`` must release the GIL (a ``nogil`` numba kernel) and write disjoint rows; the
+    ``task`` must release the GIL (a ``nogil`` numba function) and write disjoint rows; the
     result then does not depend on ``workers``.
     """
     if workers <= 1 or n <= chunk:
@@ -66,7 +66,7 @@ def in_background(task: Callable[[], T], enabled: bool = True) -> Callable[[], T
 
     The returned function re-raises what ``task`` raised. With ``enabled`` False the task
     runs at once, in this thread (what it raises is still raised by the returned function).
-    A thread of its own, not the shared pool: the task may itself split kernels over the
+    A thread of its own, not the shared pool: the task may itself split compiled work over the
     pool (:func:`run_split`), and waiting inside a pool thread for tasks queued behind it
     would deadlock a one-thread pool.
     """

@@ -10,7 +10,7 @@ lives in test/fixtures/ (small, committed, each with its licence).
 import os
 from pathlib import Path
 
-from cgags_ros.datasets.synthetic import shared_data_dir
+from cgags_ros.io.shared_data import shared_data_dir
 import pytest
 
 REQUIRE_DATA = 'CGAGS_REQUIRE_DATA'

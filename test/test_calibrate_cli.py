@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from cgags_ros.datasets.rigs import OPENCALIB, opencalib_rig, REFERENCE
+from bench.datasets.rigs import OPENCALIB, opencalib_rig, REFERENCE
 from cgags_ros.geometry import make_transform, rotation_error_deg, translation_error
 from cgags_ros.tools import calibrate_cli
 import numpy as np

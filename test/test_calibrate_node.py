@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 
-from cgags_ros.datasets.rigs import OPENCALIB, opencalib_rig, REFERENCE
+from bench.datasets.rigs import OPENCALIB, opencalib_rig, REFERENCE
 from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.io.pointcloud2 import pose_to_transform
 import numpy as np

@@ -22,7 +22,7 @@ def test_pose_covariance_reflects_geometry():
 def test_the_pipeline_result_carries_the_covariance_of_its_estimate():
     """register_clouds() returns the covariance the node publishes, also in summary()."""
     from cgags_ros.config import PipelineConfig
-    from cgags_ros.datasets.synthetic import terrain_patch
+    from cgags_ros.pipeline.register import terrain_patch
     from cgags_ros.geometry import make_transform, rotation_error_deg
     from cgags_ros.pipeline import register_clouds
 

@@ -12,10 +12,10 @@ from __future__ import annotations
 import json
 import time
 
+from bench.datasets.rigs import OPENCALIB, opencalib_rig, REFERENCE
 from cgags_ros.config.calibration import CalibrationConfig
 from cgags_ros.config.node import NodeConfig
 from cgags_ros.config.pipeline import PipelineConfig
-from cgags_ros.datasets.rigs import OPENCALIB, opencalib_rig, REFERENCE
 from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.ros.engine import RegistrationEngine
 from cgags_ros.ros.interface import Cloud

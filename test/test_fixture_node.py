@@ -43,7 +43,7 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 NODE = '/register_node'
-# A fresh clone compiles the kernels first (no numba cache yet): minutes on a slow machine.
+# A fresh clone compiles the numba code first (no numba cache yet): minutes on a slow machine.
 WARM_UP_S = 600
 
 

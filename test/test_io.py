@@ -1,6 +1,6 @@
-"""cgags_ros.io.clouds and cgags_ros.datasets.gt_pairs on the shared real data."""
+"""cgags_ros.io.clouds and bench.datasets.gt_pairs on the shared real data."""
 
-from cgags_ros.datasets.gt_pairs import find_pair, parse_gt_pairs, read_gt_pairs
+from bench.datasets.gt_pairs import find_pair, parse_gt_pairs, read_gt_pairs
 from cgags_ros.errors import InvalidInputError
 from cgags_ros.io.clouds import read_cloud, read_normals, write_cloud
 from cgags_ros.io.pcd import read_fields as read_pcd_fields

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import dataclasses
 
+from bench.datasets.synthetic import load_bunny, make_correspondences
 from cgags_ros.config import fields
-from cgags_ros.datasets.synthetic import load_bunny, make_correspondences
 from cgags_ros.errors import DegenerateCorrespondencesError, InvalidConfigError
 from cgags_ros.geometry import GravityFrame, rotation_error_deg, translation_error
 from cgags_ros.registration import CoreConfig, register_correspondences

@@ -96,7 +96,7 @@ def test_a_map_file_with_normals_signs_the_map_normals_and_a_sensor_frame_scan_l
     """
     from scipy.spatial import cKDTree
 
-    from cgags_ros.datasets.gt_pairs import find_pair
+    from bench.datasets.gt_pairs import find_pair
     from cgags_ros.frontend.features import estimate_normals
     from cgags_ros.io.clouds import write_cloud
 

@@ -2,10 +2,10 @@
 
 from pathlib import Path
 
-from cgags_ros.datasets import threedmatch as tdm
-from cgags_ros.datasets.synthetic import shared_data_dir
+from bench.datasets import threedmatch as tdm
 from cgags_ros.errors import InvalidInputError
 from cgags_ros.geometry import rotation_error_deg, translation_error
+from cgags_ros.io.shared_data import shared_data_dir
 import numpy as np
 import pytest
 

@@ -254,7 +254,7 @@ def merged_kitchen_map(data_dir, folder):
     """
     import numpy as np
 
-    from cgags_ros.datasets.gt_pairs import find_pair
+    from bench.datasets.gt_pairs import find_pair
     from cgags_ros.geometry import apply_transform
     from cgags_ros.io.clouds import read_cloud
 

@@ -18,10 +18,11 @@ from typing import Any
 from .result import PipelineResult
 
 _LAZY = {'register_clouds': 'register', 'warm_up': 'register',
-         'cached_features': 'cache', 'clear_feature_cache': 'cache', 'Tracker': 'tracking'}
+         'cached_features': 'cache', 'clear_feature_cache': 'cache',
+         'set_feature_cache_size': 'cache', 'Tracker': 'tracking'}
 
 __all__ = ['PipelineResult', 'Tracker', 'cached_features', 'clear_feature_cache',
-           'register_clouds', 'warm_up']
+           'register_clouds', 'set_feature_cache_size', 'warm_up']
 
 
 def __getattr__(name: str) -> Any:

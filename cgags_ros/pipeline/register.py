@@ -27,7 +27,6 @@ from .map import matches_config, PreparedMap
 from .result import PipelineResult
 from ..config import fields
 from ..config.pipeline import PipelineConfig
-from ..datasets.synthetic import terrain_patch
 from ..errors import DegenerateCorrespondencesError, EmptyCloudError, InvalidConfigError
 from ..frontend.features import CloudFeatures, finite_points
 from ..frontend.keypoints import match_keypoints
@@ -135,7 +134,7 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
         result.refined = cfg.refine.method != 'none'
     # The rival search reads only the core's estimate and the final transform, never what
     # the gates set: it runs beside them (both spend most of their time outside the GIL,
-    # in compiled kernels and k-d tree queries).
+    # in compiled numba functions and k-d tree queries).
     rivals = in_background(lambda: _search_rivals(fs, ft, corr, result, cfg), workers > 1)
     map_target = isinstance(target, PreparedMap)
     with timed(result.timings, 'validation'):
@@ -188,6 +187,20 @@ def _candidates(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
     with timed(result.timings, 'candidates'):
         find_candidates(fs, ft, corr, result, cfg)
     return ambiguity_reason(result, cfg)
+
+
+def terrain_patch(rng: np.random.Generator, n: int = 4000) -> np.ndarray:
+    """
+    Sample (n, 3) points of a 4 m x 4 m terrain patch with three Gaussian bumps (metres).
+
+    The patch has enough relief for FPFH and a fully constrained rigid fit: the pair that
+    :func:`warm_up` registers (the node's tests use it too).
+    """
+    xy = rng.uniform(-2.0, 2.0, (n, 2))
+    bumps = ((0.7, 0.5, 0.8, 0.3), (-0.9, -0.2, 0.5, 0.1), (0.1, -1.1, -0.6, 0.5))
+    z = sum(h * np.exp(-((xy[:, 0] - x) ** 2 + (xy[:, 1] - y) ** 2) / w)
+            for x, y, h, w in bumps)
+    return np.c_[xy, z]
 
 
 def warm_up(config: PipelineConfig | None = None) -> PipelineResult:

@@ -25,10 +25,11 @@ import math
 from numba import njit
 import numpy as np
 
-from .graph import adjacency_row, has_edge, nth_set_bit, popcount
+from .bits import popcount
+from .graph import adjacency_row, has_edge, nth_set_bit
 from .preferences import kernel_row
-from .types import (BOOL, c_array, CORRESPONDENCES, F64_1D, FLOAT, GRAPH_ARRAYS, GUIDED_ROWS,
-                    GuidedRows, I64_2D, INT, RNG)
+from .types import CORRESPONDENCES, GRAPH_ARRAYS, GUIDED_ROWS, GuidedRows
+from ...compiled_types import BOOL, c_array, F64_1D, FLOAT, I64_2D, INT, RNG
 
 EMPTY = 1  # status of a draw: N(i) ∩ N(j) empty (no triangle on the edge)
 COLLINEAR = 2  # status of a draw: triangle area below the minimum in either cloud

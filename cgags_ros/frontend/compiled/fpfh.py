@@ -1,29 +1,31 @@
 """
-Compiled kernels (numba) of the FPFH descriptors the correspondences are matched on.
+Compiled functions (numba) of the FPFH descriptors the correspondences are matched on.
 
 FPFH (Rusu et al., ICRA 2009) is the feature the paper matches to get its putative
-correspondences (docs/method.md, "Input"). These kernels compute Open3D's definition of it
+correspondences (docs/method.md, "Input"). These functions compute Open3D's definition of it
 (``pipelines/registration/Feature.cpp``: pair features, 11 bins per angle, SPFH weights
 100 / neighbours, FPFH = own SPFH + neighbours' SPFH weighted by 1 / squared distance, each
 block scaled to 100) with two shortcuts that change no value:
 
 - one neighbour search serves both passes (Open3D searches twice), on a voxel grid of
   cells a fraction of the radius wide, whose neighbouring cells are ranges of one sorted
-  key array (:func:`.kernels_neighbours.radius_neighbours`);
+  key array (:func:`.neighbours.radius_neighbours`);
 - every SPFH is computed once, before the FPFH pass reads it (as Open3D does);
 - a point's pair features are computed without branches, in a loop that vectorizes; only
-  the rare pairs whose bins need acos or atan2 to decide go pair by pair (:func:`spfh`).
+  the rare pairs whose bins need acos or atan2 to decide go pair by pair (:func:`spfh_pass`).
 
 Neighbours are the ``max_nn`` nearest within the radius, the point itself included, as in
 Open3D's hybrid search; ties at the ``max_nn``-th distance go to the lower row.
-All kernels are ``nogil`` over a range of points (the caller splits them over threads) and
-cached on disk (``cache=True``).
+Both passes are ``nogil`` over a range of points (the caller splits them over threads).
 """
 
 from __future__ import annotations
 
 from numba import njit
 import numpy as np
+
+from .types import NEIGHBOUR_LISTS
+from ...compiled_types import F64_2D, INT
 
 
 @njit(cache=True, nogil=True, inline='always')
@@ -128,7 +130,7 @@ def _pair_bins(points, normals, i, j):
 
     The Darboux frame sits at the point whose normal is more orthogonal to the connecting
     line; a degenerate pair (coincident points, or a normal along the line) counts with
-    zero features, as there. :func:`spfh` computes most pairs without branches and asks
+    zero features, as there. :func:`spfh_pass` computes most pairs without branches and asks
     this for the rest.
     """
     bin0 = 5  # a degenerate pair's angle is 0: bin floor(11 pi / 2 pi)
@@ -158,14 +160,16 @@ def _pair_bins(points, normals, i, j):
     return bin0, _bin(11.0 * (f1 + 1.0) * 0.5), _bin(11.0 * (f2 + 1.0) * 0.5)
 
 
-@njit(cache=True, nogil=True, error_model='numpy')
-def spfh(points, normals, first, last, offset, order, nbr, count, out):
+@njit((F64_2D, F64_2D, NEIGHBOUR_LISTS, INT, INT, F64_2D), cache=True, nogil=True,
+      error_model='numpy')
+def spfh_pass(points, normals, lists, first, last, out):
     """
     Set ``out``'s rows of the points at positions first .. last to their SPFH.
 
-    Positions are in ``order``, and the SPFH are the simplified point feature histograms.
-    The point at position s (row order[s]) has its neighbours in row ``s - offset`` of
-    ``nbr``/``count``, as :func:`.kernels_neighbours.radius_neighbours` left them.
+    Positions are in ``lists.order``, and the SPFH are the simplified point feature
+    histograms. The point at position s (row order[s]) has its neighbours in row
+    ``s - offset`` of ``lists.nbr``/``lists.count``, as
+    :func:`.neighbours.radius_neighbours` left them.
 
     A point's pairs are computed in one loop without branches (selects instead, so that
     it vectorizes), with the same operations in the same order as :func:`_pair_bins`, so
@@ -175,6 +179,7 @@ def spfh(points, normals, first, last, offset, order, nbr, count, out):
     ``_EDGE`` of a bin edge (atan2 decides). ``error_model='numpy'``: the degenerate
     pairs' divisions by zero give inf/NaN, which only the unused lanes see.
     """
+    order, offset, nbr, count = lists
     m = nbr.shape[1]
     ex, ey, ez = np.empty(m), np.empty(m), np.empty(m)  # neighbour - point
     bx, by, bz = np.empty(m), np.empty(m), np.empty(m)  # neighbour normals
@@ -239,16 +244,17 @@ def spfh(points, normals, first, last, offset, order, nbr, count, out):
             out[i, 22 + c2] += inc
 
 
-@njit(cache=True, nogil=True)
-def fpfh(points, spf, first, last, offset, order, nbr, count, out):
+@njit((F64_2D, F64_2D, NEIGHBOUR_LISTS, INT, INT, F64_2D), cache=True, nogil=True)
+def fpfh_pass(points, spf, lists, first, last, out):
     """
     Set ``out``'s rows of the points at positions first .. last to their FPFH.
 
-    From the SPFH rows ``spf``; positions and neighbours as in :func:`spfh`.
+    From the SPFH rows ``spf``; positions and neighbours as in :func:`spfh_pass`.
 
     Own SPFH plus the neighbours' weighted by 1 / squared distance, each 11-bin block of
     the neighbours' part scaled to sum to 100 (Open3D's ``ComputeFPFHFeature``).
     """
+    order, offset, nbr, count = lists
     acc = np.empty(33)  # the row being summed: a local array, so the sum vectorizes
     for s in range(first, last):
         i = order[s]

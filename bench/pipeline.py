@@ -3,20 +3,20 @@ Pipeline benchmark on the bundled bags (issue 3).
 
 Run by hand::
 
-    .venv/bin/python bench/bench_pipeline.py [--bags bunny lidar] \
-        [--set frontend.max_keypoints=5000] [--output out/bench_pipeline.json]
+    .venv/bin/python -m bench.pipeline [--bags bunny lidar] \
+        [--set frontend.max_keypoints=5000] [--output out/bench/pipeline.json]
 
 For every bag in ``<shared data>/bags`` (or ``--bags-dir``) and every source cloud with
-ground truth, paired with its target exactly as ``cgags-replay`` pairs them
-(:func:`cgags_ros.tools.replay_common.iter_pairs`, the node's pairing code), it runs:
+ground truth, paired with its target exactly as ``cgags-replay`` pairs them (the node's
+:class:`~cgags_ros.pipeline.pairing.Pairer`), it runs:
 
 ``cgags``
     :func:`cgags_ros.pipeline.register_clouds` with default parameters, or those changed by
     ``--set KEY=VALUE`` (includes its point-to-plane ICP refinement).
 ``open3d_fpfh_ransac``
     Open3D 0.19 ``registration_ransac_based_on_feature_matching`` on the *same* front end
-    (:func:`cgags_ros.frontend.features.extract_features`: voxel size, normal and FPFH radii
-    and neighbour caps of ``PipelineConfig().frontend``), ``mutual_filter=True``,
+    (:func:`bench.baselines.open3d_fpfh_ransac`: voxel size, normal and FPFH radii and
+    neighbour caps of ``PipelineConfig().frontend``), ``mutual_filter=True``,
     ``max_correspondence_distance = 1.5 v`` (Open3D's tutorial), point-to-point
     estimation, ``ransac_n = 3``, checkers ``EdgeLength(0.9)`` and ``Distance(1.5 v)``,
     ``RANSACConvergenceCriteria(100000, 0.999)``; no refinement.
@@ -38,43 +38,39 @@ ground truth, paired with its target exactly as ``cgags-replay`` pairs them
     scale-invariant).
 
 Metrics per method and bag: registration recall (RE and TE below the bag's thresholds,
-``cgags_ros.tools.demo.DEMO_BAGS``; other bags: 5 deg and 3 voxel sizes), mean RE/TE over
-the successes, median wall time per pair (seconds, everything from the raw (N, 3) clouds
-to the 4x4 transform, single process). Prints a markdown table; ``--output`` saves JSON.
+:data:`bench.common.LIMITS`; other bags: 5 deg and 3 voxel sizes), mean RE/TE over the
+successes, median wall time per pair (seconds, everything from the raw (N, 3) clouds to
+the 4x4 transform, single process). Prints a markdown table and writes it with every trial
+as JSON to ``--output`` (default ``out/bench/pipeline.json``).
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import functools
-import json
 from pathlib import Path
-import platform
 import time
 from typing import Callable
 
+from bench.baselines import kiss_matcher_estimate, open3d_fpfh_ransac
+from bench.common import (add_set_option, argument_parser, cell, LIMITS, machine, markdown_table,
+                          output_path, parse_overrides, write_json)
 from cgags_ros.config import PipelineConfig
-from cgags_ros.config.fields import parse_key_values, update_from_flat
+from cgags_ros.config.fields import update_from_flat
 from cgags_ros.config.node import NodeConfig
-from cgags_ros.datasets.synthetic import shared_data_dir
-from cgags_ros.errors import CgagsError
-from cgags_ros.geometry import rotation_error_deg, translation_error
+from cgags_ros.errors import CgagsError, InvalidInputError
+from cgags_ros.geometry import rotation_error_deg, translation_error, voxel_size_for
+from cgags_ros.io.bag import read_messages
+from cgags_ros.io.pointcloud2 import pointcloud2_to_xyz, pose_to_transform
+from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline.pairing import Pairer
-from cgags_ros.tools.demo import DEMO_BAGS
-from cgags_ros.tools.replay_common import (
-    auto_voxel_size,
-    DEFAULT_MAX_RE_DEG,
-    DEFAULT_MAX_TE_VOXELS,
-    iter_pairs,
-    read_bag_contents,
-)
-from cgags_ros.tools.report import fmt, markdown_table
 import numpy as np
 
 KISS_DEFAULT_VOXEL = 0.3
-OPEN3D_DISTANCE_FACTOR = 1.5
-THRESHOLD_ALIASES = {'faulty': 'bunny'}  # the faulty bag holds bunny scans
+AUTO_VOXEL_POINTS = 5000  # the target points by which cgags-replay chooses a voxel size
+DEFAULT_MAX_RE_DEG, DEFAULT_MAX_TE_VOXELS = 5.0, 3.0  # a bag without limits of its own
+TOPICS = {'/source_cloud': 'source', '/target_cloud': 'target'}
+GROUND_TRUTH = '/ground_truth'
 
 Method = Callable[[np.ndarray, np.ndarray, float], np.ndarray]
 
@@ -96,31 +92,6 @@ def run_cgags(src: np.ndarray, tgt: np.ndarray, voxel: float, motion: str = '6do
     return result.transform
 
 
-def run_open3d(src: np.ndarray, tgt: np.ndarray, voxel: float, seed: int = 0) -> np.ndarray:
-    from cgags_ros.frontend.features import extract_features
-    import open3d as o3d
-
-    reg = o3d.pipelines.registration
-    frontend = PipelineConfig().frontend
-    fs = extract_features(src, voxel, frontend, 'source')
-    ft = extract_features(tgt, voxel, frontend, 'target')
-    clouds, features = [], []
-    for f in (fs, ft):
-        clouds.append(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(f.points)))
-        feature = reg.Feature()
-        feature.data = np.ascontiguousarray(f.descriptors.T, dtype=np.float64)
-        features.append(feature)
-    distance = OPEN3D_DISTANCE_FACTOR * voxel
-    o3d.utility.random.seed(seed)
-    result = reg.registration_ransac_based_on_feature_matching(
-        clouds[0], clouds[1], features[0], features[1], True, distance,
-        reg.TransformationEstimationPointToPoint(False), 3,
-        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-         reg.CorrespondenceCheckerBasedOnDistance(distance)],
-        reg.RANSACConvergenceCriteria(100000, 0.999))
-    return np.asarray(result.transformation, dtype=np.float64)
-
-
 def run_cgags_4dof(src: np.ndarray, tgt: np.ndarray, voxel: float) -> np.ndarray:
     return run_cgags(src, tgt, voxel, '4dof')
 
@@ -128,23 +99,10 @@ def run_cgags_4dof(src: np.ndarray, tgt: np.ndarray, voxel: float) -> np.ndarray
 def run_kiss(src: np.ndarray, tgt: np.ndarray, voxel: float, scale: float = 1.0,
              quatro: bool = False) -> np.ndarray:
     """KISS-Matcher on clouds (and voxel) multiplied by ``scale``; returns the unscaled T."""
-    import kiss_matcher
-
-    matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(voxel * scale,
-                                                                      use_quatro=quatro))
-    solution = matcher.estimate((src * scale).astype(np.float32),
-                                (tgt * scale).astype(np.float32))
-    if not solution.valid:
+    out = kiss_matcher_estimate(src, tgt, voxel, scale=scale, quatro=quatro)
+    if not out.valid:
         raise CgagsError('KISS-Matcher reported valid=False')
-    return kiss_transform(solution, scale)
-
-
-def kiss_transform(solution, scale: float = 1.0) -> np.ndarray:
-    """Return a KISS-Matcher solution as a 4x4 source->target transform (unscaled)."""
-    T = np.eye(4)
-    T[:3, :3] = np.asarray(solution.rotation, dtype=np.float64).reshape(3, 3)
-    T[:3, 3] = np.asarray(solution.translation, dtype=np.float64).reshape(3) / scale
-    return T
+    return out.transform
 
 
 def run_kiss_rescaled(src: np.ndarray, tgt: np.ndarray, voxel: float) -> np.ndarray:
@@ -158,7 +116,7 @@ def run_kiss_quatro(src: np.ndarray, tgt: np.ndarray, voxel: float) -> np.ndarra
 METHODS: dict[str, Method] = {
     'cgags': run_cgags,
     'cgags_4dof': run_cgags_4dof,
-    'open3d_fpfh_ransac': run_open3d,
+    'open3d_fpfh_ransac': open3d_fpfh_ransac,
     'kiss_matcher': run_kiss,
     'kiss_matcher_rescaled': run_kiss_rescaled,
     'kiss_matcher_quatro': run_kiss_quatro,
@@ -184,21 +142,36 @@ def load_pairs(
     """
     Return a bag's pairs with ground truth and the voxel size cgags-replay would choose.
 
-    One pair (stamp, source, target, ground truth) per source cloud with ground truth.
+    One pair (stamp, source, target, ground truth) per source cloud with ground truth, in
+    the order the node's pairing forms them; messages that cannot be read or decoded are
+    skipped, as the node rejects them.
     """
-    contents = read_bag_contents(bag_dir, '/source_cloud', '/target_cloud', '/ground_truth')
+    clouds, truth = [], {}
+    for rec in read_messages(bag_dir, [*TOPICS, GROUND_TRUTH]):
+        if rec.error:
+            continue
+        try:
+            if rec.topic == GROUND_TRUTH:
+                truth[int(rec.stamp_ns)] = pose_to_transform(rec.msg)
+            else:
+                clouds.append((TOPICS[rec.topic], rec, pointcloud2_to_xyz(rec.msg)))
+        except (AttributeError, TypeError, InvalidInputError):
+            continue
+    pairer = Pairer.from_config(NodeConfig())
     pairs = []
-    for pair in iter_pairs(contents, Pairer.from_config(NodeConfig())):
-        stamp = pair.source.stamp_ns
-        if stamp in contents.ground_truth:
-            pairs.append((stamp, pair.source.payload.xyz, pair.target.payload.xyz,
-                          contents.ground_truth[stamp]))
-    return pairs, auto_voxel_size(contents.first_target_points())
+    for role, rec, xyz in clouds:
+        add = pairer.add_source if role == 'source' else pairer.add_target
+        add(rec.stamp_ns, rec.frame_id, xyz)
+        while (pair := pairer.pop()) is not None:
+            stamp = pair.source.stamp_ns
+            if stamp in truth:
+                pairs.append((stamp, pair.source.payload, pair.target.payload, truth[stamp]))
+    target = next(xyz for role, _, xyz in clouds if role == 'target')
+    return pairs, voxel_size_for(target, AUTO_VOXEL_POINTS)
 
 
 def thresholds(bag: str, voxel: float) -> tuple[float, float]:
-    name = THRESHOLD_ALIASES.get(bag, bag)
-    return DEMO_BAGS.get(name, (DEFAULT_MAX_RE_DEG, DEFAULT_MAX_TE_VOXELS * voxel))
+    return LIMITS.get(bag, (DEFAULT_MAX_RE_DEG, DEFAULT_MAX_TE_VOXELS * voxel))
 
 
 def run_trial(bag: str, method: str, fn: Method, stamp: int, src: np.ndarray,
@@ -228,22 +201,19 @@ def summarize(trials: list[Trial]) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
+    p = argument_parser(__spec__.name, __doc__)
     p.add_argument('--bags-dir', type=Path, default=shared_data_dir() / 'bags')
     p.add_argument('--bags', nargs='+', default=None, help='default: every bag in --bags-dir')
     p.add_argument('--methods', nargs='+', choices=sorted(METHODS), default=list(METHODS))
-    p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
-                   help='change one of our parameters (repeatable; cgags and cgags_4dof), '
-                   'e.g. --set frontend.max_keypoints=5000')
-    p.add_argument('--output', type=Path, default=None, help='JSON results path')
+    add_set_option(p)
+    p.add_argument('--output', type=Path, default=output_path('pipeline.json'),
+                   help='JSON results path (default: %(default)s)')
     args = p.parse_args(argv)
     methods = dict(METHODS)
     if args.set:
-        overrides = parse_key_values(args.set)
-        update_from_flat(PipelineConfig(), overrides)  # a typo fails here, not in every trial
-        methods['cgags'] = functools.partial(run_cgags, overrides=overrides)
-        methods['cgags_4dof'] = functools.partial(run_cgags, motion='4dof',
-                                                  overrides=overrides)
+        changed = parse_overrides(args.set)
+        methods['cgags'] = functools.partial(run_cgags, overrides=changed)
+        methods['cgags_4dof'] = functools.partial(run_cgags, motion='4dof', overrides=changed)
     names = args.bags or sorted(d.name for d in args.bags_dir.iterdir()
                                 if (d / 'metadata.yaml').exists())
     trials: list[Trial] = []
@@ -265,18 +235,15 @@ def main(argv: list[str] | None = None) -> int:
             rows.append((bag, method, f"{s['successes']}/{s['pairs']}", s['mean_re_deg'],
                          s['mean_te_m'], s['median_time_s'], '; '.join(s['errors'])[:70]))
             print(f"  {method}: recall {s['successes']}/{s['pairs']}, median "
-                  f"{fmt(s['median_time_s'])} s", flush=True)
+                  f"{cell(s['median_time_s'])} s", flush=True)
     table = markdown_table(('bag', 'method', 'recall', 'mean RE [deg]', 'mean TE [m]',
                             'median time [s]', 'errors'), rows)
     print('\n' + table + (f"\n\nours with --set {' '.join(args.set)}" if args.set else ''))
-    if args.output:
-        args.output.parent.mkdir(parents=True, exist_ok=True)
-        args.output.write_text(json.dumps({
-            'machine': {'platform': platform.platform(), 'python': platform.python_version()},
-            'set': args.set,
-            'summary': summary, 'table': table,
-            'trials': [dataclasses.asdict(t) for t in trials]}, indent=2))
-        print(f'\nwrote {args.output}')
+    path = write_json(args.output, {'machine': machine(), 'set': args.set, 'summary': summary,
+                                    'table': table,
+                                    'trials': [dataclasses.asdict(t) for t in trials]},
+                      indent=2)
+    print(f'\nwrote {path}')
     return 0
 
 

@@ -12,8 +12,8 @@ from __future__ import annotations
 from numba import njit
 import numpy as np
 
-from .graph import _LOW6, _ONE, lowest_bit, popcount
-from .types import I64_1D, INT, U64_1D, U64_2D
+from .bits import LOW6, lowest_bit, ONE, popcount
+from ...compiled_types import I64_1D, INT, U64_1D, U64_2D
 
 
 @njit(cache=True, nogil=True, inline='always')
@@ -21,7 +21,7 @@ def _later_members(words, mask, i, k):
     """Word k of row i restricted to the members (``mask``) above column i."""
     word = words[i, k] & mask[k]
     if k == i >> 6:
-        word &= ~((np.uint64(2) << (np.uint64(i) & _LOW6)) - _ONE)
+        word &= ~((np.uint64(2) << (np.uint64(i) & LOW6)) - ONE)
     return word
 
 
@@ -30,7 +30,7 @@ def member_mask(members, w):
     """Return ``members`` (indices) as one bit row of W words, like a row of ``words``."""
     mask = np.zeros(w, np.uint64)
     for a in range(members.shape[0]):
-        mask[members[a] >> 6] |= _ONE << (np.uint64(members[a]) & _LOW6)
+        mask[members[a] >> 6] |= ONE << (np.uint64(members[a]) & LOW6)
     return mask
 
 
@@ -73,7 +73,7 @@ def later_member_pairs(words, members, mask, starts, picks):
             c = popcount(word)
             if r < c:
                 for _ in range(r):
-                    word &= word - _ONE
+                    word &= word - ONE
                 jj[m] = (k << 6) + lowest_bit(word)
                 break
             r -= c

@@ -1,5 +1,5 @@
 """
-Compiled kernels (numba) of descriptor matching: the exact nearest-neighbour search in FPFH space.
+Compiled functions (numba) of descriptor matching: the exact nearest neighbours in FPFH space.
 
 Putative correspondences are the step before Algorithm 1 (docs/method.md, "Input"): each source
 descriptor's nearest target descriptor. The index partitions the reference descriptors into
@@ -10,14 +10,17 @@ what brute force would, at a fraction of its distance computations (measurements
 docs/design.md, "Front end").
 
 Distances are float64 sums of squared differences in dimension order; they are compared as
-squares and ties go to the lower reference row. Every kernel is ``nogil`` (the caller
-splits queries over threads) and cached on disk (``cache=True``).
+squares and ties go to the lower reference row. Every function is ``nogil`` (the caller
+splits queries over threads).
 """
 
 from __future__ import annotations
 
 from numba import njit
 import numpy as np
+
+from .types import INDEX_ARRAYS, SCRATCH, Scratch
+from ...compiled_types import BOOL, BOOL_1D, F64_1D, F64_2D, FLOAT, I64_1D, I64_2D, INT
 
 # Relative and absolute slack subtracted from each lower bound: the bounds are computed in
 # float64 from the same rounded distances, so without it a bound could exceed the true
@@ -35,7 +38,7 @@ _REL32 = 1e-5
 _ABS32 = 1e-6
 
 
-@njit(cache=True, nogil=True)
+@njit((F64_2D, F64_1D, F64_1D), cache=True, nogil=True)
 def squared_distances_to(rowsT, vector, out):
     """
     Set ``out[j] = |vector - rowsT[:, j]|^2`` for every column j of ``rowsT`` (dim x n).
@@ -62,14 +65,14 @@ def _squared(q, rows, r):
     return s
 
 
-@njit(cache=True, nogil=True)
+@njit((F64_2D, F64_2D, F64_1D), cache=True, nogil=True)
 def squared_pair_distances(a, b, out):
     """Set ``out[i] = |a[i] - b[i]|^2``, summed in dimension order as :func:`search` does."""
     for i in range(a.shape[0]):
         out[i] = _squared(a[i], b, i)
 
 
-@njit(cache=True, nogil=True)
+@njit((F64_2D, F64_2D, I64_1D, F64_1D), cache=True, nogil=True)
 def assign(points, centresT, labels, dist):
     """Label each row of ``points`` with its nearest centre (exact, lowest index on ties)."""
     d = np.empty(centresT.shape[1])
@@ -83,7 +86,7 @@ def assign(points, centresT, labels, dist):
         dist[i] = np.sqrt(d[best])
 
 
-@njit(cache=True, nogil=True)
+@njit((F64_2D, F64_2D, INT), cache=True, nogil=True)
 def kmeans(sample, centres, iterations):
     """
     Run Lloyd's iterations on ``sample`` from the initial ``centres`` (updated in place).
@@ -122,19 +125,19 @@ def _screen_limit(b2, slack):
     return r * r
 
 
-@njit(cache=True, nogil=True)
-def _nearest(q, centres, centresT, centre_gap, radius, starts, ring, points, basis,
-             projectedT, max_norm, order, k, d1, i1, d2, i2, stop_when_beaten, dc, visit, qp,
-             acc, cand):
+@njit((INDEX_ARRAYS, SCRATCH, F64_1D, INT, FLOAT, INT, FLOAT, INT, BOOL), cache=True,
+      nogil=True)
+def _nearest(index, scratch, q, k, d1, i1, d2, i2, stop_when_beaten):
     """
     Return ``(d1, i1, d2, i2)``: the squared distances and rows of the ``k`` nearest to ``q``.
 
     The search starts from the given best (``d1``, ``i1``) and second (``d2``, ``i2``) and
     only looks for rows that beat them; with ``stop_when_beaten`` it returns as soon as one
-    row beats the first. ``dc``, ``visit``, ``qp``, ``acc`` and ``cand`` are scratch arrays
-    (cells, cells, principal directions, rows, rows; ``qp`` and ``acc`` float32).
-    ``max_norm`` is the largest norm of a reference row.
+    row beats the first.
     """
+    (centres, centresT, centre_gap, radius, starts, ring, points, basis, projectedT, max_norm,
+     order, _) = index
+    dc, visit, qp, acc, cand = scratch
     ncell = centres.shape[0]
     squared_distances_to(centresT, q, dc)
     norm = 0.0
@@ -211,15 +214,22 @@ def _nearest(q, centres, centresT, centre_gap, radius, starts, ring, points, bas
     return d1, i1, d2, i2
 
 
-@njit(cache=True, nogil=True)
-def search(queries, centres, centresT, centre_gap, radius, starts, ring, points, basis,
-           projectedT, max_norm, order, k, out_index, out_dist):
+@njit((INDEX_ARRAYS,), cache=True, nogil=True)
+def _scratch(index):
+    """Return a query's working arrays, sized for ``index``."""
+    ncell, npro, nrow = index.centres.shape[0], index.basis.shape[0], index.points.shape[0]
+    return Scratch(np.empty(ncell), np.empty(ncell, np.int64), np.empty(npro, np.float32),
+                   np.empty(nrow, np.float32), np.empty(nrow, np.int64))
+
+
+@njit((INDEX_ARRAYS, F64_2D, INT, I64_2D, F64_2D), cache=True, nogil=True)
+def search(index, queries, k, out_index, out_dist):
     """
     Find the ``k`` (1 or 2) nearest reference rows of each query, exactly (see module doc).
 
-    Reference rows are stored by cell (``starts``: cell j holds rows starts[j] ..
-    starts[j+1] of ``points``, M x dim) and within a cell by ``ring``, their distance to
-    the centre; ``order`` maps a stored row back to its reference row. A query q with
+    Reference rows are stored by cell (``index.starts``: cell j holds rows starts[j] ..
+    starts[j+1] of ``index.points``, M x dim) and within a cell by ``ring``, their distance
+    to the centre; ``order`` maps a stored row back to its reference row. A query q with
     nearest centre c0 and current k-th best distance b skips cell j when
     ``max(|q - c_j| - radius_j, (|q - c_j|^2 - |q - c0|^2) / (2 |c_j - c0|)) > b`` (triangle
     inequality; distance to the bisecting plane, since every member of j is nearer c_j than
@@ -230,11 +240,9 @@ def search(queries, centres, centresT, centre_gap, radius, starts, ring, points,
     (``max_norm``: the largest reference row norm); only the members that pass get their
     exact distance.
     """
-    dc, visit, qp, acc, cand = _scratch(centres.shape[0], basis.shape[0], points.shape[0])
+    scratch = _scratch(index)
     for i in range(queries.shape[0]):
-        d1, i1, d2, i2 = _nearest(queries[i], centres, centresT, centre_gap, radius, starts,
-                                  ring, points, basis, projectedT, max_norm, order, k, np.inf,
-                                  -1, np.inf, -1, False, dc, visit, qp, acc, cand)
+        d1, i1, d2, i2 = _nearest(index, scratch, queries[i], k, np.inf, -1, np.inf, -1, False)
         out_index[i, 0] = i1
         out_dist[i, 0] = np.sqrt(d1)
         if k == 2:
@@ -242,29 +250,20 @@ def search(queries, centres, centresT, centre_gap, radius, starts, ring, points,
             out_dist[i, 1] = np.sqrt(d2)
 
 
-@njit(cache=True, nogil=True)
-def nearest_is(queries, rows, centres, centresT, centre_gap, radius, starts, ring, points,
-               basis, projectedT, max_norm, order, slot_of, out):
+@njit((INDEX_ARRAYS, F64_2D, I64_1D, BOOL_1D), cache=True, nogil=True)
+def nearest_is(index, queries, rows, out):
     """
     Set ``out[i]`` to whether reference row ``rows[i]`` is the nearest to ``queries[i]``.
 
     Nearest as :func:`search` ranks (ties to the lower row). The search starts with that
     row as its best and ends at the first row that beats it: the mutual check of matching
-    asks only this, and most candidates are beaten early. ``slot_of`` is the inverse of
-    ``order``.
+    asks only this, and most candidates are beaten early.
     """
-    dc, visit, qp, acc, cand = _scratch(centres.shape[0], basis.shape[0], points.shape[0])
+    scratch = _scratch(index)
     for i in range(queries.shape[0]):
         q = queries[i]
         row = rows[i]
-        s = _squared(q, points, slot_of[row])  # its stored copy, as search would compute
-        _, i1, _, _ = _nearest(q, centres, centresT, centre_gap, radius, starts, ring, points,
-                               basis, projectedT, max_norm, order, 1, s, row, np.inf, -1,
-                               True, dc, visit, qp, acc, cand)
+        # its stored copy, as search would compute
+        s = _squared(q, index.points, index.slot_of[row])
+        _, i1, _, _ = _nearest(index, scratch, q, 1, s, row, np.inf, -1, True)
         out[i] = i1 == row
-
-
-@njit(cache=True, nogil=True)
-def _scratch(ncell, npro, nrow):
-    return (np.empty(ncell), np.empty(ncell, np.int64), np.empty(npro, np.float32),
-            np.empty(nrow, np.float32), np.empty(nrow, np.int64))

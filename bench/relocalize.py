@@ -7,12 +7,13 @@ fragment 4 under random any-angle motions. Ours: ``load_map`` (cold: features co
 cached; cached: read back) then ``register_clouds`` onto the prepared map; baseline:
 ``kiss_matcher.KISSMatcher(KISSMatcherConfig(v)).estimate(scan, map)`` on the same pairs
 (its own voxelization and features every call: it has no prepared-map path). Success: RE
-<= 15 deg and TE <= 0.3 m. Writes a Markdown table and ``docs/bench_relocalize.png``.
+<= 15 deg and TE <= 0.3 m. Prints a Markdown table and writes ``<output>/bench_relocalize.png``
+(``--output`` default ``out/bench/relocalize``).
 
-Usage: ``OMP_NUM_THREADS=1 python bench/bench_relocalize.py [--voxels 0.08 0.05 0.035]
-[--trials 3] [--output docs]``.
+Usage: ``OMP_NUM_THREADS=1 python -m bench.relocalize [--voxels 0.08 0.05 0.035]
+[--trials 3] [--output out/bench/relocalize]``.
 
-``--scene-maps ROOT`` (a 3DMatch benchmark folder, :mod:`cgags_ros.datasets.threedmatch`)
+``--scene-maps ROOT`` (a 3DMatch benchmark folder, :mod:`bench.datasets.threedmatch`)
 runs the indoor-map study instead: for every scene and every fragment k (``--fragments K``
 samples K a scene, seeded), the prior map is the scene fused from all its other fragments
 with their poses (k left out), written to a PLY map file and prepared by ``load_map`` as the
@@ -31,44 +32,39 @@ every estimate counts. Writes ``<output>/bench_relocalize_3dmatch.{md,json}``.
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 import tempfile
 import time
 
+from bench.baselines import kiss_matcher_estimate
+from bench.common import (argument_parser, markdown_table, output_path, pyplot, save_figure,
+                          write_text)
+from bench.datasets import threedmatch as tdm
+from bench.datasets.gt_pairs import find_pair
 from cgags_ros.config import pipeline_config_from
-from cgags_ros.datasets import threedmatch as tdm
-from cgags_ros.datasets.gt_pairs import find_pair
-from cgags_ros.datasets.synthetic import shared_data_dir
 from cgags_ros.frontend.features import estimate_normals
 from cgags_ros.geometry import apply_transform, make_transform, rotation_error_deg
 from cgags_ros.geometry import translation_error
 from cgags_ros.io.clouds import read_cloud, write_cloud
+from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import register_clouds
 from cgags_ros.pipeline.map import load_map
-from cgags_ros.tools.report import markdown_table
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 
 def _kiss(scan: np.ndarray, target: np.ndarray, voxel: float) -> np.ndarray:
-    import kiss_matcher
-
-    matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(voxel))
-    sol = matcher.estimate(scan.astype(np.float32), target.astype(np.float32))
-    T = np.eye(4)
-    T[:3, :3] = np.asarray(sol.rotation, dtype=np.float64).reshape(3, 3)
-    T[:3, 3] = np.asarray(sol.translation, dtype=np.float64).reshape(3)
-    return T
+    return kiss_matcher_estimate(scan, target, voxel).transform
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     """Run the benchmark and print the table."""
-    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap = argument_parser(__spec__.name, __doc__)
     ap.add_argument('--voxels', type=float, nargs='+', default=[0.08, 0.05, 0.035])
     ap.add_argument('--trials', type=int, default=3)
-    ap.add_argument('--output', type=Path, default=Path('docs'))
+    ap.add_argument('--output', type=Path, default=output_path('relocalize'),
+                    help='folder of the results (default: %(default)s)')
     ap.add_argument('--scene-maps', type=Path, default=None,
                     help='3DMatch benchmark root: run the leave-one-out indoor-map study')
     ap.add_argument('--voxel', type=float, default=0.05, help='with --scene-maps: voxel, m')
@@ -77,7 +73,7 @@ def main() -> None:
     ap.add_argument('--no-kiss', action='store_true', help='with --scene-maps: ours only')
     ap.add_argument('--no-map-normals', action='store_true',
                     help="with --scene-maps: a map file without normals, 'centroid' normals")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     if args.scene_maps is not None:
         scene_maps(args.scene_maps, args.voxel, args.fragments, not args.no_kiss,
                    not args.no_map_normals, args.output)
@@ -156,12 +152,10 @@ def scene_maps(root: Path, voxel: float, per_scene: int, with_kiss: bool, map_no
                   flush=True)
     text = _scene_map_report(records, voxel, with_kiss, map_normals)
     print(text)
-    output.mkdir(parents=True, exist_ok=True)
     name = 'bench_relocalize_3dmatch' + ('' if map_normals else '_centroid')
-    (output / f'{name}.md').write_text(text + '\n', encoding='utf-8')
-    (output / f'{name}.json').write_text(
-        json.dumps({'voxel': voxel, 'map_normals': map_normals, 'records': records}, indent=1)
-        + '\n', encoding='utf-8')
+    write_text(output / f'{name}.md', text + '\n')
+    write_text(output / f'{name}.json', json.dumps(
+        {'voxel': voxel, 'map_normals': map_normals, 'records': records}, indent=1) + '\n')
 
 
 def _relocalize_fragment(scene: str, k: int, fragments, poses, sides, cfg, rng,
@@ -241,10 +235,7 @@ def _scene_map_report(records: list[dict], voxel: float, with_kiss: bool,
 
 
 def _plot(rows, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     n = [r[1] for r in rows]
     fig, ax = plt.subplots(figsize=(6, 4))
@@ -258,7 +249,7 @@ def _plot(rows, path: Path) -> None:
     ax.set_yscale('log')
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path)
 
 
 if __name__ == '__main__':

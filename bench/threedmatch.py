@@ -3,13 +3,13 @@ The 3DMatch / 3DLoMatch test benchmark: ours beside KISS-Matcher and Open3D FPFH
 
 Run by hand (under ``flock /tmp/cgags-bench.lock``)::
 
-    .venv/bin/python bench/bench_3dmatch.py [--root <shared data>/3dmatch_benchmark] \
+    .venv/bin/python -m bench.threedmatch [--root <shared data>/3dmatch_benchmark] \
         [--scenes S ...] [--benchmarks 3DMatch 3DLoMatch] [--pairs K] \
         [--methods cgags kiss_matcher open3d_fpfh_ransac] [--set KEY=VALUE] \
-        [--output docs/benchmarks_3dmatch] [--records out/bench_3dmatch/run]
+        [--output out/bench/threedmatch] [--records out/bench/threedmatch_run]
 
 Every registration pair (``j - i > 1``) of every scene folder under ``--root`` (any scene
-in that layout, :mod:`cgags_ros.datasets.threedmatch`), both lists; ``--pairs K`` samples
+in that layout, :mod:`bench.datasets.threedmatch`), both lists; ``--pairs K`` samples
 K pairs a scene and list (seeded) for quick runs. Every method gets the same raw
 fragments and the same voxel (``--voxel``, 5 cm) and is timed from the raw (N, 3) points
 to the 4x4 transform, one pair at a time, the methods interleaved pair by pair:
@@ -23,9 +23,9 @@ to the 4x4 transform, one pair at a time, the methods interleaved pair by pair:
     ``KISSMatcher(KISSMatcherConfig(voxel)).estimate(src, tgt)`` (kiss-matcher 1.0.2,
     float32, its own front end, no refinement); its ``valid`` is its flag.
 ``open3d_fpfh_ransac``
-    Open3D RANSAC on feature matching over our front end's features, as in
-    ``bench/bench_pipeline.py`` (1e5 iterations, 0.999, no refinement); no validity flag
-    (every estimate counts as flagged valid).
+    Open3D RANSAC on feature matching over our front end's features, as
+    :func:`bench.baselines.open3d_fpfh_ransac` (1e5 iterations, 0.999, no refinement); no
+    validity flag (every estimate counts as flagged valid).
 
 Metrics, per scene (columns, as the seed paper's table) and overall, per list: registration
 recall RR (RE < 15 deg and TE < 0.3 m, counted on every estimate whatever its flag), mean
@@ -33,17 +33,17 @@ RE/TE over the successes, the official RMSE recall (``gt.info``, RMSE < 0.2 m), 
 p95 seconds a pair, and the valid flag's quality: ``valid keeps`` = right and valid / right,
 ``valid but wrong`` = wrong and valid (count and share of the valid estimates).
 
-Outputs: ``--output`` + ``.md`` / ``.json`` / ``.png`` (tables, summary, plot), and one
-JSON line per pair and method under ``--records`` (git-ignored ``out/``) with what our
+Outputs: ``--output`` + ``.md`` / ``.json`` / ``.png`` (tables, summary, plot; default
+``out/bench/threedmatch``), and one JSON line per pair and method under ``--records``
+(git-ignored ``out/``) with what our
 gates and candidate search saw (inliers, chance level, hypotheses, fitness and overlap,
 candidates with their inliers, fitness both ways and their geometry relative to the best
 and to the ground truth): gate changes can be studied on them without re-running
-(``bench/gate_study.py``).
+(``python -m bench.gate_study``).
 """
 
 from __future__ import annotations
 
-import argparse
 import functools
 import json
 import math
@@ -52,12 +52,15 @@ import platform
 import sys
 import time
 
+from bench.baselines import kiss_matcher_estimate, open3d_fpfh_ransac
+from bench.common import (add_set_option, argument_parser, cell, machine, markdown_table,
+                          output_path, parse_overrides, pyplot, save_figure, write_json,
+                          write_text)
+from bench.datasets import threedmatch as tdm
 from cgags_ros.config import PipelineConfig
-from cgags_ros.config.fields import parse_key_values, update_from_flat
-from cgags_ros.datasets import threedmatch as tdm
-from cgags_ros.datasets.synthetic import shared_data_dir
+from cgags_ros.config.fields import update_from_flat
 from cgags_ros.geometry import rotation_error_deg, spread, translation_error
-from cgags_ros.tools.report import fmt, markdown_table
+from cgags_ros.io.shared_data import shared_data_dir
 import numpy as np
 
 MAX_RE_DEG = 15.0
@@ -133,30 +136,15 @@ def diagnostics(result, src: np.ndarray, tgt: np.ndarray, gt: np.ndarray,
     return out
 
 
-def _bench_pipeline():
-    """Return bench/bench_pipeline.py, whose baselines this benchmark shares (a script)."""
-    here = str(Path(__file__).resolve().parent)
-    if here not in sys.path:
-        sys.path.insert(0, here)
-    import bench_pipeline
-    return bench_pipeline
-
-
 def run_kiss(src: np.ndarray, tgt: np.ndarray, voxel: float) -> tuple[np.ndarray, bool, dict]:
-    import kiss_matcher
-
     t0 = time.perf_counter()
-    matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(voxel))
-    solution = matcher.estimate(src.astype(np.float32), tgt.astype(np.float32))
-    T = _bench_pipeline().kiss_transform(solution)
-    elapsed = time.perf_counter() - t0
-    return T, bool(solution.valid), {
-        'time_s': elapsed, 'num_final_inliers': int(matcher.get_num_final_inliers())}
+    out = kiss_matcher_estimate(src, tgt, voxel)
+    return out.transform, out.valid, {'time_s': time.perf_counter() - t0, **out.info}
 
 
 def run_open3d(src: np.ndarray, tgt: np.ndarray, voxel: float) -> tuple[np.ndarray, bool, dict]:
     t0 = time.perf_counter()
-    T = _bench_pipeline().run_open3d(src, tgt, voxel)
+    T = open3d_fpfh_ransac(src, tgt, voxel)
     return T, True, {'time_s': time.perf_counter() - t0}
 
 
@@ -224,8 +212,8 @@ def run(args, methods: dict) -> list[dict]:
                         and r['benchmark'] == benchmark]
                 for name in methods:
                     s = summarize([r for r in done if r['method'] == name])
-                    print(f"  {name}: RR {fmt(s['rr'])}, valid-but-wrong "
-                          f"{s['valid_wrong']}/{s['valid']}, median {fmt(s['median_time_s'])} s",
+                    print(f"  {name}: RR {cell(s['rr'])}, valid-but-wrong "
+                          f"{s['valid_wrong']}/{s['valid']}, median {cell(s['median_time_s'])} s",
                           flush=True)
     finally:
         if sink:
@@ -245,11 +233,12 @@ def warm_up(args, methods: dict) -> None:
 
 
 def _reset_cache(warm: bool) -> None:
-    from cgags_ros.pipeline import cache
+    from cgags_ros.pipeline import clear_feature_cache, set_feature_cache_size
 
-    cache.clear_feature_cache()
+    clear_feature_cache()
     # Warm: every fragment of a scene featurised once (a scene has at most a few hundred).
-    cache._CACHE_SIZE = 1000 if warm else 2
+    if warm:
+        set_feature_cache_size(1000)
 
 
 def summarize(recs: list[dict]) -> dict:
@@ -322,10 +311,7 @@ def _short(scene: str) -> str:
 
 
 def plot(summary: dict, path: Path) -> None:
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, axes = plt.subplots(1, len(summary) + 1, figsize=(5 * (len(summary) + 1), 4))
     for ax, (b, per_method) in zip(axes, summary.items()):
         cols = list(next(iter(per_method.values())))
@@ -350,12 +336,11 @@ def plot(summary: dict, path: Path) -> None:
     ax.legend(fontsize=7)
     axes[0].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
+    p = argument_parser(__spec__.name, __doc__)
     p.add_argument('--root', type=Path, default=shared_data_dir() / '3dmatch_benchmark')
     p.add_argument('--scenes', nargs='+', default=None, help='default: every scene folder')
     p.add_argument('--benchmarks', nargs='+', choices=tdm.BENCHMARKS, default=list(tdm.BENCHMARKS))
@@ -364,17 +349,16 @@ def main(argv: list[str] | None = None) -> int:
                    help='sample this many pairs a scene and list (default: all)')
     p.add_argument('--seed', type=int, default=0, help='seed of the --pairs sample')
     p.add_argument('--voxel', type=float, default=0.05, help='voxel size, metres')
-    p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
-                   help='change one of our parameters (repeatable)')
+    add_set_option(p)
     p.add_argument('--warm-features', action='store_true',
                    help='featurise each fragment once (ours only; its times not comparable)')
-    p.add_argument('--output', type=Path, default=None,
-                   help='path stem of the .md/.json/.png outputs (e.g. docs/benchmarks_3dmatch)')
+    p.add_argument('--output', type=Path, default=output_path('threedmatch'),
+                   help='path stem of the .md/.json/.png outputs (default: %(default)s)')
     p.add_argument('--records', type=Path, default=None,
                    help='folder for records.jsonl, one line a pair and method')
     args = p.parse_args(argv)
-    overrides = parse_key_values(args.set)
-    config = update_from_flat(PipelineConfig(), {'voxel_size': args.voxel, **overrides})
+    config = update_from_flat(PipelineConfig(), {'voxel_size': args.voxel,
+                                                 **parse_overrides(args.set)})
     table = {'cgags': functools.partial(run_cgags, config=config, warm=args.warm_features),
              'kiss_matcher': run_kiss, 'open3d_fpfh_ransac': run_open3d}
     methods = {m: table[m] for m in args.methods}
@@ -383,7 +367,7 @@ def main(argv: list[str] | None = None) -> int:
     records = run(args, methods)
     summary = summaries(records)
     text = tables(summary)
-    notes = ['command: `.venv/bin/python bench/bench_3dmatch.py '
+    notes = ['command: `.venv/bin/python -m bench.threedmatch '
              + ' '.join(sys.argv[1:] if argv is None else argv) + '`',
              f'machine: {platform.platform()}, one pair at a time, methods interleaved pair '
              f'by pair; wall {time.time() - t0:.0f} s',
@@ -397,16 +381,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.warm_features:
         notes.append('ours with --warm-features: its times are NOT comparable')
     print('\n' + text + '\n\n' + '\n'.join(notes))
-    if args.output:
-        args.output.parent.mkdir(parents=True, exist_ok=True)
-        args.output.with_suffix('.json').write_text(json.dumps({
-            'machine': {'platform': platform.platform(), 'python': platform.python_version()},
-            'args': {k: str(v) for k, v in vars(args).items()}, 'notes': notes,
-            'wall_s': time.time() - t0, 'summary': summary}, indent=1))
-        args.output.with_suffix('.md').write_text(text + '\n\n' + '\n'.join(
-            f'- {n}' for n in notes) + '\n')
-        plot(summary, args.output.with_suffix('.png'))
-        print(f'wrote {args.output}.{{md,json,png}}')
+    write_json(args.output.with_suffix('.json'), {
+        'machine': machine(), 'args': {k: str(v) for k, v in vars(args).items()},
+        'notes': notes, 'wall_s': time.time() - t0, 'summary': summary})
+    write_text(args.output.with_suffix('.md'),
+               text + '\n\n' + '\n'.join(f'- {n}' for n in notes) + '\n')
+    plot(summary, args.output.with_suffix('.png'))
+    print(f'wrote {args.output}.{{md,json,png}}')
     return 0
 
 

@@ -8,8 +8,8 @@ checked against the accounting invariant (sources received = published + rejecte
 dropped + pending, and likewise for targets); every ``--sample`` seconds the resident
 memory of both processes (from /proc) and the node's latency percentiles are recorded.
 
-    .venv/bin/python bench/bench_soak.py --duration 600 \
-        --output out/bench/soak.json --plot docs/bench_soak.png
+    .venv/bin/python -m bench.soak --duration 600 \
+        --output out/bench/soak.json --plot out/bench/soak.png
 
 Target: RSS growth after warm-up (the first minute) <= 20 MB for node + worker, and the
 invariant holding at every sample.
@@ -17,7 +17,6 @@ invariant holding at every sample.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 from pathlib import Path
@@ -27,6 +26,10 @@ import sys
 import threading
 import time
 
+from bench.common import argument_parser, output_path, pyplot, save_figure, write_json
+from cgags_ros.io.shared_data import shared_data_dir
+
+REPO = Path(__file__).resolve().parents[1]
 DOMAIN_ID = '59'
 WARM_UP_S = 60.0
 
@@ -51,19 +54,20 @@ def balanced(v: dict[str, str]) -> bool:
             and v.get('accounting.ok') == 'True')
 
 
-def main() -> int:  # noqa: C901 - one linear script: start, publish, sample, report
-    parser = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
+def main(argv: list[str] | None = None) -> int:  # noqa: C901 - one linear script
+    """Start the node, publish, sample, report."""
+    parser = argument_parser(__spec__.name, __doc__)
     parser.add_argument('--duration', type=float, default=600.0, help='seconds of publishing')
     parser.add_argument('--rate', type=float, default=10.0, help='source scans per second')
     parser.add_argument('--voxel-size', type=float, default=0.4, help='metres')
     parser.add_argument('--sample', type=float, default=5.0, help='seconds between samples')
-    parser.add_argument('--output', type=Path, default=Path('out/bench/soak.json'))
-    parser.add_argument('--plot', type=Path, default=None, help='PNG of RSS and latency')
-    args = parser.parse_args()
+    parser.add_argument('--output', type=Path, default=output_path('soak.json'),
+                        help='samples and summary (default: %(default)s)')
+    parser.add_argument('--plot', type=Path, default=output_path('soak.png'),
+                        help='RSS and latency over time (default: %(default)s)')
+    args = parser.parse_args(argv)
 
     os.environ.update(ROS_DOMAIN_ID=DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
-    repo = Path(__file__).resolve().parents[1]
-    sys.path.insert(0, str(repo))
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
     import rclpy
@@ -71,7 +75,6 @@ def main() -> int:  # noqa: C901 - one linear script: start, publish, sample, re
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
 
-    from cgags_ros.datasets.synthetic import shared_data_dir
     from cgags_ros.io.bag import read_messages
     from cgags_ros.ros.conversions import to_rclpy_pointcloud2
 
@@ -88,7 +91,7 @@ def main() -> int:  # noqa: C901 - one linear script: start, publish, sample, re
         [sys.executable, '-m', 'cgags_ros.register_node', '--ros-args',
          '-p', f'voxel_size:={args.voxel_size}',
          '-p', 'pairing.target_durability:=transient_local'],
-        cwd=repo, env=dict(os.environ, PYTHONUNBUFFERED='1'), stdout=log,
+        cwd=REPO, env=dict(os.environ, PYTHONUNBUFFERED='1'), stdout=log,
         stderr=subprocess.STDOUT)
     rclpy.init()
     io = rclpy.create_node('soak_io')
@@ -170,21 +173,16 @@ def main() -> int:  # noqa: C901 - one linear script: start, publish, sample, re
         'rss_after_warm_up_mb': {'first': total[0], 'last': total[-1],
                                  'max': max(total), 'growth': total[-1] - total[0]},
         'node_exit_code': proc.returncode}
-    args.output.write_text(json.dumps({'summary': summary, 'samples': samples}, indent=1))
+    write_json(args.output, {'summary': summary, 'samples': samples})
     print(json.dumps(summary, indent=1))
-    if args.plot:
-        plot(samples, args.plot)
-        print(f'wrote {args.plot}')
+    print(f'wrote {args.output}, {plot(samples, args.plot)}')
     ok = state['unbalanced'] == 0 and summary['rss_after_warm_up_mb']['growth'] <= 20.0
     return 0 if ok else 1
 
 
-def plot(samples: list[dict], path: Path) -> None:
+def plot(samples: list[dict], path: Path) -> Path:
     """Write RSS (node, worker, total) and latency (p50, p95) over time as a PNG."""
-    import matplotlib
-
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     t = [s['t_s'] / 60 for s in samples]
     fig, (a, b) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
@@ -199,9 +197,7 @@ def plot(samples: list[dict], path: Path) -> None:
     b.set_xlabel('time [min]')
     b.legend()
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    return save_figure(fig, path, dpi=90)
 
 
 if __name__ == '__main__':

@@ -3,17 +3,17 @@ Scaling benchmark: time and memory of one registration against points per cloud 
 
 Run by hand::
 
-    .venv/bin/python bench/bench_scaling.py [--sizes redkitchen:0.05 lidar:0.3] \
+    .venv/bin/python -m bench.scaling [--sizes redkitchen:0.05 lidar:0.3] \
         [--methods cgags kiss_matcher open3d_fpfh_ransac] [--trials 3] \
         [--set frontend.max_keypoints=5000] \
-        [--output out/bench_scaling.json] [--markdown docs/bench_scaling.md] \
-        [--plot docs/bench_scaling.png]
+        [--output out/bench/scaling.json] [--markdown out/bench/scaling.md] \
+        [--plot out/bench/scaling.png]
 
 Data: the 3DMatch redkitchen fragments 4 -> 0 at 5, 3.5, 2.5 and 1.8 cm voxels and the
 small_gicp LiDAR pair at 0.5, 0.3, 0.2 and 0.12 m. Each trial rotates the source about its
 frame origin by a seeded random rotation (any angle; the ground truth is updated to match).
 
-Methods (as ``bench/bench_pipeline.py`` runs them):
+Methods (as ``python -m bench.pipeline`` runs them):
 
 ``cgags``
     :func:`cgags_ros.pipeline.register_clouds`, default parameters or those changed by
@@ -22,7 +22,7 @@ Methods (as ``bench/bench_pipeline.py`` runs them):
 ``kiss_matcher``
     ``KISSMatcher(KISSMatcherConfig(voxel_size=v)).estimate(src, tgt)`` (its own front end).
 ``open3d_fpfh_ransac``
-    Open3D FPFH + RANSAC on our front end's features (``bench_pipeline.run_open3d``).
+    Open3D FPFH + RANSAC on our front end's features (:func:`bench.baselines.open3d_fpfh_ransac`).
 
 Each (size, method) runs in its own subprocess, so that its peak resident memory
 (``VmHWM`` of ``/proc/self/status``: native memory included) is that of the registrations
@@ -41,20 +41,20 @@ import subprocess
 import sys
 import time
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench.baselines import kiss_matcher_estimate, open3d_fpfh_ransac
+from bench.common import (add_set_option, argument_parser, cell, LIMITS, markdown_table,
+                          output_path, parse_overrides, pyplot, save_figure, write_json,
+                          write_text)
+from bench.datasets.gt_pairs import find_pair
+from cgags_ros.config import PipelineConfig
+from cgags_ros.config.fields import parse_key_values, update_from_flat
+from cgags_ros.geometry import rotation_error_deg, translation_error
+from cgags_ros.io.clouds import read_cloud
+from cgags_ros.io.shared_data import shared_data_dir
+import numpy as np
 
-from cgags_ros.config import PipelineConfig  # noqa: E402
-from cgags_ros.config.fields import parse_key_values, update_from_flat  # noqa: E402
-from cgags_ros.datasets.gt_pairs import find_pair  # noqa: E402
-from cgags_ros.datasets.synthetic import shared_data_dir  # noqa: E402
-from cgags_ros.geometry import rotation_error_deg, translation_error  # noqa: E402
-from cgags_ros.io.clouds import read_cloud  # noqa: E402
-from cgags_ros.tools.report import fmt, markdown_table  # noqa: E402
-import numpy as np  # noqa: E402
-
+ROOT = Path(__file__).resolve().parents[1]
 DATASETS = {'redkitchen': (0.05, 0.035, 0.025, 0.018), 'lidar': (0.5, 0.3, 0.2, 0.12)}
-LIMITS = {'redkitchen': (15.0, 0.3), 'lidar': (5.0, 0.6)}  # success: RE deg, TE m (demo bags)
 METHODS = ('cgags', 'kiss_matcher', 'open3d_fpfh_ransac')
 _MARK = 'BENCH_SCALING_RECORD '
 STAGES = ('downsample', 'normals', 'fpfh', 'matching', 'registration', 'refinement',
@@ -93,7 +93,6 @@ def _memory_kb(field: str) -> int:
 def _run_method(method: str, src: np.ndarray, tgt: np.ndarray, voxel: float,
                 sets: tuple[str, ...] = ()) -> dict:
     """Register once; return the transform, validity, points and per-stage timings."""
-    from bench_pipeline import run_open3d
     from cgags_ros.pipeline import clear_feature_cache, register_clouds
 
     if method == 'cgags':
@@ -104,15 +103,9 @@ def _run_method(method: str, src: np.ndarray, tgt: np.ndarray, voxel: float,
                 'points': [r.num_source_points, r.num_target_points],
                 'stages': {k: float(t) for k, t in r.timings.items()}}
     if method == 'kiss_matcher':
-        import kiss_matcher
-
-        matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(voxel))
-        sol = matcher.estimate(src.astype(np.float32), tgt.astype(np.float32))
-        T = np.eye(4)
-        T[:3, :3] = np.asarray(sol.rotation, dtype=np.float64).reshape(3, 3)
-        T[:3, 3] = np.asarray(sol.translation, dtype=np.float64).reshape(3)
-        return {'T': T, 'valid': bool(sol.valid), 'reason': ''}
-    return {'T': run_open3d(src, tgt, voxel), 'valid': True, 'reason': ''}
+        out = kiss_matcher_estimate(src, tgt, voxel)
+        return {'T': out.transform, 'valid': out.valid, 'reason': ''}
+    return {'T': open3d_fpfh_ransac(src, tgt, voxel), 'valid': True, 'reason': ''}
 
 
 def worker(dataset: str, voxel: float, method: str, trials: int, seed: int,
@@ -147,12 +140,12 @@ def worker(dataset: str, voxel: float, method: str, trials: int, seed: int,
 
 def run_subprocess(dataset: str, voxel: float, method: str, trials: int, seed: int,
                    timeout: float, sets: tuple[str, ...] = ()) -> dict:
-    cmd = [sys.executable, __file__, '--worker', f'{dataset}:{voxel}', '--methods', method,
-           '--trials', str(trials), '--seed', str(seed)]
+    cmd = [sys.executable, '-m', __spec__.name, '--worker', f'{dataset}:{voxel}',
+           '--methods', method, '--trials', str(trials), '--seed', str(seed)]
     for item in sets:
         cmd += ['--set', item]
     try:
-        done = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+        done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
         return {'dataset': dataset, 'voxel': voxel, 'method': method,
                 'error': f'timeout after {timeout:g} s', 'trials': []}
@@ -236,7 +229,7 @@ def write_report(records: list[dict], markdown: Path | None, plot: Path | None,
                             'peak RSS MB (above start)', 'error'), rows)
     stage_table = markdown_table(('size', 'points', *(f'{k} [s]' for k in STAGES)),
                                  stage_rows)
-    text = (f'# Scaling benchmark (bench/bench_scaling.py)\n\n{trials} random rotation(s) a '
+    text = (f'# Scaling benchmark (python -m bench.scaling)\n\n{trials} random rotation(s) a '
             f'size; {platform.platform()}, Python {platform.python_version()}.\n'
             'Points: mean of source and target after our voxel downsampling. Peak RSS: '
             'VmHWM of one subprocess per row (in brackets: above its RSS after imports, '
@@ -254,18 +247,14 @@ def write_report(records: list[dict], markdown: Path | None, plot: Path | None,
                      ('size', 'ours [s]', 'floor [s]', 'KISS-Matcher [s]', 'floor / KISS'),
                      floors) + '\n')
     if markdown:
-        markdown.parent.mkdir(parents=True, exist_ok=True)
-        markdown.write_text(text)
+        write_text(markdown, text)
     if plot:
         _plot(records, plot)
     return text
 
 
 def _plot(records: list[dict], path: Path) -> None:
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 4.5))
     colours = dict(zip(METHODS, ('C0', 'C1', 'C2')))
     for dataset, style in zip(DATASETS, ('-o', '--s')):
@@ -282,24 +271,24 @@ def _plot(records: list[dict], path: Path) -> None:
     ax.grid(True, which='both', alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
+    p = argument_parser(__spec__.name, __doc__)
     p.add_argument('--sizes', nargs='+', default=None,
                    help='DATASET:VOXEL (e.g. lidar:0.3) or DATASET; default: all')
     p.add_argument('--methods', nargs='+', choices=METHODS, default=list(METHODS))
     p.add_argument('--trials', type=int, default=3)
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--timeout', type=float, default=900.0, help='seconds per size and method')
-    p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
-                   help='change one of our parameters (repeatable), e.g. '
-                   '--set frontend.max_keypoints=5000')
-    p.add_argument('--output', type=Path, default=Path('out/bench_scaling.json'))
-    p.add_argument('--markdown', type=Path, default=None)
-    p.add_argument('--plot', type=Path, default=None)
+    add_set_option(p)
+    p.add_argument('--output', type=Path, default=output_path('scaling.json'),
+                   help='JSON records (default: %(default)s)')
+    p.add_argument('--markdown', type=Path, default=output_path('scaling.md'),
+                   help='the tables (default: %(default)s)')
+    p.add_argument('--plot', type=Path, default=output_path('scaling.png'),
+                   help='time against points (default: %(default)s)')
     p.add_argument('--worker', default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.worker:
@@ -308,8 +297,7 @@ def main(argv: list[str] | None = None) -> int:
                         tuple(args.set))
         print(_MARK + json.dumps(record))  # libraries may print to stdout too
         return 0
-    if args.set:  # a typo fails here, not in every subprocess
-        update_from_flat(PipelineConfig(), parse_key_values(args.set))
+    parse_overrides(args.set)
     sizes = []
     for spec in args.sizes or list(DATASETS):
         name, _, voxel = spec.partition(':')
@@ -323,11 +311,10 @@ def main(argv: list[str] | None = None) -> int:
             s = summarize(rec)
             print(f'{dataset} {voxel:g} {method}: ' + (
                 s['error'] if 'error' in s else
-                f"{s['points']:.0f} pts, {fmt(s['median_time_s'])} s, "
+                f"{s['points']:.0f} pts, {cell(s['median_time_s'])} s, "
                 f"{s['successes']}/{s['trials']} ok, peak {s['peak_mb']:.0f} MB"), flush=True)
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps({'machine': platform.platform(), 'trials': args.trials,
-                                       'set': args.set, 'records': records}, indent=1))
+    write_json(args.output, {'machine': platform.platform(), 'trials': args.trials,
+                             'set': args.set, 'records': records})
     print(write_report(records, args.markdown, args.plot, args.trials, tuple(args.set)))
     return 0
 

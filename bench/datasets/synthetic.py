@@ -11,20 +11,13 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+from cgags_ros.io.clouds import read_cloud
+from cgags_ros.io.shared_data import shared_data_dir
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..io.clouds import read_cloud
 
-DEFAULT_SHARED_DATA = Path(__file__).resolve().parents[2].parent / 'shared' / 'data'
 BUNNY_MODEL = 'objects/teaser/bun_zipper_res3.ply'
-
-
-def shared_data_dir() -> Path:
-    """Return ``../shared/data`` relative to the repository root (or CGAGS_DATA_DIR)."""
-    import os
-
-    return Path(os.environ.get('CGAGS_DATA_DIR', DEFAULT_SHARED_DATA))
 
 
 def unit_scale(points: np.ndarray) -> np.ndarray:
@@ -36,20 +29,6 @@ def unit_scale(points: np.ndarray) -> np.ndarray:
 def load_bunny(data_dir: str | Path | None = None) -> np.ndarray:
     """Load the Stanford bunny model (1889 points), unit-scaled."""
     return unit_scale(read_cloud(Path(data_dir or shared_data_dir()) / BUNNY_MODEL))
-
-
-def terrain_patch(rng: np.random.Generator, n: int = 4000) -> np.ndarray:
-    """
-    Sample (n, 3) points of a 4 m x 4 m terrain patch with three Gaussian bumps (metres).
-
-    The patch has enough relief for FPFH and a fully constrained rigid fit
-    (``pipeline.warm_up``, node tests).
-    """
-    xy = rng.uniform(-2.0, 2.0, (n, 2))
-    bumps = ((0.7, 0.5, 0.8, 0.3), (-0.9, -0.2, 0.5, 0.1), (0.1, -1.1, -0.6, 0.5))
-    z = sum(h * np.exp(-((xy[:, 0] - x) ** 2 + (xy[:, 1] - y) ** 2) / w)
-            for x, y, h, w in bumps)
-    return np.c_[xy, z]
 
 
 def random_transform(rng: np.random.Generator, max_translation: float = 1.0) -> np.ndarray:

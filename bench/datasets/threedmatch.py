@@ -20,10 +20,10 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+from cgags_ros.errors import InvalidInputError
+from cgags_ros.geometry import apply_transform
 import numpy as np
 
-from ..errors import InvalidInputError
-from ..geometry import apply_transform
 
 BENCHMARKS = ('3DMatch', '3DLoMatch')
 RMSE_THRESHOLD = 0.2  # metres: the official RMSE recall counts pairs below it

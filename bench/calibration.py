@@ -3,13 +3,13 @@ Extrinsic calibration benchmark: ours with 1, 2 and 3 frames against single-fram
 
 Run by hand (under the bench lock)::
 
-    flock /tmp/cgags-bench.lock .venv/bin/python bench/bench_calibration.py \
-        [--rigs carla_data/left real_world/right kitti_lidar] [--output out/calib.json]
+    flock /tmp/cgags-bench.lock .venv/bin/python -m bench.calibration \
+        [--rigs carla_data/left real_world/right kitti_lidar] [--output out/bench/calibration.json]
 
 Rigs: the OpenCalib lidar2lidar samples (simulated: front, back, left, right against the
 top LiDAR; real: left, right), reference = CROON's extrinsic averaged over the three
 frames, tolerance = its spread (simulated 0.2 deg / 3 cm, real 0.5 deg / 5 cm); and two
-rigs built from KITTI scans with a known extrinsic (``cgags_ros.datasets.rigs``:
+rigs built from KITTI scans with a known extrinsic (``bench.datasets.rigs``:
 a second LiDAR, a depth camera against a sparse LiDAR; 0.5 deg / 5 cm).
 
 Methods, per rig:
@@ -22,7 +22,7 @@ Methods, per rig:
     :func:`cgags_ros.pipeline.register_clouds` on each frame alone (3 runs); success =
     valid and within tolerance.
 ``kiss_matcher``, ``open3d_fpfh_ransac``
-    Each frame alone, as ``bench/bench_pipeline.py`` runs them (same voxel); they report
+    Each frame alone, as ``python -m bench.pipeline`` runs them (same voxel); they report
     no validity we gate on, so success = within tolerance.
 
 Covariance against the observed spread: for each valid ours_1 and ours_2 run, the error
@@ -33,40 +33,30 @@ gives the share of |error| / sigma within 1 and 2 (a calibrated Gaussian: 68 % /
 
 from __future__ import annotations
 
-import argparse
 import itertools
-import json
 from pathlib import Path
 import platform
 import sys
 import time
 
+from bench.baselines import kiss_matcher_estimate, open3d_fpfh_ransac
+from bench.common import argument_parser, cell, markdown_table, output_path, write_json
+from bench.datasets.rigs import (kitti_depth_rig, kitti_lidar_rig, opencalib_rig,
+                                 OPENCALIB_RIGS)
 from cgags_ros.calibration import Frame, joint
 from cgags_ros.calibration.calibrator import solve
 from cgags_ros.calibration.frames import gather
 from cgags_ros.config import PipelineConfig
 from cgags_ros.config.calibration import CalibrationConfig
-from cgags_ros.datasets.rigs import (kitti_depth_rig, kitti_lidar_rig, opencalib_rig,
-                                     OPENCALIB_RIGS)
-from cgags_ros.datasets.synthetic import shared_data_dir
 from cgags_ros.geometry import rotation_error_deg, translation_error
+from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import clear_feature_cache, register_clouds
-from cgags_ros.tools.report import fmt, markdown_table
 import numpy as np
 
 VOXEL = {'kitti_depth': 0.2}  # others 0.3 m
 TOLERANCE = {'carla_data': (0.2, 0.03)}  # others (0.5, 0.05)
 RIGS = ([f'{rig}/{s}' for rig, sensors in OPENCALIB_RIGS.items() for s in sensors]
         + ['kitti_lidar', 'kitti_depth'])
-
-
-def _bench_pipeline():
-    """Return bench/bench_pipeline.py, whose baselines this benchmark shares (a script)."""
-    here = str(Path(__file__).resolve().parent)
-    if here not in sys.path:
-        sys.path.insert(0, here)
-    import bench_pipeline
-    return bench_pipeline
 
 
 def load_rig(name: str, data_dir: Path) -> tuple[list[Frame], np.ndarray]:
@@ -78,14 +68,6 @@ def load_rig(name: str, data_dir: Path) -> tuple[list[Frame], np.ndarray]:
         rig, truth, _ = opencalib_rig(data_dir, *name.split('/'))
     return [Frame(f.parent, f.child, f.name, f.parent_stamp_ns, f.child_stamp_ns)
             for f in rig], truth
-
-
-def run_kiss(child: np.ndarray, parent: np.ndarray, voxel: float) -> tuple[np.ndarray, bool]:
-    import kiss_matcher
-
-    matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(voxel))
-    solution = matcher.estimate(child.astype(np.float32), parent.astype(np.float32))
-    return _bench_pipeline().kiss_transform(solution), bool(solution.valid)
 
 
 def _errors(T: np.ndarray | None, truth: np.ndarray) -> tuple[float, float]:
@@ -130,11 +112,11 @@ def bench_rig(name: str, data_dir: Path) -> dict:
             runs[-1]['reason'] = result.reason
     for f in frames:
         t0 = time.perf_counter()
-        T, kiss_valid = run_kiss(f.child, f.parent, voxel)
-        record('kiss_matcher', T, True, time.perf_counter() - t0, [f.name])
-        runs[-1]['own_valid'] = kiss_valid
+        kiss = kiss_matcher_estimate(f.child, f.parent, voxel)
+        record('kiss_matcher', kiss.transform, True, time.perf_counter() - t0, [f.name])
+        runs[-1]['own_valid'] = kiss.valid
         t0 = time.perf_counter()
-        T = _bench_pipeline().run_open3d(f.child, f.parent, voxel)
+        T = open3d_fpfh_ransac(f.child, f.parent, voxel)
         record('open3d_fpfh_ransac', T, True, time.perf_counter() - t0, [f.name])
     return {'rig': name, 'voxel_size': voxel, 'tolerance': tol, 'runs': runs}
 
@@ -153,9 +135,9 @@ def tables(results: list[dict]) -> str:
             tes = [x['te_m'] for x in valid]
             rows.append([r['rig'], m, f'{len(ok)}/{len(runs)}',
                          f'{len(valid)}/{len(runs)}',
-                         fmt(max(res)) if res else '-',
-                         fmt(100 * max(tes), 3) if tes else '-',
-                         fmt(float(np.median([x['time_s'] for x in runs])), 3)])
+                         cell(max(res)) if res else '-',
+                         cell(100 * max(tes), 3) if tes else '-',
+                         cell(float(np.median([x['time_s'] for x in runs])), 3)])
     out = [markdown_table(['rig', 'method', 'within tolerance', 'valid (answered)',
                            'max RE of valid [deg]', 'max TE of valid [cm]',
                            'median time [s]'], rows)]
@@ -165,16 +147,17 @@ def tables(results: list[dict]) -> str:
                       and x['valid'] and x['z'] is not None for v in x['z']])
         if len(z):
             cover.append([m, len(z) // 6, f'{100 * np.mean(z <= 1):.0f} %',
-                          f'{100 * np.mean(z <= 2):.0f} %', fmt(float(np.median(z)))])
+                          f'{100 * np.mean(z <= 2):.0f} %', cell(float(np.median(z)))])
     out.append(markdown_table(['runs', 'valid runs', '|err| <= 1 sigma', '|err| <= 2 sigma',
                                'median |err|/sigma'], cover))
     return '\n\n'.join(out)
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser = argument_parser(__spec__.name, __doc__)
     parser.add_argument('--rigs', nargs='+', default=RIGS, choices=RIGS)
-    parser.add_argument('--output', type=Path)
+    parser.add_argument('--output', type=Path, default=output_path('calibration.json'),
+                        help='JSON results path (default: %(default)s)')
     args = parser.parse_args(argv)
     data_dir = shared_data_dir()
     results = []
@@ -186,10 +169,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f'{name}: {time.perf_counter() - t0:.0f} s', file=sys.stderr, flush=True)
     text = tables(results)
     print(text)
-    if args.output:
-        args.output.parent.mkdir(parents=True, exist_ok=True)
-        args.output.write_text(json.dumps({'machine': platform.processor() or platform.machine(),
-                                           'results': results}, indent=1, default=float))
+    write_json(args.output, {'machine': platform.processor() or platform.machine(),
+                             'results': results}, default=float)
     return 0
 
 

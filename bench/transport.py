@@ -6,7 +6,7 @@ fixed rate; a subscriber process (a bare rclpy subscription, or ``register_node`
 with ``--node``) counts what reaches its callback. Each process gets its own transport
 settings, so the cause of a loss can be isolated (see docs/transport.md):
 
-    flock /tmp/cgags-dds.lock .venv/bin/python bench/bench_transport.py \
+    flock /tmp/cgags-dds.lock .venv/bin/python -m bench.transport \
         --clouds kitti --rate 10 --count 100 --settings default shipped shm_16mb udp_4mb
 
 ``--settings`` names a setting for both processes, or ``PUB/SUB`` for one each:
@@ -31,7 +31,6 @@ docs/transport.md sets them up.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 from pathlib import Path
@@ -41,6 +40,8 @@ import sys
 import tempfile
 import threading
 import time
+
+from bench.common import argument_parser, output_path, write_json
 
 REPO = Path(__file__).resolve().parents[1]
 DOMAIN_ID = '79'  # --domain
@@ -97,11 +98,10 @@ def setting_env(name: str, folder: Path, discovery: str) -> dict[str, str]:
 
 def load_clouds(which: str) -> list:
     """Return the rclpy PointCloud2 messages to cycle through."""
-    sys.path.insert(0, str(REPO))
     import numpy as np
 
-    from cgags_ros.datasets.synthetic import shared_data_dir
     from cgags_ros.io.pcd import read_fields as read_pcd_fields
+    from cgags_ros.io.shared_data import shared_data_dir
     from cgags_ros.ros.conversions import fields_to_pointcloud2, to_rclpy_pointcloud2
 
     if which == 'kitti':
@@ -217,7 +217,7 @@ def measure(clouds: str, rate: float, count: int, setting: str, node: bool,
     pub_set, _, sub_set = setting.partition('/')
     sub_set = sub_set or pub_set
     pub_ns, sub_ns = ([['ip', 'netns', 'exec', n] for n in netns] if netns else ([], []))
-    me = [sys.executable, str(Path(__file__).resolve())]
+    me = [sys.executable, '-m', __spec__.name]
     discovery = 'SUBNET' if netns else discovery
     sub_env = setting_env(sub_set, folder, discovery)
     if node:
@@ -228,15 +228,15 @@ def measure(clouds: str, rate: float, count: int, setting: str, node: bool,
                       '-p', 'output.diagnostics_period:=0.2'],
             cwd=REPO, env=sub_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     else:
-        sub = subprocess.Popen(sub_ns + me + ['--role', 'sub'], env=sub_env,
+        sub = subprocess.Popen(sub_ns + me + ['--role', 'sub'], cwd=REPO, env=sub_env,
                                stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         while sub.stdout.readline().strip() != 'ready':
             pass
     pub = subprocess.run(pub_ns + me + ['--role', 'pub', '--clouds', clouds, '--rate',
                                         str(rate), '--count', str(count)]
                          + (['--node'] if node else []),
-                         env=setting_env(pub_set, folder, discovery), capture_output=True,
-                         text=True, timeout=240 + count / rate)
+                         cwd=REPO, env=setting_env(pub_set, folder, discovery),
+                         capture_output=True, text=True, timeout=240 + count / rate)
     lines = [ln for ln in pub.stdout.splitlines() if ln.startswith('{')]
     row = {'clouds': clouds, 'rate_hz': rate, 'pub': pub_set, 'sub': sub_set,
            'subscriber': 'register_node' if node else 'rclpy',
@@ -258,8 +258,8 @@ def measure(clouds: str, rate: float, count: int, setting: str, node: bool,
     return row
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
+def main(argv: list[str] | None = None) -> int:
+    parser = argument_parser(__spec__.name, __doc__)
     parser.add_argument('--role', choices=('run', 'pub', 'sub'), default='run')
     parser.add_argument('--clouds', nargs='+', default=['kitti'])
     parser.add_argument('--rate', type=float, nargs='+', default=[10.0], help='Hz')
@@ -273,8 +273,9 @@ def main() -> int:
                         help='ROS_AUTOMATIC_DISCOVERY_RANGE on one host (--netns: SUBNET)')
     parser.add_argument('--netns', nargs=2, metavar=('PUB', 'SUB'),
                         help='network namespaces of the publisher and the subscriber')
-    parser.add_argument('--output', type=Path, default=Path('out/bench/transport.json'))
-    args = parser.parse_args()
+    parser.add_argument('--output', type=Path, default=output_path('transport.json'),
+                        help='one row a run (default: %(default)s)')
+    args = parser.parse_args(argv)
     if args.role == 'sub':
         return run_sub(args.topic)
     if args.role == 'pub':
@@ -292,8 +293,7 @@ def main() -> int:
                                   args.netns, args.discovery)
                     print(json.dumps(row), flush=True)
                     rows.append(row)
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(rows, indent=1))
+    write_json(args.output, rows)
     return 0
 
 

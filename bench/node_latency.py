@@ -5,7 +5,7 @@ Publishes the LiDAR bag's source clouds at a fixed rate (default 10 Hz, cycling 
 bag) against its target cloud (latched once), with the real pipeline, over real DDS in one
 process, and prints a table:
 
-    .venv/bin/python bench/bench_node_latency.py --duration 20
+    .venv/bin/python -m bench.node_latency --duration 20
 
 Latency is measured inside the node (monotonic clock, from the source callback to the
 publish of ~/pose), so it includes decoding, queueing, registration and covariance, not
@@ -17,21 +17,19 @@ separately): before that every pair waits and, at 10 Hz, ~25 of them were droppe
 
 from __future__ import annotations
 
-import argparse
 import os
 from pathlib import Path
 import sys
 import threading
 import time
 
-os.environ.setdefault('ROS_DOMAIN_ID', '58')
-os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+from bench.common import argument_parser
+from cgags_ros.io.shared_data import shared_data_dir
+import numpy as np
 
-import numpy as np  # noqa: E402
 
-
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
+def main(argv: list[str] | None = None) -> int:
+    parser = argument_parser(__spec__.name, __doc__)
     parser.add_argument('--bag', default=None, help='bag (default: shared data lidar bag)')
     parser.add_argument('--rate', type=float, default=10.0, help='source clouds per second')
     parser.add_argument('--duration', type=float, default=20.0, help='seconds of publishing')
@@ -40,16 +38,17 @@ def main() -> int:
                         help="default: the node's default (NodeConfig.queue_depth)")
     parser.add_argument('--registration-timeout', type=float, default=30.0,
                         help="0 runs the pipeline in the node's thread (no child process)")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
 
+    # Before rclpy loads: a domain of its own, and no discovery beyond this host.
+    os.environ.setdefault('ROS_DOMAIN_ID', '58')
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from cgags_ros.datasets.synthetic import shared_data_dir
     from cgags_ros.io.bag import read_messages
     from cgags_ros.ros.conversions import to_rclpy_pointcloud2
     from cgags_ros.ros.node import RegisterNode

@@ -1,9 +1,8 @@
-#!/usr/bin/env python3
 r"""
 Core benchmark (issue 2): our registration core vs Open3D RANSAC vs KISS-Matcher.
 
 All solvers run on the SAME synthetic putative correspondences (Stanford bunny, unit-scaled:
-largest extent 1; ``cgags_ros.datasets.synthetic.make_correspondences``), one problem at a time,
+largest extent 1; :mod:`bench.problems`), one problem at a time,
 and are scored with the literature's RE/TE: success = RE < 5 deg and TE < 0.1 (model units).
 Time = wall time of the whole solver call as a user makes it (input conversion included),
 median and p90 over the trials of a cell; CPU time (all threads of the process) goes to --json.
@@ -21,7 +20,7 @@ cube, on the model scaled 3x), as matches into a larger scene. ``--outliers`` ta
 list: each layout is a block of cells in one run.
 Every solver gets the same tau: ours as ``inlier_threshold``, Open3D as
 ``max_correspondence_distance``, KISS-Matcher as both ROBIN and solver noise bounds. The exact
-baseline calls are documented in ``bench/baselines.py``.
+baseline calls are documented in :mod:`bench.baselines`.
 
 Open3D evaluates every hypothesis with an N-point KD-tree query and, at outlier ratios >= 0.95,
 runs all 1e5 iterations: ~0.2 ms/iteration at N = 1000 and ~1 ms at N = 5000 on an idle-ish
@@ -46,14 +45,16 @@ layouts (a sparse wide layout changes what a hypothesis explains by chance).
 ``ours-4dof@REV`` / ``ours-6dof@REV`` run our core as of git revision REV next to the
 working tree's (a before/after in one run).
 
+Results: the Markdown tables (printed too) to ``--output`` (default
+``out/bench/core.md``), every record to ``--json`` (default ``out/bench/core.json``).
+
 Examples::
 
-    .venv/bin/python bench/bench_core.py --quick
-    .venv/bin/python bench/bench_core.py --solvers open3d,kiss \
-        --output docs/bench_core.md --json /tmp/b.json
-    .venv/bin/python bench/bench_core.py --outliers surface --trials 10
-    .venv/bin/python bench/bench_core.py --motion 4dof --output docs/bench_core_4dof.md
-    .venv/bin/python bench/bench_core.py --motion 4dof --outliers cube --ratios 0.99 \
+    .venv/bin/python -m bench.core --quick
+    .venv/bin/python -m bench.core --solvers open3d,kiss --json /tmp/b.json
+    .venv/bin/python -m bench.core --outliers surface --trials 10
+    .venv/bin/python -m bench.core --motion 4dof --output out/bench/core_4dof.md
+    .venv/bin/python -m bench.core --motion 4dof --outliers cube --ratios 0.99 \
         --solvers ours-4dof@main,ours-4dof,ours-6dof
 """
 
@@ -62,7 +63,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import importlib
-import json
 import os
 from pathlib import Path
 import platform
@@ -71,21 +71,14 @@ import time
 import traceback
 from typing import Any, Callable
 
+from bench import baselines
+from bench.common import argument_parser, output_path, write_json, write_text
+from bench.datasets.synthetic import load_bunny, make_correspondences, OUTLIER_LAYOUTS
+from bench.problems import problem, problem_seed
+from cgags_ros.geometry import rotation_error_deg, translation_error
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-if str(ROOT / 'bench') not in sys.path:
-    sys.path.insert(0, str(ROOT / 'bench'))
-
-# Imported only after the sys.path set-up above, which makes bench/ and the repository root
-# importable: hence E402, and I100 for the local module placed before the third-party ones.
-import baselines  # noqa: E402, I100
-from cgags_ros.datasets.synthetic import (  # noqa: E402
-    load_bunny, make_correspondences, OUTLIER_LAYOUTS)
-from cgags_ros.geometry import rotation_error_deg, translation_error  # noqa: E402
-
 DEFAULT_RATIOS = (0.9, 0.95, 0.98, 0.99, 0.995)
 DEFAULT_SIZES = (1000, 5000)
 QUICK_RATIOS = (0.9, 0.99)
@@ -192,7 +185,7 @@ def _make_ours_at(name: str) -> Solver:
     """``ours-4dof@REV``, ``ours-6dof@REV``: our core as of git revision REV (before/after)."""
     import tempfile
 
-    from ab_core import load_previous
+    from bench.revision import load_previous
 
     motion, rev = name[len('ours-'):].split('@', 1)
     previous = load_previous(rev, Path(tempfile.mkdtemp(prefix='bench_core_')))
@@ -210,7 +203,7 @@ def _make_ours_at(name: str) -> Solver:
             'stopped_by': res.stats.get('stopped_by')})
 
     return Solver(name, run, f'as ours-{motion}, the core of git revision {rev} '
-                  '(bench/ab_core.py load_previous)')
+                  '(bench.revision.load_previous)')
 
 
 def _make_kiss_quatro() -> Solver:
@@ -285,33 +278,6 @@ def load_solvers(names: list[str]) -> tuple[list[Solver], dict[str, str]]:
 # ------------------------------------------------------------------------------ running
 
 
-def problem_seed(seed: int, ratio: float, n: int, trial: int) -> int:
-    """Per-problem seed that depends only on (seed, ratio, N, trial), not on the cells run."""
-    ss = np.random.SeedSequence([int(seed), int(round(ratio * 10000)), int(n), int(trial)])
-    return int(ss.generate_state(1, dtype=np.uint32)[0])
-
-
-def problem_transform(args: argparse.Namespace, seed: int) -> np.ndarray | None:
-    """
-    Return the ground truth of a ``--motion 4dof`` problem (None: a random 6-DoF one).
-
-    Yaw uniform about +z, translation uniform in [-1, 1]^3, then a tilt of ``--tilt-noise``
-    degrees about a random horizontal axis. Drawn from its own stream of the problem seed,
-    so the correspondences are drawn as for 6-DoF.
-    """
-    if args.motion != '4dof':
-        return None
-    from scipy.spatial.transform import Rotation
-
-    rng = np.random.default_rng([seed, 4])
-    T = np.eye(4)
-    axis = np.r_[rng.normal(size=2), 0.0]
-    tilt = Rotation.from_rotvec(np.radians(args.tilt_noise) * axis / np.linalg.norm(axis))
-    T[:3, :3] = (tilt * Rotation.from_euler('z', rng.uniform(-np.pi, np.pi))).as_matrix()
-    T[:3, 3] = rng.uniform(-1.0, 1.0, 3)
-    return T
-
-
 def run_one(solver: Solver, src, dst, tau, seed, gt, max_re, max_te) -> dict[str, Any]:
     err = None
     c0, t0 = time.process_time(), time.perf_counter()
@@ -383,12 +349,10 @@ def _schedule(args, model, solvers, caps, max_n, n, ratio, layout) -> list[tuple
     its own previous call (as a user's loop would), not after another library's (which
     leaves its thread pool spinning and the caches full of its data: docs/bench_core.md).
     """
-    problems = []
-    for trial in range(args.trials):
-        seed = problem_seed(args.seed, ratio, n, trial)
-        problems.append((trial, seed, make_correspondences(
-            model, n, ratio, noise_sigma=args.noise, rng=seed, outliers=layout,
-            transform=problem_transform(args, seed))))
+    problems = [(trial, *problem(model, n, ratio, trial, seed=args.seed, motion=args.motion,
+                                 outliers=layout, noise=args.noise,
+                                 tilt_noise=args.tilt_noise))
+                for trial in range(args.trials)]
     order = []
     for trial, seed, p in problems:
         active = [s for s in solvers if trial < caps[s.name] and n <= max_n.get(s.name, n)]
@@ -403,7 +367,7 @@ def run_benchmark(args: argparse.Namespace) -> dict[str, Any]:
     model = load_bunny(args.data_dir)
     solvers, skipped = load_solvers(args.solvers)
     for name, why in skipped.items():
-        print(f'[bench_core] solver {name!r} skipped: {why}', file=sys.stderr)
+        print(f'[bench.core] solver {name!r} skipped: {why}', file=sys.stderr)
     if not solvers:
         raise SystemExit('no solver could be loaded')
     caps = {s.name: min(args.trials, args.caps.get(s.name, args.trials)) for s in solvers}
@@ -439,7 +403,7 @@ def run_benchmark(args: argparse.Namespace) -> dict[str, Any]:
         cells.append(cell)
         line = '  '.join(f"{k}: {v['success_pct']:.0f}% {v['median_ms']:.0f}ms (n={v['n']})"
                          for k, v in cell['summary'].items() if v['n'])
-        print(f'[bench_core] {layout} ratio={ratio} N={n}: {line}  '
+        print(f'[bench.core] {layout} ratio={ratio} N={n}: {line}  '
               f'[{time.perf_counter() - t_start:.0f}s]', file=sys.stderr, flush=True)
 
     breakdown = {}
@@ -625,8 +589,8 @@ def _ints(text: str) -> tuple[int, ...]:
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argument_parser(__spec__.name, __doc__,
+                         formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--solvers', default=None,
                     help='comma list of ours, ours-6dof, ours-4dof, open3d, kiss, kiss-quatro '
                          f"and/or module:function (default: {','.join(DEFAULT_SOLVERS)}; "
@@ -664,8 +628,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument('--max-re', type=float, default=5.0, help='success: RE below (deg)')
     ap.add_argument('--max-te', type=float, default=0.1, help='success: TE below (model units)')
     ap.add_argument('--data-dir', default=None, help='shared data dir (default ../shared/data)')
-    ap.add_argument('--output', type=Path, default=None, help='write the markdown table here')
-    ap.add_argument('--json', type=Path, default=None, help='write all results as JSON here')
+    ap.add_argument('--output', type=Path, default=output_path('core.md'),
+                    help='write the markdown tables here (default: %(default)s)')
+    ap.add_argument('--json', type=Path, default=output_path('core.json'),
+                    help='write all results as JSON here (default: %(default)s)')
     ap.add_argument('--no-records', action='store_true', help='omit per-trial records from JSON')
     ap.add_argument('--no-breakdown', action='store_true',
                     help='skip the KISS-Matcher prune_and_solve time split')
@@ -697,12 +663,8 @@ def main(argv=None) -> int:
     res = run_benchmark(args)
     md = to_markdown(res)
     print(md)
-    if args.output:
-        args.output.parent.mkdir(parents=True, exist_ok=True)
-        args.output.write_text(md)
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(res, indent=1, default=_json_default))
+    print(f'wrote {write_text(args.output, md)}, '
+          f'{write_json(args.json, res, default=_json_default)}', file=sys.stderr)
     return 0
 
 

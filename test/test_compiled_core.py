@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 
-from cgags_ros.datasets.synthetic import load_bunny, make_correspondences
+from bench.datasets.synthetic import load_bunny, make_correspondences
 from cgags_ros.registration import compatibility, compiled, register_correspondences
 from cgags_ros.registration.compatibility import build_compatibility_graph, CompatibilityGraph
 from cgags_ros.registration.compiled import (COLLINEAR, compatibility_words, Correspondences,
@@ -379,9 +379,10 @@ def test_core_deterministic_for_a_seed(data_dir):
 
 def _compiled_functions():
     """Every compiled function of the core with a declared signature (not the inlined helpers)."""
-    from cgags_ros.registration.compiled import graph, preferences, sampling, scoring, subsets
+    from cgags_ros.registration.compiled import (graph, inlier_edges, preferences, sampling,
+                                                 scoring)
 
-    modules = (graph, preferences, sampling, scoring, subsets)
+    modules = (graph, inlier_edges, preferences, sampling, scoring)
     return [getattr(m, name) for m in modules for name in dir(m)
             if hasattr(getattr(m, name), 'signatures')
             and getattr(m, name).targetoptions.get('inline') != 'always']

@@ -13,11 +13,11 @@ import dataclasses
 from pathlib import Path
 import re
 
+from cgags_ros.geometry import apply_transform
+from cgags_ros.io.clouds import read_cloud
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..geometry import apply_transform
-from ..io.clouds import read_cloud
 
 OPENCALIB = 'calibration/opencalib_lidar2lidar'
 REFERENCE = 'croon_extrinsics_recovered_DERIVED.txt'

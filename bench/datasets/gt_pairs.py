@@ -10,9 +10,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from cgags_ros.errors import InvalidInputError
 import numpy as np
-
-from ..errors import InvalidInputError
 
 
 def parse_gt_pairs(text: str, origin: str = 'gt_pairs.txt') -> list[tuple[str, str, np.ndarray]]:
