@@ -4,7 +4,7 @@ What the temporal prior allows on a stream, offline: per-stage times, share trac
 Run from the repository root::
 
     python -m bench.tracking_offline [--voxels 0.3 0.5 1.0] [--scans 64] \
-        [--global-scans 8] [--output out/tracking_offline.json]
+        [--global-scans 8] [--set KEY=VALUE] [--output out/bench/tracking_offline.json]
 
 The 16 real KITTI scans (``<shared data>/kitti/seq00_16scans``) go scan-to-map against scan
 0 as the map through :class:`cgags_ros.pipeline.Tracker` (default configuration, stamps
@@ -26,22 +26,22 @@ work: compare ratios and shares within one run, not absolute times across runs.
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 import time
 
+from bench.common import (add_set_option, argument_parser, machine, output_path,
+                          parse_overrides, write_json)
+from bench.datasets.rigs import KITTI_SCANS, kitti_scans
 from cgags_ros.config.pipeline import pipeline_config_from, PipelineConfig
 from cgags_ros.config.tracking import TrackingConfig
-from cgags_ros.datasets.rigs import KITTI_SCANS, kitti_scans
-from cgags_ros.datasets.synthetic import shared_data_dir
 from cgags_ros.frontend.features import downsample, estimate_normals
 from cgags_ros.geometry import rotation_error_deg, translation_error
+from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import cached_features, register_clouds, Tracker, warm_up
 from cgags_ros.pipeline.tracking import target_key
 import numpy as np
 import open3d as o3d
-import yaml
 
 PERIOD = 0.1  # seconds between scans: a 10 Hz LiDAR
 TRACKED_STAGES = ('target_key', 'downsample', 'refinement', 'validation')
@@ -160,17 +160,15 @@ def table(results: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the study; write JSON to ``--output``; print the table."""
-    p = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
+    p = argument_parser('bench.tracking_offline', __doc__)
     p.add_argument('--voxels', type=float, nargs='+', default=[0.3, 0.5, 1.0])
     p.add_argument('--scans', type=int, default=64, help='scans per stream (6.4 s at 10 Hz)')
     p.add_argument('--global-scans', type=int, default=8,
                    help='scans per voxel size with tracking off (0: none)')
-    p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
-                   help='a configuration key for every stream, e.g. '
-                   'tracking.coarse_distance_factor=2 (YAML value)')
-    p.add_argument('--output', type=Path, default=Path('out/tracking_offline.json'))
+    add_set_option(p)
+    p.add_argument('--output', type=Path, default=output_path('tracking_offline.json'))
     args = p.parse_args(argv)
-    overrides = {k: yaml.safe_load(v) for k, v in (item.split('=', 1) for item in args.set)}
+    overrides = parse_overrides(args.set)
     data = shared_data_dir()
     scans = kitti_scans(data, list(range(16)))
     truth = np.loadtxt((data / KITTI_SCANS).parent / 'pseudo_gt.txt').reshape(-1, 4, 4)
@@ -178,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     register_clouds(scans[1], scans[0], voxel_size=1.0)  # compile and load once, untimed
     load = [float(x) for x in Path('/proc/loadavg').read_text().split()[:3]]
     results: dict = {'streams': {}, 'global_only': {}, 'reuse_ms': {}, 'settings': overrides,
-                     'machine_load': load}
+                     'machine_load': load, 'machine': machine()}
     for voxel in args.voxels:
         config = pipeline_config_from({**overrides, 'voxel_size': voxel})
         results['streams'][voxel] = {}
@@ -197,9 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     print(table(results))
     print(json.dumps({'global_only': results['global_only'], 'reuse_ms': results['reuse_ms']},
                      indent=1))
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(results, indent=1))
-    print(f'wrote {args.output}')
+    print(f'wrote {write_json(args.output, results)}')
     return 0
 
 
