@@ -26,17 +26,17 @@ work: compare ratios and shares within one run, not absolute times across runs.
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 import time
 
+from bench.common import argument_parser
+from bench.datasets.rigs import KITTI_SCANS, kitti_scans
 from cgags_ros.config.pipeline import pipeline_config_from, PipelineConfig
 from cgags_ros.config.tracking import TrackingConfig
-from cgags_ros.datasets.rigs import KITTI_SCANS, kitti_scans
-from cgags_ros.datasets.synthetic import shared_data_dir
 from cgags_ros.frontend.features import downsample, estimate_normals
 from cgags_ros.geometry import rotation_error_deg, translation_error
+from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import cached_features, register_clouds, Tracker, warm_up
 from cgags_ros.pipeline.tracking import target_key
 import numpy as np
@@ -155,7 +155,7 @@ def table(results: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the study; write JSON to ``--output``; print the table."""
-    p = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
+    p = argument_parser(__spec__.name, __doc__)
     p.add_argument('--voxels', type=float, nargs='+', default=[0.3, 0.5, 1.0])
     p.add_argument('--scans', type=int, default=64, help='scans per stream (6.4 s at 10 Hz)')
     p.add_argument('--global-scans', type=int, default=8,

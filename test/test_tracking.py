@@ -5,8 +5,8 @@ Scan-to-map against scan 0 as the map; ``pseudo_gt.txt`` holds each scan's pose 
 0's frame, i.e. the source->target transform of scan k onto scan 0.
 """
 
+from bench.datasets.rigs import KITTI_SCANS, kitti_scans
 from cgags_ros.config import PipelineConfig, TrackingConfig
-from cgags_ros.datasets.rigs import KITTI_SCANS, kitti_scans
 from cgags_ros.geometry import apply_transform, rotation_error_deg, translation_error
 from cgags_ros.pipeline import PipelineResult, Tracker
 from cgags_ros.pipeline import tracking as tracking_module
