@@ -160,7 +160,7 @@ def table(results: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the study; write JSON to ``--output``; print the table."""
-    p = argument_parser('bench.tracking_offline', __doc__)
+    p = argument_parser(__spec__.name, __doc__)
     p.add_argument('--voxels', type=float, nargs='+', default=[0.3, 0.5, 1.0])
     p.add_argument('--scans', type=int, default=64, help='scans per stream (6.4 s at 10 Hz)')
     p.add_argument('--global-scans', type=int, default=8,
