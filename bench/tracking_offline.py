@@ -4,7 +4,7 @@ What the temporal prior allows on a stream, offline: per-stage times, share trac
 Run from the repository root::
 
     python -m bench.tracking_offline [--voxels 0.3 0.5 1.0] [--scans 64] \
-        [--global-scans 8] [--output out/tracking_offline.json]
+        [--global-scans 8] [--set KEY=VALUE] [--output out/bench/tracking_offline.json]
 
 The 16 real KITTI scans (``<shared data>/kitti/seq00_16scans``) go scan-to-map against scan
 0 as the map through :class:`cgags_ros.pipeline.Tracker` (default configuration, stamps
@@ -30,7 +30,8 @@ import json
 from pathlib import Path
 import time
 
-from bench.common import argument_parser
+from bench.common import (add_set_option, argument_parser, machine, output_path,
+                          parse_overrides, write_json)
 from bench.datasets.rigs import KITTI_SCANS, kitti_scans
 from cgags_ros.config.pipeline import pipeline_config_from, PipelineConfig
 from cgags_ros.config.tracking import TrackingConfig
@@ -41,7 +42,6 @@ from cgags_ros.pipeline import cached_features, register_clouds, Tracker, warm_u
 from cgags_ros.pipeline.tracking import target_key
 import numpy as np
 import open3d as o3d
-import yaml
 
 PERIOD = 0.1  # seconds between scans: a 10 Hz LiDAR
 TRACKED_STAGES = ('target_key', 'downsample', 'refinement', 'validation')
@@ -92,7 +92,9 @@ def summarise(records: list[dict]) -> dict:
             out[f'{path}_stage_ms'] = {
                 s: 1e3 * float(np.median([r['timings'].get(s, 0.0) for r in mine]))
                 for s in stages}
-            out[f'{path}_ms_p50'] = 1e3 * float(np.median([r['seconds'] for r in mine]))
+            seconds = [r['seconds'] for r in mine]
+            out[f'{path}_ms_p50'] = 1e3 * float(np.percentile(seconds, 50))
+            out[f'{path}_ms_p95'] = 1e3 * float(np.percentile(seconds, 95))
     seconds = np.array([r['seconds'] for r in records])
     out.update(ms_p50=1e3 * float(np.percentile(seconds, 50)),
                ms_p95=1e3 * float(np.percentile(seconds, 95)),
@@ -139,17 +141,20 @@ def global_only(scans: list[np.ndarray], truth: np.ndarray, voxel: float,
 def table(results: dict) -> str:
     """Return a markdown table of the streams."""
     lines = ['| voxel m | order | tracked | valid | within 1 deg / 0.2 m | beyond 5 deg / 0.6 m '
-             '| ms p50 / p95 | tracked ms: key / down / refine / gates | global ms p50 |',
-             '|---|---|---|---|---|---|---|---|---|']
+             '| ms p50 / p95 | tracked ms p50 / p95 | tracked ms: key / down / refine / gates '
+             '| global ms p50 |',
+             '|---|---|---|---|---|---|---|---|---|---|']
     for voxel, by_order in results['streams'].items():
         for order, s in by_order.items():
             st = s.get('tracked_stage_ms', {})
-            stages = ' / '.join(f"{st.get(k, float('nan')):.0f}" for k in TRACKED_STAGES)
+            nan = float('nan')
+            stages = ' / '.join(f'{st.get(k, nan):.0f}' for k in TRACKED_STAGES)
             lines.append(
                 f"| {voxel} | {order} | {s['tracked_scans']}/{s['scans']} | {s['valid']} | "
                 f"{s['within_1deg_20cm']} | {s['beyond_5deg_60cm']} | "
-                f"{s['ms_p50']:.0f} / {s['ms_p95']:.0f} | {stages} | "
-                f"{s.get('global_ms_p50', float('nan')):.0f} |")
+                f"{s['ms_p50']:.0f} / {s['ms_p95']:.0f} | "
+                f"{s.get('tracked_ms_p50', nan):.0f} / {s.get('tracked_ms_p95', nan):.0f} | "
+                f"{stages} | {s.get('global_ms_p50', nan):.0f} |")
     return '\n'.join(lines)
 
 
@@ -160,12 +165,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--scans', type=int, default=64, help='scans per stream (6.4 s at 10 Hz)')
     p.add_argument('--global-scans', type=int, default=8,
                    help='scans per voxel size with tracking off (0: none)')
-    p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
-                   help='a configuration key for every stream, e.g. '
-                   'tracking.coarse_distance_factor=2 (YAML value)')
-    p.add_argument('--output', type=Path, default=Path('out/tracking_offline.json'))
+    add_set_option(p)
+    p.add_argument('--output', type=Path, default=output_path('tracking_offline.json'))
     args = p.parse_args(argv)
-    overrides = {k: yaml.safe_load(v) for k, v in (item.split('=', 1) for item in args.set)}
+    overrides = parse_overrides(args.set)
     data = shared_data_dir()
     scans = kitti_scans(data, list(range(16)))
     truth = np.loadtxt((data / KITTI_SCANS).parent / 'pseudo_gt.txt').reshape(-1, 4, 4)
@@ -173,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     register_clouds(scans[1], scans[0], voxel_size=1.0)  # compile and load once, untimed
     load = [float(x) for x in Path('/proc/loadavg').read_text().split()[:3]]
     results: dict = {'streams': {}, 'global_only': {}, 'reuse_ms': {}, 'settings': overrides,
-                     'machine_load': load}
+                     'machine_load': load, 'machine': machine()}
     for voxel in args.voxels:
         config = pipeline_config_from({**overrides, 'voxel_size': voxel})
         results['streams'][voxel] = {}
@@ -192,9 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     print(table(results))
     print(json.dumps({'global_only': results['global_only'], 'reuse_ms': results['reuse_ms']},
                      indent=1))
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(results, indent=1))
-    print(f'wrote {args.output}')
+    print(f'wrote {write_json(args.output, results)}')
     return 0
 
 

@@ -173,3 +173,19 @@ def test_stale_pose_and_disabled_tracking_go_global(kitti):
     config = _config(enabled=False)
     paths = [r.path for r in _run(tracker, scans, [1, 2], scans[0], config)]
     assert paths == ['global', 'global']
+
+
+def test_a_prepared_map_is_tracked(kitti, tmp_path):
+    from cgags_ros.pipeline.map import load_map
+
+    scans, truth = kitti
+    np.save(tmp_path / 'map.npy', scans[0])
+    config = _config()
+    prepared = load_map(tmp_path / 'map.npy', config)
+    tracker = Tracker()
+    results = _run(tracker, scans, [1, 2, 3], prepared, config)
+    assert [r.path for r in results] == ['global', 'tracked', 'tracked']
+    assert all(r.valid and _within(r, truth[k]) for k, r in zip([1, 2, 3], results))
+    # a map is recognised by its file and digest: the same points sent as a cloud are new
+    assert tracker.register(scans[4], scans[0], 3 * PERIOD, config=config).path == 'global'
+    assert tracker.counts()['target_changes'] == 1

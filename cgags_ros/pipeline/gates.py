@@ -56,7 +56,7 @@ def gate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences, result: Pi
     return _significance_reason(result, cfg.refine.significance, members) or overlap
 
 
-def overlap_gate(source: np.ndarray, source_tree: cKDTree, ft: CloudFeatures,
+def overlap_gate(source: np.ndarray, source_tree: cKDTree | None, ft: CloudFeatures,
                  result: PipelineResult, cfg: PipelineConfig, map_target: bool = False,
                  unsettled: bool = False) -> tuple[str, Alignment]:
     """
@@ -65,17 +65,22 @@ def overlap_gate(source: np.ndarray, source_tree: cKDTree, ft: CloudFeatures,
     The gates that need no correspondences, so that an estimate refined from a prediction
     (:mod:`.tracking`) is judged as a global one is: degenerate overlap geometry, fitness,
     free space, and in 4-DoF mode the tilt. ``source`` is the downsampled source (metres,
-    its own frame) and ``source_tree`` a k-d tree over it. Sets ``fitness``,
-    ``inlier_rmse``, ``overlap``, ``observability``, ``free_space_violation`` (and
-    ``tilt_deg``) on ``result``; the reason is '' when every gate passes. The
+    its own frame) and ``source_tree`` a k-d tree over it, for the target side of
+    ``overlap``; None leaves ``overlap`` NaN (no gate reads it: only the rival verification
+    after a global search does). Sets ``fitness``, ``inlier_rmse``, ``overlap``,
+    ``observability``, ``free_space_violation`` (and ``tilt_deg``) on ``result``; the reason
+    is '' when every gate passes. The
     :class:`~cgags_ros.frontend.refine.Alignment` returned pairs the overlapping source
     points with their nearest target points.
     """
     distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
     align = evaluate_alignment(source, ft.tree, result.transform, distance)
-    back = evaluate_alignment(ft.points, source_tree, np.linalg.inv(result.transform), distance)
     result.fitness, result.inlier_rmse = align.fitness, align.inlier_rmse
-    result.overlap = min(align.fitness, back.fitness)
+    result.overlap = float('nan')
+    if source_tree is not None:
+        back = evaluate_alignment(ft.points, source_tree, np.linalg.inv(result.transform),
+                                  distance)
+        result.overlap = min(align.fitness, back.fitness)
     if cfg.core.motion_model == '4dof':  # yaw + translation only: no roll/pitch motion
         frame = GravityFrame(cfg.core.gravity_axis)
         result.observability = observability(source, ft.normals, align, frame)

@@ -50,7 +50,8 @@ class PipelineResult(RegistrationResult):
         ``transform``.
     :ivar inlier_rmse: RMS distance (metres) of those points to their nearest target point.
     :ivar overlap: min of the source-side and target-side shares of points with a neighbour
-        in the other cloud within the refinement distance (a symmetric overlap ratio).
+        in the other cloud within the refinement distance (a symmetric overlap ratio); NaN on
+        the tracked path, which measures the source side (``fitness``) only.
     :ivar observability: smallest/largest eigenvalue of the point-to-plane information
         matrix of the overlap (0: some motion is unconstrained, e.g. plane on plane).
     :ivar chance_inliers: inliers the estimate would collect if every correspondence were

@@ -23,7 +23,6 @@ import hashlib
 import time
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .cache import cached_features
 from .covariance import pose_covariance
@@ -191,7 +190,6 @@ class Tracker:
             ft = self._target_features(target, cfg, state, result.timings)
             with timed(result.timings, 'downsample'):
                 points = downsample(source, v, cfg.frontend.min_points, 'source')
-                tree = cKDTree(points)
         except EmptyCloudError as exc:
             return result.finish(start, str(exc))
         result.num_source_points, result.num_target_points = len(points), len(ft.points)
@@ -208,7 +206,8 @@ class Tracker:
                 workers=DEFAULT_WORKERS, tolerance=cfg.tracking.refine_tolerance)
             result.refined = True
         with timed(result.timings, 'validation'):
-            reason, align = overlap_gate(points, tree, ft, result, cfg,
+            # no source tree: the target side of the overlap is for rival verification only
+            reason, align = overlap_gate(points, None, ft, result, cfg,
                                          isinstance(target, PreparedMap))
             last_fitness = state.poses[-1].fitness if state.poses else 0.0
             reason = (reason or correction_reason(prediction, result.transform, cfg)
