@@ -1,5 +1,5 @@
 """
-cgags_ros.ros.engine without ROS: pairing, accounting, lifecycle states, guards, requests.
+cgags_ros.localizer.engine without ROS: pairing, accounting, lifecycle states, guards, requests.
 
 The engine is fed decoded clouds directly and publishes into a recorder; the registration
 is a stand-in that returns a known pose (the real pipeline runs in the DDS tests), so these
@@ -19,11 +19,11 @@ from cgags_ros.config.node import NodeConfig
 from cgags_ros.config.pipeline import PipelineConfig
 from cgags_ros.geometry import make_transform, quaternion_to_matrix
 from cgags_ros.io.clouds import write_cloud
+from cgags_ros.localizer import startup
+from cgags_ros.localizer.engine import RegistrationEngine
+from cgags_ros.localizer.interface import Cloud, StartFailed
+from cgags_ros.pipeline.isolated import IsolatedRegistration
 from cgags_ros.pipeline.result import PipelineResult
-from cgags_ros.ros import startup
-from cgags_ros.ros.engine import RegistrationEngine
-from cgags_ros.ros.interface import Cloud, StartFailed
-from cgags_ros.ros.worker import IsolatedRegistration
 import numpy as np
 import pytest
 from waiting import bad_map, running, wait_for
@@ -88,8 +88,8 @@ def balanced(engine):
 
 
 def test_the_engine_imports_no_ros():
-    code = ('import sys, cgags_ros.ros.engine, cgags_ros.ros.map_target, '
-            'cgags_ros.ros.startup; '
+    code = ('import sys, cgags_ros.localizer.engine, cgags_ros.localizer.map_target, '
+            'cgags_ros.localizer.startup; '
             "print(sorted(m for m in sys.modules if m.split('.')[0] in "
             "('rclpy', 'rcl_interfaces', 'std_msgs', 'sensor_msgs', 'geometry_msgs')))")
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
@@ -243,7 +243,7 @@ def sphere(n=3000):
 
 def test_a_map_without_normals_loads_with_a_warning_and_one_with_normals_without(tmp_path):
     """The map's normals face the map origin unless the file signs them: the log says which."""
-    from cgags_ros.ros.map_target import MapTarget
+    from cgags_ros.localizer.map_target import MapTarget
 
     points, normals = sphere()
     write_cloud(tmp_path / 'bare.ply', points)

@@ -236,7 +236,7 @@ def test_callbacks_after_context_shutdown_do_not_raise():
     diagnostics timer or the worker may still publish a pose; that must end quietly, not
     as an RCLError that makes rclpy.spin() raise and the node exit 1 (seen once in CI).
     """
-    from cgags_ros.ros.interface import Estimate
+    from cgags_ros.localizer.interface import Estimate
     from rclpy.context import Context
 
     ctx = Context()
@@ -269,7 +269,7 @@ def test_isolated_registration_sends_an_unchanged_target_once(monkeypatch):
     the pipeline run in this process.
     """
     from cgags_ros.pipeline import register_clouds
-    from cgags_ros.ros.worker import IsolatedRegistration
+    from cgags_ros.pipeline.isolated import IsolatedRegistration
 
     target = terrain_patch(np.random.default_rng(3))
     c, s = np.cos(0.2), np.sin(0.2)

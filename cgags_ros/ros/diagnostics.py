@@ -2,12 +2,13 @@
 The node's /diagnostics: one flat key space, built here and read back by live replay.
 
 :func:`build_statistics` makes the keys the node publishes; :func:`accounted_sources` and
-:func:`last_result` read them back (from the string values a DiagnosticStatus carries),
-so the names are defined once. ``sources.*`` and ``targets.*`` are the accounting buckets
-of :mod:`.health` (``accounting.ok``: they balance; ``sources.lost_upstream``, scans that
-never arrived, stands outside the balance); ``worker.*`` and ``memory.*`` the registration
-process and the resident memory (MB); ``transport.profile`` the Fast DDS profile loaded;
-``configure.error`` why configure failed (the node's last message before it is unconfigured).
+:func:`last_result` read them back (from the string values a DiagnosticStatus carries), so
+the names are defined once. ``sources.*`` and ``targets.*`` are the accounting buckets of
+:mod:`cgags_ros.localizer.health` (``accounting.ok``: they balance;
+``sources.lost_upstream``, scans that never arrived, stands outside the balance);
+``worker.*`` and ``memory.*`` the registration process and the resident memory (MB);
+``transport.profile`` the Fast DDS profile loaded; ``configure.error`` why configure failed
+(the node's last message before it is unconfigured).
 """
 
 from __future__ import annotations
@@ -17,8 +18,8 @@ from typing import Any, Mapping
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
 
-from .health import lost_upstream_message
-from .transport import user_line
+from ..localizer.health import lost_upstream_message
+from ..localizer.transport import user_line
 
 REJECTED = 'rejected.'  # rejected.<cause>: clouds or pairs the node refused, per cause
 PAIRING = 'pairing.'  # pairing.<counter> of cgags_ros.pipeline.pairing.Pairer.counters()
@@ -35,8 +36,8 @@ def build_statistics(snapshot: Mapping[str, Any], voxel_size: float,
     """
     Return the flat statistics of the node (what /diagnostics carries).
 
-    ``snapshot`` is :meth:`.health.NodeHealth.snapshot`; ``extra`` holds the worker's and
-    the memory's keys.
+    ``snapshot`` is :meth:`cgags_ros.localizer.health.NodeHealth.snapshot`; ``extra`` holds
+    the worker's and the memory's keys.
     """
     counts, rejected, last = snapshot['counts'], snapshot['rejected'], snapshot['last']
     latencies, pairing = snapshot['latencies'], snapshot['pairing']

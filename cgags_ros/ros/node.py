@@ -2,15 +2,15 @@
 ROS 2 lifecycle node: registers each source cloud onto a target cloud and publishes the pose.
 
 A managed node (``rclpy.lifecycle``): configure reads the parameters, starts the registration
-process, waits (bounded) for its warm-up and the map load (:mod:`.startup`) and creates the
-topics and services; a failure is logged, reported once on /diagnostics and leaves the node
-unconfigured with nothing running. Activate consumes sources and publishes; deactivate ignores
-sources (``rejected.source_inactive``) and publishes no pose; cleanup ends the registration
-process; shutdown does what cleanup does. With ``autostart`` (default) the node configures and
-activates itself, so ``ros2 run cgags_ros register_node`` works alone (unconfigured, still
-running, if configure fails); under ``nav2_lifecycle_manager`` set it false. The bond that
-manager expects is formed with ``bondpy`` when it is importable; otherwise set the manager's
-``bond_timeout: 0.0`` (docs/lifecycle.md).
+process, waits (bounded) for its warm-up and the map load (:mod:`cgags_ros.localizer.startup`)
+and creates the topics and services; a failure is logged, reported once on /diagnostics and
+leaves the node unconfigured with nothing running. Activate consumes sources and publishes;
+deactivate ignores sources (``rejected.source_inactive``) and publishes no pose; cleanup ends
+the registration process; shutdown does what cleanup does. With ``autostart`` (default) the
+node configures and activates itself, so ``ros2 run cgags_ros register_node`` works alone
+(unconfigured, still running, if configure fails); under ``nav2_lifecycle_manager`` set it
+false. The bond that manager expects is formed with ``bondpy`` when it is importable;
+otherwise set the manager's ``bond_timeout: 0.0`` (docs/lifecycle.md).
 
 Topics (relative names; remap them):
     source_cloud (sensor_msgs/PointCloud2, in): the cloud to align, in its sensor frame.
@@ -25,7 +25,7 @@ Topics (relative names; remap them):
     ~/aligned_cloud (sensor_msgs/PointCloud2, out, ``publish_aligned_cloud``).
     ~/candidates (geometry_msgs/PoseArray, out): ranked candidate poses, best first.
     initialpose (geometry_msgs/PoseWithCovarianceStamped, out, ``publish_initial_pose``):
-        the guarded base pose for Nav2/AMCL (:mod:`.initial_pose`).
+        the guarded base pose for Nav2/AMCL (:mod:`cgags_ros.localizer.initial_pose`).
     /diagnostics (diagnostic_msgs/DiagnosticArray, out): status and counters
         (:mod:`.diagnostics`), also while inactive.
     /tf (``broadcast_tf``, when tf2_ros is importable): target frame -> source frame.
@@ -48,11 +48,12 @@ pairing.*, map.*, relocalization.*, output.*, frontend.*/core.*; vectors as arra
 descriptions and ranges from the config dataclasses; every other configuration key is set
 in the YAML of ``config_file``. Changes at run time are validated and apply to the next
 pair; a name of the former flat interface is refused with its new name.
-The node only wires: :class:`~.engine.RegistrationEngine` decides, :class:`~.outputs.Outputs`
-publishes.
+The node only wires: :class:`~cgags_ros.localizer.engine.RegistrationEngine` decides,
+:class:`~.outputs.Outputs` publishes.
 
 Transport: :func:`main` points Fast DDS at the package's large-data profile
-(:mod:`.transport`) unless the user chose one; the clouds' publisher needs it too.
+(:mod:`cgags_ros.localizer.transport`) unless the user chose one; the clouds' publisher needs
+it too.
 """
 
 from __future__ import annotations
@@ -69,19 +70,19 @@ from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Empty, Trigger
 
 from . import diagnostics
-from .engine import RegistrationEngine
-from .interface import Cloud
 from .outputs import Outputs
 from .parameters import descriptor
 from .qos import source_qos, target_qos
-from .transport import PROFILE_VARIABLE, use_large_data_profile
-from .worker import RegisterFn, rss_mb
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
 from ..config.ros_parameters import (calibration_config, configs_from_ros, migration,
                                      ros_parameter_descriptions)
 from ..errors import CgagsError, EmptyCloudError, InvalidConfigError, InvalidInputError
 from ..io.pointcloud2 import pointcloud2_to_xyz, stamp_to_ns
+from ..localizer.engine import RegistrationEngine
+from ..localizer.interface import Cloud
+from ..localizer.transport import PROFILE_VARIABLE, use_large_data_profile
+from ..pipeline.isolated import RegisterFn, rss_mb
 
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
 # How the node destroys what configure created (so that it leaves the node's lists too).

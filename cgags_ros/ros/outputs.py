@@ -1,11 +1,12 @@
 """
-The node's outputs: what :class:`~.engine.EngineOutputs` asks for, in ROS messages.
+The node's outputs: what the engine's ``EngineOutputs`` asks for, in ROS messages.
 
-~/pose, ~/pose_with_covariance, ~/aligned_cloud, ~/candidates, initialpose, /tf (when
-tf2_ros is importable) and /diagnostics; in calibrate mode ~/calibration,
-~/calibration_report and /tf_static (latched). Frames and conventions as in :mod:`.node`: a pose
-maps source-frame points into the target (map) frame and carries the source's stamp.
-Pose outputs are lifecycle publishers: they publish only while the node is active.
+:class:`~cgags_ros.localizer.interface.EngineOutputs` as ~/pose, ~/pose_with_covariance,
+~/aligned_cloud, ~/candidates, initialpose, /tf (when tf2_ros is importable) and
+/diagnostics; in calibrate mode ~/calibration, ~/calibration_report and /tf_static
+(latched). Frames and conventions as in :mod:`.node`: a pose maps source-frame points into
+the target (map) frame and carries the source's stamp. Pose outputs are lifecycle
+publishers: they publish only while the node is active.
 """
 
 from __future__ import annotations
@@ -22,14 +23,14 @@ from std_msgs.msg import Header, String
 
 from . import diagnostics
 from .conversions import transform_to_pose, transform_to_transform_stamped, xyz_to_pointcloud2
-from .interface import BasePose, Calibration, Estimate
 from .qos import latched_qos
 from ..geometry import make_transform, quaternion_to_matrix
+from ..localizer.interface import BasePose, Calibration, Estimate
 from ..pipeline.covariance import map_to_odom
 
 
 class Outputs:
-    """Publishers, TF and logging of one node: the engine's :class:`~.engine.EngineOutputs`."""
+    """Publishers, TF and logging of one node: the engine's ``EngineOutputs``."""
 
     def __init__(self, node: Any, calibrate: bool = False):
         self._node = node

@@ -21,8 +21,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
 from . import diagnostics
-from .transport import use_large_data_profile
 from ..io.pointcloud2 import pose_to_transform, stamp_to_ns
+from ..localizer.transport import use_large_data_profile
 
 MAX_QUEUE = 1000  # the node config's upper bound for depths
 

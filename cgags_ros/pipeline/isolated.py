@@ -58,7 +58,7 @@ def _resolve(target: Any, config: PipelineConfig) -> Any:
     if not isinstance(target, MapRef):
         return target
     global _map_holder
-    from ..pipeline.map import MapHolder
+    from .map import MapHolder
 
     if _map_holder is None:
         _map_holder = MapHolder()
@@ -72,7 +72,7 @@ def register_any(source: np.ndarray, target: Any, *, config: PipelineConfig) -> 
     For a map the result's ``stats['map']`` holds the map's summary (cache hit or miss,
     points, load time).
     """
-    from ..pipeline import register_clouds
+    from . import register_clouds
 
     prepared = _resolve(target, config)
     result = register_clouds(source, prepared, config=config)
@@ -107,7 +107,7 @@ def _register_in_child(source: np.ndarray, target: np.ndarray | None, *,
 
 
 def _warm_up_in_child() -> Any:
-    from ..pipeline import warm_up
+    from . import warm_up
 
     return warm_up()
 
@@ -343,7 +343,7 @@ class IsolatedRegistration:
 
 def load_pipeline() -> RegisterFn:
     """Import the pipeline (and Open3D) now and warm it up; return :func:`register_any`."""
-    from ..pipeline import warm_up
+    from . import warm_up
 
     warm_up()  # pay Open3D's start-up now rather than on the first pair
     return register_any

@@ -4,8 +4,8 @@ What the registration engine and its node exchange, without ROS.
 The node decodes each message into a :class:`Cloud`; the engine
 (:class:`~.engine.RegistrationEngine`) hands back what to publish (:class:`Estimate`,
 :class:`BasePose`, :class:`Calibration`) through :class:`EngineOutputs`, which the node implements
-(:class:`~.outputs.Outputs`). Headers are the messages' own, opaque here: the engine reads
-only their ``frame_id``. An engine that cannot start raises :class:`StartFailed`.
+(:class:`~cgags_ros.ros.outputs.Outputs`). Headers are the messages' own, opaque here: the
+engine reads only their ``frame_id``. An engine that cannot start raises :class:`StartFailed`.
 """
 
 from __future__ import annotations

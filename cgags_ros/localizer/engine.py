@@ -2,12 +2,12 @@
 What register_node does, without ROS: pairing, the registration process, the accounting.
 
 ROS-free: :class:`RegistrationEngine` owns the pairing of source and target clouds, the
-supervised registration process (:mod:`.worker`), the accounting (:mod:`.health`), the
-map of ``map_file``, the relocalization requests (:mod:`.relocalize`) and the initial-pose
-guards (:mod:`.initial_pose`); in ``mode: calibrate`` the pairs are calibration frames
-(:mod:`.calibration_run`). The node decodes messages into :class:`Cloud` for
-:meth:`~RegistrationEngine.receive` and implements :class:`EngineOutputs`, through which
-the engine publishes, logs and asks for TF; it never reaches into the node.
+supervised registration process (:mod:`cgags_ros.pipeline.isolated`), the accounting
+(:mod:`.health`), the map of ``map_file``, the relocalization requests (:mod:`.relocalize`)
+and the initial-pose guards (:mod:`.initial_pose`); in ``mode: calibrate`` the pairs are
+calibration frames (:mod:`.calibration_run`). The node decodes messages into :class:`Cloud`
+for :meth:`~RegistrationEngine.receive` and implements :class:`EngineOutputs`, through
+which the engine publishes, logs and asks for TF; it never reaches into the node.
 
 Threading: :meth:`~RegistrationEngine.receive` only pairs (any thread); registration runs
 on the engine's worker thread (in a child process unless ``registration_timeout`` is 0),
@@ -34,11 +34,12 @@ from .interface import BasePose, Cloud, EngineOutputs, Estimate
 from .map_target import MapTarget
 from .relocalize import Answered, RelocalizeCalls, stale_scan, summary_line
 from .startup import start_registration
-from .worker import IsolatedRegistration, RegisterFn, RegistrationTimeout, WorkerCrashed
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError, InvalidInputError
 from ..geometry import apply_transform
+from ..pipeline.isolated import (IsolatedRegistration, RegisterFn, RegistrationTimeout,
+                                 WorkerCrashed)
 from ..pipeline.pairing import Pair, Pairer
 from ..pipeline.result import PipelineResult
 
