@@ -41,11 +41,10 @@ from .replay_common import (
     resolve_configs,
     start_report,
 )
+from .replay_player import last_result, LiveSession, MAX_QUEUE, nonzero_drops, Received
 from .report import BagReport, PairRow
 from ..config.ros_parameters import keys_to_ros
 from ..pipeline.pairing import Pairer
-from ..ros import diagnostics
-from ..ros.player import LiveSession, MAX_QUEUE, Received
 
 DIAGNOSTICS_PERIOD_S = 0.1
 SHUTDOWN_GRACE_S = 10.0
@@ -228,7 +227,7 @@ def build_rows(contents: BagContents, expected: dict[int, Any], poses: dict[int,
             continue
         row = make_row(len(rows), src, pair.target.payload if pair else None, contents)
         info = details.get(stamp)
-        last = diagnostics.last_result(info or {})
+        last = last_result(info or {})
         row.inliers, row.fitness, row.time_s = last['inliers'], last['fitness'], last['time_s']
         got = poses.get(stamp)
         if got is not None:
@@ -245,4 +244,4 @@ def build_rows(contents: BagContents, expected: dict[int, Any], poses: dict[int,
 
 def node_notes(stats: dict[str, str]) -> list[str]:
     """Return a note per rejection and drop reason the node counted."""
-    return [f'node {line}' for line in diagnostics.nonzero_drops(stats)]
+    return [f'node {line}' for line in nonzero_drops(stats)]

@@ -1,15 +1,17 @@
 """
-The player of live replay.
+The player of live replay: a replay client of register_node, not part of the node.
 
 An rclpy context that publishes a bag's clouds into a register_node and records its poses
-and /diagnostics.
+and /diagnostics; the functions at the end read the node's /diagnostics back (the string
+values a DiagnosticStatus carries) under the key names :mod:`cgags_ros.ros.diagnostics`
+defines.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Any
+from typing import Any, Mapping
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
@@ -20,9 +22,9 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
-from . import diagnostics
 from ..io.pointcloud2 import pose_to_transform, stamp_to_ns
 from ..localizer.transport import use_large_data_profile
+from ..ros.diagnostics import DROPPED, LAST, LAST_TIMING, PAIRING, REJECTED
 
 MAX_QUEUE = 1000  # the node config's upper bound for depths
 
@@ -85,7 +87,7 @@ class LiveSession:
             if values != self.stats:
                 self.last_progress = time.monotonic()
             self.stats = values
-            stamp = diagnostics.last_source_stamp_ns(values)
+            stamp = last_source_stamp_ns(values)
             if stamp is not None:
                 self.details[stamp] = values
 
@@ -110,13 +112,56 @@ class LiveSession:
 
         That is published + rejected + dropped + waiting; None before any diagnostics.
         """
-        return diagnostics.accounted_sources(self.stats) if self.stats else None
+        return accounted_sources(self.stats) if self.stats else None
 
     def received_sources(self) -> int:
-        return diagnostics.as_int(self.stats.get('received_source', '0'))
+        return as_int(self.stats.get('received_source', '0'))
 
     def close(self) -> None:
         """Shut the player's executor, node and context down."""
         self.executor.shutdown()
         self.node.destroy_node()
         self.context.try_shutdown()
+
+
+def accounted_sources(values: Mapping[str, str]) -> int:
+    """Count the sources the node is done with: published + rejected + dropped + waiting."""
+    return (sum(as_int(values.get(f'sources.{k}')) for k in ('published', 'rejected', 'dropped'))
+            + as_int(values.get(f'{PAIRING}waiting_sources')))
+
+
+def last_result(values: Mapping[str, str]) -> dict[str, Any]:
+    """Return the last registration's fields (valid, reason, inliers, fitness, time_s)."""
+    return {'valid': values.get(f'{LAST}valid', 'True') == 'True',
+            'reason': values.get(f'{LAST}reason', ''),
+            'inliers': as_int(values[f'{LAST}inliers']) if f'{LAST}inliers' in values else None,
+            'fitness': as_float(values.get(f'{LAST}fitness')),
+            'time_s': as_float(values.get(f'{LAST_TIMING}total'))}
+
+
+def last_source_stamp_ns(values: Mapping[str, str]) -> int | None:
+    """Return the source stamp of the last registration, or None before the first."""
+    stamp = values.get(f'{LAST}source_stamp_ns')
+    return int(stamp) if stamp else None
+
+
+def nonzero_drops(values: Mapping[str, str]) -> list[str]:
+    """Return 'key: value' for every rejection and pairing drop the node counted."""
+    keys = [k for k in values if k.startswith((REJECTED, DROPPED))]
+    return [f'{k}: {values[k]}' for k in sorted(keys) if as_int(values[k])]
+
+
+def as_int(value: Any) -> int:
+    """Read a counter published as text (0 when it is not a number)."""
+    try:
+        return int(float(value))
+    except (TypeError, ValueError):
+        return 0
+
+
+def as_float(value: Any) -> float | None:
+    """Read a number published as text (None when it is not one)."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return None
