@@ -22,11 +22,11 @@ from cgags_ros.io.clouds import write_cloud
 from cgags_ros.localizer import startup
 from cgags_ros.localizer.engine import RegistrationEngine
 from cgags_ros.localizer.interface import Cloud, StartFailed
-from cgags_ros.pipeline.isolated import IsolatedRegistration
+from cgags_ros.pipeline.isolated import IsolatedRegistration, running
 from cgags_ros.pipeline.result import PipelineResult
 import numpy as np
 import pytest
-from waiting import bad_map, running, wait_for
+from waiting import bad_map, wait_for
 
 T_TRUE = make_transform(quaternion_to_matrix((0.0, 0.0, 0.2588190, 0.9659258)), (1.0, 2.0, 0.5))
 

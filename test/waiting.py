@@ -64,15 +64,6 @@ class CloudWire:
         return pose_at(self.poses, stamp_ns)
 
 
-def running(pid):
-    """Tell whether process ``pid`` exists and is not a zombie."""
-    try:
-        with open(f'/proc/{pid}/stat', encoding='ascii') as f:
-            return f.read().rsplit(')', 1)[1].split()[0] not in ('Z', 'X')
-    except OSError:
-        return False
-
-
 def bad_map(folder, case):
     """
     Write a map file that cannot be used into ``folder``; return its path.
