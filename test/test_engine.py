@@ -8,6 +8,7 @@ check the decisions: what is counted where, what is published, what the guards r
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -43,6 +44,7 @@ class Recorder:
 
     def __init__(self):
         self.estimates, self.candidates, self.initial, self.logs = [], [], [], []
+        self.results = []
 
     def publish_estimate(self, estimate):
         self.estimates.append(estimate)
@@ -52,6 +54,9 @@ class Recorder:
 
     def publish_initial_pose(self, pose):
         self.initial.append(pose)
+
+    def publish_result(self, result):
+        self.results.append(json.loads(result.to_json()))  # what ~/result carries
 
     def base_from_sensor(self, base_frame, sensor_frame):
         return np.eye(4)
@@ -148,6 +153,39 @@ def test_invalid_results_are_rejected_unless_publish_invalid():
         balanced(engine)
     finally:
         engine.stop()
+
+
+def test_every_accounted_source_has_one_result_saying_what_became_of_it():
+    """~/result: one record a source, published, rejected (when and why) or dropped."""
+    engine, out = make(max_waiting_sources=1)
+    try:
+        send(engine, 'source', 1)  # inactive: rejected at once
+        engine.activate()
+        send(engine, 'source', 2)  # no target yet: waits, then is superseded by 3
+        send(engine, 'source', 3)
+        engine.receive('source', 4 * 10**9, 'lidar', None, 'source_malformed', 'bad cloud')
+        send(engine, 'target', 5, frame='map')  # pairs 3
+        wait_for(lambda: out.estimates, 10, 'the pose of 3')
+        send(engine, 'source', 6, n=7)  # registered, invalid
+        acc = wait_for(lambda: len(out.results) == 5 and balanced(engine), 10, 'five results')
+        assert acc['sources']['pending'] == 0
+    finally:
+        engine.stop()
+    by_stamp = {r['source_stamp_ns'] // 10**9: r for r in out.results}
+    assert {k: (r['outcome'], r['cause']) for k, r in by_stamp.items()} == {
+        1: ('rejected', 'source_inactive'), 2: ('dropped', 'source_superseded_before_target'),
+        3: ('published', ''), 4: ('rejected', 'source_malformed'),
+        6: ('rejected', 'invalid_result')}
+    published, invalid = by_stamp[3], by_stamp[6]
+    np.testing.assert_allclose(published['transform'], T_TRUE)  # register_clouds' summary
+    assert published['valid'] is True and published['num_inliers'] == 40
+    assert published['fitness'] == 0.8 and len(published['covariance']) == 6
+    assert (published['frame_id'], published['target_frame']) == ('map', 'map')
+    assert published['target_stamp_ns'] == 5 * 10**9 and published['source_frame'] == 'lidar'
+    assert invalid['valid'] is False and invalid['reason'] == 'fake: 7'
+    assert invalid['message'] == 'invalid registration: fake: 7'
+    assert by_stamp[4]['message'] == by_stamp[4]['reason'] == 'bad cloud'
+    assert 'transform' not in by_stamp[4] and by_stamp[4]['target_stamp_ns'] is None
 
 
 def test_initial_pose_guards_extrinsic_and_max_auto():

@@ -1,8 +1,8 @@
 """
 The node's /diagnostics: one flat key space, built here.
 
-:func:`build_statistics` makes the keys the node publishes; the constants name them once
-(live replay reads a few back: :mod:`cgags_ros.tools.replay_player`). ``sources.*`` and
+:func:`build_statistics` makes the keys the node publishes and the constants name them once
+(what became of each source, typed, is on ``~/result``). ``sources.*`` and
 ``targets.*`` are the accounting buckets of :mod:`cgags_ros.localizer.health`
 (``accounting.ok``: they balance; ``sources.lost_upstream``, scans that never arrived,
 stands outside the balance); ``worker.*`` and ``memory.*`` the registration process and the

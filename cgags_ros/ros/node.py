@@ -24,6 +24,10 @@ Topics (relative names; remap them):
         the pipeline result's covariance.
     ~/aligned_cloud (sensor_msgs/PointCloud2, out, ``publish_aligned_cloud``).
     ~/candidates (geometry_msgs/PoseArray, out): ranked candidate poses, best first.
+    ~/result (std_msgs/String, out, JSON; reliable): what became of each source (published,
+        rejected or dropped, and why) with its registration's result as ``cgags-register
+        --json`` prints it (:class:`~cgags_ros.localizer.interface.PairResult`), also while
+        inactive.
     initialpose (geometry_msgs/PoseWithCovarianceStamped, out, ``publish_initial_pose``):
         the guarded base pose for Nav2/AMCL (:mod:`cgags_ros.localizer.initial_pose`).
     /diagnostics (diagnostic_msgs/DiagnosticArray, out): status and counters
