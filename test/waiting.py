@@ -9,6 +9,8 @@ import traceback
 
 import pytest
 
+EXECUTOR_THREADS = 4  # of spun_context's executor, as many as the node's own main spins
+
 
 def wait_for(predicate, timeout, what, detail=None):
     """
@@ -191,8 +193,8 @@ def spun_context(domain_id, make_io):
     """
     Yield (context, executor, io): an rclpy context on ``domain_id`` spun on a thread.
 
-    A multi-threaded executor, as the node's own ``main`` spins: a ~/relocalize call waits
-    for a registration on one thread while the topics go on on the others.
+    A multi-threaded executor, as the node's own ``main`` spins: the clouds of a test's node
+    are decoded while the diagnostics and services run.
 
     ``io = make_io(context)`` is the test's own node wrapper (publishers, recorders); its
     ``node`` is added to the executor. Everything is shut down on exit.
@@ -204,7 +206,7 @@ def spun_context(domain_id, make_io):
     context = Context()
     rclpy.init(context=context, domain_id=domain_id)
     io = make_io(context)
-    executor = MultiThreadedExecutor(num_threads=4, context=context)
+    executor = MultiThreadedExecutor(num_threads=EXECUTOR_THREADS, context=context)
     executor.add_node(io.node)
 
     done = threading.Event()

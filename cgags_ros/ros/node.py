@@ -38,11 +38,12 @@ Topics (relative names; remap them):
     frame), ~/calibration_report (std_msgs/String, JSON) and /tf_static parent -> child;
     a FAIL publishes no pose: /diagnostics ERROR (docs/calibration.md).
 
-Services (served by this node, on its own callback group so that a call waiting for a
-registration never holds up the topics on a multi-threaded executor):
+Services (served by this node, on their own reentrant callback group: a call awaiting its
+answer keeps its group until then, and other calls and the topics go on beside it):
     ~/relocalize (std_srvs/Trigger): relocalize with the next registration (in
         ``mode: on_demand`` the only thing that makes the node register); answers success
-        and a one-line summary.
+        and a one-line summary. The callback is a coroutine: while it awaits the engine's
+        answer it holds no executor thread.
     reinitialize_global_localization (std_srvs/Empty, relative name, as Nav2 calls it):
         the same request, answered at once; its outcome is logged and, with
         ``publish_initial_pose``, published on initialpose.
@@ -70,6 +71,7 @@ from rcl_interfaces.msg import SetParametersResult
 import rclpy
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.task import Future
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Empty, Trigger
 
@@ -267,11 +269,21 @@ class RegisterNode(LifecycleNode):
 
     # ------------------------------------------------------------------ services
 
-    def _on_relocalize(self, request: Any, response: Any) -> Any:
-        engine = self._engine
-        response.success, response.message = (
-            engine.relocalize() if engine is not None
-            else (False, 'not localized (unconfigured): the node is not configured'))
+    async def _on_relocalize(self, request: Any, response: Any) -> Any:
+        engine, executor = self._engine, self.executor
+        if engine is None:
+            response.success = False
+            response.message = 'not localized (unconfigured): the node is not configured'
+            return response
+        answer = Future()
+
+        def on_answer(success: bool, message: str) -> None:  # the worker thread, or at once
+            answer.set_result((success, message))
+            if executor is not None:
+                executor.wake()  # the executor resumes an awaiting callback when it wakes
+
+        engine.relocalize(wait=False, on_answer=on_answer)
+        response.success, response.message = await answer
         return response
 
     def _on_reinitialize(self, request: Any, response: Any) -> Any:
@@ -327,8 +339,8 @@ def main(args: list[str] | None = None) -> None:
     Spin the node until Ctrl-C or SIGTERM, then shut down cleanly.
 
     The ``register_node`` entry point (``ros2 run``, ``python -m cgags_ros.register_node``).
-    A multi-threaded executor, so that a relocalization call waiting for a registration
-    runs beside the subscriptions.
+    A multi-threaded executor, so that clouds are decoded while the diagnostics and the
+    services run.
     """
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
     use_large_data_profile()
