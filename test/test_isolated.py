@@ -133,6 +133,9 @@ def test_supervise_replaces_a_process_that_died_idle_and_errors_come_back_typed(
         iso.wait_ready()
         assert not iso.supervise()  # alive: nothing to do
         pid = iso.pid
+        with open(f'/proc/{pid}/environ', 'rb') as f:  # set before it loaded numpy
+            environ = f.read().split(b'\0')
+        assert b'OMP_WAIT_POLICY=PASSIVE' in environ or 'OMP_WAIT_POLICY' in os.environ
         os.kill(pid, signal.SIGKILL)
         wait_for(lambda: not running(pid), 10, 'the idle process to die')
         assert iso.supervise() and iso.crashes == 1 and iso.pid != pid

@@ -11,7 +11,9 @@ of it imports them, and the whole stays small enough to read in one sitting. The
 from __future__ import annotations
 
 import ast
+import os
 from pathlib import Path
+import subprocess
 import sys
 
 import pytest
@@ -151,6 +153,19 @@ def test_ros_is_wiring_only():
     assert 0 < total <= ROS_MAX_LINES, (
         f'ros/ holds {total} lines: it wires topics, services and parameters to the engine; '
         'decisions belong in localizer/')
+
+
+def test_importing_the_package_sets_no_environment_and_the_entry_points_do():
+    """The idle-thread settings belong to the processes that run the pipeline, not to importers."""
+    # (Open3D sets KMP_* variables of its own when it loads.)
+    show = "print(os.environ.get('OMP_WAIT_POLICY'), os.environ.get('OPENBLAS_THREAD_TIMEOUT'))"
+    code = ('import os; import cgags_ros.pipeline.register, cgags_ros.localizer.engine, '
+            f'cgags_ros.register_node; {show}; import cgags_ros.tools; {show}')
+    env = {k: v for k, v in os.environ.items()
+           if k not in ('OMP_WAIT_POLICY', 'OPENBLAS_THREAD_TIMEOUT')}
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                         check=True, env=env, cwd=PACKAGE.parent).stdout.split()
+    assert out == ['None', 'None', 'PASSIVE', '20']
 
 
 def test_the_checker_sees_real_edges():

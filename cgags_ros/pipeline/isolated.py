@@ -30,6 +30,7 @@ import numpy as np
 
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError
+from ..parallel import quiet_idle_threads
 
 RegisterFn = Callable[..., Any]  # register_clouds(source, target, *, config) -> PipelineResult
 
@@ -187,7 +188,9 @@ class _Child:
     """One spawned registration process, its pipe, and the thread that reads its answers."""
 
     def __init__(self) -> None:
-        # Spawn, not fork: forking a process that runs DDS threads is unsafe.
+        # Spawn, not fork: forking a process that runs DDS threads is unsafe. The child
+        # inherits this environment and loads numpy before any code of ours runs in it.
+        quiet_idle_threads()
         context = multiprocessing.get_context('spawn')
         self.conn, child_end = context.Pipe()
         self.process = context.Process(target=_serve, args=(child_end,),
