@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from .errors import InvalidInputError
 
@@ -68,6 +69,16 @@ def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
         q[3] = (R[m, j] - R[j, m]) / (4.0 * s)
     q /= np.linalg.norm(q)
     return -q if q[3] < 0 else q
+
+
+def rpy(T: np.ndarray) -> tuple[float, float, float]:
+    """
+    Return (roll, pitch, yaw) in radians with ``R = Rz(yaw) Ry(pitch) Rx(roll)``.
+
+    Angles about the fixed axes x, y, z: the convention of tf2, URDF and a heading (yaw).
+    """
+    roll, pitch, yaw = Rotation.from_matrix(np.asarray(T)[:3, :3]).as_euler('xyz')
+    return float(roll), float(pitch), float(yaw)
 
 
 def rotation_error_deg(T_est: np.ndarray, T_gt: np.ndarray) -> float:
