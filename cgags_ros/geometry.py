@@ -94,12 +94,6 @@ def translation_error(T_est: np.ndarray, T_gt: np.ndarray) -> float:
     return float(np.linalg.norm(np.asarray(T_est)[:3, 3] - np.asarray(T_gt)[:3, 3]))
 
 
-def is_success(T_est: np.ndarray, T_gt: np.ndarray, max_re_deg: float, max_te: float) -> bool:
-    """Tell whether RE <= ``max_re_deg`` and TE <= ``max_te``."""
-    return (rotation_error_deg(T_est, T_gt) <= max_re_deg
-            and translation_error(T_est, T_gt) <= max_te)
-
-
 def point_resolution(points: np.ndarray, tree: cKDTree | None = None,
                      nearest: np.ndarray | None = None) -> float:
     """
