@@ -241,8 +241,12 @@ class _Child:
                                               f'process: {exc!r}')
             with self._lock:
                 future = self._waiting.popleft() if self._waiting else None
-            if future is not None:
-                future.set_result(value) if ok else future.set_exception(value)
+            if future is None:
+                continue
+            if ok:
+                future.set_result(value)
+            else:
+                future.set_exception(value)
         with self._lock:
             self.ended = True
             waiting, self._waiting = list(self._waiting), collections.deque()
