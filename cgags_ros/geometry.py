@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from .errors import InvalidInputError
 
@@ -70,6 +71,16 @@ def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
     return -q if q[3] < 0 else q
 
 
+def rpy(T: np.ndarray) -> tuple[float, float, float]:
+    """
+    Return (roll, pitch, yaw) in radians with ``R = Rz(yaw) Ry(pitch) Rx(roll)``.
+
+    Angles about the fixed axes x, y, z: the convention of tf2, URDF and a heading (yaw).
+    """
+    roll, pitch, yaw = Rotation.from_matrix(np.asarray(T)[:3, :3]).as_euler('xyz')
+    return float(roll), float(pitch), float(yaw)
+
+
 def rotation_error_deg(T_est: np.ndarray, T_gt: np.ndarray) -> float:
     """Return RE = arccos((trace(R_gt^T R) - 1) / 2) in degrees."""
     R = np.asarray(T_est)[:3, :3]
@@ -81,12 +92,6 @@ def rotation_error_deg(T_est: np.ndarray, T_gt: np.ndarray) -> float:
 def translation_error(T_est: np.ndarray, T_gt: np.ndarray) -> float:
     """Return TE = ||t_gt - t|| in the units of the input (metres)."""
     return float(np.linalg.norm(np.asarray(T_est)[:3, 3] - np.asarray(T_gt)[:3, 3]))
-
-
-def is_success(T_est: np.ndarray, T_gt: np.ndarray, max_re_deg: float, max_te: float) -> bool:
-    """Tell whether RE <= ``max_re_deg`` and TE <= ``max_te``."""
-    return (rotation_error_deg(T_est, T_gt) <= max_re_deg
-            and translation_error(T_est, T_gt) <= max_te)
 
 
 def point_resolution(points: np.ndarray, tree: cKDTree | None = None,

@@ -11,7 +11,7 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 import os
 import threading
-from typing import Callable, Sequence, TypeVar
+from typing import Callable, MutableMapping, Sequence, TypeVar
 
 T = TypeVar('T')
 
@@ -58,6 +58,22 @@ def run_split(task: Callable[[int, int], None], bounds: Sequence[int]) -> None:
     task(*ranges[-1])
     for part in parts:
         part.result()
+
+
+def quiet_idle_threads(environ: MutableMapping[str, str] = os.environ) -> None:
+    """
+    Make the idle threads of OpenMP (Open3D) and OpenBLAS sleep instead of spin.
+
+    For the entry points that run the pipeline (the tools, the node, its registration
+    process), before numpy and Open3D load: the libraries read these variables once, when
+    they load, and a spawned process inherits them. OpenMP's idle threads spin by default
+    and, on a loaded machine, each of ICP's short parallel loops then waits for a
+    descheduled thread; OpenBLAS's workers likewise spin after each threaded call and take
+    the CPU from Open3D. Passive waiting costs nothing measurable on an idle machine
+    (docs/design.md). A value the user set wins.
+    """
+    environ.setdefault('OMP_WAIT_POLICY', 'PASSIVE')
+    environ.setdefault('OPENBLAS_THREAD_TIMEOUT', '20')
 
 
 def in_background(task: Callable[[], T], enabled: bool = True) -> Callable[[], T]:

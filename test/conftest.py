@@ -10,8 +10,13 @@ lives in test/fixtures/ (small, committed, each with its licence).
 import os
 from pathlib import Path
 
-from cgags_ros.io.shared_data import shared_data_dir
-import pytest
+from cgags_ros.parallel import quiet_idle_threads
+
+# The suite runs the pipeline in its own process, as the tools do: set up before numpy loads.
+quiet_idle_threads()
+
+from cgags_ros.io.shared_data import shared_data_dir  # noqa: E402, I100
+import pytest  # noqa: E402
 
 REQUIRE_DATA = 'CGAGS_REQUIRE_DATA'
 FIXTURES = Path(__file__).resolve().parent / 'fixtures'

@@ -17,11 +17,11 @@ from bench.datasets.rigs import (corridor, kitti_depth_rig, kitti_lidar_rig, KIT
 from cgags_ros.calibration import calibrate, CalibrationResult, Frame
 from cgags_ros.calibration import joint, uncertainty
 from cgags_ros.calibration.calibrator import solve
-from cgags_ros.calibration.formats import rpy, static_transform_publisher, urdf_joint
+from cgags_ros.calibration.formats import static_transform_publisher, urdf_joint
 from cgags_ros.calibration.frames import gather
 from cgags_ros.config import PipelineConfig
 from cgags_ros.config.calibration import CalibrationConfig
-from cgags_ros.geometry import (apply_transform, make_transform, rotation_error_deg,
+from cgags_ros.geometry import (apply_transform, make_transform, rotation_error_deg, rpy,
                                 translation_error)
 import numpy as np
 import pytest

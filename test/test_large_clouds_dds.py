@@ -26,7 +26,7 @@ import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
-from cgags_ros.ros.transport import profile_path, PROFILE_VARIABLE  # noqa: E402, I100
+from cgags_ros.localizer.transport import profile_path, PROFILE_VARIABLE  # noqa: E402, I100
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from waiting import ros_args, spun_context, stop_process, wait_for  # noqa: E402
 

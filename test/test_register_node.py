@@ -22,8 +22,7 @@ rclpy = pytest.importorskip('rclpy')
 
 # Imported only after the rclpy skip above: hence E402, and I100 for the first-party block
 # placed after numpy and pytest.
-from cgags_ros.config import PipelineConfig  # noqa: E402, I100
-from cgags_ros.errors import InvalidConfigError  # noqa: E402
+from cgags_ros.errors import InvalidConfigError  # noqa: E402, I100
 from cgags_ros.geometry import rotation_error_deg, translation_error  # noqa: E402
 from cgags_ros.io.bag import read_messages  # noqa: E402
 from cgags_ros.io.pointcloud2 import pose_to_transform  # noqa: E402
@@ -225,7 +224,7 @@ def test_callbacks_after_context_shutdown_do_not_raise():
     diagnostics timer or the worker may still publish a pose; that must end quietly, not
     as an RCLError that makes rclpy.spin() raise and the node exit 1 (seen once in CI).
     """
-    from cgags_ros.ros.interface import Estimate
+    from cgags_ros.localizer.interface import Estimate
     from rclpy.context import Context
 
     ctx = Context()
@@ -245,60 +244,6 @@ def test_callbacks_after_context_shutdown_do_not_raise():
         node.outputs.publish_diagnostics(node.statistics())
     finally:
         node.destroy_node()
-
-
-def test_isolated_registration_sends_an_unchanged_target_once(monkeypatch):
-    """
-    Check that the registration process is sent an unchanged target only once.
-
-    It reports ready once warmed up (not while spawning, nor after a restart until warm).
-
-    The registration process keeps the last target: the same array object is not sent
-    again, a new one is, and after a restart (fresh process) it is sent again. Results equal
-    the pipeline run in this process.
-    """
-    from cgags_ros.pipeline import register_clouds
-    from cgags_ros.ros.worker import IsolatedRegistration
-
-    target = terrain_patch(np.random.default_rng(3))
-    c, s = np.cos(0.2), np.sin(0.2)
-    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    source = target @ R.T + 0.1
-    other = target[::-1].copy()  # same points, another array: must be sent
-    cfg = PipelineConfig(voxel_size=0.15)
-    sent = []
-
-    def spy_on(iso):
-        real = iso._pool.submit
-
-        def spy(fn, src, tgt, **kw):
-            sent.append(tgt is not None)
-            return real(fn, src, tgt, **kw)
-
-        monkeypatch.setattr(iso._pool, 'submit', spy)
-
-    iso = IsolatedRegistration(60.0)
-    try:
-        assert not iso.ready and iso.health()['worker.ready'] is False  # spawning, warming up
-        spy_on(iso)
-        first = iso(source, target, config=cfg)
-        assert iso.ready and iso.health()['worker.ready'] is True
-        again = iso(source, target, config=cfg)
-        changed = iso(source, other, config=cfg)
-        assert sent == [True, False, True]
-        iso.restart()
-        assert not iso.ready  # the fresh child warms up again
-        sent.clear()
-        spy_on(iso)
-        after = iso(source, other, config=cfg)
-        assert sent == [True]
-    finally:
-        iso.close()
-    assert not iso.ready
-    local = register_clouds(source, target, config=cfg)
-    for result in (first, again, changed, after):
-        assert result.valid, result.reason
-        np.testing.assert_allclose(result.transform, local.transform, atol=1e-6)
 
 
 # ------------------------------------------------------------------------ real pipeline

@@ -3,7 +3,7 @@ The map of ``map_file`` as the node's one latched target: loaded where the pipel
 
 ROS-free. The features are computed (or read from the on-disk cache) in the registration
 process, so the node's process never holds them; the node pairs every scan with a target
-whose points are the :class:`~.worker.MapRef`.
+whose points are the :class:`~cgags_ros.pipeline.isolated.MapRef`.
 """
 
 from __future__ import annotations
@@ -13,10 +13,10 @@ import time
 from typing import Any, Callable
 
 from .interface import Cloud, StartFailed
-from .worker import IsolatedRegistration, MapRef, prepare_map
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError
+from ..pipeline.isolated import IsolatedRegistration, MapRef, prepare_map
 from ..pipeline.result import PipelineResult
 
 

@@ -2,16 +2,16 @@
 Starting registration: what a lifecycle node's configure transition waits for.
 
 ROS-free. :func:`start_registration` returns once a pair can be registered at once: the
-registration process (:class:`~.worker.IsolatedRegistration`) has finished its warm-up
-(the pipeline imported, its numba code compiled or read from its cache, one small
-registration) and, with ``map_file``, the map's features are prepared where the pipeline
-runs (:class:`~.map_target.MapTarget`). Otherwise it raises
+registration process (:class:`~cgags_ros.pipeline.isolated.IsolatedRegistration`) has
+finished its warm-up (the pipeline imported, its numba code compiled or read from its
+cache, one small registration) and, with ``map_file``, the map's features are prepared
+where the pipeline runs (:class:`~.map_target.MapTarget`). Otherwise it raises
 :class:`~.interface.StartFailed` with the reason and leaves nothing running, so that
 configure fails and the node stays unconfigured.
 
 Every wait is bounded when the pipeline runs in its own process (``registration_timeout``
-> 0, the default): the warm-up by :data:`~.worker.WARM_UP_LIMIT_S`, the map load by
-``map_load_timeout``. In the node's own process (``registration_timeout`` 0, and
+> 0, the default): the warm-up by :data:`~cgags_ros.pipeline.isolated.WARM_UP_LIMIT_S`, the
+map load by ``map_load_timeout``. In the node's own process (``registration_timeout`` 0, and
 ``mode: calibrate``) a Python call cannot be interrupted: the import, the warm-up and the
 map load end when they end.
 """
@@ -21,10 +21,10 @@ from __future__ import annotations
 from typing import Any, Callable
 
 from .interface import Cloud, StartFailed
-from .worker import IsolatedRegistration, load_pipeline, RegisterFn
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError
+from ..pipeline.isolated import IsolatedRegistration, load_pipeline, RegisterFn
 
 
 def start_registration(pipeline_cfg: PipelineConfig, cfg: NodeConfig, in_process: bool,

@@ -1,17 +1,18 @@
 """
-The player of live replay.
+The player of live replay: a client of register_node over DDS, not part of the node.
 
-An rclpy context that publishes a bag's clouds into a register_node and records its poses
-and /diagnostics.
+An rclpy context that publishes a bag's clouds into a register_node and records what the
+node answers: its poses (``~/pose_with_covariance``) and, for every source it is done with,
+its result (``~/result``, the JSON of :class:`~cgags_ros.localizer.interface.PairResult`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 from typing import Any
 
-from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 import numpy as np
 import rclpy
@@ -19,10 +20,10 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import String
 
-from . import diagnostics
-from .transport import use_large_data_profile
 from ..io.pointcloud2 import pose_to_transform, stamp_to_ns
+from ..localizer.transport import use_large_data_profile
 
 MAX_QUEUE = 1000  # the node config's upper bound for depths
 
@@ -42,7 +43,7 @@ class Received:
 
 
 class LiveSession:
-    """An rclpy context with the player node: publishers, pose and diagnostics recorders."""
+    """An rclpy context with the player node: cloud publishers, pose and result recorders."""
 
     def __init__(self, source_topic: str, target_topic: str, node_name: str, n_sources: int):
         use_large_data_profile()  # the clouds' publisher needs it as much as the node
@@ -52,23 +53,22 @@ class LiveSession:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         depth = max(1, min(n_sources, MAX_QUEUE))
-        self.source_pub = self.node.create_publisher(
-            PointCloud2, source_topic,
-            QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE))
+        reliable = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+        self.source_pub = self.node.create_publisher(PointCloud2, source_topic, reliable)
         self.target_pub = self.node.create_publisher(
             PointCloud2, target_topic,
             QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self.poses: dict[int, Received] = {}
-        self.details: dict[int, dict[str, str]] = {}
-        self.stats: dict[str, str] = {}
+        self.results: list[dict[str, Any]] = []  # ~/result, in arrival order
         self.last_progress = time.monotonic()
         self.node_id = '/' + node_name.lstrip('/')
         # ~/pose_with_covariance: the pose of ~/pose and its covariance, one message.
         self.pose_sub = self.node.create_subscription(
             PoseWithCovarianceStamped, f'{self.node_id}/pose_with_covariance', self._on_pose,
             100)
-        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 100)
+        self.result_sub = self.node.create_subscription(
+            String, f'{self.node_id}/result', self._on_result, reliable)
 
     def _on_pose(self, msg: Any) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
@@ -77,17 +77,13 @@ class LiveSession:
                                      time.monotonic(), cov)
         self.last_progress = time.monotonic()
 
-    def _on_diagnostics(self, msg: Any) -> None:
-        for status in msg.status:
-            if status.hardware_id != self.node_id:
-                continue
-            values = {kv.key: kv.value for kv in status.values}
-            if values != self.stats:
-                self.last_progress = time.monotonic()
-            self.stats = values
-            stamp = diagnostics.last_source_stamp_ns(values)
-            if stamp is not None:
-                self.details[stamp] = values
+    def _on_result(self, msg: Any) -> None:
+        self.results.append(json.loads(msg.data))
+        self.last_progress = time.monotonic()
+
+    def results_by_stamp(self) -> dict[int, dict[str, Any]]:
+        """Return the results of sources with a stamp, by it (the last one of a stamp)."""
+        return {r['source_stamp_ns']: r for r in self.results if r['source_stamp_ns']}
 
     def spin_for(self, seconds: float) -> None:
         """Spin the player's executor for ``seconds`` (at least once)."""
@@ -99,21 +95,11 @@ class LiveSession:
                 return
 
     def connected(self) -> bool:
-        """Tell whether the node subscribes to both clouds and publishes its pose."""
+        """Tell whether the node subscribes to both clouds and publishes its pose and results."""
         return (self.source_pub.get_subscription_count() > 0
                 and self.target_pub.get_subscription_count() > 0
-                and self.pose_sub.get_publisher_count() > 0)
-
-    def accounted_sources(self) -> int | None:
-        """
-        Count the sources the node is done with, from its last diagnostics.
-
-        That is published + rejected + dropped + waiting; None before any diagnostics.
-        """
-        return diagnostics.accounted_sources(self.stats) if self.stats else None
-
-    def received_sources(self) -> int:
-        return diagnostics.as_int(self.stats.get('received_source', '0'))
+                and self.pose_sub.get_publisher_count() > 0
+                and self.result_sub.get_publisher_count() > 0)
 
     def close(self) -> None:
         """Shut the player's executor, node and context down."""

@@ -3,14 +3,16 @@ What the registration engine and its node exchange, without ROS.
 
 The node decodes each message into a :class:`Cloud`; the engine
 (:class:`~.engine.RegistrationEngine`) hands back what to publish (:class:`Estimate`,
-:class:`BasePose`, :class:`Calibration`) through :class:`EngineOutputs`, which the node implements
-(:class:`~.outputs.Outputs`). Headers are the messages' own, opaque here: the engine reads
-only their ``frame_id``. An engine that cannot start raises :class:`StartFailed`.
+:class:`BasePose`, :class:`Calibration`, :class:`PairResult`) through :class:`EngineOutputs`,
+which the node implements
+(:class:`~cgags_ros.ros.outputs.Outputs`). Headers are the messages' own, opaque here: the
+engine reads only their ``frame_id``. An engine that cannot start raises :class:`StartFailed`.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 from typing import Any, Protocol
 
 import numpy as np
@@ -93,6 +95,53 @@ class Calibration:
     report: str
 
 
+@dataclasses.dataclass(frozen=True)
+class PairResult:
+    """
+    What became of one source cloud the node is done with, published as ~/result (JSON).
+
+    Every source the accounting counts as published, rejected or dropped gets one.
+
+    :ivar source_stamp_ns: the source's stamp (0 when its header could not be read).
+    :ivar source_frame: its frame ('' when unknown).
+    :ivar outcome: 'published' (a pose went out), 'rejected' or 'dropped' (by pairing).
+    :ivar cause: '' when published, else the ``rejected.<cause>`` or ``pairing.dropped.<reason>``
+        key of /diagnostics it is counted under.
+    :ivar message: why, in words ('' when published).
+    :ivar target_stamp_ns: the target it was paired with (None: not paired).
+    :ivar target_frame: that target's frame.
+    :ivar frame_id: the frame of the pose (the target's or ``pose_frame_id``; '' unpaired).
+    :ivar valid: the registration is valid (and its transform finite).
+    :ivar result: the registration's result (a ``PipelineResult``), None when none ran.
+    """
+
+    source_stamp_ns: int
+    source_frame: str
+    outcome: str
+    cause: str = ''
+    message: str = ''
+    target_stamp_ns: int | None = None
+    target_frame: str = ''
+    frame_id: str = ''
+    valid: bool = False
+    result: Any = None
+
+    def to_json(self) -> str:
+        """
+        Return the JSON of ~/result: the CLIs' per-pair result and where it came from.
+
+        The keys of ``result.summary()`` (as ``cgags-register --json`` prints them:
+        ``valid``, ``reason``, ``transform``, ``covariance``, ``num_inliers``, ``fitness``,
+        ``timings``, ``candidates``, ...) when a registration ran, else ``valid`` false and
+        ``reason`` the message; plus every field of this class but ``result``.
+        """
+        out: dict[str, Any] = (self.result.summary() if self.result is not None
+                               else {'reason': self.message})
+        out.update({f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+                    if f.name != 'result'})
+        return json.dumps(out)
+
+
 class EngineOutputs(Protocol):
     """What the engine needs from its node: publishing, logging and TF."""
 
@@ -108,6 +157,9 @@ class EngineOutputs(Protocol):
 
     def publish_calibration(self, calibration: Calibration) -> None:
         """Publish a valid calibration (latched) and its /tf_static transform."""
+
+    def publish_result(self, result: PairResult) -> None:
+        """Publish what became of a source (~/result), also while inactive."""
 
     def base_from_sensor(self, base_frame: str, sensor_frame: str) -> np.ndarray | None:
         """Return ``T_base_sensor`` from TF (identity without TF), or None when unknown."""

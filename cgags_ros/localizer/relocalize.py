@@ -20,7 +20,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..geometry import matrix_to_quaternion
+from ..geometry import rpy
 from ..pipeline.result import PipelineResult
 
 Answered = Callable[[bool, str], None]  # called with (success, message) once answered
@@ -119,10 +119,7 @@ def summary_line(result: PipelineResult, T: np.ndarray, key: str, refusal: str,
     if key:
         return f'not localized ({key}): {refusal}; {scores}'
     x, y, z = (float(v) for v in T[:3, 3])
-    q = matrix_to_quaternion(T[:3, :3])
-    yaw = math.degrees(math.atan2(2 * (q[3] * q[2] + q[0] * q[1]),
-                                  1 - 2 * (q[1] ** 2 + q[2] ** 2)))
-    pose = f'x {x:.3f} y {y:.3f} z {z:.3f} m, yaw {yaw:.1f} deg'
+    pose = f'x {x:.3f} y {y:.3f} z {z:.3f} m, yaw {math.degrees(rpy(T)[2]):.1f} deg'
     return (f'localized: {pose}; {scores}; '
             + ('initial pose published' if published else f'initial pose not published: {why}'))
 

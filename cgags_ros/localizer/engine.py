@@ -2,12 +2,12 @@
 What register_node does, without ROS: pairing, the registration process, the accounting.
 
 ROS-free: :class:`RegistrationEngine` owns the pairing of source and target clouds, the
-supervised registration process (:mod:`.worker`), the accounting (:mod:`.health`), the
-map of ``map_file``, the relocalization requests (:mod:`.relocalize`) and the initial-pose
-guards (:mod:`.initial_pose`); in ``mode: calibrate`` the pairs are calibration frames
-(:mod:`.calibration_run`). The node decodes messages into :class:`Cloud` for
-:meth:`~RegistrationEngine.receive` and implements :class:`EngineOutputs`, through which
-the engine publishes, logs and asks for TF; it never reaches into the node.
+supervised registration process (:mod:`cgags_ros.pipeline.isolated`), the accounting
+(:mod:`.health`), the map of ``map_file``, the relocalization requests (:mod:`.relocalize`)
+and the initial-pose guards (:mod:`.initial_pose`); in ``mode: calibrate`` the pairs are
+calibration frames (:mod:`.calibration_run`). The node decodes messages into :class:`Cloud`
+for :meth:`~RegistrationEngine.receive` and implements :class:`EngineOutputs`, through
+which the engine publishes, logs and asks for TF; it never reaches into the node.
 
 Threading: :meth:`~RegistrationEngine.receive` only pairs (any thread); registration runs
 on the engine's worker thread (in a child process unless ``registration_timeout`` is 0),
@@ -30,15 +30,16 @@ import numpy as np
 from .calibration_run import CalibrationConfig, CalibrationRun
 from .health import LOG_REPEAT_S, lost_upstream_message, NodeHealth
 from .initial_pose import ExtrinsicLookup, InitialPoseGuard, quality_refusal
-from .interface import BasePose, Cloud, EngineOutputs, Estimate
+from .interface import BasePose, Cloud, EngineOutputs, Estimate, PairResult
 from .map_target import MapTarget
 from .relocalize import Answered, RelocalizeCalls, stale_scan, summary_line
 from .startup import start_registration
-from .worker import IsolatedRegistration, RegisterFn, RegistrationTimeout, WorkerCrashed
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError, InvalidInputError
 from ..geometry import apply_transform
+from ..pipeline.isolated import (IsolatedRegistration, RegisterFn, RegistrationTimeout,
+                                 WorkerCrashed)
 from ..pipeline.pairing import Pair, Pairer
 from ..pipeline.result import PipelineResult
 
@@ -80,6 +81,7 @@ class RegistrationEngine:
         self._active = False
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
+        self._registered: PipelineResult | None = None  # the worker's pair, once registered
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -165,6 +167,13 @@ class RegistrationEngine:
         lost = self._health.receive(role, stamp_ns, frame_id, cloud, rejection=rejection)
         if rejection:
             self._log_rejection(rejection, message)
+            if role == 'source':
+                self._outputs.publish_result(
+                    PairResult(stamp_ns, frame_id, 'rejected', rejection, message))
+        for reason, source in self._health.dropped_sources():
+            self._outputs.publish_result(PairResult(
+                source.stamp_ns, source.frame_id, 'dropped', reason,
+                f'dropped by pairing: {reason} (docs/pairing.md)'))
         if lost:
             self._log_lost_upstream()
 
@@ -199,12 +208,14 @@ class RegistrationEngine:
             if pair is None:
                 continue
             cause, message = 'internal_error', ''
+            self._registered = None
             try:
                 cause, message = self._process(pair)
             except Exception as exc:  # noqa: BLE001 - the worker must outlive any bad pair
                 message = f'pair failed: {exc!r}\n{traceback.format_exc()}'
             finally:
                 latency = (time.monotonic_ns() - pair.source.payload.receipt_ns) * 1e-9
+                self._publish_result(pair, cause, message)
                 self._health.finish(cause, latency)
                 self._settle(cause, message)
             if cause and not self._stop.is_set():
@@ -242,6 +253,7 @@ class RegistrationEngine:
             return 'worker_crashed', str(exc)
         except CgagsError as exc:
             return 'pipeline_error', f'registration failed: {exc}'
+        self._registered = result
         T = np.asarray(result.transform, dtype=np.float64)
         valid = bool(result.valid) and np.isfinite(T).all()
         if self._map is not None:
@@ -292,6 +304,16 @@ class RegistrationEngine:
             self._candidates, self._last_summary = candidates, line
         if called:
             self._calls.answer(not key, line, key or 'ok')
+
+    def _publish_result(self, pair: Pair, cause: str, message: str) -> None:
+        """Publish what became of the worker's pair (before it is counted as done)."""
+        result, source, target = self._registered, pair.source, pair.target
+        valid = (result is not None and bool(result.valid)
+                 and bool(np.isfinite(result.transform).all()))
+        self._outputs.publish_result(PairResult(
+            source.stamp_ns, source.frame_id, 'rejected' if cause else 'published', cause,
+            message, target.stamp_ns, target.frame_id,
+            self.node_config.pose_frame_id or target.frame_id, valid, result))
 
     def _settle(self, cause: str, message: str) -> None:
         """Answer requests still pending after a pair that failed before :meth:`_finish`."""

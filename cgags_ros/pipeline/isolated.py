@@ -1,20 +1,28 @@
 """
-The registration worker: ``register_clouds`` in a supervised child process.
+``register_clouds`` in a supervised child process, with a time limit.
 
-ROS-free by itself, but it exists for the node: a pathological input that makes the
-pipeline loop costs one pair (the child is killed past the time limit), and a child that
-dies (the OOM killer, a native crash in a library, ``kill -9``), idle or busy, is replaced
-by a fresh one; the node keeps registering.
+A pathological input that makes the pipeline loop costs one pair (the child is killed past
+the time limit and a fresh one started), and a child that dies (the OOM killer, a native
+crash in a library, ``kill -9``), idle or busy, is replaced; the caller keeps registering.
+The node runs every pair through it (``registration_timeout`` > 0); any other caller that
+must survive a bad pair can too.
+
+Built on public API only: one ``multiprocessing`` spawn-context :class:`~multiprocessing.Process`
+and a :func:`~multiprocessing.Pipe` per child. Jobs go down the pipe one at a time; a thread
+of this process reads the answers into :class:`concurrent.futures.Future` objects and, when
+the pipe ends (the child died), fails the job in flight.
 """
 
 from __future__ import annotations
 
-from concurrent.futures import ProcessPoolExecutor
+import collections
+from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
-from concurrent.futures.process import BrokenProcessPool
 import dataclasses
 import multiprocessing
 import os
+import pickle
+import signal
 import threading
 from typing import Any, Callable
 
@@ -22,6 +30,7 @@ import numpy as np
 
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError
+from ..parallel import quiet_idle_threads
 
 RegisterFn = Callable[..., Any]  # register_clouds(source, target, *, config) -> PipelineResult
 
@@ -58,7 +67,7 @@ def _resolve(target: Any, config: PipelineConfig) -> Any:
     if not isinstance(target, MapRef):
         return target
     global _map_holder
-    from ..pipeline.map import MapHolder
+    from .map import MapHolder
 
     if _map_holder is None:
         _map_holder = MapHolder()
@@ -72,7 +81,7 @@ def register_any(source: np.ndarray, target: Any, *, config: PipelineConfig) -> 
     For a map the result's ``stats['map']`` holds the map's summary (cache hit or miss,
     points, load time).
     """
-    from ..pipeline import register_clouds
+    from . import register_clouds
 
     prepared = _resolve(target, config)
     result = register_clouds(source, prepared, config=config)
@@ -106,10 +115,44 @@ def _register_in_child(source: np.ndarray, target: np.ndarray | None, *,
     return register_any(source, _child_target, config=config)  # the parent needs no Open3D
 
 
-def _warm_up_in_child() -> Any:
-    from ..pipeline import warm_up
+def _serve(conn: Any) -> None:
+    """
+    Run in the child: warm up and answer, then run each job of the pipe and answer it.
 
-    return warm_up()
+    Every answer is ``(ok, value)``: the job's return value or the exception it raised.
+    The parent decides when the child ends (it kills it, or closes the pipe), so a Ctrl-C
+    meant for the parent's terminal does not end a registration here.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from . import warm_up
+
+    # Warm-up: the pipeline imported (Open3D) and every stage run once on a small synthetic
+    # pair, so that no start-up cost is counted against a real pair's limit.
+    ok, value = _run(warm_up, (), {})
+    answer = _pickled(ok, None if ok else value)
+    while True:
+        try:
+            conn.send_bytes(answer)
+            fn, args, kwargs = conn.recv()
+        except (EOFError, OSError):
+            return  # the parent is gone or closed the pipe
+        answer = _pickled(*_run(fn, args, kwargs))
+
+
+def _run(fn: Callable[..., Any], args: tuple, kwargs: dict) -> tuple[bool, Any]:
+    try:
+        return True, fn(*args, **kwargs)
+    except Exception as exc:  # noqa: BLE001 - sent back, raised in the parent
+        return False, exc
+
+
+def _pickled(ok: bool, value: Any) -> bytes:
+    """Return the answer ``(ok, value)`` as bytes for the pipe, or an error that pickles."""
+    try:
+        return pickle.dumps((ok, value), protocol=pickle.HIGHEST_PROTOCOL)
+    except Exception as exc:  # noqa: BLE001 - an answer that does not pickle
+        return pickle.dumps((False, CgagsError(
+            f'the registration process cannot send back {value!r}: {exc!r}')))
 
 
 def rss_mb(pid: int | None = None) -> float | None:
@@ -122,8 +165,8 @@ def rss_mb(pid: int | None = None) -> float | None:
     return pages * os.sysconf('SC_PAGE_SIZE') / 1e6
 
 
-def _running(pid: int) -> bool:
-    """Tell whether process ``pid`` exists and is not a zombie."""
+def running(pid: int) -> bool:
+    """Tell whether process ``pid`` exists and is not a zombie (dead, not yet reaped)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -137,38 +180,121 @@ def _running(pid: int) -> bool:
         return True  # no /proc: the signal test is all there is
 
 
+class _ChildDied(Exception):
+    """The child's pipe ended: the process is gone."""
+
+
+class _Child:
+    """One spawned registration process, its pipe, and the thread that reads its answers."""
+
+    def __init__(self) -> None:
+        # Spawn, not fork: forking a process that runs DDS threads is unsafe. The child
+        # inherits this environment and loads numpy before any code of ours runs in it.
+        quiet_idle_threads()
+        context = multiprocessing.get_context('spawn')
+        self.conn, child_end = context.Pipe()
+        self.process = context.Process(target=_serve, args=(child_end,),
+                                       name='cgags-registration', daemon=True)
+        self.process.start()
+        child_end.close()  # the child's copy alone keeps it open: its death ends the pipe
+        self.warm: Future = Future()  # the first answer is the warm-up's
+        self._waiting: collections.deque[Future] = collections.deque([self.warm])
+        self._lock = threading.Lock()
+        self.ended = False
+        self._reader = threading.Thread(target=self._read, name='registration-answers',
+                                        daemon=True)
+        self._reader.start()
+
+    @property
+    def alive(self) -> bool:
+        """Tell whether the process still runs (by pid: a zombie counts as dead)."""
+        return not self.ended and running(self.process.pid)
+
+    def submit(self, fn: Callable[..., Any], args: tuple, kwargs: dict) -> Future:
+        """Send one job; return the future of its answer. :raises _ChildDied: it is gone."""
+        future: Future = Future()
+        with self._lock:
+            if self.ended:
+                raise _ChildDied()
+            self._waiting.append(future)
+        try:
+            self.conn.send((fn, args, kwargs))
+        except BaseException as exc:
+            # Nothing was sent (a job that does not pickle) or the pipe is broken: no
+            # answer will come for this future.
+            with self._lock:
+                if future in self._waiting:
+                    self._waiting.remove(future)
+            if isinstance(exc, (EOFError, OSError)):
+                raise _ChildDied() from None
+            raise
+        return future
+
+    def _read(self) -> None:
+        while True:
+            try:
+                ok, value = self.conn.recv()
+            except (EOFError, OSError):
+                break
+            except Exception as exc:  # noqa: BLE001 - an answer that does not unpickle
+                ok, value = False, CgagsError(f'unreadable answer of the registration '
+                                              f'process: {exc!r}')
+            with self._lock:
+                future = self._waiting.popleft() if self._waiting else None
+            if future is None:
+                continue
+            if ok:
+                future.set_result(value)
+            else:
+                future.set_exception(value)
+        with self._lock:
+            self.ended = True
+            waiting, self._waiting = list(self._waiting), collections.deque()
+        for future in waiting:
+            future.set_exception(_ChildDied())
+
+    def kill(self) -> None:
+        """End the process now (a job in flight fails) and release the pipe."""
+        self.process.kill()
+        self.process.join(5.0)
+        self._reader.join(5.0)  # the pipe ended with the process
+        self.conn.close()
+
+
 class IsolatedRegistration:
     """
     Run ``register_clouds`` in one spawned child process, supervised, with a time limit.
 
-    Spawn, not fork: forking a process that runs DDS threads is unsafe. Results and typed
-    errors come back pickled. The child keeps the last target: a target that is the same
-    array object as the previous call's is not sent again (the node never writes to a
-    decoded cloud).
+    Results and typed errors come back pickled. The child keeps the last target: a target
+    that is the same array object as the previous call's is not sent again (the node never
+    writes to a decoded cloud); ``targets_sent`` counts the targets that crossed the pipe.
 
     Supervision: a child found dead before a pair is sent (it died idle) is replaced and
     the pair runs on the fresh one; a child that dies during a pair is replaced and that
     pair fails with :class:`WorkerCrashed`. :meth:`supervise` replaces a dead idle child
     early, so that the next pair does not wait for the fresh one's start-up. ``crashes``
-    counts deaths, ``restarts`` every replacement (crashes and timeouts).
+    counts deaths, ``restarts`` every replacement (crashes and timeouts). ``busy`` is set
+    from the moment a job (a pair, a map) is sent to the child until its answer.
     """
 
     def __init__(self, timeout_s: float):
         self.timeout_s = timeout_s
         self.crashes = 0
         self.restarts = 0
-        self._pool: Any = None
+        self.targets_sent = 0
+        self.busy = threading.Event()
+        self._child: _Child | None = None
         self._closed = False
-        self._busy = False
-        self._lock = threading.Lock()  # guards the pool between the worker and supervise()
+        self._calling = False  # a call is using the child (supervise() leaves it alone)
+        self._lock = threading.Lock()  # guards the child between callers and supervise()
         self._sent_target: np.ndarray | None = None  # what the child holds (by identity)
         self._start()
 
     @property
     def pid(self) -> int | None:
-        """Return the child's process id (None before it started or after close)."""
-        processes = getattr(self._pool, '_processes', None) or {}
-        return next(iter(processes), None)
+        """Return the child's process id (None after close)."""
+        child = self._child
+        return None if child is None else child.process.pid
 
     def health(self) -> dict[str, Any]:
         """Return the worker's counters and resident memory, for /diagnostics."""
@@ -181,17 +307,19 @@ class IsolatedRegistration:
     @property
     def ready(self) -> bool:
         """Tell whether the child has finished its warm-up (a pair then starts at once)."""
-        warm = self._warm
-        return self._pool is not None and (warm is None or warm.done())
+        child = self._child
+        return child is not None and child.warm.done()
 
     def wait_ready(self) -> None:
         """Wait for the warm-up; raise :class:`WorkerCrashed` if it failed or did not end."""
-        self._wait_for_warm_up(self._warm, strict=True)
+        child = self._child
+        if child is not None:
+            self._wait_for_warm_up(child, strict=True)
 
     def supervise(self) -> bool:
         """Replace a child that died while idle; return True when one was replaced."""
         with self._lock:
-            if self._closed or self._busy or self._pool is None or self._alive():
+            if self._closed or self._calling or self._child is None or self._alive():
                 return False
             self._crashed()
             return True
@@ -203,7 +331,8 @@ class IsolatedRegistration:
             # Only a completed call proves the child holds this target; after any failure
             # it is sent again.
             self._sent_target = None
-            return self._fn, (source, None if held else target), {'config': config}
+            self.targets_sent += not held
+            return _register_in_child, (source, None if held else target), {'config': config}
 
         try:
             result = self._in_child(
@@ -239,64 +368,58 @@ class IsolatedRegistration:
         replaced and :class:`WorkerCrashed` (``died``) raised.
         """
         with self._lock:
-            if self._pool is None:
-                raise RegistrationTimeout('the registration process is shut down')
-            if not self._alive():  # died while idle: nothing of this call is lost
-                self._crashed()
-            warm = self._warm
-            self._busy = True
+            self._calling = True
         try:
-            self._wait_for_warm_up(warm)
-            fn, args, kwargs = job()
-            return self._submit(fn, *args, **kwargs).result(timeout=timeout_s)
-        except FutureTimeout:
+            future = self._send(job)
+            self.busy.set()
+            try:
+                return future.result(timeout=timeout_s)
+            except FutureTimeout:
+                if future.done():
+                    raise  # the job's own error, not the time limit
             self.restart()
-            raise RegistrationTimeout(f'{too_long}; its process was restarted') from None
-        except BrokenProcessPool:
+            raise RegistrationTimeout(f'{too_long}; its process was restarted')
+        except _ChildDied:
             with self._lock:
                 if not self._closed:
                     self._crashed()
             raise WorkerCrashed(f'the registration process died {died}; restarted') from None
         finally:
+            self.busy.clear()
             with self._lock:
-                self._busy = False
+                self._calling = False
 
-    def _submit(self, *args: Any, **kwargs: Any) -> Any:
-        """Submit to the child; one that died since the last check (idle) is replaced."""
-        with self._lock:
-            if self._pool is None:
-                raise RegistrationTimeout('the registration process is shut down')
-            try:
-                return self._pool.submit(*args, **kwargs)
-            except BrokenProcessPool:
-                self._crashed()
-                warm = self._warm
-        self._wait_for_warm_up(warm)
-        with self._lock:
-            if self._pool is None:
-                raise RegistrationTimeout('the registration process is shut down')
-            return self._pool.submit(*args, **kwargs)
-
-    def _wait_for_warm_up(self, warm: Any, strict: bool = False) -> None:
-        if warm is None:
-            return
+    def _send(self, job: Callable[[], tuple[Any, tuple, dict]]) -> Future:
+        """Send ``job()`` to the warm child; return the future of its answer."""
+        child = self._warm_child()
         try:
-            warm.result(timeout=WARM_UP_LIMIT_S)
+            return child.submit(*job())
+        except _ChildDied:  # died idle since the check: the job goes to a fresh child
+            return self._warm_child(dead=child).submit(*job())
+
+    def _warm_child(self, dead: _Child | None = None) -> _Child:
+        """Return the child once warm; one found dead (it died idle) is replaced first."""
+        with self._lock:
+            if self._child is None:
+                raise RegistrationTimeout('the registration process is shut down')
+            if self._child is dead or not self._alive():  # nothing of this call is lost
+                self._crashed()
+            child = self._child
+        self._wait_for_warm_up(child)
+        return child
+
+    def _wait_for_warm_up(self, child: _Child, strict: bool = False) -> None:
+        try:
+            child.warm.result(timeout=WARM_UP_LIMIT_S)
         except Exception as exc:  # noqa: BLE001 - not strict: it shows again on the real pair
             if strict:
                 why = (f'not ready after {WARM_UP_LIMIT_S:g} s' if isinstance(exc, FutureTimeout)
-                       else 'it died' if isinstance(exc, BrokenProcessPool) else repr(exc))
+                       else 'it died' if isinstance(exc, _ChildDied) else repr(exc))
                 raise WorkerCrashed(f'the registration process failed to start ({why})') from None
-        with self._lock:
-            if self._warm is warm:
-                self._warm = None
 
     def _alive(self) -> bool:
-        if self._pool is None or getattr(self._pool, '_broken', False):
-            return False
-        # By pid, not Process.is_alive(): once the pool's manager thread has reaped a dead
-        # child, is_alive() in another thread reports it as running.
-        return all(_running(pid) for pid in list(getattr(self._pool, '_processes', {})))
+        child = self._child
+        return child is not None and child.alive
 
     def _crashed(self) -> None:
         self.crashes += 1
@@ -314,36 +437,24 @@ class IsolatedRegistration:
             self._start()
 
     def _start(self) -> None:
-        self._fn = _register_in_child
         self._sent_target = None
-        self._pool = ProcessPoolExecutor(max_workers=1,
-                                         mp_context=multiprocessing.get_context('spawn'))
-        # Warm-up: the child imports the pipeline (Open3D) and runs every stage once on a
-        # small synthetic pair, so no start-up cost is counted against a real pair's limit.
-        self._warm = self._pool.submit(_warm_up_in_child)
+        self._child = _Child()
 
     def close(self) -> None:
-        """Stop the child and the pool for good."""
+        """Stop the child for good."""
         with self._lock:
             self._closed = True
-            # Wait for the pool's manager thread: one still running at interpreter exit
-            # races concurrent.futures' atexit hook, which then prints "OSError: handle is
-            # closed". The child is killed first, so this returns at once.
-            self._kill(wait=True)
+            self._kill()
 
-    def _kill(self, wait: bool = False) -> None:
-        pool, self._pool = self._pool, None
-        if pool is None:
-            return
-        # ProcessPoolExecutor cannot cancel a running call: stop its process directly.
-        for proc in list(getattr(pool, '_processes', {}).values()):
-            proc.kill()
-        pool.shutdown(wait=wait, cancel_futures=True)
+    def _kill(self) -> None:
+        child, self._child = self._child, None
+        if child is not None:
+            child.kill()
 
 
 def load_pipeline() -> RegisterFn:
     """Import the pipeline (and Open3D) now and warm it up; return :func:`register_any`."""
-    from ..pipeline import warm_up
+    from . import warm_up
 
     warm_up()  # pay Open3D's start-up now rather than on the first pair
     return register_any

@@ -18,7 +18,7 @@ import time
 from typing import Any
 
 from .transport import user_line
-from ..pipeline.pairing import Pair, Pairer
+from ..pipeline.pairing import is_source_drop, Pair, Pairer, Stamped
 from ..pipeline.upstream import UpstreamLoss
 
 LOG_REPEAT_S = 30.0  # a cause already logged is logged again at most this often
@@ -38,6 +38,8 @@ class NodeHealth:
         self._in_progress = 0
         self._failing = ''  # why the worker failed, until a registration succeeds again
         self._logged: dict[str, float] = {}
+        self._dropped: list[tuple[str, Stamped]] = []  # sources pairing dropped, not yet told
+        pairer.on_drop = self._on_drop
 
     def failed(self, cause: str) -> None:
         """Mark the registration worker failing (``cause``) until a registration succeeds."""
@@ -82,6 +84,16 @@ class NodeHealth:
             else:
                 self._pairer.add_target(stamp_ns, frame_id, payload)
             return lost
+
+    def _on_drop(self, reason: str, item: Stamped) -> None:
+        if is_source_drop(reason):  # under the lock of receive(): the pairer's caller
+            self._dropped.append((reason, item))
+
+    def dropped_sources(self) -> list[tuple[str, Stamped]]:
+        """Return the (reason, source) pairing dropped since the last call, oldest first."""
+        with self._lock:
+            dropped, self._dropped = self._dropped, []
+            return dropped
 
     def take(self, timeout: float) -> Pair | None:
         """Return the next ready pair (now in progress), or None after ``timeout`` s."""
