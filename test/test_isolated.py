@@ -12,15 +12,16 @@ import signal
 import threading
 
 from cgags_ros.config import PipelineConfig
-from cgags_ros.datasets.synthetic import terrain_patch
 from cgags_ros.errors import EmptyCloudError
 from cgags_ros.pipeline import register_clouds
 from cgags_ros.pipeline.isolated import (IsolatedRegistration, RegistrationTimeout, rss_mb,
                                          running, WorkerCrashed)
+from cgags_ros.pipeline.register import terrain_patch
 import numpy as np
 import pytest
 from waiting import wait_for
 
+pytestmark = pytest.mark.subprocess
 CONFIG = PipelineConfig(voxel_size=0.15)
 
 

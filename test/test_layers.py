@@ -154,6 +154,7 @@ def test_ros_is_wiring_only():
         'decisions belong in localizer/')
 
 
+@pytest.mark.subprocess
 def test_importing_the_package_sets_no_environment_and_the_entry_points_do():
     """The idle-thread settings belong to the processes that run the pipeline, not to importers."""
     # (Open3D sets KMP_* variables of its own when it loads.)
