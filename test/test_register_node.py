@@ -26,7 +26,6 @@ from cgags_ros.errors import InvalidConfigError  # noqa: E402, I100
 from cgags_ros.geometry import rotation_error_deg, translation_error  # noqa: E402
 from cgags_ros.io.bag import read_messages  # noqa: E402
 from cgags_ros.io.pointcloud2 import pose_to_transform  # noqa: E402
-from cgags_ros.pipeline.register import terrain_patch  # noqa: E402
 from cgags_ros.pipeline.result import PipelineResult  # noqa: E402
 from cgags_ros.ros.conversions import to_rclpy_pointcloud2, xyz_to_pointcloud2  # noqa: E402
 from cgags_ros.ros.node import RegisterNode  # noqa: E402

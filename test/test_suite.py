@@ -17,7 +17,8 @@ import pytest
 HERE = Path(__file__).resolve().parent
 MODULES = sorted(HERE.glob('test_*.py'))
 
-DDS = re.compile(r"spun_context\(|rclpy\.init\(|'-m', 'cgags_ros\.register_node'|RegisterNode\(|--live")
+DDS = re.compile(r"spun_context\(|rclpy\.init\(|RegisterNode\(|--live|"
+                 r"'-m', 'cgags_ros\.register_node'")
 PROCESS = re.compile(r'subprocess\.(run|Popen|check_output|call)\(|IsolatedRegistration\(|'
                      r'multiprocessing\.|colcon\', \'build')
 DOMAIN = re.compile(r"^DOMAIN_ID = (\d+)|'ROS_DOMAIN_ID': '(\d+)'", re.M)
