@@ -17,7 +17,7 @@ import pytest
 HERE = Path(__file__).resolve().parent
 MODULES = sorted(HERE.glob('test_*.py'))
 
-DDS = re.compile(r"spun_context\(|rclpy\.init\(|RegisterNode\(|--live|"
+DDS = re.compile(r'spun_context\(|rclpy\.init\(|RegisterNode\(|--live|'
                  r"'-m', 'cgags_ros\.register_node'")
 PROCESS = re.compile(r'subprocess\.(run|Popen|check_output|call)\(|IsolatedRegistration\(|'
                      r'multiprocessing\.|colcon\', \'build')
