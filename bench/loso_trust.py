@@ -51,7 +51,8 @@ MAX_RE_DEG = 15.0
 MAX_TE_M = 0.3
 GRID_FACTORS = (2, 4, 8, 16)  # coarse grids (voxel sizes) over which overlap cells are counted
 SLIDE_FACTOR = 10.0  # voxel sizes a slide rival starts away from the estimate
-RIVAL_ITERATIONS = 15  # refinement iterations a stage for a structured rival
+RIVAL_ITERATIONS = 5  # refinement iterations a stage for a structured rival
+PROMISING = 0.25  # a rival is refined only when it starts with this share of T's fitness
 
 
 def pose_error(T: np.ndarray, gt: np.ndarray) -> np.ndarray:
@@ -105,8 +106,14 @@ def overlap_information(fs, ft, T: np.ndarray, distance: float, voxel: float) ->
 
 
 def structured_rivals(fs, ft, T: np.ndarray, info: dict, cfg: PipelineConfig, tau: float,
-                      gt: np.ndarray) -> list[dict]:
-    """Return the structured rivals of ``T`` (see the module doc), refined and measured."""
+                      gt: np.ndarray, fitness: float) -> list[dict]:
+    """
+    Return the structured rivals of ``T`` (see the module doc), refined and measured.
+
+    A rival whose start already fits far worse than ``T`` (below ``PROMISING`` times its
+    ``fitness``) is measured where it starts, not refined: refining every start would
+    cost several pipelines a pair.
+    """
     if 'axes' not in info:
         return []
     v = cfg.voxel_size
@@ -130,13 +137,15 @@ def structured_rivals(fs, ft, T: np.ndarray, info: dict, cfg: PipelineConfig, ta
         t0 = time.perf_counter()
         first = evaluate_alignment(fs.points, ft.tree, start, distance)
         start_violation = measured_free_space(fs, ft, start, cfg)
+        promising = first.fitness >= PROMISING * fitness
         R = refine_transform(fs.points, ft.points, start, voxel_size=v, config=refine,
-                             target_normals=ft.normals, coarse_distance=tau)
+                             target_normals=ft.normals, coarse_distance=tau) \
+            if promising else start
         ahead = evaluate_alignment(fs.points, ft.tree, R, distance)
         back = evaluate_alignment(ft.points, fs.tree, np.linalg.inv(R), distance)
         out.append({
             'name': name, 'transform': R.tolist(), 'fitness': ahead.fitness,
-            'start_fitness': first.fitness, 'start_violation': _num(start_violation),
+            'refined': bool(promising), 'start_fitness': first.fitness, 'start_violation': _num(start_violation),
             'overlap': min(ahead.fitness, back.fitness), 'rmse': _num(ahead.inlier_rmse),
             'free_space_violation': _num(measured_free_space(fs, ft, R, cfg)),
             'from_estimate_deg': rotation_error_deg(R, T),
@@ -201,7 +210,7 @@ def measure_pair(src: np.ndarray, tgt: np.ndarray, pair: tdm.GtPair,
     rec['overlap_info'] = info
     if result.valid:  # rivals can only refuse: measured where there is something to refuse
         rec['rivals'] = structured_rivals(fs, ft, T, info, cfg, float(result.inlier_threshold),
-                                          gt)
+                                          gt, float(result.fitness))
     return rec
 
 
