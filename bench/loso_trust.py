@@ -23,6 +23,10 @@ refined and judged like the estimate (overlap, free-space violation, distance fr
 estimate, error against the truth), for the estimates the pipeline calls valid (a rival
 can only refuse).
 
+``timing`` registers a sample of pairs (``--pairs`` a scene and list) cold with the
+defaults, with the structured rivals and the confidence threshold off, and with
+KISS-Matcher, interleaved pair by pair, and prints the median seconds of each.
+
 The offline study of those records (each lever chosen on three scenes, reported on the
 fourth) is ``bench/loso_trust_study.py``. Results go under the git-ignored ``out/``.
 """
@@ -251,6 +255,39 @@ def measure(args) -> None:
     print(f'wrote {args.output} in {time.time() - t_start:.0f} s')
 
 
+def timing(args) -> None:
+    """Time the defaults against the levers off, cold, interleaved pair by pair."""
+    import kiss_matcher
+
+    from cgags_ros.pipeline import clear_feature_cache
+
+    configs = {'defaults': PipelineConfig(voxel_size=args.voxel),
+               'levers off': PipelineConfig(voxel_size=args.voxel, structured_rivals=False,
+                                            min_confidence=0.0)}
+    times: dict = {}
+    rng = np.random.default_rng(args.seed)
+    for scene in args.scenes or tdm.scenes(args.root, '3DMatch'):
+        fragments = tdm.Fragments(args.root, scene)
+        for benchmark in tdm.BENCHMARKS:
+            pairs = tdm.registration_pairs(args.root, benchmark, scene)
+            for i in np.sort(rng.choice(len(pairs), size=min(args.pairs, len(pairs)),
+                                        replace=False)):
+                src, tgt = fragments[pairs[i].source], fragments[pairs[i].target]
+                for name, cfg in configs.items():
+                    clear_feature_cache()
+                    t0 = time.perf_counter()
+                    register_clouds(src, tgt, config=cfg)
+                    times.setdefault((benchmark, name), []).append(time.perf_counter() - t0)
+                t0 = time.perf_counter()
+                kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(args.voxel)).estimate(
+                    src.astype(np.float32), tgt.astype(np.float32))
+                times.setdefault((benchmark, 'kiss_matcher'), []).append(
+                    time.perf_counter() - t0)
+    for (benchmark, name), ts in sorted(times.items()):
+        print(f'{benchmark} {name}: median {np.median(ts):.3f} s, mean {np.mean(ts):.3f} s '
+              f'over {len(ts)} pairs')
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
     sub = p.add_subparsers(dest='command', required=True)
@@ -262,8 +299,14 @@ def main(argv: list[str] | None = None) -> int:
     m.add_argument('--voxel', type=float, default=0.05)
     m.add_argument('--resume', action='store_true', help='skip pairs already recorded')
     m.add_argument('--output', type=Path, default=Path('out/loso_trust/records.jsonl'))
+    t = sub.add_parser('timing', help='time the defaults, the levers off and KISS-Matcher')
+    t.add_argument('--root', type=Path, default=shared_data_dir() / '3dmatch_benchmark')
+    t.add_argument('--scenes', nargs='+', default=None)
+    t.add_argument('--pairs', type=int, default=10, help='pairs a scene and list')
+    t.add_argument('--seed', type=int, default=0)
+    t.add_argument('--voxel', type=float, default=0.05)
     args = p.parse_args(argv)
-    measure(args)
+    {'measure': measure, 'timing': timing}[args.command](args)
     return 0
 
 

@@ -122,8 +122,8 @@ def position_sigma(S: np.ndarray) -> np.ndarray:
     return np.sqrt(np.trace(S[:, :3, :3], axis1=1, axis2=2))
 
 
-COV_GRID = {'g': GRIDS, 'k': tuple(np.geomspace(0.25, 64, 25)),
-            'ft': (0.0, 0.25, 0.5, 0.75, 1.0), 'fr': (0.0, 0.25, 0.5, 1.0, 1.5, 2.0)}
+COV_GRID = {'g': ('4', '8', '16'), 'k': tuple(np.geomspace(0.25, 64, 25)),
+            'ft': (0.0, 0.25, 0.5, 0.75), 'fr': (0.0, 0.5, 1.0, 1.5)}
 
 
 def cov_stats(S: np.ndarray, e: np.ndarray, right: np.ndarray, bench: np.ndarray) -> dict:
@@ -146,17 +146,27 @@ def fit_covariance(M: dict, idx: np.ndarray, right: np.ndarray, bench: np.ndarra
     """Return (g, k, ft, fr): the sharpest setting covering >= 90 % per list on ``idx``."""
     best, best_sig = None, math.inf
     e = M['e'][idx]
+
+    def covers(S):
+        st = cov_stats(S, e, right[idx], bench[idx])
+        return all(st[b]['inside95'] is None or st[b]['inside95'] >= 0.9 for b in st), st
+
     for g, ft, fr in itertools.product(COV_GRID['g'], COV_GRID['ft'] if floors else (0.0,),
                                        COV_GRID['fr'] if floors else (0.0,)):
         F = floor_matrix(ft, fr, M['radius'][idx])
-        for k in COV_GRID['k']:  # smallest k first: the first that covers is the sharpest
-            S = k * M[g][idx] + F
-            st = cov_stats(S, e, right[idx], bench[idx])
-            if all(st[b]['inside95'] is None or st[b]['inside95'] >= 0.9 for b in st):
-                sig = st['3DMatch']['median_sigma_vox']
-                if sig < best_sig:
-                    best, best_sig = (g, float(k), ft, fr), sig
-                break
+        lo, hi = 0, len(COV_GRID['k']) - 1  # coverage grows with k: bisect the smallest
+        if not covers(COV_GRID['k'][hi] * M[g][idx] + F)[0]:
+            continue
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if covers(COV_GRID['k'][mid] * M[g][idx] + F)[0]:
+                hi = mid
+            else:
+                lo = mid + 1
+        k = COV_GRID['k'][lo]
+        sig = covers(k * M[g][idx] + F)[1]['3DMatch']['median_sigma_vox']
+        if sig < best_sig:
+            best, best_sig = (g, float(k), ft, fr), sig
     return best
 
 
@@ -284,12 +294,22 @@ def design(records: list[dict], names=FEATURES) -> tuple[np.ndarray, np.ndarray]
 
 
 def fit_logistic(X: np.ndarray, y: np.ndarray, c: float = 1.0) -> dict:
-    from sklearn.linear_model import LogisticRegression
-
+    """Return L2-regularised (``1 / c`` on standardised weights) logistic weights, by Newton."""
     mean, scale = X.mean(axis=0), X.std(axis=0) + 1e-9
-    model = LogisticRegression(C=c, max_iter=2000).fit((X - mean) / scale, y)
-    w = model.coef_[0] / scale
-    return {'weights': w.tolist(), 'intercept': float(model.intercept_[0] - w @ mean)}
+    Z = np.column_stack([(X - mean) / scale, np.ones(len(X))])
+    w = np.zeros(Z.shape[1])
+    ridge = np.full(Z.shape[1], 1.0 / c)
+    ridge[-1] = 0.0
+    for _ in range(50):
+        p = 1.0 / (1.0 + np.exp(-Z @ w))
+        grad = Z.T @ (p - y) + ridge * w
+        H = (Z * (p * (1 - p))[:, None]).T @ Z + np.diag(ridge)
+        step = np.linalg.solve(H, grad)
+        w -= step
+        if np.abs(step).max() < 1e-8:
+            break
+    weights = w[:-1] / scale
+    return {'weights': weights.tolist(), 'intercept': float(w[-1] - weights @ mean)}
 
 
 def predict(model: dict, X: np.ndarray) -> np.ndarray:
@@ -435,10 +455,11 @@ def main(argv: list[str] | None = None) -> int:
     p_final = np.zeros(len(records))
     p_final[keep] = predict(final, X)
     bench = np.array([r['benchmark'] for r in records])
-    gated = valid & ~np.array([v and rival_refuses(r, *fit_rivals(records, valid))
+    rivals_all = fit_rivals(records, valid)
+    gated = valid & ~np.array([v and rival_refuses(r, *rivals_all)
                                for r, v in zip(records, valid)], dtype=bool)
     parts.append('### Fit on all scenes (the shipped settings)\n\n'
-                 f'rivals (L, rho, apart): {fit_rivals(records, valid)}\n\n'
+                 f'rivals (L, rho, apart): {rivals_all}\n\n'
                  f"covariance (g, k, f_t, f_r): {cov['settings']['plane+floor (all scenes)']}\n\n"
                  f'confidence threshold: {threshold_for(p_final, gated, right, bench)}\n\n'
                  'WEIGHTS = {' + ', '.join(f"'{n}': {w:.4g}" for n, w in
