@@ -16,13 +16,14 @@ scene left out in turn; only the held-out figures count. Levers:
     ``s2``, ``N`` overlapping points, ``C_g`` of their cells at a g-voxel grid (the
     effective number of independent points: neighbours share their errors), a scale ``k``
     and a floor ``F`` (``f_t`` voxels on each position axis; on each rotation axis the
-    angle that moves a point at the overlap's RMS radius by ``f_r`` voxels). Chosen on the training scenes: the sharpest (smallest median position
-    sigma of valid 3DMatch poses) with >= 90 % of the valid right poses of each list inside
-    their 95 % ellipsoid.
+    angle that moves a point at the overlap's RMS radius by ``f_r`` voxels). Chosen on the
+    training scenes: the sharpest (smallest median position sigma of valid 3DMatch poses)
+    with >= 90 % of the valid right poses of each list inside their 95 % ellipsoid.
 ``rivals``
     The structured rivals: a valid pose is refused when a rival distinct from it (more
     than 10 degrees or ``apart`` voxels away) has a free-space violation at most ``L`` and
-    an overlap at least the estimate's / ``rho``. (L, rho, apart) chosen on the training
+    a fitness at least the estimate's / ``rho`` (judging by the overlap, the smaller share
+    of both clouds, gives the same held-out figures). (L, rho, apart) chosen on the training
     scenes: the most wrong poses refused while refusing at most 1 % of the right valid
     ones.
 ``confidence``
@@ -111,7 +112,7 @@ def nees(S: np.ndarray, e: np.ndarray) -> np.ndarray:
 
 
 def floor_matrix(ft_vox: float, fr_vox: float, radius: np.ndarray) -> np.ndarray:
-    """Return the floors: ``ft_vox`` voxels a position axis, ``fr_vox`` voxels at the RMS radius."""
+    """Return the floors: ``ft_vox`` voxels a position axis, ``fr_vox`` at the RMS radius."""
     F = np.zeros((len(radius), 6, 6))
     F[:, [0, 1, 2], [0, 1, 2]] = (ft_vox * VOXEL) ** 2
     F[:, [3, 4, 5], [3, 4, 5]] = ((fr_vox * VOXEL) / radius[:, None]) ** 2
@@ -215,7 +216,7 @@ def rival_refuses(r: dict, limit: float, rho: float, apart: float = 10.0) -> boo
         distinct = x['from_estimate_deg'] > 10 or x['from_estimate_m'] > apart * VOXEL
         violation = x['free_space_violation']
         if distinct and (violation is None or violation <= limit) \
-                and x['overlap'] * rho >= r['overlap']:
+                and x['fitness'] * rho >= r['fitness']:
             return True
     return False
 
@@ -440,7 +441,8 @@ def main(argv: list[str] | None = None) -> int:
             flag_table(both['after'], '+ rivals + confidence'))
     parts.append('### Valid flag: keeps [%] / valid but wrong\n\n' + markdown_table(
         ('flag', 'list', *heads, 'all'), rows))
-    parts.append('rivals (L, rho, apart voxels) per held-out scene: ' + json.dumps(riv['settings']))
+    parts.append('rivals (L, rho, apart voxels) per held-out scene: '
+                 + json.dumps(riv['settings']))
     parts.append('confidence threshold per held-out scene: ' + json.dumps(conf['settings'])
                  + '; with rivals: ' + json.dumps(both['settings']))
     has = conf['has_estimate']
@@ -462,8 +464,8 @@ def main(argv: list[str] | None = None) -> int:
                  f'rivals (L, rho, apart): {rivals_all}\n\n'
                  f"covariance (g, k, f_t, f_r): {cov['settings']['plane+floor (all scenes)']}\n\n"
                  f'confidence threshold: {threshold_for(p_final, gated, right, bench)}\n\n'
-                 'WEIGHTS = {' + ', '.join(f"'{n}': {w:.4g}" for n, w in
-                                          zip(FEATURES, final['weights']))
+                 'WEIGHTS = {' + ', '.join(
+                     f"'{n}': {w:.4g}" for n, w in zip(FEATURES, final['weights']))
                  + f'}}\nINTERCEPT = {final["intercept"]:.4g}')
     text = '\n\n'.join(parts)
     print(text)
