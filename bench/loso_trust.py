@@ -44,7 +44,7 @@ from cgags_ros.config import PipelineConfig
 from cgags_ros.datasets import threedmatch as tdm
 from cgags_ros.datasets.synthetic import shared_data_dir
 from cgags_ros.frontend.refine import evaluate_alignment, refine_transform
-from cgags_ros.geometry import apply_transform, rotation_error_deg, spread, translation_error
+from cgags_ros.geometry import rotation_error_deg, spread, translation_error
 from cgags_ros.pipeline import cache, register_clouds
 from cgags_ros.pipeline.gates import measured_free_space
 from cgags_ros.registration import poisson_isf
@@ -149,7 +149,8 @@ def structured_rivals(fs, ft, T: np.ndarray, info: dict, cfg: PipelineConfig, ta
         back = evaluate_alignment(ft.points, fs.tree, np.linalg.inv(R), distance)
         out.append({
             'name': name, 'transform': R.tolist(), 'fitness': ahead.fitness,
-            'refined': bool(promising), 'start_fitness': first.fitness, 'start_violation': _num(start_violation),
+            'refined': bool(promising), 'start_fitness': first.fitness,
+            'start_violation': _num(start_violation),
             'overlap': min(ahead.fitness, back.fitness), 'rmse': _num(ahead.inlier_rmse),
             'free_space_violation': _num(measured_free_space(fs, ft, R, cfg)),
             'from_estimate_deg': rotation_error_deg(R, T),

@@ -374,6 +374,27 @@ def reliability(p: np.ndarray, right: np.ndarray, bins: int = 10) -> list[tuple]
     return rows
 
 
+def plot_reliability(rows: list[tuple], path: Path) -> None:
+    """Draw held-out mean confidence against the share right, per bin (size: estimates)."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(4.5, 4.5))
+    ax.plot([0, 1], [0, 1], color='grey', lw=1, label='calibrated')
+    n = np.array([r[1] for r in rows], dtype=float)
+    ax.scatter([r[2] for r in rows], [r[3] for r in rows], s=20 + 200 * n / n.max(),
+               label='held-out scenes (area: estimates)')
+    ax.set_xlabel('confidence (mean of the bin)')
+    ax.set_ylabel('share of right estimates')
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+    ax.legend(loc='upper left', fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 # --- report --------------------------------------------------------------------------------
 
 def flag_table(per_scene: dict, label: str) -> list[tuple]:
@@ -469,6 +490,8 @@ def main(argv: list[str] | None = None) -> int:
                  + f'}}\nINTERCEPT = {final["intercept"]:.4g}')
     text = '\n\n'.join(parts)
     print(text)
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    plot_reliability(rel_all, args.output.parent / (args.output.name + '_reliability.png'))
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.with_suffix('.md').write_text(text + '\n')
     args.output.with_suffix('.json').write_text(json.dumps({
