@@ -2,7 +2,8 @@
 Clouds in, result out: the one registration path of the node, the CLIs and benchmarks.
 
 :func:`register_clouds` (``register.py``) runs the front end, the core, refinement and the
-validity gates (``gates.py``); features of recent clouds are cached (``cache.py``);
+validity gates (``gates.py``), tries the structured rivals (``rivals.py``) and rates the
+estimate (``confidence.py``); features of recent clouds are cached (``cache.py``);
 ``covariance.py`` turns a result into a pose covariance, ``pairing.py`` pairs sources with
 targets for the node and the replay tool; ``tracking.py``'s :class:`Tracker` registers a
 stream's scans from their predicted pose when the gates allow, else globally.

@@ -274,14 +274,19 @@ def _significance_reason(result: PipelineResult, significance: float,
     """
     if significance <= 0:
         return ''
-    hypotheses = max(result.num_hypotheses, 1)
-    bound = members + poisson_isf(significance / hypotheses, result.chance_inliers)
+    bound = chance_bound(result, significance, members)
     if result.num_inliers > bound:
         return ''
     return (f'{result.num_inliers} inliers of {result.num_correspondences} correspondences '
             f'is no better than chance (random pairing gives {result.chance_inliers:.2g} per '
-            f'estimate; the best of {hypotheses} hypotheses reaches {bound:.0f}): the clouds '
-            'probably do not overlap')
+            f'estimate; the best of {max(result.num_hypotheses, 1)} hypotheses reaches '
+            f'{bound:.0f}): the clouds probably do not overlap')
+
+
+def chance_bound(result: PipelineResult, significance: float, members: int = 3) -> int:
+    """Return the inliers the best hypothesis reaches by chance (:func:`_significance_reason`)."""
+    hypotheses = max(result.num_hypotheses, 1)
+    return members + poisson_isf(significance / hypotheses, result.chance_inliers)
 
 
 def _observability_reason(result: PipelineResult, min_observability: float) -> str:

@@ -21,10 +21,12 @@ import numpy as np
 from .cache import cached_features
 from .candidates import (ambiguity_reason, find_candidates, rank_candidates, search_rivals,
                          verify_rivals)
+from .confidence import confidence_reason, features, probability
 from .covariance import result_covariance
 from .gates import gate, line_reason
 from .map import matches_config, PreparedMap
 from .result import PipelineResult
+from .rivals import mark_ambiguous, structured_rival
 from ..config import fields
 from ..config.pipeline import PipelineConfig
 from ..errors import DegenerateCorrespondencesError, EmptyCloudError, InvalidConfigError
@@ -67,12 +69,27 @@ def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
         return _register_clouds(source, target, voxel_size, config, DEFAULT_WORKERS)
 
 
-def _with_covariance(result: PipelineResult, cfg: PipelineConfig) -> PipelineResult:
-    """Set the covariance of the final estimate (every outcome of the pipeline has one)."""
-    core = cfg.core
+def _judged(result: PipelineResult, fs: CloudFeatures, ft: CloudFeatures,
+            cfg: PipelineConfig, start: float, reason: str,
+            map_target: bool = False) -> PipelineResult:
+    """
+    Finish a result that has an estimate: its covariance and confidence, then the verdict.
+
+    ``reason`` is the gates' ('' when they pass); a confidence below ``min_confidence``
+    refuses a 6-DoF pair's estimate the gates let through. Against a map or in 4-DoF mode
+    the confidence is reported but decides nothing: it was calibrated on 6-DoF pairs of
+    scans, and a map's overlap and rivals, or a yaw-only search, read differently.
+    """
+    four_dof = cfg.core.motion_model == '4dof'
     result.covariance = result_covariance(
-        result, core.gravity_axis if core.motion_model == '4dof' else None)
-    return result
+        result, fs.points, ft.points, ft.normals, ft.tree,
+        cfg.refine.max_correspondence_distance_factor * cfg.voxel_size,
+        cfg.core.gravity_axis if four_dof else None)
+    result.confidence = probability(features(result, cfg.refine.significance,
+                                             2 if four_dof else 3))
+    if map_target or four_dof:
+        return result.finish(start, reason)
+    return result.finish(start, reason or confidence_reason(result, cfg.min_confidence))
 
 
 def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float | None,
@@ -124,7 +141,7 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
     if core.reason and not unsettled:
         # nothing worth refining or gating further
         reason = _candidates(fs, ft, corr, result, cfg) or core.reason
-        return _with_covariance(result, cfg).finish(start, reason)
+        return _judged(result, fs, ft, cfg, start, reason, isinstance(target, PreparedMap))
     gravity = cfg.core.gravity_axis if cfg.core.motion_model == '4dof' else None
     with timed(result.timings, 'refinement'):
         result.transform = refine_transform(
@@ -148,7 +165,13 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
             reason = gate(fs, ft, corr, result, cfg, map_target, unsettled)
             chosen.fitness = result.fitness
     reason = ambiguity_reason(result, cfg) or reason
-    return _with_covariance(result, cfg).finish(start, reason)
+    if not reason and cfg.structured_rivals:
+        with timed(result.timings, 'structured_rivals'):
+            rival = structured_rival(fs, ft, corr, result, cfg, map_target, workers)
+        if rival is not None:
+            mark_ambiguous(result, rival)
+            reason = ambiguity_reason(result, cfg)
+    return _judged(result, fs, ft, cfg, start, reason, map_target)
 
 
 def _target_features(target: np.ndarray | PreparedMap, points: np.ndarray | None,

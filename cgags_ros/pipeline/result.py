@@ -73,14 +73,18 @@ class PipelineResult(RegistrationResult):
     :ivar candidates: up to ``num_candidates`` distinct :class:`Candidate` poses, best
         first (the first is ``transform``); empty when the core gave no estimate.
     :ivar ambiguous: True when the runner-up candidate is nearly as well supported as the
-        best (best/runner-up inliers below ``ambiguity_ratio``); the result is then
+        best (best/runner-up inliers below ``ambiguity_ratio``), or when a structured rival
+        (:mod:`.rivals`: the estimate turned or slid) fits about as well; the result is then
         invalid.
     :ivar runner_up_ratio: best / runner-up inlier count (inf without a runner-up).
     :ivar covariance: 6x6 covariance of ``transform``, row-major in geometry_msgs/
         PoseWithCovariance order (x, y, z in metres; rotation about the target frame's X, Y,
-        Z in radians), from the inlier correspondences
-        (:func:`~.covariance.result_covariance`); variances of 1e6 when fewer than three
-        support the estimate.
+        Z in radians, through the source origin), from the point-to-plane fit of the whole
+        overlap (:func:`~.covariance.overlap_covariance`); variances of 1e6 when fewer than
+        three correspondences support the estimate. docs/confidence.md says how to read it.
+    :ivar confidence: the probability that ``transform`` is right (within 15 degrees and 30
+        cm) given what the pipeline measured (:mod:`.confidence`); 0 without an estimate.
+        ``valid`` needs it at least ``min_confidence``.
     :ivar path: what produced the result: 'global' (the guess-free search of
         :func:`~.register.register_clouds`) or 'tracked' (refined from the pose predicted
         from a stream's last poses and judged by the same overlap gates,
@@ -106,6 +110,7 @@ class PipelineResult(RegistrationResult):
     ambiguous: bool = False
     runner_up_ratio: float = float('inf')
     covariance: np.ndarray = dataclasses.field(default_factory=lambda: np.diag([1e6] * 6))
+    confidence: float = 0.0
     path: str = 'global'
 
     def summary(self) -> dict[str, Any]:
@@ -123,5 +128,6 @@ class PipelineResult(RegistrationResult):
             free_space_violation=float(self.free_space_violation),
             candidates=[c.summary() for c in self.candidates], ambiguous=bool(self.ambiguous),
             runner_up_ratio=float(self.runner_up_ratio),
-            covariance=np.asarray(self.covariance, dtype=float).tolist(), path=self.path)
+            covariance=np.asarray(self.covariance, dtype=float).tolist(),
+            confidence=float(self.confidence), path=self.path)
         return out
