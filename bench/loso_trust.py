@@ -33,19 +33,20 @@ fourth) is ``bench/loso_trust_study.py``. Results go under the git-ignored ``out
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import math
 from pathlib import Path
 import time
 
+from bench.common import argument_parser
+from bench.datasets import threedmatch as tdm
 from cgags_ros.config import PipelineConfig
-from cgags_ros.datasets import threedmatch as tdm
-from cgags_ros.datasets.synthetic import shared_data_dir
 from cgags_ros.frontend.refine import evaluate_alignment, refine_transform
 from cgags_ros.geometry import rotation_error_deg, spread, translation_error
-from cgags_ros.pipeline import cache, register_clouds
+from cgags_ros.io.shared_data import shared_data_dir
+from cgags_ros.pipeline import cached_features, clear_feature_cache, register_clouds
+from cgags_ros.pipeline import set_feature_cache_size
 from cgags_ros.pipeline.gates import measured_free_space
 from cgags_ros.registration import poisson_isf
 import numpy as np
@@ -208,8 +209,8 @@ def measure_pair(src: np.ndarray, tgt: np.ndarray, pair: tdm.GtPair,
     if not result.candidates:
         return rec
     # Outside the timed call: both clouds' features are still in the cache.
-    fs = cache.cached_features(src, cfg.voxel_size, cfg.frontend, 'source')
-    ft = cache.cached_features(tgt, cfg.voxel_size, cfg.frontend, 'target')
+    fs = cached_features(src, cfg.voxel_size, cfg.frontend, 'source')
+    ft = cached_features(tgt, cfg.voxel_size, cfg.frontend, 'target')
     distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
     info = overlap_information(fs, ft, T, distance, cfg.voxel_size)
     rec['overlap_info'] = info
@@ -236,8 +237,8 @@ def measure(args) -> None:
     with open(args.output, 'a' if args.resume else 'w', encoding='utf-8') as sink:
         for scene in args.scenes or tdm.scenes(args.root, '3DMatch'):
             fragments = tdm.Fragments(args.root, scene)
-            cache.clear_feature_cache()
-            cache._CACHE_SIZE = 1000  # every fragment of a scene featurised once
+            clear_feature_cache()
+            set_feature_cache_size(1000)  # every fragment of a scene featurised once
             for benchmark in tdm.BENCHMARKS:
                 pairs = tdm.registration_pairs(args.root, benchmark, scene)
                 if args.pairs:
@@ -290,7 +291,7 @@ def timing(args) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
+    p = argument_parser(__spec__.name, __doc__)
     sub = p.add_subparsers(dest='command', required=True)
     m = sub.add_parser('measure', help='register every pair once and record everything')
     m.add_argument('--root', type=Path, default=shared_data_dir() / '3dmatch_benchmark')

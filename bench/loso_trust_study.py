@@ -37,16 +37,14 @@ Outputs ``--output`` + ``.md`` / ``.json`` / ``_reliability.png``.
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import json
 import math
 from pathlib import Path
-
 from types import SimpleNamespace
 
+from bench.common import argument_parser, markdown_table
 from cgags_ros.pipeline import confidence
-from cgags_ros.tools.report import markdown_table
 import numpy as np
 
 VOXEL = 0.05
@@ -432,7 +430,7 @@ def cov_table(study: dict, names: list[str]) -> list[tuple]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
+    p = argument_parser(__spec__.name, __doc__)
     p.add_argument('records', type=Path, nargs='?',
                    default=Path('out/loso_trust/records.jsonl'))
     p.add_argument('--output', type=Path, default=Path('out/loso_trust/study'))

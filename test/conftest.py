@@ -57,7 +57,7 @@ def redkitchen_pair(data_dir):
     A pair of the 3DMatch list of the benchmark's redkitchen scene (fragments ``source`` into
     ``target``, the truth projected onto a rotation).
     """
-    from cgags_ros.datasets import threedmatch as tdm
+    from bench.datasets import threedmatch as tdm
 
     root = require_shared(data_dir / '3dmatch_benchmark', '3dmatch_benchmark',
                           marker='benchmarks')
