@@ -11,9 +11,9 @@ from scipy.spatial import cKDTree
 # on real RGB-D pairs so that right poses fall inside their ellipsoids as often as the
 # normal law says while the ellipsoids stay as small as that allows (docs/ablation.md).
 CELL_FACTOR = 4
-SCALE = 20.0
-FLOOR_POSITION = 0.25
-FLOOR_ROTATION = 1.5
+SCALE = 12.7
+FLOOR_POSITION = 0.5
+FLOOR_ROTATION = 0.5
 
 
 def pose_covariance(src: np.ndarray, dst: np.ndarray, T: np.ndarray,
