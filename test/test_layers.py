@@ -2,9 +2,9 @@
 The package's architecture, checked from its sources with ast.
 
 Layers import one way: tools -> ros -> calibration -> pipeline -> frontend /
-registration -> geometry, config, io, datasets (and errors, timing). Only ros/ imports
-rclpy and message packages; the core (registration/) imports neither ROS nor Open3D. No
-import cycle, no big module.
+registration -> geometry, config, io, datasets (and errors, timing, and the refusal
+codes below them all). Only ros/ imports rclpy and message packages; the core
+(registration/) imports neither ROS nor Open3D. No import cycle, no big module.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / 'cgags_ros'
 LAYERS = {  # top-level part of the module name -> layer (higher imports lower)
+    'refusal': -1,  # the refusal codes, which every error and result carries
     'errors': 0, 'timing': 0, 'parallel': 0,
     'geometry': 1, 'config': 1,  # the bottom: typed config, geometry, then files and data
     'io': 2,

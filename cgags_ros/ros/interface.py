@@ -16,10 +16,13 @@ from typing import Any, Protocol
 import numpy as np
 
 from ..errors import CgagsError
+from ..refusal import RefusalCode
 
 
 class StartFailed(CgagsError):
     """The engine cannot start registering: its process or its map is unusable."""
+
+    code = RefusalCode.START_FAILED
 
 
 class Cloud:
