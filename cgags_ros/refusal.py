@@ -74,6 +74,22 @@ class Refusal:
         return {'code': self.code.value, 'message': self.message}
 
 
+class Judged:
+    """A result with a ``refusal`` (None: valid), which ``valid`` and ``reason`` read."""
+
+    refusal: Refusal | None
+
+    @property
+    def valid(self) -> bool:
+        """Tell whether the result is to be trusted (no refusal)."""
+        return self.refusal is None
+
+    @property
+    def reason(self) -> str:
+        """Return the refusal's message ('' when valid)."""
+        return '' if self.refusal is None else self.refusal.message
+
+
 def summary(refusal: Refusal | None) -> dict[str, str] | None:
     """Return the JSON form of ``refusal``: code and message, or None when valid (``null``)."""
     return None if refusal is None else refusal.summary()

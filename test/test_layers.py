@@ -2,8 +2,8 @@
 The package's architecture, checked from its sources with ast.
 
 Layers import one way: tools -> ros -> calibration -> pipeline -> frontend /
-registration -> geometry, config, io, datasets (and errors, timing, and the refusal
-codes below them all). Only ros/ imports rclpy and message packages; the core
+registration -> validity -> geometry, config, io, datasets (and errors, timing, and the
+refusal codes below them all). Only ros/ imports rclpy and message packages; the core
 (registration/) imports neither ROS nor Open3D. No import cycle, no big module.
 """
 
@@ -20,7 +20,7 @@ LAYERS = {  # top-level part of the module name -> layer (higher imports lower)
     'refusal': -1,  # the refusal codes, which every error and result carries
     'errors': 0, 'timing': 0, 'parallel': 0,
     'geometry': 1, 'config': 1,  # the bottom: typed config, geometry, then files and data
-    'io': 2,
+    'io': 2, 'validity': 2,  # validity: the core and the pipeline ask it for their verdicts
     'datasets': 3,
     'frontend': 4, 'registration': 4,  # siblings: neither imports the other
     'pipeline': 5,

@@ -141,7 +141,7 @@ class RegisterNode(LifecycleNode):
         except CgagsError as exc:  # a parameter, the registration process or the map
             self.get_logger().error(f'cannot configure: {exc}; the node stays unconfigured')
             if self.outputs is not None:
-                self.outputs.publish_configure_failure(self.statistics(), str(exc))
+                self.outputs.publish_configure_failure(self.statistics(), exc.refusal)
             self._teardown()
             return FAILURE
         self._entities = [
@@ -266,7 +266,7 @@ class RegisterNode(LifecycleNode):
         engine = self._engine
         response.success, response.message = (
             engine.relocalize() if engine is not None
-            else (False, 'not localized (unconfigured): the node is not configured'))
+            else (False, 'unconfigured: not localized: the node is not configured'))
         return response
 
     def _on_reinitialize(self, request: Any, response: Any) -> Any:

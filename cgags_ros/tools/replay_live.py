@@ -44,6 +44,7 @@ from .replay_common import (
 from .report import BagReport, PairRow
 from ..config.ros_parameters import keys_to_ros
 from ..pipeline.pairing import Pairer
+from ..refusal import Refusal, RefusalCode
 from ..ros import diagnostics
 from ..ros.player import LiveSession, MAX_QUEUE, Received
 
@@ -230,15 +231,17 @@ def build_rows(contents: BagContents, expected: dict[int, Any], poses: dict[int,
         info = details.get(stamp)
         last = diagnostics.last_result(info or {})
         row.inliers, row.fitness, row.time_s = last['inliers'], last['fitness'], last['time_s']
+        refusal = Refusal(RefusalCode(last['code']), last['reason']) if last['code'] else None
         got = poses.get(stamp)
         if got is not None:
             row.valid = last['valid']
             row.transform, row.target_frame = got.transform, got.frame_id
             row.covariance = got.covariance
             row.latency_s = got.receipt_s - sent[stamp] if stamp in sent else None
-            row.reason = last['reason']
+            row.refusal = refusal
         else:
-            row.reason = last['reason'] or 'no pose received (see node.log)'
+            row.refusal = refusal or Refusal(RefusalCode.NO_POSE,
+                                             'no pose received (see node.log)')
         rows.append(row)
     return rows
 
