@@ -74,18 +74,15 @@ def no_model_refusal(collinear_subsets: int, yaw_only: bool) -> Refusal:
     (nearly collinear triangles; 4-DoF: nearly vertical edges).
     """
     if collinear_subsets:
-        if yaw_only:
-            return Refusal(Code.COLLINEAR, (
-                'every compatible edge of correspondences is nearly vertical (shorter across '
-                'the gravity axis than min_edge_length_factor * tau): the yaw is undetermined'))
         return Refusal(Code.COLLINEAR, (
+            'every compatible edge of correspondences is nearly vertical (shorter across the '
+            'gravity axis than min_edge_length_factor * tau): the yaw is undetermined'
+            if yaw_only else
             'every compatible triangle of correspondences is nearly collinear: the scene (or '
             'its matched keypoints) is a line, and the rotation about it is undetermined'))
-    if yaw_only:
-        return Refusal(Code.NO_ESTIMATE, (
-            'no usable compatible edge of correspondences was found (too few inliers or '
-            'thresholds too small)'))
     return Refusal(Code.NO_ESTIMATE, (
+        'no usable compatible edge of correspondences was found (too few inliers or '
+        'thresholds too small)' if yaw_only else
         'no compatible triangle of correspondences was found: the compatibility graph has '
         'edges but no 3-cliques (too few inliers or thresholds too small)'))
 
