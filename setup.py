@@ -32,6 +32,7 @@ setup(
             'cgags-replay = cgags_ros.tools.replay:main',
             'cgags-demo = cgags_ros.tools.demo:main',
             'cgags-calibrate = cgags_ros.tools.calibrate_cli:main',
+            'cgags-relocalize = cgags_ros.tools.relocalize_cli:main',
         ],
     },
 )

@@ -1,14 +1,14 @@
-#!/usr/bin/env python3
 """
 A/B of the registration core against an earlier git revision: same results, and how fast.
 
 A speed pass on the core should leave every result bit for bit as it was. This script
-imports the core of ``--rev`` next to the working tree's (``git archive`` of the package
-into a temporary directory, renamed ``cgags_prev``), runs both on the same problems with
-the same seeds, alternating, and reports per cell whether every result is identical
-(transform, validity, inliers, hypotheses drawn) and the median time of each.
+imports the core of ``--rev`` next to the working tree's (:mod:`bench.revision`: ``git
+archive`` of the package into a temporary directory, renamed ``cgags_prev``), runs both on
+the same problems with the same seeds, alternating, and reports per cell whether every
+result is identical (transform, validity, inliers, hypotheses drawn) and the median time of
+each.
 
-Problems: the core benchmark's (``bench_core.py``'s seeds: bunny, uniform outliers, noise
+Problems: the core benchmark's (:mod:`bench.problems`: bunny, uniform outliers, noise
 0.01, tau 0.05; ``--motion 4dof`` its yaw-only problems and the 4-DoF core, ``--outliers``
 its other layouts), each differing result printed with what changed, and, with
 ``--pipeline``, the correspondences the pipeline hands the core
@@ -17,46 +17,26 @@ inliers make the dense-graph work visible, which the benchmark's cells do not).
 
 Example::
 
-    .venv/bin/python bench/ab_core.py --rev f288eca --pipeline
-    .venv/bin/python bench/ab_core.py --rev main --motion 4dof --outliers uniform,cube
+    .venv/bin/python -m bench.ab_core --rev f288eca --pipeline
+    .venv/bin/python -m bench.ab_core --rev main --motion 4dof --outliers uniform,cube
 
 Exit status 1 when any result differs (for a pass that must not change any). The old
-revision's kernels compile cold in the temporary directory (~20 s).
+revision's numba code compiles cold in the temporary directory (~20 s).
 """
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
-import subprocess
 import sys
 import tempfile
 import time
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / 'bench')]
-
-# Imported only after the sys.path set-up above (E402).
-from bench_core import problem_seed, problem_transform  # noqa: E402
-from cgags_ros.datasets.synthetic import load_bunny, make_correspondences  # noqa: E402
-from cgags_ros.registration import CoreConfig, register_correspondences  # noqa: E402
-import numpy as np  # noqa: E402, I100
-
-
-def load_previous(rev: str, where: Path):
-    """Return ``register_correspondences`` of the package at git ``rev``, as cgags_prev."""
-    archive = subprocess.run(['git', '-C', str(ROOT), 'archive', rev, 'cgags_ros'],
-                             check=True, capture_output=True).stdout
-    subprocess.run(['tar', '-x', '-C', str(where)], input=archive, check=True)
-    package = where / 'cgags_prev'
-    (where / 'cgags_ros').rename(package)
-    for path in package.rglob('*.py'):
-        text = path.read_text(encoding='utf-8')
-        path.write_text(text.replace('cgags_ros', 'cgags_prev'), encoding='utf-8')
-    sys.path.insert(0, str(where))
-    from cgags_prev.registration import register_correspondences as previous
-
-    return previous
+from bench.common import argument_parser
+from bench.datasets.synthetic import load_bunny, make_correspondences
+from bench.problems import problem
+from bench.revision import load_previous, previous_config
+from cgags_ros.registration import CoreConfig, register_correspondences
+import numpy as np
 
 
 def same(a, b) -> bool:
@@ -96,7 +76,7 @@ def compare(label: str, problems: list, new, old, repeats: int, verbose: bool = 
 
 def pipeline_problems() -> list:
     """Return the correspondences (and thresholds) the pipeline gives the core on two pairs."""
-    from bench_scaling import load_dataset, random_rotation
+    from bench.scaling import load_dataset, random_rotation
     from cgags_ros.pipeline import clear_feature_cache, register_clouds
     from cgags_ros.pipeline import register as pipeline_register
 
@@ -116,45 +96,32 @@ def pipeline_problems() -> list:
             register_clouds(src @ random_rotation(np.random.default_rng(0)).T, tgt,
                             voxel_size=voxel)
             s, d, kwargs = captured[0]
-            kwargs['config'] = (kwargs['config'], _previous_config(kwargs['config']))
+            kwargs['config'] = (kwargs['config'], previous_config(kwargs['config']))
             out.append((f'{name} {voxel:g} m pipeline', [(s, d, kwargs)]))
         return out
     finally:
         pipeline_register.register_correspondences = register_correspondences
 
 
-def _previous_config(cfg):
-    """Return the previous revision's CoreConfig with ``cfg``'s values (its own defaults else)."""
-    import dataclasses
-
-    previous = sys.modules['cgags_prev.registration'].CoreConfig
-    return previous(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(previous)
-                       if hasattr(cfg, f.name)})
-
-
 def _problem(model, motion: str, layout: str, n: int, ratio: float, trial: int) -> tuple:
-    """Return (src, dst, kwargs) of bench_core's problem; 4dof: its yaw-only one."""
-    seed = problem_seed(0, ratio, n, trial)
+    """Return (src, dst, kwargs) of the core benchmark's problem; 4dof: its yaw-only one."""
+    seed, p = problem(model, n, ratio, trial, motion=motion, outliers=layout)
     kwargs = {'inlier_threshold': 0.05, 'seed': seed}
-    transform = None
     if motion == '4dof':
-        transform = problem_transform(argparse.Namespace(motion='4dof', tilt_noise=0.0), seed)
         config = CoreConfig(motion_model='4dof')
-        kwargs['config'] = (config, _previous_config(config))
-    p = make_correspondences(model, n, ratio, noise_sigma=0.01, rng=seed, outliers=layout,
-                             transform=transform)
+        kwargs['config'] = (config, previous_config(config))
     return p.src, p.dst, kwargs
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
+    ap = argument_parser(__spec__.name, __doc__)
     ap.add_argument('--rev', required=True, help='git revision to compare against')
     ap.add_argument('--ratios', default='0.9,0.98,0.99', help='outlier ratios')
     ap.add_argument('--sizes', default='1000,5000', help='correspondence counts N')
     ap.add_argument('--trials', type=int, default=6, help='problems a cell')
     ap.add_argument('--repeats', type=int, default=2, help='timed calls a problem and side')
     ap.add_argument('--motion', choices=('6dof', '4dof'), default='6dof',
-                    help="the core's motion model; 4dof: bench_core's yaw-only problems")
+                    help="the core's motion model; 4dof: the core benchmark's yaw-only problems")
     ap.add_argument('--outliers', default='uniform',
                     help='comma list of outlier layouts (make_correspondences)')
     ap.add_argument('--pipeline', action='store_true',

@@ -5,16 +5,18 @@ Each variant overrides CoreConfig fields; every variant sees the same problems a
 Reports success (RE < 5 deg, TE < 0.1 on the unit-scaled bunny), median/p90 time and median
 hypotheses per cell. Time is noisy on a shared machine; hypotheses are not.
 
-    .venv/bin/python bench/ablation_core.py --trials 20 --output docs/ablation_results.md
+    .venv/bin/python -m bench.ablation_core --trials 20 --output out/bench/ablation_core.md
 """
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 import time
 
+from bench.common import argument_parser, output_path, write_text
+from bench.datasets.synthetic import load_bunny, make_correspondences
 from cgags_ros.config import fields
-from cgags_ros.datasets.synthetic import load_bunny, make_correspondences
 from cgags_ros.registration import (
     CoreConfig,
     register_correspondences,
@@ -53,8 +55,8 @@ def run_cell(model, n, ratio, cfg, trials, tau, noise, outliers):
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.strip(),
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argument_parser(__spec__.name, __doc__, description=__doc__.strip(),
+                         formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--trials', type=int, default=10)
     ap.add_argument('--cells', default='1000:0.95,1000:0.99,5000:0.99,5000:0.995',
                     help='comma-separated N:outlier_ratio')
@@ -62,7 +64,8 @@ def main(argv=None) -> None:
     ap.add_argument('--tau', type=float, default=0.05, help='inlier threshold (unit-scaled bunny)')
     ap.add_argument('--noise', type=float, default=0.01)
     ap.add_argument('--outliers', default='uniform', choices=('uniform', 'surface'))
-    ap.add_argument('--output', help='append the markdown table to this file')
+    ap.add_argument('--output', type=Path, default=output_path('ablation_core.md'),
+                    help='write the markdown table here (default: %(default)s)')
     args = ap.parse_args(argv)
     model = load_bunny()
     cells = [(int(c.split(':')[0]), float(c.split(':')[1])) for c in args.cells.split(',')]
@@ -84,9 +87,8 @@ def main(argv=None) -> None:
         line = f'| {name} | ' + ' | '.join(cols) + ' |'
         lines.append(line)
         print(line, flush=True)
-    if args.output:
-        with open(args.output, 'a', encoding='utf-8') as f:
-            f.write('\n'.join(lines) + '\n\n')
+    text = '\n'.join(lines) + '\n'
+    print(f'wrote {write_text(args.output, text)}')
 
 
 if __name__ == '__main__':

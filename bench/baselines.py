@@ -3,9 +3,11 @@ Baseline robust registration solvers for the benchmarks, on the same putative co
 
 Every baseline is a function ``(src, dst, tau) -> 4x4`` (row ``i`` of ``src`` corresponds to row
 ``i`` of ``dst``; the returned transform maps ``src`` onto ``dst``, ``dst ≈ R @ src + t``), so the
-core benchmark (``bench/bench_core.py``) and the pipeline benchmark can call them the same way.
+core benchmark (:mod:`bench.core`) and the pipeline benchmark can call them the same way.
 ``*_detailed`` variants return a :class:`BaselineResult` with the baseline's own validity flag and
 diagnostics. ``tau`` is the inlier threshold (metres / model units) also given to our solver.
+On clouds (the pipeline benchmarks), :func:`open3d_fpfh_ransac` and
+:func:`kiss_matcher_estimate` take ``(source, target, voxel)`` instead.
 
 Open3D (``open3d`` 0.19)
     ``o3d.pipelines.registration.registration_ransac_based_on_correspondence(
@@ -148,10 +150,11 @@ def kiss_config(tau: float, *, robin_gain: float = 1.0, solver_gain: float = 1.0
         enable_noise_bound_clamping=True)
 
 
-def _kiss_transform(solution) -> np.ndarray:
+def kiss_transform(solution, scale: float = 1.0) -> np.ndarray:
+    """Return a KISS-Matcher solution as a 4x4 source->target transform, translation / scale."""
     T = np.eye(4)
     T[:3, :3] = np.asarray(solution.rotation, dtype=np.float64).reshape(3, 3)
-    T[:3, 3] = np.asarray(solution.translation, dtype=np.float64).reshape(3)
+    T[:3, 3] = np.asarray(solution.translation, dtype=np.float64).reshape(3) / scale
     return T
 
 
@@ -170,7 +173,7 @@ def kiss_prune_and_solve_detailed(src: np.ndarray, dst: np.ndarray, tau: float, 
     src32 = np.ascontiguousarray(src, dtype=np.float32)
     dst32 = np.ascontiguousarray(dst, dtype=np.float32)
     solution = matcher.prune_and_solve(src32, dst32)
-    return BaselineResult(_kiss_transform(solution), bool(solution.valid), {
+    return BaselineResult(kiss_transform(solution), bool(solution.valid), {
         'robin_noise_bound': float(cfg.robin_noise_bound),
         'solver_noise_bound': float(cfg.solver_noise_bound),
         'num_rotation_inliers': int(matcher.get_num_rotation_inliers()),
@@ -227,6 +230,65 @@ def kiss_prune_and_solve_breakdown(src: np.ndarray, dst: np.ndarray, tau: float,
            'pybind_conversion_upper': med(t_conv)}
     out['prune_and_rest'] = out['total'] - out['solver'] - out['pybind_conversion_upper']
     return out
+
+
+# ------------------------------------------------------------------------------- on clouds
+
+OPEN3D_DISTANCE_FACTOR = 1.5  # Open3D's tutorial: max_correspondence_distance = 1.5 voxels
+
+
+def open3d_fpfh_ransac(src: np.ndarray, tgt: np.ndarray, voxel: float,
+                       seed: int = 0) -> np.ndarray:
+    """
+    Open3D RANSAC on feature matching over our front end's features; returns the 4x4.
+
+    The features are :func:`cgags_ros.frontend.features.extract_features` with the voxel,
+    normal and FPFH radii and neighbour caps of ``PipelineConfig().frontend``;
+    ``mutual_filter=True``, ``max_correspondence_distance = 1.5 v``, point-to-point
+    estimation, ``ransac_n = 3``, checkers ``EdgeLength(0.9)`` and ``Distance(1.5 v)``,
+    ``RANSACConvergenceCriteria(100000, 0.999)``; no refinement.
+    """
+    from cgags_ros.config import PipelineConfig
+    from cgags_ros.frontend.features import extract_features
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    frontend = PipelineConfig().frontend
+    fs = extract_features(src, voxel, frontend, 'source')
+    ft = extract_features(tgt, voxel, frontend, 'target')
+    clouds, features = [], []
+    for f in (fs, ft):
+        clouds.append(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(f.points)))
+        feature = reg.Feature()
+        feature.data = np.ascontiguousarray(f.descriptors.T, dtype=np.float64)
+        features.append(feature)
+    distance = OPEN3D_DISTANCE_FACTOR * voxel
+    o3d.utility.random.seed(seed)
+    result = reg.registration_ransac_based_on_feature_matching(
+        clouds[0], clouds[1], features[0], features[1], True, distance,
+        reg.TransformationEstimationPointToPoint(False), 3,
+        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+         reg.CorrespondenceCheckerBasedOnDistance(distance)],
+        reg.RANSACConvergenceCriteria(100000, 0.999))
+    return np.asarray(result.transformation, dtype=np.float64)
+
+
+def kiss_matcher_estimate(src: np.ndarray, tgt: np.ndarray, voxel: float, *,
+                          scale: float = 1.0, quatro: bool = False) -> BaselineResult:
+    """
+    KISS-Matcher on clouds, its own front end: ``KISSMatcherConfig(voxel).estimate``.
+
+    Both clouds and the voxel are multiplied by ``scale`` (float32 input, as the binding
+    takes) and the translation divided by it afterwards; ``quatro=True`` is its 4-DoF
+    mode. ``valid`` is the library's own flag; no refinement.
+    """
+    import kiss_matcher as km
+
+    matcher = km.KISSMatcher(km.KISSMatcherConfig(voxel * scale, use_quatro=quatro))
+    solution = matcher.estimate((src * scale).astype(np.float32),
+                                (tgt * scale).astype(np.float32))
+    return BaselineResult(kiss_transform(solution, scale), bool(solution.valid),
+                          {'num_final_inliers': int(matcher.get_num_final_inliers())})
 
 
 BASELINES: dict[str, Callable[[np.ndarray, np.ndarray, float], np.ndarray]] = {

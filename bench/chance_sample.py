@@ -1,12 +1,12 @@
-#!/usr/bin/env python3
 """
 What stage one's minimal subsets explain by chance, per motion model and outlier layout.
 
 The chance level of the significance test (``significance.ConsensusRecord``) estimates
 lambda, the mean chance inliers of a wrong hypothesis, from the share of zero counts among
-hypotheses taken as unselected. This script draws stage-one minimal subsets on bench_core's
-problems exactly as the search does (6-DoF: edge and vertex tournaments; 4-DoF: the edge
-tournament) and, for comparison, uniform ones (tournament size 1), fits them, and reports:
+hypotheses taken as unselected. This script draws stage-one minimal subsets on the core
+benchmark's problems (:mod:`bench.problems`) exactly as the search does (6-DoF: edge and
+vertex tournaments; 4-DoF: the edge tournament) and, for comparison, uniform ones
+(tournament size 1), fits them, and reports:
 the share that is all-inlier (ground truth), lambda as the zero-share estimate reads it from
 all of them, and lambda of the wrong ones alone. When many drawn subsets are all-inlier the
 estimate from all of them is far above the wrong ones' (docs/ablation.md, 4-DoF chance level).
@@ -15,28 +15,23 @@ how many come back valid, their best consensus and chance level.
 
 Example::
 
-    .venv/bin/python bench/chance_sample.py --outliers uniform,cube --ratio 0.99 --trials 4
+    .venv/bin/python -m bench.chance_sample --outliers uniform,cube --ratio 0.99 --trials 4
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
-from pathlib import Path
 import sys
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / 'bench')]
-
-# Imported only after the sys.path set-up above (E402).
-from bench_core import problem_seed, problem_transform  # noqa: E402
-from cgags_ros.datasets.synthetic import load_bunny, make_correspondences  # noqa: E402
-from cgags_ros.registration import compiled  # noqa: E402
-from cgags_ros.registration import CoreConfig, register_correspondences  # noqa: E402
-from cgags_ros.registration.motion import motion_model  # noqa: E402
-from cgags_ros.registration.search import Search  # noqa: E402
-from cgags_ros.registration.yaw import vertical_offsets  # noqa: E402
-import numpy as np  # noqa: E402, I100
+from bench.common import argument_parser
+from bench.datasets.synthetic import load_bunny, make_correspondences
+from bench.problems import problem
+from cgags_ros.registration import compiled
+from cgags_ros.registration import CoreConfig, register_correspondences
+from cgags_ros.registration.motion import motion_model
+from cgags_ros.registration.search import Search
+from cgags_ros.registration.yaw import vertical_offsets
+import numpy as np
 
 TAU = 0.05
 
@@ -65,7 +60,7 @@ def measure(src, dst, truth: np.ndarray, motion: str, tournament: bool, draws: i
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
+    ap = argument_parser(__spec__.name, __doc__)
     ap.add_argument('--outliers', default='uniform,surface,cube,cube-surface')
     ap.add_argument('--ratio', type=float, default=0.99)
     ap.add_argument('--n', type=int, default=1000)
@@ -90,11 +85,8 @@ def main(argv=None) -> int:
             for tournament in (True, False):
                 rows = []
                 for trial in range(args.trials):
-                    seed = problem_seed(0, args.ratio, args.n, trial)
-                    p = make_correspondences(
-                        model, args.n, args.ratio, rng=seed, outliers=layout,
-                        transform=problem_transform(
-                            argparse.Namespace(motion='4dof', tilt_noise=0.0), seed))
+                    _, p = problem(model, args.n, args.ratio, trial, motion='4dof',
+                                   outliers=layout)
                     rows.append(measure(p.src, p.dst, p.inlier_mask, motion, tournament,
                                         args.draws))
                 mean = {k: np.mean([r[k] for r in rows]) for k in rows[0]}

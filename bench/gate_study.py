@@ -1,9 +1,9 @@
 r"""
-Replay the valid flag over ``bench_3dmatch.py`` records with extra gates, without re-running.
+Replay the valid flag over ``bench.threedmatch`` records with extra gates, without re-running.
 
 Run by hand::
 
-    .venv/bin/python bench/gate_study.py out/bench_3dmatch/run/records.jsonl \
+    .venv/bin/python -m bench.gate_study out/bench/threedmatch_run/records.jsonl \
         [--gate 'free_space_violation <= 0.25'] [--gate 'overlap >= 0.1'] [--method cgags]
 
 Each ``--gate FIELD OP VALUE`` (OP one of ``<= < >= >``; FIELD a number the records hold for
@@ -13,7 +13,7 @@ the recorded flag, for an estimate to count as valid; a record without the field
 gate. Prints, per list, before and after: RR (unchanged: the estimates are the recorded
 ones), valid, valid but wrong (count and share of valid) and valid keeps (right and valid /
 right), overall and per scene. Gates that would change the estimate (a different candidate
-chosen) need a new run of ``bench_3dmatch.py``.
+chosen) need a new run of ``python -m bench.threedmatch``.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import json
 import operator
 from pathlib import Path
 
-from cgags_ros.tools.report import markdown_table
+from bench.common import argument_parser, markdown_table
 
 OPS = {'<=': operator.le, '<': operator.lt, '>=': operator.ge, '>': operator.gt}
 
@@ -60,8 +60,8 @@ def flag_summary(records: list[dict], gates: list) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
-    p.add_argument('records', type=Path, help='records.jsonl of bench_3dmatch.py')
+    p = argument_parser(__spec__.name, __doc__)
+    p.add_argument('records', type=Path, help='records.jsonl of python -m bench.threedmatch')
     p.add_argument('--gate', action='append', type=parse_gate, default=[],
                    metavar="'FIELD OP VALUE'")
     p.add_argument('--method', default='cgags')

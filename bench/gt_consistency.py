@@ -1,4 +1,3 @@
-#!/usr/bin/env python3
 """
 Distance of a pair's ground truth from the best alignment its own geometry supports.
 
@@ -19,31 +18,21 @@ truth and to each refiner's optimum.
 
 Run by hand (~20 s)::
 
-    .venv/bin/python bench/gt_consistency.py [--voxels 0.01 0.025]
+    .venv/bin/python -m bench.gt_consistency [--voxels 0.01 0.025]
 """
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
-import sys
-
+from bench.common import argument_parser
+from bench.datasets.gt_pairs import read_gt_pairs
+from cgags_ros.config.frontend import RefineConfig
+from cgags_ros.frontend.features import downsample
+from cgags_ros.frontend.refine import refine_transform
+from cgags_ros.geometry import rotation_error_deg, translation_error
+from cgags_ros.io.clouds import read_cloud
+from cgags_ros.io.shared_data import shared_data_dir
+from cgags_ros.pipeline import register_clouds
 import numpy as np
-
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-# Imported only after the sys.path set-up above, which makes the repository root importable:
-# hence E402, and I100 for the first-party block placed after the third-party one.
-from cgags_ros.config.frontend import RefineConfig  # noqa: E402, I100
-from cgags_ros.datasets.gt_pairs import read_gt_pairs  # noqa: E402
-from cgags_ros.datasets.synthetic import shared_data_dir  # noqa: E402
-from cgags_ros.frontend.features import downsample  # noqa: E402
-from cgags_ros.frontend.refine import refine_transform  # noqa: E402
-from cgags_ros.geometry import rotation_error_deg, translation_error  # noqa: E402
-from cgags_ros.io.clouds import read_cloud  # noqa: E402
-from cgags_ros.pipeline import register_clouds  # noqa: E402
 
 
 def refine_from(source: np.ndarray, target: np.ndarray, init: np.ndarray, voxel: float,
@@ -65,7 +54,7 @@ def errors(T: np.ndarray, ref: np.ndarray) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
+    parser = argument_parser(__spec__.name, __doc__)
     parser.add_argument('--voxels', type=float, nargs='+', default=[0.01, 0.025],
                         help='refiner voxel sizes in metres (correspondence distance 3 voxels)')
     parser.add_argument('--pipeline-voxel', type=float, default=0.05)

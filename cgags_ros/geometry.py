@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from .errors import InvalidInputError
 
@@ -70,6 +71,16 @@ def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
     return -q if q[3] < 0 else q
 
 
+def rpy(T: np.ndarray) -> tuple[float, float, float]:
+    """
+    Return (roll, pitch, yaw) in radians with ``R = Rz(yaw) Ry(pitch) Rx(roll)``.
+
+    Angles about the fixed axes x, y, z: the convention of tf2, URDF and a heading (yaw).
+    """
+    roll, pitch, yaw = Rotation.from_matrix(np.asarray(T)[:3, :3]).as_euler('xyz')
+    return float(roll), float(pitch), float(yaw)
+
+
 def rotation_error_deg(T_est: np.ndarray, T_gt: np.ndarray) -> float:
     """Return RE = arccos((trace(R_gt^T R) - 1) / 2) in degrees."""
     R = np.asarray(T_est)[:3, :3]
@@ -81,12 +92,6 @@ def rotation_error_deg(T_est: np.ndarray, T_gt: np.ndarray) -> float:
 def translation_error(T_est: np.ndarray, T_gt: np.ndarray) -> float:
     """Return TE = ||t_gt - t|| in the units of the input (metres)."""
     return float(np.linalg.norm(np.asarray(T_est)[:3, 3] - np.asarray(T_gt)[:3, 3]))
-
-
-def is_success(T_est: np.ndarray, T_gt: np.ndarray, max_re_deg: float, max_te: float) -> bool:
-    """Tell whether RE <= ``max_re_deg`` and TE <= ``max_te``."""
-    return (rotation_error_deg(T_est, T_gt) <= max_re_deg
-            and translation_error(T_est, T_gt) <= max_te)
 
 
 def point_resolution(points: np.ndarray, tree: cKDTree | None = None,
@@ -109,6 +114,35 @@ def point_resolution(points: np.ndarray, tree: cKDTree | None = None,
         nearest = nearest.copy()
         nearest[unknown] = tree.query(points[unknown], k=2)[0][:, 1]
     return float(np.mean(nearest))
+
+
+def voxel_size_for(points: np.ndarray, occupied: int) -> float:
+    """
+    Return the voxel size (metres) at which about ``occupied`` voxels hold ``points``.
+
+    Found by bisection on a log scale and rounded to two significant digits, so that a
+    cloud's scale, not its sensor's density, picks the size. ``points`` must hold more than
+    ``occupied`` points (InvalidInputError otherwise).
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if len(pts) <= occupied:
+        raise InvalidInputError(f'the cloud has only {len(pts)} points, not more than '
+                                f'the {occupied} voxels asked for')
+    pts = pts - pts.min(axis=0)
+    diag = float(np.linalg.norm(pts.max(axis=0))) or 1.0
+    lo, hi = np.log(diag * 1e-5), np.log(diag)
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        if _occupied_voxels(pts, np.exp(mid)) > occupied:
+            lo = mid
+        else:
+            hi = mid
+    return float(f'{np.exp(0.5 * (lo + hi)):.2g}')
+
+
+def _occupied_voxels(points: np.ndarray, voxel: float) -> int:
+    keys = np.floor(points / voxel).astype(np.int64)
+    return len(np.unique(keys, axis=0))
 
 
 def spread(points: np.ndarray) -> np.ndarray:

@@ -1,8 +1,8 @@
 """
-Split a compiled (nogil) kernel's rows over threads: the package's one thread pool.
+Split a compiled (nogil) function's rows over threads: the package's one thread pool.
 
 The front end (FPFH, descriptor index) and the core (compatibility graph) run their
-compiled kernels on it; every task writes disjoint rows, so results do not depend on the
+compiled functions on it; every task writes disjoint rows, so results do not depend on the
 number of threads.
 """
 
@@ -11,7 +11,7 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 import os
 import threading
-from typing import Callable, Sequence, TypeVar
+from typing import Callable, MutableMapping, Sequence, TypeVar
 
 T = TypeVar('T')
 
@@ -29,7 +29,7 @@ def run_chunks(task: Callable[[int, int], None], n: int, workers: int,
     """
     Run ``task(a, b)`` over the rows [0, n) in chunks of ``chunk``, on ``workers`` threads.
 
-    ``task`` must release the GIL (a ``nogil`` numba kernel) and write disjoint rows; the
+    ``task`` must release the GIL (a ``nogil`` numba function) and write disjoint rows; the
     result then does not depend on ``workers``.
     """
     if workers <= 1 or n <= chunk:
@@ -60,13 +60,29 @@ def run_split(task: Callable[[int, int], None], bounds: Sequence[int]) -> None:
         part.result()
 
 
+def quiet_idle_threads(environ: MutableMapping[str, str] = os.environ) -> None:
+    """
+    Make the idle threads of OpenMP (Open3D) and OpenBLAS sleep instead of spin.
+
+    For the entry points that run the pipeline (the tools, the node, its registration
+    process), before numpy and Open3D load: the libraries read these variables once, when
+    they load, and a spawned process inherits them. OpenMP's idle threads spin by default
+    and, on a loaded machine, each of ICP's short parallel loops then waits for a
+    descheduled thread; OpenBLAS's workers likewise spin after each threaded call and take
+    the CPU from Open3D. Passive waiting costs nothing measurable on an idle machine
+    (docs/design.md). A value the user set wins.
+    """
+    environ.setdefault('OMP_WAIT_POLICY', 'PASSIVE')
+    environ.setdefault('OPENBLAS_THREAD_TIMEOUT', '20')
+
+
 def in_background(task: Callable[[], T], enabled: bool = True) -> Callable[[], T]:
     """
     Start ``task()`` on a thread of its own; return a function that waits for its result.
 
     The returned function re-raises what ``task`` raised. With ``enabled`` False the task
     runs at once, in this thread (what it raises is still raised by the returned function).
-    A thread of its own, not the shared pool: the task may itself split kernels over the
+    A thread of its own, not the shared pool: the task may itself split compiled work over the
     pool (:func:`run_split`), and waiting inside a pool thread for tasks queued behind it
     would deadlock a one-thread pool.
     """

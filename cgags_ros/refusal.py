@@ -36,6 +36,11 @@ class RefusalCode(enum.Enum):
     FREE_SPACE = 'free_space'  # the pose puts surfaces where a sensor saw free space
     TILT = 'tilt'  # 4-DoF: the clouds are not levelled
     FRAMES_DISAGREE = 'frames_disagree'  # calibration: the frames support different poses
+    # The relocalizer over a few scans with odometry
+    UNEXPLAINED = 'unexplained'  # no pose explains every scan (odometry or map contradict)
+    MORE_SCANS = 'more_scans'  # fewer scans than a confirmation needs
+    LOW_CONFIDENCE = 'low_confidence'  # the calibrated P(right) is below min_confidence
+    TRACKING_LOST = 'tracking_lost'  # a tracked pose jumped from its prediction or lost fit
     # The node and its services
     TIMEOUT = 'timeout'  # past registration_timeout (or map_load_timeout)
     WORKER_CRASHED = 'worker_crashed'  # the registration process died during the pair
@@ -46,6 +51,7 @@ class RefusalCode(enum.Enum):
     UNCONFIGURED = 'unconfigured'  # the node is not configured (lifecycle)
     SHUTDOWN = 'shutdown'  # the node is shutting down
     IGNORED = 'ignored'  # calibrate mode: a pair after the end, or of other frames
+    UNPAIRED = 'unpaired'  # pairing dropped the source (no target in time, a full queue)
     LOW_RATIO = 'low_ratio'  # initial pose: best/runner-up support below the minimum
     COOLDOWN = 'cooldown'  # initial pose: too soon after the last one
     MAX_AUTO = 'max_auto'  # initial pose: the automatic publishes are used up

@@ -42,16 +42,28 @@ class Consensus(Protocol):
     reason: str
 
 
-class Estimate(Consensus, Protocol):
+class Overlap(Protocol):
+    """What the gates measured of an estimate's overlap alone (a ``PipelineResult``'s fields)."""
+
+    observability: float
+    fitness: float
+    free_space_violation: float
+    tilt_deg: float  # 4-DoF only (else NaN)
+
+
+class Trusted(Protocol):
+    """An estimate's calibrated confidence (:mod:`cgags_ros.pipeline.confidence`)."""
+
+    confidence: float
+
+
+class Estimate(Consensus, Overlap, Protocol):
     """What the gates measured of a refined estimate (a ``PipelineResult``'s fields)."""
 
     num_correspondences: int
     num_hypotheses: int
     chance_inliers: float
     chance_bound: float
-    observability: float
-    fitness: float
-    free_space_violation: float
     ambiguous: bool
     runner_up_ratio: float
     candidates: Sequence[Any]
@@ -182,15 +194,25 @@ def free_space_limit(cfg: PipelineConfig, unsettled: bool = False) -> float:
 
 def gate_refusal(e: Estimate, cfg: PipelineConfig, unsettled: bool = False) -> Refusal | None:
     """Return why the refined estimate must not be trusted, or None when every gate passes."""
-    refine = cfg.refine
-    distance = refine.max_correspondence_distance_factor * cfg.voxel_size
-    limit = free_space_limit(cfg, unsettled)
-    if refine.significance > 0 and not e.num_inliers > e.chance_bound:
+    if cfg.refine.significance > 0 and not e.num_inliers > e.chance_bound:
         return Refusal(Code.CHANCE_LEVEL, (
             f'{e.num_inliers} inliers of {e.num_correspondences} correspondences is no better '
             f'than chance (random pairing gives {e.chance_inliers:.2g} per estimate; the best '
             f'of {max(e.num_hypotheses, 1)} hypotheses reaches {e.chance_bound:.0f}): the '
             'clouds probably do not overlap'))
+    return overlap_refusal(e, cfg, unsettled)
+
+
+def overlap_refusal(e: Overlap, cfg: PipelineConfig, unsettled: bool = False) -> Refusal | None:
+    """
+    Return why an estimate must not be trusted on its overlap alone, or None.
+
+    The gates that need no correspondences (degenerate axis, fitness, free space, tilt), so
+    that a pose refined from a prediction is judged as a global one is.
+    """
+    refine = cfg.refine
+    distance = refine.max_correspondence_distance_factor * cfg.voxel_size
+    limit = free_space_limit(cfg, unsettled)
     if refine.min_observability > 0 and not e.observability >= refine.min_observability:
         return Refusal(Code.DEGENERATE_AXIS, (
             'degenerate geometry: the overlap constrains some motion only weakly '
@@ -212,6 +234,42 @@ def gate_refusal(e: Estimate, cfg: PipelineConfig, unsettled: bool = False) -> R
                         "core.motion_model='6dof'")
 
 
+def tracking_refusal(correction_deg: float, correction_m: float, fitness: float,
+                     last_fitness: float, cfg: PipelineConfig) -> Refusal | None:
+    """
+    Return why a pose refined from a prediction is no tracked pose, or None.
+
+    Smooth motion moves little and changes the overlap little, a jump does neither: the
+    refinement must not have moved the prediction by more than ``tracking.max_correction_*``
+    (``correction_deg``, ``correction_m``), and ``fitness`` must be at least
+    ``tracking.min_fitness_ratio`` times the last accepted pose's.
+    """
+    track = cfg.tracking
+    limit = track.max_correction_factor * cfg.voxel_size
+    if not (correction_deg <= track.max_correction_deg and correction_m <= limit):
+        return Refusal(Code.TRACKING_LOST, (
+            f'tracking: the refinement moved the predicted pose by {correction_m:.3g} m and '
+            f'{correction_deg:.3g} deg (> tracking.max_correction_factor {limit:.3g} m or '
+            f'tracking.max_correction_deg {track.max_correction_deg:g} deg): a jump, not a '
+            'tracked motion'))
+    if not fitness >= track.min_fitness_ratio * last_fitness:
+        return Refusal(Code.TRACKING_LOST, (
+            f'tracking: fitness {fitness:.3f} < tracking.min_fitness_ratio times the last '
+            f"pose's {last_fitness:.3f}: the prediction converged where far fewer points "
+            'fit (a jump or a changed scene)'))
+    return None
+
+
+def confidence_refusal(e: Trusted, min_confidence: float) -> Refusal | None:
+    """Return why an estimate's calibrated confidence is too low to call it valid, or None."""
+    if min_confidence <= 0 or e.confidence >= min_confidence:
+        return None
+    return Refusal(Code.LOW_CONFIDENCE, (
+        f'low confidence: P(right) {e.confidence:.2f} < min_confidence '
+        f'{min_confidence:g}: estimates measured like this one (inliers against chance, '
+        'overlap, free space, rivals) are too often wrong'))
+
+
 def ambiguity_refusal(e: Estimate, cfg: PipelineConfig) -> Refusal | None:
     """Return why the estimate is ambiguous among its candidates, or None when it is not."""
     if not e.ambiguous:
@@ -226,6 +284,30 @@ def ambiguity_refusal(e: Estimate, cfg: PipelineConfig) -> Refusal | None:
         f'{runner.num_inliers} inliers against {best.num_inliers} of the best (within '
         f'ambiguity_ratio {cfg.ambiguity_ratio:g}){geometry}; the scene looks alike in both '
         'poses'))
+
+
+# --- the relocalizer over a few scans -----------------------------------------------------
+
+def unexplained_refusal(misses: Sequence[int]) -> Refusal:
+    """Return the refusal of a best hypothesis that does not explain the scans ``misses``."""
+    return Refusal(Code.UNEXPLAINED, (
+        f'no pose explains every scan (the best misses scan(s) '
+        f'{", ".join(map(str, misses))}): the odometry contradicts the scans, or the '
+        'place is not in the map'))
+
+
+def sequence_ambiguity_refusal(scans: int, turned_deg: float, moved_m: float) -> Refusal:
+    """Return the refusal of a distinct pose that explains every scan about as well."""
+    return Refusal(Code.AMBIGUOUS, (
+        f'ambiguous over {scans} scans: a distinct pose ({turned_deg:.0f} deg, '
+        f'{moved_m:.2f} m away) explains every scan about as well'))
+
+
+def more_scans_refusal(scans: int, min_scans: int) -> Refusal | None:
+    """Return why ``scans`` scans cannot confirm yet (fewer than ``min_scans``), or None."""
+    if scans >= min_scans:
+        return None
+    return Refusal(Code.MORE_SCANS, f'{scans} of the {min_scans} scans a confirmation needs')
 
 
 # --- the node ------------------------------------------------------------------------------

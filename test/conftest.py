@@ -10,8 +10,13 @@ lives in test/fixtures/ (small, committed, each with its licence).
 import os
 from pathlib import Path
 
-from cgags_ros.datasets.synthetic import shared_data_dir
-import pytest
+from cgags_ros.parallel import quiet_idle_threads
+
+# The suite runs the pipeline in its own process, as the tools do: set up before numpy loads.
+quiet_idle_threads()
+
+from cgags_ros.io.shared_data import shared_data_dir  # noqa: E402, I100
+import pytest  # noqa: E402
 
 REQUIRE_DATA = 'CGAGS_REQUIRE_DATA'
 FIXTURES = Path(__file__).resolve().parent / 'fixtures'
@@ -42,3 +47,25 @@ def data_dir() -> Path:
     """Return the shared test data folder (../shared/data or CGAGS_DATA_DIR)."""
     return require_shared(shared_data_dir(), 'shared test data',
                           hint='; CGAGS_DATA_DIR names another copy')
+
+
+@pytest.fixture(scope='session')
+def redkitchen_pair(data_dir):
+    """
+    Return ``pair(target, source)`` -> (source points, target points, 4x4 truth).
+
+    A pair of the 3DMatch list of the benchmark's redkitchen scene (fragments ``source`` into
+    ``target``, the truth projected onto a rotation).
+    """
+    from bench.datasets import threedmatch as tdm
+
+    root = require_shared(data_dir / '3dmatch_benchmark', '3dmatch_benchmark',
+                          marker='benchmarks')
+    scene = '7-scenes-redkitchen'
+    pairs = {(p.target, p.source): p for p in tdm.registration_pairs(root, '3DMatch', scene)}
+    fragments = tdm.Fragments(root, scene)
+
+    def pair(target: int, source: int):
+        p = pairs[(target, source)]
+        return fragments[source], fragments[target], tdm.nearest_rigid(p.transform)
+    return pair

@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from cgags_ros.datasets.rigs import OPENCALIB, opencalib_rig, REFERENCE
+from bench.datasets.rigs import OPENCALIB, opencalib_rig, REFERENCE
 from cgags_ros.geometry import make_transform, rotation_error_deg, translation_error
 from cgags_ros.tools import calibrate_cli
 import numpy as np
@@ -41,6 +41,7 @@ def _tf2_transform(line: str) -> np.ndarray:
     return make_transform(R.as_matrix(), [float(flags[k]) for k in ('--x', '--y', '--z')])
 
 
+@pytest.mark.slow
 def test_files_print_the_four_forms(rig, capsys):
     root, _, reference = rig
     parents = sorted(root.glob('*/top-*.pcd'))
@@ -94,6 +95,7 @@ def _write_bag(path: Path, frames, offset_s: float = 0.0) -> None:
             writer.write(conn, stamp, store.serialize_cdr(msg, cloud_type))
 
 
+@pytest.mark.slow
 def test_bag_frames_paired_by_time(rig, tmp_path, capsys):
     _, frames, reference = rig
     offsets = [(f.child_stamp_ns - f.parent_stamp_ns) * 1e-9 for f in frames]

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 
-from cgags_ros.datasets.rigs import OPENCALIB, opencalib_rig, REFERENCE
+from bench.datasets.rigs import OPENCALIB, opencalib_rig, REFERENCE
 from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.io.pointcloud2 import pose_to_transform
 import numpy as np
@@ -26,6 +26,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped  # noqa: E402
 from std_msgs.msg import Header, String  # noqa: E402
 from waiting import CloudWire, ros_overrides, spun_context, wait_for  # noqa: E402
 
+pytestmark = pytest.mark.ros
 DOMAIN_ID = 96  # distinct from the other DDS test modules
 TOLERANCE = (0.2, 0.03)  # simulated rig: deg, m (the reference spread)
 PARAMS = {'mode': 'calibrate', 'voxel_size': 0.3, 'source_qos': 'reliable',

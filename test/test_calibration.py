@@ -12,22 +12,23 @@ from __future__ import annotations
 
 import dataclasses
 
+from bench.datasets.rigs import (corridor, kitti_depth_rig, kitti_lidar_rig, KITTI_SCANS,
+                                 OPENCALIB, opencalib_rig, raycast_planes, REFERENCE)
 from cgags_ros.calibration import calibrate, CalibrationResult, Frame
 from cgags_ros.calibration import joint, uncertainty
 from cgags_ros.calibration.calibrator import solve
-from cgags_ros.calibration.formats import rpy, static_transform_publisher, urdf_joint
+from cgags_ros.calibration.formats import static_transform_publisher, urdf_joint
 from cgags_ros.calibration.frames import gather
 from cgags_ros.config import PipelineConfig
 from cgags_ros.config.calibration import CalibrationConfig
-from cgags_ros.datasets.rigs import (corridor, kitti_depth_rig, kitti_lidar_rig, KITTI_SCANS,
-                                     OPENCALIB, opencalib_rig, raycast_planes, REFERENCE)
-from cgags_ros.geometry import (apply_transform, make_transform, rotation_error_deg,
+from cgags_ros.geometry import (apply_transform, make_transform, rotation_error_deg, rpy,
                                 translation_error)
 from cgags_ros.refusal import RefusalCode as Code
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+pytestmark = pytest.mark.slow
 TOLERANCE = {'carla_data': (0.2, 0.03), 'real_world': (0.5, 0.05)}  # deg, m
 OPENCALIB_VOXEL = 0.3
 _CACHE: dict = {}

@@ -2,7 +2,7 @@
 
 import tracemalloc
 
-from cgags_ros.datasets.synthetic import load_bunny, make_correspondences
+from bench.datasets.synthetic import load_bunny, make_correspondences
 from cgags_ros.errors import DegenerateCorrespondencesError, InvalidInputError
 from cgags_ros.geometry import point_resolution
 from cgags_ros.refusal import RefusalCode as Code

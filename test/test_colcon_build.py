@@ -32,11 +32,14 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 from sensor_msgs.msg import PointCloud2
 
+pytestmark = [pytest.mark.ros, pytest.mark.subprocess, pytest.mark.slow]
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = 'cgags_ros'
 # What a source checkout of the package must ship for colcon; never .venv, build outputs, .git.
 PACKAGE_FILES = ['package.xml', 'setup.py', 'setup.cfg', 'LICENSE', 'README.md']
 PACKAGE_DIRS = ['resource', PACKAGE, 'config', 'launch', 'rviz']
+# The benchmarks' data readers live in bench/datasets/, which is not installed.
+BENCH_DATA = ('threedmatch.py', 'rigs.py', 'gt_pairs.py', 'synthetic.py')
 COLCON = Path(sys.executable).parent / 'colcon'
 # Distinct from test_register_node.py (47), test_replay.py (83) and bench/ (58).
 DOMAIN_ID = 61
@@ -322,6 +325,8 @@ def test_colcon_build_installs_a_runnable_node(tmp_path, data_dir, monkeypatch):
     installed = {p.relative_to(site[0]) for p in (site[0] / PACKAGE).rglob('*.py')}
     assert sources == installed, (f'not installed: {sorted(map(str, sources - installed))}, '
                                   f'not in the source: {sorted(map(str, installed - sources))}')
+    shipped = sorted(str(p) for p in installed if p.name in BENCH_DATA)
+    assert not shipped, f'data readers of the benchmarks installed: {shipped}'
     probe = subprocess.run([sys.executable, '-c', PROBE], env=env, cwd=tmp_path,
                            capture_output=True, text=True, timeout=60)
     assert probe.returncode == 0, probe.stderr

@@ -50,7 +50,7 @@ PATTERNS = {
                           r'|\bmeasured on (?:a |an )?\d+[- ]?(?:cores?|cpus?|threads?)\b',
                           re.I),
     'development pass': re.compile(
-        rf'\bpass(?:es)?\s*#?\d+\b|\b(?:{_ORDINALS})\s+pass\b'
+        rf'\bpass(?:es)?\s*#?\d+\b(?![.,]\d)|\b(?:{_ORDINALS})\s+pass\b'
         rf'|\b(?:first|second)\s+(?:{_DEV_KINDS})\s+pass\b'
         rf'|\b(?:{_DEV_KINDS}) pass\s+(?:one|two|three|four|five|\d)', re.I),
     'issue number': re.compile(

@@ -154,9 +154,11 @@ def test_pose_round_trip_rclpy_and_duck_typed():
         Rotation.from_euler('xyz', [10, -20, 170], degrees=True).as_matrix(), [1.0, -2.0, 0.5])
     pose = conv.transform_to_pose(T)
     np.testing.assert_allclose(pc2.pose_to_transform(pose), T, atol=1e-12)
+    from builtin_interfaces.msg import Time
+    from geometry_msgs.msg import PoseStamped
     from std_msgs.msg import Header
 
-    stamped = conv.transform_to_pose_stamped(T, Header(frame_id='map'))
+    stamped = PoseStamped(header=Header(frame_id='map'), pose=pose)  # as ~/pose carries it
     np.testing.assert_allclose(pc2.pose_to_transform(stamped), T, atol=1e-12)
     tf = conv.transform_to_transform_stamped(T, Header(frame_id='map'), 'base')
     np.testing.assert_allclose(pc2.pose_to_transform(tf), T, atol=1e-12)
@@ -165,7 +167,7 @@ def test_pose_round_trip_rclpy_and_duck_typed():
         position=ns(x=1.0, y=-2.0, z=0.5),
         orientation=ns(**dict(zip('xyzw', geometry.matrix_to_quaternion(T[:3, :3]))))))
     np.testing.assert_allclose(pc2.pose_to_transform(duck), T, atol=1e-12)
-    assert (pc2.stamp_to_ns(conv.ns_to_stamp(1_700_000_000_500_000_001))
+    assert (pc2.stamp_to_ns(Time(sec=1_700_000_000, nanosec=500_000_001))
             == 1_700_000_000_500_000_001)
 
 

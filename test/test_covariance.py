@@ -1,10 +1,36 @@
-"""cgags_ros.pipeline.covariance: the pose covariance follows the inlier geometry."""
+"""cgags_ros.pipeline.covariance: the covariance follows the geometry and holds on real data."""
 
 from __future__ import annotations
 
-from cgags_ros.pipeline.covariance import pose_covariance
+from cgags_ros.pipeline.covariance import FLOOR_POSITION, overlap_covariance, pose_covariance
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+CHI2_6_95 = 12.592  # 95 % quantile of the chi-square law with 6 degrees of freedom
+
+
+def _floor_and_wall(rng: np.random.Generator, block: float, step: float = 0.05):
+    """
+    Return a noisy source, target and target normals: a 4 m floor, a wall along x, a block.
+
+    Floor and wall fix y, z and every rotation; only the block (``block`` metres a side,
+    on the floor against nothing) fixes x.
+    """
+    u = np.arange(0.0, 4.0, step)
+    a, b = np.meshgrid(u, u)
+    floor = np.column_stack([a.ravel(), b.ravel(), np.zeros(a.size)])
+    wall = np.column_stack([a.ravel(), np.zeros(a.size), b.ravel() / 2])
+    s = np.arange(0.0, block, step)
+    c, d = np.meshgrid(s, s)
+    side = np.column_stack([np.full(c.size, 2.0), 1.0 + c.ravel(), d.ravel()])
+    points = np.vstack([floor, wall, side])
+    normals = np.vstack([np.tile([0, 0, 1.0], (len(floor), 1)),
+                         np.tile([0, 1.0, 0], (len(wall), 1)),
+                         np.tile([1.0, 0, 0], (len(side), 1))])
+    return (points + rng.normal(scale=0.02, size=points.shape),
+            points + rng.normal(scale=0.02, size=points.shape), normals)
 
 
 def test_pose_covariance_reflects_geometry():
@@ -22,7 +48,7 @@ def test_pose_covariance_reflects_geometry():
 def test_the_pipeline_result_carries_the_covariance_of_its_estimate():
     """register_clouds() returns the covariance the node publishes, also in summary()."""
     from cgags_ros.config import PipelineConfig
-    from cgags_ros.datasets.synthetic import terrain_patch
+    from cgags_ros.pipeline.register import terrain_patch
     from cgags_ros.geometry import make_transform, rotation_error_deg
     from cgags_ros.pipeline import register_clouds
 
@@ -37,8 +63,13 @@ def test_the_pipeline_result_carries_the_covariance_of_its_estimate():
     cov = result.covariance
     assert cov.shape == (6, 6) and np.allclose(cov, cov.T)
     assert np.all(np.linalg.eigvalsh(cov) > 0) and np.all(np.diag(cov) < 1.0)
-    expected = pose_covariance(result.inlier_source_points, result.inlier_target_points,
-                               result.transform)
+    from cgags_ros.pipeline import cached_features
+
+    config = PipelineConfig(voxel_size=0.15)
+    fs = cached_features(source, 0.15, config.frontend, 'source')
+    ft = cached_features(target, 0.15, config.frontend, 'target')
+    expected = overlap_covariance(fs.points, ft.points, ft.normals, ft.tree, result.transform,
+                                  1.5 * 0.15, 0.15)
     np.testing.assert_allclose(cov, expected)
     assert np.array(result.summary()['covariance']) == pytest.approx(cov)
     # No estimate: no support, the "unknown" variances
@@ -104,3 +135,40 @@ def test_map_to_odom_composes_back_to_the_base_pose():
                                  [1.0, 0.5, 0.0])
     np.testing.assert_allclose(map_to_odom(T_map_base, T_odom_base) @ T_odom_base, T_map_base,
                                atol=1e-12)
+
+
+def test_overlap_covariance_opens_along_the_motion_the_overlap_leaves_weak():
+    """Shrinking the only structure that fixes x loosens x, not the other motions."""
+    sd = {}
+    for block in (0.1, 1.0):
+        src, dst, normals = _floor_and_wall(np.random.default_rng(4), block)
+        cov = overlap_covariance(src, dst, normals, cKDTree(dst), np.eye(4), 0.075, 0.05)
+        assert np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
+        sd[block] = np.sqrt(np.diag(cov))
+        # The floor: no position sigma below it, whatever the fit.
+        assert np.all(sd[block][:3] >= FLOOR_POSITION * 0.05 * (1 - 1e-9))
+    assert sd[0.1][0] > 1.5 * sd[1.0][0]
+    np.testing.assert_allclose(sd[0.1][1:], sd[1.0][1:], rtol=0.2)
+    # With nothing at all to fix x the information is singular: the pose is unknown.
+    src, dst, normals = _floor_and_wall(np.random.default_rng(4), 0.0)
+    unknown = overlap_covariance(src, dst, normals, cKDTree(dst), np.eye(4), 0.075, 0.05)
+    assert np.all(np.diag(unknown) == 1e6)
+
+
+def test_a_right_3dmatch_pose_lies_inside_its_95_percent_ellipsoid(redkitchen_pair):
+    """NEES of a right, valid 3DMatch estimate against the benchmark's truth, and sharpness."""
+    from cgags_ros.pipeline import register_clouds
+
+    src, tgt, gt = redkitchen_pair(0, 2)
+    result = register_clouds(src, tgt, voxel_size=0.05)
+    assert result.valid, result.reason
+    T = result.transform
+    error = np.concatenate([gt[:3, 3] - T[:3, 3],
+                            Rotation.from_matrix(gt[:3, :3] @ T[:3, :3].T).as_rotvec()])
+    nees = error @ np.linalg.solve(result.covariance, error)
+    assert nees <= CHI2_6_95
+    # Sharp, not inflated: the position sigma within two voxels, and the old point-to-point
+    # covariance over the keypoints would have put the truth far outside its ellipsoid.
+    assert np.sqrt(np.trace(result.covariance[:3, :3])) <= 2 * 0.05
+    old = pose_covariance(result.inlier_source_points, result.inlier_target_points, T)
+    assert error @ np.linalg.solve(old, error) > 2 * CHI2_6_95

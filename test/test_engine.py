@@ -1,5 +1,5 @@
 """
-cgags_ros.ros.engine without ROS: pairing, accounting, lifecycle states, guards, requests.
+cgags_ros.localizer.engine without ROS: pairing, accounting, lifecycle states, guards, requests.
 
 The engine is fed decoded clouds directly and publishes into a recorder; the registration
 is a stand-in that returns a known pose (the real pipeline runs in the DDS tests), so these
@@ -8,6 +8,7 @@ check the decisions: what is counted where, what is published, what the guards r
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -19,15 +20,15 @@ from cgags_ros.config.node import NodeConfig
 from cgags_ros.config.pipeline import PipelineConfig
 from cgags_ros.geometry import make_transform, quaternion_to_matrix
 from cgags_ros.io.clouds import write_cloud
+from cgags_ros.localizer import startup
+from cgags_ros.localizer.engine import RegistrationEngine
+from cgags_ros.localizer.interface import Cloud, StartFailed
+from cgags_ros.pipeline.isolated import IsolatedRegistration, running
 from cgags_ros.pipeline.result import PipelineResult
 from cgags_ros.refusal import Refusal, RefusalCode
-from cgags_ros.ros import startup
-from cgags_ros.ros.engine import RegistrationEngine
-from cgags_ros.ros.interface import Cloud, StartFailed
-from cgags_ros.ros.worker import IsolatedRegistration
 import numpy as np
 import pytest
-from waiting import bad_map, running, wait_for
+from waiting import bad_map, wait_for
 
 T_TRUE = make_transform(quaternion_to_matrix((0.0, 0.0, 0.2588190, 0.9659258)), (1.0, 2.0, 0.5))
 
@@ -44,6 +45,7 @@ class Recorder:
 
     def __init__(self):
         self.estimates, self.candidates, self.initial, self.logs = [], [], [], []
+        self.results = []
 
     def publish_estimate(self, estimate):
         self.estimates.append(estimate)
@@ -53,6 +55,9 @@ class Recorder:
 
     def publish_initial_pose(self, pose):
         self.initial.append(pose)
+
+    def publish_result(self, result):
+        self.results.append(json.loads(result.to_json()))  # what ~/result carries
 
     def base_from_sensor(self, base_frame, sensor_frame):
         return np.eye(4)
@@ -89,9 +94,10 @@ def balanced(engine):
     return acc
 
 
+@pytest.mark.subprocess
 def test_the_engine_imports_no_ros():
-    code = ('import sys, cgags_ros.ros.engine, cgags_ros.ros.map_target, '
-            'cgags_ros.ros.startup; '
+    code = ('import sys, cgags_ros.localizer.engine, cgags_ros.localizer.map_target, '
+            'cgags_ros.localizer.startup; '
             "print(sorted(m for m in sys.modules if m.split('.')[0] in "
             "('rclpy', 'rcl_interfaces', 'std_msgs', 'sensor_msgs', 'geometry_msgs')))")
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
@@ -153,6 +159,39 @@ def test_invalid_results_are_rejected_unless_publish_invalid():
         balanced(engine)
     finally:
         engine.stop()
+
+
+def test_every_accounted_source_has_one_result_saying_what_became_of_it():
+    """~/result: one record a source, published, rejected (when and why) or dropped."""
+    engine, out = make(max_waiting_sources=1)
+    try:
+        send(engine, 'source', 1)  # inactive: rejected at once
+        engine.activate()
+        send(engine, 'source', 2)  # no target yet: waits, then is superseded by 3
+        send(engine, 'source', 3)
+        engine.receive('source', 4 * 10**9, 'lidar', None, 'source_malformed', 'bad cloud')
+        send(engine, 'target', 5, frame='map')  # pairs 3
+        wait_for(lambda: out.estimates, 10, 'the pose of 3')
+        send(engine, 'source', 6, n=7)  # registered, invalid
+        acc = wait_for(lambda: len(out.results) == 5 and balanced(engine), 10, 'five results')
+        assert acc['sources']['pending'] == 0
+    finally:
+        engine.stop()
+    by_stamp = {r['source_stamp_ns'] // 10**9: r for r in out.results}
+    assert {k: (r['outcome'], r['cause']) for k, r in by_stamp.items()} == {
+        1: ('rejected', 'source_inactive'), 2: ('dropped', 'source_superseded_before_target'),
+        3: ('published', ''), 4: ('rejected', 'source_malformed'),
+        6: ('rejected', 'invalid_result')}
+    published, invalid = by_stamp[3], by_stamp[6]
+    np.testing.assert_allclose(published['transform'], T_TRUE)  # register_clouds' summary
+    assert published['valid'] is True and published['num_inliers'] == 40
+    assert published['fitness'] == 0.8 and len(published['covariance']) == 6
+    assert (published['frame_id'], published['target_frame']) == ('map', 'map')
+    assert published['target_stamp_ns'] == 5 * 10**9 and published['source_frame'] == 'lidar'
+    assert invalid['valid'] is False and invalid['reason'] == 'fake: 7'
+    assert invalid['message'] == 'invalid registration: fake: 7'
+    assert by_stamp[4]['message'] == by_stamp[4]['reason'] == 'bad cloud'
+    assert 'transform' not in by_stamp[4] and by_stamp[4]['target_stamp_ns'] is None
 
 
 def test_initial_pose_guards_extrinsic_and_max_auto():
@@ -276,7 +315,7 @@ def sphere(n=3000):
 
 def test_a_map_without_normals_loads_with_a_warning_and_one_with_normals_without(tmp_path):
     """The map's normals face the map origin unless the file signs them: the log says which."""
-    from cgags_ros.ros.map_target import MapTarget
+    from cgags_ros.localizer.map_target import MapTarget
 
     points, normals = sphere()
     write_cloud(tmp_path / 'bare.ply', points)
@@ -307,6 +346,7 @@ def processes(monkeypatch):
     return started
 
 
+@pytest.mark.subprocess
 @pytest.mark.parametrize('with_map', [False, True])
 def test_start_returns_once_the_process_is_warm_and_the_map_loaded(
         tmp_path, processes, with_map):
@@ -333,6 +373,7 @@ def test_start_returns_once_the_process_is_warm_and_the_map_loaded(
     wait_for(lambda: not running(pid), 10, 'the registration process to end')
 
 
+@pytest.mark.subprocess
 @pytest.mark.parametrize('case', ['missing', 'empty', 'unreadable', 'all_nan'])
 def test_a_bad_map_fails_start_with_its_reason(tmp_path, case):
     """A missing, empty, unreadable or all-NaN map: StartFailed naming it, no worker thread."""
@@ -347,6 +388,7 @@ def test_a_bad_map_fails_start_with_its_reason(tmp_path, case):
     engine.stop()  # what the node's cleanup does: harmless after a failed start
 
 
+@pytest.mark.subprocess
 def test_a_bad_map_ends_the_registration_process_it_was_loaded_in(tmp_path, processes):
     """The map is loaded in the real process: start fails and that process is ended."""
     engine = RegistrationEngine(PipelineConfig(), NodeConfig(
@@ -358,6 +400,7 @@ def test_a_bad_map_ends_the_registration_process_it_was_loaded_in(tmp_path, proc
     assert not process.ready
 
 
+@pytest.mark.subprocess
 def test_a_process_that_dies_while_warming_up_fails_start(processes):
     """Killed (-9) during its warm-up: StartFailed says so, and nothing is left running."""
     engine = RegistrationEngine(PipelineConfig(), NodeConfig(registration_timeout=60.0),

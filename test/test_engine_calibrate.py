@@ -12,19 +12,20 @@ from __future__ import annotations
 import json
 import time
 
+from bench.datasets.rigs import OPENCALIB, opencalib_rig, REFERENCE
 from cgags_ros.config.calibration import CalibrationConfig
 from cgags_ros.config.node import NodeConfig
 from cgags_ros.config.pipeline import PipelineConfig
-from cgags_ros.datasets.rigs import OPENCALIB, opencalib_rig, REFERENCE
 from cgags_ros.geometry import rotation_error_deg, translation_error
-from cgags_ros.ros.engine import RegistrationEngine
-from cgags_ros.ros.interface import Cloud
+from cgags_ros.localizer.engine import RegistrationEngine
+from cgags_ros.localizer.interface import Cloud
 import numpy as np
 import pytest
 from test_calibration import _plane_rig
 from test_engine import balanced, Header, Recorder
 from waiting import wait_for
 
+pytestmark = pytest.mark.slow
 VOXEL = 0.3  # test_calibration's OpenCalib voxel
 TOLERANCE = (0.2, 0.03)  # simulated rig: deg, m (the reference spread)
 

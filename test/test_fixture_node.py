@@ -32,6 +32,7 @@ from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 from waiting import ros_args, spun_context, stop_process, wait_for  # noqa: E402
 
+pytestmark = pytest.mark.ros
 REPO = Path(__file__).resolve().parents[1]
 FIXTURE = REPO / 'test' / 'fixtures' / 'small_gicp'
 DOMAIN_ID = 77  # distinct from the other DDS test modules
@@ -42,7 +43,7 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 NODE = '/register_node'
-# A fresh clone compiles the kernels first (no numba cache yet): minutes on a slow machine.
+# A fresh clone compiles the numba code first (no numba cache yet): minutes on a slow machine.
 WARM_UP_S = 600
 
 

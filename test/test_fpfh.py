@@ -1,11 +1,19 @@
-"""FPFH (frontend/fpfh.py and its kernels) against Open3D's FPFH and a k-d tree's neighbours."""
+"""
+FPFH and its neighbour search against Open3D's FPFH and a k-d tree's neighbours.
+
+frontend/fpfh.py, frontend/neighbours.py and their compiled functions
+(frontend/compiled/fpfh.py, neighbours.py).
+"""
 
 import math
 
 from cgags_ros.config.frontend import FrontEndConfig
-from cgags_ros.frontend import fpfh, kernels_fpfh, kernels_neighbours
+from cgags_ros.frontend import compiled, fpfh, neighbours
+from cgags_ros.frontend.compiled import fpfh as compiled_fpfh
+from cgags_ros.frontend.compiled import neighbours as compiled_neighbours
 from cgags_ros.frontend.features import downsample, estimate_normals, extract_features
-from cgags_ros.frontend.fpfh import compute_fpfh, radius_neighbours
+from cgags_ros.frontend.fpfh import fpfh_with_spacing
+from cgags_ros.frontend.neighbours import NeighbourGrid
 from cgags_ros.geometry import point_resolution
 from cgags_ros.io.clouds import read_cloud
 import numpy as np
@@ -23,6 +31,21 @@ def cloud(request, data_dir):
     return points, estimate_normals(points, voxel, FrontEndConfig()), voxel
 
 
+def _fpfh(points, normals, voxel, cfg, workers=1):
+    """Return the front end's FPFH descriptors, without the spacing."""
+    return fpfh_with_spacing(points, normals, voxel, cfg, workers)[0]
+
+
+def _neighbours_by_row(points, radius, max_nn, workers=1):
+    """Each point's neighbour rows, their count and its nearest-other distance, in row order."""
+    grid = NeighbourGrid.build(points, radius)
+    nearest = np.empty(len(points))
+    lists = grid.neighbours(0, len(points), max_nn, nearest, workers)
+    rows, counts = np.empty_like(lists.nbr), np.empty_like(lists.count)
+    rows[grid.order], counts[grid.order] = lists.nbr, lists.count  # cell order to row order
+    return rows, counts, nearest
+
+
 def _open3d_fpfh(points, normals, voxel, cfg):
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     pcd.normals = o3d.utility.Vector3dVector(normals)
@@ -35,20 +58,20 @@ def _open3d_fpfh(points, normals, voxel, cfg):
 def test_fpfh_equals_open3d(cloud, max_nn):
     points, normals, voxel = cloud
     cfg = FrontEndConfig(fpfh_max_nn=max_nn)
-    ours = compute_fpfh(points, normals, voxel, cfg, workers=2)
+    ours = _fpfh(points, normals, voxel, cfg, workers=2)
     ref = _open3d_fpfh(points, normals, voxel, cfg)
     # Rows whose max_nn-th neighbour ties with the next may pick another neighbour than
     # Open3D (ties go to the lower row here): a handful at most on real scans.
     close = np.abs(ours - ref).max(axis=1) < 1e-9
     assert close.mean() > 0.99
-    assert np.array_equal(ours, compute_fpfh(points, normals, voxel, cfg, workers=1))
+    assert np.array_equal(ours, _fpfh(points, normals, voxel, cfg, workers=1))
 
 
 def test_radius_neighbours_are_the_nearest_within_the_radius(cloud):
     points, _, voxel = cloud
     radius, max_nn = 5 * voxel, 30
     tree = cKDTree(points)
-    nbr, count, nearest = radius_neighbours(points, radius, max_nn, workers=2)
+    nbr, count, nearest = _neighbours_by_row(points, radius, max_nn, workers=2)
     dist, idx = tree.query(points, k=max_nn + 1, distance_upper_bound=radius)
     # the nearest other point: the same distances as the k-d tree's, to the bit
     np.testing.assert_array_equal(nearest, np.where(np.isfinite(dist[:, 1]), dist[:, 1], np.inf))
@@ -65,12 +88,12 @@ def test_radius_neighbours_are_the_nearest_within_the_radius(cloud):
 def test_neighbours_without_the_column_table_are_the_same(cloud, monkeypatch):
     """A grid too wide for the column table finds its cells among all keys: same answers."""
     points, _, voxel = cloud
-    with_table = radius_neighbours(points, 5 * voxel, 30)
-    assert len(fpfh.NeighbourGrid.build(points, 5 * voxel).column_start) > 1
-    monkeypatch.setattr(fpfh, '_MAX_COLUMNS', 0)
+    with_table = _neighbours_by_row(points, 5 * voxel, 30)
+    assert len(NeighbourGrid.build(points, 5 * voxel).column_start) > 1
+    monkeypatch.setattr(neighbours, '_MAX_COLUMNS', 0)
     points_wide = np.vstack([points, points[:1] + 1e4 * voxel])  # a far point: 8 M > 8 n
-    assert len(fpfh.NeighbourGrid.build(points_wide, 5 * voxel).column_start) == 0
-    without = radius_neighbours(points_wide, 5 * voxel, 30)
+    assert len(NeighbourGrid.build(points_wide, 5 * voxel).column_start) == 0
+    without = _neighbours_by_row(points_wide, 5 * voxel, 30)
     n = len(points)
     assert np.array_equal(with_table[1], without[1][:n])
     assert np.array_equal(with_table[2], without[2][:n])
@@ -82,10 +105,10 @@ def test_select_keeps_the_smallest_with_ties_to_the_lower_row():
     rng = np.random.default_rng(5)
     for n, m in [(50, 10), (200, 100), (7, 6), (30, 1)]:
         d = rng.integers(0, 12, n).astype(float)  # many ties
-        j = rng.permutation(n).astype(np.int64)
+        j = rng.permutation(n).astype(np.int32)  # rows, as the neighbour lists hold them
         want = sorted(zip(d, j))[:m]
         dd, jj = d.copy(), j.copy()
-        kernels_neighbours._select(dd, jj, n, m)
+        compiled_neighbours._select(dd, jj, n, m)
         assert sorted(zip(dd[:m], jj[:m])) == want
 
 
@@ -93,10 +116,10 @@ def test_fpfh_in_blocks_equals_one_pass(cloud, monkeypatch):
     """A cloud too large to keep every neighbour list is done in blocks: same values."""
     points, normals, voxel = cloud
     cfg = FrontEndConfig()
-    whole = compute_fpfh(points, normals, voxel, cfg, workers=2)
+    whole = _fpfh(points, normals, voxel, cfg, workers=2)
     monkeypatch.setattr(fpfh, '_NEIGHBOUR_BYTES', 4 * cfg.fpfh_max_nn * 700)  # 700 rows a block
     assert len(points) > 1400
-    np.testing.assert_array_equal(compute_fpfh(points, normals, voxel, cfg, workers=2), whole)
+    np.testing.assert_array_equal(_fpfh(points, normals, voxel, cfg, workers=2), whole)
 
 
 def test_a_stray_point_far_away_falls_back_to_open3d(cloud):
@@ -105,11 +128,11 @@ def test_a_stray_point_far_away_falls_back_to_open3d(cloud):
     far = np.vstack([points, points[:1] + 1e9 * voxel])
     far_normals = np.vstack([normals, normals[:1]])
     cfg = FrontEndConfig()
-    assert fpfh.NeighbourGrid.build(far, cfg.fpfh_radius_factor * voxel) is None
-    ours = compute_fpfh(far, far_normals, voxel, cfg)
+    assert NeighbourGrid.build(far, cfg.fpfh_radius_factor * voxel) is None
+    ours, spacing = fpfh_with_spacing(far, far_normals, voxel, cfg)
     assert np.abs(ours - _open3d_fpfh(far, far_normals, voxel, cfg)).max() < 1e-9
-    with pytest.raises(ValueError, match='too far'):
-        radius_neighbours(far, voxel, 10)
+    assert spacing is None  # no neighbour search ran
+    assert NeighbourGrid.build(far, voxel) is None  # too far for a grid of any FPFH radius
 
 
 def test_resolution_from_the_fpfh_search_equals_the_k_d_tree(cloud):
@@ -134,8 +157,8 @@ def test_angle_bins_equal_atan2_bins():
     # some builds (numpy 1.26's SIMD loops), which moves values that sit on a bin edge.
     atan2 = np.array([math.atan2(a, b) for a, b in zip(y, x)])
     expected = np.clip(np.floor(11.0 * (atan2 + np.pi) / (2.0 * np.pi)), 0, 10)
-    expected[np.isnan(expected)] = 0  # NaN: the kernels' floor-and-clamp gives bin 0
-    got = [kernels_fpfh._angle_bin(a, b) for a, b in zip(y, x)]
+    expected[np.isnan(expected)] = 0  # NaN: the compiled floor-and-clamp gives bin 0
+    got = [compiled_fpfh._angle_bin(a, b) for a, b in zip(y, x)]
     assert np.array_equal(got, expected)
 
 
@@ -152,16 +175,16 @@ def test_spfh_equals_its_pair_by_pair_reference(cloud):
     flat = points.min(axis=0) - 20 * voxel + patch
     pts = np.vstack([points[:800], flat, points[:1]])
     nrm = np.vstack([normals[:800], np.tile([0.0, 0.0, 1.0], (60, 1)), normals[:1]])
-    nbr, count, _ = radius_neighbours(pts, FrontEndConfig().fpfh_radius_factor * voxel, 100)
+    nbr, count, _ = _neighbours_by_row(pts, FrontEndConfig().fpfh_radius_factor * voxel, 100)
     order = np.arange(len(pts))
     got = np.zeros((len(pts), 33))
-    kernels_fpfh.spfh(pts, nrm, 0, len(pts), 0, order, nbr, count, got)
+    compiled.spfh_pass(pts, nrm, compiled.NeighbourLists(order, 0, nbr, count), 0, len(pts), got)
     want = np.zeros((len(pts), 33))
     for i in range(len(pts)):
         c = count[i]
         for j in nbr[i, :c]:
             if j != i:
-                b0, b1, b2 = kernels_fpfh._pair_bins(pts, nrm, i, j)
+                b0, b1, b2 = compiled_fpfh._pair_bins(pts, nrm, i, j)
                 for b in (b0, 11 + b1, 22 + b2):
                     want[i, b] += 100.0 / (c - 1)
     np.testing.assert_array_equal(got, want)

@@ -1,7 +1,7 @@
 """cgags_ros.frontend: checks, downsampling, FPFH matching (matching.py), refinement."""
 
+from bench.datasets.gt_pairs import find_pair
 from cgags_ros.config.frontend import FrontEndConfig, RefineConfig
-from cgags_ros.datasets.gt_pairs import find_pair
 from cgags_ros.errors import EmptyCloudError, InvalidInputError
 from cgags_ros.frontend.features import downsample, extract_features, finite_points
 from cgags_ros.frontend.matching import match_features

@@ -1,5 +1,5 @@
 """
-cgags_ros.ros.health and .diagnostics: scans lost upstream, beside the balanced buckets.
+cgags_ros.localizer.health and .diagnostics: scans lost upstream, beside the balanced buckets.
 
 No DDS: the node's accounting object fed directly, its /diagnostics message built.
 """
@@ -10,10 +10,10 @@ import pytest
 
 pytest.importorskip('rclpy')
 
-from cgags_ros.pipeline.pairing import Pairer  # noqa: E402, I100
+from cgags_ros.localizer.health import NodeHealth  # noqa: E402, I100
+from cgags_ros.localizer.transport import PROFILE_VARIABLE  # noqa: E402
+from cgags_ros.pipeline.pairing import Pairer  # noqa: E402
 from cgags_ros.ros import diagnostics  # noqa: E402
-from cgags_ros.ros.health import NodeHealth  # noqa: E402
-from cgags_ros.ros.transport import PROFILE_VARIABLE  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
 
 PERIOD = 100_000_000  # ns, a 10-Hz LiDAR

@@ -1,8 +1,8 @@
-"""cgags_ros.io.clouds and cgags_ros.datasets.gt_pairs on the shared real data."""
+"""cgags_ros.io.clouds and bench.datasets.gt_pairs on the shared real data."""
 
-from cgags_ros.datasets.gt_pairs import find_pair, parse_gt_pairs, read_gt_pairs
+from bench.datasets.gt_pairs import find_pair, parse_gt_pairs, read_gt_pairs
 from cgags_ros.errors import InvalidInputError
-from cgags_ros.io.clouds import read_cloud, read_normals, write_cloud
+from cgags_ros.io.clouds import read_cloud, read_cloud_and_normals, write_cloud
 from cgags_ros.io.pcd import read_fields as read_pcd_fields
 import numpy as np
 import pytest
@@ -117,30 +117,31 @@ def test_normals_round_trip_and_are_read_from_ply_and_pcd(tmp_path, data_dir):
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     write_cloud(tmp_path / 'map.ply', points, normals)
     assert np.array_equal(read_cloud(tmp_path / 'map.ply'), points)
-    assert np.array_equal(read_normals(tmp_path / 'map.ply'), normals)
+    assert np.array_equal(read_cloud_and_normals(tmp_path / 'map.ply')[1], normals)
     # ascii PLY with the properties in another order, and an ascii PCD with normal_x...
     rows = '\n'.join(' '.join(f'{v:.17g}' for v in (*n, *p)) for p, n in zip(points, normals))
     (tmp_path / 'ascii.ply').write_text(
         'ply\nformat ascii 1.0\nelement vertex 50\nproperty float nx\nproperty float ny\n'
         'property float nz\nproperty double x\nproperty double y\nproperty double z\n'
         'end_header\n' + rows + '\n')
-    assert np.allclose(read_normals(tmp_path / 'ascii.ply'), normals)
+    assert np.allclose(read_cloud_and_normals(tmp_path / 'ascii.ply')[1], normals)
     assert np.allclose(read_cloud(tmp_path / 'ascii.ply'), points)
     (tmp_path / 'a.pcd').write_text(
         'VERSION 0.7\nFIELDS normal_x normal_y normal_z x y z\nSIZE 4 4 4 8 8 8\n'
         'TYPE F F F F F F\nCOUNT 1 1 1 1 1 1\nWIDTH 50\nHEIGHT 1\nPOINTS 50\nDATA ascii\n'
         + rows + '\n')
-    assert np.allclose(read_normals(tmp_path / 'a.pcd'), normals)
+    assert np.allclose(read_cloud_and_normals(tmp_path / 'a.pcd')[1], normals)
     # A binary PCD with normals (a KITTI scan as shipped): as many rows as points.
     scan = data_dir / 'kitti' / 'seq00_16scans' / 'pcd' / '000002.pcd'
     if scan.exists():
         fields = read_pcd_fields(scan)
-        assert np.array_equal(read_normals(scan)[:, 0], fields['normal_x'].astype(np.float64))
+        normals_x = read_cloud_and_normals(scan)[1][:, 0]
+        assert np.array_equal(normals_x, fields['normal_x'].astype(np.float64))
     # No normals: None; they are written to PLY only.
     write_cloud(tmp_path / 'plain.ply', points)
     for name in ('plain.ply', 'plain.npy'):
         if name.endswith('.npy'):
             np.save(tmp_path / name, np.hstack([points, normals]))
-        assert read_normals(tmp_path / name) is None
+        assert read_cloud_and_normals(tmp_path / name)[1] is None
     with pytest.raises(InvalidInputError, match='PLY only'):
         write_cloud(tmp_path / 'map.pcd', points, normals)

@@ -20,8 +20,8 @@ JAZZY = os.environ.get('CGAGS_JAZZY_STACK') == '1'
 ROOT = Path(__file__).resolve().parents[1]
 APT_VERSIONS = {'numpy': '1.26.4', 'scipy': '1.11.4', 'matplotlib': '3.6.3', 'yaml': '6.0.1'}
 
-pytestmark = pytest.mark.skipif(
-    not JAZZY, reason='runs in the emulated Jazzy stack (scripts/test.sh runs the suite there)')
+pytestmark = [pytest.mark.subprocess, pytest.mark.skipif(
+    not JAZZY, reason='runs in the emulated Jazzy stack (scripts/test.sh runs the suite there)')]
 
 
 def _system_python() -> str:

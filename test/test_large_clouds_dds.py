@@ -3,7 +3,7 @@ LiDAR-size clouds over real DDS between two processes: the shipped transport set
 
 The 16 real KITTI scans (~4 MB each as PointCloud2 with all their fields) are published
 best-effort (sensor-data QoS, as LiDAR drivers do) at 10 Hz for 10 s by a publisher process
-(bench/bench_transport.py --role pub) into register_node running as users run it (its own
+(python -m bench.transport --role pub) into register_node running as users run it (its own
 process, a target latched first, registration running). Transport settings, per run:
 
 - shipped: the node loads config/fastdds_large_data.xml by itself (FASTRTPS_DEFAULT_PROFILES_FILE
@@ -26,10 +26,11 @@ import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
-from cgags_ros.ros.transport import profile_path, PROFILE_VARIABLE  # noqa: E402, I100
+from cgags_ros.localizer.transport import profile_path, PROFILE_VARIABLE  # noqa: E402, I100
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from waiting import ros_args, spun_context, stop_process, wait_for  # noqa: E402
 
+pytestmark = pytest.mark.ros
 DOMAIN_ID = 89  # distinct from the other DDS test modules
 REPO = Path(__file__).resolve().parents[1]
 RATE_HZ, COUNT = 10.0, 100  # 10 s of a 10-Hz LiDAR
@@ -80,7 +81,7 @@ def run(diag, data_dir, tmp_path, node_profile, pub_profile):
                  'the node and its registration process', lambda: diag.values)
         # The publisher waits for the match (and worker.ready) before its first scan.
         pub = subprocess.run(
-            [sys.executable, str(REPO / 'bench' / 'bench_transport.py'), '--role', 'pub',
+            [sys.executable, '-m', 'bench.transport', '--role', 'pub',
              '--clouds', 'kitti', '--rate', str(RATE_HZ), '--count', str(COUNT), '--node'],
             cwd=REPO, env=env(pub_profile), capture_output=True, text=True, timeout=180)
         assert pub.returncode == 0, pub.stdout + pub.stderr

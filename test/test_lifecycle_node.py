@@ -14,6 +14,7 @@ from pathlib import Path
 from cgags_ros.config.pipeline import load_yaml
 from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.io.pointcloud2 import pose_to_transform
+from cgags_ros.pipeline.isolated import running
 import pytest
 
 rclpy = pytest.importorskip('rclpy')
@@ -23,8 +24,9 @@ from lifecycle_msgs.msg import Transition  # noqa: E402
 from rcl_interfaces.srv import ListParameters  # noqa: E402
 from std_srvs.srv import Empty, Trigger  # noqa: E402
 from waiting import (call, CloudWire, lidar_bag, Lifecycle, ros_overrides,  # noqa: E402
-                     running, spun_context, wait_for)
+                     spun_context, wait_for)
 
+pytestmark = pytest.mark.ros
 DOMAIN_ID = 91  # distinct from the other DDS test modules
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = {'autostart': False, 'voxel_size': 0.4, 'source_qos': 'reliable',

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import dataclasses
 
+from bench.datasets.synthetic import load_bunny, make_correspondences
 from cgags_ros.config import fields
-from cgags_ros.datasets.synthetic import load_bunny, make_correspondences
 from cgags_ros.errors import DegenerateCorrespondencesError, InvalidConfigError
 from cgags_ros.geometry import GravityFrame, rotation_error_deg, translation_error
 from cgags_ros.refusal import RefusalCode as Code
@@ -67,7 +67,7 @@ def test_yaw_only_recovery_with_tilt_noise(bunny, n, ratio, trials):
         assert res.transform[2, 2] == 1.0  # g = +z: exactly a yaw, not just nearly
     if ratio < 0.995 or n > 1000:
         assert ok == valid == trials
-    else:  # five inliers: at the identifiability limit (95 % of 20 in bench_core_4dof.md),
+    else:  # five inliers: at the identifiability limit (docs/bench_core_4dof.md),
         assert ok >= trials - 1  # and below min_inliers (6), so never valid
         assert valid == 0
 
@@ -202,8 +202,9 @@ def test_outliers_spread_wider_than_the_model_stop_early(bunny, layout):
     Ten inliers among outliers spread over a cube three times the model: stop, do not cap.
 
     The graph is sparse there, so the edge tournament's winners are mostly the inliers'
-    edges; read as chance hypotheses they lifted the chance level to the inlier count and
-    the search ran to its cap (bench_core_4dof.md). Right, valid, and after few hypotheses.
+    edges; read as chance hypotheses they would lift the chance level to the inlier count,
+    and the search would run to its cap (docs/ablation.md, 4-DoF chance level). Right,
+    valid, and after few hypotheses.
     """
     for trial in range(4):
         rng = np.random.default_rng([25, trial])

@@ -8,21 +8,14 @@ checked against the yaw-only truth, with roll and pitch zero.
 
 from __future__ import annotations
 
-import os
-
-os.environ['ROS_DOMAIN_ID'] = '71'  # before rclpy.init; distinct from other test modules
-os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-
-import threading  # noqa: E402
-
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
-from scipy.spatial.transform import Rotation  # noqa: E402
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
 
 rclpy = pytest.importorskip('rclpy')
 
-# Imported only after the environment set-up and the rclpy skip above: hence E402, and I100
-# for the first-party block placed after the third-party ones.
+# Imported only after the rclpy skip above: hence E402, and I100 for the first-party block
+# placed after the third-party ones.
 from cgags_ros.geometry import apply_transform, rotation_error_deg  # noqa: E402, I100
 from cgags_ros.geometry import translation_error  # noqa: E402
 from cgags_ros.io.clouds import read_cloud  # noqa: E402
@@ -30,13 +23,14 @@ from cgags_ros.io.pointcloud2 import pose_to_transform  # noqa: E402
 from cgags_ros.ros.conversions import to_rclpy_pointcloud2, xyz_to_pointcloud2  # noqa: E402
 from cgags_ros.ros.node import RegisterNode  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
-from waiting import wait_for  # noqa: E402
+from waiting import spun_context, wait_for  # noqa: E402
 
+pytestmark = pytest.mark.ros
+DOMAIN_ID = 71  # distinct from the other DDS test modules
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
@@ -65,23 +59,21 @@ def cloud_msg(points, frame, stamp_ns):
     return to_rclpy_pointcloud2(xyz_to_pointcloud2(points.astype(np.float32), header))
 
 
+class Wire:
+    """The test's node, in the module's own context."""
+
+    def __init__(self, context):
+        self.node = rclpy.create_node('test_io_4dof', context=context)
+
+
 @pytest.fixture
 def ros():
-    rclpy.init()
-    io = rclpy.create_node('test_io_4dof')
-    executor = SingleThreadedExecutor()
-    executor.add_node(io)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
-    yield executor, io
-    executor.shutdown(timeout_sec=2.0)
-    io.destroy_node()
-    rclpy.shutdown()
-    thread.join(timeout=5.0)
+    with spun_context(DOMAIN_ID, Wire) as (context, executor, wire):
+        yield context, executor, wire.node
 
 
 def test_node_4dof_parameter_registers_levelled_lidar(ros, data_dir):
-    executor, io = ros
+    context, executor, io = ros
     src, tgt, truth = levelled_problem(data_dir, np.random.default_rng(21))
     poses: list[PoseStamped] = []
     io.create_subscription(PoseStamped, '/register_node/pose', poses.append, 10)
@@ -89,7 +81,7 @@ def test_node_4dof_parameter_registers_levelled_lidar(ros, data_dir):
     target_pub = io.create_publisher(PointCloud2, 'target_cloud', LATCHED)
     overrides = [Parameter('core.motion_model', value='4dof'),
                  Parameter('voxel_size', value=0.3)]
-    node = RegisterNode(parameter_overrides=overrides)
+    node = RegisterNode(context=context, parameter_overrides=overrides)
     executor.add_node(node)
     try:
         assert node.get_parameter('core.motion_model').value == '4dof'

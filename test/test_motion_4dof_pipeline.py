@@ -107,6 +107,7 @@ def test_cli_4dof_on_levelled_lidar_files(levelled_pair, tmp_path, capsys):
     assert translation_error(out['4dof'], truth) < 0.05
 
 
+@pytest.mark.slow
 def test_replay_4dof_flag_on_the_lidar_bag(data_dir, tmp_path):
     """
     Replay the LiDAR bag offline with --4dof and without.

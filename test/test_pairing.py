@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import collections
 import threading
 
 from cgags_ros.io.bag import read_messages
-from cgags_ros.pipeline.pairing import Pairer
+from cgags_ros.pipeline.pairing import is_source_drop, Pairer
 import numpy as np
 import pytest
 
@@ -138,17 +139,25 @@ def balanced(p):
 def test_every_cloud_is_accounted_for(mode):
     rng = np.random.default_rng(4)
     p = Pairer(mode, slop=0.03, queue_depth=2, max_waiting_sources=2, max_waiting_targets=3)
+    dropped, taken = [], []
+    p.on_drop = lambda reason, item: dropped.append((reason, item.payload))
     stamp = 0
-    for _ in range(400):
+    for k in range(400):
         stamp += int(rng.integers(0, 40_000_000))
         if rng.random() < 0.05:
             stamp -= 2_000_000_000  # a clock reset now and then
-        (p.add_source if rng.random() < 0.6 else p.add_target)(stamp, 'f', None)
-        if rng.random() < 0.3:
-            p.pop()
+        role = 'source' if rng.random() < 0.6 else 'target'
+        (p.add_source if role == 'source' else p.add_target)(stamp, 'f', (role, k))
+        if rng.random() < 0.3 and (pair := p.pop()) is not None:
+            taken.append(pair.source.payload)
         balanced(p)
     c = balanced(p)
     assert c['taken'] > 20 and c['dropped'] > 0 and sum(p.clock_resets.values()) > 5
+    # on_drop sees every drop, once, with the item dropped: a source for a source reason
+    assert collections.Counter(reason for reason, _ in dropped) == p.drops
+    assert all((item[0] == 'source') == is_source_drop(reason) for reason, item in dropped)
+    assert len({item for _, item in dropped}) == len(dropped)
+    assert not {item for _, item in dropped} & set(taken)
 
 
 def test_bag_loop_resets_waiting_but_keeps_the_latched_map_and_ready_pairs():

@@ -14,8 +14,8 @@ source; the ground truth then becomes T_gt @ inv(X).
 
 import dataclasses
 
+from bench.datasets.gt_pairs import find_pair
 from cgags_ros.config import pipeline_config_from, PipelineConfig
-from cgags_ros.datasets.gt_pairs import find_pair
 from cgags_ros.errors import EmptyCloudError, InvalidConfigError, InvalidInputError
 from cgags_ros.frontend.refine import evaluate_alignment
 from cgags_ros.geometry import rotation_error_deg, translation_error
@@ -25,9 +25,11 @@ from cgags_ros.pipeline import (
     clear_feature_cache,
     PipelineResult,
     register_clouds,
+    set_feature_cache_size,
     warm_up,
 )
 from cgags_ros.pipeline.gates import chance_inliers, observability
+from cgags_ros.pipeline.register import terrain_patch
 from cgags_ros.refusal import RefusalCode as Code
 import numpy as np
 import pytest
@@ -157,6 +159,24 @@ def test_feature_cache_is_exact_and_keyed_on_content(data_dir):
     np.testing.assert_array_equal(first.coarse_transform, fresh.coarse_transform)
 
 
+def test_feature_cache_keeps_as_many_clouds_as_set():
+    clouds = [terrain_patch(np.random.default_rng(seed), 1500) for seed in range(3)]
+    cfg = PipelineConfig().frontend
+    clear_feature_cache()
+    default = set_feature_cache_size(3)
+    try:
+        first = [cached_features(c, 0.15, cfg) for c in clouds]
+        assert all(cached_features(c, 0.15, cfg) is f for c, f in zip(clouds, first))
+        assert set_feature_cache_size(2) == 3  # the oldest, clouds[0], is forgotten now
+        assert cached_features(clouds[2], 0.15, cfg) is first[2]
+        assert cached_features(clouds[0], 0.15, cfg) is not first[0]  # and evicts clouds[1]
+        assert cached_features(clouds[1], 0.15, cfg) is not first[1]
+    finally:
+        set_feature_cache_size(default)
+        clear_feature_cache()
+    assert default == 2
+
+
 def test_warm_up_runs_every_stage():
     result = warm_up()
     assert result.valid and result.refined, result.reason
@@ -169,17 +189,17 @@ def test_warm_up_runs_every_stage():
     assert gicp.valid and gicp.refined
 
 
-def test_after_warm_up_a_real_pair_compiles_no_front_end_kernel(data_dir):
-    """The warm-up compiles every front-end kernel specialization a real pair needs."""
-    from cgags_ros.frontend import kernels_fpfh, kernels_index, kernels_neighbours
+def test_after_warm_up_a_real_pair_compiles_nothing_in_the_front_end(data_dir):
+    """The warm-up compiles every front-end function specialization a real pair needs."""
+    from cgags_ros.frontend.compiled import descriptor_index, fpfh, neighbours
 
     warm_up()
-    dispatchers = [getattr(m, name) for m in (kernels_fpfh, kernels_index, kernels_neighbours)
+    dispatchers = [getattr(m, name) for m in (fpfh, descriptor_index, neighbours)
                    for name in dir(m) if hasattr(getattr(m, name), 'signatures')]
     before = {d: len(d.signatures) for d in dispatchers}
-    called = (kernels_neighbours.radius_neighbours, kernels_fpfh.spfh, kernels_fpfh.fpfh,
-              kernels_index.kmeans, kernels_index.assign, kernels_index.search,
-              kernels_index.nearest_is, kernels_index.squared_pair_distances)
+    called = (neighbours.radius_neighbours, fpfh.spfh_pass, fpfh.fpfh_pass,
+              descriptor_index.kmeans, descriptor_index.assign, descriptor_index.search,
+              descriptor_index.nearest_is, descriptor_index.squared_pair_distances)
     assert all(before[d] for d in called), before  # the ones Python calls (others inline)
     folder = data_dir / 'lidar' / 'small_gicp'
     source = np.asfortranarray(read_cloud(folder / 'source.ply'))  # any input layout

@@ -2,7 +2,7 @@
 
 import json
 
-from cgags_ros.datasets.gt_pairs import find_pair
+from bench.datasets.gt_pairs import find_pair
 from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.io.clouds import read_cloud
 from cgags_ros.tools.register_cli import EXIT_ERROR, main

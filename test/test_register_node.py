@@ -10,26 +10,19 @@ compares ~/pose with the bag's /ground_truth (same stamp as the source cloud).
 from __future__ import annotations
 
 import os
+from pathlib import Path
+import subprocess
+import sys
+import time
 
-os.environ['ROS_DOMAIN_ID'] = '47'  # before rclpy.init; distinct from other test modules
-os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-
-from pathlib import Path  # noqa: E402
-import subprocess  # noqa: E402
-import sys  # noqa: E402
-import threading  # noqa: E402
-import time  # noqa: E402
-
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
+import numpy as np
+import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
-# Imported only after the environment set-up and the rclpy skip above: hence E402, and I100
-# for the first-party block placed after numpy and pytest.
-from cgags_ros.config import PipelineConfig  # noqa: E402, I100
-from cgags_ros.datasets.synthetic import terrain_patch  # noqa: E402
-from cgags_ros.errors import InvalidConfigError  # noqa: E402
+# Imported only after the rclpy skip above: hence E402, and I100 for the first-party block
+# placed after numpy and pytest.
+from cgags_ros.errors import InvalidConfigError  # noqa: E402, I100
 from cgags_ros.geometry import rotation_error_deg, translation_error  # noqa: E402
 from cgags_ros.io.bag import read_messages  # noqa: E402
 from cgags_ros.io.pointcloud2 import pose_to_transform  # noqa: E402
@@ -40,13 +33,15 @@ from cgags_ros.ros.node import RegisterNode  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped  # noqa: E402
 from rcl_interfaces.srv import SetParameters  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
-from waiting import ros_args, ros_overrides, stop_process, wait_for  # noqa: E402
+from waiting import ros_args, ros_overrides, spun_context  # noqa: E402
+from waiting import stop_process, wait_for  # noqa: E402
 
+pytestmark = pytest.mark.ros
+DOMAIN_ID = 47  # distinct from the other DDS test modules
 REPO = Path(__file__).resolve().parents[1]
 LIMITS = {'bunny': (5.0, 0.01), 'redkitchen': (15.0, 0.3), 'lidar': (5.0, 0.6),
           'faulty': (5.0, 0.01)}
@@ -91,8 +86,8 @@ def check_pose(pose: PoseStamped, b: Bag, name: str, stamp: int, target_frame: s
 class IO:
     """The test's side of the wire: publishes clouds, records poses and diagnostics."""
 
-    def __init__(self, namespace_node='/register_node'):
-        self.node = rclpy.create_node('test_io')
+    def __init__(self, context, namespace_node='/register_node'):
+        self.node = rclpy.create_node('test_io', context=context)
         self.source_pub = self.node.create_publisher(PointCloud2, 'source_cloud', 10)
         self.target_pub = self.node.create_publisher(PointCloud2, 'target_cloud', LATCHED)
         self.poses: list[PoseStamped] = []
@@ -120,22 +115,14 @@ class IO:
 
 @pytest.fixture(scope='module')
 def ros():
-    """Provide an rclpy context and an executor thread spinning the io node and any node added."""
-    rclpy.init()
-    io = IO()
-    executor = SingleThreadedExecutor()
-    executor.add_node(io.node)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
-    yield executor, io
-    executor.shutdown(timeout_sec=2.0)
-    io.node.destroy_node()
-    rclpy.shutdown()
-    thread.join(timeout=5.0)
+    """Provide the module's executor (own context and domain), spinning io and any node added."""
+    with spun_context(DOMAIN_ID, IO) as (_, executor, io):
+        yield executor, io
 
 
 def start_node(executor, register_fn=None, **params) -> RegisterNode:
-    node = RegisterNode(register_fn=register_fn, parameter_overrides=ros_overrides(**params))
+    node = RegisterNode(register_fn=register_fn, context=executor.context,
+                        parameter_overrides=ros_overrides(**params))
     executor.add_node(node)
     return node
 
@@ -226,11 +213,11 @@ def test_plumbing_parameters_outputs_and_rejections(ros):
 def test_invalid_startup_parameter_raises(ros):
     executor, _ = ros
     with pytest.raises(InvalidConfigError, match='pairing_mode'):
-        RegisterNode(register_fn=fake_register,
+        RegisterNode(register_fn=fake_register, context=executor.context,
                      parameter_overrides=[Parameter('pairing.mode', value='nearest')])
     # a name of the former flat interface: refused, naming the new one
     with pytest.raises(InvalidConfigError, match=r'pairing_mode \(renamed: pairing.mode\)'):
-        RegisterNode(register_fn=fake_register,
+        RegisterNode(register_fn=fake_register, context=executor.context,
                      parameter_overrides=[Parameter('pairing_mode', value='synchronized')])
 
 
@@ -242,11 +229,11 @@ def test_callbacks_after_context_shutdown_do_not_raise():
     diagnostics timer or the worker may still publish a pose; that must end quietly, not
     as an RCLError that makes rclpy.spin() raise and the node exit 1 (seen once in CI).
     """
-    from cgags_ros.ros.interface import Estimate
+    from cgags_ros.localizer.interface import Estimate
     from rclpy.context import Context
 
     ctx = Context()
-    rclpy.init(context=ctx)
+    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
     node = RegisterNode(register_fn=fake_register, context=ctx)
     xyz = np.random.default_rng(0).normal(size=(30, 3))
     result = fake_register(xyz, xyz, config=node.engine.pipeline_config)
@@ -262,60 +249,6 @@ def test_callbacks_after_context_shutdown_do_not_raise():
         node.outputs.publish_diagnostics(node.statistics())
     finally:
         node.destroy_node()
-
-
-def test_isolated_registration_sends_an_unchanged_target_once(monkeypatch):
-    """
-    Check that the registration process is sent an unchanged target only once.
-
-    It reports ready once warmed up (not while spawning, nor after a restart until warm).
-
-    The registration process keeps the last target: the same array object is not sent
-    again, a new one is, and after a restart (fresh process) it is sent again. Results equal
-    the pipeline run in this process.
-    """
-    from cgags_ros.pipeline import register_clouds
-    from cgags_ros.ros.worker import IsolatedRegistration
-
-    target = terrain_patch(np.random.default_rng(3))
-    c, s = np.cos(0.2), np.sin(0.2)
-    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    source = target @ R.T + 0.1
-    other = target[::-1].copy()  # same points, another array: must be sent
-    cfg = PipelineConfig(voxel_size=0.15)
-    sent = []
-
-    def spy_on(iso):
-        real = iso._pool.submit
-
-        def spy(fn, src, tgt, **kw):
-            sent.append(tgt is not None)
-            return real(fn, src, tgt, **kw)
-
-        monkeypatch.setattr(iso._pool, 'submit', spy)
-
-    iso = IsolatedRegistration(60.0)
-    try:
-        assert not iso.ready and iso.health()['worker.ready'] is False  # spawning, warming up
-        spy_on(iso)
-        first = iso(source, target, config=cfg)
-        assert iso.ready and iso.health()['worker.ready'] is True
-        again = iso(source, target, config=cfg)
-        changed = iso(source, other, config=cfg)
-        assert sent == [True, False, True]
-        iso.restart()
-        assert not iso.ready  # the fresh child warms up again
-        sent.clear()
-        spy_on(iso)
-        after = iso(source, other, config=cfg)
-        assert sent == [True]
-    finally:
-        iso.close()
-    assert not iso.ready
-    local = register_clouds(source, target, config=cfg)
-    for result in (first, again, changed, after):
-        assert result.valid, result.reason
-        np.testing.assert_allclose(result.transform, local.transform, atol=1e-6)
 
 
 # ------------------------------------------------------------------------ real pipeline
@@ -398,7 +331,8 @@ def test_faulty_bag_rejections_counted_and_good_pair_published(ros, data_dir):
 def test_separate_process_synchronized_lidar_then_sigterm(ros, data_dir, tmp_path):
     executor, io = ros
     b = bag(data_dir, 'lidar')
-    env = dict(os.environ, PYTHONUNBUFFERED='1')
+    env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED='1',
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
     log = open(tmp_path / 'node.log', 'w+')  # a file, not a pipe: a full pipe would block
     proc = subprocess.Popen(
         [sys.executable, '-m', 'cgags_ros.register_node', '--ros-args',

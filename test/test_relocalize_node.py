@@ -10,11 +10,13 @@ scan (an unrelated scene). Poses are checked against ground truth.
 from __future__ import annotations
 
 import multiprocessing
+import threading
 
 from cgags_ros.geometry import apply_transform, make_transform, quaternion_to_matrix
 from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.io.clouds import read_cloud, write_cloud
 from cgags_ros.io.pointcloud2 import pose_to_transform
+from cgags_ros.pipeline.result import PipelineResult
 from cgags_ros.refusal import RefusalCode
 import numpy as np
 import pytest
@@ -31,9 +33,10 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
-from waiting import (bad_map, Lifecycle, merged_kitchen_map, ros_overrides,  # noqa: E402
-                     spun_context, wait_for)
+from waiting import (bad_map, EXECUTOR_THREADS, Lifecycle, merged_kitchen_map,  # noqa: E402
+                     ros_overrides, spun_context, wait_for)
 
+pytestmark = pytest.mark.ros
 DOMAIN_ID = 65  # distinct from the other DDS test modules
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 INDOOR = (15.0, 0.3)  # RE (deg), TE (m): the indoor thresholds of the other tests
@@ -82,12 +85,12 @@ def wire():
         yield spun
 
 
-def start(wire, **params):
+def start(wire, register_fn=None, **params):
     context, executor, io = wire
     io.values, io.level = {}, None
     io.initial.clear()
     io.candidates.clear()
-    node = RegisterNode(context=context,
+    node = RegisterNode(context=context, register_fn=register_fn,
                         parameter_overrides=ros_overrides(**params))
     executor.add_node(node)
     return node
@@ -233,6 +236,60 @@ def test_lidar_initial_pose_is_the_base_pose(wire, data_dir, tmp_path):
         sensor_te = errors(io.initial[0].pose, gt @ np.linalg.inv(A))[1]
         assert sensor_te > 0.5  # the extrinsic really moved it: this is not the sensor pose
     finally:
+        stop(wire, node)
+
+
+def test_relocalize_calls_in_flight_hold_no_executor_thread(wire):
+    """
+    More ~/relocalize calls than executor threads wait at once, and the topics go on.
+
+    The registration is held (a stand-in that waits on a gate), so every call stays
+    unanswered; meanwhile scans are received and accounted and /diagnostics keeps coming,
+    which a call that held an executor thread each would stop. Once the gate opens, that
+    registration answers every call.
+    """
+    _, _, io = wire
+    gate, registering = threading.Event(), threading.Event()
+
+    def held(source, target, *, config):
+        registering.set()
+        assert gate.wait(60.0), 'the gate never opened'
+        return PipelineResult(transform=np.eye(4), valid=True, inliers=np.arange(40),
+                              num_correspondences=100, fitness=0.8)
+
+    node = start(wire, held, source_qos='reliable', relocalize_timeout=120.0,
+                 diagnostics_period=0.1)
+    target = io.node.create_publisher(PointCloud2, 'target_cloud', RELIABLE)
+    calls = []
+    try:
+        wait_for(lambda: target.get_subscription_count() > 0, 30.0, 'the target subscription')
+        target.publish(xyz_to_pointcloud2(np.random.rand(50, 3), Header(frame_id='map')))
+        wait_for(lambda: io.values.get('received_target') == '1', 30.0, 'the target',
+                 lambda: io.values)
+        io.send(np.random.rand(50, 3))
+        assert registering.wait(30.0), 'the first scan was not registered'
+        assert io.client.wait_for_service(timeout_sec=30.0)
+        calls = [io.client.call_async(Trigger.Request())
+                 for _ in range(2 * EXECUTOR_THREADS)]
+        wait_for(lambda: io.values.get('relocalize.calls') == str(len(calls)), 30.0,
+                 'every call to reach the node', lambda: io.values)
+        for k in range(5):  # the topics go on while every call waits
+            io.send(np.random.rand(50, 3))
+            wait_for(lambda: io.values.get('sources.received') == str(2 + k), 30.0,
+                     f'scan {2 + k} to be accounted', lambda: io.values)
+        values = io.values
+        assert values['accounting.ok'] == 'True' and not any(c.done() for c in calls)
+        # the scan being registered and the five since: pending (queued) or dropped (queue full)
+        assert int(values['sources.pending']) + int(values['sources.dropped']) == 6
+        gate.set()
+        wait_for(lambda: all(c.done() for c in calls), 30.0, 'the answers', lambda: io.values)
+        answers = [c.result() for c in calls]
+        assert all(a.success and a.message.startswith('localized: x 0.000') for a in answers)
+        wait_for(lambda: io.values.get('relocalize.succeeded') == str(len(calls)), 10.0,
+                 'the answers counted', lambda: io.values)
+    finally:
+        gate.set()
+        io.node.destroy_publisher(target)
         stop(wire, node)
 
 

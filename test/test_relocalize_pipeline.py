@@ -86,6 +86,7 @@ def test_the_map_cache_hits_with_the_same_settings_and_misses_on_a_change(kitche
                         config=pipeline_config_from({'voxel_size': 0.09}))
 
 
+@pytest.mark.slow
 def test_a_map_file_with_normals_signs_the_map_normals_and_a_sensor_frame_scan_localizes(
         data_dir, tmp_path):
     """
@@ -96,7 +97,7 @@ def test_a_map_file_with_normals_signs_the_map_normals_and_a_sensor_frame_scan_l
     """
     from scipy.spatial import cKDTree
 
-    from cgags_ros.datasets.gt_pairs import find_pair
+    from bench.datasets.gt_pairs import find_pair
     from cgags_ros.frontend.features import estimate_normals
     from cgags_ros.io.clouds import write_cloud
 
@@ -222,6 +223,7 @@ def test_cli_prints_the_candidates(kitchen, data_dir, tmp_path, capsys):
     assert 'candidate 0: inliers' in text and 'candidate 1: inliers' in text
 
 
+@pytest.mark.slow
 def test_replay_localizes_every_bag_scan_in_a_map(data_dir, tmp_path):
     from cgags_ros.tools import replay
 

@@ -16,12 +16,13 @@ import sys
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.subprocess
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / 'scripts' / 'render_figure.py'
 COMMITTED = REPO / 'docs' / 'images' / 'registration_pair.png'
 MAX_RE_DEG, MAX_TE_M = 2.0, 0.2
 MAX_BYTES = 300_000
-# A fresh clone compiles the kernels first (no numba cache yet).
+# A fresh clone compiles the numba code first (no numba cache yet).
 TIMEOUT_S = 900
 
 

@@ -23,6 +23,7 @@ from cgags_ros.tools.replay_common import auto_voxel_size, LiveOptions, ReplayOp
 import numpy as np
 import pytest
 
+pytestmark = [pytest.mark.ros, pytest.mark.subprocess, pytest.mark.slow]
 BAGS = sorted(DEMO_BAGS)  # bunny, lidar, redkitchen with their RE/TE thresholds
 TARGET_FRAMES = {'bunny': 'turntable', 'redkitchen': 'map', 'lidar': 'map'}
 ROS_ENV = {'ROS_DOMAIN_ID': '83', 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
@@ -89,6 +90,7 @@ def test_live_replay_meets_ground_truth(live_reports, offline_reports, bag):
     assert [r.source_stamp_ns for r in report.rows] == \
         [r.source_stamp_ns for r in offline_reports[bag].rows]
     assert all(r.latency_s is not None and r.latency_s > 0 for r in report.rows)
+    assert all(r.time_s > 0 and r.inliers > 0 for r in report.rows)  # from the node's ~/result
 
 
 @pytest.mark.parametrize('mode', ['offline', 'live'])

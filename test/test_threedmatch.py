@@ -2,10 +2,10 @@
 
 from pathlib import Path
 
-from cgags_ros.datasets import threedmatch as tdm
-from cgags_ros.datasets.synthetic import shared_data_dir
+from bench.datasets import threedmatch as tdm
 from cgags_ros.errors import InvalidInputError
 from cgags_ros.geometry import rotation_error_deg, translation_error
+from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.refusal import RefusalCode as Code
 import numpy as np
 import pytest
@@ -78,6 +78,7 @@ def test_bad_log_is_a_clear_error(tmp_path: Path):
         tdm.read_gt_log(path)
 
 
+@pytest.mark.slow
 @needs_data
 @pytest.mark.parametrize('benchmark, floor', [('3DMatch', 0.7), ('3DLoMatch', 0.3)])
 def test_sample_registers_against_ground_truth(benchmark, floor):
@@ -132,6 +133,7 @@ def test_leave_one_out_scene_map_holds_every_other_fragment_where_its_pose_puts_
     assert share[0] > 0.8 and share[1] < 0.2
 
 
+@pytest.mark.slow
 @needs_data
 def test_fragments_relocalize_in_maps_of_their_neighbours(tmp_path: Path):
     """
@@ -172,6 +174,7 @@ def test_fragments_relocalize_in_maps_of_their_neighbours(tmp_path: Path):
     assert right >= total // 2
 
 
+@pytest.mark.slow
 @needs_data
 def test_a_pose_whose_rivals_all_converge_onto_it_is_judged_not_crashed_on(tmp_path: Path):
     """

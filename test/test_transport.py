@@ -1,10 +1,10 @@
-"""cgags_ros.ros.transport: the shipped Fast DDS profile and when the package turns it on."""
+"""cgags_ros.localizer.transport: the shipped Fast DDS profile and when the package turns it on."""
 
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
 
-from cgags_ros.ros import transport
+from cgags_ros.localizer import transport
 import pytest
 
 NS = {'p': 'http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles'}

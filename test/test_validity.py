@@ -22,13 +22,13 @@ from cgags_ros.errors import (BagError, CgagsError, DegenerateCorrespondencesErr
                               MalformedCloudError)
 from cgags_ros.frontend.refine import Alignment
 from cgags_ros.geometry import apply_transform, cross_spread
+from cgags_ros.localizer.interface import StartFailed
 from cgags_ros.pipeline import register_clouds
 from cgags_ros.pipeline.gates import free_space_violation, observability
+from cgags_ros.pipeline.isolated import RegistrationTimeout, WorkerCrashed
 from cgags_ros.pipeline.result import Candidate, PipelineResult
 from cgags_ros.refusal import Refusal, RefusalCode as Code, summary
 from cgags_ros.registration import register_correspondences, RegistrationResult
-from cgags_ros.ros.interface import StartFailed
-from cgags_ros.ros.worker import RegistrationTimeout, WorkerCrashed
 import numpy as np
 import pytest
 from waiting import box_room

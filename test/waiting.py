@@ -1,6 +1,7 @@
 """Helpers of the tests: waiting for conditions, ROS contexts, node processes, scenes."""
 
 import contextlib
+import os
 import signal
 import subprocess
 import threading
@@ -8,6 +9,8 @@ import time
 import traceback
 
 import pytest
+
+EXECUTOR_THREADS = 4  # of spun_context's executor, as many as the node's own main spins
 
 
 def wait_for(predicate, timeout, what, detail=None):
@@ -62,15 +65,6 @@ class CloudWire:
 
     def pose_at(self, stamp_ns):
         return pose_at(self.poses, stamp_ns)
-
-
-def running(pid):
-    """Tell whether process ``pid`` exists and is not a zombie."""
-    try:
-        with open(f'/proc/{pid}/stat', encoding='ascii') as f:
-            return f.read().rsplit(')', 1)[1].split()[0] not in ('Z', 'X')
-    except OSError:
-        return False
 
 
 def bad_map(folder, case):
@@ -200,8 +194,8 @@ def spun_context(domain_id, make_io):
     """
     Yield (context, executor, io): an rclpy context on ``domain_id`` spun on a thread.
 
-    A multi-threaded executor, as the node's own ``main`` spins: a ~/relocalize call waits
-    for a registration on one thread while the topics go on on the others.
+    A multi-threaded executor, as the node's own ``main`` spins: the clouds of a test's node
+    are decoded while the diagnostics and services run.
 
     ``io = make_io(context)`` is the test's own node wrapper (publishers, recorders); its
     ``node`` is added to the executor. Everything is shut down on exit.
@@ -210,10 +204,13 @@ def spun_context(domain_id, make_io):
     from rclpy.context import Context
     from rclpy.executors import MultiThreadedExecutor
 
+    # rcl reads the discovery range when the context starts; every DDS test of this suite
+    # stays on this machine, so setting it process-wide is what each module wants anyway.
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     context = Context()
     rclpy.init(context=context, domain_id=domain_id)
     io = make_io(context)
-    executor = MultiThreadedExecutor(num_threads=4, context=context)
+    executor = MultiThreadedExecutor(num_threads=EXECUTOR_THREADS, context=context)
     executor.add_node(io.node)
 
     done = threading.Event()
@@ -262,7 +259,7 @@ def merged_kitchen_map(data_dir, folder):
     """
     import numpy as np
 
-    from cgags_ros.datasets.gt_pairs import find_pair
+    from bench.datasets.gt_pairs import find_pair
     from cgags_ros.geometry import apply_transform
     from cgags_ros.io.clouds import read_cloud
 

@@ -14,16 +14,9 @@ import json
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from .result import CalibrationResult, TRANSFORM_WORDS
-from ..geometry import matrix_to_quaternion
-
-
-def rpy(T: np.ndarray) -> tuple[float, float, float]:
-    """Return (roll, pitch, yaw) in radians with ``R = Rz(yaw) Ry(pitch) Rx(roll)``."""
-    roll, pitch, yaw = Rotation.from_matrix(np.asarray(T)[:3, :3]).as_euler('xyz')
-    return float(roll), float(pitch), float(yaw)
+from ..geometry import matrix_to_quaternion, rpy
 
 
 def static_transform_publisher(T: np.ndarray, parent: str, child: str) -> str:

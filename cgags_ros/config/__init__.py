@@ -2,7 +2,8 @@
 Configuration: one typed dataclass per layer, all declared with :func:`fields.option`.
 
 - :mod:`.fields`: the field helper (descriptions, ranges, validation, flat keys).
-- :mod:`.core`, :mod:`.frontend`, :mod:`.pipeline`, :mod:`.node`: the per-layer dataclasses.
+- :mod:`.core`, :mod:`.frontend`, :mod:`.pipeline`, :mod:`.tracking`,
+  :mod:`.node`: the per-layer dataclasses.
 - :mod:`.files`: ``config/register_node.yaml`` and ``docs/parameters.md``, generated.
 """
 
@@ -10,6 +11,7 @@ from .core import CoreConfig
 from .frontend import FrontEndConfig, RefineConfig
 from .node import configs_from_parameters, NodeConfig
 from .pipeline import load_yaml, pipeline_config_from, PipelineConfig
+from .tracking import TrackingConfig
 
 __all__ = ['CoreConfig', 'FrontEndConfig', 'NodeConfig', 'PipelineConfig', 'RefineConfig',
-           'configs_from_parameters', 'load_yaml', 'pipeline_config_from']
+           'TrackingConfig', 'configs_from_parameters', 'load_yaml', 'pipeline_config_from']

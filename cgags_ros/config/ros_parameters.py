@@ -54,6 +54,8 @@ ROS_PARAMETERS: dict[str, tuple[str, ...]] = {
 RENAMED = {'relocalization.mode': 'renamed: mode (which also takes calibrate)'}
 # Keys of config_file under this prefix configure calibrate mode (CalibrationConfig keys).
 CALIBRATION_PREFIX = 'calibration.'
+# Sections added after the flat interface was retired: never ROS parameters, nothing to migrate.
+NEWER_SECTIONS = ('tracking.',)
 # base_from_sensor as a ROS parameter: [x, y, z, qx, qy, qz, qw]; seven zeros leave it unset.
 UNSET_POSE = [0.0] * 7
 
@@ -191,7 +193,7 @@ def migration() -> dict[str, str]:
     renamed = {k: name for name, ks in ROS_PARAMETERS.items() for k in ks if k != name}
     out = dict(RENAMED)
     for key in parameter_descriptions():
-        if key in ROS_PARAMETERS:
+        if key in ROS_PARAMETERS or key.startswith(NEWER_SECTIONS):
             continue
         if key in renamed:
             out[key] = f'renamed: {renamed[key]}'

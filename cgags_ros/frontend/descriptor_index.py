@@ -2,9 +2,9 @@
 An exact nearest-neighbour index over descriptors, built once per cloud and queried many times.
 
 Brute force compares every source descriptor with every target descriptor, so its cost
-grows with source x target points. This index (k-means cells with exact pruning bounds, see
-:mod:`.kernels_index`) answers the same queries, exactly, while computing a small share of
-those distances; a latched target or a map builds it once and reuses it
+grows with source x target points. This index (k-means cells with exact pruning bounds,
+compiled in :mod:`.compiled.descriptor_index`) answers the same queries, exactly, while
+computing a small share of those distances; a latched target or a map builds it once and reuses it
 (:meth:`~.features.CloudFeatures.descriptor_index`).
 """
 
@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import kernels_index
+from . import compiled
+from ..compiled_types import c_array
 from ..parallel import run_chunks
 
 # Cells ~ sqrt(M) / 2.5, at most 256: the cost of visiting the cells' centres grows with
@@ -42,7 +43,7 @@ class DescriptorIndex:
         ``like``: an index of similar descriptors (the other cloud's) whose cell centres
         and principal directions are reused instead of computing them (k-means) again.
         """
-        ref = np.ascontiguousarray(reference, dtype=np.float64)
+        ref = c_array(reference, np.float64)
         if ref.ndim != 2 or len(ref) == 0:
             raise ValueError(f'reference must be a non-empty (M, D) array, got {ref.shape}')
         self.size, self.dim = ref.shape
@@ -54,8 +55,8 @@ class DescriptorIndex:
         labels = np.empty(self.size, dtype=np.int64)
         ring = np.empty(self.size)
         centresT = np.ascontiguousarray(centres.T)
-        run_chunks(lambda a, b: kernels_index.assign(ref[a:b], centresT, labels[a:b],
-                                                     ring[a:b]), self.size, workers)
+        run_chunks(lambda a, b: compiled.assign(ref[a:b], centresT, labels[a:b], ring[a:b]),
+                   self.size, workers)
         # Drop cells without members: a centre that duplicates another gets none (ties go
         # to the lower one), so every pair of centres left is apart and the plane bound
         # never divides by zero.
@@ -63,20 +64,21 @@ class DescriptorIndex:
         renumber = np.cumsum(used) - 1
         labels = renumber[labels]
         self.centres = np.ascontiguousarray(centres[used])
-        self.centresT = np.ascontiguousarray(self.centres.T)
-        self.order = np.lexsort((np.arange(self.size), ring, labels))
-        self.slot_of = np.empty(self.size, dtype=np.int64)
-        self.slot_of[self.order] = np.arange(self.size)
-        self.starts = np.searchsorted(labels[self.order], np.arange(len(self.centres) + 1))
-        self.ring = np.ascontiguousarray(ring[self.order])
-        self.points = np.ascontiguousarray(ref[self.order])
         self.basis = basis
-        self.projectedT = np.ascontiguousarray(self.basis @ self.points.T, dtype=np.float32)
-        self.max_norm = float(np.sqrt(np.einsum('ij,ij->i', ref, ref).max()))
-        self.radius = np.zeros(len(self.centres))
-        np.maximum.at(self.radius, labels, ring)
+        order = np.lexsort((np.arange(self.size), ring, labels))
+        slot_of = np.empty(self.size, dtype=np.int64)
+        slot_of[order] = np.arange(self.size)
+        points = np.ascontiguousarray(ref[order])
+        radius = np.zeros(len(self.centres))
+        np.maximum.at(radius, labels, ring)
         diff = self.centres[:, None, :] - self.centres[None, :, :]
-        self.centre_gap = np.sqrt(np.einsum('ijk,ijk->ij', diff, diff))
+        self.arrays = compiled.IndexArrays(
+            self.centres, np.ascontiguousarray(self.centres.T),
+            c_array(np.sqrt(np.einsum('ijk,ijk->ij', diff, diff)), np.float64), radius,
+            np.searchsorted(labels[order], np.arange(len(self.centres) + 1)),
+            np.ascontiguousarray(ring[order]), points, basis,
+            np.ascontiguousarray(basis @ points.T, dtype=np.float32),
+            float(np.sqrt(np.einsum('ij,ij->i', ref, ref).max())), order, slot_of)
 
     def _partition(self, ref: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
         """Return k-means cell centres of ``ref`` and its leading principal directions."""
@@ -85,7 +87,7 @@ class DescriptorIndex:
         pick = rng.permutation(len(ref))[:min(len(ref), _SAMPLE_PER_CELL * cells)]
         sample = ref[np.sort(pick)]
         centres = sample[rng.permutation(len(sample))[:cells]].copy()
-        kernels_index.kmeans(sample, centres, _ITERATIONS)
+        compiled.kmeans(sample, centres, _ITERATIONS)
         # Distances along the leading principal directions bound the full distance from
         # below and cost a fraction of it to compute.
         spread = sample - sample.mean(axis=0)
@@ -103,13 +105,11 @@ class DescriptorIndex:
         """
         if k not in (1, 2) or k > self.size:
             raise ValueError(f'k must be 1 or 2 and at most {self.size}, got {k}')
-        q = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, self.dim)
+        q = c_array(queries, np.float64).reshape(-1, self.dim)
         index = np.empty((len(q), k), dtype=np.int64)
         dist = np.empty((len(q), k))
-        run_chunks(lambda a, b: kernels_index.search(
-            q[a:b], self.centres, self.centresT, self.centre_gap, self.radius, self.starts,
-            self.ring, self.points, self.basis, self.projectedT, self.max_norm, self.order, k,
-            index[a:b], dist[a:b]), len(q), workers)
+        run_chunks(lambda a, b: compiled.search(self.arrays, q[a:b], k, index[a:b], dist[a:b]),
+                   len(q), workers)
         return index, dist
 
     def is_nearest(self, queries: np.ndarray, rows: np.ndarray, workers: int = 1) -> np.ndarray:
@@ -119,13 +119,11 @@ class DescriptorIndex:
         The same as ``query(queries, 1)[0][:, 0] == rows``, at a fraction of the cost: the
         search starts from that row and stops at the first row that beats it.
         """
-        q = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, self.dim)
-        rows = np.ascontiguousarray(rows, dtype=np.int64)
+        q = c_array(queries, np.float64).reshape(-1, self.dim)
+        rows = c_array(rows, np.int64)
         if len(rows) != len(q) or (len(rows) and not 0 <= rows.min() <= rows.max() < self.size):
             raise ValueError(f'rows must be one reference row (0 to {self.size - 1}) a query')
         out = np.empty(len(q), dtype=np.bool_)
-        run_chunks(lambda a, b: kernels_index.nearest_is(
-            q[a:b], rows[a:b], self.centres, self.centresT, self.centre_gap, self.radius,
-            self.starts, self.ring, self.points, self.basis, self.projectedT, self.max_norm,
-            self.order, self.slot_of, out[a:b]), len(q), workers)
+        run_chunks(lambda a, b: compiled.nearest_is(self.arrays, q[a:b], rows[a:b], out[a:b]),
+                   len(q), workers)
         return out

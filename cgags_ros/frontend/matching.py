@@ -12,8 +12,9 @@ import dataclasses
 
 import numpy as np
 
-from . import kernels_index
+from . import compiled
 from .descriptor_index import DescriptorIndex
+from ..compiled_types import c_array
 from ..config.frontend import FrontEndConfig
 
 
@@ -70,7 +71,9 @@ def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfi
         # lower row) can be that target's nearest source: ask, for it alone, whether any
         # other source is nearer the target.
         squared = np.empty(len(src_ok))
-        kernels_index.squared_pair_distances(src, dst[nn[:, 0]], squared)  # as the index ranks
+        # as the index ranks
+        compiled.squared_pair_distances(c_array(src, np.float64),
+                                        c_array(dst[nn[:, 0]], np.float64), squared)
         best = np.lexsort((np.arange(len(src_ok)), squared, nn[:, 0]))
         first = best[np.r_[True, nn[best[1:], 0] != nn[best[:-1], 0]]]
         source_index = DescriptorIndex(src, workers, like=target_index)

@@ -56,7 +56,8 @@ def refine_transform(source: np.ndarray, target: np.ndarray, initial: np.ndarray
                      voxel_size: float, config: RefineConfig,
                      target_normals: np.ndarray | None = None,
                      coarse_distance: float | None = None,
-                     gravity: np.ndarray | None = None, workers: int = 1) -> np.ndarray:
+                     gravity: np.ndarray | None = None, workers: int = 1,
+                     tolerance: float = 1e-6) -> np.ndarray:
     """
     Refine the 4x4 source->target transform ``initial``.
 
@@ -65,7 +66,9 @@ def refine_transform(source: np.ndarray, target: np.ndarray, initial: np.ndarray
     estimate is only good to about tau) is larger, a first stage runs with it, so that an
     estimate off by more than the final distance still converges; point-to-plane's first
     stage stops at ``config.coarse_stage_tolerance`` (GICP runs both stages in full).
-    ``config.method == 'none'`` returns ``initial`` unchanged.
+    ``config.method == 'none'`` returns ``initial`` unchanged. The final stage stops once
+    fitness and inlier RMSE change by less than ``tolerance`` (relative; a tracked scan,
+    whose start is already close, needs no more than its gates can tell apart).
 
     With ``gravity`` (the unit up axis of both clouds, 4-DoF mode) only yaw about it and
     translation are refined, so roll and pitch stay exactly as in ``initial``:
@@ -75,16 +78,16 @@ def refine_transform(source: np.ndarray, target: np.ndarray, initial: np.ndarray
     """
     if gravity is not None:
         return _refine_4dof(source, target, initial, voxel_size, config, target_normals,
-                            coarse_distance, gravity, workers)
+                            coarse_distance, gravity, workers, tolerance)
     final = config.max_correspondence_distance_factor * voxel_size
     stages = ([final] if not coarse_distance or coarse_distance <= final
               else [coarse_distance, final])
     T = np.asarray(initial, dtype=np.float64)
     for distance in stages:
-        tolerance = config.coarse_stage_tolerance if distance > final else 1e-6
+        stop = config.coarse_stage_tolerance if distance > final else tolerance
         if config.method == 'point_to_plane':
             T = _point_to_plane(source, target, target_normals, T, distance, voxel_size, config,
-                                tolerance)
+                                stop)
         elif config.method == 'gicp':
             T = _gicp(source, target, T, distance, voxel_size, config)
     return T
@@ -122,7 +125,7 @@ def _gicp(source: np.ndarray, target: np.ndarray, initial: np.ndarray, distance:
 
 
 def _refine_4dof(source, target, initial, voxel_size, config, target_normals, coarse_distance,
-                 gravity, workers) -> np.ndarray:
+                 gravity, workers, final_tolerance) -> np.ndarray:
     if config.method == 'none':
         return np.asarray(initial, dtype=np.float64)
     frame = GravityFrame(tuple(gravity))
@@ -143,7 +146,7 @@ def _refine_4dof(source, target, initial, voxel_size, config, target_normals, co
         T = nearest_yaw_motion(T6)
     tree = cKDTree(dst)
     for distance in stages:
-        tolerance = config.coarse_stage_tolerance if distance > final else 1e-6
+        tolerance = config.coarse_stage_tolerance if distance > final else final_tolerance
         T = point_to_plane_4dof(src, dst, normals, T, distance, config.max_iterations,
                                 tolerance, tree, workers)
     return frame.from_gravity(T)

@@ -164,12 +164,6 @@ class BagReader:
         return BagRecord(conn.topic, conn.msgtype, log_time, stamp_ns, frame_id, msg)
 
 
-def list_topics(path: str | Path) -> dict[str, TopicInfo]:
-    """Return the topics of a bag as ``{topic: TopicInfo(name, msgtype, count)}``."""
-    with BagReader(path) as reader:
-        return reader.topics
-
-
 def read_messages(path: str | Path, topics: Iterable[str] | None = None) -> Iterator[BagRecord]:
     """
     Iterate over the records of a bag in log-time order (see :meth:`BagReader.messages`).

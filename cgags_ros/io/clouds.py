@@ -39,11 +39,6 @@ def read_cloud(path: str | Path) -> np.ndarray:
     return read_cloud_and_normals(path)[0]
 
 
-def read_normals(path: str | Path) -> np.ndarray | None:
-    """Return the normals stored with the points at ``path`` (:func:`read_cloud_and_normals`)."""
-    return read_cloud_and_normals(path)[1]
-
-
 def read_cloud_and_normals(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     """
     Return :func:`read_cloud`'s points and the normals stored with them, from one read.

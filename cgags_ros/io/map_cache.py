@@ -21,7 +21,7 @@ import numpy as np
 from ..errors import InvalidInputError
 
 # Bump when the stored arrays change meaning or how they are computed: 2 = FPFH from our
-# kernels (equal to Open3D's to rounding, not to the bit), not Open3D's.
+# compiled code (equal to Open3D's to rounding, not to the bit), not Open3D's.
 CACHE_FORMAT = 2
 _CHUNK = 1 << 20
 

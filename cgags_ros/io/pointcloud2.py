@@ -60,10 +60,6 @@ def data_bytes(data: Any) -> np.ndarray:
         return np.asarray(list(data), dtype=np.uint8)
 
 
-def cloud_field_names(msg: Any) -> list[str]:
-    return [str(f.name) for f in getattr(msg, 'fields', [])]
-
-
 def pointcloud2_to_xyz(msg: Any, *, max_points: int = MAX_POINTS) -> np.ndarray:
     """
     Decode x, y, z of every finite point of a PointCloud2 (an (N, 3) float64 array, metres).

@@ -53,3 +53,18 @@ def clear_feature_cache() -> None:
     """Forget remembered features (benchmarks timing the whole front end call this)."""
     with _cache_lock:
         _cache.clear()
+
+
+def set_feature_cache_size(size: int) -> int:
+    """
+    Remember the features of the last ``size`` clouds (two unless set); return the old size.
+
+    For a study that revisits many clouds (every fragment of a scene in many pairs) and
+    wants each featurised once; the oldest beyond ``size`` are forgotten now.
+    """
+    global _CACHE_SIZE
+    with _cache_lock:
+        previous, _CACHE_SIZE = _CACHE_SIZE, int(size)
+        while len(_cache) > _CACHE_SIZE:
+            _cache.popitem(last=False)
+    return previous

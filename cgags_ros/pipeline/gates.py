@@ -26,27 +26,56 @@ def measure(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
     """
     Set the measurements the gates judge on ``result`` (its ``transform`` is the estimate).
 
-    ``map_target``: the target is a map fused from many viewpoints, so it has no sensor at
-    its origin (the free-space violation is then measured against the scan's view only).
+    The chance-level inliers of the correspondences and their bound, then
+    :func:`measure_overlap`. ``map_target``: the target is a map fused from many viewpoints,
+    so it has no sensor at its origin (the free-space violation is then measured against the
+    scan's view only).
     """
-    distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
-    align = evaluate_alignment(fs.points, ft.tree, result.transform, distance)
-    back = evaluate_alignment(ft.points, fs.tree, np.linalg.inv(result.transform), distance)
-    result.fitness, result.inlier_rmse = align.fitness, align.inlier_rmse
-    result.overlap = min(align.fitness, back.fitness)
     result.chance_inliers = chance_inliers(fs.points[corr.source_index],
                                            ft.points[corr.target_index], result.coarse_transform,
                                            result.inlier_threshold)
-    members = 3
+    members = 2 if cfg.core.motion_model == '4dof' else 3
+    result.chance_bound = float('nan')  # the gate is off
+    if cfg.refine.significance > 0:
+        result.chance_bound = chance_bound(result.chance_inliers, result.num_hypotheses,
+                                           cfg.refine.significance, members)
+    measure_overlap(fs.points, fs.tree, ft, result, cfg, map_target)
+
+
+def measure_overlap(source: np.ndarray, source_tree: cKDTree | None, ft: CloudFeatures,
+                    result: PipelineResult, cfg: PipelineConfig,
+                    map_target: bool = False) -> Alignment:
+    """
+    Set the measurements of ``result.transform``'s overlap alone; return the overlap.
+
+    The measurements that need no correspondences, so that an estimate refined from a
+    prediction (:mod:`.tracking`) is judged as a global one is
+    (:func:`cgags_ros.validity.overlap_refusal`): fitness, observability, free space, and in
+    4-DoF mode the tilt. ``source`` is the downsampled source (metres, its own frame) and
+    ``source_tree`` a k-d tree over it, for the target side of ``overlap``; None leaves
+    ``overlap`` NaN (no gate reads it: only the rival verification after a global search
+    does). Sets ``fitness``, ``inlier_rmse``, ``overlap``, ``observability``,
+    ``free_space_violation`` (and ``tilt_deg``) on ``result``. The
+    :class:`~cgags_ros.frontend.refine.Alignment` returned pairs the overlapping source
+    points with their nearest target points.
+    """
+    distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
+    align = evaluate_alignment(source, ft.tree, result.transform, distance)
+    result.fitness, result.inlier_rmse = align.fitness, align.inlier_rmse
+    result.overlap = float('nan')
+    if source_tree is not None:
+        back = evaluate_alignment(ft.points, source_tree, np.linalg.inv(result.transform),
+                                  distance)
+        result.overlap = min(align.fitness, back.fitness)
     if cfg.core.motion_model == '4dof':  # yaw + translation only: no roll/pitch motion
-        frame, members = GravityFrame(cfg.core.gravity_axis), 2
-        result.observability = observability(fs.points, ft.normals, align, frame)
-        result.tilt_deg = residual_tilt(fs.points, ft.points, ft.normals, align, frame)
+        frame = GravityFrame(cfg.core.gravity_axis)
+        result.observability = observability(source, ft.normals, align, frame)
+        result.tilt_deg = residual_tilt(source, ft.points, ft.normals, align, frame)
     else:
-        result.observability = observability(fs.points, ft.normals, align)
-    result.chance_bound = chance_bound(result.chance_inliers, result.num_hypotheses,
-                                       cfg.refine.significance, members)
-    result.free_space_violation = measured_free_space(fs, ft, result.transform, cfg, map_target)
+        result.observability = observability(source, ft.normals, align)
+    result.free_space_violation = free_space_of(source, ft.points, result.transform, cfg,
+                                                map_target)
+    return align
 
 
 def measured_free_space(fs: CloudFeatures, ft: CloudFeatures, transform: np.ndarray,
@@ -57,9 +86,15 @@ def measured_free_space(fs: CloudFeatures, ft: CloudFeatures, transform: np.ndar
     NaN when the gate does not apply: clouds not in their sensor frames (normals not
     oriented to the origin) or the gate disabled (``refine.max_free_space_violation`` 1).
     """
+    return free_space_of(fs.points, ft.points, transform, cfg, map_target)
+
+
+def free_space_of(source: np.ndarray, target: np.ndarray, transform: np.ndarray,
+                  cfg: PipelineConfig, map_target: bool = False) -> float:
+    """Return :func:`measured_free_space` of the downsampled clouds' points (metres)."""
     if cfg.frontend.normal_orientation != 'origin' or cfg.refine.max_free_space_violation >= 1:
         return float('nan')
-    return free_space_violation(fs.points, ft.points, transform,
+    return free_space_violation(source, target, transform,
                                 cfg.refine.free_space_margin_factor * cfg.voxel_size,
                                 cfg.refine.free_space_bin_deg, target_view=not map_target)
 
@@ -192,9 +227,6 @@ def chance_bound(chance: float, hypotheses: int, significance: float,
     If all correspondences were outliers, the inliers of a fixed transform are
     ~Poisson(``chance``) (:func:`chance_inliers`), plus the ``members`` (3; 2 for a 4-DoF
     edge) that define a hypothesis; the best of H hypotheses then exceeds the Poisson
-    1 - significance/H quantile with probability ~significance (union bound). NaN when
-    ``significance`` is 0 (the gate is off).
+    1 - significance/H quantile with probability ~significance (union bound).
     """
-    if significance <= 0:
-        return float('nan')
     return members + poisson_isf(significance / max(hypotheses, 1), chance)

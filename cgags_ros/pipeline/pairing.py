@@ -11,7 +11,8 @@ The two modes (``latest_target`` for scan-to-map, ``synchronized`` for approxima
 pairs), the bounded ready queue (the oldest pair is dropped when full: for localization a
 fresh pose is worth more than a stale one) and the reset when stamps go backwards are
 specified in docs/pairing.md. Nothing is dropped silently: every drop increments
-``drops[reason]``, and :meth:`Pairer.counters` accounts for every source and target.
+``drops[reason]`` (and is handed to ``on_drop``, when set), and :meth:`Pairer.counters`
+accounts for every source and target.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import threading
-from typing import Any
+from typing import Any, Callable, Iterable
 
 MODES = ('latest_target', 'synchronized')
 
@@ -54,6 +55,8 @@ class Pairer:
     :param queue_depth: ready pairs kept (>= 1); the oldest is dropped when full.
     :param max_waiting_sources: sources kept while waiting for a target (>= 1).
     :param max_waiting_targets: synchronized mode only, targets kept while unmatched (>= 1).
+    :ivar on_drop: None, or called with (reason, the dropped :class:`Stamped`) at every drop,
+        under the pairer's lock (a dropped pair hands over its source).
     """
 
     @classmethod
@@ -88,6 +91,7 @@ class Pairer:
         self.targets_used = 0  # targets retired after serving at least one pair
         self.clock_resets: collections.Counter[str] = collections.Counter()
         self.drops: collections.Counter[str] = collections.Counter()
+        self.on_drop: Callable[[str, Stamped], None] | None = None
         self._ready: collections.deque[Pair] = collections.deque()
         self._sources: list[Stamped] = []  # waiting sources, oldest first
         self._targets: list[Stamped] = []  # latest: [newest]; synchronized: unmatched
@@ -235,7 +239,7 @@ class Pairer:
             if self._target_used:
                 self.targets_used += 1
             else:
-                self.drops['target_replaced_unused'] += 1
+                self._drop('target_replaced_unused', self._targets[-1:])
         self._target_used = False
 
     def _clock_reset(self, reason: str, stamp_ns: int) -> None:
@@ -252,21 +256,27 @@ class Pairer:
 
     def _reset(self, keep_target_before: int | None, keep_ready: bool = False) -> None:
         if not keep_ready:
-            self.drops['source_reset'] += len(self._ready)
+            self._drop('source_reset', [pair.source for pair in self._ready])
             self._ready.clear()
-        self.drops['source_reset'] += len(self._sources)
+        self._drop('source_reset', self._sources)
         self._sources = []
         if self.mode == 'synchronized':
-            self.drops['target_reset'] += len(self._targets)
+            self._drop('target_reset', self._targets)
             self._targets = []
         elif (self._targets and keep_target_before is not None
                 and self._targets[-1].stamp_ns > keep_target_before):
             if self._target_used:
                 self.targets_used += 1
             else:
-                self.drops['target_reset'] += 1
+                self._drop('target_reset', self._targets[-1:])
             self._targets, self._target_used = [], False
         self._newest_source_ns = self._newest_target_ns = None
+
+    def _drop(self, reason: str, items: Iterable[Stamped]) -> None:
+        for item in list(items):
+            self.drops[reason] += 1
+            if self.on_drop is not None:
+                self.on_drop(reason, item)
 
     def _stamped(self, stamp_ns: int, frame_id: str, payload: Any) -> Stamped:
         self._receipts += 1
@@ -275,8 +285,7 @@ class Pairer:
     def _push(self, buf: list[Stamped], item: Stamped, limit: int, reason: str) -> None:
         buf.append(item)
         while len(buf) > limit:
-            buf.pop(0)
-            self.drops[reason] += 1
+            self._drop(reason, [buf.pop(0)])
 
     def _emit(self, source: Stamped, target: Stamped) -> None:
         self._target_used = True
@@ -285,8 +294,7 @@ class Pairer:
         self.paired += 1
         self._ready.append(Pair(source, target))
         while len(self._ready) > self.queue_depth:
-            self._ready.popleft()
-            self.drops['queue_full'] += 1
+            self._drop('queue_full', [self._ready.popleft().source])
         self._cond.notify()
 
     def _match(self) -> None:
@@ -298,7 +306,7 @@ class Pairer:
             candidates = [t for t in self._targets if abs(t.stamp_ns - source.stamp_ns) <= slop]
             if not candidates:
                 if newest_target is not None and newest_target > source.stamp_ns + slop:
-                    self.drops['source_no_target_within_slop'] += 1
+                    self._drop('source_no_target_within_slop', [source])
                 else:
                     kept.append(source)
                 continue
@@ -318,7 +326,7 @@ class Pairer:
             stale = newest_source > target.stamp_ns + slop
             usable = any(abs(s.stamp_ns - target.stamp_ns) <= slop for s in kept)
             if stale and not usable:
-                self.drops['target_no_source_within_slop'] += 1
+                self._drop('target_no_source_within_slop', [target])
             else:
                 remaining.append(target)
         self._targets = remaining

@@ -12,21 +12,22 @@ reported.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import time
+from typing import Callable
 
 import numpy as np
 
 from .cache import cached_features
 from .candidates import find_candidates, rank_candidates, search_rivals, verify_rivals
+from .confidence import features, probability
 from .covariance import result_covariance
 from .gates import measure
 from .map import matches_config, PreparedMap
 from .result import PipelineResult
+from .rivals import mark_ambiguous, structured_rival
 from ..config import fields
 from ..config.pipeline import PipelineConfig
-from ..datasets.synthetic import terrain_patch
 from ..errors import DegenerateCorrespondencesError, EmptyCloudError, InvalidConfigError
 from ..frontend.features import CloudFeatures, finite_points
 from ..frontend.keypoints import match_keypoints
@@ -37,7 +38,8 @@ from ..parallel import DEFAULT_WORKERS, in_background
 from ..refusal import Refusal
 from ..registration import register_correspondences, RegistrationResult, single_blas_thread
 from ..timing import timed
-from ..validity import ambiguity_refusal, gate_refusal, line_cloud_refusal, unsettled
+from ..validity import (ambiguity_refusal, confidence_refusal, gate_refusal,
+                        line_cloud_refusal, unsettled)
 
 
 def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
@@ -70,12 +72,27 @@ def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
         return _register_clouds(source, target, voxel_size, config, DEFAULT_WORKERS)
 
 
-def _with_covariance(result: PipelineResult, cfg: PipelineConfig) -> PipelineResult:
-    """Set the covariance of the final estimate (every outcome of the pipeline has one)."""
-    core = cfg.core
+def _judged(result: PipelineResult, fs: CloudFeatures, ft: CloudFeatures,
+            cfg: PipelineConfig, start: float, refusal: Refusal | None,
+            map_target: bool = False) -> PipelineResult:
+    """
+    Finish a result that has an estimate: its covariance and confidence, then the verdict.
+
+    ``refusal`` is the gates' (None when they pass); a confidence below ``min_confidence``
+    refuses a 6-DoF pair's estimate the gates let through. Against a map or in 4-DoF mode
+    the confidence is reported but decides nothing: it was calibrated on 6-DoF pairs of
+    scans, and a map's overlap and rivals, or a yaw-only search, read differently.
+    """
+    four_dof = cfg.core.motion_model == '4dof'
     result.covariance = result_covariance(
-        result, core.gravity_axis if core.motion_model == '4dof' else None)
-    return result
+        result, fs.points, ft.points, ft.normals, ft.tree,
+        cfg.refine.max_correspondence_distance_factor * cfg.voxel_size,
+        cfg.core.gravity_axis if four_dof else None)
+    result.confidence = probability(features(result, cfg.refine.significance,
+                                             2 if four_dof else 3))
+    if map_target or four_dof:
+        return result.finish(start, refusal)
+    return result.finish(start, refusal or confidence_refusal(result, cfg.min_confidence))
 
 
 def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float | None,
@@ -91,10 +108,22 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
     map_target = isinstance(target, PreparedMap)
     dst = None if map_target else finite_points(target, 'target')
     result = PipelineResult(voxel_size=v, map_info=target.info() if map_target else None)
+    # The target's features (and its descriptor index) beside the source's: much of the
+    # front end runs on one thread (downsampling, normals, the grids), so two clouds at
+    # once fill both cores. Stage times are summed over the two clouds.
+    target_timings: dict[str, float] = {}
+    target_features = in_background(
+        lambda: _target_features(target, dst, cfg, target_timings, workers), workers > 1)
     try:
-        fs, ft = _features(src, target, dst, cfg, result.timings, workers)
+        fs = cached_features(src, v, cfg.frontend, 'source', result.timings, workers)
     except EmptyCloudError as exc:  # data too small for this voxel size: not a crash
+        _target_or_error(target_features)
         return result.finish(start, exc.refusal)
+    ft = _target_or_error(target_features)
+    for stage, seconds in target_timings.items():
+        result.timings[stage] = result.timings.get(stage, 0.0) + seconds
+    if isinstance(ft, EmptyCloudError):
+        return result.finish(start, ft.refusal)
     result.num_source_points, result.num_target_points = len(fs.points), len(ft.points)
     result.resolution = 0.5 * (fs.resolution + ft.resolution)
     refusal = (line_cloud_refusal(cross_spread(fs.points), 'source', v)
@@ -118,7 +147,7 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
     if core.refusal and not left_to_gates:
         # nothing worth refining or gating further
         refusal = _candidates(fs, ft, corr, result, cfg) or core.refusal
-        return _with_covariance(result, cfg).finish(start, refusal)
+        return _judged(result, fs, ft, cfg, start, refusal, map_target)
     gravity = cfg.core.gravity_axis if cfg.core.motion_model == '4dof' else None
     with timed(result.timings, 'refinement'):
         result.transform = refine_transform(
@@ -128,7 +157,7 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
         result.refined = cfg.refine.method != 'none'
     # The rival search reads only the core's estimate and the final transform, never what
     # the gates set: it runs beside them (both spend most of their time outside the GIL,
-    # in compiled kernels and k-d tree queries).
+    # in compiled numba functions and k-d tree queries).
     rivals = in_background(lambda: _search_rivals(fs, ft, corr, result, cfg), workers > 1)
     with timed(result.timings, 'validation'):
         measure(fs, ft, corr, result, cfg, map_target)
@@ -143,36 +172,13 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
             refusal = gate_refusal(result, cfg, left_to_gates)
             chosen.fitness = result.fitness
     refusal = ambiguity_refusal(result, cfg) or refusal
-    return _with_covariance(result, cfg).finish(start, refusal)
-
-
-def _features(src: np.ndarray, target: np.ndarray | PreparedMap, dst: np.ndarray | None,
-              cfg: PipelineConfig, timings: dict[str, float],
-              workers: int) -> tuple[CloudFeatures, CloudFeatures]:
-    """
-    Return the source's and the target's features; stage times are summed into ``timings``.
-
-    The target's features (and its descriptor index) are computed beside the source's: much
-    of the front end runs on one thread (downsampling, normals, the grids), so two clouds at
-    once fill both cores.
-
-    :raises EmptyCloudError: a cloud is too small for the voxel size (the source's error
-        first), once both are done.
-    """
-    target_timings: dict[str, float] = {}
-    target_features = in_background(
-        lambda: _target_features(target, dst, cfg, target_timings, workers), workers > 1)
-    try:
-        fs = cached_features(src, cfg.voxel_size, cfg.frontend, 'source', timings, workers)
-    except EmptyCloudError:
-        with contextlib.suppress(EmptyCloudError):  # the source's error is the one told
-            target_features()
-        raise
-    try:
-        return fs, target_features()
-    finally:
-        for stage, seconds in target_timings.items():
-            timings[stage] = timings.get(stage, 0.0) + seconds
+    if not refusal and cfg.structured_rivals:
+        with timed(result.timings, 'structured_rivals'):
+            rival = structured_rival(fs, ft, corr, result, cfg, map_target, workers)
+        if rival is not None:
+            mark_ambiguous(result, rival)
+            refusal = ambiguity_refusal(result, cfg)
+    return _judged(result, fs, ft, cfg, start, refusal, map_target)
 
 
 def _target_features(target: np.ndarray | PreparedMap, points: np.ndarray | None,
@@ -186,6 +192,14 @@ def _target_features(target: np.ndarray | PreparedMap, points: np.ndarray | None
     with timed(timings, 'matching'):  # the index is matching's, as when built there
         features.descriptor_index(workers)
     return features
+
+
+def _target_or_error(wait: Callable[[], CloudFeatures]) -> CloudFeatures | EmptyCloudError:
+    """Wait for :func:`_target_features`; return the features or the EmptyCloudError raised."""
+    try:
+        return wait()
+    except EmptyCloudError as exc:
+        return exc
 
 
 def _search_rivals(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
@@ -203,6 +217,20 @@ def _candidates(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
     with timed(result.timings, 'candidates'):
         find_candidates(fs, ft, corr, result, cfg)
     return ambiguity_refusal(result, cfg)
+
+
+def terrain_patch(rng: np.random.Generator, n: int = 4000) -> np.ndarray:
+    """
+    Sample (n, 3) points of a 4 m x 4 m terrain patch with three Gaussian bumps (metres).
+
+    The patch has enough relief for FPFH and a fully constrained rigid fit: the pair that
+    :func:`warm_up` registers (the node's tests use it too).
+    """
+    xy = rng.uniform(-2.0, 2.0, (n, 2))
+    bumps = ((0.7, 0.5, 0.8, 0.3), (-0.9, -0.2, 0.5, 0.1), (0.1, -1.1, -0.6, 0.5))
+    z = sum(h * np.exp(-((xy[:, 0] - x) ** 2 + (xy[:, 1] - y) ** 2) / w)
+            for x, y, h, w in bumps)
+    return np.c_[xy, z]
 
 
 def warm_up(config: PipelineConfig | None = None) -> PipelineResult:

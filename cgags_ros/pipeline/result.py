@@ -50,7 +50,8 @@ class PipelineResult(RegistrationResult):
         ``transform``.
     :ivar inlier_rmse: RMS distance (metres) of those points to their nearest target point.
     :ivar overlap: min of the source-side and target-side shares of points with a neighbour
-        in the other cloud within the refinement distance (a symmetric overlap ratio).
+        in the other cloud within the refinement distance (a symmetric overlap ratio); NaN on
+        the tracked path, which measures the source side (``fitness``) only.
     :ivar observability: smallest/largest eigenvalue of the point-to-plane information
         matrix of the overlap (0: some motion is unconstrained, e.g. plane on plane).
     :ivar chance_inliers: inliers the estimate would collect if every correspondence were
@@ -75,14 +76,22 @@ class PipelineResult(RegistrationResult):
     :ivar candidates: up to ``num_candidates`` distinct :class:`Candidate` poses, best
         first (the first is ``transform``); empty when the core gave no estimate.
     :ivar ambiguous: True when the runner-up candidate is nearly as well supported as the
-        best (best/runner-up inliers below ``ambiguity_ratio``); the result is then
+        best (best/runner-up inliers below ``ambiguity_ratio``), or when a structured rival
+        (:mod:`.rivals`: the estimate turned or slid) fits about as well; the result is then
         invalid.
     :ivar runner_up_ratio: best / runner-up inlier count (inf without a runner-up).
     :ivar covariance: 6x6 covariance of ``transform``, row-major in geometry_msgs/
         PoseWithCovariance order (x, y, z in metres; rotation about the target frame's X, Y,
-        Z in radians), from the inlier correspondences
-        (:func:`~.covariance.result_covariance`); variances of 1e6 when fewer than three
-        support the estimate.
+        Z in radians, through the source origin), from the point-to-plane fit of the whole
+        overlap (:func:`~.covariance.overlap_covariance`); variances of 1e6 when fewer than
+        three correspondences support the estimate. docs/confidence.md says how to read it.
+    :ivar confidence: the probability that ``transform`` is right (within 15 degrees and 30
+        cm) given what the pipeline measured (:mod:`.confidence`); 0 without an estimate.
+        ``valid`` needs it at least ``min_confidence``.
+    :ivar path: what produced the result: 'global' (the guess-free search of
+        :func:`~.register.register_clouds`) or 'tracked' (refined from the pose predicted
+        from a stream's last poses and judged by the same overlap gates,
+        :class:`~.tracking.Tracker`; no correspondences, core or candidates then).
     :ivar map_info: the summary of the map registered onto
         (:meth:`~.map.PreparedMap.info`: file, cache hit or miss, points, load time); None
         when the target was a cloud.
@@ -107,6 +116,8 @@ class PipelineResult(RegistrationResult):
     ambiguous: bool = False
     runner_up_ratio: float = float('inf')
     covariance: np.ndarray = dataclasses.field(default_factory=lambda: np.diag([1e6] * 6))
+    confidence: float = 0.0
+    path: str = 'global'
     map_info: dict[str, Any] | None = None
 
     def summary(self) -> dict[str, Any]:
@@ -124,5 +135,6 @@ class PipelineResult(RegistrationResult):
             candidates=[c.summary() for c in self.candidates], ambiguous=bool(self.ambiguous),
             runner_up_ratio=float(self.runner_up_ratio),
             covariance=np.asarray(self.covariance, dtype=float).tolist(),
+            confidence=float(self.confidence), path=self.path,
             map=None if self.map_info is None else dict(self.map_info))
         return out

@@ -13,7 +13,7 @@ import array
 from typing import Any
 
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Pose, PoseStamped, TransformStamped
+from geometry_msgs.msg import Pose, TransformStamped
 import numpy as np
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
@@ -99,12 +99,6 @@ def to_rclpy_pointcloud2(msg: Any) -> Any:
     return out
 
 
-def ns_to_stamp(ns: int) -> Any:
-    """Integer nanoseconds -> builtin_interfaces/Time."""
-    sec, nanosec = divmod(int(ns), 1_000_000_000)
-    return Time(sec=sec, nanosec=nanosec)
-
-
 def _check_transform(T: np.ndarray) -> np.ndarray:
     T = np.asarray(T, dtype=np.float64)
     if T.shape != (4, 4) or not np.isfinite(T).all():
@@ -121,11 +115,6 @@ def transform_to_pose(T: np.ndarray) -> Any:
     pose.orientation.x, pose.orientation.y = float(qx), float(qy)
     pose.orientation.z, pose.orientation.w = float(qz), float(qw)
     return pose
-
-
-def transform_to_pose_stamped(T: np.ndarray, header: Any) -> Any:
-    """4x4 transform -> geometry_msgs/PoseStamped with the given header."""
-    return PoseStamped(header=header, pose=transform_to_pose(T))
 
 
 def transform_to_transform_stamped(T: np.ndarray, header: Any, child_frame_id: str) -> Any:

@@ -1,14 +1,14 @@
 """
-The node's /diagnostics: one flat key space, built here and read back by live replay.
+The node's /diagnostics: one flat key space, built here.
 
-:func:`build_statistics` makes the keys the node publishes; :func:`accounted_sources` and
-:func:`last_result` read them back (from the string values a DiagnosticStatus carries),
-so the names are defined once. ``sources.*`` and ``targets.*`` are the accounting buckets
-of :mod:`.health` (``accounting.ok``: they balance; ``sources.lost_upstream``, scans that
-never arrived, stands outside the balance); ``worker.*`` and ``memory.*`` the registration
-process and the resident memory (MB); ``transport.profile`` the Fast DDS profile loaded;
-``configure.error`` why configure failed (the node's last message before it is unconfigured,
-its code in ``configure.refusal_code``). Every refusal's code sits beside its message:
+:func:`build_statistics` makes the keys the node publishes and the constants name them once
+(what became of each source, typed, is on ``~/result``). ``sources.*`` and
+``targets.*`` are the accounting buckets of :mod:`cgags_ros.localizer.health`
+(``accounting.ok``: they balance; ``sources.lost_upstream``, scans that never arrived,
+stands outside the balance); ``worker.*`` and ``memory.*`` the registration process and the
+resident memory (MB); ``transport.profile`` the Fast DDS profile loaded; ``configure.error``
+why configure failed (the node's last message before it is unconfigured, its code in
+``configure.refusal_code``). Every refusal's code sits beside its message:
 ``last_refusal_code`` beside ``last_reason``, ``calibration.refusal_code`` beside
 ``calibration.reason``.
 """
@@ -20,8 +20,8 @@ from typing import Any, Mapping
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
 
-from .health import lost_upstream_message
-from .transport import user_line
+from ..localizer.health import lost_upstream_message
+from ..localizer.transport import user_line
 
 REJECTED = 'rejected.'  # rejected.<cause>: clouds or pairs the node refused, per cause
 PAIRING = 'pairing.'  # pairing.<counter> of cgags_ros.pipeline.pairing.Pairer.counters()
@@ -40,8 +40,8 @@ def build_statistics(snapshot: Mapping[str, Any], voxel_size: float,
     """
     Return the flat statistics of the node (what /diagnostics carries).
 
-    ``snapshot`` is :meth:`.health.NodeHealth.snapshot`; ``extra`` holds the worker's and
-    the memory's keys.
+    ``snapshot`` is :meth:`cgags_ros.localizer.health.NodeHealth.snapshot`; ``extra`` holds
+    the worker's and the memory's keys.
     """
     counts, rejected, last = snapshot['counts'], snapshot['rejected'], snapshot['last']
     latencies, pairing = snapshot['latencies'], snapshot['pairing']
@@ -109,7 +109,7 @@ def diagnostic_array(stats: Mapping[str, Any], name: str, hardware_id: str,
         if stats.get('received_target'):  # the first thing a user of big scans sees
             status.message = ('waiting for source clouds (large clouds published without '
                               f'the Fast DDS profile never arrive: {user_line()})')
-    elif as_int(stats.get(LOST_UPSTREAM)):
+    elif stats.get(LOST_UPSTREAM):
         status.level = DiagnosticStatus.WARN
         status.message = lost_upstream_message(stats[LOST_UPSTREAM])
     elif stats.get(f'{LAST}valid') is False:
@@ -125,46 +125,3 @@ def diagnostic_array(stats: Mapping[str, Any], name: str, hardware_id: str,
     msg = DiagnosticArray(status=[status])
     msg.header.stamp = stamp
     return msg
-
-
-def accounted_sources(values: Mapping[str, str]) -> int:
-    """Count the sources the node is done with: published + rejected + dropped + waiting."""
-    return (sum(as_int(values.get(f'sources.{k}')) for k in ('published', 'rejected', 'dropped'))
-            + as_int(values.get(f'{PAIRING}waiting_sources')))
-
-
-def last_result(values: Mapping[str, str]) -> dict[str, Any]:
-    """Return the last registration's fields (valid, reason, code, inliers, fitness, time_s)."""
-    return {'valid': values.get(f'{LAST}valid', 'True') == 'True',
-            'reason': values.get(f'{LAST}reason', ''), 'code': values.get(REFUSAL_CODE, ''),
-            'inliers': as_int(values[f'{LAST}inliers']) if f'{LAST}inliers' in values else None,
-            'fitness': as_float(values.get(f'{LAST}fitness')),
-            'time_s': as_float(values.get(f'{LAST_TIMING}total'))}
-
-
-def last_source_stamp_ns(values: Mapping[str, str]) -> int | None:
-    """Return the source stamp of the last registration, or None before the first."""
-    stamp = values.get(f'{LAST}source_stamp_ns')
-    return int(stamp) if stamp else None
-
-
-def nonzero_drops(values: Mapping[str, str]) -> list[str]:
-    """Return 'key: value' for every rejection and pairing drop the node counted."""
-    keys = [k for k in values if k.startswith((REJECTED, DROPPED))]
-    return [f'{k}: {values[k]}' for k in sorted(keys) if as_int(values[k])]
-
-
-def as_int(value: Any) -> int:
-    """Read a counter published as text (0 when it is not a number)."""
-    try:
-        return int(float(value))
-    except (TypeError, ValueError):
-        return 0
-
-
-def as_float(value: Any) -> float | None:
-    """Read a number published as text (None when it is not one)."""
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        return None

@@ -2,15 +2,15 @@
 ROS 2 lifecycle node: registers each source cloud onto a target cloud and publishes the pose.
 
 A managed node (``rclpy.lifecycle``): configure reads the parameters, starts the registration
-process, waits (bounded) for its warm-up and the map load (:mod:`.startup`) and creates the
-topics and services; a failure is logged, reported once on /diagnostics and leaves the node
-unconfigured with nothing running. Activate consumes sources and publishes; deactivate ignores
-sources (``rejected.source_inactive``) and publishes no pose; cleanup ends the registration
-process; shutdown does what cleanup does. With ``autostart`` (default) the node configures and
-activates itself, so ``ros2 run cgags_ros register_node`` works alone (unconfigured, still
-running, if configure fails); under ``nav2_lifecycle_manager`` set it false. The bond that
-manager expects is formed with ``bondpy`` when it is importable; otherwise set the manager's
-``bond_timeout: 0.0`` (docs/lifecycle.md).
+process, waits (bounded) for its warm-up and the map load (:mod:`cgags_ros.localizer.startup`)
+and creates the topics and services; a failure is logged, reported once on /diagnostics and
+leaves the node unconfigured with nothing running. Activate consumes sources and publishes;
+deactivate ignores sources (``rejected.source_inactive``) and publishes no pose; cleanup ends
+the registration process; shutdown does what cleanup does. With ``autostart`` (default) the
+node configures and activates itself, so ``ros2 run cgags_ros register_node`` works alone
+(unconfigured, still running, if configure fails); under ``nav2_lifecycle_manager`` set it
+false. The bond that manager expects is formed with ``bondpy`` when it is importable;
+otherwise set the manager's ``bond_timeout: 0.0`` (docs/lifecycle.md).
 
 Topics (relative names; remap them):
     source_cloud (sensor_msgs/PointCloud2, in): the cloud to align, in its sensor frame.
@@ -24,8 +24,12 @@ Topics (relative names; remap them):
         the pipeline result's covariance.
     ~/aligned_cloud (sensor_msgs/PointCloud2, out, ``publish_aligned_cloud``).
     ~/candidates (geometry_msgs/PoseArray, out): ranked candidate poses, best first.
+    ~/result (std_msgs/String, out, JSON; reliable): what became of each source (published,
+        rejected or dropped, and why) with its registration's result as ``cgags-register
+        --json`` prints it (:class:`~cgags_ros.localizer.interface.PairResult`), also while
+        inactive.
     initialpose (geometry_msgs/PoseWithCovarianceStamped, out, ``publish_initial_pose``):
-        the guarded base pose for Nav2/AMCL (:mod:`.initial_pose`).
+        the guarded base pose for Nav2/AMCL (:mod:`cgags_ros.localizer.initial_pose`).
     /diagnostics (diagnostic_msgs/DiagnosticArray, out): status and counters
         (:mod:`.diagnostics`), also while inactive.
     /tf (``broadcast_tf``, when tf2_ros is importable): target frame -> source frame.
@@ -34,11 +38,12 @@ Topics (relative names; remap them):
     frame), ~/calibration_report (std_msgs/String, JSON) and /tf_static parent -> child;
     a FAIL publishes no pose: /diagnostics ERROR (docs/calibration.md).
 
-Services (served by this node, on its own callback group so that a call waiting for a
-registration never holds up the topics on a multi-threaded executor):
+Services (served by this node, on their own reentrant callback group: a call awaiting its
+answer keeps its group until then, and other calls and the topics go on beside it):
     ~/relocalize (std_srvs/Trigger): relocalize with the next registration (in
         ``mode: on_demand`` the only thing that makes the node register); answers success
-        and a one-line summary.
+        and a one-line summary. The callback is a coroutine: while it awaits the engine's
+        answer it holds no executor thread.
     reinitialize_global_localization (std_srvs/Empty, relative name, as Nav2 calls it):
         the same request, answered at once; its outcome is logged and, with
         ``publish_initial_pose``, published on initialpose.
@@ -48,11 +53,12 @@ pairing.*, map.*, relocalization.*, output.*, frontend.*/core.*; vectors as arra
 descriptions and ranges from the config dataclasses; every other configuration key is set
 in the YAML of ``config_file``. Changes at run time are validated and apply to the next
 pair; a name of the former flat interface is refused with its new name.
-The node only wires: :class:`~.engine.RegistrationEngine` decides, :class:`~.outputs.Outputs`
-publishes.
+The node only wires: :class:`~cgags_ros.localizer.engine.RegistrationEngine` decides,
+:class:`~.outputs.Outputs` publishes.
 
 Transport: :func:`main` points Fast DDS at the package's large-data profile
-(:mod:`.transport`) unless the user chose one; the clouds' publisher needs it too.
+(:mod:`cgags_ros.localizer.transport`) unless the user chose one; the clouds' publisher needs
+it too.
 """
 
 from __future__ import annotations
@@ -65,23 +71,24 @@ from rcl_interfaces.msg import SetParametersResult
 import rclpy
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.task import Future
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Empty, Trigger
 
 from . import diagnostics
-from .engine import RegistrationEngine
-from .interface import Cloud
 from .outputs import Outputs
 from .parameters import descriptor
 from .qos import source_qos, target_qos
-from .transport import PROFILE_VARIABLE, use_large_data_profile
-from .worker import RegisterFn, rss_mb
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
 from ..config.ros_parameters import (calibration_config, configs_from_ros, migration,
                                      ros_parameter_descriptions)
 from ..errors import CgagsError, EmptyCloudError, InvalidConfigError, InvalidInputError
 from ..io.pointcloud2 import pointcloud2_to_xyz, stamp_to_ns
+from ..localizer.engine import RegistrationEngine
+from ..localizer.interface import Cloud
+from ..localizer.transport import PROFILE_VARIABLE, use_large_data_profile
+from ..pipeline.isolated import RegisterFn, rss_mb
 
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
 # How the node destroys what configure created (so that it leaves the node's lists too).
@@ -262,11 +269,21 @@ class RegisterNode(LifecycleNode):
 
     # ------------------------------------------------------------------ services
 
-    def _on_relocalize(self, request: Any, response: Any) -> Any:
-        engine = self._engine
-        response.success, response.message = (
-            engine.relocalize() if engine is not None
-            else (False, 'unconfigured: not localized: the node is not configured'))
+    async def _on_relocalize(self, request: Any, response: Any) -> Any:
+        engine, executor = self._engine, self.executor
+        if engine is None:
+            response.success = False
+            response.message = 'unconfigured: not localized: the node is not configured'
+            return response
+        answer = Future()
+
+        def on_answer(success: bool, message: str) -> None:  # the worker thread, or at once
+            answer.set_result((success, message))
+            if executor is not None:
+                executor.wake()  # the executor resumes an awaiting callback when it wakes
+
+        engine.relocalize(wait=False, on_answer=on_answer)
+        response.success, response.message = await answer
         return response
 
     def _on_reinitialize(self, request: Any, response: Any) -> Any:
@@ -322,8 +339,8 @@ def main(args: list[str] | None = None) -> None:
     Spin the node until Ctrl-C or SIGTERM, then shut down cleanly.
 
     The ``register_node`` entry point (``ros2 run``, ``python -m cgags_ros.register_node``).
-    A multi-threaded executor, so that a relocalization call waiting for a registration
-    runs beside the subscriptions.
+    A multi-threaded executor, so that clouds are decoded while the diagnostics and the
+    services run.
     """
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
     use_large_data_profile()

@@ -1,11 +1,12 @@
 """
-The node's outputs: what :class:`~.engine.EngineOutputs` asks for, in ROS messages.
+The node's outputs: what the engine's ``EngineOutputs`` asks for, in ROS messages.
 
-~/pose, ~/pose_with_covariance, ~/aligned_cloud, ~/candidates, initialpose, /tf (when
-tf2_ros is importable) and /diagnostics; in calibrate mode ~/calibration,
-~/calibration_report and /tf_static (latched). Frames and conventions as in :mod:`.node`: a pose
-maps source-frame points into the target (map) frame and carries the source's stamp.
-Pose outputs are lifecycle publishers: they publish only while the node is active.
+:class:`~cgags_ros.localizer.interface.EngineOutputs` as ~/pose, ~/pose_with_covariance,
+~/aligned_cloud, ~/candidates, initialpose, /tf (when tf2_ros is importable), ~/result and
+/diagnostics; in calibrate mode ~/calibration, ~/calibration_report and /tf_static
+(latched). Frames and conventions as in :mod:`.node`: a pose maps source-frame points into
+the target (map) frame and carries the source's stamp. Pose outputs are lifecycle
+publishers: they publish only while the node is active.
 """
 
 from __future__ import annotations
@@ -22,15 +23,15 @@ from std_msgs.msg import Header, String
 
 from . import diagnostics
 from .conversions import transform_to_pose, transform_to_transform_stamped, xyz_to_pointcloud2
-from .interface import BasePose, Calibration, Estimate
-from .qos import latched_qos
+from .qos import latched_qos, result_qos
 from ..geometry import make_transform, quaternion_to_matrix
+from ..localizer.interface import BasePose, Calibration, Estimate, PairResult
 from ..pipeline.covariance import map_to_odom
 from ..refusal import Refusal
 
 
 class Outputs:
-    """Publishers, TF and logging of one node: the engine's :class:`~.engine.EngineOutputs`."""
+    """Publishers, TF and logging of one node: the engine's ``EngineOutputs``."""
 
     def __init__(self, node: Any, calibrate: bool = False):
         self._node = node
@@ -41,6 +42,8 @@ class Outputs:
         self._candidates_pub = lifecycle(PoseArray, '~/candidates', 10)
         self._initial_pub = lifecycle(PoseWithCovarianceStamped, 'initialpose', 10)
         self._diag_pub = node.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        # Not a lifecycle publisher: sources refused while inactive get their result too.
+        self._result_pub = node.create_publisher(String, '~/result', result_qos())
         self._lifecycle_publishers = [self._pose_pub, self._pose_cov_pub, self._aligned_pub,
                                       self._candidates_pub, self._initial_pub]
         self._lock = threading.Lock()
@@ -114,6 +117,10 @@ class Outputs:
                 from tf2_msgs.msg import TFMessage
                 self._send(static, TFMessage(transforms=[tf]))
 
+    def publish_result(self, result: PairResult) -> None:
+        """Publish ~/result (std_msgs/String): the source's result as JSON."""
+        self._send(self._result_pub, String(data=result.to_json()))
+
     def base_from_sensor(self, base_frame: str, sensor_frame: str) -> np.ndarray | None:
         """Return ``T_base_sensor`` from TF; the identity (said once) without tf2_ros."""
         if not self._tf_ready('base_from_sensor is not set'):
@@ -157,6 +164,7 @@ class Outputs:
         for pub in self._lifecycle_publishers:
             self._node.destroy_lifecycle_publisher(pub)
         self._node.destroy_publisher(self._diag_pub)
+        self._node.destroy_publisher(self._result_pub)
         if self._static_pub and not hasattr(self._static_pub, 'sendTransform'):
             self._node.destroy_publisher(self._static_pub)
 

@@ -36,3 +36,8 @@ def latched_qos() -> QoSProfile:
     """Return the QoS of a one-off result: reliable, transient local, the last one kept."""
     return QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def result_qos() -> QoSProfile:
+    """Return the QoS of ~/result: reliable, so that a replay client misses no source."""
+    return QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)

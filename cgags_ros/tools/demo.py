@@ -2,7 +2,7 @@
 ``cgags-demo`` (``bash scripts/demo.sh``): the bundled bags, live through the ROS node.
 
 For each bag in ``<shared data>/bags`` (``bunny``, ``redkitchen``, ``lidar``; located with
-:func:`cgags_ros.datasets.synthetic.shared_data_dir`, which honours ``CGAGS_DATA_DIR``)
+:func:`cgags_ros.io.shared_data.shared_data_dir`, which honours ``CGAGS_DATA_DIR``)
 this runs ``cgags-replay BAG --live`` (a register_node is started per bag and stopped
 after it), prints each pair's RE/TE against the bag's ``/ground_truth`` and the recall,
 and writes ``OUT/<bag>/`` (default ``out/demo``): ``errors.png``, ``results.csv``,
@@ -34,8 +34,8 @@ from .cli import error_line, EXIT_ERROR
 from .replay import run
 from .replay_common import LiveOptions, ReplayOptions
 from .report import BagReport, summary_table
-from ..datasets.synthetic import shared_data_dir
 from ..errors import CgagsError
+from ..io.shared_data import shared_data_dir
 
 PROG = 'cgags-demo'
 # bag -> (max RE degrees, max TE metres)

@@ -34,6 +34,8 @@ message, docs/refusals.md),
 {EXIT_ERROR} unreadable input or bad option.
 example: cgags-register bun045.ply bun000.ply --voxel-size 0.003 --set refine.method=gicp
 levelled LiDAR scans (yaw + translation only): cgags-register a.ply b.ply --voxel-size 0.3 --4dof
+A scan in a prior map file (a map fused from many views, its normals, a feature cache):
+use cgags-relocalize MAP SCAN [SCAN ...], which prepares the map as the node does.
 """
 
 
@@ -44,6 +46,26 @@ def build_parser() -> argparse.ArgumentParser:
                     'then optional ICP/GICP refinement).')
     parser.add_argument('source', type=Path, help='cloud to move (SOURCE frame)')
     parser.add_argument('target', type=Path, help='fixed cloud (TARGET frame)')
+    add_config_options(parser)
+    parser.add_argument('--no-refine', action='store_true',
+                        help='skip ICP/GICP refinement (same as --set refine.method=none)')
+    parser.add_argument('--4dof', action='store_true', dest='yaw_only',
+                        help='levelled clouds: solve yaw about the gravity axis + translation '
+                             'only (same as --set core.motion_model=4dof)')
+    parser.add_argument('--gravity', type=float, nargs=3, metavar=('X', 'Y', 'Z'),
+                        help="with --4dof: the up axis in both clouds' frames (default 0 0 1; "
+                             'any nonzero length)')
+    parser.add_argument('--json', action='store_true',
+                        help='print the full result as JSON on stdout instead of text')
+    parser.add_argument('--output', type=Path, metavar='ALIGNED',
+                        help='write the source moved into the target frame (any format above)')
+    parser.add_argument('--plot', type=Path, metavar='PNG',
+                        help='save before/after overlay views (PNG, matplotlib)')
+    return parser
+
+
+def add_config_options(parser: argparse.ArgumentParser) -> None:
+    """Add the options that make the pipeline's configuration (shared by the tools)."""
     parser.add_argument('--voxel-size', type=float, metavar='V',
                         help='voxel size in metres; every radius and threshold derives from '
                              f"it (default: the config's, {PipelineConfig().voxel_size:g})")
@@ -54,25 +76,10 @@ def build_parser() -> argparse.ArgumentParser:
                         dest='overrides',
                         help='override one parameter, e.g. core.max_iterations=20000 or '
                              'frontend.max_correspondences=3000 (repeatable; YAML values)')
-    parser.add_argument('--no-refine', action='store_true',
-                        help='skip ICP/GICP refinement (same as --set refine.method=none)')
-    parser.add_argument('--4dof', action='store_true', dest='yaw_only',
-                        help='levelled clouds: solve yaw about the gravity axis + translation '
-                             'only (same as --set core.motion_model=4dof)')
-    parser.add_argument('--gravity', type=float, nargs=3, metavar=('X', 'Y', 'Z'),
-                        help="with --4dof: the up axis in both clouds' frames (default 0 0 1; "
-                             'any nonzero length)')
     parser.add_argument('--seed', type=int, metavar='N', help='random seed of the sampler')
     parser.add_argument('--candidates', type=int, metavar='K',
                         help='report the K best distinct candidate poses (same as --set '
                              'num_candidates=K; default 5)')
-    parser.add_argument('--json', action='store_true',
-                        help='print the full result as JSON on stdout instead of text')
-    parser.add_argument('--output', type=Path, metavar='ALIGNED',
-                        help='write the source moved into the target frame (any format above)')
-    parser.add_argument('--plot', type=Path, metavar='PNG',
-                        help='save before/after overlay views (PNG, matplotlib)')
-    return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -82,7 +89,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _register(args: argparse.Namespace) -> int:
-    config = _config(args)
+    config = config_from_args(args)
     source, target = read_cloud(args.source), read_cloud(args.target)
     from ..pipeline import register_clouds  # after the cheap checks: imports Open3D
 
@@ -95,16 +102,17 @@ def _register(args: argparse.Namespace) -> int:
     return 0 if result.valid else EXIT_INVALID
 
 
-def _config(args: argparse.Namespace) -> PipelineConfig:
+def config_from_args(args: argparse.Namespace) -> PipelineConfig:
+    """Return the pipeline configuration the options ask for (YAML, then --set, then flags)."""
     values: dict = load_yaml(args.config) if args.config else {}
     values.update(fields.parse_key_values(args.overrides))
     if args.voxel_size is not None:
         values['voxel_size'] = args.voxel_size
-    if args.no_refine:
+    if getattr(args, 'no_refine', False):
         values['refine.method'] = 'none'
-    if args.yaw_only:
+    if getattr(args, 'yaw_only', False):
         values['core.motion_model'] = '4dof'
-    if args.gravity is not None:
+    if getattr(args, 'gravity', None) is not None:
         values.update(zip(('core.gravity_x', 'core.gravity_y', 'core.gravity_z'), args.gravity))
     if args.seed is not None:
         values['seed'] = args.seed

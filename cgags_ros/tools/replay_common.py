@@ -23,6 +23,7 @@ from ..config import fields
 from ..config.node import configs_from_parameters, NodeConfig
 from ..config.pipeline import load_yaml, PipelineConfig
 from ..errors import CgagsError, InvalidInputError
+from ..geometry import voxel_size_for
 from ..io.bag import BagReader, BagRecord, write_poses_mcap
 from ..io.pointcloud2 import pointcloud2_to_xyz, pose_to_transform
 from ..pipeline.pairing import Pair, Pairer
@@ -139,31 +140,12 @@ def _add_ground_truth(rec: Any, gts: dict[int, np.ndarray], broken: list[BrokenM
 
 
 def auto_voxel_size(points: np.ndarray, target_points: int = AUTO_VOXEL_POINTS) -> float:
-    """
-    Choose a voxel size (metres) that leaves ``points`` about ``target_points`` voxels.
-
-    The size at which that many voxels are occupied is found by bisection on a log scale
-    and rounded to two significant digits.
-    """
-    pts = np.asarray(points, dtype=np.float64)
-    if len(pts) <= target_points:
-        raise ReplayError(f'cannot choose a voxel size: the target cloud has only {len(pts)} '
-                          'points; pass --voxel-size')
-    pts = pts - pts.min(axis=0)
-    diag = float(np.linalg.norm(pts.max(axis=0))) or 1.0
-    lo, hi = np.log(diag * 1e-5), np.log(diag)
-    for _ in range(30):
-        mid = 0.5 * (lo + hi)
-        if _occupied_voxels(pts, np.exp(mid)) > target_points:
-            lo = mid
-        else:
-            hi = mid
-    return float(f'{np.exp(0.5 * (lo + hi)):.2g}')
-
-
-def _occupied_voxels(points: np.ndarray, voxel: float) -> int:
-    keys = np.floor(points / voxel).astype(np.int64)
-    return len(np.unique(keys, axis=0))
+    """Choose a voxel size (metres) that leaves ``points`` about ``target_points`` voxels."""
+    try:
+        return voxel_size_for(points, target_points)
+    except InvalidInputError as exc:
+        raise ReplayError(f'cannot choose a voxel size for the target cloud: {exc}; pass '
+                          '--voxel-size') from exc
 
 
 def user_parameters(params_file: str | None, sets: Sequence[str], voxel_size: float | None,

@@ -4,12 +4,13 @@ Live replay (``cgags-replay BAG --live``): the bag's clouds through a running re
 Starts ``python -m cgags_ros.register_node`` (unless ``--no-spawn``), publishes every
 deserializable cloud of the bag (raw CDR, like ``ros2 bag play``; broken ones included, the
 node must reject them) with the recorded log-time spacing divided by ``--rate``, the target
-on reliable transient-local QoS (latched), and records ``/<node>/pose``. Per-pair details
-(valid, reason, inliers, pipeline time) come from the node's ``/diagnostics``
-(``last_*`` keys, sampled every 0.1 s for a spawned node). The run ends when the node has
-accounted for every published source (published, rejected or dropped, per its
-diagnostics) or every expected pose arrived, or after ``--timeout`` seconds without
-progress; it never hangs. The spawned node is stopped with SIGINT (then SIGTERM, SIGKILL).
+on reliable transient-local QoS (latched), and records ``/<node>/pose_with_covariance``.
+Per-pair details (valid, reason, inliers, pipeline time) come from the node's ``~/result``,
+one JSON record for every source it is done with (published, rejected or dropped). The run
+ends when every published source has its result (but those pairing leaves waiting for a
+target, as the replay's own pairing of the bag shows) and every published pose arrived, or
+after ``--timeout`` seconds without progress; it never hangs. The spawned node is stopped
+with SIGINT (then SIGTERM, SIGKILL).
 
 A spawned node gets the replay's parameters (voxel size, ``--params``, ``--set``,
 ``--pairing``) through a generated ``node_params.yaml`` in OUT_DIR, plus settings that make
@@ -19,6 +20,7 @@ queue as deep as the bag (unless given). Its log is ``node.log`` in OUT_DIR.
 
 from __future__ import annotations
 
+import collections
 import os
 from pathlib import Path
 import signal
@@ -41,14 +43,12 @@ from .replay_common import (
     resolve_configs,
     start_report,
 )
+from .replay_player import LiveSession, MAX_QUEUE, Received
 from .report import BagReport, PairRow
 from ..config.ros_parameters import keys_to_ros
 from ..pipeline.pairing import Pairer
 from ..refusal import Refusal, RefusalCode
-from ..ros import diagnostics
-from ..ros.player import LiveSession, MAX_QUEUE, Received
 
-DIAGNOSTICS_PERIOD_S = 0.1
 SHUTDOWN_GRACE_S = 10.0
 
 
@@ -61,6 +61,7 @@ def replay_live(opts: ReplayOptions, live: LiveOptions) -> BagReport:
     report.notes.append(f'voxel size {pipe.voxel_size:g} m ({how})')
     pairer = Pairer.from_config(node_cfg, queue_depth=MAX_QUEUE)
     expected = {p.source.stamp_ns: p for p in iter_pairs(contents, pairer)}
+    left_waiting = pairer.waiting_sources  # the node holds these too: no result comes
     note_pairing_drops(report, pairer)
     playable = [c for c in contents.clouds if c.msg is not None]
     n_sources = sum(c.role == 'source' for c in playable)
@@ -72,7 +73,7 @@ def replay_live(opts: ReplayOptions, live: LiveOptions) -> BagReport:
         session = LiveSession(opts.source_topic, opts.target_topic, live.node_name, n_sources)
         wait_for_node(session, proc, opts, live, out)
         sent = play(session, playable, live.rate, proc)
-        finished = wait_for_results(session, proc, live, n_sources, len(expected))
+        finished = wait_for_results(session, proc, live, n_sources - left_waiting)
         if not finished:
             report.notes.append(f'stopped waiting: no progress from the node for '
                                 f'{live.timeout:g} s (see node.log)')
@@ -81,8 +82,9 @@ def replay_live(opts: ReplayOptions, live: LiveOptions) -> BagReport:
             session.close()
         if proc is not None:
             stop_node(proc)
-    report.rows = build_rows(contents, expected, session.poses, session.details, sent)
-    report.notes += node_notes(session.stats)
+    report.rows = build_rows(contents, expected, session.poses, session.results_by_stamp(),
+                             sent)
+    report.notes += node_notes(session.results)
     report.wall_time_s = time.perf_counter() - start
     return finish_report(report, opts, contents)
 
@@ -95,8 +97,7 @@ def spawn_node(opts: ReplayOptions, live: LiveOptions, params: dict[str, Any],
     import yaml
 
     depth = max(2, min(n_sources + 1, MAX_QUEUE))
-    values = {'source_qos': 'reliable', 'source_depth': depth, 'queue_depth': depth,
-              'diagnostics_period': DIAGNOSTICS_PERIOD_S}
+    values = {'source_qos': 'reliable', 'source_depth': depth, 'queue_depth': depth}
     values.update(params)  # the user's own settings win
     ros, rest = keys_to_ros(values)
     if rest:  # the keys that are no ROS parameter: the node's config_file
@@ -129,7 +130,8 @@ def wait_for_node(session: LiveSession, proc: subprocess.Popen | None, opts: Rep
                 f'a running {session.node_id} (started with --no-spawn)')
             raise ReplayError(f'no connection to {what} within {live.startup_timeout:g} s: '
                               f'nobody subscribes to {opts.source_topic}/{opts.target_topic} '
-                              f'or publishes {session.node_id}/pose_with_covariance')
+                              f'or publishes {session.node_id}/pose_with_covariance and '
+                              f'{session.node_id}/result')
         session.spin_for(0.1)
     session.spin_for(0.3)  # let the transient-local/reliable handshakes settle
 
@@ -186,23 +188,20 @@ def play(session: LiveSession, clouds: list[CloudMessage], rate: float,
 
 
 def wait_for_results(session: LiveSession, proc: subprocess.Popen | None, live: LiveOptions,
-                     n_sources: int, n_expected: int) -> bool:
+                     n_results: int) -> bool:
     """
-    Spin until the node is done with every source.
+    Spin until the node has given ``n_results`` results and the pose of each published one.
 
-    :returns: True when it is done; False on ``live.timeout`` without progress or when the
-        node exited.
+    :returns: True when it has; False on ``live.timeout`` without progress or when the node
+        exited.
     """
     session.last_progress = time.monotonic()
     while True:
         session.spin_for(0.1)
-        if len(session.poses) >= n_expected > 0:
-            _wait_for_details(session)
-            return True
-        accounted = session.accounted_sources()
-        if (accounted is not None and session.received_sources() >= n_sources
-                and accounted >= n_sources):
-            session.spin_for(0.3)  # a pose published just before the diagnostics
+        results = session.results
+        if len(results) >= n_results and all(
+                r['source_stamp_ns'] in session.poses for r in results
+                if r['outcome'] == 'published' and 'transform' in r):
             return True
         if proc is not None and proc.poll() is not None:
             return False
@@ -210,15 +209,8 @@ def wait_for_results(session: LiveSession, proc: subprocess.Popen | None, live: 
             return False
 
 
-def _wait_for_details(session: LiveSession, grace: float = 1.0) -> None:
-    """Wait briefly: the pose of the last pair can beat its diagnostics sample."""
-    end = time.monotonic() + grace
-    while time.monotonic() < end and not set(session.poses) <= set(session.details):
-        session.spin_for(0.05)
-
-
 def build_rows(contents: BagContents, expected: dict[int, Any], poses: dict[int, Received],
-               details: dict[int, dict[str, str]], sent: dict[int, float]) -> list[PairRow]:
+               results: dict[int, dict[str, Any]], sent: dict[int, float]) -> list[PairRow]:
     """Build one row per source the node should have paired (and per unexpected pose)."""
     by_stamp = {c.stamp_ns: c for c in contents.sources if c.stamp_ns is not None}
     rows = []
@@ -228,13 +220,14 @@ def build_rows(contents: BagContents, expected: dict[int, Any], poses: dict[int,
         if src is None:
             continue
         row = make_row(len(rows), src, pair.target.payload if pair else None, contents)
-        info = details.get(stamp)
-        last = diagnostics.last_result(info or {})
-        row.inliers, row.fitness, row.time_s = last['inliers'], last['fitness'], last['time_s']
-        refusal = Refusal(RefusalCode(last['code']), last['reason']) if last['code'] else None
+        result = results.get(stamp, {})
+        row.inliers, row.fitness = result.get('num_inliers'), result.get('fitness')
+        row.time_s = result.get('timings', {}).get('total')
+        said = result.get('refusal')
+        refusal = Refusal(RefusalCode(said['code']), said['message']) if said else None
         got = poses.get(stamp)
         if got is not None:
-            row.valid = last['valid']
+            row.valid = result.get('valid', True)  # a pose without its result: a valid one
             row.transform, row.target_frame = got.transform, got.frame_id
             row.covariance = got.covariance
             row.latency_s = got.receipt_s - sent[stamp] if stamp in sent else None
@@ -246,6 +239,9 @@ def build_rows(contents: BagContents, expected: dict[int, Any], poses: dict[int,
     return rows
 
 
-def node_notes(stats: dict[str, str]) -> list[str]:
-    """Return a note per rejection and drop reason the node counted."""
-    return [f'node {line}' for line in diagnostics.nonzero_drops(stats)]
+def node_notes(results: list[dict[str, Any]]) -> list[str]:
+    """Return a note per cause for which the node rejected or dropped sources."""
+    causes = collections.Counter(
+        ('rejected.' if r['outcome'] == 'rejected' else 'pairing.dropped.') + r['cause']
+        for r in results if r['outcome'] != 'published')
+    return [f'node {cause}: {n}' for cause, n in sorted(causes.items())]

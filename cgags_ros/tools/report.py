@@ -264,13 +264,13 @@ def markdown_table(headers: Sequence[str], rows: Iterable[Sequence[Any]]) -> str
     return '\n'.join(lines)
 
 
-def fmt(value: Any, digits: int = 4) -> str:
+def fmt(value: Any) -> str:
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
         return '-'
     if isinstance(value, bool):
         return 'yes' if value else 'no'
     if isinstance(value, float):
-        return f'{value:.{digits}g}'
+        return f'{value:.4g}'
     return str(value)
 
 

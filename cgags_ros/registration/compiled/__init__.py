@@ -16,27 +16,30 @@ docs/method.md):
   the final re-fit (:func:`fit_weighted`, :func:`point_residuals`);
 - :mod:`.preferences`: step 4, the preference lists (:func:`merge_preferences`) and the
   intersection kernel K (:func:`preference_bits`, :func:`intersection_kernel`);
-- :mod:`.subsets`: step 7, stopping: the edges among the best model's inliers.
+- :mod:`.inlier_edges`: step 7, stopping: the edges among the best model's inliers
+  (:func:`later_member_counts`, :func:`later_member_pairs` on a :func:`member_mask`);
+- :mod:`.bits`: the bit rows' word layout and the word operations every step inlines.
 
 Each function's argument types are declared once, in its decorator, from the aliases of
-:mod:`.types`; importing this package compiles every function from that declaration, or
-loads it from numba's on-disk cache (``cache=True``: ``__pycache__`` next to the modules,
-``NUMBA_CACHE_DIR`` when set, a user cache directory where the package directory is
-read-only). The core imports it with the search, so a process pays compilation once,
-before its first registration, and never on a later call: other argument types raise a
-``TypeError`` instead of compiling.
+:mod:`cgags_ros.compiled_types` and the named tuples of :mod:`.types`; importing this
+package compiles every function from that declaration, or loads it from numba's on-disk
+cache (``cache=True``: ``__pycache__`` next to the modules, ``NUMBA_CACHE_DIR`` when set, a
+user cache directory where the package directory is read-only). The core imports it with
+the search, so a process pays compilation once, before its first registration, and never
+on a later call: other argument types raise a ``TypeError`` instead of compiling.
 """
 
 from .graph import (columns, common_support, common_within, compatibility_words, length_rows,
                     neighbour_lists, or_transpose_blocks, sub_adjacency,
                     vertical_compatibility_words)
+from .inlier_edges import later_member_counts, later_member_pairs, member_mask
 from .preferences import intersection_kernel, merge_preferences, preference_bits
 from .sampling import (COLLINEAR, complete_rows, draw_edges, draw_guided, draw_triples, EMPTY,
                        guided_rows, usable_triangles, VERTEX_PROPOSALS)
 from .scoring import (fit_triples, fit_weighted, point_residuals, prescreen_scores,
                       residual_matrix)
-from .subsets import later_member_counts, later_member_pairs, member_mask
-from .types import c_array, Correspondences, GraphArrays, GuidedRows
+from .types import Correspondences, GraphArrays, GuidedRows
+from ...compiled_types import c_array
 
 __all__ = [
     'COLLINEAR', 'EMPTY', 'VERTEX_PROPOSALS', 'Correspondences', 'GraphArrays', 'GuidedRows',

@@ -1,10 +1,10 @@
 """
 Compiled functions (numba) of step 1 of Algorithm 1, the compatibility graph.
 
-The graph is the bit matrix of :class:`.CompatibilityGraph` as 64-bit words
-(bit j of row i in word j >> 6, bit j & 63: on a little-endian machine the same bytes as its
-uint8 rows). Loops over pairs and set bits run here because in numpy each would be a pass
-over the whole N x N matrix per call (docs/implementation.md). Besides the graph's build
+The graph is the bit matrix of :class:`.CompatibilityGraph` as 64-bit words (the layout
+of :mod:`.bits`: on a little-endian machine the same bytes as its uint8 rows). Loops over
+pairs and set bits run here because in numpy each would be a pass over the whole N x N
+matrix per call (docs/design.md). Besides the graph's build
 (:func:`compatibility_words`, 4-DoF :func:`vertical_compatibility_words`) and its entry
 lists, the bit-row queries the later steps make of it: the common neighbourhoods of
 minimal subsets (step 3's pre-screen, :func:`common_support`), the adjacency among guided
@@ -14,48 +14,18 @@ inlier set (step 7's all-inlier probability, :func:`common_within`).
 
 from __future__ import annotations
 
-from numba import njit, types
-from numba.extending import intrinsic
+from numba import njit
 import numpy as np
 
-from .types import CORRESPONDENCES, F64_1D, F64_2D, FLOAT, I64_1D, I64_2D, INT, U64_1D, U64_2D
-
-_ONE = np.uint64(1)
-_LOW6 = np.uint64(63)
-
-
-@intrinsic
-def _ctpop(typingctx, word):
-    """LLVM ``ctpop`` of a uint64 (the popcnt instruction where the CPU has one)."""
-    def codegen(context, builder, signature, args):
-        return builder.ctpop(args[0])
-    return types.uint64(types.uint64), codegen
-
-
-@intrinsic
-def _cttz(typingctx, word):
-    """LLVM ``cttz`` of a uint64: index of the lowest set bit (64 for zero)."""
-    def codegen(context, builder, signature, args):
-        return builder.cttz(args[0], context.get_constant(types.boolean, False))
-    return types.uint64(types.uint64), codegen
-
-
-@njit(cache=True, nogil=True, inline='always')
-def popcount(word):
-    """Return the set bits of a uint64 word."""
-    return np.int64(_ctpop(word))
-
-
-@njit(cache=True, nogil=True, inline='always')
-def lowest_bit(word):
-    """Return the index of the lowest set bit of a nonzero uint64 word."""
-    return np.int64(_cttz(word))
+from .bits import LOW6, lowest_bit, ONE, popcount
+from .types import CORRESPONDENCES
+from ...compiled_types import F64_1D, F64_2D, FLOAT, I64_1D, I64_2D, INT, U64_1D, U64_2D
 
 
 @njit(cache=True, nogil=True, inline='always')
 def has_edge(words, i, j):
     """Return True when bit j of row i is set (i ~ j)."""
-    return (words[i, j >> 6] >> (np.uint64(j) & _LOW6)) & _ONE != 0
+    return (words[i, j >> 6] >> (np.uint64(j) & LOW6)) & ONE != 0
 
 
 @njit(cache=True, nogil=True, inline='always')
@@ -83,7 +53,7 @@ def _length_word(cols, k, i, d2, min_sq):
         edge = ((c < 0.0) | (4.0 * a2 * b2 > c * c)) & (a2 >= min_sq)
         word |= np.uint64(edge) << np.uint64(b)
     if k == i >> 6:  # keep j > i only
-        word &= ~((np.uint64(2) << (np.uint64(i) & _LOW6)) - _ONE)
+        word &= ~((np.uint64(2) << (np.uint64(i) & LOW6)) - ONE)
     return word
 
 
@@ -122,7 +92,7 @@ def _transpose64(x):
             x[k] ^= t << j
             x[k + j] ^= t
             k = (k + j + 1) & ~j
-        j >>= _ONE
+        j >>= ONE
         m ^= m << j
 
 
@@ -246,7 +216,7 @@ def neighbour_lists(words, indptr):
                 pairs[pos, 0] = i
                 pairs[pos, 1] = (k << 6) + lowest_bit(word)
                 pos += 1
-                word &= word - _ONE
+                word &= word - ONE
     return pairs
 
 
@@ -278,7 +248,7 @@ def nth_set_bit(row, r):
         if r < c:
             word = row[k]
             for _ in range(r):
-                word &= word - _ONE
+                word &= word - ONE
             return (k << 6) + lowest_bit(word)
         r -= c
     return -1

@@ -6,7 +6,7 @@ Each correspondence keeps the b hypotheses with its smallest residuals
 on bit rows of those lists (:func:`preference_bits`, :func:`kernel_row`), whole
 (:func:`intersection_kernel`) or, for guided sampling, row by row as draws read it
 (:func:`.sampling.draw_guided`). Loops per correspondence that numpy would run as chains of
-small array calls (docs/implementation.md).
+small array calls (docs/design.md).
 """
 
 from __future__ import annotations
@@ -14,10 +14,8 @@ from __future__ import annotations
 from numba import njit
 import numpy as np
 
-from .graph import popcount
-from .types import F32_2D, I64_1D, I64_2D, INT
-
-_ONE = np.uint64(1)
+from .bits import ONE, popcount
+from ...compiled_types import F32_2D, I64_1D, I64_2D, INT
 
 
 @njit((F32_2D, I64_2D, F32_2D, INT), cache=True, nogil=True)
@@ -77,7 +75,7 @@ def preference_bits(ids, members, num_hypotheses, b):
             h = ids[members[a], p]
             if h >= 0:
                 s = slot[h]
-                bits[a, s >> 6] |= _ONE << np.uint64(s & 63)
+                bits[a, s >> 6] |= ONE << np.uint64(s & 63)
     return bits
 
 

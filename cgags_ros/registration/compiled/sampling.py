@@ -8,7 +8,7 @@ intersection kernel K that step 6 refreshes (:class:`.GuidedRows`, :func:`guided
 
 A whole batch of minimal subsets is drawn in one call: per subset, the edge tournament,
 the vertex tournament and the collinearity test are a few dozen bit-row operations, which
-as numpy calls would each pay the per-call overhead (docs/implementation.md). The
+as numpy calls would each pay the per-call overhead (docs/design.md). The
 functions draw from the search's own ``numpy.random.Generator`` (numba shares its bit
 generator state), so a search stays deterministic for its seed.
 
@@ -25,10 +25,11 @@ import math
 from numba import njit
 import numpy as np
 
-from .graph import adjacency_row, has_edge, nth_set_bit, popcount
+from .bits import popcount
+from .graph import adjacency_row, has_edge, nth_set_bit
 from .preferences import kernel_row
-from .types import (BOOL, c_array, CORRESPONDENCES, F64_1D, FLOAT, GRAPH_ARRAYS, GUIDED_ROWS,
-                    GuidedRows, I64_2D, INT, RNG)
+from .types import CORRESPONDENCES, GRAPH_ARRAYS, GUIDED_ROWS, GuidedRows
+from ...compiled_types import BOOL, c_array, F64_1D, FLOAT, I64_2D, INT, RNG
 
 EMPTY = 1  # status of a draw: N(i) ∩ N(j) empty (no triangle on the edge)
 COLLINEAR = 2  # status of a draw: triangle area below the minimum in either cloud

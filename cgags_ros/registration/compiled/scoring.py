@@ -6,7 +6,7 @@ neighbourhoods (:func:`prescreen_scores`) and the residuals the scores are taken
 (:func:`residual_matrix`). Step 8, the final re-fit's weighted fit and residuals
 (:func:`fit_weighted`, :func:`point_residuals`, through :mod:`.rigid`). Each is a loop per
 hypothesis (or per correspondence) that numpy would run as a chain of small array calls
-(docs/implementation.md).
+(docs/design.md).
 """
 
 from __future__ import annotations
@@ -16,10 +16,9 @@ import math
 from numba import njit
 import numpy as np
 
-from .graph import lowest_bit
-from .types import BOOL, CORRESPONDENCES, F64_1D, F64_2D, F64_3D, FLOAT, I64_2D, U64_2D
-
-_ONE = np.uint64(1)
+from .bits import lowest_bit, ONE
+from .types import CORRESPONDENCES
+from ...compiled_types import BOOL, F64_1D, F64_2D, F64_3D, FLOAT, I64_2D, U64_2D
 
 
 @njit(cache=True, nogil=True, inline='always')
@@ -190,7 +189,7 @@ def prescreen_scores(words, corr, R, t, subsets, tau, truncated, dense):
                 word = words[i, c] & words[j, c] & words[k, c]
                 while word:
                     s += _score(src, dst, R, t, b, (c << 6) + lowest_bit(word), tau, truncated)
-                    word &= word - _ONE
+                    word &= word - ONE
         out[b] = s
     return out
 

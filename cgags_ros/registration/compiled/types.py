@@ -1,17 +1,12 @@
 """
-The argument types of the compiled functions, declared once.
-
-Every compiled function of this package is decorated with its signature built from these
-aliases (``@njit(signature, cache=True, nogil=True)``): numba compiles it, or loads it from
-its on-disk cache, when the module is imported, and refuses any other argument types with a
-``TypeError`` instead of compiling a new specialization on a later call. Arrays are
-C-contiguous and writable; :func:`c_array` gives any array that form (copying only when it
-must). Functions with ``inline='always'`` carry no signature: they are compiled into their
-callers.
+The named tuples the core's compiled functions take, and their numba types.
 
 Arguments that belong together travel as one NamedTuple of arrays (numba passes them as
 tuples): the compatibility graph (:class:`GraphArrays`), the correspondences
 (:class:`Correspondences`) and the rows guided sampling draws from (:class:`GuidedRows`).
+Their fields, like every other argument, have the types of :mod:`cgags_ros.compiled_types`
+(C-contiguous, writable arrays); functions with ``inline='always'`` carry no signature:
+they are compiled into their callers.
 """
 
 from __future__ import annotations
@@ -21,31 +16,7 @@ from typing import NamedTuple
 from numba import types
 import numpy as np
 
-
-def _array(dtype, ndim: int) -> types.Array:
-    return types.Array(dtype, ndim, 'C')
-
-
-RNG = types.NumPyRandomGeneratorType('NumPyRandomGeneratorType')  # numpy.random.Generator
-INT = types.int64
-FLOAT = types.float64
-BOOL = types.boolean
-F64_1D, F64_2D = _array(types.float64, 1), _array(types.float64, 2)
-F64_3D = _array(types.float64, 3)
-F32_2D = _array(types.float32, 2)
-I64_1D, I64_2D = _array(types.int64, 1), _array(types.int64, 2)
-I32_2D = _array(types.int32, 2)
-U64_1D, U64_2D = _array(types.uint64, 1), _array(types.uint64, 2)
-BOOL_1D, BOOL_2D = _array(types.boolean, 1), _array(types.boolean, 2)
-
-
-def c_array(a, dtype) -> np.ndarray:
-    """Return ``a`` as a C-contiguous, aligned, writable ``dtype`` array (copied if it is not)."""
-    if type(a) is np.ndarray and a.dtype == dtype:  # the usual case, without np.require's cost
-        flags = a.flags
-        if flags.c_contiguous and flags.aligned and flags.writeable:
-            return a
-    return np.require(a, dtype, 'CAW')
+from ...compiled_types import BOOL_1D, BOOL_2D, c_array, F32_2D, F64_2D, I32_2D, I64_1D, U64_2D
 
 
 class GraphArrays(NamedTuple):

@@ -1,0 +1,178 @@
+"""
+What the registration engine and its node exchange, without ROS.
+
+The node decodes each message into a :class:`Cloud`; the engine
+(:class:`~.engine.RegistrationEngine`) hands back what to publish (:class:`Estimate`,
+:class:`BasePose`, :class:`Calibration`, :class:`PairResult`) through :class:`EngineOutputs`,
+which the node implements
+(:class:`~cgags_ros.ros.outputs.Outputs`). Headers are the messages' own, opaque here: the
+engine reads only their ``frame_id``. An engine that cannot start raises :class:`StartFailed`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from typing import Any, Protocol
+
+import numpy as np
+
+from ..errors import CgagsError
+from ..refusal import Refusal, RefusalCode
+
+
+class StartFailed(CgagsError):
+    """The engine cannot start registering: its process or its map is unusable."""
+
+    code = RefusalCode.START_FAILED
+
+
+class Cloud:
+    """A decoded cloud: points (N, 3) metres in its frame, its message header, receipt time."""
+
+    __slots__ = ('xyz', 'header', 'receipt_ns')
+
+    def __init__(self, xyz: np.ndarray, header: Any, receipt_ns: int):
+        self.xyz, self.header, self.receipt_ns = xyz, header, receipt_ns
+
+
+@dataclasses.dataclass(frozen=True)
+class Estimate:
+    """
+    One registered pair, to publish as ~/pose, ~/pose_with_covariance, ~/aligned_cloud, TF.
+
+    :ivar transform: 4x4 ``T`` with ``p_frame = R p_source + t`` (metres).
+    :ivar covariance: 6x6 covariance of ``transform`` (ROS order, metres and radians).
+    :ivar header: the source cloud's message header (its stamp is the outputs').
+    :ivar frame_id: frame of the pose (the target's, or ``pose_frame_id``).
+    :ivar aligned: the source points moved into ``frame_id``, or None (not published).
+    :ivar tf_child_frame: child frame of the TF to broadcast; '' broadcasts none.
+    """
+
+    transform: np.ndarray
+    covariance: np.ndarray
+    header: Any
+    frame_id: str
+    aligned: np.ndarray | None
+    tf_child_frame: str
+
+
+@dataclasses.dataclass(frozen=True)
+class BasePose:
+    """
+    An initial pose that passed every guard: the robot base in the map.
+
+    :ivar transform: 4x4 ``T_map_base`` (metres). :ivar covariance: its 6x6 covariance.
+    :ivar header: the scan's message header (its stamp). :ivar map_frame: frame of the pose.
+    :ivar odom_frame: broadcast map -> odom from it and TF's odom -> ``base_frame`` at the
+        stamp; '' broadcasts nothing.
+    :ivar base_frame: the robot base frame.
+    """
+
+    transform: np.ndarray
+    covariance: np.ndarray
+    header: Any
+    map_frame: str
+    odom_frame: str
+    base_frame: str
+
+
+@dataclasses.dataclass(frozen=True)
+class Calibration:
+    """
+    A calibration that ended valid: the extrinsic parent <- child, published once, latched.
+
+    :ivar transform: 4x4 ``T`` with ``p_parent = R p_child + t`` (metres).
+    :ivar covariance: its 6x6 covariance, order (x, y, z, rx, ry, rz), metres and radians,
+        rotations about the parent axes (see ``covariance_convention`` in ``report``).
+    :ivar header: the last frame's parent-cloud message header (its stamp is the outputs').
+    :ivar parent_frame, child_frame: the clouds' frame ids (target, source).
+    :ivar report: the whole result as JSON (:func:`cgags_ros.calibration.formats.as_dict`).
+    """
+
+    transform: np.ndarray
+    covariance: np.ndarray
+    header: Any
+    parent_frame: str
+    child_frame: str
+    report: str
+
+
+@dataclasses.dataclass(frozen=True)
+class PairResult:
+    """
+    What became of one source cloud the node is done with, published as ~/result (JSON).
+
+    Every source the accounting counts as published, rejected or dropped gets one.
+
+    :ivar source_stamp_ns: the source's stamp (0 when its header could not be read).
+    :ivar source_frame: its frame ('' when unknown).
+    :ivar outcome: 'published' (a pose went out), 'rejected' or 'dropped' (by pairing).
+    :ivar cause: '' when published, else the ``rejected.<cause>`` or ``pairing.dropped.<reason>``
+        key of /diagnostics it is counted under.
+    :ivar message: why, in words ('' when published).
+    :ivar target_stamp_ns: the target it was paired with (None: not paired).
+    :ivar target_frame: that target's frame.
+    :ivar frame_id: the frame of the pose (the target's or ``pose_frame_id``; '' unpaired).
+    :ivar valid: the registration is valid (and its transform finite).
+    :ivar result: the registration's result (a ``PipelineResult``), None when none ran.
+    :ivar refusal: why the node rejected or dropped the source (a timeout, a stale scan, a
+        message it could not decode, ...); None when it did not (the result's own refusal
+        then says whether its pose is valid).
+    """
+
+    source_stamp_ns: int
+    source_frame: str
+    outcome: str
+    cause: str = ''
+    message: str = ''
+    target_stamp_ns: int | None = None
+    target_frame: str = ''
+    frame_id: str = ''
+    valid: bool = False
+    result: Any = None
+    refusal: Refusal | None = None
+
+    def to_json(self) -> str:
+        """
+        Return the JSON of ~/result: the CLIs' per-pair result and where it came from.
+
+        The keys of ``result.summary()`` (as ``cgags-register --json`` prints them:
+        ``valid``, ``reason``, ``transform``, ``covariance``, ``num_inliers``, ``fitness``,
+        ``timings``, ``candidates``, ...) when a registration ran, else ``valid`` false and
+        ``reason`` the message; plus every field of this class but ``result``, ``refusal``
+        as ``{"code": ..., "message": ...}`` (null when valid; docs/refusals.md).
+        """
+        out: dict[str, Any] = (self.result.summary() if self.result is not None
+                               else {'reason': self.message})
+        out.update({f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+                    if f.name not in ('result', 'refusal')})
+        refusal = self.refusal or getattr(self.result, 'refusal', None)
+        out['refusal'] = None if refusal is None else refusal.summary()
+        return json.dumps(out)
+
+
+class EngineOutputs(Protocol):
+    """What the engine needs from its node: publishing, logging and TF."""
+
+    def publish_estimate(self, estimate: Estimate) -> None:
+        """Publish a pose (and its covariance, aligned cloud and TF as it says)."""
+
+    def publish_candidates(self, header: Any, frame_id: str,
+                           transforms: list[np.ndarray]) -> None:
+        """Publish ranked candidate poses (best first) at the scan's stamp."""
+
+    def publish_initial_pose(self, pose: BasePose) -> None:
+        """Publish an initial pose that passed every guard."""
+
+    def publish_calibration(self, calibration: Calibration) -> None:
+        """Publish a valid calibration (latched) and its /tf_static transform."""
+
+    def publish_result(self, result: PairResult) -> None:
+        """Publish what became of a source (~/result), also while inactive."""
+
+    def base_from_sensor(self, base_frame: str, sensor_frame: str) -> np.ndarray | None:
+        """Return ``T_base_sensor`` from TF (identity without TF), or None when unknown."""
+
+    def log(self, level: str, message: str) -> None:
+        """Log ``message`` at ``level`` ('info', 'warning' or 'error')."""

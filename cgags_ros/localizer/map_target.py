@@ -1,0 +1,86 @@
+"""
+The map of ``map_file`` as the node's one latched target: loaded where the pipeline runs.
+
+ROS-free. The features are computed (or read from the on-disk cache) in the registration
+process, so the node's process never holds them; the node pairs every scan with a target
+whose points are the :class:`~cgags_ros.pipeline.isolated.MapRef`.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from typing import Any, Callable
+
+from .interface import Cloud, StartFailed
+from ..config.node import NodeConfig
+from ..config.pipeline import PipelineConfig
+from ..errors import CgagsError
+from ..pipeline.isolated import IsolatedRegistration, MapRef, prepare_map
+from ..pipeline.result import PipelineResult
+
+
+class FrameHeader:
+    """The header of the map target: a frame and no stamp (the map is not a message)."""
+
+    __slots__ = ('frame_id',)
+
+    def __init__(self, frame_id: str):
+        self.frame_id = frame_id
+
+
+class MapTarget:
+    """The map file, its load summary (``map.*`` of /diagnostics) or why it is unusable."""
+
+    def __init__(self, cfg: NodeConfig):
+        self.ref = MapRef(os.path.expanduser(cfg.map_file), os.path.expanduser(cfg.map_cache_dir))
+        self.info: dict[str, Any] = {}
+        self.error = ''
+
+    def load(self, registration: IsolatedRegistration | None, config: PipelineConfig,
+             cfg: NodeConfig, log: Callable[[str, str], None]) -> Cloud:
+        """
+        Load the map where the pipeline runs (features computed or from the cache).
+
+        In the registration process the load may take ``map_load_timeout``; in this
+        process (no registration process) it cannot be bounded.
+
+        :returns: the map as the target of every scan.
+        :raises StartFailed: the map is missing, unreadable or empty, or its load failed
+            (past the time limit, or the process died); ``error`` says why.
+        """
+        ref = self.ref
+        log('info', f'loading map {ref.path} (cache {ref.cache_dir or "off"})')
+        try:
+            if registration is not None:
+                info = registration.prepare_map(ref, config, cfg.map_load_timeout)
+            else:
+                info = prepare_map(ref, config)
+        except CgagsError as exc:
+            self.error = f'map_file cannot be used: {exc}'
+            raise StartFailed(self.error) from exc
+        self.info = info
+        note = (f", {info['nonfinite_points']} non-finite points dropped"
+                if info['nonfinite_points'] else '')
+        log('info', f"map ready: {info['raw_points']} points -> {info['points']} after "
+            f"{info['voxel_size']:g} m voxels, cache {info['cache']} ({info['load_s']:.2f} s), "
+            f"normals signed by {info.get('normals') or 'the cached setting'}{note}")
+        if info.get('normals') == 'origin':
+            log('warning', "the map file carries no normals, so the map's face its frame origin, "
+                "unlike a scan's (its sensor): fine for one scan kept in its sensor frame, "
+                'not for a map fused from many views; write the map with normals facing its '
+                'sensors, or set frontend.normal_orientation to centroid (docs/relocalization.md)')
+        return Cloud(ref, FrameHeader(cfg.map_frame), time.monotonic_ns())
+
+    def update(self, result: PipelineResult) -> None:
+        """Take the map summary a registration reports (the map may have been reloaded)."""
+        if result.map_info:
+            self.info = result.map_info
+
+    def statistics(self) -> dict[str, Any]:
+        """Return the ``map.*`` keys of /diagnostics."""
+        stats: dict[str, Any] = {'map.file': self.ref.path}
+        stats.update({f'map.{k}': v for k, v in self.info.items() if k != 'path'})
+        if self.error:
+            stats['map.error'] = self.error
+        return stats

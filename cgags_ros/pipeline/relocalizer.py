@@ -1,0 +1,349 @@
+"""
+Relocalization over a few scans with odometry: poses of the odometry frame in a map, tested.
+
+One scan of a self-similar place often cannot tell the right pose from a rival (a room
+turned half onto itself); a robot moves and looks again. :class:`Relocalizer` takes scans in
+time order, each with the sensor's pose in an odometry frame (``odom <- sensor``, from wheel,
+IMU or LiDAR odometry: good over metres, drifting slowly), and keeps **hypotheses**: poses of
+the odometry frame in the map (``map <- odom``). Every scan is registered onto the prepared
+map as a single scan is (:func:`~.register.register_clouds`, the one path); each of its
+ranked candidates, composed with the scan's odometry pose, proposes a hypothesis (one that
+an earlier scan proposed already is merged into it). Each hypothesis is then checked on
+every scan: the scan is put where the hypothesis and the odometry predict and refined
+locally against the map (:func:`~..frontend.refine.refine_transform`, cheap from a close
+start), and the scan **explains** the hypothesis when the refinement stays within the
+odometry's drift allowance, the fitness is at least ``min_fitness`` and the pose passes the
+free-space gate. A hypothesis that explains a scan much worse than the best one does (its
+fitness ``refute_ratio`` times lower) or does not explain it is **refuted** by that scan.
+
+The answer is **confirmed** when one hypothesis explains every scan used and every distinct
+rival is refuted; until then it asks for another scan, and after ``max_scans`` it refuses
+with the reason. Odometry that contradicts the scans leaves no hypothesis explaining them
+all: it is refused, never averaged. One scan alone is judged exactly as
+:func:`~.register.register_clouds` judges it (confirmed when valid), at the same cost: the
+checks run only once a second scan arrives.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from .cache import cached_features
+from .candidates import distinct
+from .gates import measured_free_space
+from .map import PreparedMap
+from .register import register_clouds
+from .result import PipelineResult
+from ..config.pipeline import PipelineConfig
+from ..errors import InvalidInputError
+from ..frontend.features import CloudFeatures, finite_points
+from ..frontend.refine import evaluate_alignment, refine_transform
+from ..geometry import apply_transform, rotation_error_deg, translation_error
+from ..refusal import Judged, Refusal, RefusalCode
+from ..validity import more_scans_refusal, sequence_ambiguity_refusal, unexplained_refusal
+
+
+@dataclasses.dataclass
+class SequenceConfig:
+    """
+    How scans and odometry decide between hypotheses.
+
+    :ivar max_scans: scans taken before an unconfirmed answer is refused.
+    :ivar min_scans: scans a confirmed answer needs (1: one valid scan confirms, as a single
+        registration is judged).
+    :ivar submap: from the second scan on, also register every scan so far, fused with the
+        odometry into the latest scan's frame, onto the map; its candidates are hypotheses
+        too (more of the place in view than any one scan).
+    :ivar drift_deg: rotation (degrees) the odometry may drift from one scan to the next.
+    :ivar drift_m: translation (metres) it may drift from one scan to the next...
+    :ivar drift_fraction: ...plus this share of the distance travelled.
+    :ivar min_fitness: a scan explains a hypothesis only with at least this fitness.
+    :ivar refute_ratio: a rival is refuted by a scan that the best hypothesis fits this
+        many times better.
+    """
+
+    max_scans: int = 3
+    min_scans: int = 1
+    submap: bool = True
+    drift_deg: float = 2.0
+    drift_m: float = 0.05
+    drift_fraction: float = 0.05
+    min_fitness: float = 0.3
+    refute_ratio: float = 1.5
+
+
+@dataclasses.dataclass
+class Check:
+    """
+    One scan put where one hypothesis predicts it, refined against the map.
+
+    :ivar transform: the refined pose, map <- sensor (metres).
+    :ivar moved_deg, moved_m: how far the refinement moved it from the prediction.
+    :ivar steps, travelled_m: scans and odometry distance (metres) between the scan and the
+        one that proposed the hypothesis (the drift allowance grows with them).
+    :ivar fitness: share of the scan's points within the refinement distance of the map.
+    :ivar free_space: the free-space violation of the refined pose (NaN: not measured).
+    """
+
+    transform: np.ndarray
+    moved_deg: float
+    moved_m: float
+    steps: int
+    travelled_m: float
+    fitness: float
+    free_space: float
+
+    def explains(self, seq: SequenceConfig, max_free_space: float) -> bool:
+        """Tell whether the scan fits the hypothesis within the drift allowance."""
+        return (self.moved_deg <= seq.drift_deg * max(self.steps, 1)
+                and self.moved_m <= (seq.drift_m * max(self.steps, 1)
+                                     + seq.drift_fraction * self.travelled_m)
+                and self.fitness >= seq.min_fitness
+                and not self.free_space > max_free_space)
+
+
+@dataclasses.dataclass
+class Hypothesis:
+    """
+    A pose of the odometry frame in the map and its checks, one a scan.
+
+    :ivar map_from_odom: 4x4 map <- odom as proposed (metres).
+    :ivar scan: the scan whose candidate proposed it; ``rank`` that candidate's rank;
+        ``source`` 'scan' or 'submap' (the scans so far fused, in that scan's frame).
+    :ivar inliers: the proposing candidates' inliers (summed when several proposed it).
+    :ivar checks: scan index -> :class:`Check`.
+    """
+
+    map_from_odom: np.ndarray
+    scan: int
+    rank: int
+    inliers: int
+    source: str = 'scan'
+    checks: dict[int, Check] = dataclasses.field(default_factory=dict)
+
+    def summary(self, seq: SequenceConfig, max_free_space: float) -> dict[str, Any]:
+        """Return a JSON-friendly dict: the pose, who proposed it, how each scan sees it."""
+        return {'map_from_odom': self.map_from_odom.tolist(), 'proposed_by_scan': self.scan,
+                'candidate_rank': self.rank, 'inliers': self.inliers,
+                'scans_explained': sum(c.explains(seq, max_free_space)
+                                       for c in self.checks.values()),
+                'fitness': [round(self.checks[i].fitness, 4) for i in sorted(self.checks)]}
+
+
+@dataclasses.dataclass
+class Answer(Judged):
+    """
+    What the relocalizer says after a scan.
+
+    :ivar confirmed: one hypothesis explains every scan used and its rivals are refuted.
+    :ivar done: confirmed, or refused (``max_scans`` used); else it asks for another scan.
+    :ivar transform: 4x4 map <- the latest scan's sensor (the best hypothesis's pose).
+    :ivar map_from_odom: 4x4 map <- odom of the best hypothesis.
+    :ivar scans_used: scans taken; ``refusal``: why not confirmed (None when confirmed; its
+        message is ``reason``).
+    :ivar hypotheses: ranked, best first; ``results``: each scan's own registration.
+    """
+
+    confirmed: bool
+    done: bool
+    transform: np.ndarray
+    map_from_odom: np.ndarray
+    scans_used: int
+    refusal: Refusal | None
+    hypotheses: list[Hypothesis]
+    results: list[PipelineResult]
+
+
+@dataclasses.dataclass
+class _Scan:
+    xyz: np.ndarray  # the scan's finite points, sensor frame
+    features: CloudFeatures
+    odom: np.ndarray  # odom <- sensor
+    travelled_m: float  # odometry path length from the first scan
+    result: PipelineResult
+
+
+class Relocalizer:
+    """
+    Scans in, with odometry poses; the map pose of the latest scan out (see the module doc).
+
+    Feed it with :meth:`add` until the answer is ``done``, then :meth:`reset` it for the next
+    relocalization (scans added after ``done`` are still taken, and judged with the rest).
+    """
+
+    def __init__(self, prepared: PreparedMap, config: PipelineConfig,
+                 sequence: SequenceConfig | None = None):
+        """Relocalize in ``prepared`` (:func:`~.map.load_map` with the same ``config``)."""
+        self.prepared, self.config = prepared, config
+        self.sequence = sequence or SequenceConfig()
+        self.scans: list[_Scan] = []
+        self.hypotheses: list[Hypothesis] = []
+        self.submaps: list[PipelineResult] = []
+        # Map points by coarse cell, so that a check refines against the map near the scan.
+        self._cell = 0.5 + 4 * config.voxel_size
+        self._map_cells = _cells(prepared.features.points, self._cell)
+        # A check starts within the drift of the truth: one short refinement stage.
+        self._check_refine = dataclasses.replace(config.refine, max_iterations=min(
+            config.refine.max_iterations, 6), coarse_stage_tolerance=1e-3)
+
+    def reset(self) -> None:
+        """Forget every scan and hypothesis."""
+        self.scans, self.hypotheses, self.submaps = [], [], []
+
+    def add(self, scan_xyz: np.ndarray, odom_from_sensor: np.ndarray | None = None) -> Answer:
+        """
+        Take the next scan and return the answer.
+
+        :param scan_xyz: (N, 3) points in the sensor frame, metres.
+        :param odom_from_sensor: 4x4 pose of the sensor in the odometry frame when the scan
+            was taken (p_odom = T p_sensor); None: no odometry, the scan starts a new
+            sequence and is judged alone.
+        """
+        if odom_from_sensor is None:
+            self.reset()
+        odom = np.eye(4) if odom_from_sensor is None else _checked_pose(odom_from_sensor)
+        xyz = finite_points(scan_xyz, 'scan')
+        result = register_clouds(xyz, self.prepared, config=self.config)
+        # The features register_clouds just computed (a cache hit, not recomputed).
+        features = cached_features(xyz, self.config.voxel_size, self.config.frontend, 'source')
+        travelled = (self.scans[-1].travelled_m + translation_error(odom, self.scans[-1].odom)
+                     if self.scans else 0.0)
+        self.scans.append(_Scan(xyz, features, odom, travelled, result))
+        index = len(self.scans) - 1
+        self._propose_all(result, index, 'scan')
+        if index == 0:
+            # One scan is judged as a single registration is.
+            return _settle(result.transform, odom, result.refusal, self.hypotheses, [result],
+                           self.sequence)
+        if self.sequence.submap:
+            to_latest = np.linalg.inv(odom)
+            fused = np.vstack([apply_transform(to_latest @ s.odom, s.xyz) for s in self.scans])
+            self.submaps.append(register_clouds(fused, self.prepared, config=self.config))
+            self._propose_all(self.submaps[-1], index, 'submap')
+        limit = self.config.refine.max_free_space_violation
+        for h in self.hypotheses:
+            # Its own scan first; a hypothesis a scan does not explain is refuted: the
+            # other scans need not check it.
+            for i in [h.scan] + [i for i in range(len(self.scans)) if i != h.scan]:
+                if i not in h.checks:
+                    h.checks[i] = self._check(h, i)
+                if not h.checks[i].explains(self.sequence, limit):
+                    break
+        return judge(self.hypotheses, [s.result for s in self.scans],
+                     [s.odom for s in self.scans], self.config, self.sequence)
+
+    def _propose_all(self, result: PipelineResult, index: int, source: str) -> None:
+        """
+        Propose the candidates of a registration in scan ``index``'s frame as hypotheses.
+
+        One that repeats a hypothesis (the same pose of this scan) is merged into it.
+        """
+        odom = self.scans[index].odom
+        for rank, c in enumerate(result.candidates):
+            for h in self.hypotheses:
+                if not distinct(h.map_from_odom @ odom, c.transform, self.config):
+                    h.inliers += c.num_inliers
+                    break
+            else:
+                self.hypotheses.append(Hypothesis(c.transform @ np.linalg.inv(odom), index,
+                                                  rank, c.num_inliers, source))
+
+    def _check(self, h: Hypothesis, index: int) -> Check:
+        """Put scan ``index`` where ``h`` predicts it and refine it against the map."""
+        scan, cfg, seq = self.scans[index], self.config, self.sequence
+        ft = self.prepared.features
+        steps = abs(index - h.scan)
+        travelled = abs(scan.travelled_m - self.scans[h.scan].travelled_m)
+        predicted = h.map_from_odom @ scan.odom
+        points = scan.features.points
+        final = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
+        reach = seq.drift_m * max(steps, 1) + seq.drift_fraction * travelled
+        # Where the prediction leaves too little of the scan near the map even at the drift
+        # allowance, no refinement can make the scan explain it: skip the refinement.
+        loose = evaluate_alignment(points, ft.tree, predicted, reach + final).fitness
+        near = np.isin(self._map_cells, _cells(apply_transform(predicted, points), self._cell,
+                                               dilate=True))
+        if loose < seq.min_fitness or np.count_nonzero(near) < 3:
+            return Check(predicted, 0.0, 0.0, steps, travelled, loose, float('nan'))
+        T = refine_transform(points, ft.points[near], predicted, voxel_size=cfg.voxel_size,
+                             config=self._check_refine, target_normals=ft.normals[near],
+                             coarse_distance=reach + final)
+        fitness = evaluate_alignment(points, ft.tree, T, final).fitness
+        return Check(T, rotation_error_deg(T, predicted), translation_error(T, predicted),
+                     steps, travelled, fitness,
+                     measured_free_space(scan.features, ft, T, cfg, map_target=True))
+
+
+def _cells(points: np.ndarray, size: float, dilate: bool = False) -> np.ndarray:
+    """Return the int64 keys of the cubic cells (``size`` metres) holding ``points``."""
+    ijk = np.floor(points / size).astype(np.int64)
+    if dilate:
+        ijk = np.unique(ijk, axis=0)
+        steps = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing='ij'), -1).reshape(-1, 3)
+        ijk = (ijk[:, None, :] + steps[None]).reshape(-1, 3)
+    ijk += 1 << 20  # non-negative below 2^21 per axis: one key of 63 bits
+    return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
+
+
+def judge(hypotheses: list[Hypothesis], results: list[PipelineResult], odom: list[np.ndarray],
+          config: PipelineConfig, seq: SequenceConfig) -> Answer:
+    """
+    Rank checked hypotheses over two scans or more and decide (see the module doc).
+
+    A pure function of the checks, so that thresholds can be studied on recorded ones.
+    """
+    n, limit = len(results), config.refine.max_free_space_violation
+
+    def explained(h: Hypothesis) -> list[bool]:  # a check left out: refuted earlier
+        return [i in h.checks and h.checks[i].explains(seq, limit) for i in range(n)]
+
+    def score(h: Hypothesis) -> tuple:
+        return (sum(explained(h)), sum(c.fitness for c in h.checks.values()), h.inliers)
+
+    ranked = sorted(hypotheses, key=score, reverse=True)
+    if not ranked:
+        return _settle(results[-1].transform, odom[-1], results[-1].refusal
+                       or Refusal(RefusalCode.NO_ESTIMATE, 'no scan gave a candidate pose'),
+                       ranked, results, seq)
+    best = ranked[0]
+    last = (best.checks[n - 1].transform if n - 1 in best.checks
+            else best.map_from_odom @ odom[-1])
+    misses = [i for i, ok in enumerate(explained(best)) if not ok]
+    refusal = unexplained_refusal(misses) if misses else None
+    for rival in ranked[1:] if not refusal else ():
+        if any(not ok or rival.checks[i].fitness * seq.refute_ratio < best.checks[i].fitness
+               for i, ok in enumerate(explained(rival))):
+            continue  # refuted
+        pose = rival.checks[n - 1].transform
+        if distinct(pose, last, config):
+            refusal = sequence_ambiguity_refusal(n, rotation_error_deg(pose, last),
+                                                 translation_error(pose, last))
+            break
+    return _settle(last, odom[-1], refusal, ranked, results, seq)
+
+
+def _settle(transform: np.ndarray, odom: np.ndarray, refusal: Refusal | None,
+            hypotheses: list[Hypothesis], results: list[PipelineResult],
+            seq: SequenceConfig) -> Answer:
+    """Return the answer: confirmed without a refusal and with enough scans, else why not."""
+    n = len(results)
+    refusal = refusal or more_scans_refusal(n, seq.min_scans)
+    done = refusal is None or n >= seq.max_scans
+    if refusal is not None and not done:
+        refusal = Refusal(refusal.code,
+                          f'{refusal.message}; send another scan with its odometry pose')
+    T = np.asarray(transform, dtype=np.float64)
+    return Answer(refusal is None, done, T, T @ np.linalg.inv(odom), n, refusal,
+                  list(hypotheses), list(results))
+
+
+def _checked_pose(T: np.ndarray) -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise InvalidInputError(f'odometry pose must be a finite 4x4 transform, got {T.shape}')
+    if not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-4):
+        raise InvalidInputError('odometry pose: its 3x3 block is not a rotation')
+    return T

@@ -1,0 +1,69 @@
+"""cgags_ros.pipeline.confidence: P(right) from the measurements, and the operating point."""
+
+from __future__ import annotations
+
+import math
+
+from cgags_ros.config import PipelineConfig
+from cgags_ros.geometry import rotation_error_deg, translation_error
+from cgags_ros.pipeline import confidence, register_clouds
+from cgags_ros.pipeline.result import Candidate, PipelineResult
+import numpy as np
+import pytest
+
+
+def _measured(**values) -> PipelineResult:
+    """Return a result as the gates leave a clearly supported estimate, ``values`` changed."""
+    result = PipelineResult(voxel_size=0.05, fitness=0.7, overlap=0.6, inlier_rmse=0.025,
+                            observability=0.1, chance_inliers=2.0, free_space_violation=0.05,
+                            num_hypotheses=1000, num_correspondences=2000,
+                            inliers=np.arange(300))
+    result.candidates = [Candidate(np.eye(4), 300, 0.7), Candidate(np.eye(4), 20, 0.2)]
+    result.runner_up_ratio = 15.0
+    for name, value in values.items():
+        setattr(result, name, value)
+    return result
+
+
+def test_confidence_is_a_probability_that_falls_with_the_evidence():
+    strong = confidence.probability(confidence.features(_measured(), 0.01))
+    assert 0.0 <= strong <= 1.0 and strong > 0.9
+    # Fewer inliers, closer to chance; a surface stacked in free space; a rival as good.
+    weak = _measured(inliers=np.arange(12), runner_up_ratio=1.1)
+    weak.candidates[1].fitness = 0.7
+    for result in (weak, _measured(free_space_violation=0.6)):
+        p = confidence.probability(confidence.features(result, 0.01))
+        assert 0.0 <= p < strong
+    # No estimate: nothing to be confident about.
+    assert confidence.features(PipelineResult(voxel_size=0.05), 0.01) is None
+    assert confidence.probability(None) == 0.0
+
+
+def test_every_feature_has_a_weight_and_the_weights_are_finite():
+    assert set(confidence.WEIGHTS) == set(confidence.FEATURES)
+    assert all(math.isfinite(w) for w in confidence.WEIGHTS.values())
+    assert math.isfinite(confidence.INTERCEPT)
+
+
+def test_a_result_without_an_estimate_has_zero_confidence():
+    rng = np.random.default_rng(0)
+    result = register_clouds(rng.normal(size=(5, 3)), rng.normal(size=(500, 3)),
+                             voxel_size=0.05)
+    assert not result.valid and result.confidence == 0.0
+    assert result.summary()['confidence'] == 0.0
+
+
+def test_real_pairs_right_is_confident_and_the_threshold_refuses_below_it(redkitchen_pair):
+    src, tgt, gt = redkitchen_pair(0, 2)
+    result = register_clouds(src, tgt, voxel_size=0.05)
+    assert rotation_error_deg(result.transform, gt) < 15 and translation_error(
+        result.transform, gt) < 0.3
+    assert result.valid and result.confidence >= PipelineConfig().min_confidence
+    assert result.confidence > 0.9
+    assert result.summary()['confidence'] == pytest.approx(result.confidence)
+    # The same estimate under a stricter operating point than its confidence: refused.
+    strict = min(1.0, result.confidence + 1e-6)
+    refused = register_clouds(src, tgt, voxel_size=0.05,
+                              config=PipelineConfig(min_confidence=strict))
+    np.testing.assert_allclose(refused.transform, result.transform)
+    assert not refused.valid and refused.reason.startswith('low confidence')

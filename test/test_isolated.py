@@ -1,0 +1,148 @@
+"""
+cgags_ros.pipeline.isolated: register_clouds in a supervised child process.
+
+No ROS: the real pipeline in a real spawned process, killed, timed out and replaced as the
+node's registrations are.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+
+from cgags_ros.config import PipelineConfig
+from cgags_ros.errors import EmptyCloudError
+from cgags_ros.pipeline import register_clouds
+from cgags_ros.pipeline.isolated import (IsolatedRegistration, RegistrationTimeout, rss_mb,
+                                         running, WorkerCrashed)
+from cgags_ros.pipeline.register import terrain_patch
+import numpy as np
+import pytest
+from waiting import wait_for
+
+pytestmark = pytest.mark.subprocess
+CONFIG = PipelineConfig(voxel_size=0.15)
+
+
+@pytest.fixture(scope='module')
+def pair():
+    """Return (source, target): a terrain patch and itself turned by 0.2 rad and moved."""
+    target = terrain_patch(np.random.default_rng(3))
+    c, s = np.cos(0.2), np.sin(0.2)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return target @ R.T + 0.1, target
+
+
+def test_isolated_registration_sends_an_unchanged_target_once(pair):
+    """
+    Check that the registration process is sent an unchanged target only once.
+
+    It reports ready once warmed up (not while spawning, nor after a restart until warm).
+
+    The registration process keeps the last target: the same array object is not sent
+    again, a new one is, and after a restart (fresh process) it is sent again. Results equal
+    the pipeline run in this process.
+    """
+    source, target = pair
+    other = target[::-1].copy()  # same points, another array: must be sent
+    iso = IsolatedRegistration(60.0)
+    try:
+        assert not iso.ready and iso.health()['worker.ready'] is False  # spawning, warming up
+        first = iso(source, target, config=CONFIG)
+        assert iso.ready and iso.health()['worker.ready'] is True
+        assert iso.targets_sent == 1
+        again = iso(source, target, config=CONFIG)
+        assert iso.targets_sent == 1
+        changed = iso(source, other, config=CONFIG)
+        assert iso.targets_sent == 2
+        iso.restart()
+        assert not iso.ready  # the fresh child warms up again
+        after = iso(source, other, config=CONFIG)
+        assert iso.targets_sent == 3 and iso.restarts == 1 and iso.crashes == 0
+    finally:
+        iso.close()
+    assert not iso.ready and iso.pid is None
+    local = register_clouds(source, target, config=CONFIG)
+    for result in (first, again, changed, after):
+        assert result.valid, result.reason
+        np.testing.assert_allclose(result.transform, local.transform, atol=1e-6)
+
+
+def test_a_pair_past_the_time_limit_restarts_the_process_and_the_next_one_runs(pair):
+    source, target = pair
+    iso = IsolatedRegistration(0.01)  # no registration ends this fast
+    try:
+        iso.wait_ready()  # the warm-up is not counted against the limit
+        pid = iso.pid
+        with pytest.raises(RegistrationTimeout, match='registration_timeout = 0.01 s'):
+            iso(source, target, config=CONFIG)
+        assert iso.restarts == 1 and iso.crashes == 0 and iso.pid != pid
+        wait_for(lambda: not running(pid), 10, 'the timed-out process to end')
+        iso.timeout_s = 120.0
+        result = iso(source, target, config=CONFIG)
+        assert result.valid, result.reason
+        assert iso.targets_sent == 2  # the fresh process was sent the target again
+    finally:
+        iso.close()
+
+
+def test_a_process_killed_busy_fails_its_pair_and_one_killed_idle_costs_nothing(pair):
+    source, target = pair
+    iso = IsolatedRegistration(120.0)
+    try:
+        iso.wait_ready()
+        failed = []
+        # Dense noise: seconds of features and matching, killed long before it ends.
+        noise = np.random.default_rng(0).uniform(-5.0, 5.0, size=(200_000, 3))
+
+        def register():
+            try:
+                iso(noise, target, config=CONFIG)
+            except WorkerCrashed as exc:
+                failed.append(exc)
+
+        caller = threading.Thread(target=register)
+        caller.start()
+        assert iso.busy.wait(60), 'the pair never reached the registration process'
+        pid = iso.pid
+        assert iso.health()['memory.worker_rss_mb'] > 0 and rss_mb(pid) > 0
+        os.kill(pid, signal.SIGKILL)
+        caller.join(60)
+        assert [str(f) for f in failed] == [
+            'the registration process died during this pair (killed, out of memory or a '
+            'native crash); restarted']
+        assert iso.crashes == 1 and iso.restarts == 1 and not iso.busy.is_set()
+
+        iso.wait_ready()
+        pid = iso.pid
+        os.kill(pid, signal.SIGKILL)  # idle: found dead before the next pair is sent
+        wait_for(lambda: not running(pid), 10, 'the idle process to die')
+        assert iso.health()['worker.alive'] is False
+        result = iso(source, target, config=CONFIG)
+        assert result.valid, result.reason
+        assert iso.crashes == 2 and iso.pid != pid and iso.health()['worker.alive'] is True
+    finally:
+        iso.close()
+    assert not running(pid)
+
+
+def test_supervise_replaces_a_process_that_died_idle_and_errors_come_back_typed(pair):
+    source, target = pair
+    iso = IsolatedRegistration(120.0)
+    try:
+        iso.wait_ready()
+        assert not iso.supervise()  # alive: nothing to do
+        pid = iso.pid
+        with open(f'/proc/{pid}/environ', 'rb') as f:  # set before it loaded numpy
+            environ = f.read().split(b'\0')
+        assert b'OMP_WAIT_POLICY=PASSIVE' in environ or 'OMP_WAIT_POLICY' in os.environ
+        os.kill(pid, signal.SIGKILL)
+        wait_for(lambda: not running(pid), 10, 'the idle process to die')
+        assert iso.supervise() and iso.crashes == 1 and iso.pid != pid
+        with pytest.raises(EmptyCloudError):  # raised in the child, re-raised here
+            iso(np.zeros((0, 3)), target, config=CONFIG)
+        assert iso.crashes == 1 and iso.restarts == 1  # an error is no crash
+        assert iso(source, target, config=CONFIG).valid
+    finally:
+        iso.close()

@@ -1,0 +1,231 @@
+"""
+The relocalizer over a few scans with odometry, and its command, on real 3DMatch fragments.
+
+The map is the redkitchen scene fused from every fragment but those of the sequence, each
+fragment's normals facing its sensor (as a mapper writes them); the scans are consecutive
+fragments in their own frames, the odometry their poses' steps with drift.
+"""
+
+from __future__ import annotations
+
+import json
+
+from bench.datasets import threedmatch as tdm
+from cgags_ros.config import pipeline_config_from
+from cgags_ros.errors import InvalidInputError
+from cgags_ros.frontend.features import estimate_normals
+from cgags_ros.geometry import make_transform, rotation_error_deg
+from cgags_ros.geometry import translation_error
+from cgags_ros.io.clouds import write_cloud
+from cgags_ros.pipeline.map import load_map
+from cgags_ros.pipeline.relocalizer import Relocalizer, SequenceConfig
+from cgags_ros.tools import relocalize_cli
+from cgags_ros.tools.cli import EXIT_ERROR
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+SCENE = '7-scenes-redkitchen'
+HARD = [13, 14, 15]  # one scan of it is ambiguous (a turned rival); three settle it
+EASY = [7, 8, 9]  # each scan of it alone is valid
+RIGHT = (10.0, 0.3)  # RE (deg), TE (m)
+
+
+@pytest.fixture(scope='module')
+def scene(data_dir, tmp_path_factory):
+    """Return a function: the map without the given fragments, and the scene's data."""
+    root = data_dir / '3dmatch_benchmark'
+    poses, fragments = tdm.fragment_poses(root, SCENE), tdm.Fragments(root, SCENE)
+    cfg = pipeline_config_from({'voxel_size': 0.05})
+    maps = {}
+
+    def without(ids):
+        if tuple(ids) not in maps:
+            kept = {k: P for k, P in poses.items() if k not in ids}
+            normals = [estimate_normals(fragments[k], cfg.voxel_size, cfg.frontend)
+                       @ P[:3, :3].T for k, P in kept.items()]
+            path = tmp_path_factory.mktemp('map') / 'kitchen.ply'
+            write_cloud(path, tdm.scene_map(fragments, kept), np.vstack(normals))
+            maps[tuple(ids)] = load_map(path, cfg), path
+        prepared, path = maps[tuple(ids)]
+        return prepared, cfg, poses, fragments, path
+
+    return without
+
+
+@pytest.fixture()
+def easy(scene):
+    return scene(EASY)
+
+
+def odometry(poses, ids, rng, deg=0.5, metres=0.02, fraction=0.01):
+    """Return odom <- sensor of ``ids``: their true steps, each turned and shifted by drift."""
+    out = [make_transform(Rotation.random(random_state=rng).as_matrix(), rng.uniform(-5, 5, 3))]
+    for a, b in zip(ids, ids[1:]):
+        step = np.linalg.inv(poses[a]) @ poses[b]
+        turn = Rotation.from_rotvec(np.radians(deg) * _unit(rng)).as_matrix()
+        shift = (metres + fraction * np.linalg.norm(step[:3, 3])) * _unit(rng)
+        out.append(out[-1] @ step @ make_transform(turn, shift))
+    return out
+
+
+def _unit(rng):
+    v = rng.normal(size=3)
+    return v / np.linalg.norm(v)
+
+
+def right(T, T_gt):
+    return rotation_error_deg(T, T_gt) < RIGHT[0] and translation_error(T, T_gt) < RIGHT[1]
+
+
+def feed(reloc, fragments, ids, odom):
+    return [reloc.add(fragments[k], O) for k, O in zip(ids, odom)]
+
+
+def test_a_sequence_one_scan_cannot_settle_is_confirmed_by_three(scene):
+    prepared, cfg, poses, fragments, _ = scene(HARD)
+    reloc = Relocalizer(prepared, cfg, SequenceConfig(max_scans=3))
+    odom = odometry(poses, HARD, np.random.default_rng(0))
+    answers = feed(reloc, fragments, HARD, odom)
+    first, last = answers[0], answers[-1]
+    assert not first.confirmed and not first.done and 'another scan' in first.reason
+    assert not right(first.transform, poses[HARD[0]])  # one scan alone picks a rival
+    assert last.confirmed and last.done and last.reason == '', last.reason
+    assert last.scans_used == 3 and right(last.transform, poses[HARD[-1]])
+    # map <- odom carries every scan of the sequence to its place, up to the drift.
+    for k, O in zip(HARD, odom):
+        assert right(last.map_from_odom @ O, poses[k])
+    best = last.hypotheses[0]
+    assert all(c.explains(reloc.sequence, cfg.refine.max_free_space_violation)
+               for c in best.checks.values())
+    assert len(last.hypotheses) > 1 and len(last.results) == 3
+
+
+def test_drift_within_the_allowance_still_confirms(easy):
+    prepared, cfg, poses, fragments, _ = easy
+    seq = SequenceConfig(max_scans=3, min_scans=3)  # every scan must agree
+    reloc = Relocalizer(prepared, cfg, seq)
+    odom = odometry(poses, EASY, np.random.default_rng(1), deg=1.5, metres=0.04,
+                    fraction=0.03)
+    answers = feed(reloc, fragments, EASY, odom)
+    assert [a.confirmed for a in answers] == [False, False, True], answers[-1].reason
+    assert answers[0].results[0].valid  # one scan would do; the three agree despite drift
+    assert right(answers[-1].transform, poses[EASY[-1]])
+    checks = answers[-1].hypotheses[0].checks
+    assert max(c.moved_m for c in checks.values()) > 0.02  # the drift was corrected
+
+
+def test_odometry_that_contradicts_the_scans_is_refused_not_averaged(easy):
+    prepared, cfg, poses, fragments, _ = easy
+    seq = SequenceConfig(max_scans=3, min_scans=3)
+    odom = odometry(poses, EASY, np.random.default_rng(1))
+    jump = make_transform(Rotation.from_euler('z', 30, degrees=True).as_matrix(), [1, 0, 0])
+    odom[1] = odom[1] @ jump  # the second scan's odometry is off by 30 deg and a metre
+    answers = feed(Relocalizer(prepared, cfg, seq), fragments, EASY, odom)
+    last = answers[-1]
+    assert last.done and not last.confirmed
+    assert 'no pose explains every scan' in last.reason and 'odometry' in last.reason
+    limit = cfg.refine.max_free_space_violation
+    explained = [sum(i in h.checks and h.checks[i].explains(seq, limit) for i in range(3))
+                 for h in last.hypotheses]
+    assert 1 <= max(explained) < 3  # each scan fits some pose; no pose fits the three
+
+
+def test_one_scan_is_judged_as_a_single_registration(easy):
+    prepared, cfg, poses, fragments, _ = easy
+    from cgags_ros.pipeline import register_clouds
+
+    for k in (EASY[0], HARD[0]):
+        single = register_clouds(fragments[k], prepared, config=cfg)
+        answer = Relocalizer(prepared, cfg, SequenceConfig(max_scans=1)).add(fragments[k])
+        assert answer.done and answer.confirmed == single.valid and answer.scans_used == 1
+        # Equal up to the last bits of Open3D's multi-threaded ICP sums (docs/design.md,
+        # "Determinism"): the same registration, not a second one.
+        np.testing.assert_allclose(answer.transform, single.transform, atol=1e-9)
+        assert answer.reason == single.reason
+
+
+def test_bad_odometry_poses_are_input_errors(easy):
+    prepared, cfg, _, fragments, _ = easy
+    reloc = Relocalizer(prepared, cfg, SequenceConfig())
+    with pytest.raises(InvalidInputError, match='4x4'):
+        reloc.add(fragments[EASY[0]], np.eye(3))
+    with pytest.raises(InvalidInputError, match='rotation'):
+        reloc.add(fragments[EASY[0]], np.diag([2.0, 1.0, 1.0, 1.0]))
+    assert reloc.scans == []  # nothing taken from a refused call
+
+
+def odometry_file(path, poses):
+    lines = []
+    for T in poses:
+        q = Rotation.from_matrix(T[:3, :3]).as_quat()
+        lines.append(' '.join(f'{v:.9f}' for v in [*T[:3, 3], *q]))
+    path.write_text('# x y z qx qy qz qw\n' + '\n'.join(lines) + '\n')
+    return path
+
+
+def scan_files(folder, fragments, ids):
+    paths = []
+    for k in ids:
+        paths.append(folder / f'scan_{k}.npy')
+        np.save(paths[-1], fragments[k])
+    return [str(p) for p in paths]
+
+
+def test_the_command_confirms_over_three_scans_and_prints_json(easy, tmp_path, capsys):
+    _, _, poses, fragments, map_path = easy
+    odom = odometry(poses, EASY, np.random.default_rng(1))
+    argv = [str(map_path), *scan_files(tmp_path, fragments, EASY), '--odometry',
+            str(odometry_file(tmp_path / 'odom.txt', odom)), '--voxel-size', '0.05',
+            '--min-scans', '3', '--json']
+    assert relocalize_cli.main(argv) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out['confirmed'] is True and out['reason'] == '' and out['scans_used'] == 3
+    assert right(np.asarray(out['transform']), poses[EASY[-1]])
+    assert right(np.asarray(out['map_from_odom']) @ odom[0], poses[EASY[0]])
+    assert out['hypotheses'][0]['scans_explained'] == 3
+    assert [s['file'] for s in out['scans']] == argv[1:4] and out['map']['points'] > 0
+    # One scan, no odometry: the single-scan judgement, printed as text.
+    assert relocalize_cli.main([str(map_path), argv[1], '--voxel-size', '0.05']) == 0
+    text = capsys.readouterr().out
+    assert 'confirmed: yes' in text and 'scans used: 1' in text
+
+
+def test_the_command_refuses_contradicting_odometry_with_exit_1(easy, tmp_path, capsys):
+    _, _, poses, fragments, map_path = easy
+    odom = odometry(poses, EASY, np.random.default_rng(1))
+    odom[1] = odom[1] @ make_transform(Rotation.from_euler('z', 30, degrees=True).as_matrix(),
+                                       [1, 0, 0])
+    argv = [str(map_path), *scan_files(tmp_path, fragments, EASY), '--odometry',
+            str(odometry_file(tmp_path / 'odom.txt', odom)), '--voxel-size', '0.05',
+            '--min-scans', '3', '--json']
+    assert relocalize_cli.main(argv) == 1
+    out = json.loads(capsys.readouterr().out)
+    assert out['confirmed'] is False and out['scans_used'] == 3
+    assert 'odometry contradicts' in out['reason']
+
+
+@pytest.mark.parametrize('case, message', [
+    ('no odometry', 'needs --odometry'),
+    ('short odometry', '1 poses for 2 scans'),
+    ('bad pose', 'need 7 finite numbers'),
+    ('missing map', 'no such file'),
+    ('missing scan', 'no such file'),
+    ('min scans', 'at least 1'),
+])
+def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, case, message):
+    scan = tmp_path / 'scan.npy'
+    np.save(scan, np.random.default_rng(0).uniform(-1, 1, (500, 3)))
+    odom = tmp_path / 'odom.txt'
+    odom.write_text({'short odometry': '0 0 0 0 0 0 1\n',
+                     'bad pose': '0 0 0 0 0 0 1\n0 0 0 0 0 1\n'}.get(case, ''))
+    argv = {'no odometry': [str(scan), str(scan), str(scan)],
+            'short odometry': [str(scan), str(scan), str(scan), '--odometry', str(odom)],
+            'bad pose': [str(scan), str(scan), str(scan), '--odometry', str(odom)],
+            'missing map': [str(tmp_path / 'nope.ply'), str(scan)],
+            'missing scan': [str(scan), str(tmp_path / 'nope.npy')],
+            'min scans': [str(scan), str(scan), '--min-scans', '0']}[case]
+    assert relocalize_cli.main(argv) == EXIT_ERROR
+    err = capsys.readouterr().err
+    assert message in err and 'Traceback' not in err
+    assert len(err.strip().splitlines()) == 1 and err.startswith('cgags-relocalize: error:')

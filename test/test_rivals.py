@@ -1,0 +1,93 @@
+"""cgags_ros.pipeline.rivals: the poses a symmetric or loosely constrained scene also accepts."""
+
+from __future__ import annotations
+
+from cgags_ros.config import PipelineConfig
+from cgags_ros.frontend.matching import Correspondences
+from cgags_ros.frontend.refine import evaluate_alignment
+from cgags_ros.geometry import rotation_error_deg, translation_error
+from cgags_ros.pipeline import cached_features
+from cgags_ros.pipeline.result import Candidate, PipelineResult
+from cgags_ros.pipeline.rivals import mark_ambiguous, structured_rival
+import numpy as np
+
+VOXEL = 0.1
+
+
+def _box(lo, hi, step: float = 0.05) -> np.ndarray:
+    """Return points on the faces of the axis-aligned box ``lo``..``hi`` (metres)."""
+    faces = []
+    for axis in range(3):
+        u, w = [a for a in range(3) if a != axis]
+        gu = np.arange(lo[u], hi[u] + 1e-9, step)
+        gw = np.arange(lo[w], hi[w] + 1e-9, step)
+        a, b = np.meshgrid(gu, gw)
+        for level in (lo[axis], hi[axis]):
+            face = np.zeros((a.size, 3))
+            face[:, axis], face[:, u], face[:, w] = level, a.ravel(), b.ravel()
+            faces.append(face)
+    return np.vstack(faces)
+
+
+def _room() -> np.ndarray:
+    """Return a 6 x 4 m room seen from its centre, two boxes a half turn maps onto each other."""
+    return np.vstack([_box((-3.0, -2.0, -1.2), (3.0, 2.0, 1.3)),
+                      _box((1.5, 0.5, -1.2), (2.5, 1.5, -0.4)),
+                      _box((-2.5, -1.5, -1.2), (-1.5, -0.5, -0.4))])
+
+
+def _corner() -> np.ndarray:
+    """Return the corner of a room (floor and two walls) with a box, seen from inside."""
+    points = _box((-2.0, -2.0, -1.2), (2.0, 2.0, 1.3))
+    keep = (points[:, 0] > 2.0 - 1e-9) | (points[:, 1] > 2.0 - 1e-9) \
+        | (points[:, 2] < -1.2 + 1e-9)
+    return np.vstack([points[keep], _box((0.5, 0.8, -1.2), (1.2, 1.6, -0.5))])
+
+
+def _estimate(points: np.ndarray, cfg: PipelineConfig):
+    """Return the room's features and the right estimate (identity) as the gates leave it."""
+    fs = cached_features(points, VOXEL, cfg.frontend, 'source')
+    ft = cached_features(points + 0.0, VOXEL, cfg.frontend, 'target')
+    distance = cfg.refine.max_correspondence_distance_factor * VOXEL
+    align = evaluate_alignment(fs.points, ft.tree, np.eye(4), distance)
+    result = PipelineResult(voxel_size=VOXEL, transform=np.eye(4), fitness=align.fitness,
+                            overlap=align.fitness, inlier_threshold=3 * VOXEL)
+    result.candidates = [Candidate(np.eye(4), 50, align.fitness)]
+    idx = np.arange(0, len(fs.points), 97)
+    corr = Correspondences(idx, idx, np.zeros(len(idx)))
+    return fs, ft, corr, result
+
+
+def test_a_symmetric_room_turned_half_way_is_a_plausible_rival():
+    cfg = PipelineConfig(voxel_size=VOXEL)
+    fs, ft, corr, result = _estimate(_room(), cfg)
+    rival = structured_rival(fs, ft, corr, result, cfg)
+    assert rival is not None
+    assert rotation_error_deg(rival.transform, np.eye(4)) > 170  # the half turn about up
+    mark_ambiguous(result, rival)
+    assert result.ambiguous and result.candidates[1] is rival
+
+
+def test_an_asymmetric_corner_has_no_rival():
+    """Turned or slid, a corner with a box overlaps far less: nothing to confuse it with."""
+    cfg = PipelineConfig(voxel_size=VOXEL)
+    fs, ft, corr, result = _estimate(_corner(), cfg)
+    assert structured_rival(fs, ft, corr, result, cfg) is None
+
+
+def test_a_slide_along_a_wall_is_refused_and_a_right_pose_kept(redkitchen_pair):
+    """Two real 3DMatch pairs: a pose slid along a wall is ambiguous, a right one valid."""
+    from cgags_ros.pipeline import register_clouds
+
+    src, tgt, gt = redkitchen_pair(46, 49)
+    result = register_clouds(src, tgt, voxel_size=0.05)
+    assert translation_error(result.transform, gt) > 0.3  # the estimate is wrong ...
+    assert result.ambiguous and not result.valid  # ... and no longer called valid
+    assert result.reason.startswith('ambiguous')
+    assert translation_error(result.candidates[1].transform, gt) < 0.3  # the rival is right
+    off = register_clouds(src, tgt, voxel_size=0.05,
+                          config=PipelineConfig(structured_rivals=False, min_confidence=0.0))
+    assert off.valid  # the gates alone would have let the slid pose through
+    src, tgt, gt = redkitchen_pair(0, 2)
+    kept = register_clouds(src, tgt, voxel_size=0.05)
+    assert kept.valid and translation_error(kept.transform, gt) < 0.3

@@ -1,0 +1,197 @@
+"""
+The temporal prior (cgags_ros/pipeline/tracking.py) on real KITTI scans, ROS-free.
+
+Scan-to-map against scan 0 as the map; ``pseudo_gt.txt`` holds each scan's pose in scan
+0's frame, i.e. the source->target transform of scan k onto scan 0.
+"""
+
+from bench.datasets.rigs import KITTI_SCANS, kitti_scans
+from cgags_ros.config import PipelineConfig, TrackingConfig
+from cgags_ros.geometry import apply_transform, rotation_error_deg, translation_error
+from cgags_ros.pipeline import PipelineResult, Tracker
+from cgags_ros.pipeline import tracking as tracking_module
+from cgags_ros.refusal import Refusal, RefusalCode as Code
+import numpy as np
+import pytest
+
+VOXEL = 0.5
+PERIOD = 0.1  # seconds between scans: a 10 Hz LiDAR
+
+
+@pytest.fixture(scope='module')
+def kitti(data_dir):
+    """Return the 16 scans and their pseudo ground truth (scan k -> scan 0)."""
+    scans = kitti_scans(data_dir, list(range(16)))
+    truth = np.loadtxt((data_dir / KITTI_SCANS).parent / 'pseudo_gt.txt').reshape(-1, 4, 4)
+    return scans, truth
+
+
+def _config(**tracking) -> PipelineConfig:
+    return PipelineConfig(voxel_size=VOXEL, tracking=TrackingConfig(**tracking))
+
+
+def _within(result: PipelineResult, truth: np.ndarray, degrees: float = 1.0,
+            metres: float = 0.2) -> bool:
+    return (rotation_error_deg(result.transform, truth) <= degrees
+            and translation_error(result.transform, truth) <= metres)
+
+
+def _run(tracker, scans, indices, target, config, start=0):
+    return [tracker.register(scans[k], target, (start + i) * PERIOD, config=config)
+            for i, k in enumerate(indices)]
+
+
+def test_smooth_sequence_is_tracked_within_pseudo_ground_truth(kitti):
+    scans, truth = kitti
+    tracker = Tracker()
+    indices = [0, 1, 2, 3, 4, 5, 4, 3]  # forward, then back: the velocity reverses
+    results = _run(tracker, scans, indices, scans[0], _config())
+    assert [r.path for r in results] == ['global'] + ['tracked'] * (len(indices) - 1)
+    for k, result in zip(indices, results):
+        assert result.valid, result.reason
+        assert _within(result, truth[k]), k
+    assert results[2].stats['prediction'] == 'constant velocity'
+    assert set(results[1].timings) >= {'downsample', 'refinement', 'validation'}
+    assert 'fpfh' not in results[1].timings and 'matching' not in results[1].timings
+    assert results[1].summary()['path'] == 'tracked'
+    assert np.all(np.diag(results[1].covariance) < 1.0)
+    counts = tracker.counts()
+    assert (counts['tracked'], counts['global'], counts['tracking_failures']) == (7, 1, 0)
+
+
+def test_odometry_gives_the_prediction(kitti):
+    scans, truth = kitti
+    tracker = Tracker()
+    config = _config()
+    tracker.register(scans[2], scans[0], 0.0, config=config)
+    odometry = np.linalg.inv(truth[2]) @ truth[4]  # scan 4 in scan 2's frame: two steps
+    result = tracker.register(scans[4], scans[0], PERIOD, config=config, odometry=odometry)
+    assert result.path == 'tracked' and result.stats['prediction'] == 'odometry'
+    assert _within(result, truth[4])
+
+
+def test_jump_falls_back_to_global(kitti):
+    scans, truth = kitti
+    tracker = Tracker()
+    config = _config()
+    _run(tracker, scans, [13, 14, 15], scans[0], config)
+    result = tracker.register(scans[0], scans[0], 3 * PERIOD, config=config)  # 12 m back
+    assert result.path == 'global', 'a jump must not be tracked'
+    failure = result.stats['tracking_failure']  # which gate caught it depends on the settings
+    assert failure.startswith(('tracking:', 'free-space violation', 'degenerate', 'fitness'))
+    assert result.stats['tracking_failure_code'] in {
+        Code.TRACKING_LOST.value, Code.FREE_SPACE.value, Code.DEGENERATE_AXIS.value,
+        Code.LOW_FITNESS.value}
+    assert result.valid and _within(result, truth[0])
+    # tracking resumes from the global pose
+    after = tracker.register(scans[1], scans[0], 4 * PERIOD, config=config)
+    assert after.path == 'tracked' and _within(after, truth[1])
+    assert tracker.counts()['tracking_failures'] == 1
+
+
+def test_kidnap_falls_back_and_never_returns_the_stale_pose(kitti, monkeypatch):
+    scans, truth = kitti
+    tracker = Tracker()
+    config = _config()
+    _run(tracker, scans, [4, 5, 6], scans[0], config)
+    # The robot is carried to scan 10's place and turned about: nothing near the prediction.
+    turn = np.diag([-1.0, -1.0, 1.0, 1.0])
+    kidnapped = apply_transform(turn, scans[10])
+    result = tracker.register(kidnapped, scans[0], 3 * PERIOD, config=config)
+    assert result.path == 'global' and result.stats['tracking_failure']
+    assert result.valid and _within(result, truth[10] @ np.linalg.inv(turn))
+    # Again, with the global search refusing too: the result is invalid, not the prediction.
+    tracker = Tracker()
+    _run(tracker, scans, [4, 5, 6], scans[0], config)
+
+    def refuse(source, target, *, config=None):
+        return PipelineResult().finish(0.0, Refusal(Code.NO_ESTIMATE, 'refused'))
+
+    monkeypatch.setattr(tracking_module, 'register_clouds', refuse)
+    result = tracker.register(kidnapped, scans[0], 3 * PERIOD, config=config)
+    assert not result.valid and result.path == 'global'
+    assert result.refusal.code is Code.NO_ESTIMATE  # the global search's, not the tracker's
+    assert not _within(result, truth[7], 10.0, 2.0), 'the stale pose came back'
+    counts = tracker.counts()
+    assert (counts['tracking_failures'], counts['invalid']) == (1, 1)
+    # the prior is gone: the next scan is not tracked from the pose before the kidnap
+    assert tracker.register(scans[7], scans[0], 4 * PERIOD, config=config).path == 'global'
+
+
+def test_degenerate_corridor_is_not_tracked(kitti):
+    scans, truth = kitti
+    tracker = Tracker()
+    config = _config()
+    _run(tracker, scans, [3, 4, 5], scans[0], config)
+    # scan 6 seen as a corridor: only the road surface and what rises from it within 1.5 m
+    # of the car's axis; its lengthwise motion is unconstrained
+    scan = scans[6]
+    corridor = scan[(np.abs(scan[:, 1]) < 1.5) & (scan[:, 2] < -1.2)]
+    result = tracker.register(corridor, scans[0], 3 * PERIOD, config=config)
+    assert result.path == 'global', 'a degenerate view must not be tracked'
+    assert 'degenerate' in result.stats['tracking_failure']
+    assert result.stats['tracking_failure_code'] == Code.DEGENERATE_AXIS.value
+    assert not result.valid or _within(result, truth[6])
+
+
+def test_target_change_drops_the_prior(kitti):
+    scans, truth = kitti
+    tracker = Tracker()
+    config = _config()
+    _run(tracker, scans, [1, 2, 3], scans[0], config)
+    result = tracker.register(scans[4], scans[8], 3 * PERIOD, config=config)  # a new map
+    assert result.path == 'global'
+    assert result.stats['global_because'] == 'no recent valid pose of this pair'
+    assert result.valid and _within(result, np.linalg.inv(truth[8]) @ truth[4])
+    assert tracker.counts()['target_changes'] == 1
+    # the same map sent again (a re-latched copy) keeps the prior
+    again = tracker.register(scans[5], scans[8].copy(), 4 * PERIOD, config=config)
+    assert again.path == 'tracked' and _within(again, np.linalg.inv(truth[8]) @ truth[5])
+
+
+def test_periodic_global_checks(kitti):
+    scans, truth = kitti
+    tracker = Tracker()
+    config = _config(global_check_interval=3, global_check_period=0.0)
+    indices = list(range(7))
+    results = _run(tracker, scans, indices, scans[0], config)
+    assert [r.path for r in results] == ['global', 'tracked', 'tracked'] * 2 + ['global']
+    assert all(r.valid and _within(r, truth[k]) for k, r in zip(indices, results))
+    counts = tracker.counts()
+    assert (counts['periodic_checks'], counts['check_disagreements']) == (2, 0)
+    assert results[3].stats['global_because'] == 'periodic check'
+    # by time: with the stamps 1 s apart every scan is due, yet within max_age
+    config = _config(global_check_interval=0, global_check_period=0.5, max_age=2.0)
+    tracker = Tracker()
+    paths = [tracker.register(scans[k], scans[0], float(k), config=config).path
+             for k in range(3)]
+    assert paths == ['global'] * 3
+
+
+def test_stale_pose_and_disabled_tracking_go_global(kitti):
+    scans, _ = kitti
+    tracker = Tracker()
+    config = _config(max_age=0.15)
+    tracker.register(scans[1], scans[0], 0.0, config=config)
+    late = tracker.register(scans[2], scans[0], 0.3, config=config)  # 0.3 s > max_age
+    assert late.path == 'global' and 'tracking.max_age' in late.stats['global_because']
+    tracker = Tracker()
+    config = _config(enabled=False)
+    paths = [r.path for r in _run(tracker, scans, [1, 2], scans[0], config)]
+    assert paths == ['global', 'global']
+
+
+def test_a_prepared_map_is_tracked(kitti, tmp_path):
+    from cgags_ros.pipeline.map import load_map
+
+    scans, truth = kitti
+    np.save(tmp_path / 'map.npy', scans[0])
+    config = _config()
+    prepared = load_map(tmp_path / 'map.npy', config)
+    tracker = Tracker()
+    results = _run(tracker, scans, [1, 2, 3], prepared, config)
+    assert [r.path for r in results] == ['global', 'tracked', 'tracked']
+    assert all(r.valid and _within(r, truth[k]) for k, r in zip([1, 2, 3], results))
+    # a map is recognised by its file and digest: the same points sent as a cloud are new
+    assert tracker.register(scans[4], scans[0], 3 * PERIOD, config=config).path == 'global'
+    assert tracker.counts()['target_changes'] == 1
