@@ -9,6 +9,7 @@ geometry by the gates' own functions) and check the verdict and its order.
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 import pickle
 import re
@@ -22,11 +23,13 @@ from cgags_ros.errors import (BagError, CgagsError, DegenerateCorrespondencesErr
                               MalformedCloudError)
 from cgags_ros.frontend.refine import Alignment
 from cgags_ros.geometry import apply_transform, cross_spread
-from cgags_ros.localizer.interface import StartFailed
+from cgags_ros.localizer.interface import PairResult, StartFailed
 from cgags_ros.pipeline import register_clouds
 from cgags_ros.pipeline.gates import free_space_violation, observability
 from cgags_ros.pipeline.isolated import RegistrationTimeout, WorkerCrashed
+from cgags_ros.pipeline.prediction import difference
 from cgags_ros.pipeline.result import Candidate, PipelineResult
+from cgags_ros.pipeline.rivals import mark_ambiguous
 from cgags_ros.refusal import Refusal, RefusalCode as Code, summary
 from cgags_ros.registration import register_correspondences, RegistrationResult
 import numpy as np
@@ -256,6 +259,62 @@ def test_only_a_collinear_core_refusal_is_left_to_the_gates():
     for other in ({'refine.collinear_consensus': False}, {'refine.method': 'none'},
                   {'core.motion_model': '4dof'}):
         assert not validity.unsettled(core, pipeline_config_from(other)), other
+
+
+def test_a_structured_rival_is_ambiguous():
+    best = Candidate(np.eye(4), 40, 0.8)
+    result = passing(candidates=[best])
+    assert validity.ambiguity_refusal(result, CFG) is None
+    mark_ambiguous(result, Candidate(_yaw(np.pi / 2), 38, 0.79))
+    assert validity.ambiguity_refusal(result, CFG).code is Code.AMBIGUOUS
+
+
+def test_a_low_calibrated_confidence_is_refused():
+    assert validity.confidence_refusal(passing(confidence=0.9), CFG.min_confidence) is None
+    low = validity.confidence_refusal(passing(confidence=0.1), CFG.min_confidence)
+    assert low.code is Code.LOW_CONFIDENCE and 'P(right) 0.10' in low.message
+    assert validity.confidence_refusal(passing(confidence=0.1), 0.0) is None  # off
+
+
+# --- the tracked path and the relocalizer -----------------------------------------------------
+def test_a_tracked_pose_is_judged_by_the_overlap_and_the_tracker_checks():
+    # the overlap gates need no correspondences: a chance-level count does not refuse
+    assert validity.overlap_refusal(passing(chance_bound=60.0), CFG) is None
+    assert validity.overlap_refusal(passing(observability=0.0), CFG).code is (
+        Code.DEGENERATE_AXIS)
+    track = CFG.tracking
+    small = difference(np.eye(4), _yaw(np.radians(0.5 * track.max_correction_deg)))
+    assert validity.tracking_refusal(*small, 0.8, 0.8, CFG) is None
+    turned = difference(np.eye(4), _yaw(np.radians(track.max_correction_deg + 1.0)))
+    jump = validity.tracking_refusal(*turned, 0.8, 0.8, CFG)
+    assert jump.code is Code.TRACKING_LOST and 'a jump' in jump.message
+    slid = difference(np.eye(4), _yaw(0.0, (2 * track.max_correction_factor * CFG.voxel_size,
+                                            0.0, 0.0)))
+    assert validity.tracking_refusal(*slid, 0.8, 0.8, CFG).code is Code.TRACKING_LOST
+    drop = validity.tracking_refusal(*small, 0.5 * track.min_fitness_ratio, 1.0, CFG)
+    assert drop.code is Code.TRACKING_LOST and 'fitness' in drop.message
+
+
+def test_the_relocalizer_refusals():
+    missed = validity.unexplained_refusal([1, 2])
+    assert missed.code is Code.UNEXPLAINED and 'misses scan(s) 1, 2' in missed.message
+    twin = validity.sequence_ambiguity_refusal(3, 180.0, 1.0)
+    assert twin.code is Code.AMBIGUOUS and '180 deg, 1.00 m away' in twin.message
+    assert validity.more_scans_refusal(1, 2).code is Code.MORE_SCANS
+    assert validity.more_scans_refusal(2, 2) is None
+
+
+def test_the_result_topic_carries_the_refusal():
+    rejected = Refusal(Code.BAD_INPUT, 'source cloud rejected: no x field')
+    out = json.loads(PairResult(5, 'lidar', 'rejected', 'source_malformed', rejected.message,
+                                refusal=rejected).to_json())
+    assert out['refusal'] == {'code': 'bad_input', 'message': rejected.message}
+    assert out['reason'] == rejected.message and out['valid'] is False
+    refused = passing(refusal=Refusal(Code.LOW_FITNESS, 'fitness 0.1'))
+    out = json.loads(PairResult(5, 'lidar', 'published', result=refused).to_json())
+    assert out['refusal'] == {'code': 'low_fitness', 'message': 'fitness 0.1'}
+    out = json.loads(PairResult(5, 'lidar', 'published', valid=True, result=passing()).to_json())
+    assert out['refusal'] is None and out['valid'] is True
 
 
 # --- the node's initial pose ------------------------------------------------------------------
