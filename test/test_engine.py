@@ -228,7 +228,7 @@ def test_initial_pose_guards_extrinsic_and_max_auto():
 
 
 def test_one_quality_refusal_a_pair_serves_the_guard_and_the_answer(monkeypatch):
-    from cgags_ros.ros import engine as engine_module
+    from cgags_ros.localizer import engine as engine_module
 
     decide, verdicts = engine_module.quality_refusal, []
 
