@@ -191,6 +191,11 @@ def test_every_accounted_source_has_one_result_saying_what_became_of_it():
     assert invalid['valid'] is False and invalid['reason'] == 'fake: 7'
     assert invalid['message'] == 'invalid registration: fake: 7'
     assert by_stamp[4]['message'] == by_stamp[4]['reason'] == 'bad cloud'
+    # the refusal: the registration's own when one ran, else the node's
+    assert invalid['refusal'] == {'code': 'few_inliers', 'message': 'fake: 7'}
+    assert published['refusal'] is None
+    assert {k: by_stamp[k]['refusal']['code'] for k in (1, 2, 4)} == {
+        1: 'inactive', 2: 'unpaired', 4: 'bad_input'}
     assert 'transform' not in by_stamp[4] and by_stamp[4]['target_stamp_ns'] is None
 
 

@@ -117,8 +117,8 @@ class PairResult:
     :ivar valid: the registration is valid (and its transform finite).
     :ivar result: the registration's result (a ``PipelineResult``), None when none ran.
     :ivar refusal: why the node rejected or dropped the source (a timeout, a stale scan, a
-        message it could not decode, ...); None when it did not (the result's own refusal
-        then says whether its pose is valid).
+        message it could not decode, ...); None when it did not. The JSON's ``refusal`` is
+        the result's own when it has one (its ``reason``), else this.
     """
 
     source_stamp_ns: int
@@ -147,7 +147,7 @@ class PairResult:
                                else {'reason': self.message})
         out.update({f.name: getattr(self, f.name) for f in dataclasses.fields(self)
                     if f.name not in ('result', 'refusal')})
-        refusal = self.refusal or getattr(self.result, 'refusal', None)
+        refusal = getattr(self.result, 'refusal', None) or self.refusal
         out['refusal'] = None if refusal is None else refusal.summary()
         return json.dumps(out)
 
