@@ -77,7 +77,7 @@ def main(argv=None) -> int:
                              for s in range(args.pure))]
         print(f'pure outliers, {layout}: valid {sum(r.valid for r in runs)} of {len(runs)}; '
               f'best consensus {[len(r.inliers) for r in runs]}; chance level '
-              f"{[r.stats['chance_level'] for r in runs]}", flush=True)
+              f'{[r.chance_level for r in runs]}', flush=True)
     print('| outliers | motion | subsets | graph edges | all-inlier share | lambda, all '
           '| lambda, wrong only |\n|---|---|---|---:|---:|---:|---:|')
     for layout in args.outliers.split(','):

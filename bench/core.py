@@ -126,7 +126,7 @@ def _make_ours(motion: str = '6dof', name: str = 'ours') -> Solver:
             'num_inliers': int(len(res.inliers)),
             'num_hypotheses': int(res.num_hypotheses),
             'restarts': int(res.stats.get('restarts', 0)),
-            'chance_level': res.stats.get('chance_level'),
+            'chance_level': res.chance_level,
             'stopped_by': res.stats.get('stopped_by'),
             'core_total_s': float(res.timings.get('total', float('nan'))),
         })
@@ -199,7 +199,7 @@ def _make_ours_at(name: str) -> Solver:
             'reason': res.reason, 'num_inliers': int(len(res.inliers)),
             'num_hypotheses': int(res.num_hypotheses),
             'restarts': int(res.stats.get('restarts', 0)),
-            'chance_level': res.stats.get('chance_level'),
+            'chance_level': res.chance_level,
             'stopped_by': res.stats.get('stopped_by')})
 
     return Solver(name, run, f'as ours-{motion}, the core of git revision {rev} '

@@ -44,6 +44,7 @@ from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline.map import load_map
 from cgags_ros.pipeline.relocalizer import Check, Hypothesis, judge, Relocalizer
 from cgags_ros.pipeline.relocalizer import SequenceConfig
+from cgags_ros.refusal import Refusal, RefusalCode, summary
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
@@ -105,6 +106,7 @@ def run_scene(root: Path, scene: str, starts: int, cfg, seq: SequenceConfig, dri
                 answer.transform, T_gt)
             steps.append({'confirmed': answer.confirmed, 'done': answer.done,
                           're_deg': re, 'te_m': te, 's': seconds, 'reason': answer.reason,
+                          'refusal': summary(answer.refusal),
                           'single_valid': bool(answer.results[-1].valid),
                           'single_s': float(answer.results[-1].timings.get('total', 0.0)),
                           'submap_s': float(reloc.submaps[-1].timings.get('total', 0.0))
@@ -114,6 +116,7 @@ def run_scene(root: Path, scene: str, starts: int, cfg, seq: SequenceConfig, dri
                         'odom': [T.tolist() for T in odom],
                         'hypotheses': [_hypothesis_record(h) for h in reloc.hypotheses],
                         'results': [{'valid': bool(r.valid), 'reason': r.reason,
+                                     'refusal': summary(r.refusal),
                                      'transform': r.transform.tolist()}
                                     for r in answer.results]})
         s = steps
@@ -139,6 +142,21 @@ GRID = [(f, r, m, sub) for f in (0.3, 0.4, 0.5) for r in (1.2, 1.5, 2.0) for m i
         for sub in (True, False)]
 
 
+def _refusal(recorded: dict) -> Refusal | None:
+    """
+    Return a recorded result's refusal (None when it was valid).
+
+    Records made before results carried codes hold only the message: those are taken as
+    ``no_estimate``; the report reads only whether an answer is confirmed and its pose.
+    """
+    if recorded['valid']:
+        return None
+    said = recorded.get('refusal')
+    if said:
+        return Refusal(RefusalCode(said['code']), said['message'])
+    return Refusal(RefusalCode.NO_ESTIMATE, recorded['reason'])
+
+
 def replay(record: dict, n: int, seq: SequenceConfig, submap: bool, cfg) -> dict:
     """Judge the first ``n`` scans of ``record`` again under ``seq`` (no registration)."""
     from types import SimpleNamespace
@@ -153,7 +171,8 @@ def replay(record: dict, n: int, seq: SequenceConfig, submap: bool, cfg) -> dict
         hypotheses.append(Hypothesis(np.asarray(h['map_from_odom']), h['scan'], h['rank'],
                                      h['inliers'], h['source'], checks))
     results = [SimpleNamespace(transform=np.asarray(r['transform']), reason=r['reason'],
-                               valid=r['valid']) for r in record['results'][:n]]
+                               valid=r['valid'], refusal=_refusal(r))
+               for r in record['results'][:n]]
     odom = [np.asarray(T) for T in record['odom'][:n]]
     if n == 1:
         confirmed = results[0].valid and seq.min_scans <= 1

@@ -155,6 +155,16 @@ def spread(points: np.ndarray) -> np.ndarray:
     return np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
 
 
+def cross_spread(points: np.ndarray) -> float:
+    """
+    Return the RMS spread (metres) of (N, 3) ``points`` along their second principal axis.
+
+    How far they reach across their main axis: near 0 for a line, whose rotation about
+    itself no point can fix.
+    """
+    return float(spread(points)[1] / np.sqrt(len(points)))
+
+
 class GravityFrame:
     """
     The rotation ``A`` with ``A @ g = e_z``, and the maps into and out of its frame.

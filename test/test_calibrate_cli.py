@@ -113,6 +113,23 @@ def test_bag_frames_paired_by_time(rig, tmp_path, capsys):
     assert rotation_error_deg(T, reference) <= TOLERANCE[0]
     assert translation_error(T, reference) <= TOLERANCE[1]
     assert 'static_transform_publisher' in result['static_transform_publisher']
+    assert result['refusal'] is None
+
+
+def test_a_planar_scene_is_refused_with_its_code(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    floor = np.c_[rng.uniform(-5, 5, (20000, 2)), rng.normal(0, 0.005, 20000)]
+    np.save(tmp_path / 'parent.npy', floor)
+    np.save(tmp_path / 'child.npy', floor + [0.3, -0.2, 0.0])
+    code, out, err = _run(capsys, '--parent', tmp_path / 'parent.npy', '--child',
+                          tmp_path / 'child.npy', '--voxel-size', '0.2', '--json')
+    assert code == calibrate_cli.EXIT_FAIL, err
+    result = json.loads(out)
+    assert not result['valid'] and result['refusal']['code'] == 'degenerate_axis', result
+    assert result['refusal']['message'] == result['reason']
+    code, out, _ = _run(capsys, '--parent', tmp_path / 'parent.npy', '--child',
+                        tmp_path / 'child.npy', '--voxel-size', '0.2')
+    assert code == calibrate_cli.EXIT_FAIL and 'FAIL (degenerate_axis): not observable' in out
 
 
 def test_bag_offsets_beyond_the_limit_pair_nothing(rig, tmp_path, capsys):

@@ -23,6 +23,7 @@ from cgags_ros.config import PipelineConfig
 from cgags_ros.config.calibration import CalibrationConfig
 from cgags_ros.geometry import (apply_transform, make_transform, rotation_error_deg, rpy,
                                 translation_error)
+from cgags_ros.refusal import RefusalCode as Code
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -148,7 +149,7 @@ def _plane_rig(planes, seed: int) -> list[Frame]:
 
 def test_planar_scene_is_unobservable():
     result = calibrate(_plane_rig([(np.array([0.0, 0.0, 1.0]), 0.0)], 1), _config(0.2))
-    assert not result.valid
+    assert not result.valid and result.refusal.code is Code.DEGENERATE_AXIS
     assert result.reason.startswith('not observable')
     assert 'translation in the plane normal to z' in result.unobservable
     assert 'rotation about z' in result.unobservable
@@ -160,13 +161,15 @@ def test_with_no_candidate_the_scans_still_name_what_is_free():
     evidence = [dataclasses.replace(gather(f, config.pipeline), candidates=[]) for f in frames]
     result = solve(evidence, config)
     assert not result.valid and result.transform is None
+    # no pose, but the scenes themselves leave a motion free: that is what the user fixes
+    assert result.refusal.code is Code.DEGENERATE_AXIS
     assert 'no frame gave a candidate pose' in result.reason
     assert result.unobservable == ['translation in the plane normal to z', 'rotation about z']
 
 
 def test_corridor_is_unobservable_along_its_axis():
     result = calibrate(_plane_rig(corridor(), 1), _config(0.2))
-    assert not result.valid
+    assert not result.valid and result.refusal.code is Code.DEGENERATE_AXIS
     assert result.unobservable == ['translation along x'], result.reason
     assert 'translation along x' in result.reason
 
@@ -182,7 +185,7 @@ def test_disagreeing_frames_are_a_fail_not_an_average(shared):
     frames = [Frame(f.parent, f.child, f.name) for f in frames]
     frames[2] = _bumped(frames[2], 3.0, np.array([0.3, 0.0, 0.0]), 'knocked')
     result = calibrate(frames, _config(OPENCALIB_VOXEL))
-    assert not result.valid
+    assert not result.valid and result.refusal.code is Code.FRAMES_DISAGREE
     assert result.reason.startswith('frames disagree')
     assert [f.agrees for f in result.frames] == [True, True, False]
     assert 'knocked' in result.reason

@@ -25,6 +25,7 @@ from cgags_ros.localizer.engine import RegistrationEngine
 from cgags_ros.localizer.interface import Cloud, StartFailed
 from cgags_ros.pipeline.isolated import IsolatedRegistration, running
 from cgags_ros.pipeline.result import PipelineResult
+from cgags_ros.refusal import Refusal, RefusalCode
 import numpy as np
 import pytest
 from waiting import bad_map, wait_for
@@ -68,7 +69,8 @@ class Recorder:
 def fake_register(source, target, *, config):
     """Return a confident estimate: T_TRUE, 40 inliers, no runner-up; invalid for 7 points."""
     valid = len(source) != 7
-    return PipelineResult(transform=T_TRUE, valid=valid, reason='' if valid else 'fake: 7',
+    return PipelineResult(transform=T_TRUE,
+                          refusal=None if valid else Refusal(RefusalCode.FEW_INLIERS, 'fake: 7'),
                           inliers=np.arange(40), num_correspondences=100, fitness=0.8,
                           covariance=np.eye(6) * 1e-4)
 
@@ -143,6 +145,9 @@ def test_invalid_results_are_rejected_unless_publish_invalid():
         wait_for(lambda: engine.snapshot()['rejected'].get('invalid_result'), 10, 'rejection')
         assert not out.estimates
         assert any('invalid registration: fake: 7' in m for _, m in out.logs)
+        last = engine.snapshot()['last']  # /diagnostics: the code beside the message
+        assert (last['valid'], last['refusal_code'], last['reason']) == (
+            False, 'few_inliers', 'fake: 7')
         engine.set_configs(PipelineConfig(), NodeConfig(publish_invalid=True,
                                                         publish_aligned_cloud=True,
                                                         broadcast_tf=True))
@@ -186,6 +191,11 @@ def test_every_accounted_source_has_one_result_saying_what_became_of_it():
     assert invalid['valid'] is False and invalid['reason'] == 'fake: 7'
     assert invalid['message'] == 'invalid registration: fake: 7'
     assert by_stamp[4]['message'] == by_stamp[4]['reason'] == 'bad cloud'
+    # the refusal: the registration's own when one ran, else the node's
+    assert invalid['refusal'] == {'code': 'few_inliers', 'message': 'fake: 7'}
+    assert published['refusal'] is None
+    assert {k: by_stamp[k]['refusal']['code'] for k in (1, 2, 4)} == {
+        1: 'inactive', 2: 'unpaired', 4: 'bad_input'}
     assert 'transform' not in by_stamp[4] and by_stamp[4]['target_stamp_ns'] is None
 
 
@@ -222,9 +232,37 @@ def test_initial_pose_guards_extrinsic_and_max_auto():
         strict.stop()
 
 
+def test_one_quality_refusal_a_pair_serves_the_guard_and_the_answer(monkeypatch):
+    from cgags_ros.localizer import engine as engine_module
+
+    decide, verdicts = engine_module.quality_refusal, []
+
+    def counted(result, cfg):
+        verdicts.append(decide(result, cfg))
+        return verdicts[-1]
+
+    monkeypatch.setattr(engine_module, 'quality_refusal', counted)
+    engine, out = make(mode='on_demand', max_scan_age=30.0, relocalize_timeout=20.0,
+                       publish_initial_pose=True, initial_pose_min_inliers=41)
+    engine.activate()
+    try:
+        send(engine, 'target', 1, frame='map')
+        send(engine, 'source', 2)
+        wait_for(lambda: engine.snapshot()['pairing']['pending'], 5, 'a held pair')
+        success, answer = engine.relocalize()
+        assert not success and answer.startswith('few_inliers: not localized: 40 inliers < '
+                                                 'initial_pose_min_inliers 41; '), answer
+        assert [v.code for v in verdicts] == [RefusalCode.FEW_INLIERS]  # once, for one pair
+        stats = engine.statistics()
+        assert stats['initial_pose.refused.few_inliers'] == 1
+        assert stats['relocalize.failed.few_inliers'] == 1 and not out.initial
+    finally:
+        engine.stop()
+
+
 def test_on_demand_registers_only_when_requested_and_answers():
     engine, out = make(mode='on_demand', max_scan_age=30.0, relocalize_timeout=20.0)
-    assert engine.relocalize() == (False, 'not localized (inactive): the node is not active')
+    assert engine.relocalize() == (False, 'inactive: not localized: the node is not active')
     engine.activate()
     try:
         send(engine, 'target', 1, frame='map')
@@ -250,7 +288,7 @@ def test_on_demand_registers_only_when_requested_and_answers():
         pending = []
         engine.relocalize(wait=False, on_answer=lambda *a: pending.append(a))
         engine.deactivate()
-        assert pending == [(False, 'not localized (inactive): the node was deactivated')]
+        assert pending == [(False, 'inactive: not localized: the node was deactivated')]
         assert engine.statistics()['relocalize.failed.inactive'] == 2
         balanced(engine)
     finally:

@@ -125,6 +125,7 @@ def test_a_planar_scene_fails_with_the_reason_and_no_pose():
         wait_for(lambda: engine.statistics()['calibration.status'] == 'failed', 60, 'a FAIL')
         assert not out.calibrations
         assert engine.statistics()['calibration.reason'].startswith('not observable')
+        assert engine.statistics()['calibration.refusal_code'] == 'degenerate_axis'
         assert any(level == 'error' and 'calibration FAILED' in m for level, m in out.logs)
     finally:
         engine.stop()

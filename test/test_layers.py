@@ -2,10 +2,11 @@
 The package's architecture, checked from its sources with ast.
 
 Layers import one way: tools -> ros -> localizer -> calibration -> pipeline -> frontend /
-registration -> geometry, config, io (and errors, timing). Only ros/ (and the live
-replay's DDS client) imports rclpy and message packages, and ros/ is wiring only: every module
-of it imports them, and the whole stays small enough to read in one sitting. The core
-(registration/) imports neither ROS nor Open3D. No import cycle.
+registration -> validity -> geometry, config, io (and errors, timing, and the refusal codes
+below them all). Only ros/ (and the live replay's DDS client) imports rclpy and message
+packages, and ros/ is wiring only: every module of it imports them, and the whole stays
+small enough to read in one sitting. The core (registration/) imports neither ROS nor
+Open3D. No import cycle.
 """
 
 from __future__ import annotations
@@ -20,9 +21,10 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / 'cgags_ros'
 LAYERS = {  # top-level part of the module name -> layer (higher imports lower)
+    'refusal': -1,  # the refusal codes, which every error and result carries
     'errors': 0, 'timing': 0, 'parallel': 0, 'compiled_types': 0,
     'geometry': 1, 'config': 1,  # the bottom: typed config, geometry, then files and data
-    'io': 2,
+    'io': 2, 'validity': 2,  # validity: the core and the pipeline ask it for their verdicts
     'frontend': 3, 'registration': 3,  # siblings: neither imports the other
     'pipeline': 4,
     'calibration': 5,  # several frames, each through the pipeline

@@ -14,6 +14,7 @@ from bench.datasets.synthetic import load_bunny, make_correspondences
 from cgags_ros.config import fields
 from cgags_ros.errors import DegenerateCorrespondencesError, InvalidConfigError
 from cgags_ros.geometry import GravityFrame, rotation_error_deg, translation_error
+from cgags_ros.refusal import RefusalCode as Code
 from cgags_ros.registration import CoreConfig, register_correspondences
 from cgags_ros.registration.compatibility import build_compatibility_graph
 from cgags_ros.registration.compatibility_4dof import build_vertical_compatibility_graph
@@ -108,8 +109,8 @@ def test_tilted_pair_is_reported_not_forced_flat(bunny):
     T = yaw_motion(rng, tilt_deg=8.0)
     p = make_correspondences(bunny, 1000, 0.5, rng=rng, transform=T)
     res = register_correspondences(p.src, p.dst, inlier_threshold=TAU, config=FOUR)
-    assert not res.valid
-    assert res.stats['tilt_deg'] > FOUR.max_tilt_deg
+    assert not res.valid and res.refusal.code is Code.TILT
+    assert res.tilt_deg > FOUR.max_tilt_deg
     assert 'not levelled' in res.reason
     assert roll_pitch_residual(res.transform) < 1e-12  # still a yaw: reported, not tilted
     level = register_correspondences(p.src, p.dst, inlier_threshold=TAU)  # 6-DoF handles it
@@ -125,7 +126,8 @@ def test_two_correspondences_are_enough_and_one_is_not():
     np.testing.assert_allclose(T[:3, :3], R, atol=1e-12)
     np.testing.assert_allclose(T[:3, 3], [0.5, -0.3, 0.1], atol=1e-12)
     res = register_correspondences(src, dst, inlier_threshold=TAU, config=FOUR)
-    assert not res.valid and 'min_inliers' in res.reason  # runs, but 2 < min_inliers
+    assert not res.valid and res.refusal.code is Code.FEW_INLIERS  # runs, but 2 < min_inliers
+    assert 'min_inliers' in res.reason
     with pytest.raises(DegenerateCorrespondencesError, match='at least 2'):
         register_correspondences(src[:1], dst[:1], inlier_threshold=TAU, config=FOUR)
     with pytest.raises(DegenerateCorrespondencesError, match='at least 3'):
@@ -134,8 +136,9 @@ def test_two_correspondences_are_enough_and_one_is_not():
 
 def test_vertical_line_is_degenerate():
     src = np.c_[np.zeros(5), np.zeros(5), np.arange(5.0)]
-    with pytest.raises(DegenerateCorrespondencesError, match='vertical line'):
+    with pytest.raises(DegenerateCorrespondencesError, match='vertical line') as info:
         register_correspondences(src, src + 1.0, inlier_threshold=TAU, config=FOUR)
+    assert info.value.code is Code.COLLINEAR  # a line: the rotation about it is free
 
 
 @pytest.mark.parametrize('axis', [(0.0, 0.0, 0.0), (1e-12, 0.0, 0.0)])
@@ -212,7 +215,7 @@ def test_outliers_spread_wider_than_the_model_stop_early(bunny, layout):
         assert res.valid, res.reason
         assert rotation_error_deg(res.transform, T) < 2
         assert translation_error(res.transform, T) < 0.05
-        assert res.stats['chance_level'] < 10  # the true consensus stands above chance
+        assert res.chance_level < 10  # the true consensus stands above chance
         assert res.num_hypotheses < 1000, res.stats  # 6-DoF needs ~250 here; the cap is 1e5
 
 
@@ -231,7 +234,8 @@ def test_resumed_stage_one_stops_once_the_best_model_is_significant(bunny):
         p = make_correspondences(bunny, 1000, 0.995, rng=rng, transform=T, outliers='cube')
         res = register_correspondences(p.src, p.dst, inlier_threshold=TAU, config=FOUR,
                                        seed=trial)
-        assert not res.valid and 'min_inliers' in res.reason
+        assert not res.valid and res.refusal.code is Code.FEW_INLIERS
+        assert 'min_inliers' in res.reason
         assert rotation_error_deg(res.transform, T) < 5
         assert translation_error(res.transform, T) < 0.1
         assert res.num_hypotheses < 5000, res.stats

@@ -15,6 +15,7 @@ from cgags_ros.config.fields import update_from_flat
 from cgags_ros.geometry import apply_transform, rotation_error_deg, translation_error
 from cgags_ros.io.clouds import read_cloud, write_cloud
 from cgags_ros.pipeline import register_clouds
+from cgags_ros.refusal import RefusalCode as Code
 from cgags_ros.tools import register_cli, replay
 import numpy as np
 import pytest
@@ -86,7 +87,7 @@ def test_pipeline_reports_a_tilted_pair(levelled_pair):
     src, tgt, _ = levelled_pair
     tilted = src @ Rotation.from_euler('x', 4.0, degrees=True).as_matrix().T
     res = register_clouds(tilted, tgt, config=config('4dof'))
-    assert not res.valid
+    assert not res.valid and res.refusal.code is Code.TILT, res.refusal
     assert 'not levelled' in res.reason, res.reason
     assert res.transform[2, 2] == 1.0  # reported, not forced flat and called valid
 

@@ -236,7 +236,7 @@ def test_parameter_fuzzing_applies_or_refuses_and_the_next_pair_uses_what_was_ac
 
     def record(source, target, *, config):
         seen.append(config)
-        return PipelineResult(transform=np.eye(4), valid=True, inliers=np.arange(10),
+        return PipelineResult(transform=np.eye(4), refusal=None, inliers=np.arange(10),
                               num_correspondences=20, inlier_threshold=0.05)
 
     node = start(wire, record, diagnostics_period=0.1)

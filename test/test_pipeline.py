@@ -30,6 +30,7 @@ from cgags_ros.pipeline import (
 )
 from cgags_ros.pipeline.gates import chance_inliers, observability
 from cgags_ros.pipeline.register import terrain_patch
+from cgags_ros.refusal import RefusalCode as Code
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -210,7 +211,12 @@ def test_after_warm_up_a_real_pair_compiles_nothing_in_the_front_end(data_dir):
     assert {d: len(d.signatures) for d in dispatchers} == before
 
 
-# --- degenerate and non-overlapping input: valid=False with a reason -------------------------
+# --- degenerate and non-overlapping input: valid=False with a refusal code --------------------
+# The refusals that say "no pose of these clouds is supported", as opposed to bad input.
+NOT_SUPPORTED = {Code.CHANCE_LEVEL, Code.AMBIGUOUS, Code.NO_ESTIMATE, Code.FEW_INLIERS,
+                 Code.FREE_SPACE, Code.LOW_FITNESS}
+
+
 def _plane(rng, n=20000):
     return np.c_[rng.uniform(-1, 1, (n, 2)), rng.normal(0, 0.002, n)]
 
@@ -220,8 +226,13 @@ def _moved(points, seed):
     return points @ X[:3, :3].T + X[:3, 3]
 
 
-@pytest.mark.parametrize('kind', ['plane', 'line', 'single_point', 'sphere'])
-def test_degenerate_clouds_are_invalid(kind):
+@pytest.mark.parametrize('kind, codes', [
+    ('plane', {Code.NO_CORRESPONDENCES, Code.DEGENERATE_AXIS}),  # FPFH alike everywhere
+    ('line', {Code.COLLINEAR}),
+    ('single_point', {Code.TOO_FEW_POINTS}),  # one voxel left
+    ('sphere', {Code.DEGENERATE_AXIS, Code.AMBIGUOUS}),  # every rotation fits
+])
+def test_degenerate_clouds_are_invalid(kind, codes):
     rng = np.random.default_rng(1)
     if kind == 'plane':
         source, target = _plane(rng), _moved(_plane(rng), 2)
@@ -236,7 +247,9 @@ def test_degenerate_clouds_are_invalid(kind):
         source, target = ball, _moved(ball, 5)
     cfg = pipeline_config_from({'voxel_size': 0.05, 'core.max_iterations': 5000})
     result = register_clouds(source, target, config=cfg)
-    assert not result.valid and result.reason
+    assert not result.valid and result.refusal.code in codes, result.refusal
+    assert result.reason == result.refusal.message and result.summary()['refusal'] == {
+        'code': result.refusal.code.value, 'message': result.reason}
 
 
 def test_non_overlapping_halves_are_invalid(data_dir):
@@ -246,7 +259,7 @@ def test_non_overlapping_halves_are_invalid(data_dir):
     cfg = pipeline_config_from({'voxel_size': 0.05, 'core.max_iterations': 5000})
     result = register_clouds(cloud[cloud[:, 0] < x - 0.5], _moved(cloud[cloud[:, 0] > x + 0.5], 6),
                              config=cfg)
-    assert not result.valid and result.reason
+    assert not result.valid and result.refusal.code in NOT_SUPPORTED, result.refusal
 
 
 def test_observability_and_chance_level_gates():

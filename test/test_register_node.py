@@ -27,6 +27,7 @@ from cgags_ros.geometry import rotation_error_deg, translation_error  # noqa: E4
 from cgags_ros.io.bag import read_messages  # noqa: E402
 from cgags_ros.io.pointcloud2 import pose_to_transform  # noqa: E402
 from cgags_ros.pipeline.result import PipelineResult  # noqa: E402
+from cgags_ros.refusal import Refusal, RefusalCode  # noqa: E402
 from cgags_ros.ros.conversions import to_rclpy_pointcloud2, xyz_to_pointcloud2  # noqa: E402
 from cgags_ros.ros.node import RegisterNode  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
@@ -138,8 +139,8 @@ def fake_register(source, target, *, config):
     """Stand-in for the pipeline: translation = voxel_size along x; invalid above 1 m."""
     T = np.eye(4)
     T[0, 3] = config.voxel_size
-    return PipelineResult(transform=T, valid=config.voxel_size <= 1.0,
-                          reason='' if config.voxel_size <= 1.0 else 'fake: too coarse',
+    return PipelineResult(transform=T, refusal=None if config.voxel_size <= 1.0 else Refusal(
+                              RefusalCode.FEW_INLIERS, 'fake: too coarse'),
                           inliers=np.arange(12), num_correspondences=20,
                           inlier_threshold=0.05)
 
@@ -193,6 +194,11 @@ def test_plumbing_parameters_outputs_and_rejections(ros):
         io.source_pub.publish(good)  # fake marks voxel_size > 1 invalid: not published
         wait_for(lambda: node.statistics().get('rejected.invalid_result'), 5, 'invalid result')
         assert io.pose_at(8 * 10**9) is None
+        stats = node.statistics()  # the refusal's code beside its message
+        assert (stats['last_valid'], stats['last_refusal_code'], stats['last_reason']) == (
+            False, 'few_inliers', 'fake: too coarse')
+        wait_for(lambda: io.diag.get(node.get_fully_qualified_name(), {})
+                 .get('last_refusal_code') == 'few_inliers', 5, 'the code on /diagnostics')
         node.set_parameters([Parameter('output.publish_invalid', value=True)])
         good.header.stamp.sec = 9
         io.source_pub.publish(good)

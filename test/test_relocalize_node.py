@@ -17,6 +17,7 @@ from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.io.clouds import read_cloud, write_cloud
 from cgags_ros.io.pointcloud2 import pose_to_transform
 from cgags_ros.pipeline.result import PipelineResult
+from cgags_ros.refusal import RefusalCode
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -169,14 +170,19 @@ def test_on_demand_relocalization_in_a_merged_kitchen_map(wire, kitchen, data_di
         io.send(bunny)
         wait_for(lambda: int(io.values.get('pairing.pending', 0)) > 0, 30.0, 'the bunny scan')
         answer = io.relocalize()
-        assert not answer.success and answer.message.startswith('not localized (')
-        wait_for(lambda: any(k.startswith('relocalize.failed.') for k in io.values), 10.0,
-                 'the failure counted', lambda: io.values)
+        code = answer.message.split(':', 1)[0]  # the answer starts with the refusal's code
+        assert not answer.success and RefusalCode(code) in {
+            RefusalCode.CHANCE_LEVEL, RefusalCode.AMBIGUOUS, RefusalCode.NO_ESTIMATE,
+            RefusalCode.FEW_INLIERS, RefusalCode.FREE_SPACE, RefusalCode.LOW_FITNESS,
+            RefusalCode.LOW_RATIO}, answer.message
+        assert answer.message.startswith(f'{code}: not localized: ')
+        wait_for(lambda: io.values.get(f'relocalize.failed.{code}') == '1', 10.0,
+                 'the failure counted by its code', lambda: io.values)
         assert io.values['relocalize.calls'] == '3'
         assert io.values['relocalize.succeeded'] == '2'
-        refused = sum(int(v) for k, v in io.values.items()
-                      if k.startswith('initial_pose.refused.'))
-        assert refused == 1 and len(io.initial) == n_initial
+        refused = {k: v for k, v in io.values.items() if k.startswith('initial_pose.refused.')}
+        # the guard refused the initial pose with the very refusal the answer gives
+        assert refused == {f'initial_pose.refused.{code}': '1'} and len(io.initial) == n_initial
         assert io.values['accounting.ok'] == 'True'
     finally:
         stop(wire, node)
@@ -248,7 +254,7 @@ def test_relocalize_calls_in_flight_hold_no_executor_thread(wire):
     def held(source, target, *, config):
         registering.set()
         assert gate.wait(60.0), 'the gate never opened'
-        return PipelineResult(transform=np.eye(4), valid=True, inliers=np.arange(40),
+        return PipelineResult(transform=np.eye(4), refusal=None, inliers=np.arange(40),
                               num_correspondences=100, fitness=0.8)
 
     node = start(wire, held, source_qos='reliable', relocalize_timeout=120.0,
@@ -317,6 +323,7 @@ def test_a_bad_map_file_fails_configure_and_leaves_nothing_running(
         assert 'map_file cannot be used: ' in logged[0] and path.name in logged[0]
         wait_for(lambda: io.values.get('configure.error'), 10, 'the reason on /diagnostics')
         assert io.level == DiagnosticStatus.ERROR and path.name in io.values['configure.error']
+        assert io.values['configure.refusal_code'] == 'start_failed'  # beside its message
         assert node.context.ok()
         if case == 'missing':  # the file appears: a configure now succeeds
             write_cloud(path, read_cloud(data_dir / 'lidar' / 'small_gicp' / 'target.ply'))

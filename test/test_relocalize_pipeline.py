@@ -14,6 +14,7 @@ from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.io.clouds import read_cloud
 from cgags_ros.pipeline import register_clouds
 from cgags_ros.pipeline.map import load_map
+from cgags_ros.refusal import RefusalCode as Code
 from cgags_ros.tools import register_cli
 import numpy as np
 import pytest
@@ -196,7 +197,9 @@ def test_an_unrelated_scene_gives_no_confident_pose(kitchen, data_dir):
     _, merged, _ = kitchen
     bunny = read_cloud(data_dir / 'objects' / 'stanford_bunny_scans' / 'bun000.ply') * 20
     result = register_clouds(bunny, merged[::4], config=pipeline_config_from(MOVED))
-    assert not result.valid and result.reason
+    assert not result.valid and result.refusal.code in {
+        Code.CHANCE_LEVEL, Code.AMBIGUOUS, Code.NO_ESTIMATE, Code.FEW_INLIERS, Code.FREE_SPACE,
+        Code.LOW_FITNESS}, result.refusal
 
 
 def test_cli_prints_the_candidates(kitchen, data_dir, tmp_path, capsys):

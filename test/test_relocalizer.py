@@ -19,6 +19,7 @@ from cgags_ros.geometry import translation_error
 from cgags_ros.io.clouds import write_cloud
 from cgags_ros.pipeline.map import load_map
 from cgags_ros.pipeline.relocalizer import Relocalizer, SequenceConfig
+from cgags_ros.refusal import RefusalCode as Code
 from cgags_ros.tools import relocalize_cli
 from cgags_ros.tools.cli import EXIT_ERROR
 import numpy as np
@@ -89,8 +90,10 @@ def test_a_sequence_one_scan_cannot_settle_is_confirmed_by_three(scene):
     answers = feed(reloc, fragments, HARD, odom)
     first, last = answers[0], answers[-1]
     assert not first.confirmed and not first.done and 'another scan' in first.reason
+    assert first.refusal.code is first.results[0].refusal.code  # the scan's own refusal
     assert not right(first.transform, poses[HARD[0]])  # one scan alone picks a rival
     assert last.confirmed and last.done and last.reason == '', last.reason
+    assert last.refusal is None and last.valid
     assert last.scans_used == 3 and right(last.transform, poses[HARD[-1]])
     # map <- odom carries every scan of the sequence to its place, up to the drift.
     for k, O in zip(HARD, odom):
@@ -125,6 +128,7 @@ def test_odometry_that_contradicts_the_scans_is_refused_not_averaged(easy):
     last = answers[-1]
     assert last.done and not last.confirmed
     assert 'no pose explains every scan' in last.reason and 'odometry' in last.reason
+    assert last.refusal.code is Code.UNEXPLAINED
     limit = cfg.refine.max_free_space_violation
     explained = [sum(i in h.checks and h.checks[i].explains(seq, limit) for i in range(3))
                  for h in last.hypotheses]
@@ -142,7 +146,7 @@ def test_one_scan_is_judged_as_a_single_registration(easy):
         # Equal up to the last bits of Open3D's multi-threaded ICP sums (docs/design.md,
         # "Determinism"): the same registration, not a second one.
         np.testing.assert_allclose(answer.transform, single.transform, atol=1e-9)
-        assert answer.reason == single.reason
+        assert answer.reason == single.reason and answer.refusal == single.refusal
 
 
 def test_bad_odometry_poses_are_input_errors(easy):
@@ -181,6 +185,8 @@ def test_the_command_confirms_over_three_scans_and_prints_json(easy, tmp_path, c
     assert relocalize_cli.main(argv) == 0
     out = json.loads(capsys.readouterr().out)
     assert out['confirmed'] is True and out['reason'] == '' and out['scans_used'] == 3
+    assert out['refusal'] is None and all(s['refusal'] is None or s['refusal']['code']
+                                          for s in out['scans'])
     assert right(np.asarray(out['transform']), poses[EASY[-1]])
     assert right(np.asarray(out['map_from_odom']) @ odom[0], poses[EASY[0]])
     assert out['hypotheses'][0]['scans_explained'] == 3

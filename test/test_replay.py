@@ -149,6 +149,13 @@ def test_faulty_bag_counts_broken_messages(bags, out, capsys):
     assert report.recall == 1.0 and len(report.evaluated) == 1  # the one good pair with GT
     text = capsys.readouterr().out
     assert 'broken messages 4' in text and 'truncated' in text
+    # the refused pairs say why with a code, in the report and in both result files
+    assert [_code(r.refusal) for r in report.rows] == FAULTY_CODES
+    with open(out / 'faulty' / 'results.csv', newline='') as f:
+        assert [r['refusal'] or None for r in csv.DictReader(f)] == FAULTY_CODES
+    pairs = json.loads((out / 'faulty' / 'results.json').read_text())['pairs']
+    assert [p['refusal'] and p['refusal']['code'] for p in pairs] == FAULTY_CODES
+    assert all(p['refusal']['message'] == p['reason'] for p in pairs if p['refusal'])
 
 
 def test_faulty_bag_live(bags, out, ros_env):
@@ -159,6 +166,16 @@ def test_faulty_bag_live(bags, out, ros_env):
     assert report.recall == 1.0
     assert not any('stopped waiting' in n for n in report.notes)  # the node accounted for all
     assert any('source_malformed' in n for n in report.notes)
+    # the node's code for each refused pair (no_pose: no diagnostics sample caught that pair)
+    for row, code in zip(report.rows, FAULTY_CODES, strict=True):
+        assert _code(row.refusal) in ({code, 'no_pose'} if code else {None}), row
+
+
+FAULTY_CODES = ['too_few_points', None, 'collinear', None]  # a single point, a line
+
+
+def _code(refusal):
+    return None if refusal is None else refusal.code.value
 
 
 def _main_error(capsys, *argv) -> str:

@@ -10,6 +10,7 @@ from cgags_ros.config import PipelineConfig, TrackingConfig
 from cgags_ros.geometry import apply_transform, rotation_error_deg, translation_error
 from cgags_ros.pipeline import PipelineResult, Tracker
 from cgags_ros.pipeline import tracking as tracking_module
+from cgags_ros.refusal import Refusal, RefusalCode as Code
 import numpy as np
 import pytest
 
@@ -78,6 +79,9 @@ def test_jump_falls_back_to_global(kitti):
     assert result.path == 'global', 'a jump must not be tracked'
     failure = result.stats['tracking_failure']  # which gate caught it depends on the settings
     assert failure.startswith(('tracking:', 'free-space violation', 'degenerate', 'fitness'))
+    assert result.stats['tracking_failure_code'] in {
+        Code.TRACKING_LOST.value, Code.FREE_SPACE.value, Code.DEGENERATE_AXIS.value,
+        Code.LOW_FITNESS.value}
     assert result.valid and _within(result, truth[0])
     # tracking resumes from the global pose
     after = tracker.register(scans[1], scans[0], 4 * PERIOD, config=config)
@@ -101,11 +105,12 @@ def test_kidnap_falls_back_and_never_returns_the_stale_pose(kitti, monkeypatch):
     _run(tracker, scans, [4, 5, 6], scans[0], config)
 
     def refuse(source, target, *, config=None):
-        return PipelineResult(reason='refused').finish(0.0, 'refused')
+        return PipelineResult().finish(0.0, Refusal(Code.NO_ESTIMATE, 'refused'))
 
     monkeypatch.setattr(tracking_module, 'register_clouds', refuse)
     result = tracker.register(kidnapped, scans[0], 3 * PERIOD, config=config)
     assert not result.valid and result.path == 'global'
+    assert result.refusal.code is Code.NO_ESTIMATE  # the global search's, not the tracker's
     assert not _within(result, truth[7], 10.0, 2.0), 'the stale pose came back'
     counts = tracker.counts()
     assert (counts['tracking_failures'], counts['invalid']) == (1, 1)
@@ -125,6 +130,7 @@ def test_degenerate_corridor_is_not_tracked(kitti):
     result = tracker.register(corridor, scans[0], 3 * PERIOD, config=config)
     assert result.path == 'global', 'a degenerate view must not be tracked'
     assert 'degenerate' in result.stats['tracking_failure']
+    assert result.stats['tracking_failure_code'] == Code.DEGENERATE_AXIS.value
     assert not result.valid or _within(result, truth[6])
 
 

@@ -1,4 +1,4 @@
-"""Helpers of the tests: waiting for conditions, ROS contexts, node processes, the kitchen map."""
+"""Helpers of the tests: waiting for conditions, ROS contexts, node processes, scenes."""
 
 import contextlib
 import os
@@ -237,6 +237,18 @@ def spun_context(domain_id, make_io):
         executor.shutdown(timeout_sec=2.0)
         io.node.destroy_node()
         context.try_shutdown()
+
+
+def box_room(rng, n, size=(6.0, 4.0, 2.5)):
+    """Return ``n`` points on the inside walls, floor and ceiling of a box room at the origin."""
+    import numpy as np
+
+    half = np.array(size) / 2
+    pts = rng.uniform(-half, half, size=(n, 3))
+    axis = rng.integers(0, 3, size=n)
+    side = rng.choice([-1.0, 1.0], size=n)
+    pts[np.arange(n), axis] = side * half[axis]
+    return pts
 
 
 def merged_kitchen_map(data_dir, folder):

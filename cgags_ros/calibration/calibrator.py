@@ -22,6 +22,7 @@ from .frames import Evidence, Frame, gather
 from .result import CalibrationResult
 from ..config.calibration import CalibrationConfig
 from ..geometry import rotation_error_deg, translation_error
+from ..refusal import Refusal, RefusalCode
 
 
 class Calibrator:
@@ -94,14 +95,16 @@ def solve(evidence: list[Evidence], cfg: CalibrationConfig) -> CalibrationResult
         result.frames = [consensus.verdict(i, e, np.eye(4), cfg) for i, e in enumerate(evidence)]
         for f in result.frames:
             f.agrees, f.reason = False, f.reason or 'no candidate pose'
-        result.reason = ('no frame gave a candidate pose: ' + '; '.join(
-            f'{f.name}: {f.single_frame_reason}' for f in result.frames))
+        result.refusal = Refusal(RefusalCode.NO_ESTIMATE, 'no frame gave a candidate pose: '
+                                 + '; '.join(f'{f.name}: {f.single_frame_reason}'
+                                             for f in result.frames))
         scans = [e.clouds for e in evidence if e.clouds is not None]
         if scans:  # say what the scenes themselves leave free, if anything
             result.observability, result.unobservable = _scene_observability(scans, cfg)
-            if result.unobservable:
-                result.reason = (_observability_reason(result, cfg)
-                                 + ' (judged on the parent scans: ' + result.reason + ')')
+            free = _observability_refusal(result, cfg)
+            if free:
+                result.refusal = Refusal(free.code, f'{free.message} (judged on the parent '
+                                         f'scans: {result.reason})')
         return result
     found = consensus.hypotheses(usable, cfg)
     T = found[0].transform
@@ -116,9 +119,8 @@ def solve(evidence: list[Evidence], cfg: CalibrationConfig) -> CalibrationResult
         T = joint.refine(clouds, T, [d], cfg.iterations)
     result.transform = T
     _uncertainty(result, clouds, agreeing, cfg)
-    result.reason = (_observability_reason(result, cfg) or _agreement_reason(result, cfg)
-                     or _rival_reason(found, usable, cfg))
-    result.valid = not result.reason
+    result.refusal = (_observability_refusal(result, cfg) or _agreement_refusal(result, cfg)
+                      or _rival_refusal(found, usable, cfg))
     return result
 
 
@@ -163,42 +165,48 @@ def _scene_observability(scans: list, cfg: CalibrationConfig) -> tuple[float, li
     return uncertainty.unobservable(J.T @ J, centre, radius, cfg.min_observability)
 
 
-def _observability_reason(result: CalibrationResult, cfg: CalibrationConfig) -> str:
+def _observability_refusal(result: CalibrationResult,
+                           cfg: CalibrationConfig) -> Refusal | None:
     if not result.unobservable:
-        return ''
-    return (f"not observable: {'; '.join(result.unobservable)} (parent frame): the scenes "
-            'do not constrain it (observability '
-            f'{result.observability:.2g} < min_observability {cfg.min_observability:g}; a '
-            'plane leaves the translations in it and the rotation about its normal free, a '
-            'corridor the translation along it); add frames of a richer scene')
+        return None
+    return Refusal(RefusalCode.DEGENERATE_AXIS, (
+        f"not observable: {'; '.join(result.unobservable)} (parent frame): the scenes do "
+        f'not constrain it (observability {result.observability:.2g} < min_observability '
+        f'{cfg.min_observability:g}; a plane leaves the translations in it and the rotation '
+        'about its normal free, a corridor the translation along it); add frames of a '
+        'richer scene'))
 
 
-def _agreement_reason(result: CalibrationResult, cfg: CalibrationConfig) -> str:
+def _agreement_refusal(result: CalibrationResult, cfg: CalibrationConfig) -> Refusal | None:
     n, total = result.num_agreeing, len(result.frames)
     if n and n >= cfg.min_agreement * total:
         if n >= cfg.min_agreeing_frames:
-            return ''
+            return None
         alone = [f for f in result.frames if f.agrees]
         if n == 1 and alone[0].single_frame_valid and alone[0].candidate_rank == 0:
-            return ''  # one frame, and the pipeline's own gates accept that very pose
-        return (f'too little agreement: {n} frame(s) agree (min_agreeing_frames '
-                f'{cfg.min_agreeing_frames}) and the pipeline alone did not accept the pose '
-                f'({alone[0].single_frame_reason or "another pose"}); take more frames')
-    return (f'frames disagree: {n} of {total} agree on the pose (min_agreement '
-            f'{cfg.min_agreement:g}); ' + '; '.join(
-                f'{f.name}: {f.reason}' for f in result.frames if not f.agrees))
+            return None  # one frame, and the pipeline's own gates accept that very pose
+        return Refusal(RefusalCode.FRAMES_DISAGREE, (
+            f'too little agreement: {n} frame(s) agree (min_agreeing_frames '
+            f'{cfg.min_agreeing_frames}) and the pipeline alone did not accept the pose '
+            f'({alone[0].single_frame_reason or "another pose"}); take more frames'))
+    return Refusal(RefusalCode.FRAMES_DISAGREE, (
+        f'frames disagree: {n} of {total} agree on the pose (min_agreement '
+        f'{cfg.min_agreement:g}); '
+        + '; '.join(f'{f.name}: {f.reason}' for f in result.frames if not f.agrees)))
 
 
-def _rival_reason(found: list, usable: list[Evidence], cfg: CalibrationConfig) -> str:
+def _rival_refusal(found: list, usable: list[Evidence],
+                   cfg: CalibrationConfig) -> Refusal | None:
     other = consensus.rival(found, usable, cfg)
     if other is None:
-        return ''
+        return None
     best = found[0]
-    return (f'ambiguous: every frame also agrees with a pose '
-            f'{rotation_error_deg(other.transform, best.transform):.1f} deg / '
-            f'{translation_error(other.transform, best.transform):.2f} m away (joint overlap '
-            f'{other.score:.3f} against {best.score:.3f}, within ambiguity_ratio '
-            f'{cfg.ambiguity_ratio:g}); the scenes look alike in both poses')
+    return Refusal(RefusalCode.AMBIGUOUS, (
+        f'ambiguous: every frame also agrees with a pose '
+        f'{rotation_error_deg(other.transform, best.transform):.1f} deg / '
+        f'{translation_error(other.transform, best.transform):.2f} m away (joint overlap '
+        f'{other.score:.3f} against {best.score:.3f}, within ambiguity_ratio '
+        f'{cfg.ambiguity_ratio:g}); the scenes look alike in both poses'))
 
 
 def _last_frame_within_std(evidence: list[Evidence], result: CalibrationResult,

@@ -68,7 +68,7 @@ def to_yaml(result: CalibrationResult) -> str:
     import yaml
 
     d = as_dict(result)
-    keys = ('valid', 'reason', 'transform_meaning', 'parent_frame', 'child_frame',
+    keys = ('valid', 'reason', 'refusal', 'transform_meaning', 'parent_frame', 'child_frame',
             'translation_m', 'rpy_rad', 'quaternion_xyzw', 'std', 'unobservable',
             'num_frames', 'num_agreeing', 'converged')
     return yaml.safe_dump({k: d[k] for k in keys if k in d}, sort_keys=False)
@@ -94,7 +94,7 @@ def to_text(result: CalibrationResult) -> str:
             '', '# JSON (with the covariance and every frame; --json prints it alone):',
             to_json(result)]
     else:
-        lines.append(f'FAIL: {result.reason}')
+        lines.append(f'FAIL ({result.refusal.code.value}): {result.reason}')
     lines.append('')
     lines.append('frames:')
     for f in result.frames:

@@ -75,7 +75,7 @@ def gather(frame: Frame, config: PipelineConfig) -> Evidence:
     try:
         child, parent = finite_points(frame.child, 'child'), finite_points(frame.parent, 'parent')
     except EmptyCloudError as exc:
-        return Evidence(frame, PipelineResult(reason=str(exc)), None, [])
+        return Evidence(frame, PipelineResult(refusal=exc.refusal), None, [])
     result = register_clouds(child, parent, config=config)
     candidates = [np.asarray(c.transform, dtype=np.float64) for c in result.candidates]
     try:

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from ..geometry import rotation_error_deg, translation_error
+from ..refusal import Judged, Refusal, RefusalCode, summary as refusal_summary
 
 TRANSFORM_WORDS = 'transform parent <- child (p_parent = R p_child + t)'
 
@@ -62,12 +63,12 @@ class FrameReport:
 
 
 @dataclasses.dataclass
-class CalibrationResult:
+class CalibrationResult(Judged):
     """
     The extrinsic parent <- child from several frames, or why there is none.
 
-    :ivar valid: True when the frames agree on one observable pose.
-    :ivar reason: why not ('' when valid).
+    :ivar refusal: None when the frames agree on one observable pose, else why not (a code
+        and a message); ``valid`` and ``reason`` read it.
     :ivar transform: 4x4 parent <- child (``p_parent = R p_child + t``, metres); None when
         no pose was found; present but not to be used when ``valid`` is False.
     :ivar covariance: 6x6 (see :mod:`.uncertainty` for the convention), or None.
@@ -85,8 +86,7 @@ class CalibrationResult:
     :ivar seconds: wall time of the whole calibration.
     """
 
-    valid: bool = False
-    reason: str = ''
+    refusal: Refusal | None = Refusal(RefusalCode.NO_ESTIMATE, 'not solved yet')
     transform: np.ndarray | None = None
     covariance: np.ndarray | None = None
     std: dict[str, float] = dataclasses.field(default_factory=dict)
@@ -110,7 +110,7 @@ class CalibrationResult:
         T = self.transform
         return {
             'valid': bool(self.valid), 'reason': self.reason,
-            'transform_meaning': TRANSFORM_WORDS,
+            'refusal': refusal_summary(self.refusal), 'transform_meaning': TRANSFORM_WORDS,
             'parent_frame': self.parent_frame, 'child_frame': self.child_frame,
             'transform': None if T is None else T.tolist(),
             'covariance': None if self.covariance is None else self.covariance.tolist(),

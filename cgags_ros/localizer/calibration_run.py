@@ -21,6 +21,7 @@ from .interface import Calibration, EngineOutputs
 from ..config.calibration import CalibrationConfig
 from ..config.pipeline import PipelineConfig
 from ..pipeline.pairing import Pair
+from ..refusal import Refusal, RefusalCode
 
 COLLECTING, CONVERGED, FINAL, FAILED = 'collecting', 'converged', 'max_frames', 'failed'
 
@@ -32,7 +33,8 @@ class CalibrationRun:
         self.config, self._outputs = config, outputs
         self._lock = threading.Lock()  # guards what statistics() reads
         self._calibrator: Any = None  # a Calibrator from the first frame on
-        self.status, self.reason = COLLECTING, ''
+        self.status = COLLECTING
+        self.refusal: Refusal | None = None  # why the calibration failed
 
     @classmethod
     def for_mode(cls, mode: str, pipeline: PipelineConfig, config: CalibrationConfig | None,
@@ -48,11 +50,11 @@ class CalibrationRun:
         with self._lock:
             return self.status != COLLECTING
 
-    def take(self, pair: Pair) -> tuple[str, str]:
+    def take(self, pair: Pair) -> tuple[str, Refusal | None]:
         """
         Add one synchronized pair as a frame; solve, and publish once done.
 
-        :returns: ('', '') or a rejection (cause, message) for the engine's accounting.
+        :returns: ('', None) or a rejection (cause, refusal) for the engine's accounting.
         """
         # Imported on the first frame: it loads the pipeline (the other modes load it in
         # the engine's start()).
@@ -60,17 +62,18 @@ class CalibrationRun:
         from ..calibration.formats import as_dict
 
         if self.done:
-            return 'calibration_done', (f'calibration {self.status}: further pairs are not '
-                                        'used (reconfigure the node to calibrate again)')
+            return 'calibration_done', Refusal(RefusalCode.IGNORED, (
+                f'calibration {self.status}: further pairs are not used (reconfigure the node '
+                'to calibrate again)'))
         child, parent = pair.source.payload, pair.target.payload
         parent_id, child_id = str(parent.header.frame_id), str(child.header.frame_id)
         cal = self._calibrator
         if cal is None:
             cal = Calibrator(self.config, parent_frame=parent_id, child_frame=child_id)
         elif (parent_id, child_id) != (cal.parent_frame, cal.child_frame):
-            return 'calibration_frames', (
+            return 'calibration_frames', Refusal(RefusalCode.IGNORED, (
                 f'calibration pair {parent_id} <- {child_id} is not the one being calibrated '
-                f'({cal.parent_frame} <- {cal.child_frame}): ignored')
+                f'({cal.parent_frame} <- {cal.child_frame}): ignored'))
         cal.add(Frame(parent.xyz, child.xyz, f'{pair.target.stamp_ns}',
                       pair.target.stamp_ns, pair.source.stamp_ns))
         with self._lock:
@@ -78,17 +81,17 @@ class CalibrationRun:
         if len(cal.evidence) >= cal.config.min_frames:
             cal.solve()
         if not cal.done:
-            return '', ''
+            return '', None
         result = cal.result if cal.result is not None else cal.solve()
         status = CONVERGED if result.converged else FINAL
         if not result.valid or result.transform is None:
             status = FAILED
         with self._lock:
-            self.status, self.reason = status, result.reason
+            self.status, self.refusal = status, result.refusal
         frames = f'{result.num_agreeing} of {len(result.frames)} frames agree'
         if status == FAILED:
-            self._outputs.log('error', f'calibration FAILED ({frames}): {result.reason}')
-            return '', ''
+            self._outputs.log('error', f'calibration FAILED ({frames}): {result.refusal}')
+            return '', None
         report = as_dict(result)
         self._outputs.publish_calibration(Calibration(
             np.asarray(result.transform, dtype=np.float64),
@@ -97,12 +100,12 @@ class CalibrationRun:
         self._outputs.log('info', f'calibration {status} ({frames}): {TRANSFORM_WORDS}, '
                           f'parent {result.parent_frame}, child {result.child_frame}: '
                           f"{report.get('static_transform_publisher', '')}")
-        return '', ''
+        return '', None
 
     def statistics(self) -> dict[str, Any]:
         """Return the ``calibration.*`` keys of /diagnostics."""
         with self._lock:
-            cal, status, reason = self._calibrator, self.status, self.reason
+            cal, status, refusal = self._calibrator, self.status, self.refusal
         stats: dict[str, Any] = {'calibration.status': status,
                                  'calibration.max_frames': self.config.max_frames}
         if cal is not None:
@@ -111,6 +114,7 @@ class CalibrationRun:
             stats['calibration.frames_taken'] = len(cal.evidence)
             if cal.result is not None:
                 stats['calibration.frames_agreeing'] = cal.result.num_agreeing
-        if reason:
-            stats['calibration.reason'] = reason
+        if refusal:
+            stats['calibration.reason'] = refusal.message
+            stats['calibration.refusal_code'] = refusal.code.value
         return stats

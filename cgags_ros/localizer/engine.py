@@ -29,7 +29,7 @@ import numpy as np
 
 from .calibration_run import CalibrationConfig, CalibrationRun
 from .health import LOG_REPEAT_S, lost_upstream_message, NodeHealth
-from .initial_pose import ExtrinsicLookup, InitialPoseGuard, quality_refusal
+from .initial_pose import ExtrinsicLookup, InitialPoseGuard
 from .interface import BasePose, Cloud, EngineOutputs, Estimate, PairResult
 from .map_target import MapTarget
 from .relocalize import Answered, RelocalizeCalls, stale_scan, summary_line
@@ -42,6 +42,8 @@ from ..pipeline.isolated import (IsolatedRegistration, RegisterFn, RegistrationT
                                  WorkerCrashed)
 from ..pipeline.pairing import Pair, Pairer
 from ..pipeline.result import PipelineResult
+from ..refusal import Refusal, RefusalCode
+from ..validity import quality_refusal
 
 
 class RegistrationEngine:
@@ -111,8 +113,7 @@ class RegistrationEngine:
         with self._lock:
             self._active = False
         self._calls.wake()  # no scan is registered for a pending request until activated
-        self._calls.answer(False, 'not localized (inactive): the node was deactivated',
-                           'inactive')
+        self._calls.fail(Refusal(RefusalCode.INACTIVE, 'the node was deactivated'))
 
     @property
     def active(self) -> bool:
@@ -122,7 +123,7 @@ class RegistrationEngine:
 
     def stop(self) -> None:
         """End the worker and the registration process; answer pending requests."""
-        self._calls.answer(False, 'the node is shutting down', 'shutdown')
+        self._calls.fail(Refusal(RefusalCode.SHUTDOWN, 'the node is shutting down'))
         self.deactivate()
         self._stop.set()
         self._health.wake()
@@ -168,12 +169,17 @@ class RegistrationEngine:
         if rejection:
             self._log_rejection(rejection, message)
             if role == 'source':
-                self._outputs.publish_result(
-                    PairResult(stamp_ns, frame_id, 'rejected', rejection, message))
+                code = (RefusalCode.INACTIVE if rejection == 'source_inactive'
+                        else RefusalCode.TOO_FEW_POINTS if rejection.endswith('_empty')
+                        else RefusalCode.BAD_INPUT)
+                self._outputs.publish_result(PairResult(
+                    stamp_ns, frame_id, 'rejected', rejection, message,
+                    refusal=Refusal(code, message)))
         for reason, source in self._health.dropped_sources():
+            why = f'dropped by pairing: {reason} (docs/pairing.md)'
             self._outputs.publish_result(PairResult(
-                source.stamp_ns, source.frame_id, 'dropped', reason,
-                f'dropped by pairing: {reason} (docs/pairing.md)'))
+                source.stamp_ns, source.frame_id, 'dropped', reason, why,
+                refusal=Refusal(RefusalCode.UNPAIRED, why)))
         if lost:
             self._log_lost_upstream()
 
@@ -186,8 +192,7 @@ class RegistrationEngine:
             (True, 'requested') at once and report the answer to ``on_answer``.
         """
         if not self.active:
-            answer = self._calls.refuse('not localized (inactive): the node is not active',
-                                        'inactive')
+            answer = self._calls.refuse(Refusal(RefusalCode.INACTIVE, 'the node is not active'))
             if on_answer is not None:
                 on_answer(*answer)
             return answer
@@ -207,19 +212,19 @@ class RegistrationEngine:
             pair = self._health.take(timeout=0.2) if self._ready() else None
             if pair is None:
                 continue
-            cause, message = 'internal_error', ''
+            cause, refusal = 'internal_error', Refusal(RefusalCode.INTERNAL_ERROR, 'pair failed')
             self._registered = None
             try:
-                cause, message = self._process(pair)
+                cause, refusal = self._process(pair)
             except Exception as exc:  # noqa: BLE001 - the worker must outlive any bad pair
-                message = f'pair failed: {exc!r}\n{traceback.format_exc()}'
+                refusal = Refusal(refusal.code, f'pair failed: {exc!r}\n{traceback.format_exc()}')
             finally:
                 latency = (time.monotonic_ns() - pair.source.payload.receipt_ns) * 1e-9
-                self._publish_result(pair, cause, message)
+                self._publish_result(pair, cause, refusal)
                 self._health.finish(cause, latency)
-                self._settle(cause, message)
-            if cause and not self._stop.is_set():
-                self._log_rejection(cause, message)
+                self._settle(cause, refusal)
+            if cause and refusal and not self._stop.is_set():
+                self._log_rejection(cause, refusal.message)
 
     def _ready(self) -> bool:
         """Tell whether the worker may take a pair now; else wait a little."""
@@ -232,8 +237,8 @@ class RegistrationEngine:
             return False
         return True
 
-    def _process(self, pair: Pair) -> tuple[str, str]:
-        """Register and publish a pair; return ('', '') or its rejection (cause, message)."""
+    def _process(self, pair: Pair) -> tuple[str, Refusal | None]:
+        """Register and publish a pair; return ('', None) or its rejection (cause, refusal)."""
         if self._calibration is not None:
             return self._calibration.take(pair)
         source, target = pair.source.payload, pair.target.payload
@@ -245,38 +250,41 @@ class RegistrationEngine:
         try:
             result = self._register(source.xyz, target.xyz, config=pipe_cfg)
         except InvalidInputError as exc:
-            return 'pipeline_input', f'pair rejected by the pipeline: {exc}'
+            return 'pipeline_input', Refusal(exc.code, f'pair rejected by the pipeline: {exc}')
         except RegistrationTimeout as exc:
-            return 'timeout', str(exc)
+            return 'timeout', exc.refusal
         except WorkerCrashed as exc:
             self._health.failed('worker_crashed')
-            return 'worker_crashed', str(exc)
+            return 'worker_crashed', exc.refusal
         except CgagsError as exc:
-            return 'pipeline_error', f'registration failed: {exc}'
+            return 'pipeline_error', Refusal(exc.code, f'registration failed: {exc}')
         self._registered = result
         T = np.asarray(result.transform, dtype=np.float64)
-        valid = bool(result.valid) and np.isfinite(T).all()
+        refusal = result.refusal or (None if np.isfinite(T).all() else Refusal(
+            RefusalCode.INTERNAL_ERROR, 'the estimated transform is not finite'))
         if self._map is not None:
             self._map.update(result)
         frame = cfg.pose_frame_id or str(target.header.frame_id)
         self._health.registered({
-            'valid': valid, 'reason': str(result.reason), 'inliers': int(result.num_inliers),
+            'valid': refusal is None, 'reason': refusal.message if refusal else '',
+            'refusal_code': refusal.code.value if refusal else '', 'inliers': result.num_inliers,
             'fitness': float(result.fitness), 'voxel_size': pipe_cfg.voxel_size,
             'timings': dict(result.timings), 'source_stamp_ns': pair.source.stamp_ns})
         if not self.active:
-            return 'inactive', 'pair registered while the node was deactivated: not published'
+            return 'inactive', Refusal(RefusalCode.INACTIVE, 'deactivated during registration')
         cov = np.asarray(result.covariance, dtype=np.float64)
-        if not valid:
+        if refusal is not None:
             if not cfg.publish_invalid or not np.isfinite(T).all():
                 self._finish(pair, result, T, cov, cfg, frame)
-                return 'invalid_result', f'invalid registration: {result.reason}'
+                return 'invalid_result', Refusal(refusal.code,
+                                                 f'invalid registration: {refusal.message}')
             self._health.count('published_invalid')
         self._outputs.publish_estimate(Estimate(
             T, cov, source.header, frame,
             apply_transform(T, source.xyz) if cfg.publish_aligned_cloud else None,
             (cfg.tf_child_frame or str(source.header.frame_id)) if cfg.broadcast_tf else ''))
         self._finish(pair, result, T, cov, cfg, frame)
-        return '', ''
+        return '', None
 
     # ------------------------------------------------------------------ map and requests
 
@@ -289,36 +297,37 @@ class RegistrationEngine:
             c.transform for c in candidates if np.isfinite(c.transform).all()])
         called = self._calls.waiting() is not None
         published, why = False, 'publish_initial_pose is off'
-        key, refusal = quality_refusal(result, cfg)
+        refusal = quality_refusal(result, cfg)  # once: the guard and the answer share it
         if cfg.publish_initial_pose and (called or not self.on_demand):
             lookup: ExtrinsicLookup = self._outputs.base_from_sensor
             why, T_map_base, cov_base = self._initial_pose.offer(
-                result, T, cov, str(header.frame_id), cfg, not called, lookup)
+                refusal, T, cov, str(header.frame_id), cfg, not called, lookup)
             if T_map_base is not None:
                 published = True
                 self._outputs.publish_initial_pose(BasePose(
                     T_map_base, cov_base, header, cfg.map_frame,
                     cfg.odom_frame if cfg.broadcast_map_to_odom else '', cfg.base_frame))
-        line = summary_line(result, T, key, refusal, published, why)
+        line = summary_line(result, T, refusal, published, why)
         with self._lock:
             self._candidates, self._last_summary = candidates, line
         if called:
-            self._calls.answer(not key, line, key or 'ok')
+            self._calls.answer(line, refusal)
 
-    def _publish_result(self, pair: Pair, cause: str, message: str) -> None:
+    def _publish_result(self, pair: Pair, cause: str, refusal: Refusal | None) -> None:
         """Publish what became of the worker's pair (before it is counted as done)."""
         result, source, target = self._registered, pair.source, pair.target
         valid = (result is not None and bool(result.valid)
                  and bool(np.isfinite(result.transform).all()))
         self._outputs.publish_result(PairResult(
             source.stamp_ns, source.frame_id, 'rejected' if cause else 'published', cause,
-            message, target.stamp_ns, target.frame_id,
-            self.node_config.pose_frame_id or target.frame_id, valid, result))
+            refusal.message if refusal and cause else '', target.stamp_ns, target.frame_id,
+            self.node_config.pose_frame_id or target.frame_id, valid, result,
+            refusal if cause else None))
 
-    def _settle(self, cause: str, message: str) -> None:
+    def _settle(self, cause: str, refusal: Refusal | None) -> None:
         """Answer requests still pending after a pair that failed before :meth:`_finish`."""
-        if cause and cause != 'on_demand_stale_scan' and self._calls.waiting() is not None:
-            self._calls.answer(False, f'not localized ({cause}): {message}', cause)
+        if refusal and refusal.code is not RefusalCode.STALE and self._calls.waiting() is not None:
+            self._calls.fail(refusal)
 
     # ------------------------------------------------------------------ health
 

@@ -1,12 +1,13 @@
 """
 The guards of the ``initialpose`` for Nav2/AMCL: the robot base's pose, only when all pass.
 
-ROS-free. Quality guards (:func:`quality_refusal`): a valid, unambiguous estimate with at
-least ``initial_pose_min_inliers`` inliers, a best/runner-up candidate ratio of at least
+ROS-free. Quality guards (:func:`cgags_ros.validity.quality_refusal`, decided once per
+pair by the engine): a valid, unambiguous estimate with at least
+``initial_pose_min_inliers`` inliers, a best/runner-up candidate ratio of at least
 ``initial_pose_min_ratio`` and a fitness of at least ``initial_pose_min_fitness``. Then
 ``initial_pose_cooldown`` seconds since the last publish and, for scans registered without
 a relocalization request, at most ``initial_pose_max_auto`` publishes. Every publish and
-every refusal is counted, refusals by reason (``initial_pose.refused.<reason>``).
+every refusal is counted, refusals by code (``initial_pose.refused.<code>``).
 
 The pose is the base's: ``T_map_base = T_map_sensor inv(T_base_sensor)`` with the
 extrinsic from ``base_from_sensor``, or else from the node's TF lookup (``base_frame`` <-
@@ -26,7 +27,7 @@ import numpy as np
 from ..config.node import NodeConfig, parse_pose7
 from ..geometry import make_transform, quaternion_to_matrix
 from ..pipeline.covariance import moved_covariance
-from ..pipeline.result import PipelineResult
+from ..refusal import Refusal, RefusalCode
 
 # (base frame, sensor frame) -> T_base_sensor (4x4, metres), or None when unknown
 ExtrinsicLookup = Callable[[str, str], 'np.ndarray | None']
@@ -40,26 +41,6 @@ def extrinsic(cfg: NodeConfig) -> np.ndarray | None:
     return make_transform(quaternion_to_matrix(values[3:]), values[:3])
 
 
-def quality_refusal(result: PipelineResult, cfg: NodeConfig) -> tuple[str, str]:
-    """Return (reason key, message) why ``result`` is no confident pose, or ('', '')."""
-    if result.ambiguous:
-        return 'ambiguous', str(result.reason)
-    if not result.valid:
-        return 'invalid', str(result.reason)
-    if result.num_inliers < cfg.initial_pose_min_inliers:
-        return 'few_inliers', (f'{result.num_inliers} inliers < initial_pose_min_inliers '
-                               f'{cfg.initial_pose_min_inliers}')
-    ratio = float(result.runner_up_ratio)
-    if ratio < cfg.initial_pose_min_ratio:
-        return 'low_ratio', (f'best/runner-up ratio {ratio:.2f} < initial_pose_min_ratio '
-                             f'{cfg.initial_pose_min_ratio:g}')
-    fitness = float(result.fitness)
-    if fitness < cfg.initial_pose_min_fitness:
-        return 'low_fitness', (f'fitness {fitness:.3f} < initial_pose_min_fitness '
-                               f'{cfg.initial_pose_min_fitness:g}')
-    return '', ''
-
-
 class InitialPoseGuard:
     """Decides whether an estimate becomes an initial pose; counts publishes and refusals."""
 
@@ -68,41 +49,42 @@ class InitialPoseGuard:
         self.counts: collections.Counter[str] = collections.Counter()
         self._last_publish: float | None = None
 
-    def offer(self, result: PipelineResult, T: np.ndarray, cov: np.ndarray, sensor_frame: str,
+    def offer(self, refusal: Refusal | None, T: np.ndarray, cov: np.ndarray, sensor_frame: str,
               cfg: NodeConfig, automatic: bool, lookup: ExtrinsicLookup
               ) -> tuple[str, np.ndarray | None, np.ndarray | None]:
         """
         Return the base pose of ``T`` (map <- sensor) if every guard passes.
 
+        :param refusal: the quality guards' verdict on the estimate (None: it passed).
         :param cov: the 6x6 covariance of ``T`` (ROS order).
         :param automatic: the scan was registered without a relocalization request.
         :param lookup: the node's TF lookup of the extrinsic, for an unset
             ``base_from_sensor``.
-        :returns: (what was published or why not, ``T_map_base`` or None, its covariance
-            or None); a publish is counted as done.
+        :returns: (what was published or why not: the refusal as ``code: message``,
+            ``T_map_base`` or None, its covariance or None); a publish is counted as done.
         """
-        key, why = quality_refusal(result, cfg)
         now = time.monotonic()
         with self._lock:
-            if not key and self._last_publish is not None \
+            if not refusal and self._last_publish is not None \
                     and now - self._last_publish < cfg.initial_pose_cooldown:
-                key, why = 'cooldown', (f'{now - self._last_publish:.1f} s since the last '
-                                        f'publish < initial_pose_cooldown '
-                                        f'{cfg.initial_pose_cooldown:g} s')
-            if not key and automatic and self.counts['auto'] >= cfg.initial_pose_max_auto:
-                key, why = 'max_auto', (f'{self.counts["auto"]} automatic publishes = '
-                                        f'initial_pose_max_auto {cfg.initial_pose_max_auto}')
+                refusal = Refusal(RefusalCode.COOLDOWN, (
+                    f'{now - self._last_publish:.1f} s since the last publish < '
+                    f'initial_pose_cooldown {cfg.initial_pose_cooldown:g} s'))
+            if not refusal and automatic and self.counts['auto'] >= cfg.initial_pose_max_auto:
+                refusal = Refusal(RefusalCode.MAX_AUTO, (
+                    f'{self.counts["auto"]} automatic publishes = initial_pose_max_auto '
+                    f'{cfg.initial_pose_max_auto}'))
         base = None
-        if not key:
+        if not refusal:
             base = extrinsic(cfg)
             base = lookup(cfg.base_frame, sensor_frame) if base is None else base
-        if not key and base is None:
-            key, why = 'no_extrinsic', (f'no TF {cfg.base_frame} <- {sensor_frame} (set '
-                                        'base_from_sensor)')
+        if not refusal and base is None:
+            refusal = Refusal(RefusalCode.NO_EXTRINSIC, (
+                f'no TF {cfg.base_frame} <- {sensor_frame} (set base_from_sensor)'))
         with self._lock:
-            if key:
-                self.counts[f'refused.{key}'] += 1
-                return why, None, None
+            if refusal:
+                self.counts[f'refused.{refusal.code.value}'] += 1
+                return str(refusal), None, None
             self.counts['published'] += 1
             self.counts['auto'] += automatic
             self._last_publish = now

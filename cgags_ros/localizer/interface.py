@@ -18,10 +18,13 @@ from typing import Any, Protocol
 import numpy as np
 
 from ..errors import CgagsError
+from ..refusal import Refusal, RefusalCode
 
 
 class StartFailed(CgagsError):
     """The engine cannot start registering: its process or its map is unusable."""
+
+    code = RefusalCode.START_FAILED
 
 
 class Cloud:
@@ -113,6 +116,9 @@ class PairResult:
     :ivar frame_id: the frame of the pose (the target's or ``pose_frame_id``; '' unpaired).
     :ivar valid: the registration is valid (and its transform finite).
     :ivar result: the registration's result (a ``PipelineResult``), None when none ran.
+    :ivar refusal: why the node rejected or dropped the source (a timeout, a stale scan, a
+        message it could not decode, ...); None when it did not. The JSON's ``refusal`` is
+        the result's own when it has one (its ``reason``), else this.
     """
 
     source_stamp_ns: int
@@ -125,6 +131,7 @@ class PairResult:
     frame_id: str = ''
     valid: bool = False
     result: Any = None
+    refusal: Refusal | None = None
 
     def to_json(self) -> str:
         """
@@ -133,12 +140,15 @@ class PairResult:
         The keys of ``result.summary()`` (as ``cgags-register --json`` prints them:
         ``valid``, ``reason``, ``transform``, ``covariance``, ``num_inliers``, ``fitness``,
         ``timings``, ``candidates``, ...) when a registration ran, else ``valid`` false and
-        ``reason`` the message; plus every field of this class but ``result``.
+        ``reason`` the message; plus every field of this class but ``result``, ``refusal``
+        as ``{"code": ..., "message": ...}`` (null when valid; docs/refusals.md).
         """
         out: dict[str, Any] = (self.result.summary() if self.result is not None
                                else {'reason': self.message})
         out.update({f.name: getattr(self, f.name) for f in dataclasses.fields(self)
-                    if f.name != 'result'})
+                    if f.name not in ('result', 'refusal')})
+        refusal = getattr(self.result, 'refusal', None) or self.refusal
+        out['refusal'] = None if refusal is None else refusal.summary()
         return json.dumps(out)
 
 

@@ -74,8 +74,8 @@ class MapTarget:
 
     def update(self, result: PipelineResult) -> None:
         """Take the map summary a registration reports (the map may have been reloaded)."""
-        if result.stats.get('map'):
-            self.info = result.stats['map']
+        if result.map_info:
+            self.info = result.map_info
 
     def statistics(self) -> dict[str, Any]:
         """Return the ``map.*`` keys of /diagnostics."""

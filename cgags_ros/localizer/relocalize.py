@@ -4,10 +4,11 @@ Relocalization requests: what ``~/relocalize`` and ``reinitialize_global_localiz
 ROS-free. A request is answered by the registration worker with the next registration
 (in ``mode: on_demand`` it is what makes the worker register at all): ``success`` for a
 confident pose (valid, not ambiguous, every quality guard of the initial pose passed) and a
-one-line summary (pose, inliers, best/runner-up ratio, or why it failed). In on_demand mode
-a request takes the latest scan if it was received within ``max_scan_age`` before the
-request, or else waits for the next one; a request no registration answered within its
-timeout (``relocalize_timeout``) fails.
+one-line summary (pose, inliers, best/runner-up ratio), or, on failure, a line that
+starts with the refusal's code (``ambiguous: not localized: ...``, :func:`not_localized`).
+In on_demand mode a request takes the latest scan if it was received within
+``max_scan_age`` before the request, or else waits for the next one; a request no
+registration answered within its timeout (``relocalize_timeout``) fails.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import numpy as np
 
 from ..geometry import rpy
 from ..pipeline.result import PipelineResult
+from ..refusal import Refusal, RefusalCode
 
 Answered = Callable[[bool, str], None]  # called with (success, message) once answered
 
@@ -57,12 +59,12 @@ class RelocalizeCalls:
         self._wake.set()
         return req
 
-    def refuse(self, message: str, reason: str) -> tuple[bool, str]:
+    def refuse(self, refusal: Refusal) -> tuple[bool, str]:
         """Count a request answered at once with failure (e.g. the node is inactive)."""
         with self._lock:
             self.counts['calls'] += 1
-            self.counts[f'failed.{reason}'] += 1
-        return False, message
+            self.counts[f'failed.{refusal.code.value}'] += 1
+        return False, not_localized(refusal)
 
     def waiting(self) -> float | None:
         """Return the monotonic time of the oldest pending request, or None when none is."""
@@ -86,20 +88,30 @@ class RelocalizeCalls:
             self._pending = [r for r in self._pending if r.deadline > now]
         for req in late:
             timeout = req.deadline - req.called
-            self._finish(req, False, f'no scan received within relocalize_timeout = '
-                         f'{timeout:g} s', 'no_scan')
+            refusal = Refusal(RefusalCode.NO_SCAN, 'no scan received within '
+                              f'relocalize_timeout = {timeout:g} s')
+            self._finish(req, not_localized(refusal), refusal)
 
-    def answer(self, success: bool, message: str, reason: str) -> int:
-        """Answer every pending request with one result; return how many were answered."""
+    def answer(self, message: str, refusal: Refusal | None = None) -> int:
+        """
+        Answer every pending request with one result; return how many were answered.
+
+        ``refusal`` None: success; else failure, counted by its code.
+        """
         with self._lock:
             answered, self._pending = self._pending, []
         for req in answered:
-            self._finish(req, success, message, reason)
+            self._finish(req, message, refusal)
         return len(answered)
 
-    def _finish(self, req: Request, success: bool, message: str, reason: str) -> None:
+    def fail(self, refusal: Refusal) -> int:
+        """Answer every pending request with failure: :func:`not_localized`."""
+        return self.answer(not_localized(refusal), refusal)
+
+    def _finish(self, req: Request, message: str, refusal: Refusal | None) -> None:
+        success = refusal is None
         with self._lock:
-            self.counts['succeeded' if success else f'failed.{reason}'] += 1
+            self.counts['succeeded' if success else f'failed.{refusal.code.value}'] += 1
         req.answer = (success, message)
         req.done.set()
         if req.on_answer is not None:
@@ -111,31 +123,36 @@ class RelocalizeCalls:
             return {f'relocalize.{k}': v for k, v in sorted(self.counts.items())}
 
 
-def summary_line(result: PipelineResult, T: np.ndarray, key: str, refusal: str,
+def not_localized(refusal: Refusal) -> str:
+    """Return the answer of a failed request: the refusal's code first, then why."""
+    return f'{refusal.code.value}: not localized: {refusal.message}'
+
+
+def summary_line(result: PipelineResult, T: np.ndarray, refusal: Refusal | None,
                  published: bool, why: str) -> str:
     """Return the one-line answer of a request: pose, inliers, ratio, or why not."""
     scores = (f'{result.num_inliers} inliers, best/runner-up {result.runner_up_ratio:.2f}, '
               f'fitness {result.fitness:.3f}')
-    if key:
-        return f'not localized ({key}): {refusal}; {scores}'
+    if refusal is not None:
+        return f'{not_localized(refusal)}; {scores}'
     x, y, z = (float(v) for v in T[:3, 3])
     pose = f'x {x:.3f} y {y:.3f} z {z:.3f} m, yaw {math.degrees(rpy(T)[2]):.1f} deg'
     return (f'localized: {pose}; {scores}; '
             + ('initial pose published' if published else f'initial pose not published: {why}'))
 
 
-def stale_scan(called: float | None, receipt_ns: int, max_scan_age: float) -> str:
+def stale_scan(called: float | None, receipt_ns: int, max_scan_age: float) -> Refusal | None:
     """
-    Return why a scan is too old for the pending on-demand request, or ''.
+    Return why a scan is too old for the pending on-demand request, or None.
 
     :param called: when the pending request was made (monotonic seconds), None when none.
     :param receipt_ns: when the scan was received (monotonic nanoseconds).
     """
     if called is None:
-        return ''
+        return None
     age = called - receipt_ns * 1e-9
     if age <= max_scan_age:
-        return ''
-    return (f'on_demand: the latest scan was received {age:.2f} s before the '
-            f'relocalization request (> max_scan_age {max_scan_age:g} s); waiting '
-            'for the next one')
+        return None
+    return Refusal(RefusalCode.STALE, (
+        f'on_demand: the latest scan was received {age:.2f} s before the relocalization '
+        f'request (> max_scan_age {max_scan_age:g} s); waiting for the next one'))

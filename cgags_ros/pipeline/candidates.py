@@ -30,7 +30,7 @@ import dataclasses
 
 import numpy as np
 
-from .gates import free_space_limit, measured_free_space
+from .gates import measured_free_space
 from .result import Candidate, PipelineResult
 from ..config.pipeline import PipelineConfig
 from ..errors import DegenerateCorrespondencesError
@@ -39,6 +39,7 @@ from ..frontend.matching import Correspondences
 from ..frontend.refine import evaluate_alignment, refine_transform
 from ..geometry import apply_transform, rotation_error_deg, translation_error
 from ..registration import register_correspondences
+from ..validity import free_space_limit
 
 
 def support(src: np.ndarray, dst: np.ndarray, transform: np.ndarray, tau: float) -> np.ndarray:
@@ -186,18 +187,3 @@ def verify_rivals(fs: CloudFeatures, ft: CloudFeatures, result: PipelineResult,
     result.runner_up_ratio = (chosen.num_inliers / max(rivals) if rivals
                               else float('inf'))
     return chosen if chosen is not best else None
-
-
-def ambiguity_reason(result: PipelineResult, cfg: PipelineConfig) -> str:
-    """Return why ``result`` is ambiguous, or '' when it is not."""
-    if not result.ambiguous:
-        return ''
-    best, runner = result.candidates[0], result.candidates[1]
-    moved = translation_error(best.transform, runner.transform)
-    turned = rotation_error_deg(best.transform, runner.transform)
-    geometry = (' and, refined, overlaps about as well' if cfg.verify_rivals
-                and cfg.refine.method != 'none' else '')
-    return (f'ambiguous: a distinct pose ({turned:.0f} deg, {moved:.2f} m away) has '
-            f'{runner.num_inliers} inliers against {best.num_inliers} of the best '
-            f'(within ambiguity_ratio {cfg.ambiguity_ratio:g}){geometry}; '
-            'the scene looks alike in both poses')

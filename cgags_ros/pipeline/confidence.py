@@ -37,13 +37,14 @@ def features(result: Any, significance: float, members: int = 3) -> dict[str, fl
     Return the model's inputs for ``result`` (a :class:`~.result.PipelineResult`).
 
     None when there is no estimate to judge (no candidate: the core found nothing). The
-    chance bound is the gates' (:func:`~.gates.gate`): the inliers the best of the
+    chance bound is the gates' (:func:`~.gates.chance_bound`): the inliers the best of the
     hypotheses reaches by chance at ``significance``; ``members`` define a hypothesis.
     """
     if not result.candidates or not result.fitness > 0:
         return None
     inliers = max(int(result.num_inliers), 1)
-    bound = chance_bound(result, significance, members) \
+    bound = chance_bound(result.chance_inliers, result.num_hypotheses, significance,
+                         members) \
         if math.isfinite(result.chance_inliers) else members
     voxel = float(result.voxel_size)
     rmse = result.inlier_rmse if math.isfinite(result.inlier_rmse) else 1.5 * voxel
@@ -71,12 +72,3 @@ def probability(values: dict[str, float] | None) -> float:
         return 0.0
     z = INTERCEPT + sum(WEIGHTS[name] * values[name] for name in FEATURES)
     return 1.0 / (1.0 + math.exp(-z)) if z > -700 else 0.0
-
-
-def confidence_reason(result: Any, min_confidence: float) -> str:
-    """Return why ``result``'s confidence is too low to call it valid, or ''."""
-    if min_confidence <= 0 or result.confidence >= min_confidence:
-        return ''
-    return (f'low confidence: P(right) {result.confidence:.2f} < min_confidence '
-            f'{min_confidence:g}: estimates measured like this one (inliers against chance, '
-            'overlap, free space, rivals) are too often wrong')

@@ -1,10 +1,10 @@
 """
-Validity gates: why a final estimate must not be trusted, with the values behind it.
+What the validity gates judge a refined estimate on: the measurements, set on its result.
 
-Each gate returns a reason ('' when it passes): a line-like cloud, chance-level inliers,
-degenerate overlap geometry (planes, lines, spheres), low fitness, free-space violation
-(clouds in their sensor frames); in 4-DoF mode also a tilt between the clouds' gravity axes
-(clouds not levelled).
+:func:`measure` sets the fitness and overlap, the chance-level inliers and their bound, the
+observability of the overlap geometry (planes, lines, spheres leave a motion free), the
+free-space violation (clouds in their sensor frames) and, in 4-DoF mode, the tilt between
+the clouds' gravity axes; :func:`cgags_ros.validity.gate_refusal` decides on them.
 """
 
 from __future__ import annotations
@@ -17,59 +17,45 @@ from ..config.pipeline import PipelineConfig
 from ..frontend.features import CloudFeatures
 from ..frontend.matching import Correspondences
 from ..frontend.refine import Alignment, evaluate_alignment
-from ..geometry import apply_transform, GravityFrame, spread
+from ..geometry import apply_transform, GravityFrame
 from ..registration import poisson_isf
 
 
-def line_reason(points: np.ndarray, name: str, voxel_size: float) -> str:
+def measure(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
+            result: PipelineResult, cfg: PipelineConfig, map_target: bool = False) -> None:
     """
-    Return why ``points`` form a line, or '' when they do not.
+    Set the measurements the gates judge on ``result`` (its ``transform`` is the estimate).
 
-    A cloud whose RMS spread across its main axis is below one voxel is a line: the
-    rotation about it can never be determined, so the core is not even asked.
-    """
-    s = spread(points)
-    if s[1] / np.sqrt(len(points)) >= voxel_size:
-        return ''
-    return (f'degenerate {name} cloud: it is (nearly) a line (spread across its axis '
-            f'{s[1] / np.sqrt(len(points)):.3g} m < voxel size {voxel_size:g} m); the rotation '
-            'about it is undetermined')
-
-
-def gate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences, result: PipelineResult,
-         cfg: PipelineConfig, map_target: bool = False, unsettled: bool = False) -> str:
-    """
-    Return why the final estimate must not be trusted, or '' when it passes every gate.
-
-    The chance-inlier gate on the correspondences first, then :func:`overlap_gate`.
-    ``map_target``: the target is a map fused from many viewpoints, so it has no sensor at
-    its origin (the free-space gate then checks the map against the scan's view only).
-    ``unsettled``: the correspondences alone did not settle the estimate (a collinear
-    consensus); the free-space bound is then ``refine.free_space_settle_factor`` times
-    tighter.
+    The chance-level inliers of the correspondences and their bound, then
+    :func:`measure_overlap`. ``map_target``: the target is a map fused from many viewpoints,
+    so it has no sensor at its origin (the free-space violation is then measured against the
+    scan's view only).
     """
     result.chance_inliers = chance_inliers(fs.points[corr.source_index],
                                            ft.points[corr.target_index], result.coarse_transform,
                                            result.inlier_threshold)
     members = 2 if cfg.core.motion_model == '4dof' else 3
-    overlap, _ = overlap_gate(fs.points, fs.tree, ft, result, cfg, map_target, unsettled)
-    return _significance_reason(result, cfg.refine.significance, members) or overlap
+    result.chance_bound = float('nan')  # the gate is off
+    if cfg.refine.significance > 0:
+        result.chance_bound = chance_bound(result.chance_inliers, result.num_hypotheses,
+                                           cfg.refine.significance, members)
+    measure_overlap(fs.points, fs.tree, ft, result, cfg, map_target)
 
 
-def overlap_gate(source: np.ndarray, source_tree: cKDTree | None, ft: CloudFeatures,
-                 result: PipelineResult, cfg: PipelineConfig, map_target: bool = False,
-                 unsettled: bool = False) -> tuple[str, Alignment]:
+def measure_overlap(source: np.ndarray, source_tree: cKDTree | None, ft: CloudFeatures,
+                    result: PipelineResult, cfg: PipelineConfig,
+                    map_target: bool = False) -> Alignment:
     """
-    Return why ``result.transform`` must not be trusted on its overlap alone, and the overlap.
+    Set the measurements of ``result.transform``'s overlap alone; return the overlap.
 
-    The gates that need no correspondences, so that an estimate refined from a prediction
-    (:mod:`.tracking`) is judged as a global one is: degenerate overlap geometry, fitness,
-    free space, and in 4-DoF mode the tilt. ``source`` is the downsampled source (metres,
-    its own frame) and ``source_tree`` a k-d tree over it, for the target side of
-    ``overlap``; None leaves ``overlap`` NaN (no gate reads it: only the rival verification
-    after a global search does). Sets ``fitness``, ``inlier_rmse``, ``overlap``,
-    ``observability``, ``free_space_violation`` (and ``tilt_deg``) on ``result``; the reason
-    is '' when every gate passes. The
+    The measurements that need no correspondences, so that an estimate refined from a
+    prediction (:mod:`.tracking`) is judged as a global one is
+    (:func:`cgags_ros.validity.overlap_refusal`): fitness, observability, free space, and in
+    4-DoF mode the tilt. ``source`` is the downsampled source (metres, its own frame) and
+    ``source_tree`` a k-d tree over it, for the target side of ``overlap``; None leaves
+    ``overlap`` NaN (no gate reads it: only the rival verification after a global search
+    does). Sets ``fitness``, ``inlier_rmse``, ``overlap``, ``observability``,
+    ``free_space_violation`` (and ``tilt_deg``) on ``result``. The
     :class:`~cgags_ros.frontend.refine.Alignment` returned pairs the overlapping source
     points with their nearest target points.
     """
@@ -89,11 +75,7 @@ def overlap_gate(source: np.ndarray, source_tree: cKDTree | None, ft: CloudFeatu
         result.observability = observability(source, ft.normals, align)
     result.free_space_violation = free_space_of(source, ft.points, result.transform, cfg,
                                                 map_target)
-    reason = (_observability_reason(result, cfg.refine.min_observability)
-              or _fitness_reason(result, cfg.refine.min_fitness, distance)
-              or _free_space_reason(result, free_space_limit(cfg, unsettled))
-              or _tilt_reason(result, cfg.core.max_tilt_deg))
-    return reason, align
+    return align
 
 
 def measured_free_space(fs: CloudFeatures, ft: CloudFeatures, transform: np.ndarray,
@@ -115,12 +97,6 @@ def free_space_of(source: np.ndarray, target: np.ndarray, transform: np.ndarray,
     return free_space_violation(source, target, transform,
                                 cfg.refine.free_space_margin_factor * cfg.voxel_size,
                                 cfg.refine.free_space_bin_deg, target_view=not map_target)
-
-
-def free_space_limit(cfg: PipelineConfig, unsettled: bool = False) -> float:
-    """Return the free-space bound: tighter for an estimate the correspondences did not settle."""
-    limit = cfg.refine.max_free_space_violation
-    return limit * cfg.refine.free_space_settle_factor if unsettled and limit < 1 else limit
 
 
 def free_space_violation(source: np.ndarray, target: np.ndarray, transform: np.ndarray,
@@ -176,16 +152,6 @@ def _in_front_share(moved: np.ndarray, viewer: np.ndarray, margin: float,
     in_front = int(np.count_nonzero(depth > margin))
     on = int(np.count_nonzero(np.abs(depth) <= margin))
     return in_front / (in_front + on) if in_front + on else 0.0
-
-
-def _free_space_reason(result: PipelineResult, max_violation: float) -> str:
-    if not result.free_space_violation > max_violation:  # NaN: not measured
-        return ''
-    return (f'free-space violation: {100 * result.free_space_violation:.0f} % of the aligned '
-            "points that meet the other cloud's view lie in front of its observed surface "
-            f'(> {max_violation:g}, refine.max_free_space_violation, times '
-            'refine.free_space_settle_factor for an unsettled estimate): the pose stacks '
-            'surfaces where a sensor saw free space')
 
 
 def chance_inliers(src: np.ndarray, dst: np.ndarray, transform: np.ndarray, tau: float) -> float:
@@ -253,52 +219,14 @@ def residual_tilt(source: np.ndarray, target: np.ndarray, target_normals: np.nda
     return float(np.degrees(np.linalg.norm(horizontal)))
 
 
-def _tilt_reason(result: PipelineResult, max_tilt_deg: float) -> str:
-    if not result.tilt_deg > max_tilt_deg:  # NaN: 6-DoF mode, or not measurable
-        return ''
-    return ('the clouds are not levelled: a 6-DoF point-to-plane step tilts the gravity axis '
-            f'by {result.tilt_deg:.2f} deg (> core.max_tilt_deg={max_tilt_deg:g}); the yaw-only '
-            "estimate is not trusted: level the clouds or use core.motion_model='6dof'")
-
-
-def _significance_reason(result: PipelineResult, significance: float,
-                         members: int = 3) -> str:
+def chance_bound(chance: float, hypotheses: int, significance: float,
+                 members: int = 3) -> float:
     """
-    Gate on chance level: return why the inliers are no better than chance, or ''.
+    Return the inlier count the best of ``hypotheses`` chance-level estimates may reach.
 
-    If all N correspondences were outliers, the inliers of a fixed transform are
-    ~Poisson(mu) (mu = chance_inliers), plus the ``members`` (3; 2 for a 4-DoF edge) that
-    define a hypothesis; the best of H
-    hypotheses then exceeds the Poisson 1 - significance/H quantile with probability
-    ~significance (union bound).
+    If all correspondences were outliers, the inliers of a fixed transform are
+    ~Poisson(``chance``) (:func:`chance_inliers`), plus the ``members`` (3; 2 for a 4-DoF
+    edge) that define a hypothesis; the best of H hypotheses then exceeds the Poisson
+    1 - significance/H quantile with probability ~significance (union bound).
     """
-    if significance <= 0:
-        return ''
-    bound = chance_bound(result, significance, members)
-    if result.num_inliers > bound:
-        return ''
-    return (f'{result.num_inliers} inliers of {result.num_correspondences} correspondences '
-            f'is no better than chance (random pairing gives {result.chance_inliers:.2g} per '
-            f'estimate; the best of {max(result.num_hypotheses, 1)} hypotheses reaches '
-            f'{bound:.0f}): the clouds probably do not overlap')
-
-
-def chance_bound(result: PipelineResult, significance: float, members: int = 3) -> int:
-    """Return the inliers the best hypothesis reaches by chance (:func:`_significance_reason`)."""
-    hypotheses = max(result.num_hypotheses, 1)
-    return members + poisson_isf(significance / hypotheses, result.chance_inliers)
-
-
-def _observability_reason(result: PipelineResult, min_observability: float) -> str:
-    if min_observability <= 0 or result.observability >= min_observability:
-        return ''
-    return (f'degenerate geometry: the overlap constrains some motion only weakly '
-            f'(observability {result.observability:.2g} < {min_observability:g}; e.g. plane, '
-            'line, sphere or cylinder); the pose along it is arbitrary')
-
-
-def _fitness_reason(result: PipelineResult, min_fitness: float, distance: float) -> str:
-    if min_fitness <= 0 or result.fitness >= min_fitness:
-        return ''
-    return (f'fitness {result.fitness:.3f} < refine.min_fitness {min_fitness:g}: too few '
-            f'source points lie within {distance:.3g} m of the target after alignment')
+    return members + poisson_isf(significance / max(hypotheses, 1), chance)

@@ -31,6 +31,7 @@ import numpy as np
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError
 from ..parallel import quiet_idle_threads
+from ..refusal import RefusalCode
 
 RegisterFn = Callable[..., Any]  # register_clouds(source, target, *, config) -> PipelineResult
 
@@ -40,9 +41,13 @@ WARM_UP_LIMIT_S = 300.0  # with a cold numba cache the warm-up compiles the numb
 class RegistrationTimeout(CgagsError):
     """A registration ran past ``registration_timeout`` and its process was killed."""
 
+    code = RefusalCode.TIMEOUT
+
 
 class WorkerCrashed(CgagsError):
     """The registration process died while it registered a pair; a fresh one was started."""
+
+    code = RefusalCode.WORKER_CRASHED
 
 
 _child_target: Any = None  # in the registration process: the last target
@@ -78,16 +83,12 @@ def register_any(source: np.ndarray, target: Any, *, config: PipelineConfig) -> 
     """
     Run ``register_clouds`` onto an array or a :class:`MapRef` (in this process).
 
-    For a map the result's ``stats['map']`` holds the map's summary (cache hit or miss,
-    points, load time).
+    For a map the result's ``map_info`` holds the map's summary (cache hit or miss, points,
+    load time).
     """
     from . import register_clouds
 
-    prepared = _resolve(target, config)
-    result = register_clouds(source, prepared, config=config)
-    if isinstance(target, MapRef):
-        result.stats['map'] = prepared.info()
-    return result
+    return register_clouds(source, _resolve(target, config), config=config)
 
 
 def prepare_map(ref: MapRef, config: PipelineConfig) -> dict[str, Any]:

@@ -19,11 +19,10 @@ from typing import Callable
 import numpy as np
 
 from .cache import cached_features
-from .candidates import (ambiguity_reason, find_candidates, rank_candidates, search_rivals,
-                         verify_rivals)
-from .confidence import confidence_reason, features, probability
+from .candidates import find_candidates, rank_candidates, search_rivals, verify_rivals
+from .confidence import features, probability
 from .covariance import result_covariance
-from .gates import gate, line_reason
+from .gates import measure
 from .map import matches_config, PreparedMap
 from .result import PipelineResult
 from .rivals import mark_ambiguous, structured_rival
@@ -34,10 +33,13 @@ from ..frontend.features import CloudFeatures, finite_points
 from ..frontend.keypoints import match_keypoints
 from ..frontend.matching import Correspondences
 from ..frontend.refine import refine_transform
-from ..geometry import spread
+from ..geometry import cross_spread
 from ..parallel import DEFAULT_WORKERS, in_background
+from ..refusal import Refusal
 from ..registration import register_correspondences, RegistrationResult, single_blas_thread
 from ..timing import timed
+from ..validity import (ambiguity_refusal, confidence_refusal, gate_refusal,
+                        line_cloud_refusal, unsettled)
 
 
 def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
@@ -52,10 +54,11 @@ def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
     :param voxel_size: metres; overrides ``config.voxel_size`` (every radius derives from
         it).
     :param config: :class:`PipelineConfig`; defaults when None.
-    :returns: a :class:`PipelineResult`. ``valid`` is False, with a ``reason``, when the
-        clouds are too small after downsampling, yield too few or degenerate
-        correspondences, when the estimate fails a validity gate (core inliers,
-        chance-level inliers, degenerate overlap geometry, fitness) or is ambiguous (see
+    :returns: a :class:`PipelineResult`. Its ``refusal`` (a code and a message; ``valid``
+        False) says why not to trust it when the clouds are too small after downsampling,
+        yield too few or degenerate correspondences, when the estimate fails a validity
+        check (core inliers, chance-level inliers, degenerate overlap geometry, fitness,
+        free space; decided by :mod:`cgags_ros.validity`) or is ambiguous (see
         :mod:`.candidates`). ``candidates`` holds up to ``num_candidates`` distinct poses,
         best first. Never raises for such data-dependent failures.
     :raises InvalidInputError: when an array is not (N, 3) numeric.
@@ -70,12 +73,12 @@ def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
 
 
 def _judged(result: PipelineResult, fs: CloudFeatures, ft: CloudFeatures,
-            cfg: PipelineConfig, start: float, reason: str,
+            cfg: PipelineConfig, start: float, refusal: Refusal | None,
             map_target: bool = False) -> PipelineResult:
     """
     Finish a result that has an estimate: its covariance and confidence, then the verdict.
 
-    ``reason`` is the gates' ('' when they pass); a confidence below ``min_confidence``
+    ``refusal`` is the gates' (None when they pass); a confidence below ``min_confidence``
     refuses a 6-DoF pair's estimate the gates let through. Against a map or in 4-DoF mode
     the confidence is reported but decides nothing: it was calibrated on 6-DoF pairs of
     scans, and a map's overlap and rivals, or a yaw-only search, read differently.
@@ -88,8 +91,8 @@ def _judged(result: PipelineResult, fs: CloudFeatures, ft: CloudFeatures,
     result.confidence = probability(features(result, cfg.refine.significance,
                                              2 if four_dof else 3))
     if map_target or four_dof:
-        return result.finish(start, reason)
-    return result.finish(start, reason or confidence_reason(result, cfg.min_confidence))
+        return result.finish(start, refusal)
+    return result.finish(start, refusal or confidence_refusal(result, cfg.min_confidence))
 
 
 def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float | None,
@@ -102,8 +105,9 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
         raise InvalidConfigError(
             f'the map {target.path} was prepared with other feature settings '
             f'({target.settings}) than this registration; load it again with this config')
-    dst = None if isinstance(target, PreparedMap) else finite_points(target, 'target')
-    result = PipelineResult(voxel_size=v)
+    map_target = isinstance(target, PreparedMap)
+    dst = None if map_target else finite_points(target, 'target')
+    result = PipelineResult(voxel_size=v, map_info=target.info() if map_target else None)
     # The target's features (and its descriptor index) beside the source's: much of the
     # front end runs on one thread (downsampling, normals, the grids), so two clouds at
     # once fill both cores. Stage times are summed over the two clouds.
@@ -114,34 +118,36 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
         fs = cached_features(src, v, cfg.frontend, 'source', result.timings, workers)
     except EmptyCloudError as exc:  # data too small for this voxel size: not a crash
         _target_or_error(target_features)
-        return result.finish(start, str(exc))
+        return result.finish(start, exc.refusal)
     ft = _target_or_error(target_features)
     for stage, seconds in target_timings.items():
         result.timings[stage] = result.timings.get(stage, 0.0) + seconds
     if isinstance(ft, EmptyCloudError):
-        return result.finish(start, str(ft))
+        return result.finish(start, ft.refusal)
     result.num_source_points, result.num_target_points = len(fs.points), len(ft.points)
     result.resolution = 0.5 * (fs.resolution + ft.resolution)
-    reason = line_reason(fs.points, 'source', v) or line_reason(ft.points, 'target', v)
-    if reason:
-        return result.finish(start, reason)
+    refusal = (line_cloud_refusal(cross_spread(fs.points), 'source', v)
+               or line_cloud_refusal(cross_spread(ft.points), 'target', v))
+    if refusal:
+        return result.finish(start, refusal)
     with timed(result.timings, 'matching'):
         corr = match_keypoints(fs.points, fs.descriptors, ft.descriptors, v, cfg.frontend,
                                workers, ft.descriptor_index(workers))
     result.stats.update(num_source_points=len(fs.points), num_target_points=len(ft.points))
-    with timed(result.timings, 'registration'):
-        core = _global_estimate(fs, ft, corr, result.resolution, cfg)
-    if isinstance(core, str):
+    try:
+        with timed(result.timings, 'registration'):
+            core = _global_estimate(fs, ft, corr, result.resolution, cfg)
+    except DegenerateCorrespondencesError as exc:
         result.num_correspondences = len(corr)
-        return result.finish(start, core)
+        return result.finish(start, exc.refusal)
     _copy_core(core, result)
     result.inlier_source_points = fs.points[corr.source_index[core.inliers]]
     result.inlier_target_points = ft.points[corr.target_index[core.inliers]]
-    unsettled = bool(core.reason) and _collinear_only(fs, corr, core, cfg)
-    if core.reason and not unsettled:
+    left_to_gates = unsettled(core, cfg)  # a collinear consensus: the overlap may settle it
+    if core.refusal and not left_to_gates:
         # nothing worth refining or gating further
-        reason = _candidates(fs, ft, corr, result, cfg) or core.reason
-        return _judged(result, fs, ft, cfg, start, reason, isinstance(target, PreparedMap))
+        refusal = _candidates(fs, ft, corr, result, cfg) or core.refusal
+        return _judged(result, fs, ft, cfg, start, refusal, map_target)
     gravity = cfg.core.gravity_axis if cfg.core.motion_model == '4dof' else None
     with timed(result.timings, 'refinement'):
         result.transform = refine_transform(
@@ -153,25 +159,26 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
     # the gates set: it runs beside them (both spend most of their time outside the GIL,
     # in compiled numba functions and k-d tree queries).
     rivals = in_background(lambda: _search_rivals(fs, ft, corr, result, cfg), workers > 1)
-    map_target = isinstance(target, PreparedMap)
     with timed(result.timings, 'validation'):
-        reason = gate(fs, ft, corr, result, cfg, map_target, unsettled)
+        measure(fs, ft, corr, result, cfg, map_target)
+        refusal = gate_refusal(result, cfg, left_to_gates)
     found, result.timings['candidates'] = rivals()
     rank_candidates(result, found, cfg)
     with timed(result.timings, 'rivals_verified'):
         chosen = verify_rivals(fs, ft, result, cfg, map_target, workers)
         if chosen is not None:  # the geometry prefers a rival: it is the estimate now
             result.transform = chosen.transform
-            reason = gate(fs, ft, corr, result, cfg, map_target, unsettled)
+            measure(fs, ft, corr, result, cfg, map_target)
+            refusal = gate_refusal(result, cfg, left_to_gates)
             chosen.fitness = result.fitness
-    reason = ambiguity_reason(result, cfg) or reason
-    if not reason and cfg.structured_rivals:
+    refusal = ambiguity_refusal(result, cfg) or refusal
+    if not refusal and cfg.structured_rivals:
         with timed(result.timings, 'structured_rivals'):
             rival = structured_rival(fs, ft, corr, result, cfg, map_target, workers)
         if rival is not None:
             mark_ambiguous(result, rival)
-            reason = ambiguity_reason(result, cfg)
-    return _judged(result, fs, ft, cfg, start, reason, map_target)
+            refusal = ambiguity_refusal(result, cfg)
+    return _judged(result, fs, ft, cfg, start, refusal, map_target)
 
 
 def _target_features(target: np.ndarray | PreparedMap, points: np.ndarray | None,
@@ -205,11 +212,11 @@ def _search_rivals(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
 
 
 def _candidates(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
-                result: PipelineResult, cfg: PipelineConfig) -> str:
-    """Search the ranked candidates; return the ambiguity reason ('' when not ambiguous)."""
+                result: PipelineResult, cfg: PipelineConfig) -> Refusal | None:
+    """Search the ranked candidates; return the ambiguity refusal (None when not ambiguous)."""
     with timed(result.timings, 'candidates'):
         find_candidates(fs, ft, corr, result, cfg)
-    return ambiguity_reason(result, cfg)
+    return ambiguity_refusal(result, cfg)
 
 
 def terrain_patch(rng: np.random.Generator, n: int = 4000) -> np.ndarray:
@@ -251,42 +258,30 @@ def _effective_config(config: PipelineConfig | None, voxel_size: float | None) -
 
 
 def _global_estimate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
-                     resolution: float, cfg: PipelineConfig) -> RegistrationResult | str:
-    """Return the core's estimate, or the reason there is none (too few/degenerate matches)."""
+                     resolution: float, cfg: PipelineConfig) -> RegistrationResult:
+    """
+    Return the core's estimate (its own ``refusal`` says whether it is trusted).
+
+    :raises DegenerateCorrespondencesError: too few or degenerate matches for any estimate.
+    """
     need = 2 if cfg.core.motion_model == '4dof' else 3
     if len(corr) < need:
-        return (f'only {len(corr)} putative correspondence(s) (need {need}): the FPFH features '
-                'do not match; check the voxel size and that the clouds overlap')
+        raise DegenerateCorrespondencesError(
+            f'only {len(corr)} putative correspondence(s) (need {need}): the FPFH features '
+            'do not match; check the voxel size and that the clouds overlap')
     tau = cfg.frontend.inlier_threshold or None
     try:
         return register_correspondences(
             fs.points[corr.source_index], ft.points[corr.target_index], inlier_threshold=tau,
             resolution=resolution, config=cfg.core, seed=cfg.seed)
     except DegenerateCorrespondencesError as exc:
-        return f'degenerate correspondences: {exc}'
-
-
-def _collinear_only(fs: CloudFeatures, corr: Correspondences, core: RegistrationResult,
-                    cfg: PipelineConfig) -> bool:
-    """
-    Tell whether the core refused its estimate only because its inliers are nearly collinear.
-
-    Such a consensus leaves the rotation about its line to the correspondences' noise, but
-    the refinement fits the whole overlap, whose geometry may well fix that rotation: with
-    ``refine.collinear_consensus`` it is refined and left to the gates on the overlap
-    (observability, free space, chance inliers, ambiguity) instead.
-    """
-    if not cfg.refine.collinear_consensus or cfg.core.motion_model == '4dof':
-        return False
-    if cfg.refine.method == 'none' or core.num_inliers < cfg.core.min_inliers:
-        return False
-    s = spread(fs.points[corr.source_index[core.inliers]])
-    return bool(s[1] / np.sqrt(core.num_inliers) < core.inlier_threshold)
+        raise DegenerateCorrespondencesError(f'degenerate correspondences: {exc}',
+                                             code=exc.code) from exc
 
 
 def _copy_core(core: RegistrationResult, result: PipelineResult) -> None:
     for f in dataclasses.fields(RegistrationResult):
-        if f.name not in ('timings', 'valid', 'reason'):
+        if f.name not in ('timings', 'refusal'):
             setattr(result, f.name, getattr(core, f.name))
     result.stats = {**result.stats, **core.stats}
     result.coarse_transform = core.transform.copy()

@@ -42,6 +42,8 @@ from ..errors import InvalidInputError
 from ..frontend.features import CloudFeatures, finite_points
 from ..frontend.refine import evaluate_alignment, refine_transform
 from ..geometry import apply_transform, rotation_error_deg, translation_error
+from ..refusal import Judged, Refusal, RefusalCode
+from ..validity import more_scans_refusal, sequence_ambiguity_refusal, unexplained_refusal
 
 
 @dataclasses.dataclass
@@ -132,7 +134,7 @@ class Hypothesis:
 
 
 @dataclasses.dataclass
-class Answer:
+class Answer(Judged):
     """
     What the relocalizer says after a scan.
 
@@ -140,7 +142,8 @@ class Answer:
     :ivar done: confirmed, or refused (``max_scans`` used); else it asks for another scan.
     :ivar transform: 4x4 map <- the latest scan's sensor (the best hypothesis's pose).
     :ivar map_from_odom: 4x4 map <- odom of the best hypothesis.
-    :ivar scans_used: scans taken; ``reason``: why not confirmed ('' when confirmed).
+    :ivar scans_used: scans taken; ``refusal``: why not confirmed (None when confirmed; its
+        message is ``reason``).
     :ivar hypotheses: ranked, best first; ``results``: each scan's own registration.
     """
 
@@ -149,7 +152,7 @@ class Answer:
     transform: np.ndarray
     map_from_odom: np.ndarray
     scans_used: int
-    reason: str
+    refusal: Refusal | None
     hypotheses: list[Hypothesis]
     results: list[PipelineResult]
 
@@ -213,9 +216,8 @@ class Relocalizer:
         self._propose_all(result, index, 'scan')
         if index == 0:
             # One scan is judged as a single registration is.
-            return _settle(result.transform, odom,
-                           '' if result.valid else result.reason or 'not valid',
-                           self.hypotheses, [result], self.sequence)
+            return _settle(result.transform, odom, result.refusal, self.hypotheses, [result],
+                           self.sequence)
         if self.sequence.submap:
             to_latest = np.linalg.inv(odom)
             fused = np.vstack([apply_transform(to_latest @ s.odom, s.xyz) for s in self.scans])
@@ -303,42 +305,39 @@ def judge(hypotheses: list[Hypothesis], results: list[PipelineResult], odom: lis
 
     ranked = sorted(hypotheses, key=score, reverse=True)
     if not ranked:
-        return _settle(results[-1].transform, odom[-1], results[-1].reason
-                       or 'no scan gave a candidate pose', ranked, results, seq)
+        return _settle(results[-1].transform, odom[-1], results[-1].refusal
+                       or Refusal(RefusalCode.NO_ESTIMATE, 'no scan gave a candidate pose'),
+                       ranked, results, seq)
     best = ranked[0]
     last = (best.checks[n - 1].transform if n - 1 in best.checks
             else best.map_from_odom @ odom[-1])
     misses = [i for i, ok in enumerate(explained(best)) if not ok]
-    reason = (f'no pose explains every scan (the best misses scan(s) '
-              f'{", ".join(map(str, misses))}): the odometry contradicts the scans, or the '
-              'place is not in the map') if misses else ''
-    for rival in ranked[1:] if not reason else ():
+    refusal = unexplained_refusal(misses) if misses else None
+    for rival in ranked[1:] if not refusal else ():
         if any(not ok or rival.checks[i].fitness * seq.refute_ratio < best.checks[i].fitness
                for i, ok in enumerate(explained(rival))):
             continue  # refuted
         pose = rival.checks[n - 1].transform
         if distinct(pose, last, config):
-            reason = (f'ambiguous over {n} scans: a distinct pose '
-                      f'({rotation_error_deg(pose, last):.0f} deg, '
-                      f'{translation_error(pose, last):.2f} m away) explains every scan '
-                      'about as well')
+            refusal = sequence_ambiguity_refusal(n, rotation_error_deg(pose, last),
+                                                 translation_error(pose, last))
             break
-    return _settle(last, odom[-1], reason, ranked, results, seq)
+    return _settle(last, odom[-1], refusal, ranked, results, seq)
 
 
-def _settle(transform: np.ndarray, odom: np.ndarray, reason: str,
+def _settle(transform: np.ndarray, odom: np.ndarray, refusal: Refusal | None,
             hypotheses: list[Hypothesis], results: list[PipelineResult],
             seq: SequenceConfig) -> Answer:
-    """Return the answer: confirmed without a reason and with enough scans, else why not."""
+    """Return the answer: confirmed without a refusal and with enough scans, else why not."""
     n = len(results)
-    if not reason and n < seq.min_scans:
-        reason = f'{n} of the {seq.min_scans} scans a confirmation needs'
-    done = not reason or n >= seq.max_scans
-    if not done:
-        reason += '; send another scan with its odometry pose'
+    refusal = refusal or more_scans_refusal(n, seq.min_scans)
+    done = refusal is None or n >= seq.max_scans
+    if refusal is not None and not done:
+        refusal = Refusal(refusal.code,
+                          f'{refusal.message}; send another scan with its odometry pose')
     T = np.asarray(transform, dtype=np.float64)
-    return Answer(not reason, done, T, T @ np.linalg.inv(odom), n, reason, list(hypotheses),
-                  list(results))
+    return Answer(refusal is None, done, T, T @ np.linalg.inv(odom), n, refusal,
+                  list(hypotheses), list(results))
 
 
 def _checked_pose(T: np.ndarray) -> np.ndarray:

@@ -56,6 +56,8 @@ class PipelineResult(RegistrationResult):
         matrix of the overlap (0: some motion is unconstrained, e.g. plane on plane).
     :ivar chance_inliers: inliers the estimate would collect if every correspondence were
         an outlier (expected value under a random pairing).
+    :ivar chance_bound: the inlier count the best of ``num_hypotheses`` such estimates
+        exceeds with probability ``refine.significance`` (NaN when that gate is off).
     :ivar inlier_source_points: (K, 3) source side of the core's inlier correspondences
         (downsampled keypoints, source frame, metres).
     :ivar inlier_target_points: (K, 3) target side of the same correspondences (target
@@ -66,7 +68,8 @@ class PipelineResult(RegistrationResult):
     :ivar resolution: point resolution pr (metres) given to the core.
     :ivar tilt_deg: 4-DoF mode only (else NaN): the tilt (degrees) between the clouds'
         gravity axes measured by one 6-DoF point-to-plane step from the final estimate over
-        the overlap; above ``core.max_tilt_deg`` the result is invalid.
+        the overlap (the core's, on its inliers, when the pipeline stopped before the
+        refinement); above ``core.max_tilt_deg`` the result is invalid.
     :ivar free_space_violation: share of aligned points lying in front of the other
         cloud's observed surface (see :func:`~.gates.free_space_violation`); NaN when not
         measured (clouds not in sensor frames, or the gate disabled).
@@ -89,6 +92,9 @@ class PipelineResult(RegistrationResult):
         :func:`~.register.register_clouds`) or 'tracked' (refined from the pose predicted
         from a stream's last poses and judged by the same overlap gates,
         :class:`~.tracking.Tracker`; no correspondences, core or candidates then).
+    :ivar map_info: the summary of the map registered onto
+        (:meth:`~.map.PreparedMap.info`: file, cache hit or miss, points, load time); None
+        when the target was a cloud.
     """
 
     coarse_transform: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
@@ -98,13 +104,13 @@ class PipelineResult(RegistrationResult):
     overlap: float = 0.0
     observability: float = float('nan')
     chance_inliers: float = float('nan')
+    chance_bound: float = float('nan')
     inlier_source_points: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
     inlier_target_points: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
     num_source_points: int = 0
     num_target_points: int = 0
     voxel_size: float = float('nan')
     resolution: float = float('nan')
-    tilt_deg: float = float('nan')
     free_space_violation: float = float('nan')
     candidates: list[Candidate] = dataclasses.field(default_factory=list)
     ambiguous: bool = False
@@ -112,6 +118,7 @@ class PipelineResult(RegistrationResult):
     covariance: np.ndarray = dataclasses.field(default_factory=lambda: np.diag([1e6] * 6))
     confidence: float = 0.0
     path: str = 'global'
+    map_info: dict[str, Any] | None = None
 
     def summary(self) -> dict[str, Any]:
         out = super().summary()
@@ -120,14 +127,14 @@ class PipelineResult(RegistrationResult):
             refined=bool(self.refined), fitness=float(self.fitness),
             inlier_rmse=float(self.inlier_rmse), overlap=float(self.overlap),
             observability=float(self.observability),
-            chance_inliers=float(self.chance_inliers),
+            chance_inliers=float(self.chance_inliers), chance_bound=float(self.chance_bound),
             num_source_points=int(self.num_source_points),
             num_target_points=int(self.num_target_points),
             voxel_size=float(self.voxel_size), resolution=float(self.resolution),
-            tilt_deg=float(self.tilt_deg),
             free_space_violation=float(self.free_space_violation),
             candidates=[c.summary() for c in self.candidates], ambiguous=bool(self.ambiguous),
             runner_up_ratio=float(self.runner_up_ratio),
             covariance=np.asarray(self.covariance, dtype=float).tolist(),
-            confidence=float(self.confidence), path=self.path)
+            confidence=float(self.confidence), path=self.path,
+            map=None if self.map_info is None else dict(self.map_info))
         return out

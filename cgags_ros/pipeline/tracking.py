@@ -6,7 +6,8 @@ held per source/target pair by the stream's caller (the node in continuous mode,
 ``cgags-replay``), predicts the next pose from the pair's last valid poses (constant
 velocity, or the odometry given), refines it (downsampling and refinement only: no FPFH,
 no matching, no core) and judges it by the gates a global result passes
-(:func:`~.gates.overlap_gate`), plus two of its own: the refinement must not have moved the
+(:func:`~cgags_ros.validity.overlap_refusal`), plus two of its own
+(:func:`~cgags_ros.validity.tracking_refusal`): the refinement must not have moved the
 prediction far, and its fitness must not fall far below the last accepted pose's. When it
 fails (a jump, a kidnap, a degenerate view), when the target changed, when the last pose
 is too old, and periodically, the scan goes through :func:`~.register.register_clouds`, the
@@ -26,9 +27,9 @@ import numpy as np
 
 from .cache import cached_features
 from .covariance import pose_covariance
-from .gates import line_reason, overlap_gate
+from .gates import measure_overlap
 from .map import PreparedMap
-from .prediction import agree, correction_reason, fitness_drop_reason, scaled_motion
+from .prediction import agree, difference, scaled_motion
 from .register import register_clouds
 from .result import PipelineResult
 from ..config import fields
@@ -36,9 +37,11 @@ from ..config.pipeline import PipelineConfig
 from ..errors import EmptyCloudError
 from ..frontend.features import CloudFeatures, downsample, finite_points
 from ..frontend.refine import refine_transform
+from ..geometry import cross_spread
 from ..parallel import DEFAULT_WORKERS
 from ..registration import single_blas_thread
 from ..timing import timed
+from ..validity import line_cloud_refusal, overlap_refusal, tracking_refusal
 
 COUNTS = ('tracked', 'global', 'invalid', 'tracking_failures', 'periodic_checks',
           'check_disagreements', 'target_changes')
@@ -132,6 +135,7 @@ class Tracker:
         state.poses.clear()  # the motion broke off: no velocity across it
         result = self._global(source, target, stamp, cfg, state, 'tracking failed')
         result.stats['tracking_failure'] = tracked.reason
+        result.stats['tracking_failure_code'] = tracked.refusal.code.value
         return result
 
     def _pair(self, target: np.ndarray | PreparedMap, cfg: PipelineConfig) -> _PairState:
@@ -191,12 +195,12 @@ class Tracker:
             with timed(result.timings, 'downsample'):
                 points = downsample(source, v, cfg.frontend.min_points, 'source')
         except EmptyCloudError as exc:
-            return result.finish(start, str(exc))
+            return result.finish(start, exc.refusal)
         result.num_source_points, result.num_target_points = len(points), len(ft.points)
         result.resolution = ft.resolution
-        reason = line_reason(points, 'source', v)
-        if reason:
-            return result.finish(start, reason)
+        refusal = line_cloud_refusal(cross_spread(points), 'source', v)
+        if refusal:
+            return result.finish(start, refusal)
         gravity = cfg.core.gravity_axis if cfg.core.motion_model == '4dof' else None
         with timed(result.timings, 'refinement'):
             result.transform = refine_transform(
@@ -207,15 +211,16 @@ class Tracker:
             result.refined = True
         with timed(result.timings, 'validation'):
             # no source tree: the target side of the overlap is for rival verification only
-            reason, align = overlap_gate(points, None, ft, result, cfg,
-                                         isinstance(target, PreparedMap))
+            align = measure_overlap(points, None, ft, result, cfg,
+                                    isinstance(target, PreparedMap))
             last_fitness = state.poses[-1].fitness if state.poses else 0.0
-            reason = (reason or correction_reason(prediction, result.transform, cfg)
-                      or fitness_drop_reason(result.fitness, last_fitness, cfg))
+            refusal = (overlap_refusal(result, cfg)
+                       or tracking_refusal(*difference(prediction, result.transform),
+                                           result.fitness, last_fitness, cfg))
         result.covariance = pose_covariance(points[align.source_index],
                                             ft.points[align.target_index], result.transform,
                                             gravity)
-        return result.finish(start, reason)
+        return result.finish(start, refusal)
 
     def _target_features(self, target: np.ndarray | PreparedMap, cfg: PipelineConfig,
                          state: _PairState, timings: dict[str, float]) -> CloudFeatures:
@@ -279,7 +284,8 @@ class Tracker:
             self._counts['tracking_failures'] += 1
             self._count_global(result, stamp, state)
             result.stats.update(global_because='periodic check',
-                                tracking_failure=tracked.reason)
+                                tracking_failure=tracked.reason,
+                                tracking_failure_code=tracked.refusal.code.value)
             return result
         self._count_global(result, stamp, state)
         result.stats['global_because'] = 'periodic check'

@@ -13,7 +13,8 @@ carry one numbering, shared by the code, its docstrings and docs/method.md:
 7. stopping (the P1 and P2 bounds, the significance test);
 8. final re-fit;
 
-then the validity of the result (ours). :class:`~.search.Search` holds the sampling state of
+then the measurements its validity is decided on (ours; the decision is
+:mod:`cgags_ros.validity`'s). :class:`~.search.Search` holds the sampling state of
 the two stages, :mod:`.motion` what a minimal subset is (a 6-DoF triangle, a 4-DoF edge).
 """
 
@@ -33,9 +34,11 @@ from .yaw import GravityFrame, measure_tilt, vertical_offsets
 from ..config import fields
 from ..config.core import CoreConfig
 from ..errors import DegenerateCorrespondencesError, InvalidInputError
-from ..geometry import spread
+from ..geometry import cross_spread, spread
 from ..parallel import DEFAULT_WORKERS
+from ..refusal import RefusalCode
 from ..timing import timed
+from ..validity import consensus_refusal, no_graph_refusal, no_model_refusal
 
 
 @with_single_blas_thread
@@ -58,7 +61,8 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
     :param seed: random seed; the result is deterministic for a given seed.
     :param workers: threads for the compatibility graph (the result does not depend on it).
     :returns: :class:`RegistrationResult` with ``transform`` (source -> target), ``inliers``,
-        ``valid``/``reason``, and per-stage ``stats``/``timings``.
+        ``refusal`` (None when valid; ``valid``/``reason`` read it), the measurements it
+        was decided on, and per-stage ``stats``/``timings``.
     :raises InvalidInputError: wrong shapes, mismatched rows, NaN/Inf, missing thresholds.
     :raises DegenerateCorrespondencesError: fewer than 3 correspondences (4-DoF: 2), or all
         source or all target points identical or collinear (4-DoF: on one vertical line);
@@ -89,9 +93,7 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
                                            workers)
     result.stats.update(graph_edges=graph.num_edges, graph_density=graph.density)
     if graph.num_edges == 0:
-        return result.finish(start, (
-            f'no two correspondences are length-consistent within delta={delta:.4g} m: '
-            'they are all outliers, or the thresholds are too small for the noise'))
+        return result.finish(start, no_graph_refusal(delta))
 
     search = Search(src, dst, graph, motion, cfg, tau, delta, np.random.default_rng(seed))
     while True:
@@ -113,7 +115,8 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
     result.num_hypotheses = search.num_hypotheses
     result.stats.update(search.report())
     if search.best_inliers is None:
-        return result.finish(start, _no_model_reason(search, yaw_only))
+        return result.finish(start, no_model_refusal(search.stats['rejected_collinear'],
+                                                     yaw_only))
 
     # Step 8. Final least-squares re-fit on the inliers of the best hypothesis.
     with timed(result.timings, 'refit'):
@@ -121,24 +124,15 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
                                  *motion.refit_solver)
         result.stats['refits'] = done
     result.transform, result.inliers = T, inliers
-    # Validity: enough inliers, not degenerate, and significant (step 7's test).
-    chance, runner_up = search.chance_level(), search.runner_up(inliers)
-    result.stats.update(chance_level=chance, runner_up=runner_up)
-    reason = _validity_reason(src, inliers, cfg, tau, yaw_only)
-    if not reason and not search.significant(inliers):
-        reason = (f'the best consensus ({len(inliers)} inliers) does not stand out: chance '
-                  f'level {chance}, best distinct alternative {runner_up} (x{cfg.distinct_ratio}'
-                  ' required); no rigid motion is clearly supported')
+    # What the validity of the result is decided on (cgags_ros.validity): the consensus'
+    # size, shape and significance (step 7's test), and in 4-DoF mode the tilt.
+    result.chance_level, result.runner_up = search.chance_level(), search.runner_up(inliers)
+    result.inlier_spread = _inlier_spread(src[inliers], yaw_only)
     if frame:
         # 4-DoF: levelled input? The best 6-DoF fit of the inliers measures the tilt.
-        tilt = measure_tilt(src, dst, inliers, tau, cfg.refit_iterations)
-        result.stats['tilt_deg'] = tilt
-        # A tilt also splits a yaw-only consensus into rival parts (no significant one):
-        # then both are said, the tilt being what the user can act on.
-        tilted = _tilt_reason(tilt, cfg.max_tilt_deg)
-        reason = f'{reason}; {tilted}' if reason and tilted else reason or tilted
+        result.tilt_deg = measure_tilt(src, dst, inliers, tau, cfg.refit_iterations)
         result.transform, result.inliers = frame.from_gravity(T), np.sort(order[inliers])
-    return result.finish(start, reason)
+    return result.finish(start, consensus_refusal(result, cfg))
 
 
 # --- helpers ------------------------------------------------------------------------------------
@@ -171,7 +165,8 @@ def _check_correspondences(src, dst, minimum: int) -> tuple[np.ndarray, np.ndarr
             raise DegenerateCorrespondencesError(f'all {name} points are identical')
         if minimum == 3 and s[1] <= 1e-9 * s[0]:
             raise DegenerateCorrespondencesError(
-                f'all {name} points are collinear: the rotation about their line is undetermined')
+                f'all {name} points are collinear: the rotation about their line is '
+                'undetermined', code=RefusalCode.COLLINEAR)
     return src, dst
 
 
@@ -182,7 +177,7 @@ def _check_horizontal_spread(src: np.ndarray, dst: np.ndarray) -> None:
         if spread(a[:, :2])[0] <= 1e-9 * s[0]:
             raise DegenerateCorrespondencesError(
                 f'all {name} points lie on one vertical line (along the gravity axis): the '
-                'yaw about it is undetermined')
+                'yaw about it is undetermined', code=RefusalCode.COLLINEAR)
 
 
 def _thresholds(cfg: CoreConfig, tau: float | None, pr: float | None) -> tuple[float, float]:
@@ -202,44 +197,16 @@ def _thresholds(cfg: CoreConfig, tau: float | None, pr: float | None) -> tuple[f
     return float(tau), float(delta)
 
 
-def _no_model_reason(search: Search, yaw_only: bool) -> str:
-    subset = 'edge' if yaw_only else 'triangle'
-    if search.stats['rejected_collinear']:
-        if yaw_only:
-            return ('every compatible edge of correspondences is nearly vertical (shorter '
-                    'across the gravity axis than min_edge_length_factor * tau): the yaw is '
-                    'undetermined')
-        return ('every compatible triangle of correspondences is nearly collinear: the scene '
-                '(or its matched keypoints) is a line, and the rotation about it is undetermined')
+def _inlier_spread(pts: np.ndarray, yaw_only: bool) -> float:
+    """
+    Return the inliers' RMS spread (metres) across the line about which they leave a rotation.
+
+    6-DoF: across their main axis; 4-DoF (gravity frame): across the vertical, about which
+    the yaw turns. NaN with fewer than 3 inliers.
+    """
+    if len(pts) < 3:
+        return float('nan')
     if yaw_only:
-        return ('no usable compatible edge of correspondences was found (too few inliers or '
-                'thresholds too small)')
-    return (f'no compatible {subset} of correspondences was found: the compatibility graph '
-            'has edges but no 3-cliques (too few inliers or thresholds too small)')
-
-
-def _tilt_reason(tilt: float, max_tilt_deg: float) -> str:
-    if not tilt > max_tilt_deg:  # NaN (tilt not measurable) passes
-        return ''
-    return ('the clouds are not levelled: the best 6-DoF fit of the inliers tilts the '
-            f'gravity axis by {tilt:.2f} deg (> max_tilt_deg={max_tilt_deg:g}); a yaw-only '
-            "estimate would be wrong: level the clouds or use motion_model='6dof'")
-
-
-def _validity_reason(src: np.ndarray, inliers: np.ndarray, cfg: CoreConfig, tau: float,
-                     yaw_only: bool = False) -> str:
-    if len(inliers) < cfg.min_inliers:
-        return (f'only {len(inliers)} inliers (< min_inliers={cfg.min_inliers}): no rigid '
-                'motion is supported by enough correspondences')
-    pts = src[inliers]
-    if yaw_only:  # a line determines the yaw unless it is vertical
         horizontal = pts[:, :2] - pts[:, :2].mean(axis=0)
-        if np.sqrt(np.mean(np.sum(horizontal ** 2, axis=1))) < tau:
-            return ('the inliers lie (nearly) on one vertical line: the yaw about it is '
-                    'undetermined')
-        return ''
-    s = spread(pts)
-    # RMS spread orthogonal to the main axis below tau: the inliers are (nearly) collinear.
-    if s[1] / np.sqrt(len(pts)) < tau:
-        return 'the inliers are nearly collinear: the rotation about their line is undetermined'
-    return ''
+        return float(np.sqrt(np.mean(np.sum(horizontal ** 2, axis=1))))
+    return cross_spread(pts)

@@ -7,7 +7,10 @@ The node's /diagnostics: one flat key space, built here.
 (``accounting.ok``: they balance; ``sources.lost_upstream``, scans that never arrived,
 stands outside the balance); ``worker.*`` and ``memory.*`` the registration process and the
 resident memory (MB); ``transport.profile`` the Fast DDS profile loaded; ``configure.error``
-why configure failed (the node's last message before it is unconfigured).
+why configure failed (the node's last message before it is unconfigured, its code in
+``configure.refusal_code``). Every refusal's code sits beside its message:
+``last_refusal_code`` beside ``last_reason``, ``calibration.refusal_code`` beside
+``calibration.reason``.
 """
 
 from __future__ import annotations
@@ -24,10 +27,12 @@ REJECTED = 'rejected.'  # rejected.<cause>: clouds or pairs the node refused, pe
 PAIRING = 'pairing.'  # pairing.<counter> of cgags_ros.pipeline.pairing.Pairer.counters()
 DROPPED = PAIRING + 'dropped.'  # pairing.dropped.<reason>
 LAST = 'last_'  # last_<field>: the most recent registration
+REFUSAL_CODE = LAST + 'refusal_code'  # its refusal's code ('' when valid), beside last_reason
 LAST_TIMING = 'last_timing.'  # last_timing.<stage>: its stage times, seconds
 ACCOUNTING_OK = 'accounting.ok'
 LOST_UPSTREAM = 'sources.lost_upstream'
 CONFIGURE_ERROR = 'configure.error'  # why the configure transition failed
+CONFIGURE_CODE = 'configure.refusal_code'  # its code
 
 
 def build_statistics(snapshot: Mapping[str, Any], voxel_size: float,
@@ -71,13 +76,15 @@ def diagnostic_array(stats: Mapping[str, Any], name: str, hardware_id: str,
     status = DiagnosticStatus(name=name, hardware_id=hardware_id)
     if stats.get(CONFIGURE_ERROR):  # the last message before the node is unconfigured
         status.level = DiagnosticStatus.ERROR
-        status.message = f'configure failed: {stats[CONFIGURE_ERROR]}'
+        status.message = (f'configure failed ({stats.get(CONFIGURE_CODE, "")}): '
+                          f'{stats[CONFIGURE_ERROR]}')
     elif not stats.get(ACCOUNTING_OK, True):
         status.level = DiagnosticStatus.ERROR
         status.message = 'internal error: received clouds do not balance the counted outcomes'
     elif stats.get('calibration.status') == 'failed':
         status.level = DiagnosticStatus.ERROR
-        status.message = f"calibration FAILED: {stats.get('calibration.reason', '')}"
+        status.message = (f"calibration FAILED ({stats.get('calibration.refusal_code', '')}): "
+                          f"{stats.get('calibration.reason', '')}")
     elif stats.get('calibration.status') in ('converged', 'max_frames'):
         status.level = DiagnosticStatus.OK
         status.message = (f"calibrated ({stats['calibration.status']}): "
@@ -107,7 +114,8 @@ def diagnostic_array(stats: Mapping[str, Any], name: str, hardware_id: str,
         status.message = lost_upstream_message(stats[LOST_UPSTREAM])
     elif stats.get(f'{LAST}valid') is False:
         status.level = DiagnosticStatus.WARN
-        status.message = f"last registration invalid: {stats.get(f'{LAST}reason', '')}"
+        status.message = (f'last registration invalid ({stats.get(REFUSAL_CODE, "")}): '
+                          f"{stats.get(f'{LAST}reason', '')}")
     elif stats['rejected'] or stats[f'{PAIRING}dropped']:
         status.level = DiagnosticStatus.WARN
         status.message = 'running; some clouds rejected or dropped'

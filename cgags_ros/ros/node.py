@@ -148,7 +148,7 @@ class RegisterNode(LifecycleNode):
         except CgagsError as exc:  # a parameter, the registration process or the map
             self.get_logger().error(f'cannot configure: {exc}; the node stays unconfigured')
             if self.outputs is not None:
-                self.outputs.publish_configure_failure(self.statistics(), str(exc))
+                self.outputs.publish_configure_failure(self.statistics(), exc.refusal)
             self._teardown()
             return FAILURE
         self._entities = [
@@ -273,7 +273,7 @@ class RegisterNode(LifecycleNode):
         engine, executor = self._engine, self.executor
         if engine is None:
             response.success = False
-            response.message = 'not localized (unconfigured): the node is not configured'
+            response.message = 'unconfigured: not localized: the node is not configured'
             return response
         answer = Future()
 

@@ -27,6 +27,7 @@ from .qos import latched_qos, result_qos
 from ..geometry import make_transform, quaternion_to_matrix
 from ..localizer.interface import BasePose, Calibration, Estimate, PairResult
 from ..pipeline.covariance import map_to_odom
+from ..refusal import Refusal
 
 
 class Outputs:
@@ -148,9 +149,10 @@ class Outputs:
             stats, f'{node.get_name()}: registration', node.get_fully_qualified_name(),
             node.get_clock().now().to_msg()))
 
-    def publish_configure_failure(self, stats: dict[str, Any], reason: str) -> None:
+    def publish_configure_failure(self, stats: dict[str, Any], refusal: Refusal) -> None:
         """Publish why configure failed: the last /diagnostics before the node is unconfigured."""
-        self.publish_diagnostics({**stats, diagnostics.CONFIGURE_ERROR: reason})
+        self.publish_diagnostics({**stats, diagnostics.CONFIGURE_ERROR: refusal.message,
+                                  diagnostics.CONFIGURE_CODE: refusal.code.value})
 
     def statistics(self) -> dict[str, int]:
         """Return the ``map_to_odom.*`` counters for /diagnostics."""

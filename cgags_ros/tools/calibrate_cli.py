@@ -35,7 +35,8 @@ Frames: --parent P1 P2 ... --child C1 C2 ... pairs Pk with Ck (files: {', '.join
 or a bag: cgags-calibrate BAG --parent-topic /top/points --child-topic /left/points
 pairs messages whose stamps differ by at most --max-time-offset and takes one pair per
 --min-interval seconds (nearby frames repeat one scene; different scenes settle it).
-Exit status: 0 calibrated, {EXIT_FAIL} FAIL (reason printed), {EXIT_ERROR} bad input or option.
+Exit status: 0 calibrated, {EXIT_FAIL} FAIL (its refusal printed: code and message,
+docs/refusals.md), {EXIT_ERROR} bad input or option.
 """
 
 

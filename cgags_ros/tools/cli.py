@@ -21,9 +21,14 @@ class Parser(argparse.ArgumentParser):
 
 
 def error_line(prog: str, exc: BaseException, what: str = '') -> str:
-    """Return ``PROG: [WHAT: ]error: MESSAGE`` with the message folded onto one line."""
+    """
+    Return ``PROG: [WHAT: ]error: [CODE: ]MESSAGE`` with the message folded onto one line.
+
+    ``CODE`` is a :class:`~cgags_ros.errors.CgagsError`'s refusal code (docs/refusals.md).
+    """
     where = f'{what}: ' if what else ''
-    return f"{prog}: {where}error: {' '.join(str(exc).split())}"
+    code = f'{exc.code.value}: ' if isinstance(exc, CgagsError) else ''
+    return f"{prog}: {where}error: {code}{' '.join(str(exc).split())}"
 
 
 def run_cli(prog: str, body: Callable[[], int]) -> int:

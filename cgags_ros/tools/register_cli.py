@@ -29,7 +29,8 @@ EXIT_INVALID = 1  # registration ran but the estimate failed a validity gate
 EPILOG = f"""\
 point cloud formats: {', '.join(SUFFIXES)} (x, y, z in metres).
 The transform maps SOURCE into the TARGET frame: p_target = R p_source + t.
-Exit status: 0 valid estimate, {EXIT_INVALID} estimate marked invalid (see 'reason'),
+Exit status: 0 valid estimate, {EXIT_INVALID} estimate marked invalid (see 'refusal': code and
+message, docs/refusals.md),
 {EXIT_ERROR} unreadable input or bad option.
 example: cgags-register bun045.ply bun000.ply --voxel-size 0.003 --set refine.method=gicp
 levelled LiDAR scans (yaw + translation only): cgags-register a.ply b.ply --voxel-size 0.3 --4dof
@@ -125,7 +126,7 @@ def format_result(result) -> str:
     lines = ['transform (source -> target, metres):']
     lines += ['  ' + ' '.join(f'{x: .6f}' for x in row) for row in result.transform]
     lines.append(f"valid: {'yes' if result.valid else 'no'}"
-                 + (f' ({result.reason})' if result.reason else ''))
+                 + (f' ({result.refusal})' if result.refusal else ''))
     lines.append(f'inliers: {result.num_inliers} / {result.num_correspondences} correspondences '
                  f'({100 * result.inlier_ratio:.1f} %), {result.num_hypotheses} hypotheses')
     lines.append(f'fitness: {result.fitness:.3f}, inlier RMSE: {result.inlier_rmse:.4g} m, '

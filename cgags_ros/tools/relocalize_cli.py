@@ -22,6 +22,7 @@ from .register_cli import add_config_options, config_from_args
 from ..errors import InvalidInputError
 from ..geometry import make_transform, quaternion_to_matrix
 from ..io.clouds import read_cloud, SUFFIXES
+from ..refusal import summary as refusal_summary
 
 PROG = 'cgags-relocalize'
 EXIT_NOT_CONFIRMED = 1
@@ -32,8 +33,8 @@ normals facing the sensors that saw each surface (as mappers write them) signs t
 --odometry FILE: one line a scan, 'x y z qx qy qz qw', the sensor's pose in the odometry
 frame when that scan was taken (p_odom = R p_sensor + t); needed with more than one scan.
 The transform maps the last scan used into the map: p_map = R p_scan + t.
-Exit status: 0 confirmed, {EXIT_NOT_CONFIRMED} not confirmed (see 'reason'), {EXIT_ERROR} bad input
-or option.
+Exit status: 0 confirmed, {EXIT_NOT_CONFIRMED} not confirmed (see 'refusal': code and message,
+docs/refusals.md), {EXIT_ERROR} bad input or option.
 example: cgags-relocalize site.ply s1.pcd s2.pcd s3.pcd --odometry odom.txt --voxel-size 0.05
 """
 
@@ -110,9 +111,10 @@ def _relocalize(args: argparse.Namespace) -> int:
     limit = config.refine.max_free_space_violation
     out = {'confirmed': answer.confirmed, 'transform': answer.transform.tolist(),
            'map_from_odom': answer.map_from_odom.tolist(), 'scans_used': answer.scans_used,
-           'reason': answer.reason,
+           'reason': answer.reason, 'refusal': refusal_summary(answer.refusal),
            'hypotheses': [h.summary(sequence, limit) for h in answer.hypotheses],
            'scans': [{'file': str(path), 'valid': r.valid, 'reason': r.reason,
+                      'refusal': refusal_summary(r.refusal),
                       'inliers': r.num_inliers, 'fitness': r.fitness}
                      for path, r in zip(args.scans, answer.results)],
            'map': prepared.info()}
@@ -122,7 +124,8 @@ def _relocalize(args: argparse.Namespace) -> int:
 
 def format_answer(out: dict) -> str:
     """Format the answer for a reader: confirmed or why not, the pose, the hypotheses."""
-    lines = ['confirmed: ' + ('yes' if out['confirmed'] else f"no ({out['reason']})"),
+    why = f"{out['refusal']['code']}: {out['reason']}" if out['refusal'] else out['reason']
+    lines = ['confirmed: ' + ('yes' if out['confirmed'] else f'no ({why})'),
              f"scans used: {out['scans_used']}",
              'transform (last scan -> map, metres):']
     lines += ['  ' + ' '.join(f'{x: .6f}' for x in row) for row in out['transform']]

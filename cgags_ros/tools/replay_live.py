@@ -47,6 +47,7 @@ from .replay_player import LiveSession, MAX_QUEUE, Received
 from .report import BagReport, PairRow
 from ..config.ros_parameters import keys_to_ros
 from ..pipeline.pairing import Pairer
+from ..refusal import Refusal, RefusalCode
 
 SHUTDOWN_GRACE_S = 10.0
 
@@ -222,15 +223,18 @@ def build_rows(contents: BagContents, expected: dict[int, Any], poses: dict[int,
         result = results.get(stamp, {})
         row.inliers, row.fitness = result.get('num_inliers'), result.get('fitness')
         row.time_s = result.get('timings', {}).get('total')
+        said = result.get('refusal')
+        refusal = Refusal(RefusalCode(said['code']), said['message']) if said else None
         got = poses.get(stamp)
         if got is not None:
             row.valid = result.get('valid', True)  # a pose without its result: a valid one
             row.transform, row.target_frame = got.transform, got.frame_id
             row.covariance = got.covariance
             row.latency_s = got.receipt_s - sent[stamp] if stamp in sent else None
-            row.reason = result.get('reason', '')
+            row.refusal = refusal
         else:
-            row.reason = result.get('reason') or 'no pose received (see node.log)'
+            row.refusal = refusal or Refusal(RefusalCode.NO_POSE,
+                                             'no pose received (see node.log)')
         rows.append(row)
     return rows
 

@@ -14,6 +14,7 @@ from .report import BagReport, PairRow
 from ..config.pipeline import PipelineConfig
 from ..errors import InvalidInputError
 from ..pipeline.pairing import Pairer
+from ..refusal import Refusal
 
 
 def replay_offline(opts: ReplayOptions) -> BagReport:
@@ -44,7 +45,7 @@ def register_row(row: PairRow, source: np.ndarray, target: Any, pipe: PipelineCo
     Register ``source`` onto ``target`` (points or a prepared map) and fill ``row``.
 
     A cloud the pipeline rejects (the node rejects it too) leaves the row invalid with the
-    reason; ``candidates`` also records the ranked candidates.
+    error's refusal; ``candidates`` also records the ranked candidates.
     """
     from ..pipeline import register_clouds  # here: the replay CLI must start without Open3D
 
@@ -52,10 +53,10 @@ def register_row(row: PairRow, source: np.ndarray, target: Any, pipe: PipelineCo
     try:
         result = register_clouds(source, target, config=pipe)
     except InvalidInputError as exc:
-        row.reason = f'rejected by the pipeline: {exc}'
+        row.refusal = Refusal(exc.code, f'rejected by the pipeline: {exc}')
     else:
         row.valid = bool(result.valid)
-        row.reason, row.inliers = result.reason, result.num_inliers
+        row.refusal, row.inliers = result.refusal, result.num_inliers
         row.fitness = float(result.fitness)
         row.transform = np.asarray(result.transform, dtype=np.float64)
         row.covariance = np.asarray(result.covariance, dtype=np.float64)

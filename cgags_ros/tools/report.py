@@ -21,6 +21,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from ..geometry import matrix_to_quaternion, rotation_error_deg, translation_error
+from ..refusal import Refusal, summary as refusal_summary
 
 RESULTS_CSV = 'results.csv'
 RESULTS_JSON = 'results.json'
@@ -28,9 +29,10 @@ PLOT_PNG = 'errors.png'
 
 CSV_COLUMNS = (
     'index', 'source_stamp_ns', 'target_stamp_ns', 'source_frame', 'target_frame',
-    'valid', 'reason', 'inliers', 'fitness', 'time_s', 'latency_s', 're_deg', 'te_m',
+    'valid', 'refusal', 'reason', 'inliers', 'fitness', 'time_s', 'latency_s', 're_deg', 'te_m',
     'success', 'tx', 'ty', 'tz', 'qx', 'qy', 'qz', 'qw',
 )
+_POSE_COLUMNS = 7  # the last ones: translation and quaternion
 
 
 @dataclasses.dataclass
@@ -52,7 +54,8 @@ class PairRow:
     ``latency_s`` (live only) the time from publishing the source to receiving its pose.
     ``re_deg``/``te_m``/``success`` are None without ground truth. ``covariance`` is the
     estimate's 6x6 covariance (ROS order: x, y, z in metres, rotations in radians), in the
-    JSON output only.
+    JSON output only. ``refusal`` says why the pair is not valid (None when it is, or
+    when the node published an invalid pose it did not explain); ``reason`` is its message.
     """
 
     index: int
@@ -61,7 +64,7 @@ class PairRow:
     source_frame: str
     target_frame: str
     valid: bool
-    reason: str = ''
+    refusal: Refusal | None = None
     inliers: int | None = None
     fitness: float | None = None
     time_s: float | None = None
@@ -73,6 +76,11 @@ class PairRow:
     success: bool | None = None
     candidates: list[dict[str, Any]] | None = None
     covariance: np.ndarray | None = None
+
+    @property
+    def reason(self) -> str:
+        """Return the refusal's message ('' without one)."""
+        return '' if self.refusal is None else self.refusal.message
 
     def evaluate(self, criteria: SuccessCriteria) -> None:
         """
@@ -92,15 +100,18 @@ class PairRow:
                             and self.te_m <= criteria.max_te_m)
 
     def csv_row(self) -> dict[str, Any]:
-        row = {k: getattr(self, k) for k in CSV_COLUMNS[:14]}
+        row = {k: getattr(self, k) for k in CSV_COLUMNS[:-_POSE_COLUMNS]}
         row['valid'] = int(self.valid)
+        row['refusal'] = '' if self.refusal is None else self.refusal.code.value
         row['success'] = '' if self.success is None else int(self.success)
         pose = _pose7(self.transform)
-        row.update(zip(CSV_COLUMNS[14:], pose if pose is not None else [''] * 7))
+        row.update(zip(CSV_COLUMNS[-_POSE_COLUMNS:],
+                       pose if pose is not None else [''] * _POSE_COLUMNS))
         return {k: ('' if v is None else v) for k, v in row.items()}
 
     def to_json(self) -> dict[str, Any]:
-        out = {k: getattr(self, k) for k in CSV_COLUMNS[:14]}
+        out = {k: getattr(self, k) for k in CSV_COLUMNS[:-_POSE_COLUMNS]}
+        out['refusal'] = refusal_summary(self.refusal)
         out['transform'] = None if self.transform is None else np.asarray(self.transform).tolist()
         out['ground_truth'] = (None if self.ground_truth is None
                                else np.asarray(self.ground_truth).tolist())

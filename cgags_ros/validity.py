@@ -1,0 +1,341 @@
+"""
+Validity: the one place that decides whether an estimate is trusted, and why not.
+
+The core (:mod:`cgags_ros.registration`), the pipeline's gates (:mod:`cgags_ros.pipeline.gates`)
+and the node measure; the functions here compare those measurements with their settings and
+return a :class:`~cgags_ros.refusal.Refusal` (None when the estimate passes), the first
+check that fails in a fixed order. Nothing here measures: the measurements are the results'
+own fields (the protocols below name the ones each decision reads), so a refusal can always
+be traced to numbers the result reports.
+
+Order, as a pair goes through the pipeline: a cloud that is a line; the core's outcome (no
+estimate, too few inliers, a collinear consensus, chance level or a distinct alternative, a
+tilt in 4-DoF mode); then, on the refined estimate, chance-level inliers, a degenerate
+axis, low fitness, a free-space violation, a tilt; an ambiguity among the ranked candidates
+overrides them all. The node's initial pose adds its own stricter guards
+(:func:`quality_refusal`).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol, Sequence
+
+from .config.core import CoreConfig
+from .config.node import NodeConfig
+from .config.pipeline import PipelineConfig
+from .geometry import rotation_error_deg, translation_error
+from .refusal import Refusal, RefusalCode
+
+Code = RefusalCode
+
+
+class Consensus(Protocol):
+    """What the core measured of its final consensus (a ``RegistrationResult``'s fields)."""
+
+    num_inliers: int
+    inlier_threshold: float  # tau, metres
+    inlier_spread: float  # metres, across the line that would leave a rotation free
+    chance_level: int
+    runner_up: int
+    tilt_deg: float  # 4-DoF only (else NaN)
+    refusal: Refusal | None
+    reason: str
+
+
+class Overlap(Protocol):
+    """What the gates measured of an estimate's overlap alone (a ``PipelineResult``'s fields)."""
+
+    observability: float
+    fitness: float
+    free_space_violation: float
+    tilt_deg: float  # 4-DoF only (else NaN)
+
+
+class Trusted(Protocol):
+    """An estimate's calibrated confidence (:mod:`cgags_ros.pipeline.confidence`)."""
+
+    confidence: float
+
+
+class Estimate(Consensus, Overlap, Protocol):
+    """What the gates measured of a refined estimate (a ``PipelineResult``'s fields)."""
+
+    num_correspondences: int
+    num_hypotheses: int
+    chance_inliers: float
+    chance_bound: float
+    ambiguous: bool
+    runner_up_ratio: float
+    candidates: Sequence[Any]
+
+
+# --- the core ------------------------------------------------------------------------------
+
+def no_graph_refusal(delta: float) -> Refusal:
+    """Return the refusal of a compatibility graph without an edge (no estimate)."""
+    return Refusal(Code.NO_ESTIMATE, (
+        f'no two correspondences are length-consistent within delta={delta:.4g} m: '
+        'they are all outliers, or the thresholds are too small for the noise'))
+
+
+def no_model_refusal(collinear_subsets: int, yaw_only: bool) -> Refusal:
+    """
+    Return the refusal of a search that found no minimal subset to fit (no estimate).
+
+    ``collinear_subsets``: compatible subsets the search drew and set aside as degenerate
+    (nearly collinear triangles; 4-DoF: nearly vertical edges).
+    """
+    if collinear_subsets:
+        return Refusal(Code.COLLINEAR, (
+            'every compatible edge of correspondences is nearly vertical (shorter across the '
+            'gravity axis than min_edge_length_factor * tau): the yaw is undetermined'
+            if yaw_only else
+            'every compatible triangle of correspondences is nearly collinear: the scene (or '
+            'its matched keypoints) is a line, and the rotation about it is undetermined'))
+    return Refusal(Code.NO_ESTIMATE, (
+        'no usable compatible edge of correspondences was found (too few inliers or '
+        'thresholds too small)' if yaw_only else
+        'no compatible triangle of correspondences was found: the compatibility graph has '
+        'edges but no 3-cliques (too few inliers or thresholds too small)'))
+
+
+def consensus_refusal(c: Consensus, cfg: CoreConfig) -> Refusal | None:
+    """
+    Return why the core's final consensus is not trusted, or None.
+
+    Enough inliers, not on a line (4-DoF: not on one vertical line), standing out from
+    chance and from every distinct alternative (step 7's test), and in 4-DoF mode levelled
+    clouds. A tilt also splits a yaw-only consensus into rival parts: both are then said,
+    under the tilt's code, the tilt being what the user can act on.
+    """
+    refusal = _consensus_shape(c, cfg) or _stands_out(c, cfg)
+    tilted = tilt_refusal(c.tilt_deg, cfg.max_tilt_deg, 'the best 6-DoF fit of the inliers',
+                          'max_tilt_deg', "motion_model='6dof'")
+    if refusal and tilted:
+        return Refusal(Code.TILT, f'{refusal.message}; {tilted.message}')
+    return refusal or tilted
+
+
+def _consensus_shape(c: Consensus, cfg: CoreConfig) -> Refusal | None:
+    if c.num_inliers < cfg.min_inliers:
+        return Refusal(Code.FEW_INLIERS, (
+            f'only {c.num_inliers} inliers (< min_inliers={cfg.min_inliers}): no rigid motion '
+            'is supported by enough correspondences'))
+    if not c.inlier_spread < c.inlier_threshold:
+        return None
+    if cfg.motion_model == '4dof':  # a line determines the yaw unless it is vertical
+        return Refusal(Code.COLLINEAR, 'the inliers lie (nearly) on one vertical line: the '
+                       'yaw about it is undetermined')
+    return Refusal(Code.COLLINEAR, 'the inliers are nearly collinear: the rotation about '
+                   'their line is undetermined')
+
+
+def _stands_out(c: Consensus, cfg: CoreConfig) -> Refusal | None:
+    """Step 7's significance test on the final consensus (as the search stops on it)."""
+    if c.num_inliers < c.chance_level:
+        code = Code.CHANCE_LEVEL
+    elif c.num_inliers < cfg.distinct_ratio * c.runner_up:
+        code = Code.AMBIGUOUS
+    else:
+        return None
+    return Refusal(code, (
+        f'the best consensus ({c.num_inliers} inliers) does not stand out: chance level '
+        f'{c.chance_level}, best distinct alternative {c.runner_up} (x{cfg.distinct_ratio} '
+        'required); no rigid motion is clearly supported'))
+
+
+def tilt_refusal(tilt_deg: float, max_tilt_deg: float, measured_by: str, setting: str,
+                 six_dof: str) -> Refusal | None:
+    """Return why a yaw-only estimate is not trusted on a measured tilt (NaN passes)."""
+    if not tilt_deg > max_tilt_deg:  # NaN: 6-DoF mode, or not measurable
+        return None
+    return Refusal(Code.TILT, (
+        f'the clouds are not levelled: {measured_by} tilts the gravity axis by '
+        f'{tilt_deg:.2f} deg (> {setting}={max_tilt_deg:g}); the yaw-only estimate is not '
+        f'trusted: level the clouds or use {six_dof}'))
+
+
+# --- the pipeline --------------------------------------------------------------------------
+
+def line_cloud_refusal(cross_spread: float, name: str, voxel_size: float) -> Refusal | None:
+    """
+    Return why a downsampled cloud is a line, or None.
+
+    ``cross_spread``: its RMS spread across its main axis (metres). Below one voxel the
+    rotation about that axis can never be determined, so the core is not even asked.
+    """
+    if cross_spread >= voxel_size:
+        return None
+    return Refusal(Code.COLLINEAR, (
+        f'degenerate {name} cloud: it is (nearly) a line (spread across its axis '
+        f'{cross_spread:.3g} m < voxel size {voxel_size:g} m); the rotation about it is '
+        'undetermined'))
+
+
+def unsettled(core: Consensus, cfg: PipelineConfig) -> bool:
+    """
+    Tell whether a core refusal is left to the gates: only its consensus was collinear.
+
+    Such a consensus leaves the rotation about its line to the correspondences' noise, but
+    the refinement fits the whole overlap, whose geometry may well fix that rotation: with
+    ``refine.collinear_consensus`` it is refined and judged by the gates on the overlap
+    (observability, free space under a tighter bound, chance inliers, ambiguity) instead.
+    """
+    return (core.refusal is not None and core.refusal.code is Code.COLLINEAR
+            and core.num_inliers >= cfg.core.min_inliers and cfg.refine.collinear_consensus
+            and cfg.core.motion_model != '4dof' and cfg.refine.method != 'none')
+
+
+def free_space_limit(cfg: PipelineConfig, unsettled: bool = False) -> float:
+    """Return the free-space bound: tighter for an estimate the correspondences did not settle."""
+    limit = cfg.refine.max_free_space_violation
+    return limit * cfg.refine.free_space_settle_factor if unsettled and limit < 1 else limit
+
+
+def gate_refusal(e: Estimate, cfg: PipelineConfig, unsettled: bool = False) -> Refusal | None:
+    """Return why the refined estimate must not be trusted, or None when every gate passes."""
+    if cfg.refine.significance > 0 and not e.num_inliers > e.chance_bound:
+        return Refusal(Code.CHANCE_LEVEL, (
+            f'{e.num_inliers} inliers of {e.num_correspondences} correspondences is no better '
+            f'than chance (random pairing gives {e.chance_inliers:.2g} per estimate; the best '
+            f'of {max(e.num_hypotheses, 1)} hypotheses reaches {e.chance_bound:.0f}): the '
+            'clouds probably do not overlap'))
+    return overlap_refusal(e, cfg, unsettled)
+
+
+def overlap_refusal(e: Overlap, cfg: PipelineConfig, unsettled: bool = False) -> Refusal | None:
+    """
+    Return why an estimate must not be trusted on its overlap alone, or None.
+
+    The gates that need no correspondences (degenerate axis, fitness, free space, tilt), so
+    that a pose refined from a prediction is judged as a global one is.
+    """
+    refine = cfg.refine
+    distance = refine.max_correspondence_distance_factor * cfg.voxel_size
+    limit = free_space_limit(cfg, unsettled)
+    if refine.min_observability > 0 and not e.observability >= refine.min_observability:
+        return Refusal(Code.DEGENERATE_AXIS, (
+            'degenerate geometry: the overlap constrains some motion only weakly '
+            f'(observability {e.observability:.2g} < {refine.min_observability:g}; e.g. '
+            'plane, line, sphere or cylinder); the pose along it is arbitrary'))
+    if refine.min_fitness > 0 and not e.fitness >= refine.min_fitness:
+        return Refusal(Code.LOW_FITNESS, (
+            f'fitness {e.fitness:.3f} < refine.min_fitness {refine.min_fitness:g}: too few '
+            f'source points lie within {distance:.3g} m of the target after alignment'))
+    if e.free_space_violation > limit:  # NaN: not measured
+        return Refusal(Code.FREE_SPACE, (
+            f'free-space violation: {100 * e.free_space_violation:.0f} % of the aligned '
+            "points that meet the other cloud's view lie in front of its observed surface "
+            f'(> {limit:g}, refine.max_free_space_violation, times '
+            'refine.free_space_settle_factor for an unsettled estimate): the pose stacks '
+            'surfaces where a sensor saw free space'))
+    return tilt_refusal(e.tilt_deg, cfg.core.max_tilt_deg,
+                        'a 6-DoF point-to-plane step over the overlap', 'core.max_tilt_deg',
+                        "core.motion_model='6dof'")
+
+
+def tracking_refusal(correction_deg: float, correction_m: float, fitness: float,
+                     last_fitness: float, cfg: PipelineConfig) -> Refusal | None:
+    """
+    Return why a pose refined from a prediction is no tracked pose, or None.
+
+    Smooth motion moves little and changes the overlap little, a jump does neither: the
+    refinement must not have moved the prediction by more than ``tracking.max_correction_*``
+    (``correction_deg``, ``correction_m``), and ``fitness`` must be at least
+    ``tracking.min_fitness_ratio`` times the last accepted pose's.
+    """
+    track = cfg.tracking
+    limit = track.max_correction_factor * cfg.voxel_size
+    if not (correction_deg <= track.max_correction_deg and correction_m <= limit):
+        return Refusal(Code.TRACKING_LOST, (
+            f'tracking: the refinement moved the predicted pose by {correction_m:.3g} m and '
+            f'{correction_deg:.3g} deg (> tracking.max_correction_factor {limit:.3g} m or '
+            f'tracking.max_correction_deg {track.max_correction_deg:g} deg): a jump, not a '
+            'tracked motion'))
+    if not fitness >= track.min_fitness_ratio * last_fitness:
+        return Refusal(Code.TRACKING_LOST, (
+            f'tracking: fitness {fitness:.3f} < tracking.min_fitness_ratio times the last '
+            f"pose's {last_fitness:.3f}: the prediction converged where far fewer points "
+            'fit (a jump or a changed scene)'))
+    return None
+
+
+def confidence_refusal(e: Trusted, min_confidence: float) -> Refusal | None:
+    """Return why an estimate's calibrated confidence is too low to call it valid, or None."""
+    if min_confidence <= 0 or e.confidence >= min_confidence:
+        return None
+    return Refusal(Code.LOW_CONFIDENCE, (
+        f'low confidence: P(right) {e.confidence:.2f} < min_confidence '
+        f'{min_confidence:g}: estimates measured like this one (inliers against chance, '
+        'overlap, free space, rivals) are too often wrong'))
+
+
+def ambiguity_refusal(e: Estimate, cfg: PipelineConfig) -> Refusal | None:
+    """Return why the estimate is ambiguous among its candidates, or None when it is not."""
+    if not e.ambiguous:
+        return None
+    best, runner = e.candidates[0], e.candidates[1]
+    moved = translation_error(best.transform, runner.transform)
+    turned = rotation_error_deg(best.transform, runner.transform)
+    geometry = (' and, refined, overlaps about as well' if cfg.verify_rivals
+                and cfg.refine.method != 'none' else '')
+    return Refusal(Code.AMBIGUOUS, (
+        f'ambiguous: a distinct pose ({turned:.0f} deg, {moved:.2f} m away) has '
+        f'{runner.num_inliers} inliers against {best.num_inliers} of the best (within '
+        f'ambiguity_ratio {cfg.ambiguity_ratio:g}){geometry}; the scene looks alike in both '
+        'poses'))
+
+
+# --- the relocalizer over a few scans -----------------------------------------------------
+
+def unexplained_refusal(misses: Sequence[int]) -> Refusal:
+    """Return the refusal of a best hypothesis that does not explain the scans ``misses``."""
+    return Refusal(Code.UNEXPLAINED, (
+        f'no pose explains every scan (the best misses scan(s) '
+        f'{", ".join(map(str, misses))}): the odometry contradicts the scans, or the '
+        'place is not in the map'))
+
+
+def sequence_ambiguity_refusal(scans: int, turned_deg: float, moved_m: float) -> Refusal:
+    """Return the refusal of a distinct pose that explains every scan about as well."""
+    return Refusal(Code.AMBIGUOUS, (
+        f'ambiguous over {scans} scans: a distinct pose ({turned_deg:.0f} deg, '
+        f'{moved_m:.2f} m away) explains every scan about as well'))
+
+
+def more_scans_refusal(scans: int, min_scans: int) -> Refusal | None:
+    """Return why ``scans`` scans cannot confirm yet (fewer than ``min_scans``), or None."""
+    if scans >= min_scans:
+        return None
+    return Refusal(Code.MORE_SCANS, f'{scans} of the {min_scans} scans a confirmation needs')
+
+
+# --- the node ------------------------------------------------------------------------------
+
+def quality_refusal(e: Estimate, cfg: NodeConfig) -> Refusal | None:
+    """
+    Return why ``e`` is no confident pose for an initial pose, or None.
+
+    Valid and unambiguous, then the node's stricter guards: at least
+    ``initial_pose_min_inliers`` inliers, a best/runner-up candidate ratio of at least
+    ``initial_pose_min_ratio`` and a fitness of at least ``initial_pose_min_fitness``.
+    """
+    if e.ambiguous:
+        return Refusal(Code.AMBIGUOUS, e.reason)
+    if e.refusal is not None:
+        return e.refusal
+    if e.num_inliers < cfg.initial_pose_min_inliers:
+        return Refusal(Code.FEW_INLIERS, (
+            f'{e.num_inliers} inliers < initial_pose_min_inliers '
+            f'{cfg.initial_pose_min_inliers}'))
+    ratio = float(e.runner_up_ratio)
+    if ratio < cfg.initial_pose_min_ratio:
+        return Refusal(Code.LOW_RATIO, (
+            f'best/runner-up ratio {ratio:.2f} < initial_pose_min_ratio '
+            f'{cfg.initial_pose_min_ratio:g}'))
+    fitness = float(e.fitness)
+    if fitness < cfg.initial_pose_min_fitness:
+        return Refusal(Code.LOW_FITNESS, (
+            f'fitness {fitness:.3f} < initial_pose_min_fitness '
+            f'{cfg.initial_pose_min_fitness:g}'))
+    return None
