@@ -1,9 +1,10 @@
 r"""
 The node at a LiDAR's rate over DDS: real KITTI scans at 10 Hz, scan-to-map, tracked or not.
 
-Run from the repository root, in a network namespace of its own (no other DDS traffic)::
+Run from the repository root (where other DDS programs run, in a network and /dev/shm
+namespace of its own, as the DDS tests run)::
 
-    /work/isolate.sh .venv/bin/python -m bench.node_tracking --duration 60 \
+    .venv/bin/python -m bench.node_tracking --duration 60 \
         [--voxels 0.3 0.5 1.0] [--tracking on off] [--orders pingpong looped] \
         [--output out/bench/node_tracking.json]
 
@@ -22,10 +23,11 @@ Per cell: scans sent, poses published, latency from publishing a scan to receivi
 ``~/result`` (tracked/global), what the node dropped (queue full) or rejected, and every
 published pose against ``pseudo_gt.txt`` (scan k in scan 0's frame): the worst rotation and
 translation error, how many are within 1 deg / 0.2 m, how many beyond 5 deg / 0.6 m; and the
-median stage times the node reports (``timings``) of tracked and of global scans, so that
-latency minus registration shows what transport, decoding, the transfer to the registration
-process and queueing cost. The machine may be loaded by other work: compare cells of one
-run, and note the load average printed with the table.
+median stage times the node reports (``timings``) of tracked and of global scans, and the
+median of a tracked scan's latency minus its registration time: what transport, decoding,
+queueing, the transfer to the registration process and back, and publishing cost. The
+machine may be loaded by other work: compare cells of one run, and note the load average
+printed with the table.
 """
 
 from __future__ import annotations
@@ -147,6 +149,11 @@ class StreamClient:
                 with self._lock:
                     self.diagnostics = values
 
+    def forget(self) -> None:
+        """Drop the last node's /diagnostics (before another node starts)."""
+        with self._lock:
+            self.diagnostics = {}
+
     def value(self, key: str) -> str | None:
         """Return the node's last /diagnostics value of ``key``."""
         with self._lock:
@@ -204,7 +211,7 @@ def summarize(client: StreamClient, stamps: list[int], truth: np.ndarray) -> dic
     """Return one cell's numbers for the scans published with ``stamps``."""
     from cgags_ros.geometry import rotation_error_deg, translation_error
 
-    latencies, rot, trans = [], [], []
+    latencies, rot, trans, overheads = [], [], [], []
     paths = {'tracked': 0, 'global': 0}
     outcomes: dict[str, int] = {}
     stages: dict[str, dict[str, list[float]]] = {p: {s: [] for s in STAGES} for p in paths}
@@ -223,6 +230,8 @@ def summarize(client: StreamClient, stamps: list[int], truth: np.ndarray) -> dic
         if pose is None:
             continue
         latencies.append(pose[0] - sent_at)
+        if record is not None and record.get('path') == 'tracked':
+            overheads.append(latencies[-1] - record['timings'].get('total', np.nan))
         rot.append(rotation_error_deg(pose[1], truth[k]))
         trans.append(translation_error(pose[1], truth[k]))
     rot_a, trans_a, lat = np.array(rot), np.array(trans), np.array(latencies)
@@ -235,6 +244,7 @@ def summarize(client: StreamClient, stamps: list[int], truth: np.ndarray) -> dic
         'beyond_5deg_60cm': int(np.sum((rot_a > 5.0) | (trans_a > 0.6))),
         'max_rotation_deg': float(rot_a.max()) if rot_a.size else None,
         'max_translation_m': float(trans_a.max()) if trans_a.size else None,
+        'tracked_overhead_ms': _ms(np.array(overheads), 50),
         'stage_median_ms': {p: {s: _ms(np.array(v), 50) for s, v in by.items()}
                             for p, by in stages.items()},
     }
@@ -259,10 +269,14 @@ def run_node(client: StreamClient, msgs: list, truth: np.ndarray, voxel: float,
         config_file = write_text(folder / 'node_tracking_config.yaml', yaml.safe_dump(keys))
         args += ['-p', f'config_file:={config_file}']
     log_path = folder / f"node_{voxel:g}_{'on' if tracking else 'off'}.log"
+    # A node stopped before leaves its match and its last /diagnostics behind a while.
+    _wait(lambda: not client.source_pub.get_subscription_count(), 60, 'the last node gone')
+    client.forget()
     proc, log = start_node(args, dds_environment(DOMAIN_ID), log_path)
     cells = []
     try:
         _wait(lambda: client.value('worker.ready') == 'True', 300, 'the node warm', proc)
+        _wait(lambda: client.source_pub.get_subscription_count(), 60, 'the match', proc)
         client.target_pub.publish(msgs[0])
         _wait(lambda: client.value('targets.received') == '1', 60, 'the map received', proc)
         count = int(round(duration * rate))
@@ -282,11 +296,13 @@ def run_node(client: StreamClient, msgs: list, truth: np.ndarray, voxel: float,
     return cells
 
 
-def _wait(predicate: Any, timeout: float, what: str, proc: subprocess.Popen) -> None:
+def _wait(predicate: Any, timeout: float, what: str,
+          proc: subprocess.Popen | None = None) -> None:
     deadline = time.monotonic() + timeout
     while not predicate():
-        if proc.poll() is not None or time.monotonic() > deadline:
-            raise RuntimeError(f'gave up waiting for {what} (node exit code {proc.poll()})')
+        ended = proc is not None and proc.poll() is not None
+        if ended or time.monotonic() > deadline:
+            raise RuntimeError(f'gave up waiting for {what} (node ended: {ended})')
         time.sleep(0.05)
 
 
@@ -294,7 +310,8 @@ def table(cells: list[dict[str, Any]]) -> str:
     """Return the Markdown table of docs/benchmarks.md."""
     lines = ['| voxel | tracking | order | sent | published | latency p50 / p95 ms | '
              'tracked / global | dropped | worst | within 1° / 0.2 m; beyond 5° / 0.6 m | '
-             'tracked ms: downsample / refinement / gates / total | global total ms |',
+             'tracked ms: downsample / refinement / gates / total; latency - total | '
+             'global total ms |',
              '|---|---|---|---|---|---|---|---|---|---|---|---|']
     for c in cells:
         tracked, glob = c['stage_median_ms']['tracked'], c['stage_median_ms']['global']
@@ -306,7 +323,8 @@ def table(cells: list[dict[str, Any]]) -> str:
             f"| {c['voxel_size']:g} m | {'on' if c['tracking'] else 'off'} | {c['order']} | "
             f"{c['sent']} | {c['published']} | {_text(c['latency_p50_ms'])} / "
             f"{_text(c['latency_p95_ms'])} | {c['tracked']} / {c['global']} | {dropped} | "
-            f"{worst} | {c['within_1deg_20cm']}; {c['beyond_5deg_60cm']} | {stages} | "
+            f"{worst} | {c['within_1deg_20cm']}; {c['beyond_5deg_60cm']} | {stages}; "
+            f"{_text(c['tracked_overhead_ms'])} | "
             f"{_text(glob['total'])} |")
     return '\n'.join(lines)
 
