@@ -42,7 +42,7 @@ import time
 from typing import Any
 
 from bench.common import (add_set_option, argument_parser, machine, output_path,
-                          parse_overrides, write_json, write_text)
+                          parse_overrides, stop_process, write_json, write_text)
 import numpy as np
 import yaml
 
@@ -77,20 +77,6 @@ def start_node(ros_args: list[str], env: dict[str, str], log_path: Path
                             + ros_args, cwd=REPO, env=env, stdout=log,
                             stderr=subprocess.STDOUT, text=True)
     return proc, log
-
-
-def stop_node(proc: subprocess.Popen, log: Any) -> str:
-    """SIGTERM the node (SIGKILL after 20 s); return its log."""
-    proc.terminate()
-    try:
-        proc.wait(timeout=20)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
-    log.seek(0)
-    out = log.read()
-    log.close()
-    return out
 
 
 class StreamClient:
@@ -292,7 +278,7 @@ def run_node(client: StreamClient, msgs: list, truth: np.ndarray, voxel: float,
             print(json.dumps(cell), flush=True)
             cells.append(cell)
     finally:
-        stop_node(proc, log)
+        stop_process(proc, log)
     return cells
 
 

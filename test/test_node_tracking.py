@@ -17,7 +17,7 @@ import pytest
 rclpy = pytest.importorskip('rclpy')
 
 from bench import node_tracking as bench  # noqa: E402, I100
-from waiting import ros_args, spun_context, wait_for  # noqa: E402
+from waiting import ros_args, spun_context, stop_process, wait_for  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 DOMAIN_ID = 93  # distinct from the other DDS test modules
@@ -48,7 +48,7 @@ def test_a_stream_at_10hz_is_tracked_and_a_jump_searched_again(tmp_path: Path):
                      'the counts on /diagnostics', lambda: client.diagnostics)
             values = dict(client.diagnostics)
         finally:
-            out = bench.stop_node(proc, log)
+            out = stop_process(proc, log)
     assert proc.returncode == 0, out
     assert cell['results'] == cell['published'] == len(ORDER), (cell, out)
     # The first scan and the jump are global; every other scan is tracked.

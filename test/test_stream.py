@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import time
 
-from bench.datasets.rigs import KITTI_SCANS, kitti_scans
 from cgags_ros.config.node import NodeConfig
 from cgags_ros.config.pipeline import PipelineConfig
 from cgags_ros.config.tracking import TrackingConfig
@@ -28,14 +27,6 @@ from waiting import wait_for
 pytestmark = pytest.mark.slow
 VOXEL = 0.5
 PERIOD = 0.1  # seconds between scans: a 10 Hz LiDAR
-
-
-@pytest.fixture(scope='module')
-def kitti(data_dir):
-    """Return the 16 scans and their pseudo ground truth (scan k -> scan 0)."""
-    scans = kitti_scans(data_dir, list(range(16)))
-    truth = np.loadtxt((data_dir / KITTI_SCANS).parent / 'pseudo_gt.txt').reshape(-1, 4, 4)
-    return scans, truth
 
 
 def start(registration_timeout=0.0, **tracking):
