@@ -13,6 +13,8 @@ import json
 import math
 from pathlib import Path
 import platform
+import signal
+import subprocess
 from typing import Any, Iterable, Sequence
 
 from cgags_ros.config import PipelineConfig
@@ -70,6 +72,20 @@ def parse_overrides(sets: Sequence[str]) -> dict[str, Any]:
     values = parse_key_values(sets)
     update_from_flat(PipelineConfig(), values)
     return values
+
+
+def stop_process(proc: subprocess.Popen, log: Any) -> str:
+    """SIGTERM a node process (SIGKILL after 20 s), wait for it; return its log (a file)."""
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(timeout=20)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+    log.seek(0)
+    out = log.read()
+    log.close()
+    return out
 
 
 # --- tables -----------------------------------------------------------------------------------

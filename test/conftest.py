@@ -69,3 +69,14 @@ def redkitchen_pair(data_dir):
         p = pairs[(target, source)]
         return fragments[source], fragments[target], tdm.nearest_rigid(p.transform)
     return pair
+
+
+@pytest.fixture(scope='module')
+def kitti(data_dir):
+    """Return the 16 KITTI scans (Velodyne frame, metres) and (16, 4, 4): scan k -> scan 0."""
+    from bench.datasets.rigs import KITTI_SCANS, kitti_scans
+    import numpy as np
+
+    scans = kitti_scans(data_dir, list(range(16)))
+    truth = np.loadtxt((data_dir / KITTI_SCANS).parent / 'pseudo_gt.txt').reshape(-1, 4, 4)
+    return scans, truth

@@ -46,11 +46,11 @@ def test_checked_in_yaml_and_docs_are_the_generated_ones():
 def test_yaml_holds_the_ros_parameters_at_their_defaults():
     values = load_yaml(YAML)
     assert list(values) == list(ros_parameter_descriptions()) == list(ROS_PARAMETERS)
-    assert list(values)[0] == 'voxel_size' and len(values) <= 25
+    assert list(values)[0] == 'voxel_size' and len(values) <= 26
     assert values['core.gravity'] == [0.0, 0.0, 1.0]
     assert values['relocalization.base_from_sensor'] == [0.0] * 7
     assert {name.split('.')[0] for name in values if '.' in name} == {
-        'frontend', 'core', 'pairing', 'map', 'relocalization', 'output'}
+        'frontend', 'core', 'pairing', 'map', 'relocalization', 'output', 'tracking'}
     pipe, node = configs_from_ros(values)
     assert pipe == PipelineConfig() and node == NodeConfig()
 

@@ -5,25 +5,15 @@ Scan-to-map against scan 0 as the map; ``pseudo_gt.txt`` holds each scan's pose 
 0's frame, i.e. the source->target transform of scan k onto scan 0.
 """
 
-from bench.datasets.rigs import KITTI_SCANS, kitti_scans
 from cgags_ros.config import PipelineConfig, TrackingConfig
 from cgags_ros.geometry import apply_transform, rotation_error_deg, translation_error
 from cgags_ros.pipeline import PipelineResult, Tracker
 from cgags_ros.pipeline import tracking as tracking_module
 from cgags_ros.refusal import Refusal, RefusalCode as Code
 import numpy as np
-import pytest
 
 VOXEL = 0.5
 PERIOD = 0.1  # seconds between scans: a 10 Hz LiDAR
-
-
-@pytest.fixture(scope='module')
-def kitti(data_dir):
-    """Return the 16 scans and their pseudo ground truth (scan k -> scan 0)."""
-    scans = kitti_scans(data_dir, list(range(16)))
-    truth = np.loadtxt((data_dir / KITTI_SCANS).parent / 'pseudo_gt.txt').reshape(-1, 4, 4)
-    return scans, truth
 
 
 def _config(**tracking) -> PipelineConfig:

@@ -2,12 +2,11 @@
 
 import contextlib
 import os
-import signal
-import subprocess
 import threading
 import time
 import traceback
 
+from bench.common import stop_process  # noqa: F401 - the tests' name for it
 import pytest
 
 EXECUTOR_THREADS = 4  # of spun_context's executor, as many as the node's own main spins
@@ -173,20 +172,6 @@ def ros_overrides(**flat):
 def ros_args(**flat):
     """Return ``-p name:=value`` arguments for flat configuration keys."""
     return [a for k, v in ros_values(**flat).items() for a in ('-p', f'{k}:={v}')]
-
-
-def stop_process(proc, log) -> str:
-    """SIGTERM a node process (SIGKILL after 20 s), wait for it; return its log."""
-    proc.send_signal(signal.SIGTERM)
-    try:
-        proc.wait(timeout=20)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
-    log.seek(0)
-    out = log.read()
-    log.close()
-    return out
 
 
 @contextlib.contextmanager

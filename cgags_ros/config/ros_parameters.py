@@ -49,6 +49,7 @@ ROS_PARAMETERS: dict[str, tuple[str, ...]] = {
     'output.publish_aligned_cloud': ('publish_aligned_cloud',),
     'output.broadcast_tf': ('broadcast_tf',),
     'output.diagnostics_period': ('diagnostics_period',),
+    'tracking.enabled': ('tracking.enabled',),
 }
 # ROS parameters of this interface renamed since -> what to do now.
 RENAMED = {'relocalization.mode': 'renamed: mode (which also takes calibrate)'}

@@ -5,7 +5,9 @@ ROS-free: :class:`RegistrationEngine` owns the pairing of source and target clou
 supervised registration process (:mod:`cgags_ros.pipeline.isolated`), the accounting
 (:mod:`.health`), the map of ``map_file``, the relocalization requests (:mod:`.relocalize`)
 and the initial-pose guards (:mod:`.initial_pose`); in ``mode: calibrate`` the pairs are
-calibration frames (:mod:`.calibration_run`). The node decodes messages into :class:`Cloud`
+calibration frames (:mod:`.calibration_run`); in continuous mode each scan is tracked from
+the pair's last pose where registration runs (:mod:`cgags_ros.pipeline.stream`, the counts
+``tracking.*``). The node decodes messages into :class:`Cloud`
 for :meth:`~RegistrationEngine.receive` and implements :class:`EngineOutputs`, through
 which the engine publishes, logs and asks for TF; it never reaches into the node.
 
@@ -42,6 +44,7 @@ from ..pipeline.isolated import (IsolatedRegistration, RegisterFn, RegistrationT
                                  WorkerCrashed)
 from ..pipeline.pairing import Pair, Pairer
 from ..pipeline.result import PipelineResult
+from ..pipeline.stream import StreamCounts, tracks
 from ..refusal import Refusal, RefusalCode
 from ..validity import quality_refusal
 
@@ -84,6 +87,7 @@ class RegistrationEngine:
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
         self._registered: PipelineResult | None = None  # the worker's pair, once registered
+        self._tracking = StreamCounts()
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -247,8 +251,13 @@ class RegistrationEngine:
                            source.receipt_ns, cfg.max_scan_age)
         if stale:
             return 'on_demand_stale_scan', stale
+        # Continuous mode is a stream: tracked from the last pose (a ~/relocalize call
+        # and the other modes search globally); a test's register_fn replaces both paths.
+        stream = (tracks(cfg.mode, pipe_cfg) and self._register_fn is None
+                  and self._calls.waiting() is None)
         try:
-            result = self._register(source.xyz, target.xyz, config=pipe_cfg)
+            result = self._register(source.xyz, target.xyz, config=pipe_cfg,
+                                    **({'stamp': pair.source.stamp_ns * 1e-9} if stream else {}))
         except InvalidInputError as exc:
             return 'pipeline_input', Refusal(exc.code, f'pair rejected by the pipeline: {exc}')
         except RegistrationTimeout as exc:
@@ -259,6 +268,7 @@ class RegistrationEngine:
         except CgagsError as exc:
             return 'pipeline_error', Refusal(exc.code, f'registration failed: {exc}')
         self._registered = result
+        self._tracking.add(result)
         T = np.asarray(result.transform, dtype=np.float64)
         refusal = result.refusal or (None if np.isfinite(T).all() else Refusal(
             RefusalCode.INTERNAL_ERROR, 'the estimated transform is not finite'))
@@ -269,6 +279,7 @@ class RegistrationEngine:
             'valid': refusal is None, 'reason': refusal.message if refusal else '',
             'refusal_code': refusal.code.value if refusal else '', 'inliers': result.num_inliers,
             'fitness': float(result.fitness), 'voxel_size': pipe_cfg.voxel_size,
+            'path': result.path,
             'timings': dict(result.timings), 'source_stamp_ns': pair.source.stamp_ns})
         if not self.active:
             return 'inactive', Refusal(RefusalCode.INACTIVE, 'deactivated during registration')
@@ -360,7 +371,8 @@ class RegistrationEngine:
         """Return the engine's keys of /diagnostics beside the accounting snapshot's."""
         with self._lock:
             candidates, line, active = list(self._candidates), self._last_summary, self._active
-        stats: dict[str, Any] = {'mode': self.node_config.mode, 'active': active}
+        stats: dict[str, Any] = {'mode': self.node_config.mode, 'active': active,
+                                 **self._tracking.statistics()}
         if self._map is not None:
             stats.update(self._map.statistics())
         stats['candidates.count'] = len(candidates)

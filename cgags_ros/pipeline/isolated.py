@@ -33,7 +33,7 @@ from ..errors import CgagsError
 from ..parallel import quiet_idle_threads
 from ..refusal import RefusalCode
 
-RegisterFn = Callable[..., Any]  # register_clouds(source, target, *, config) -> PipelineResult
+RegisterFn = Callable[..., Any]  # register_any(source, target, *, config[, stamp]) -> result
 
 WARM_UP_LIMIT_S = 300.0  # with a cold numba cache the warm-up compiles the numba code first
 
@@ -79,13 +79,20 @@ def _resolve(target: Any, config: PipelineConfig) -> Any:
     return _map_holder.get(target.path, config, target.cache_dir)
 
 
-def register_any(source: np.ndarray, target: Any, *, config: PipelineConfig) -> Any:
+def register_any(source: np.ndarray, target: Any, *, config: PipelineConfig,
+                 stamp: float | None = None) -> Any:
     """
     Run ``register_clouds`` onto an array or a :class:`MapRef` (in this process).
 
-    For a map the result's ``map_info`` holds the map's summary (cache hit or miss, points,
-    load time).
+    With ``stamp`` (the scan's header stamp, seconds) the scan is the next of a stream:
+    this process's :class:`~.tracking.Tracker` registers it (:func:`~.stream.register_stream`),
+    falling back to ``register_clouds``. For a map the result's ``map_info`` holds the map's
+    summary (cache hit or miss, points, load time).
     """
+    if stamp is not None:
+        from .stream import register_stream
+
+        return register_stream(source, _resolve(target, config), config=config, stamp=stamp)
     from . import register_clouds
 
     return register_clouds(source, _resolve(target, config), config=config)
@@ -101,9 +108,9 @@ class _TargetNotHeld(Exception):
 
 
 def _register_in_child(source: np.ndarray, target: np.ndarray | None, *,
-                       config: PipelineConfig) -> Any:
+                       config: PipelineConfig, stamp: float | None = None) -> Any:
     """
-    Run ``register_clouds`` in the registration process.
+    Run :func:`register_any` in the registration process.
 
     ``target=None`` reuses the target sent last, so an unchanged (latched) target crosses
     the pipe once, not every pair.
@@ -113,7 +120,8 @@ def _register_in_child(source: np.ndarray, target: np.ndarray | None, *,
         _child_target = target
     elif _child_target is None:
         raise _TargetNotHeld()
-    return register_any(source, _child_target, config=config)  # the parent needs no Open3D
+    # the parent needs no Open3D
+    return register_any(source, _child_target, config=config, stamp=stamp)
 
 
 def _serve(conn: Any) -> None:
@@ -269,6 +277,8 @@ class IsolatedRegistration:
     Results and typed errors come back pickled. The child keeps the last target: a target
     that is the same array object as the previous call's is not sent again (the node never
     writes to a decoded cloud); ``targets_sent`` counts the targets that crossed the pipe.
+    A stream's scans (``stamp`` given) are tracked by the child's own
+    :class:`~.tracking.Tracker`, beside that target: a replaced child starts without a prior.
 
     Supervision: a child found dead before a pair is sent (it died idle) is replaced and
     the pair runs on the fresh one; a child that dies during a pair is replaced and that
@@ -325,7 +335,9 @@ class IsolatedRegistration:
             self._crashed()
             return True
 
-    def __call__(self, source: np.ndarray, target: np.ndarray, *, config: PipelineConfig) -> Any:
+    def __call__(self, source: np.ndarray, target: np.ndarray, *, config: PipelineConfig,
+                 stamp: float | None = None) -> Any:
+        """Run :func:`register_any` (``stamp``: a stream's scan, tracked) in the child."""
         def job() -> tuple[Any, tuple, dict]:
             # Asked once the child is known to be alive: a replaced child holds no target.
             held = target is self._sent_target
@@ -333,7 +345,8 @@ class IsolatedRegistration:
             # it is sent again.
             self._sent_target = None
             self.targets_sent += not held
-            return _register_in_child, (source, None if held else target), {'config': config}
+            return (_register_in_child, (source, None if held else target),
+                    {'config': config, 'stamp': stamp})
 
         try:
             result = self._in_child(
@@ -341,7 +354,7 @@ class IsolatedRegistration:
                 f'registration took longer than registration_timeout = {self.timeout_s:g} s',
                 'during this pair (killed, out of memory or a native crash)')
         except _TargetNotHeld:  # not expected (a restart forgets what was sent); resend
-            return self(source, target, config=config)
+            return self(source, target, config=config, stamp=stamp)
         self._sent_target = target
         return result
 

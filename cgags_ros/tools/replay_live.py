@@ -222,6 +222,7 @@ def build_rows(contents: BagContents, expected: dict[int, Any], poses: dict[int,
         row = make_row(len(rows), src, pair.target.payload if pair else None, contents)
         result = results.get(stamp, {})
         row.inliers, row.fitness = result.get('num_inliers'), result.get('fitness')
+        row.path = result.get('path')
         row.time_s = result.get('timings', {}).get('total')
         said = result.get('refusal')
         refusal = Refusal(RefusalCode(said['code']), said['message']) if said else None

@@ -8,7 +8,7 @@ from tqdm import tqdm
 
 from .replay_common import (finish_report, load_contents, make_row, ReplayOptions,
                             resolve_configs, start_report)
-from .replay_offline import register_row
+from .replay_offline import note_tracking, register_row, stream_tracker
 from .report import BagReport
 from ..pipeline.map import load_map
 
@@ -24,9 +24,12 @@ def replay_map(opts: ReplayOptions) -> BagReport:
     report.notes.append(f'voxel size {pipe.voxel_size:g} m ({how})')
     report.notes.append(f"map {info['path']}: {info['raw_points']} points -> {info['points']} "
                         f"after voxels, cache {info['cache']}, loaded in {info['load_s']:.2f} s")
+    tracker = stream_tracker(pipe, node.mode)
     for src in tqdm(contents.sources, disable=opts.quiet or None, unit='scan', leave=False):
         row = make_row(len(report.rows), src, None, contents)
         row.target_frame = 'map'
-        report.rows.append(register_row(row, src.xyz, prepared, pipe, candidates=True))
+        report.rows.append(register_row(row, src.xyz, prepared, pipe, candidates=True,
+                                        tracker=tracker))
+    note_tracking(report, tracker)
     report.wall_time_s = time.perf_counter() - start
     return finish_report(report, opts, contents)

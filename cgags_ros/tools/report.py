@@ -29,8 +29,8 @@ PLOT_PNG = 'errors.png'
 
 CSV_COLUMNS = (
     'index', 'source_stamp_ns', 'target_stamp_ns', 'source_frame', 'target_frame',
-    'valid', 'refusal', 'reason', 'inliers', 'fitness', 'time_s', 'latency_s', 're_deg', 'te_m',
-    'success', 'tx', 'ty', 'tz', 'qx', 'qy', 'qz', 'qw',
+    'valid', 'path', 'refusal', 'reason', 'inliers', 'fitness', 'time_s', 'latency_s',
+    're_deg', 'te_m', 'success', 'tx', 'ty', 'tz', 'qx', 'qy', 'qz', 'qw',
 )
 _POSE_COLUMNS = 7  # the last ones: translation and quaternion
 
@@ -54,8 +54,10 @@ class PairRow:
     ``latency_s`` (live only) the time from publishing the source to receiving its pose.
     ``re_deg``/``te_m``/``success`` are None without ground truth. ``covariance`` is the
     estimate's 6x6 covariance (ROS order: x, y, z in metres, rotations in radians), in the
-    JSON output only. ``refusal`` says why the pair is not valid (None when it is, or
-    when the node published an invalid pose it did not explain); ``reason`` is its message.
+    JSON output only. ``path`` is what produced the estimate: 'tracked' (refined from the
+    stream's last pose) or 'global' (None when no registration ran). ``refusal`` says why
+    the pair is not valid (None when it is, or when the node published an invalid pose it
+    did not explain); ``reason`` is its message.
     """
 
     index: int
@@ -64,6 +66,7 @@ class PairRow:
     source_frame: str
     target_frame: str
     valid: bool
+    path: str | None = None
     refusal: Refusal | None = None
     inliers: int | None = None
     fitness: float | None = None

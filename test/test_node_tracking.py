@@ -1,0 +1,63 @@
+"""
+Real KITTI scans at 10 Hz through register_node over DDS, tracked from the last pose.
+
+The node runs as users run it (its own process, registration in its child process, the
+shipped Fast DDS profile on both sides), scan 0 latched as the map; a short stream of real
+scans (~4 MB PointCloud2 each) goes out at 10 Hz with a 7 m jump back in it. The source QoS
+is reliable and the queue deep, so that every scan is registered in order and the count of
+tracked and global poses does not depend on the machine's speed.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+rclpy = pytest.importorskip('rclpy')
+
+from bench import node_tracking as bench  # noqa: E402, I100
+from waiting import ros_args, spun_context, stop_process, wait_for  # noqa: E402
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+DOMAIN_ID = 93  # distinct from the other DDS test modules
+RATE_HZ = 10.0
+ORDER = list(range(10)) + [0, 1]  # scan 9 -> scan 0: a 7 m jump back
+NODE_PARAMS = {'voxel_size': 0.5, 'target_durability': 'transient_local',
+               'source_qos': 'reliable', 'queue_depth': 30, 'diagnostics_period': 0.2}
+
+
+def reliable_client(context):
+    return bench.StreamClient(context, reliable=True)
+
+
+def test_a_stream_at_10hz_is_tracked_and_a_jump_searched_again(tmp_path: Path):
+    msgs, truth = bench.kitti_messages(), bench.pseudo_ground_truth()
+    with spun_context(DOMAIN_ID, reliable_client) as (_, _, client):
+        proc, log = bench.start_node(ros_args(**NODE_PARAMS),
+                                     bench.dds_environment(DOMAIN_ID), tmp_path / 'node.log')
+        try:
+            wait_for(lambda: client.value('worker.ready') == 'True', 300,
+                     'the node and its registration process', lambda: client.diagnostics)
+            client.target_pub.publish(msgs[0])
+            wait_for(lambda: client.value('targets.received') == '1', 60, 'the map')
+            stamps = client.play(msgs, ORDER, RATE_HZ)
+            client.settle(stamps, quiet_s=60.0, limit_s=300.0)
+            cell = bench.summarize(client, stamps, truth)
+            wait_for(lambda: client.value('tracking.tracked') == str(cell['tracked']), 10,
+                     'the counts on /diagnostics', lambda: client.diagnostics)
+            values = dict(client.diagnostics)
+        finally:
+            out = stop_process(proc, log)
+    assert proc.returncode == 0, out
+    assert cell['results'] == cell['published'] == len(ORDER), (cell, out)
+    # The first scan and the jump are global; every other scan is tracked.
+    paths = [client.results[s]['path'] for s in stamps]
+    assert paths == ['global'] + ['tracked'] * 9 + ['global', 'tracked'], paths
+    assert client.results[stamps[10]]['stats']['tracking_failure_code'], 'the jump was tried'
+    assert (cell['tracked'], cell['global']) == (10, 2)
+    assert cell['within_1deg_20cm'] == len(ORDER) and cell['beyond_5deg_60cm'] == 0, cell
+    assert (values['tracking.tracked'], values['tracking.global'],
+            values['tracking.tracking_failures'], values['tracking.periodic_checks']) == (
+                '10', '2', '1', '0'), values
+    assert values['accounting.ok'] == 'True', values

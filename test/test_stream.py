@@ -1,0 +1,168 @@
+"""
+The node's stream through the Tracker (cgags_ros/pipeline/stream.py), ROS-free, real scans.
+
+The engine (continuous mode, the real pipeline) is fed real KITTI scans one at a time with
+10 Hz stamps, scan-to-map against scan 0 latched as the target; ``pseudo_gt.txt`` holds
+each scan's pose in scan 0's frame. What each scan became is read from ~/result's records
+(``path``, ``valid``, ``transform``) and /diagnostics' ``tracking.*`` counts.
+"""
+
+from __future__ import annotations
+
+import time
+
+from cgags_ros.config.node import NodeConfig
+from cgags_ros.config.pipeline import PipelineConfig
+from cgags_ros.config.tracking import TrackingConfig
+from cgags_ros.geometry import rotation_error_deg, translation_error
+from cgags_ros.localizer.engine import RegistrationEngine
+from cgags_ros.localizer.interface import Cloud
+from cgags_ros.pipeline.result import PipelineResult
+from cgags_ros.pipeline.stream import COUNTS_KEY, StreamCounts, tracks
+import numpy as np
+import pytest
+from test_engine import Header, Recorder
+from waiting import wait_for
+
+pytestmark = pytest.mark.slow
+VOXEL = 0.5
+PERIOD = 0.1  # seconds between scans: a 10 Hz LiDAR
+
+
+def start(registration_timeout=0.0, **tracking):
+    out = Recorder()
+    engine = RegistrationEngine(
+        PipelineConfig(voxel_size=VOXEL, tracking=TrackingConfig(**tracking)),
+        NodeConfig(registration_timeout=registration_timeout), out)
+    engine.start()
+    engine.activate()
+    return engine, out
+
+
+def feed(engine, out, role, cloud, stamp_s):
+    """Send one cloud; for a source, wait for its ~/result record and return it."""
+    before = len(out.results)
+    engine.receive(role, int(round(stamp_s * 1e9)), 'map' if role == 'target' else 'velodyne',
+                   Cloud(cloud, Header('map' if role == 'target' else 'velodyne', stamp_s),
+                         time.monotonic_ns()))
+    if role == 'source':
+        wait_for(lambda: len(out.results) > before, 300, 'the scan registered')
+        return out.results[-1]
+    return None
+
+
+def stream(engine, out, kitti, indices, start_s=100.0):
+    scans, _ = kitti
+    return [feed(engine, out, 'source', scans[k], start_s + i * PERIOD)
+            for i, k in enumerate(indices)]
+
+
+def within(record, truth, degrees=1.0, metres=0.2):
+    T = np.array(record['transform'])
+    return (rotation_error_deg(T, truth) <= degrees
+            and translation_error(T, truth) <= metres)
+
+
+def test_a_jump_falls_back_to_global_and_never_publishes_the_stale_pose(kitti):
+    scans, truth = kitti
+    engine, out = start()
+    try:
+        feed(engine, out, 'target', scans[0], 99.0)
+        records = stream(engine, out, kitti, [13, 14, 15, 0, 1])  # 15 -> 0: 12 m back
+        assert [r['path'] for r in records] == ['global', 'tracked', 'tracked', 'global',
+                                                'tracked']
+        assert all(r['outcome'] == 'published' and r['valid'] for r in records), records
+        for k, r in zip([13, 14, 15, 0, 1], records):
+            assert within(r, truth[k]), k
+        jump = records[3]
+        assert jump['stats']['tracking_failure_code'], jump['stats']  # the prior was tried
+        assert not within(jump, truth[15], 5.0, 0.6)  # not the stale pose
+        published = [e.transform for e in out.estimates]
+        assert len(published) == 5
+        assert rotation_error_deg(published[3], truth[0]) <= 1.0
+        assert translation_error(published[3], truth[0]) <= 0.2
+        stats = engine.statistics()
+        assert (stats['tracking.tracked'], stats['tracking.global'],
+                stats['tracking.tracking_failures'], stats['tracking.periodic_checks']) == (
+                    3, 2, 1, 0), stats
+        assert engine.snapshot()['last']['path'] == 'tracked'
+        # A ~/relocalize call is answered by a global search, not by the prior.
+        engine.relocalize(wait=False)
+        (record,) = stream(engine, out, kitti, [2], start_s=100.5)
+        assert record['path'] == 'global' and within(record, truth[2])
+        assert COUNTS_KEY not in record['stats']  # the Tracker did not see it
+    finally:
+        engine.stop()
+
+
+def test_a_new_target_drops_the_prior(kitti):
+    scans, truth = kitti
+    engine, out = start()
+    try:
+        feed(engine, out, 'target', scans[0], 99.0)
+        first = stream(engine, out, kitti, [3, 4])
+        assert [r['path'] for r in first] == ['global', 'tracked']
+        feed(engine, out, 'target', scans[5], 100.15)  # a new map: scan 5's frame
+        (record,) = stream(engine, out, kitti, [6], start_s=100.2)
+        assert record['path'] == 'global', record['stats']
+        assert record['stats'][COUNTS_KEY]['target_changes'] == 1
+        expected = np.linalg.inv(truth[5]) @ truth[6]  # scan 6 in scan 5's frame
+        assert within(record, expected)
+        assert engine.statistics()['tracking.target_changes'] == 1
+    finally:
+        engine.stop()
+
+
+def test_periodic_global_checks_and_tracking_off(kitti):
+    scans, truth = kitti
+    engine, out = start(global_check_interval=3, global_check_period=0.0)
+    try:
+        feed(engine, out, 'target', scans[0], 99.0)
+        indices = [1, 2, 3, 4, 5, 6, 7]
+        records = stream(engine, out, kitti, indices)
+        assert [r['path'] for r in records] == ['global', 'tracked', 'tracked'] * 2 + ['global']
+        assert records[3]['stats']['global_because'] == 'periodic check'
+        assert all(within(r, truth[k]) for k, r in zip(indices, records))
+        assert engine.statistics()['tracking.periodic_checks'] == 2
+        pipe = engine.pipeline_config
+        engine.set_configs(PipelineConfig(voxel_size=VOXEL,
+                                          tracking=TrackingConfig(enabled=False)),
+                           engine.node_config)
+        records = stream(engine, out, kitti, [8, 9], start_s=100.7)
+        assert [r['path'] for r in records] == ['global', 'global']
+        assert engine.statistics()['tracking.global'] == 3  # the Tracker saw none of them
+        assert not tracks('continuous', engine.pipeline_config) and tracks('continuous', pipe)
+        assert not tracks('on_demand', pipe)
+    finally:
+        engine.stop()
+
+
+@pytest.mark.subprocess
+def test_the_registration_process_holds_the_tracker_and_a_restart_forgets_it(kitti):
+    scans, truth = kitti
+    engine, out = start(registration_timeout=120.0)
+    try:
+        feed(engine, out, 'target', scans[0], 99.0)
+        records = stream(engine, out, kitti, [7, 8, 9])
+        assert [r['path'] for r in records] == ['global', 'tracked', 'tracked']
+        assert all(within(r, truth[k]) for k, r in zip([7, 8, 9], records))
+        engine.registration.restart()  # a fresh process: no prior, the target sent again
+        records = stream(engine, out, kitti, [10, 11], start_s=100.3)
+        assert [r['path'] for r in records] == ['global', 'tracked']
+        assert all(within(r, truth[k]) for k, r in zip([10, 11], records))
+        stats = engine.statistics()
+        assert (stats['tracking.tracked'], stats['tracking.global']) == (3, 2), stats
+    finally:
+        engine.stop()
+
+
+def test_stream_counts_add_up_the_scans_shares():
+    counts = StreamCounts()
+    assert counts.statistics() == {'tracking.global': 0, 'tracking.periodic_checks': 0,
+                                   'tracking.tracked': 0, 'tracking.tracking_failures': 0}
+    for share in ({'tracked': 1}, {'global': 1, 'tracking_failures': 1}, {'tracked': 1}):
+        counts.add(PipelineResult(stats={COUNTS_KEY: share}))
+    counts.add(PipelineResult())  # registered without the Tracker: counts nothing
+    stats = counts.statistics()
+    assert (stats['tracking.tracked'], stats['tracking.global'],
+            stats['tracking.tracking_failures']) == (2, 1, 1)
