@@ -113,7 +113,7 @@ def config_from_args(args: argparse.Namespace) -> PipelineConfig:
     if getattr(args, 'yaw_only', False):
         values['core.motion_model'] = '4dof'
     if getattr(args, 'gravity', None) is not None:
-        values.update(zip(('core.gravity_x', 'core.gravity_y', 'core.gravity_z'), args.gravity))
+        values['core.gravity'] = list(args.gravity)
     if args.seed is not None:
         values['seed'] = args.seed
     if args.candidates is not None:
