@@ -162,3 +162,27 @@ def test_calibrate_mode_takes_calibration_keys_from_config_file(tmp_path):
     extra.write_text('calibration:\n  max_frames: 0\n')
     with pytest.raises(InvalidConfigError, match='max_frames'):
         calibration_config(pipe, str(extra))
+
+
+def test_the_tools_read_the_node_format(tmp_path):
+    from cgags_ros.config.node import calibration_from_keys, pipeline_from_keys
+    from cgags_ros.tools import calibrate_cli, register_cli
+
+    node_file = tmp_path / 'node.yaml'  # one file for the node, cgags-register, cgags-calibrate
+    node_file.write_text('register_node:\n  ros__parameters:\n    voxel_size: 0.2\n'
+                         '    pairing.mode: synchronized\n    core:\n      p1: 0.9\n'
+                         '    calibration.max_frames: 4\n')
+    pipe = pipeline_from_keys(load_yaml(node_file))
+    assert (pipe.voxel_size, pipe.core.p1) == (0.2, 0.9)
+    args = register_cli.build_parser().parse_args(
+        ['a.ply', 'b.ply', '--config', str(node_file), '--set', 'core.gravity=[0, 1, 0]'])
+    assert register_cli.config_from_args(args).core.gravity == (0.0, 1.0, 0.0)
+    args = calibrate_cli.build_parser().parse_args(
+        ['--parent', 'p.ply', '--child', 'c.ply', '--config', str(node_file),
+         '--set', 'calibration.min_agreement=1.0'])
+    cal = calibrate_cli._config(args)
+    assert (cal.pipeline.voxel_size, cal.pipeline.core.p1, cal.max_frames, cal.min_agreement) \
+        == (0.2, 0.9, 4, 1.0)
+    assert calibration_from_keys({}).pipeline.voxel_size == 0.3  # the calibration's default
+    with pytest.raises(InvalidConfigError, match="unknown configuration key 'pairing.nope'"):
+        pipeline_from_keys({'pairing.nope': 1})  # the node's keys are checked, not ignored

@@ -1,5 +1,5 @@
 """
-Relocalization through register_node over real DDS: map_file, on_demand, guarded initialpose.
+Relocalization through register_node over real DDS: map.file, on_demand, guarded initialpose.
 
 The node runs in this process with its own rclpy context and DDS domain. The map is the
 redkitchen fragments 0 and 4 merged at full resolution (ground truth from gt_pairs.txt);

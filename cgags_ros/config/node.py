@@ -268,22 +268,54 @@ def configs_from_file(path: str) -> tuple[PipelineConfig, NodeConfig]:
         {k: v for k, v in keys.items() if not k.startswith(CALIBRATION_PREFIX)})
 
 
+def pipeline_from_keys(values: Mapping[str, Any]) -> PipelineConfig:
+    """
+    Return the PipelineConfig of keys in the node's format (what ``--config`` reads).
+
+    The node's own keys are checked, then left out; so are the ``calibration.`` ones.
+    """
+    return configs_from_parameters(
+        {k: v for k, v in fields.flatten_mapping(values).items()
+         if not k.startswith(CALIBRATION_PREFIX)})[0]
+
+
+def calibration_from_keys(values: Mapping[str, Any],
+                          pipeline: PipelineConfig | None = None) -> CalibrationConfig:
+    """
+    Return the :class:`CalibrationConfig` of keys in the node's format.
+
+    The pipeline keys are at the top level (``voxel_size``), applied over ``pipeline`` (the
+    calibration's default pipeline when None); the calibration keys are under
+    ``calibration.`` (``calibration.max_frames: 5``); a ``calibration.pipeline.*`` key is
+    refused, as the top-level keys set the pipeline.
+    """
+    flat = fields.flatten_mapping(values)
+    keys = {k[len(CALIBRATION_PREFIX):]: v for k, v in flat.items()
+            if k.startswith(CALIBRATION_PREFIX)}
+    nested = sorted(k for k in keys if k.startswith('pipeline.'))
+    if nested:
+        raise InvalidConfigError(f'calibration.{nested[0]}: set the pipeline keys at the top '
+                                 'level (the node and the calibration share them)')
+    rest = {k: v for k, v in flat.items() if not k.startswith(CALIBRATION_PREFIX)}
+    pipe, _ = configs_from_parameters(
+        rest, base=(pipeline or CalibrationConfig().pipeline, NodeConfig()))
+    return fields.update_from_flat(CalibrationConfig(pipeline=pipe), keys)
+
+
 def calibration_config(pipeline: PipelineConfig, config_file: str) -> CalibrationConfig:
     """
     Return the :class:`CalibrationConfig` of calibrate mode.
 
     Its pipeline is the node's (``voxel_size`` and every pipeline key); the other
-    calibration keys come from ``config_file`` under ``calibration.`` (``calibration.max_frames:
-    5``); a ``calibration.pipeline.*`` key is refused, as the node's own keys set the pipeline.
+    calibration keys come from ``config_file`` under ``calibration.``
+    (:func:`calibration_from_keys`).
     """
-    keys = {k[len(CALIBRATION_PREFIX):]: v for k, v in config_file_keys(config_file).items()
+    keys = {k: v for k, v in config_file_keys(config_file).items()
             if k.startswith(CALIBRATION_PREFIX)}
-    nested = sorted(k for k in keys if k.startswith('pipeline.'))
-    if nested:
-        raise InvalidConfigError(f'config_file {config_file}: calibration.{nested[0]}: set the '
-                                 'pipeline keys at the top level (the node and the calibration '
-                                 'share them)')
-    return fields.update_from_flat(CalibrationConfig(pipeline=pipeline), keys)
+    try:
+        return calibration_from_keys(keys, pipeline)
+    except InvalidConfigError as exc:
+        raise InvalidConfigError(f'config_file {config_file}: {exc}') from None
 
 
 def ros_value(value: Any) -> Any:
