@@ -342,7 +342,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from cgags_ros.config.node import NodeConfig
 
-    queue_depth = args.queue_depth or NodeConfig().queue_depth
+    queue_depth = args.queue_depth or NodeConfig().pairing.queue_depth
     keys = parse_overrides(args.set)
     msgs, truth = kitti_messages(), pseudo_ground_truth()
     context = Context()

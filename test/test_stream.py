@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import time
 
-from cgags_ros.config.node import NodeConfig
+from cgags_ros.config.node import NodeConfig, WorkerConfig
 from cgags_ros.config.pipeline import PipelineConfig
 from cgags_ros.config.tracking import TrackingConfig
 from cgags_ros.geometry import rotation_error_deg, translation_error
@@ -33,7 +33,7 @@ def start(registration_timeout=0.0, **tracking):
     out = Recorder()
     engine = RegistrationEngine(
         PipelineConfig(voxel_size=VOXEL, tracking=TrackingConfig(**tracking)),
-        NodeConfig(registration_timeout=registration_timeout), out)
+        NodeConfig(worker=WorkerConfig(registration_timeout=registration_timeout)), out)
     engine.start()
     engine.activate()
     return engine, out
