@@ -117,8 +117,11 @@ class NodeConfig:
         'most this many seconds before the call; otherwise it waits for the next scan.',
         low=0.0, high=3600.0)
     relocalize_timeout: float = option(
-        10.0, 'on_demand mode: seconds a ~/relocalize call waits for a scan before it '
-        'answers failure.', low=0.1, high=3600.0)
+        10.0, 'Seconds a ~/relocalize call may take (waiting for a scan and, with odometry, '
+        'the scans of a relocalization) before it answers failure.', low=0.1, high=3600.0)
+    relocalize_max_scans: int = option(
+        3, 'With map_file and odometry (the odom topic): scans a relocalization takes until '
+        'a pose is confirmed over them before it answers failure.', low=1, high=100)
     publish_initial_pose: bool = option(
         False, 'Publish the robot base pose on initialpose (geometry_msgs/'
         'PoseWithCovarianceStamped, frame map_frame, for Nav2/AMCL) when every initial_pose_* '

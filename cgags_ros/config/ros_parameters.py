@@ -54,8 +54,8 @@ ROS_PARAMETERS: dict[str, tuple[str, ...]] = {
 RENAMED = {'relocalization.mode': 'renamed: mode (which also takes calibrate)'}
 # Keys of config_file under this prefix configure calibrate mode (CalibrationConfig keys).
 CALIBRATION_PREFIX = 'calibration.'
-# Sections added after the flat interface was retired: never ROS parameters, nothing to migrate.
-NEWER_SECTIONS = ('tracking.',)
+# Keys added after the flat interface was retired: never ROS parameters, nothing to migrate.
+NEWER_SECTIONS = ('tracking.', 'relocalize_max_scans')
 # base_from_sensor as a ROS parameter: [x, y, z, qx, qy, qz, qw]; seven zeros leave it unset.
 UNSET_POSE = [0.0] * 7
 

@@ -28,6 +28,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .sequence_step import run_step, SequenceStep
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError
 from ..parallel import quiet_idle_threads
@@ -84,10 +85,13 @@ def register_any(source: np.ndarray, target: Any, *, config: PipelineConfig) -> 
     Run ``register_clouds`` onto an array or a :class:`MapRef` (in this process).
 
     For a map the result's ``map_info`` holds the map's summary (cache hit or miss, points,
-    load time).
+    load time). A :class:`~.sequence_step.SequenceStep` target adds the scan to this
+    process's relocalization sequence on its map instead (a ``StepAnswer``).
     """
     from . import register_clouds
 
+    if isinstance(target, SequenceStep):
+        return run_step(source, target, _resolve(target.map, config), config)
     return register_clouds(source, _resolve(target, config), config=config)
 
 
