@@ -12,6 +12,7 @@ publishers: they publish only while the node is active.
 from __future__ import annotations
 
 import collections
+import importlib.util
 import threading
 from typing import Any
 
@@ -52,6 +53,7 @@ class Outputs:
         self._tf_listener: Any = None
         self._tf_broadcaster: Any = None
         self._tf_said = False
+        self._tf_importable = importlib.util.find_spec('tf2_ros') is not None
         self._static_pub: Any = None  # /tf_static: a broadcaster, a publisher, or False
         self._calibration_pub = self._report_pub = None
         if calibrate:
@@ -91,12 +93,14 @@ class Outputs:
         msg.pose.covariance = [float(v) for v in pose.covariance.ravel()]
         self._send(self._initial_pub, msg)
         if pose.odom_frame and self._tf_ready('broadcast_map_to_odom is set'):
-            T_odom_base = self._lookup(pose.odom_frame, pose.base_frame, msg.header.stamp)
-            if T_odom_base is None:
-                self._count('map_to_odom.no_odom_tf')
-                return
-            self._broadcast(map_to_odom(pose.transform, T_odom_base), msg.header,
-                            pose.odom_frame)
+            T_map_odom = pose.map_from_odom
+            if T_map_odom is None:
+                T_odom_base = self._lookup(pose.odom_frame, pose.base_frame, msg.header.stamp)
+                if T_odom_base is None:
+                    self._count('map_to_odom.no_odom_tf')
+                    return
+                T_map_odom = map_to_odom(pose.transform, T_odom_base)
+            self._broadcast(T_map_odom, msg.header, pose.odom_frame)
             self._count('map_to_odom.broadcast')
 
     def publish_calibration(self, calibration: Calibration) -> None:
@@ -126,6 +130,12 @@ class Outputs:
         if not self._tf_ready('base_from_sensor is not set'):
             return np.eye(4)
         return self._lookup(base_frame, sensor_frame)
+
+    def odometry(self, odom_frame: str, base_frame: str, stamp: Any) -> np.ndarray | None:
+        """Return ``T_odom_base`` from TF at ``stamp``; None without it or tf2_ros (silent)."""
+        if not self._tf_importable:
+            return None
+        return self._lookup(odom_frame, base_frame, stamp) if self._tf_ready('') else None
 
     def log(self, level: str, message: str) -> None:
         """Log through the node's logger, unless its context has ended."""
