@@ -92,7 +92,7 @@ def test_a_scan_without_odometry_near_its_stamp_is_judged_alone_and_starts_over(
     run.track.add(5 * S, turn(10, (1.0, 0.0, 0.0)))
     base = make_transform(quaternion_to_matrix(BASE_FROM_SENSOR[3:]), BASE_FROM_SENSOR[:3])
     first = run.step(ref, 5 * S, base, 3)
-    assert first.restart and first.map is ref and first.max_scans == 3
+    assert first.restart and first.map_target is ref and first.max_scans == 3
     np.testing.assert_allclose(first.odom_from_sensor, turn(10, (1.0, 0.0, 0.0)) @ base)
     gap = run.step(ref, 7 * S, base, 3)  # two seconds from any odometry
     assert gap.odom_from_sensor is None and not gap.restart

@@ -91,7 +91,7 @@ def register_any(source: np.ndarray, target: Any, *, config: PipelineConfig) -> 
     from . import register_clouds
 
     if isinstance(target, SequenceStep):
-        return run_step(source, target, _resolve(target.map, config), config)
+        return run_step(source, target, _resolve(target.map_target, config), config)
     return register_clouds(source, _resolve(target, config), config=config)
 
 

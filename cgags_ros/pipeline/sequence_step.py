@@ -30,14 +30,14 @@ class SequenceStep:
     """
     Add a scan to the process's relocalization sequence (the target of a registration).
 
-    :ivar map: the map the scans are registered onto (a ``MapRef`` or a ``PreparedMap``).
+    :ivar map_target: the map the scans are registered onto (a ``MapRef`` or a ``PreparedMap``).
     :ivar odom_from_sensor: 4x4 pose of the sensor in the odometry frame at the scan's stamp
         (metres); None: no odometry, the scan is judged alone and the sequence starts over.
     :ivar max_scans: scans after which an unconfirmed answer is refused.
     :ivar restart: forget the scans so far first.
     """
 
-    map: Any
+    map_target: Any
     odom_from_sensor: np.ndarray | None
     max_scans: int
     restart: bool
