@@ -1,5 +1,5 @@
 """
-cgags_ros.localizer.health and .diagnostics: scans lost upstream, beside the balanced buckets.
+cgags_ros.localizer.health and .statistics: scans lost upstream, beside the balanced buckets.
 
 No DDS: the node's accounting object fed directly, its /diagnostics message built.
 """
@@ -10,7 +10,8 @@ import pytest
 
 pytest.importorskip('rclpy')
 
-from cgags_ros.localizer.health import NodeHealth  # noqa: E402, I100
+from cgags_ros.localizer import statistics  # noqa: E402, I100
+from cgags_ros.localizer.health import NodeHealth  # noqa: E402
 from cgags_ros.localizer.transport import PROFILE_VARIABLE  # noqa: E402
 from cgags_ros.pipeline.pairing import Pairer  # noqa: E402
 from cgags_ros.ros import diagnostics  # noqa: E402
@@ -20,7 +21,7 @@ PERIOD = 100_000_000  # ns, a 10-Hz LiDAR
 
 
 def message(health):
-    stats = diagnostics.build_statistics(health.snapshot(), 0.5, {})
+    stats = statistics.build_statistics(health.snapshot(), 0.5, {})
     status = diagnostics.diagnostic_array(stats, 'n', '/n', None).status[0]
     return stats, status
 

@@ -142,8 +142,11 @@ class RelocalizationConfig:
         'most this many seconds before the call; otherwise it waits for the next scan.',
         low=0.0, high=3600.0)
     timeout: float = option(
-        10.0, 'on_demand mode: seconds a ~/relocalize call waits for a scan before it '
-        'answers failure.', low=0.1, high=3600.0)
+        10.0, 'Seconds a ~/relocalize call may take (waiting for a scan and, with odometry, '
+        'the scans of a relocalization) before it answers failure.', low=0.1, high=3600.0)
+    max_scans: int = option(
+        3, 'With map.file and odometry (the odom topic): scans a relocalization takes until '
+        'a pose is confirmed over them before it answers failure.', low=1, high=100)
 
     def check(self) -> None:
         """Refuse a base_from_sensor with a zero quaternion (seven zeros: unset)."""

@@ -31,10 +31,11 @@ import numpy as np
 
 from .calibration_run import CalibrationConfig, CalibrationRun
 from .health import LOG_REPEAT_S, lost_upstream_message, NodeHealth
-from .initial_pose import ExtrinsicLookup, InitialPoseGuard
+from .initial_pose import extrinsic, ExtrinsicLookup, InitialPoseGuard
 from .interface import BasePose, Cloud, EngineOutputs, Estimate, PairResult
 from .map_target import MapTarget
 from .relocalize import Answered, RelocalizeCalls, stale_scan, summary_line
+from .sequence import SequenceRun, Verdict
 from .startup import start_registration
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
@@ -80,6 +81,8 @@ class RegistrationEngine:
         self.on_demand = cfg.mode == 'on_demand'
         self._map = MapTarget(cfg) if cfg.map.file else None
         self._calls = RelocalizeCalls()
+        # With odometry, a relocalization goes on over the next scans (see .sequence).
+        self._sequence = SequenceRun() if cfg.map.file else None
         self._initial_pose = InitialPoseGuard()
         self._candidates: list[Any] = []
         self._last_summary = ''
@@ -209,6 +212,11 @@ class RegistrationEngine:
         req.done.wait(timeout + 3600.0)
         return req.answer
 
+    def odometry(self, stamp_ns: int, odom_from_base: np.ndarray) -> None:
+        """Take the robot's odometry: ``odom <- base`` (4x4, metres) at ``stamp_ns``."""
+        if self._sequence is not None:
+            self._sequence.track.add(stamp_ns, odom_from_base)
+
     # ------------------------------------------------------------------ worker
 
     def _work(self) -> None:
@@ -232,7 +240,10 @@ class RegistrationEngine:
 
     def _ready(self) -> bool:
         """Tell whether the worker may take a pair now; else wait a little."""
-        self._calls.expire()
+        seq = self._sequence
+        late = seq.timed_out(self.node_config.relocalization.timeout) if seq else None
+        if self._calls.expire(late) and seq is not None and self._calls.waiting() is None:
+            seq.reset()
         if not self.active:
             self._stop.wait(0.2)
             return False
@@ -251,13 +262,16 @@ class RegistrationEngine:
                            source.receipt_ns, cfg.relocalization.max_scan_age)
         if stale:
             return 'on_demand_stale_scan', stale
-        # Continuous mode is a stream: tracked from the last pose (a ~/relocalize call
-        # and the other modes search globally); a test's register_fn replaces both paths.
-        stream = (tracks(cfg.mode, pipe_cfg) and self._register_fn is None
+        step = self._step(pair, cfg)
+        # Continuous mode is a stream: tracked from the last pose (a ~/relocalize call, a
+        # relocalization over scans and the other modes search globally); a test's
+        # register_fn replaces both paths.
+        stream = (step is None and tracks(cfg.mode, pipe_cfg) and self._register_fn is None
                   and self._calls.waiting() is None)
         try:
-            result = self._register(source.xyz, target.xyz, config=pipe_cfg,
+            result = self._register(source.xyz, step or target.xyz, config=pipe_cfg,
                                     **({'stamp': pair.source.stamp_ns * 1e-9} if stream else {}))
+            answer, result = (result, result.result) if step else (None, result)
         except InvalidInputError as exc:
             return 'pipeline_input', Refusal(exc.code, f'pair rejected by the pipeline: {exc}')
         except RegistrationTimeout as exc:
@@ -286,7 +300,7 @@ class RegistrationEngine:
         cov = np.asarray(result.covariance, dtype=np.float64)
         if refusal is not None:
             if not cfg.output.publish_invalid or not np.isfinite(T).all():
-                self._finish(pair, result, T, cov, cfg, frame)
+                self._finish(pair, result, T, cov, cfg, frame, answer)
                 return 'invalid_result', Refusal(refusal.code,
                                                  f'invalid registration: {refusal.message}')
             self._health.count('published_invalid')
@@ -295,13 +309,25 @@ class RegistrationEngine:
             apply_transform(T, source.xyz) if cfg.output.publish_aligned_cloud else None,
             (cfg.output.tf_child_frame or str(source.header.frame_id))
             if cfg.output.broadcast_tf else ''))
-        self._finish(pair, result, T, cov, cfg, frame)
+        self._finish(pair, result, T, cov, cfg, frame, answer)
         return '', None
 
     # ------------------------------------------------------------------ map and requests
 
+    def _step(self, pair: Pair, cfg: NodeConfig) -> Any:
+        """Return the scan's step of a relocalization over several scans, or None."""
+        seq, called = self._sequence, self._calls.waiting() is not None
+        reloc = cfg.relocalization
+        if seq is None or not (called or (reloc.publish_initial_pose and not self.on_demand
+                                          and self._initial_pose.may_publish_auto(cfg))):
+            return None
+        frame = str(pair.source.payload.header.frame_id)
+        base = extrinsic(cfg)
+        base = self._outputs.base_from_sensor(reloc.base_frame, frame) if base is None else base
+        return seq.step(pair.target.payload.xyz, pair.source.stamp_ns, base, reloc.max_scans)
+
     def _finish(self, pair: Pair, result: PipelineResult, T: np.ndarray, cov: np.ndarray,
-                cfg: NodeConfig, frame_id: str) -> None:
+                cfg: NodeConfig, frame_id: str, answer: Any = None) -> None:
         """Publish the candidates, offer the initial pose, answer pending requests."""
         header = pair.source.payload.header
         candidates = list(result.candidates)
@@ -311,7 +337,13 @@ class RegistrationEngine:
         published, why = False, 'relocalization.publish_initial_pose is off'
         refusal = quality_refusal(result, cfg)  # once: the guard and the answer share it
         reloc = cfg.relocalization
-        if reloc.publish_initial_pose and (called or not self.on_demand):
+        verdict: Verdict | None = None
+        if answer is not None:  # a scan of a relocalization over several scans
+            verdict = self._sequence.judge(answer, refusal, reloc.max_scans)
+            refusal, T = verdict.refusal, verdict.transform
+        if verdict is not None and not verdict.finished:
+            why = 'not confirmed yet'
+        elif reloc.publish_initial_pose and (called or not self.on_demand):
             lookup: ExtrinsicLookup = self._outputs.base_from_sensor
             why, T_map_base, cov_base = self._initial_pose.offer(
                 refusal, T, cov, str(header.frame_id), cfg, not called, lookup)
@@ -319,11 +351,13 @@ class RegistrationEngine:
                 published = True
                 self._outputs.publish_initial_pose(BasePose(
                     T_map_base, cov_base, header, cfg.map.frame,
-                    reloc.odom_frame if reloc.broadcast_map_to_odom else '', reloc.base_frame))
-        line = summary_line(result, T, refusal, published, why)
+                    reloc.odom_frame if reloc.broadcast_map_to_odom else '', reloc.base_frame,
+                    verdict.map_from_odom if verdict else None))
+        line = (verdict.line(published, why) if verdict
+                else summary_line(result, T, refusal, published, why))
         with self._lock:
             self._candidates, self._last_summary = candidates, line
-        if called:
+        if called and (verdict is None or verdict.finished):
             self._calls.answer(line, refusal)
 
     def _publish_result(self, pair: Pair, cause: str, refusal: Refusal | None) -> None:
@@ -339,8 +373,11 @@ class RegistrationEngine:
 
     def _settle(self, cause: str, refusal: Refusal | None) -> None:
         """Answer requests still pending after a pair that failed before :meth:`_finish`."""
-        if refusal and refusal.code is not RefusalCode.STALE and self._calls.waiting() is not None:
+        if (refusal and refusal.code is not RefusalCode.STALE and cause != 'invalid_result'
+                and self._calls.waiting() is not None):
             self._calls.fail(refusal)
+            if self._sequence is not None:
+                self._sequence.reset()
 
     # ------------------------------------------------------------------ health
 
@@ -377,6 +414,7 @@ class RegistrationEngine:
                                  **self._tracking.statistics()}
         if self._map is not None:
             stats.update(self._map.statistics())
+            stats['odometry.samples'] = self._sequence.track.samples
         stats['candidates.count'] = len(candidates)
         for i, c in enumerate(candidates):
             stats[f'candidates.{i}.inliers'] = c.num_inliers

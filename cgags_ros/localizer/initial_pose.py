@@ -93,6 +93,11 @@ class InitialPoseGuard:
         return (f'initial pose published in {cfg.map.frame}', T @ sensor_base,
                 moved_covariance(cov, T, sensor_base))
 
+    def may_publish_auto(self, cfg: NodeConfig) -> bool:
+        """Tell whether an automatic publish (no relocalization request) is still allowed."""
+        with self._lock:
+            return self.counts['auto'] < cfg.relocalization.max_auto
+
     def statistics(self) -> dict[str, int]:
         """Return ``initial_pose.*`` counters for /diagnostics."""
         with self._lock:

@@ -67,6 +67,8 @@ class BasePose:
     :ivar odom_frame: broadcast map -> odom from it and TF's odom -> ``base_frame`` at the
         stamp; '' broadcasts nothing.
     :ivar base_frame: the robot base frame.
+    :ivar map_from_odom: 4x4 map <- odom confirmed over scans with the robot's odometry,
+        broadcast as is (no TF lookup); None: from TF as above.
     """
 
     transform: np.ndarray
@@ -75,6 +77,7 @@ class BasePose:
     map_frame: str
     odom_frame: str
     base_frame: str
+    map_from_odom: np.ndarray | None = None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -80,17 +80,23 @@ class RelocalizeCalls:
         """End a :meth:`wait` at once (shutting down)."""
         self._wake.set()
 
-    def expire(self) -> None:
-        """Answer failure to the requests past their deadline."""
+    def expire(self, why: Refusal | None = None) -> int:
+        """
+        Answer failure to the requests past their deadline; return how many.
+
+        ``why``: the refusal of a relocalization over several scans still in progress
+        (None: no scan was received for them).
+        """
         now = time.monotonic()
         with self._lock:
             late = [r for r in self._pending if r.deadline <= now]
             self._pending = [r for r in self._pending if r.deadline > now]
         for req in late:
             timeout = req.deadline - req.called
-            refusal = Refusal(RefusalCode.NO_SCAN, 'no scan received within '
-                              f'relocalization.timeout = {timeout:g} s')
+            refusal = why or Refusal(RefusalCode.NO_SCAN, 'no scan received within '
+                                     f'relocalization.timeout = {timeout:g} s')
             self._finish(req, not_localized(refusal), refusal)
+        return len(late)
 
     def answer(self, message: str, refusal: Refusal | None = None) -> int:
         """
@@ -135,9 +141,14 @@ def summary_line(result: PipelineResult, T: np.ndarray, refusal: Refusal | None,
               f'fitness {result.fitness:.3f}')
     if refusal is not None:
         return f'{not_localized(refusal)}; {scores}'
+    return localized(T, scores, published, why)
+
+
+def localized(T: np.ndarray, details: str, published: bool, why: str) -> str:
+    """Return the answer of a successful request: the pose (x y z, yaw), ``details``, publish."""
     x, y, z = (float(v) for v in T[:3, 3])
     pose = f'x {x:.3f} y {y:.3f} z {z:.3f} m, yaw {math.degrees(rpy(T)[2]):.1f} deg'
-    return (f'localized: {pose}; {scores}; '
+    return (f'localized: {pose}; {details}; '
             + ('initial pose published' if published else f'initial pose not published: {why}'))
 
 

@@ -28,6 +28,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .sequence_step import run_step, SequenceStep
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError
 from ..parallel import quiet_idle_threads
@@ -87,7 +88,9 @@ def register_any(source: np.ndarray, target: Any, *, config: PipelineConfig,
     With ``stamp`` (the scan's header stamp, seconds) the scan is the next of a stream:
     this process's :class:`~.tracking.Tracker` registers it (:func:`~.stream.register_stream`),
     falling back to ``register_clouds``. For a map the result's ``map_info`` holds the map's
-    summary (cache hit or miss, points, load time).
+    summary (cache hit or miss, points, load time). A :class:`~.sequence_step.SequenceStep`
+    target adds the scan to this process's relocalization sequence on its map instead (a
+    ``StepAnswer``).
     """
     if stamp is not None:
         from .stream import register_stream
@@ -95,6 +98,8 @@ def register_any(source: np.ndarray, target: Any, *, config: PipelineConfig,
         return register_stream(source, _resolve(target, config), config=config, stamp=stamp)
     from . import register_clouds
 
+    if isinstance(target, SequenceStep):
+        return run_step(source, target, _resolve(target.map_target, config), config)
     return register_clouds(source, _resolve(target, config), config=config)
 
 

@@ -1,127 +1,20 @@
-"""
-The node's /diagnostics: one flat key space, built here.
-
-:func:`build_statistics` makes the keys the node publishes and the constants name them once
-(what became of each source, typed, is on ``~/result``). ``sources.*`` and
-``targets.*`` are the accounting buckets of :mod:`cgags_ros.localizer.health`
-(``accounting.ok``: they balance; ``sources.lost_upstream``, scans that never arrived,
-stands outside the balance); ``worker.*`` and ``memory.*`` the registration process and the
-resident memory (MB); ``transport.profile`` the Fast DDS profile loaded; ``configure.error``
-why configure failed (the node's last message before it is unconfigured, its code in
-``configure.refusal_code``). Every refusal's code sits beside its message:
-``last_refusal_code`` beside ``last_reason``, ``calibration.refusal_code`` beside
-``calibration.reason``.
-"""
+"""The node's /diagnostics message, from :mod:`cgags_ros.localizer.statistics`."""
 
 from __future__ import annotations
 
 from typing import Any, Mapping
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-import numpy as np
 
-from ..localizer.health import lost_upstream_message
-from ..localizer.transport import user_line
-
-REJECTED = 'rejected.'  # rejected.<cause>: clouds or pairs the node refused, per cause
-PAIRING = 'pairing.'  # pairing.<counter> of cgags_ros.pipeline.pairing.Pairer.counters()
-DROPPED = PAIRING + 'dropped.'  # pairing.dropped.<reason>
-LAST = 'last_'  # last_<field>: the most recent registration
-REFUSAL_CODE = LAST + 'refusal_code'  # its refusal's code ('' when valid), beside last_reason
-LAST_TIMING = 'last_timing.'  # last_timing.<stage>: its stage times, seconds
-ACCOUNTING_OK = 'accounting.ok'
-LOST_UPSTREAM = 'sources.lost_upstream'
-CONFIGURE_ERROR = 'configure.error'  # why the configure transition failed
-CONFIGURE_CODE = 'configure.refusal_code'  # its code
-
-
-def build_statistics(snapshot: Mapping[str, Any], voxel_size: float,
-                     extra: Mapping[str, Any]) -> dict[str, Any]:
-    """
-    Return the flat statistics of the node (what /diagnostics carries).
-
-    ``snapshot`` is :meth:`cgags_ros.localizer.health.NodeHealth.snapshot`; ``extra`` holds
-    the worker's and the memory's keys.
-    """
-    counts, rejected, last = snapshot['counts'], snapshot['rejected'], snapshot['last']
-    latencies, pairing = snapshot['latencies'], snapshot['pairing']
-    stats: dict[str, Any] = dict(counts)
-    stats.update({f'{REJECTED}{k}': v for k, v in sorted(rejected.items())})
-    stats['rejected'] = sum(rejected.values())
-    for key, value in last.items():
-        if key == 'timings':
-            stats.update({f'{LAST_TIMING}{k}': v for k, v in value.items()})
-        else:
-            stats[f'{LAST}{key}'] = value
-    stats['voxel_size'] = voxel_size
-    lat = np.array(list(latencies))
-    if lat.size:
-        stats['latency_p50_s'] = float(np.percentile(lat, 50))
-        stats['latency_p95_s'] = float(np.percentile(lat, 95))
-    stats.update({f'{PAIRING}{k}': v for k, v in pairing.items()})
-    for side in ('sources', 'targets'):
-        stats.update({f'{side}.{k}': v for k, v in snapshot['accounting'][side].items()})
-    if snapshot.get('source_period_s'):  # learnt from the stamps; lost_upstream relies on it
-        stats['sources.period_s'] = round(snapshot['source_period_s'], 6)
-    stats[ACCOUNTING_OK] = snapshot['accounting']['ok']
-    if snapshot['failing']:
-        stats['worker.failing'] = snapshot['failing']
-    stats.update(extra)
-    return stats
+from ..localizer.statistics import status
 
 
 def diagnostic_array(stats: Mapping[str, Any], name: str, hardware_id: str,
                      stamp: Any) -> DiagnosticArray:
     """Return the /diagnostics message of ``stats``, with a level and a one-line message."""
-    status = DiagnosticStatus(name=name, hardware_id=hardware_id)
-    if stats.get(CONFIGURE_ERROR):  # the last message before the node is unconfigured
-        status.level = DiagnosticStatus.ERROR
-        status.message = (f'configure failed ({stats.get(CONFIGURE_CODE, "")}): '
-                          f'{stats[CONFIGURE_ERROR]}')
-    elif not stats.get(ACCOUNTING_OK, True):
-        status.level = DiagnosticStatus.ERROR
-        status.message = 'internal error: received clouds do not balance the counted outcomes'
-    elif stats.get('calibration.status') == 'failed':
-        status.level = DiagnosticStatus.ERROR
-        status.message = (f"calibration FAILED ({stats.get('calibration.refusal_code', '')}): "
-                          f"{stats.get('calibration.reason', '')}")
-    elif stats.get('calibration.status') in ('converged', 'max_frames'):
-        status.level = DiagnosticStatus.OK
-        status.message = (f"calibrated ({stats['calibration.status']}): "
-                          f"{stats.get('calibration.parent_frame')} <- "
-                          f"{stats.get('calibration.child_frame')} on ~/calibration")
-    elif stats.get('map.error'):
-        status.level = DiagnosticStatus.ERROR
-        status.message = str(stats['map.error'])
-    elif stats.get('worker.failing'):
-        status.level = DiagnosticStatus.ERROR
-        status.message = (f"registration worker failed ({stats['worker.failing']}); "
-                          'restarted, no pair has succeeded since')
-    elif stats.get('active') is False:
-        status.level = DiagnosticStatus.STALE
-        status.message = 'inactive (lifecycle): sources are counted, nothing is published'
-    elif stats.get('worker.ready') is False:
-        status.level = DiagnosticStatus.STALE
-        status.message = 'registration process warming up; pairs wait for it'
-    elif not stats.get('received_source') or not stats.get('received_target'):
-        status.level = DiagnosticStatus.STALE
-        status.message = 'waiting for source and target clouds'
-        if stats.get('received_target'):  # the first thing a user of big scans sees
-            status.message = ('waiting for source clouds (large clouds published without '
-                              f'the Fast DDS profile never arrive: {user_line()})')
-    elif stats.get(LOST_UPSTREAM):
-        status.level = DiagnosticStatus.WARN
-        status.message = lost_upstream_message(stats[LOST_UPSTREAM])
-    elif stats.get(f'{LAST}valid') is False:
-        status.level = DiagnosticStatus.WARN
-        status.message = (f'last registration invalid ({stats.get(REFUSAL_CODE, "")}): '
-                          f"{stats.get(f'{LAST}reason', '')}")
-    elif stats['rejected'] or stats[f'{PAIRING}dropped']:
-        status.level = DiagnosticStatus.WARN
-        status.message = 'running; some clouds rejected or dropped'
-    else:
-        status.level, status.message = DiagnosticStatus.OK, 'running'
-    status.values = [KeyValue(key=str(k), value=str(v)) for k, v in stats.items()]
-    msg = DiagnosticArray(status=[status])
+    level, message = status(stats)
+    msg = DiagnosticArray(status=[DiagnosticStatus(
+        name=name, hardware_id=hardware_id, level=getattr(DiagnosticStatus, level),
+        message=message, values=[KeyValue(key=str(k), value=str(v)) for k, v in stats.items()])])
     msg.header.stamp = stamp
     return msg

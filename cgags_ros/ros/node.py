@@ -17,6 +17,8 @@ Topics (relative names; remap them):
         Sensor-data QoS by default (``pairing.source_qos``).
     target_cloud (sensor_msgs/PointCloud2, in): the reference (map or previous scan).
         Reliable; durability ``pairing.target_durability``. Not subscribed with ``map.file``.
+    odom (nav_msgs/Odometry, in, with ``map.file``; else TF odom -> base): relocalization
+        over the next scans (:mod:`cgags_ros.localizer.sequence`).
     ~/pose (geometry_msgs/PoseStamped, out): pose of the source frame in the target frame
         (``T``: ``p_target = R p_source + t``, metres), stamped with the source's stamp,
         frame_id = target frame (or ``output.pose_frame_id``).
@@ -65,19 +67,21 @@ it too.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from typing import Any
 
+from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
 import rclpy
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.qos import qos_profile_sensor_data
 from rclpy.task import Future
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Empty, Trigger
 
-from . import diagnostics
 from .outputs import Outputs
 from .parameters import descriptor
 from .qos import source_qos, target_qos
@@ -87,7 +91,8 @@ from ..config.node import (calibration_config, configs_from_file, configs_from_p
                            ros_value)
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError, EmptyCloudError, InvalidConfigError, InvalidInputError
-from ..io.pointcloud2 import pointcloud2_to_xyz, stamp_to_ns
+from ..io.pointcloud2 import pointcloud2_to_xyz, pose_to_transform, stamp_to_ns
+from ..localizer import statistics
 from ..localizer.engine import RegistrationEngine
 from ..localizer.interface import Cloud
 from ..localizer.transport import PROFILE_VARIABLE, use_large_data_profile
@@ -122,6 +127,7 @@ class RegisterNode(LifecycleNode):
         self._service_group = ReentrantCallbackGroup()
         self._bond: Any = None
         self._transport_profile = os.environ.get(PROFILE_VARIABLE, '')
+        self._odometry_topic = False  # an Odometry message was received
         self.add_on_set_parameters_callback(self._on_set_parameters)
         if cfg.autostart and self.trigger_configure() == SUCCESS:
             self.trigger_activate()
@@ -160,6 +166,9 @@ class RegisterNode(LifecycleNode):
         if not cfg.map.file:
             self._entities.append(self.create_subscription(
                 PointCloud2, 'target_cloud', self._on_target, target_qos(cfg)))
+        else:  # with odometry a relocalization goes on over the next scans
+            self._entities.append(self.create_subscription(
+                Odometry, 'odom', self._on_odometry, qos_profile_sensor_data))
         self.get_logger().info(
             f"registering source_cloud onto {cfg.map.file or 'target_cloud'} ({cfg.mode}, "
             f'{cfg.pairing.mode}, voxel_size {pipe.voxel_size} m; '
@@ -282,7 +291,21 @@ class RegisterNode(LifecycleNode):
                            Cloud(xyz, msg.header, receipt))
 
     def _on_source(self, msg: PointCloud2) -> None:
+        engine, outputs = self._engine, self.outputs
+        if not self._odometry_topic and engine is not None and outputs is not None:
+            cfg = engine.node_config  # no odom topic: TF odom -> base, if tf2_ros has it
+            reloc = cfg.relocalization
+            T = outputs.odometry(reloc.odom_frame, reloc.base_frame, msg.header.stamp)
+            if T is not None:
+                engine.odometry(stamp_to_ns(msg.header.stamp), T)
         self._receive(msg, 'source')
+
+    def _on_odometry(self, msg: Odometry) -> None:
+        engine, self._odometry_topic = self._engine, True
+        with contextlib.suppress(InvalidInputError):  # a zero quaternion: no pose
+            T = pose_to_transform(msg)
+            if engine is not None:
+                engine.odometry(stamp_to_ns(msg.header.stamp), T)
 
     def _on_target(self, msg: PointCloud2) -> None:
         self._receive(msg, 'target')
@@ -327,8 +350,8 @@ class RegisterNode(LifecycleNode):
         extra = {'memory.node_rss_mb': round(rss_mb() or 0.0, 1),
                  'transport.profile': self._transport_profile,
                  **engine.statistics(), **outputs.statistics()}
-        return diagnostics.build_statistics(engine.snapshot(),
-                                            engine.pipeline_config.voxel_size, extra)
+        return statistics.build_statistics(engine.snapshot(),
+                                           engine.pipeline_config.voxel_size, extra)
 
     def _publish_diagnostics(self) -> None:
         engine, outputs = self._engine, self.outputs

@@ -12,6 +12,7 @@ publishers: they publish only while the node is active.
 from __future__ import annotations
 
 import collections
+import importlib.util
 import threading
 from typing import Any
 
@@ -25,6 +26,7 @@ from . import diagnostics
 from .conversions import transform_to_pose, transform_to_transform_stamped, xyz_to_pointcloud2
 from .qos import latched_qos, result_qos
 from ..geometry import make_transform, quaternion_to_matrix
+from ..localizer import statistics
 from ..localizer.interface import BasePose, Calibration, Estimate, PairResult
 from ..pipeline.covariance import map_to_odom
 from ..refusal import Refusal
@@ -52,6 +54,7 @@ class Outputs:
         self._tf_listener: Any = None
         self._tf_broadcaster: Any = None
         self._tf_said = False
+        self._tf_importable = importlib.util.find_spec('tf2_ros') is not None
         self._static_pub: Any = None  # /tf_static: a broadcaster, a publisher, or False
         self._calibration_pub = self._report_pub = None
         if calibrate:
@@ -91,12 +94,14 @@ class Outputs:
         msg.pose.covariance = [float(v) for v in pose.covariance.ravel()]
         self._send(self._initial_pub, msg)
         if pose.odom_frame and self._tf_ready('relocalization.broadcast_map_to_odom is set'):
-            T_odom_base = self._lookup(pose.odom_frame, pose.base_frame, msg.header.stamp)
-            if T_odom_base is None:
-                self._count('map_to_odom.no_odom_tf')
-                return
-            self._broadcast(map_to_odom(pose.transform, T_odom_base), msg.header,
-                            pose.odom_frame)
+            T_map_odom = pose.map_from_odom
+            if T_map_odom is None:
+                T_odom_base = self._lookup(pose.odom_frame, pose.base_frame, msg.header.stamp)
+                if T_odom_base is None:
+                    self._count('map_to_odom.no_odom_tf')
+                    return
+                T_map_odom = map_to_odom(pose.transform, T_odom_base)
+            self._broadcast(T_map_odom, msg.header, pose.odom_frame)
             self._count('map_to_odom.broadcast')
 
     def publish_calibration(self, calibration: Calibration) -> None:
@@ -127,6 +132,12 @@ class Outputs:
             return np.eye(4)
         return self._lookup(base_frame, sensor_frame)
 
+    def odometry(self, odom_frame: str, base_frame: str, stamp: Any) -> np.ndarray | None:
+        """Return ``T_odom_base`` from TF at ``stamp``; None without it or tf2_ros (silent)."""
+        if not self._tf_importable:
+            return None
+        return self._lookup(odom_frame, base_frame, stamp) if self._tf_ready('') else None
+
     def log(self, level: str, message: str) -> None:
         """Log through the node's logger, unless its context has ended."""
         if not self._node.context.ok():
@@ -151,8 +162,8 @@ class Outputs:
 
     def publish_configure_failure(self, stats: dict[str, Any], refusal: Refusal) -> None:
         """Publish why configure failed: the last /diagnostics before the node is unconfigured."""
-        self.publish_diagnostics({**stats, diagnostics.CONFIGURE_ERROR: refusal.message,
-                                  diagnostics.CONFIGURE_CODE: refusal.code.value})
+        self.publish_diagnostics({**stats, statistics.CONFIGURE_ERROR: refusal.message,
+                                  statistics.CONFIGURE_CODE: refusal.code.value})
 
     def statistics(self) -> dict[str, int]:
         """Return the ``map_to_odom.*`` counters for /diagnostics."""
