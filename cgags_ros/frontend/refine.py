@@ -204,3 +204,52 @@ def point_to_plane_4dof(source: np.ndarray, target: np.ndarray, normals: np.ndar
             break
         previous = state
     return T
+
+
+def point_to_plane_6dof(source: np.ndarray, target: np.ndarray, normals: np.ndarray,
+                        initial: np.ndarray, distance: float, iterations: int,
+                        tolerance: float, tree: cKDTree, workers: int = 1) -> np.ndarray:
+    """
+    Point-to-plane ICP over rotation and translation (source -> target, metres).
+
+    Gauss-Newton on sum (n_q . (R p + t - q))^2 over the nearest target points within
+    ``distance``, found in ``tree`` (the target's, built once by its caller, so that many
+    short refinements against one target pay for it once); the update is a rotation vector
+    and a translation composed on the left. It runs no OpenMP loop: on a loaded machine
+    many short refinements are not held up by idle threads. Stops when fitness and RMSE
+    change by less than ``tolerance`` (relative) or after ``iterations``.
+    """
+    T = np.asarray(initial, dtype=np.float64).copy()
+    previous = None
+    for _ in range(iterations):
+        moved = apply_transform(T, source)
+        dist, nn = tree.query(moved, k=1, distance_upper_bound=distance, workers=workers)
+        close = np.isfinite(dist)
+        if close.sum() < 6:
+            break
+        p, q, n = moved[close], target[nn[close]], normals[nn[close]]
+        r = np.einsum('ij,ij->i', n, p - q)
+        J = np.column_stack([np.cross(p, n), n])
+        H = J.T @ J
+        H += 1e-12 * np.trace(H) * np.eye(6)
+        dx = np.linalg.solve(H, -J.T @ r)
+        step = np.eye(4)
+        step[:3, :3] = _rotation_from_vector(dx[:3])
+        step[:3, 3] = dx[3:]
+        T = step @ T
+        state = (close.mean(), np.sqrt(np.mean(dist[close] ** 2)))
+        if previous is not None and all(abs(a - b) <= tolerance * max(abs(b), 1e-12)
+                                        for a, b in zip(state, previous)):
+            break
+        previous = state
+    return T
+
+
+def _rotation_from_vector(w: np.ndarray) -> np.ndarray:
+    """Return the rotation matrix of the rotation vector ``w`` (radians), by Rodrigues."""
+    angle = float(np.linalg.norm(w))
+    if angle < 1e-15:
+        return np.eye(3)
+    k = w / angle
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * (K @ K)
