@@ -36,6 +36,7 @@ from ..geometry import rotation_error_deg, translation_error
 SLIDE = 10.0
 PROMISING = 0.45
 ITERATIONS = 5
+STRIDE = 2
 APART = 4.0
 MAX_VIOLATION = 0.1
 OVERLAP_RATIO = 1.5
@@ -73,15 +74,17 @@ def settle(fs: CloudFeatures, ft: CloudFeatures, start: np.ndarray, coarse_dista
 
     The estimate's stages (the core's inlier threshold ``coarse_distance`` first when it is
     the larger, then the final correspondence distance), ``ITERATIONS`` each, point-to-plane
-    on the target's normals whatever the estimate's refinement method: a rival only has to
-    show where it goes, and the target's k-d tree serves every rival.
+    on the target's normals whatever the estimate's refinement method, from every
+    ``STRIDE``-th source point: a rival only has to show where it goes, not how precisely
+    (its fitness is then judged on every point), and the target's k-d tree serves every
+    rival.
     """
     final = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
     T = np.asarray(start, dtype=np.float64)
     for distance in ([coarse_distance, final] if coarse_distance > final else [final]):
         tolerance = cfg.refine.coarse_stage_tolerance if distance > final else 1e-6
-        T = point_to_plane_6dof(fs.points, ft.points, ft.normals, T, distance, ITERATIONS,
-                                tolerance, ft.tree, workers)
+        T = point_to_plane_6dof(fs.points[::STRIDE], ft.points, ft.normals, T, distance,
+                                ITERATIONS, tolerance, ft.tree, workers)
     return T
 
 
