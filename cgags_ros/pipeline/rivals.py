@@ -11,12 +11,13 @@ its centroid), and slid both ways along the translation the overlap constrains l
 the estimate's fitness; most that start worse never settle anywhere plausible) is refined
 in the estimate's stages (``ITERATIONS`` a stage of point-to-plane against the target's k-d
 tree, built once with its features: a rival only has to show where it settles) and judged
-like the estimate. A rival is plausible when it settles away from the estimate (more than ``candidate_min_rotation_deg`` or ``APART`` voxels), does
-not stack surfaces where a sensor saw free space (violation at most ``MAX_VIOLATION``) and
-fits at least ``1 / OVERLAP_RATIO`` as well as the estimate (fitness, the share of source
-points on the target: a large target's share would say nothing): the result is then
-ambiguous, with the rival as runner-up. The settings were chosen leave-one-scene-out on
-real RGB-D pairs (docs/ablation.md); a map target is not checked.
+like the estimate. A rival is plausible when it settles away from the estimate (more than
+``candidate_min_rotation_deg`` or ``APART`` voxels), does not stack surfaces where a sensor
+saw free space (violation at most ``MAX_VIOLATION``) and fits at least
+``1 / OVERLAP_RATIO`` as well as the estimate (fitness, the share of source points on the target:
+a large target's share would say nothing): the result is then ambiguous, with the rival as
+runner-up. The settings were chosen leave-one-scene-out on real RGB-D pairs
+(docs/ablation.md); a map target is not checked.
 """
 
 from __future__ import annotations
