@@ -5,7 +5,7 @@ from cgags_ros.config.frontend import FrontEndConfig, RefineConfig
 from cgags_ros.errors import EmptyCloudError, InvalidInputError
 from cgags_ros.frontend.features import downsample, extract_features, finite_points
 from cgags_ros.frontend.matching import match_features
-from cgags_ros.frontend.refine import evaluate_alignment, refine_transform
+from cgags_ros.frontend.refine import evaluate_alignment, point_to_plane_6dof, refine_transform
 from cgags_ros.geometry import point_resolution, rotation_error_deg, translation_error
 from cgags_ros.io.clouds import read_cloud
 import numpy as np
@@ -181,6 +181,25 @@ def test_refinement_converges_from_a_perturbed_pose(bunny, method):
     after = evaluate_alignment(fs.points, ft.points, refined, 1.5 * VOXEL)
     assert after.fitness > before.fitness and after.fitness > 0.85
     assert after.inlier_rmse < 1.5 * VOXEL
+
+
+def test_point_to_plane_6dof_converges_like_the_refinement(bunny):
+    fs, ft, T = bunny
+    delta = np.eye(4)
+    delta[:3, :3] = Rotation.from_euler('xz', [2, -3], degrees=True).as_matrix()
+    delta[:3, 3] = [-0.003, 0.004, 0.002]
+    start = delta @ T
+    refined = start
+    for distance in (6 * fs.resolution, 1.5 * VOXEL):  # the refinement's two stages
+        refined = point_to_plane_6dof(fs.points, ft.points, ft.normals, refined, distance, 30,
+                                      1e-6, ft.tree)
+    assert rotation_error_deg(refined, T) < 0.5 and translation_error(refined, T) < 0.001
+    opened = refine_transform(fs.points, ft.points, start, voxel_size=VOXEL,
+                              config=RefineConfig(), target_normals=ft.normals,
+                              coarse_distance=6 * fs.resolution)
+    assert rotation_error_deg(refined, opened) < 0.1
+    assert translation_error(refined, opened) < 0.2 * VOXEL
+    np.testing.assert_allclose(refined[:3, :3] @ refined[:3, :3].T, np.eye(3), atol=1e-9)
 
 
 def test_refinement_none_is_identity_operation(bunny):

@@ -92,3 +92,27 @@ def test_a_slide_along_a_wall_is_refused_and_a_right_pose_kept(redkitchen_pair):
     src, tgt, gt = redkitchen_pair(0, 2)
     kept = register_clouds(src, tgt, voxel_size=0.05)
     assert kept.valid and translation_error(kept.transform, gt) < 0.3
+
+
+def test_the_study_judges_the_rivals_as_the_pipeline_does():
+    """bench.loso_trust measures the pipeline's rivals; the study's verdict is the pipeline's."""
+    from bench.loso_trust import PROMISING, structured_rivals
+    from bench.loso_trust_study import rival_refuses, RIVAL_GRID
+    from cgags_ros.pipeline import rivals
+
+    cfg = PipelineConfig(voxel_size=VOXEL)
+    shipped = (rivals.MAX_VIOLATION, rivals.OVERLAP_RATIO, rivals.APART, rivals.PROMISING)
+    verdicts = []
+    for points in (_room(), _corner()):
+        fs, ft, corr, result = _estimate(points, cfg)
+        measured = structured_rivals(fs, ft, np.eye(4), cfg, result.inlier_threshold,
+                                     np.eye(4), result.fitness)
+        assert [x['name'] for x in measured] == ['flip0', 'flip1', 'flip2', 'slide1', 'slide-1']
+        refused = rival_refuses({'fitness': result.fitness, 'rivals': measured}, *shipped)
+        assert refused == (structured_rival(fs, ft, corr, result, cfg) is not None)
+        verdicts.append(refused)
+        # Measured for every share the study may choose; a start below it is not refined.
+        for x in measured:
+            assert x['refined'] == (x['start_fitness'] >= PROMISING * result.fitness)
+    assert verdicts == [True, False]
+    assert PROMISING <= min(RIVAL_GRID['promising']) <= rivals.PROMISING

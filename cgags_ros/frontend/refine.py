@@ -175,32 +175,106 @@ def point_to_plane_4dof(source: np.ndarray, target: np.ndarray, normals: np.ndar
     change by less than ``tolerance`` (relative) or after ``iterations``.
     """
     tree = tree if tree is not None else cKDTree(target)
+    return _gauss_newton(source, target, normals, initial, distance, iterations, tolerance,
+                         tree, workers, _Yaw)
+
+
+def point_to_plane_6dof(source: np.ndarray, target: np.ndarray, normals: np.ndarray,
+                        initial: np.ndarray, distance: float, iterations: int,
+                        tolerance: float, tree: cKDTree, workers: int = 1) -> np.ndarray:
+    """
+    Point-to-plane ICP over rotation and translation (source -> target, metres).
+
+    Gauss-Newton on sum (n_q . (R p + t - q))^2 over the nearest target points within
+    ``distance``, found in ``tree`` (the target's, built once by its caller, so that many
+    short refinements against one target pay for it once); the update is a rotation vector
+    and a translation composed on the left. It runs no OpenMP loop: on a loaded machine
+    many short refinements are not held up by idle threads. Stops when fitness and RMSE
+    change by less than ``tolerance`` (relative) or after ``iterations``.
+    """
+    return _gauss_newton(source, target, normals, initial, distance, iterations, tolerance,
+                         tree, workers, _Rigid)
+
+
+class _Yaw:
+    """Yaw about z and translation: 4 parameters (radians, metres)."""
+
+    size = 4
+
+    @staticmethod
+    def jacobian(p: np.ndarray, n: np.ndarray) -> np.ndarray:
+        return np.column_stack([n[:, 1] * p[:, 0] - n[:, 0] * p[:, 1], n])
+
+    @staticmethod
+    def step(dx: np.ndarray) -> np.ndarray:
+        c, s = np.cos(dx[0]), np.sin(dx[0])
+        step = np.eye(4)
+        step[:2, :2] = [[c, -s], [s, c]]
+        step[:3, 3] = dx[1:]
+        return step
+
+    @staticmethod
+    def negligible(dx: np.ndarray, p: np.ndarray, distance: float) -> bool:
+        # A step far below the correspondence distance changes no pairing: converged.
+        return abs(dx[0]) * np.sqrt(np.mean(np.sum(p[:, :2] ** 2, axis=1))) + np.linalg.norm(
+            dx[1:]) < 1e-5 * distance
+
+
+class _Rigid:
+    """Rotation vector and translation: 6 parameters (radians, metres)."""
+
+    size = 6
+
+    @staticmethod
+    def jacobian(p: np.ndarray, n: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.cross(p, n), n])
+
+    @staticmethod
+    def step(dx: np.ndarray) -> np.ndarray:
+        step = np.eye(4)
+        step[:3, :3] = _rotation_from_vector(dx[:3])
+        step[:3, 3] = dx[3:]
+        return step
+
+    @staticmethod
+    def negligible(dx: np.ndarray, p: np.ndarray, distance: float) -> bool:
+        return False
+
+
+def _gauss_newton(source: np.ndarray, target: np.ndarray, normals: np.ndarray,
+                  initial: np.ndarray, distance: float, iterations: int, tolerance: float,
+                  tree: cKDTree, workers: int, motion: type) -> np.ndarray:
+    """Run the point-to-plane Gauss-Newton of the functions above over ``motion``."""
     T = np.asarray(initial, dtype=np.float64).copy()
     previous = None
     for _ in range(iterations):
         moved = apply_transform(T, source)
         dist, nn = tree.query(moved, k=1, distance_upper_bound=distance, workers=workers)
         close = np.isfinite(dist)
-        if close.sum() < 4:
+        if close.sum() < motion.size:
             break
         p, q, n = moved[close], target[nn[close]], normals[nn[close]]
         r = np.einsum('ij,ij->i', n, p - q)
-        J = np.column_stack([n[:, 1] * p[:, 0] - n[:, 0] * p[:, 1], n])
+        J = motion.jacobian(p, n)
         H = J.T @ J
-        H += 1e-12 * np.trace(H) * np.eye(4)
+        H += 1e-12 * np.trace(H) * np.eye(motion.size)
         dx = np.linalg.solve(H, -J.T @ r)
-        c, s = np.cos(dx[0]), np.sin(dx[0])
-        step = np.eye(4)
-        step[:2, :2] = [[c, -s], [s, c]]
-        step[:3, 3] = dx[1:]
-        T = step @ T
+        T = motion.step(dx) @ T
         state = (close.mean(), np.sqrt(np.mean(dist[close] ** 2)))
         if previous is not None and all(abs(a - b) <= tolerance * max(abs(b), 1e-12)
                                         for a, b in zip(state, previous)):
             break
-        # A step far below the correspondence distance changes no pairing: converged.
-        if abs(dx[0]) * np.sqrt(np.mean(np.sum(p[:, :2] ** 2, axis=1))) + np.linalg.norm(
-                dx[1:]) < 1e-5 * distance:
+        if motion.negligible(dx, p, distance):
             break
         previous = state
     return T
+
+
+def _rotation_from_vector(w: np.ndarray) -> np.ndarray:
+    """Return the rotation matrix of the rotation vector ``w`` (radians), by Rodrigues."""
+    angle = float(np.linalg.norm(w))
+    if angle < 1e-15:
+        return np.eye(3)
+    k = w / angle
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * (K @ K)

@@ -8,19 +8,19 @@ before an estimate is called valid, the poses such a scene would confuse it with
 directly: the estimate turned 180 degrees about each principal axis of the overlap (through
 its centroid), and slid both ways along the translation the overlap constrains least
 (``SLIDE`` voxels). Each start that already fits reasonably (at least ``PROMISING`` times
-the estimate's fitness) is refined like the estimate (``ITERATIONS`` a stage: a rival only
-has to show where it settles) and judged like it. A rival is plausible when it settles
-away from the estimate (more than ``candidate_min_rotation_deg`` or ``APART`` voxels), does
-not stack surfaces where a sensor saw free space (violation at most ``MAX_VIOLATION``) and
-fits at least ``1 / OVERLAP_RATIO`` as well as the estimate (fitness, the share of source
-points on the target: a large target's share would say nothing): the result is then
-ambiguous, with the rival as runner-up. The settings were chosen leave-one-scene-out on
-real RGB-D pairs (docs/ablation.md); a map target is not checked.
+the estimate's fitness; most that start worse never settle anywhere plausible) is refined
+in the estimate's stages (``ITERATIONS`` a stage of point-to-plane against the target's k-d
+tree, built once with its features: a rival only has to show where it settles) and judged
+like the estimate. A rival is plausible when it settles away from the estimate (more than
+``candidate_min_rotation_deg`` or ``APART`` voxels), does not stack surfaces where a sensor
+saw free space (violation at most ``MAX_VIOLATION``) and fits at least
+``1 / OVERLAP_RATIO`` as well as the estimate (fitness, the share of source points on the target:
+a large target's share would say nothing): the result is then ambiguous, with the rival as
+runner-up. The settings were chosen leave-one-scene-out on real RGB-D pairs
+(docs/ablation.md); a map target is not checked.
 """
 
 from __future__ import annotations
-
-import dataclasses
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -31,13 +31,14 @@ from .result import Candidate, PipelineResult
 from ..config.pipeline import PipelineConfig
 from ..frontend.features import CloudFeatures
 from ..frontend.matching import Correspondences
-from ..frontend.refine import evaluate_alignment, refine_transform
+from ..frontend.refine import evaluate_alignment, point_to_plane_6dof
 from ..geometry import rotation_error_deg, translation_error
 
 SLIDE = 10.0
-PROMISING = 0.25
+PROMISING = 0.45
 ITERATIONS = 5
-APART = 6.0
+STRIDE = 2
+APART = 4.0
 MAX_VIOLATION = 0.1
 OVERLAP_RATIO = 1.5
 
@@ -67,6 +68,27 @@ def rival_starts(fs: CloudFeatures, ft: CloudFeatures, T: np.ndarray,
     return starts
 
 
+def settle(fs: CloudFeatures, ft: CloudFeatures, start: np.ndarray, coarse_distance: float,
+           cfg: PipelineConfig, workers: int = 1) -> np.ndarray:
+    """
+    Return where a rival starting at ``start`` settles (4x4 source -> target, metres).
+
+    The estimate's stages (the core's inlier threshold ``coarse_distance`` first when it is
+    the larger, then the final correspondence distance), ``ITERATIONS`` each, point-to-plane
+    on the target's normals whatever the estimate's refinement method, from every
+    ``STRIDE``-th source point: a rival only has to show where it goes, not how precisely
+    (its fitness is then judged on every point), and the target's k-d tree serves every
+    rival.
+    """
+    final = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
+    T = np.asarray(start, dtype=np.float64)
+    for distance in ([coarse_distance, final] if coarse_distance > final else [final]):
+        tolerance = cfg.refine.coarse_stage_tolerance if distance > final else 1e-6
+        T = point_to_plane_6dof(fs.points[::STRIDE], ft.points, ft.normals, T, distance,
+                                ITERATIONS, tolerance, ft.tree, workers)
+    return T
+
+
 def structured_rival(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
                      result: PipelineResult, cfg: PipelineConfig,
                      map_target: bool = False, workers: int = 1) -> Candidate | None:
@@ -86,14 +108,11 @@ def structured_rival(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences
     v = cfg.voxel_size
     distance = cfg.refine.max_correspondence_distance_factor * v
     T = np.asarray(result.transform, dtype=np.float64)
-    refine = dataclasses.replace(cfg.refine, max_iterations=ITERATIONS)
     for start in rival_starts(fs, ft, T, distance, v):
         if evaluate_alignment(fs.points, ft.tree, start, distance).fitness \
                 < PROMISING * result.fitness:
             continue
-        R = refine_transform(fs.points, ft.points, start, voxel_size=v, config=refine,
-                             target_normals=ft.normals,
-                             coarse_distance=result.inlier_threshold, workers=workers)
+        R = settle(fs, ft, start, float(result.inlier_threshold), cfg, workers)
         if (rotation_error_deg(R, T) <= cfg.candidate_min_rotation_deg
                 and translation_error(R, T) <= APART * v):
             continue  # settled back onto the estimate: it is constrained there
