@@ -9,3 +9,10 @@ benchmark's problems, :mod:`bench.revision` an earlier revision's core, and
 :mod:`bench.datasets` the benchmark data readers (3DMatch, calibration rigs,
 ``gt_pairs.txt``, synthetic correspondences), which the installed package does not ship.
 """
+
+from cgags_ros.parallel import quiet_idle_threads
+
+# Time the pipeline as its users run it: the tools and the node make idle OpenMP and OpenBLAS
+# threads sleep before numpy and Open3D load (docs/design.md), and so must every benchmark,
+# which imports this package first.
+quiet_idle_threads()
