@@ -40,6 +40,7 @@ from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError, InvalidInputError
 from ..geometry import apply_transform
+from ..pipeline import backlog
 from ..pipeline.isolated import (IsolatedRegistration, RegisterFn, RegistrationTimeout,
                                  WorkerCrashed)
 from ..pipeline.pairing import Pair, Pairer
@@ -75,8 +76,9 @@ class RegistrationEngine:
         self._calibration = CalibrationRun.for_mode(cfg.mode, pipeline_cfg, calibration,
                                                     outputs)
         self._health = NodeHealth(Pairer.from_config(dataclasses.replace(
-            cfg, pairing_mode=pairing,
-            queue_depth=1 if cfg.mode == 'on_demand' else cfg.queue_depth)))
+            cfg, pairing_mode=pairing, queue_depth=1 if cfg.mode == 'on_demand' else
+            backlog.queue_depth(cfg.mode, pipeline_cfg, cfg.queue_depth))))
+        self._backlog = backlog.Backlog()  # a tracked stream's scans waiting (continuous)
         self.on_demand = cfg.mode == 'on_demand'
         self._map = MapTarget(cfg) if cfg.map_file else None
         self._calls = RelocalizeCalls()
@@ -155,6 +157,9 @@ class RegistrationEngine:
         with self._lock:
             self._pipeline_cfg, self._node_cfg = pipeline_cfg, node_cfg
         self._health.set_slop(node_cfg.sync_slop)
+        if not self.on_demand:  # tracking switched on or off: the backlog follows
+            self._health.set_queue_depth(backlog.queue_depth(
+                node_cfg.mode, pipeline_cfg, node_cfg.queue_depth))
 
     # ------------------------------------------------------------------ input
 
@@ -213,7 +218,7 @@ class RegistrationEngine:
 
     def _work(self) -> None:
         while not self._stop.is_set():
-            pair = self._health.take(timeout=0.2) if self._ready() else None
+            pair = self._health.take(timeout=0.2, skip=self._skip) if self._ready() else None
             if pair is None:
                 continue
             cause, refusal = 'internal_error', Refusal(RefusalCode.INTERNAL_ERROR, 'pair failed')
@@ -229,6 +234,13 @@ class RegistrationEngine:
                 self._settle(cause, refusal)
             if cause and refusal and not self._stop.is_set():
                 self._log_rejection(cause, refusal.message)
+
+    def _skip(self, pending_ns: list[int]) -> int:
+        """Return how many of the oldest waiting pairs a tracked stream skips (the backlog)."""
+        pipe_cfg = self.pipeline_config
+        if not tracks(self.node_config.mode, pipe_cfg):
+            return 0
+        return self._backlog.to_skip(pending_ns, pipe_cfg, self._calls.waiting() is not None)
 
     def _ready(self) -> bool:
         """Tell whether the worker may take a pair now; else wait a little."""
@@ -269,6 +281,7 @@ class RegistrationEngine:
             return 'pipeline_error', Refusal(exc.code, f'registration failed: {exc}')
         self._registered = result
         self._tracking.add(result)
+        self._backlog.saw(result)
         T = np.asarray(result.transform, dtype=np.float64)
         refusal = result.refusal or (None if np.isfinite(T).all() else Refusal(
             RefusalCode.INTERNAL_ERROR, 'the estimated transform is not finite'))
