@@ -50,6 +50,18 @@ class NodeConfig:
         '(counted in /diagnostics). 1 gives the lowest latency (a new source waits only '
         'behind the pair in progress); more buffers bursts at the cost of latency.',
         low=1, high=1000)
+    backlog: int = option(
+        20, 'Continuous mode with tracking.enabled: pairs kept while a registration runs, in '
+        'place of queue_depth when larger (the oldest dropped beyond). The scans that arrived '
+        'during a global registration are then tracked in stamp order, each from its '
+        "predecessor's pose, instead of restarting from the newest scan, too far from the "
+        'last pose to be tracked.', low=1, high=1000)
+    backlog_max_lag: float = option(
+        0.5, 'Continuous mode with tracking.enabled: while the newest waiting scan is more than '
+        'this (seconds, header stamps) ahead of the oldest and the last scan was tracked, every '
+        'other waiting scan is dropped (source_skipped_catching_up), and any more than twice '
+        'this behind; the next is tracked with the motion scaled to its stamp. 0 never skips.',
+        low=0.0, high=3600.0)
     max_waiting_sources: int = option(
         1, 'Sources kept while no target (latest_target) or no matching target '
         '(synchronized) has arrived; the oldest is dropped beyond this.', low=1, high=1000)
@@ -178,7 +190,7 @@ def parse_pose7(text: str) -> tuple[float, ...] | None:
 # Parameters that shape subscriptions or the pairing queue: fixed once the node runs.
 READ_ONLY = frozenset({
     'autostart', 'config_file',
-    'pairing_mode', 'queue_depth', 'max_waiting_sources', 'max_waiting_targets',
+    'pairing_mode', 'queue_depth', 'backlog', 'max_waiting_sources', 'max_waiting_targets',
     'source_qos', 'source_depth', 'target_durability', 'target_depth',
     'diagnostics_period', 'registration_timeout', 'mode', 'map_file', 'map_frame',
     'map_cache_dir', 'map_load_timeout', 'base_frame',

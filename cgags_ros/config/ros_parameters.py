@@ -55,8 +55,9 @@ ROS_PARAMETERS: dict[str, tuple[str, ...]] = {
 RENAMED = {'relocalization.mode': 'renamed: mode (which also takes calibrate)'}
 # Keys of config_file under this prefix configure calibrate mode (CalibrationConfig keys).
 CALIBRATION_PREFIX = 'calibration.'
-# Sections added after the flat interface was retired: never ROS parameters, nothing to migrate.
-NEWER_SECTIONS = ('tracking.',)
+# Sections and keys (by prefix) added after the flat interface was retired: never ROS
+# parameters, nothing to migrate.
+NEWER_SECTIONS = ('tracking.', 'backlog')
 # base_from_sensor as a ROS parameter: [x, y, z, qx, qy, qz, qw]; seven zeros leave it unset.
 UNSET_POSE = [0.0] * 7
 

@@ -32,18 +32,6 @@ class TrackingConfig:
     global_check_period: float = option(
         5.0, 'Seconds (header stamps) after which the global search runs again on a tracked '
         'stream, as global_check_interval; 0 never by time.', low=0.0, high=3600.0)
-    backlog: int = option(
-        20, 'Continuous mode with tracking: pairs kept while a registration runs (in place of '
-        'pairing.queue_depth when larger; the oldest dropped beyond). The scans that arrived '
-        'during a global registration are then tracked in stamp order, each from its '
-        "predecessor's pose, instead of restarting from the newest scan, too far from the "
-        'last pose to be tracked.', low=1, high=1000)
-    max_lag: float = option(
-        0.5, 'Continuous mode with tracking: while the newest waiting scan is more than this '
-        '(seconds, header stamps) ahead of the oldest and the last scan was tracked, every '
-        'other waiting scan is dropped (counted as source_skipped_catching_up) and the next '
-        'is tracked with the motion scaled to its stamp, so that a backlog drains even when '
-        'tracking a scan takes about a scan period; 0 never skips.', low=0.0, high=3600.0)
     agreement_rotation_deg: float = option(
         2.0, 'A periodic global result and the prediction agree when their rotations differ '
         'by at most this (degrees) and their translations by at most '

@@ -76,8 +76,8 @@ class RegistrationEngine:
         self._calibration = CalibrationRun.for_mode(cfg.mode, pipeline_cfg, calibration,
                                                     outputs)
         self._health = NodeHealth(Pairer.from_config(dataclasses.replace(
-            cfg, pairing_mode=pairing, queue_depth=1 if cfg.mode == 'on_demand' else
-            backlog.queue_depth(cfg.mode, pipeline_cfg, cfg.queue_depth))))
+            cfg, pairing_mode=pairing,
+            queue_depth=1 if cfg.mode == 'on_demand' else backlog.queue_depth(cfg, pipeline_cfg))))
         self._backlog = backlog.Backlog()  # a tracked stream's scans waiting (continuous)
         self.on_demand = cfg.mode == 'on_demand'
         self._map = MapTarget(cfg) if cfg.map_file else None
@@ -158,8 +158,7 @@ class RegistrationEngine:
             self._pipeline_cfg, self._node_cfg = pipeline_cfg, node_cfg
         self._health.set_slop(node_cfg.sync_slop)
         if not self.on_demand:  # tracking switched on or off: the backlog follows
-            self._health.set_queue_depth(backlog.queue_depth(
-                node_cfg.mode, pipeline_cfg, node_cfg.queue_depth))
+            self._health.set_queue_depth(backlog.queue_depth(node_cfg, pipeline_cfg))
 
     # ------------------------------------------------------------------ input
 
@@ -184,13 +183,17 @@ class RegistrationEngine:
                 self._outputs.publish_result(PairResult(
                     stamp_ns, frame_id, 'rejected', rejection, message,
                     refusal=Refusal(code, message)))
+        self._tell_dropped()
+        if lost:
+            self._log_lost_upstream()
+
+    def _tell_dropped(self) -> None:
+        """Publish what pairing dropped since the last call (a ~/result each)."""
         for reason, source in self._health.dropped_sources():
             why = f'dropped by pairing: {reason} (docs/pairing.md)'
             self._outputs.publish_result(PairResult(
                 source.stamp_ns, source.frame_id, 'dropped', reason, why,
                 refusal=Refusal(RefusalCode.UNPAIRED, why)))
-        if lost:
-            self._log_lost_upstream()
 
     def relocalize(self, wait: bool = True, on_answer: Answered | None = None
                    ) -> tuple[bool, str]:
@@ -221,6 +224,7 @@ class RegistrationEngine:
             pair = self._health.take(timeout=0.2, skip=self._skip) if self._ready() else None
             if pair is None:
                 continue
+            self._tell_dropped()  # the scans a backlog skipped
             cause, refusal = 'internal_error', Refusal(RefusalCode.INTERNAL_ERROR, 'pair failed')
             self._registered = None
             try:
@@ -237,10 +241,11 @@ class RegistrationEngine:
 
     def _skip(self, pending_ns: list[int]) -> int:
         """Return how many of the oldest waiting pairs a tracked stream skips (the backlog)."""
-        pipe_cfg = self.pipeline_config
-        if not tracks(self.node_config.mode, pipe_cfg):
+        cfg = self.node_config
+        if not tracks(cfg.mode, self.pipeline_config):
             return 0
-        return self._backlog.to_skip(pending_ns, pipe_cfg, self._calls.waiting() is not None)
+        return self._backlog.to_skip(pending_ns, cfg.backlog_max_lag,
+                                     self._calls.waiting() is not None)
 
     def _ready(self) -> bool:
         """Tell whether the worker may take a pair now; else wait a little."""
