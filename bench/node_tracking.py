@@ -41,8 +41,8 @@ import threading
 import time
 from typing import Any
 
-from bench.common import (add_set_option, argument_parser, machine, output_path,
-                          parse_overrides, stop_process, write_json, write_text)
+from bench.common import (argument_parser, machine, output_path, stop_process, write_json,
+                          write_text)
 import numpy as np
 import yaml
 
@@ -329,7 +329,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--rate', type=float, default=10.0, help='scans per second')
     parser.add_argument('--queue-depth', type=int, default=None,
                         help="pairing.queue_depth (default: the node's)")
-    add_set_option(parser)
+    parser.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
+                        help="a key of the node's config_file (repeatable), e.g. --set "
+                        'backlog=1 (a queue of one pair: the stream restarts from the newest '
+                        'scan after a global registration)')
     parser.add_argument('--output', default=None,
                         help='default: out/bench/node_tracking.json')
     args = parser.parse_args(argv)
@@ -340,10 +343,12 @@ def main(argv: list[str] | None = None) -> int:
     from rclpy.context import Context
     from rclpy.executors import MultiThreadedExecutor
 
-    from cgags_ros.config.node import NodeConfig
+    from cgags_ros.config.fields import parse_key_values
+    from cgags_ros.config.node import configs_from_parameters, NodeConfig
 
     queue_depth = args.queue_depth or NodeConfig().queue_depth
-    keys = parse_overrides(args.set)
+    keys = parse_key_values(args.set)
+    configs_from_parameters(keys)  # a typo fails here, not in the node
     msgs, truth = kitti_messages(), pseudo_ground_truth()
     context = Context()
     rclpy.init(context=context, domain_id=DOMAIN_ID)
