@@ -20,7 +20,8 @@ reversing at the ends) and ``looped`` (0..15, 0..15, ...: a 12 m jump back every
 
 Per cell: scans sent, poses published, latency from publishing a scan to receiving its
 ``~/pose`` (p50/p95, this host's monotonic clock), the paths of the registered scans from
-``~/result`` (tracked/global), what the node dropped (queue full) or rejected, and every
+``~/result`` (tracked/global, and why each global one was), what the node dropped (queue
+full, skipped catching up) or rejected, and every
 published pose against ``pseudo_gt.txt`` (scan k in scan 0's frame): the worst rotation and
 translation error, how many are within 1 deg / 0.2 m, how many beyond 5 deg / 0.6 m; and the
 median stage times the node reports (``timings``) of tracked and of global scans, and the
@@ -200,6 +201,7 @@ def summarize(client: StreamClient, stamps: list[int], truth: np.ndarray) -> dic
     latencies, rot, trans, overheads = [], [], [], []
     paths = {'tracked': 0, 'global': 0}
     outcomes: dict[str, int] = {}
+    global_because: dict[str, int] = {}
     stages: dict[str, dict[str, list[float]]] = {p: {s: [] for s in STAGES} for p in paths}
     for stamp in stamps:
         sent_at, k = client.sent[stamp]
@@ -209,6 +211,10 @@ def summarize(client: StreamClient, stamps: list[int], truth: np.ndarray) -> dic
             outcomes[why] = outcomes.get(why, 0) + 1
             if record.get('path') in paths:
                 paths[record['path']] += 1
+                because = record.get('stats', {}).get('global_because')
+                if record['path'] == 'global' and because:
+                    why = because.split(' (')[0]  # without the numbers
+                    global_because[why] = global_because.get(why, 0) + 1
                 for stage in STAGES:
                     if stage in record.get('timings', {}):
                         stages[record['path']][stage].append(record['timings'][stage])
@@ -226,6 +232,7 @@ def summarize(client: StreamClient, stamps: list[int], truth: np.ndarray) -> dic
         'results': sum(s in client.results for s in stamps),
         'latency_p50_ms': _ms(lat, 50), 'latency_p95_ms': _ms(lat, 95),
         'tracked': paths['tracked'], 'global': paths['global'], 'outcomes': outcomes,
+        'global_because': global_because,
         'within_1deg_20cm': int(np.sum((rot_a <= 1.0) & (trans_a <= 0.2))),
         'beyond_5deg_60cm': int(np.sum((rot_a > 5.0) | (trans_a > 0.6))),
         'max_rotation_deg': float(rot_a.max()) if rot_a.size else None,
