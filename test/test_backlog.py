@@ -29,25 +29,27 @@ def test_a_tracked_stream_keeps_the_backlog_other_streams_their_queue():
 
 def test_every_other_scan_is_skipped_while_lagging_after_a_tracked_scan():
     backlog = Backlog()
-    lagging = [0, 100 * MS, 200 * MS, 300 * MS, 400 * MS, 600 * MS]
-    assert backlog.to_skip(lagging, 0.5, called=False) == 0  # no velocity yet
-    backlog.saw(PipelineResult(path='tracked', transform=np.eye(4), refusal=None))
+    lagging = [100 * MS, 200 * MS, 300 * MS, 400 * MS, 500 * MS, 700 * MS]  # 0.6 s behind
+    backlog.saw(PipelineResult(path='global', transform=np.eye(4), refusal=None), 0)
+    assert backlog.to_skip(lagging, 0.5, 0.5, called=False) == 0  # no velocity yet
+    backlog.saw(PipelineResult(path='tracked', transform=np.eye(4), refusal=None), 0)
     assert backlog.tracked
-    assert backlog.to_skip(lagging, 0.5, called=False) == 1
-    assert backlog.to_skip(lagging[:-1], 0.5, called=False) == 0  # 0.4 s behind: in order
-    assert backlog.to_skip([0], 0.5, called=False) == 0
-    assert backlog.to_skip(lagging, 0.0, called=False) == 0  # never skips
-    # More than twice max_lag behind: dropped at once (the latency stays bounded).
-    assert backlog.to_skip(lagging, 0.2, called=False) == 2
-    assert backlog.to_skip([0, 100 * MS, 500 * MS], 0.1, called=False) == 2  # the newest kept
-    backlog.saw(PipelineResult(path='global', transform=np.eye(4), refusal=None))
-    assert backlog.to_skip(lagging, 0.5, called=False) == 0
+    assert backlog.to_skip(lagging, 0.5, 0.5, called=False) == 1
+    assert backlog.to_skip(lagging[:-1], 0.5, 0.5, called=False) == 0  # 0.4 s: in order
+    assert backlog.to_skip(lagging[-1:], 0.5, 0.5, called=False) == 0
+    assert backlog.to_skip(lagging, 0.0, 0.5, called=False) == 0  # never skips
+    # Never beyond max_age of the last scan, which the Tracker could not predict from.
+    assert backlog.to_skip(lagging, 0.5, 0.15, called=False) == 0
+    # The oldest already beyond it would go global anyway: the newest is taken.
+    assert backlog.to_skip(lagging, 0.5, 0.05, called=False) == 5
+    backlog.saw(PipelineResult(path='tracked', transform=np.eye(4)), 0)  # refused
+    assert backlog.to_skip(lagging, 0.5, 0.5, called=False) == 0
 
 
 def test_a_relocalize_call_is_answered_from_the_newest_scan():
     backlog = Backlog()
-    assert backlog.to_skip([0, 100 * MS, 200 * MS], 0.5, called=True) == 2
-    assert backlog.to_skip([0], 0.5, called=True) == 0
+    assert backlog.to_skip([0, 100 * MS, 200 * MS], 0.5, 0.5, called=True) == 2
+    assert backlog.to_skip([0], 0.5, 0.5, called=True) == 0
 
 
 def test_the_pairer_drops_the_oldest_ready_pairs_as_skipped():

@@ -57,10 +57,11 @@ class NodeConfig:
         "predecessor's pose, instead of restarting from the newest scan, too far from the "
         'last pose to be tracked.', low=1, high=1000)
     backlog_max_lag: float = option(
-        0.5, 'Continuous mode with tracking.enabled: while the newest waiting scan is more than '
+        1.0, 'Continuous mode with tracking.enabled: while the newest waiting scan is more than '
         'this (seconds, header stamps) ahead of the oldest and the last scan was tracked, every '
-        'other waiting scan is dropped (source_skipped_catching_up), and any more than twice '
-        'this behind; the next is tracked with the motion scaled to its stamp. 0 never skips.',
+        'other waiting scan within tracking.max_age is dropped (source_skipped_catching_up), so '
+        'that the backlog drains; a scan beyond it would go global: the newest is taken. 0 '
+        'tracks every scan in order.',
         low=0.0, high=3600.0)
     max_waiting_sources: int = option(
         1, 'Sources kept while no target (latest_target) or no matching target '

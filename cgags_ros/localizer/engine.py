@@ -241,10 +241,10 @@ class RegistrationEngine:
 
     def _skip(self, pending_ns: list[int]) -> int:
         """Return how many of the oldest waiting pairs a tracked stream skips (the backlog)."""
-        cfg = self.node_config
-        if not tracks(cfg.mode, self.pipeline_config):
+        cfg, pipe_cfg = self.node_config, self.pipeline_config
+        if not tracks(cfg.mode, pipe_cfg):
             return 0
-        return self._backlog.to_skip(pending_ns, cfg.backlog_max_lag,
+        return self._backlog.to_skip(pending_ns, cfg.backlog_max_lag, pipe_cfg.tracking.max_age,
                                      self._calls.waiting() is not None)
 
     def _ready(self) -> bool:
@@ -286,7 +286,7 @@ class RegistrationEngine:
             return 'pipeline_error', Refusal(exc.code, f'registration failed: {exc}')
         self._registered = result
         self._tracking.add(result)
-        self._backlog.saw(result)
+        self._backlog.saw(result, pair.source.stamp_ns)
         T = np.asarray(result.transform, dtype=np.float64)
         refusal = result.refusal or (None if np.isfinite(T).all() else Refusal(
             RefusalCode.INTERNAL_ERROR, 'the estimated transform is not finite'))

@@ -7,13 +7,15 @@ tracked, so the stream goes global again and never settles. A tracked stream
 (:func:`~.stream.tracks`) therefore keeps up to ``backlog`` pairs and registers
 them in stamp order, each from its predecessor's pose: tracking a scan takes less than a
 scan period, so the backlog drains and the stream keeps up. When it does not drain fast
-enough (the oldest waiting scan more than ``backlog_max_lag`` behind the newest), every
-other waiting scan is dropped while the last scan was tracked, and those more than twice
-that behind, and the Tracker scales the constant velocity to the next scan's stamp: when
-global registrations come too often to catch up with (a jump every few seconds), the
-latency stays bounded. A ``~/relocalize`` call is answered from the
-newest scan, as with a queue of one pair. ROS-free; the engine decides with it which pair
-its worker takes next (:meth:`~.pairing.Pairer.drop_oldest`).
+enough (the oldest waiting scan more than ``backlog_max_lag`` behind the newest) and the
+last scan was tracked, every other waiting scan is dropped, as long as the next one taken
+is within ``tracking.max_age`` of the last (beyond it the Tracker has no prediction);
+the Tracker scales the constant velocity to the next scan's stamp. When the oldest
+waiting scan is already beyond ``tracking.max_age`` (the full backlog dropped the scans
+between), it would be registered globally anyway: the newest is taken instead. A
+``~/relocalize`` call is answered from the newest scan, as with a queue of one pair.
+ROS-free; the engine decides with it which pair its worker takes next
+(:meth:`~.pairing.Pairer.drop_oldest`).
 """
 
 from __future__ import annotations
@@ -38,26 +40,30 @@ class Backlog:
 
     def __init__(self) -> None:
         self.tracked = False  # the last registered scan was tracked (a velocity exists)
+        self.stamp_ns = 0  # and its stamp
 
-    def saw(self, result: PipelineResult) -> None:
-        """Remember whether ``result`` (the last registered scan) was tracked."""
+    def saw(self, result: PipelineResult, stamp_ns: int) -> None:
+        """Remember whether ``result``, the last registered scan (``stamp_ns``), was tracked."""
         self.tracked = result.path == 'tracked' and bool(result.valid)
+        self.stamp_ns = stamp_ns
 
-    def to_skip(self, pending_ns: Sequence[int], max_lag: float, called: bool) -> int:
+    def to_skip(self, pending_ns: Sequence[int], max_lag: float, max_age: float,
+                called: bool) -> int:
         """
         Return how many of the oldest waiting pairs to drop before the next is taken.
 
         :param pending_ns: the waiting pairs' source stamps, oldest first (nanoseconds).
         :param max_lag: ``backlog_max_lag``, seconds (0: never skip for lag).
+        :param max_age: ``tracking.max_age``, seconds: no prediction beyond it.
         :param called: a ``~/relocalize`` call waits (it is answered from the newest scan).
         """
         if len(pending_ns) < 2:
             return 0
         if called:
             return len(pending_ns) - 1
-        if not self.tracked or max_lag <= 0:
+        if not self.tracked or max_lag <= 0 or (pending_ns[-1] - pending_ns[0]) * 1e-9 <= max_lag:
             return 0
-        newest = pending_ns[-1]
-        too_old = sum(newest - stamp > 2 * max_lag * 1e9 for stamp in pending_ns)
-        lagging = (newest - pending_ns[0]) * 1e-9 > max_lag
-        return min(max(too_old, int(lagging)), len(pending_ns) - 1)
+        reach = self.stamp_ns + max_age * 1e9  # the last scan's prediction reaches this far
+        if pending_ns[0] > reach:
+            return len(pending_ns) - 1
+        return int(pending_ns[1] <= reach)
