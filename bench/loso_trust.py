@@ -41,7 +41,7 @@ import time
 
 from bench.common import argument_parser
 from bench.datasets import threedmatch as tdm
-from cgags_ros.config import PipelineConfig
+from cgags_ros.config import GatesConfig, PipelineConfig
 from cgags_ros.frontend.refine import evaluate_alignment, refine_transform
 from cgags_ros.geometry import rotation_error_deg, spread, translation_error
 from cgags_ros.io.shared_data import shared_data_dir
@@ -194,7 +194,7 @@ def measure_pair(src: np.ndarray, tgt: np.ndarray, pair: tdm.GtPair,
         'num_target_points': int(result.num_target_points),
     }
     if math.isfinite(result.chance_inliers):
-        rec['chance_bound'] = chance_bound(result, cfg.refine.significance)
+        rec['chance_bound'] = chance_bound(result, cfg.gates.significance)
     pts = result.inlier_source_points
     rec['inlier_spread_m'] = (spread(pts) / math.sqrt(len(pts))).tolist() if len(pts) > 2 \
         else None
@@ -262,8 +262,8 @@ def timing(args) -> None:
     from cgags_ros.pipeline import clear_feature_cache
 
     configs = {'defaults': PipelineConfig(voxel_size=args.voxel),
-               'levers off': PipelineConfig(voxel_size=args.voxel, structured_rivals=False,
-                                            min_confidence=0.0)}
+               'levers off': PipelineConfig(voxel_size=args.voxel, gates=GatesConfig(
+                   structured_rivals=False, min_confidence=0.0))}
     times: dict = {}
     rng = np.random.default_rng(args.seed)
     for scene in args.scenes or tdm.scenes(args.root, '3DMatch'):

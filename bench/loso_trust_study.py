@@ -48,7 +48,7 @@ from cgags_ros.pipeline import confidence
 import numpy as np
 
 VOXEL = 0.05
-SIGNIFICANCE = 0.01  # refine.significance, the default the records were measured with
+SIGNIFICANCE = 0.01  # gates.significance, the default the records were measured with
 CHI2_95 = 12.592  # chi-square, 6 degrees of freedom
 CHI2_999 = 22.458
 GRIDS = ('2', '4', '8', '16')

@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--duration', type=float, default=20.0, help='seconds of publishing')
     parser.add_argument('--voxel-size', type=float, default=0.4, help='metres')
     parser.add_argument('--queue-depth', type=int, default=None,
-                        help="default: the node's default (NodeConfig.queue_depth)")
+                        help="default: the node's default (pairing.queue_depth)")
     parser.add_argument('--registration-timeout', type=float, default=30.0,
                         help="0 runs the pipeline in the node's thread (no child process)")
     args = parser.parse_args(argv)
@@ -64,13 +64,13 @@ def main(argv: list[str] | None = None) -> int:
     from cgags_ros.config.node import NodeConfig
 
     if args.queue_depth is None:
-        args.queue_depth = NodeConfig().queue_depth
+        args.queue_depth = NodeConfig().pairing.queue_depth
     rclpy.init()
     node = RegisterNode(parameter_overrides=[
         Parameter('voxel_size', value=args.voxel_size),
         Parameter('pairing.queue_depth', value=args.queue_depth),
         Parameter('pairing.target_durability', value='transient_local'),
-        Parameter('core.registration_timeout', value=args.registration_timeout)])
+        Parameter('worker.registration_timeout', value=args.registration_timeout)])
     io = rclpy.create_node('bench_io')
     latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)

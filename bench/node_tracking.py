@@ -338,8 +338,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="pairing.queue_depth (default: the node's)")
     parser.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
                         help="a key of the node's config_file (repeatable), e.g. --set "
-                        'backlog=1 (a queue of one pair: the stream restarts from the newest '
-                        'scan after a global registration)')
+                        'pairing.backlog=1 (a queue of one pair: the stream restarts from '
+                        'the newest scan after a global registration)')
     parser.add_argument('--output', default=None,
                         help='default: out/bench/node_tracking.json')
     args = parser.parse_args(argv)
@@ -353,7 +353,7 @@ def main(argv: list[str] | None = None) -> int:
     from cgags_ros.config.fields import parse_key_values
     from cgags_ros.config.node import configs_from_parameters, NodeConfig
 
-    queue_depth = args.queue_depth or NodeConfig().queue_depth
+    queue_depth = args.queue_depth or NodeConfig().pairing.queue_depth
     keys = parse_key_values(args.set)
     configs_from_parameters(keys)  # a typo fails here, not in the node
     msgs, truth = kitti_messages(), pseudo_ground_truth()

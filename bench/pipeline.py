@@ -157,7 +157,7 @@ def load_pairs(
                 clouds.append((TOPICS[rec.topic], rec, pointcloud2_to_xyz(rec.msg)))
         except (AttributeError, TypeError, InvalidInputError):
             continue
-    pairer = Pairer.from_config(NodeConfig())
+    pairer = Pairer.from_config(NodeConfig().pairing)
     pairs = []
     for role, rec, xyz in clouds:
         add = pairer.add_source if role == 'source' else pairer.add_target

@@ -42,10 +42,10 @@ class RefusalCode(enum.Enum):
     LOW_CONFIDENCE = 'low_confidence'  # the calibrated P(right) is below min_confidence
     TRACKING_LOST = 'tracking_lost'  # a tracked pose jumped from its prediction or lost fit
     # The node and its services
-    TIMEOUT = 'timeout'  # past registration_timeout (or map_load_timeout)
+    TIMEOUT = 'timeout'  # past worker.registration_timeout (or map.load_timeout)
     WORKER_CRASHED = 'worker_crashed'  # the registration process died during the pair
     START_FAILED = 'start_failed'  # the registration process or the map is unusable
-    STALE = 'stale'  # on demand: the latest scan is older than max_scan_age
+    STALE = 'stale'  # on demand: the latest scan is older than relocalization.max_scan_age
     NO_SCAN = 'no_scan'  # a relocalization request saw no scan before its timeout
     INACTIVE = 'inactive'  # the node is not active (lifecycle)
     UNCONFIGURED = 'unconfigured'  # the node is not configured (lifecycle)

@@ -178,23 +178,23 @@ def unsettled(core: Consensus, cfg: PipelineConfig) -> bool:
 
     Such a consensus leaves the rotation about its line to the correspondences' noise, but
     the refinement fits the whole overlap, whose geometry may well fix that rotation: with
-    ``refine.collinear_consensus`` it is refined and judged by the gates on the overlap
+    ``gates.collinear_consensus`` it is refined and judged by the gates on the overlap
     (observability, free space under a tighter bound, chance inliers, ambiguity) instead.
     """
     return (core.refusal is not None and core.refusal.code is Code.COLLINEAR
-            and core.num_inliers >= cfg.core.min_inliers and cfg.refine.collinear_consensus
+            and core.num_inliers >= cfg.core.min_inliers and cfg.gates.collinear_consensus
             and cfg.core.motion_model != '4dof' and cfg.refine.method != 'none')
 
 
 def free_space_limit(cfg: PipelineConfig, unsettled: bool = False) -> float:
     """Return the free-space bound: tighter for an estimate the correspondences did not settle."""
-    limit = cfg.refine.max_free_space_violation
-    return limit * cfg.refine.free_space_settle_factor if unsettled and limit < 1 else limit
+    limit = cfg.gates.max_free_space_violation
+    return limit * cfg.gates.free_space_settle_factor if unsettled and limit < 1 else limit
 
 
 def gate_refusal(e: Estimate, cfg: PipelineConfig, unsettled: bool = False) -> Refusal | None:
     """Return why the refined estimate must not be trusted, or None when every gate passes."""
-    if cfg.refine.significance > 0 and not e.num_inliers > e.chance_bound:
+    if cfg.gates.significance > 0 and not e.num_inliers > e.chance_bound:
         return Refusal(Code.CHANCE_LEVEL, (
             f'{e.num_inliers} inliers of {e.num_correspondences} correspondences is no better '
             f'than chance (random pairing gives {e.chance_inliers:.2g} per estimate; the best '
@@ -210,24 +210,24 @@ def overlap_refusal(e: Overlap, cfg: PipelineConfig, unsettled: bool = False) ->
     The gates that need no correspondences (degenerate axis, fitness, free space, tilt), so
     that a pose refined from a prediction is judged as a global one is.
     """
-    refine = cfg.refine
-    distance = refine.max_correspondence_distance_factor * cfg.voxel_size
+    gates = cfg.gates
+    distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
     limit = free_space_limit(cfg, unsettled)
-    if refine.min_observability > 0 and not e.observability >= refine.min_observability:
+    if gates.min_observability > 0 and not e.observability >= gates.min_observability:
         return Refusal(Code.DEGENERATE_AXIS, (
             'degenerate geometry: the overlap constrains some motion only weakly '
-            f'(observability {e.observability:.2g} < {refine.min_observability:g}; e.g. '
+            f'(observability {e.observability:.2g} < {gates.min_observability:g}; e.g. '
             'plane, line, sphere or cylinder); the pose along it is arbitrary'))
-    if refine.min_fitness > 0 and not e.fitness >= refine.min_fitness:
+    if gates.min_fitness > 0 and not e.fitness >= gates.min_fitness:
         return Refusal(Code.LOW_FITNESS, (
-            f'fitness {e.fitness:.3f} < refine.min_fitness {refine.min_fitness:g}: too few '
+            f'fitness {e.fitness:.3f} < gates.min_fitness {gates.min_fitness:g}: too few '
             f'source points lie within {distance:.3g} m of the target after alignment'))
     if e.free_space_violation > limit:  # NaN: not measured
         return Refusal(Code.FREE_SPACE, (
             f'free-space violation: {100 * e.free_space_violation:.0f} % of the aligned '
             "points that meet the other cloud's view lie in front of its observed surface "
-            f'(> {limit:g}, refine.max_free_space_violation, times '
-            'refine.free_space_settle_factor for an unsettled estimate): the pose stacks '
+            f'(> {limit:g}, gates.max_free_space_violation, times '
+            'gates.free_space_settle_factor for an unsettled estimate): the pose stacks '
             'surfaces where a sensor saw free space'))
     return tilt_refusal(e.tilt_deg, cfg.core.max_tilt_deg,
                         'a 6-DoF point-to-plane step over the overlap', 'core.max_tilt_deg',
@@ -277,13 +277,13 @@ def ambiguity_refusal(e: Estimate, cfg: PipelineConfig) -> Refusal | None:
     best, runner = e.candidates[0], e.candidates[1]
     moved = translation_error(best.transform, runner.transform)
     turned = rotation_error_deg(best.transform, runner.transform)
-    geometry = (' and, refined, overlaps about as well' if cfg.verify_rivals
+    geometry = (' and, refined, overlaps about as well' if cfg.gates.verify_rivals
                 and cfg.refine.method != 'none' else '')
     return Refusal(Code.AMBIGUOUS, (
         f'ambiguous: a distinct pose ({turned:.0f} deg, {moved:.2f} m away) has '
         f'{runner.num_inliers} inliers against {best.num_inliers} of the best (within '
-        f'ambiguity_ratio {cfg.ambiguity_ratio:g}){geometry}; the scene looks alike in both '
-        'poses'))
+        f'gates.ambiguity_ratio {cfg.gates.ambiguity_ratio:g}){geometry}; the scene looks '
+        'alike in both poses'))
 
 
 # --- the relocalizer over a few scans -----------------------------------------------------
@@ -317,25 +317,25 @@ def quality_refusal(e: Estimate, cfg: NodeConfig) -> Refusal | None:
     Return why ``e`` is no confident pose for an initial pose, or None.
 
     Valid and unambiguous, then the node's stricter guards: at least
-    ``initial_pose_min_inliers`` inliers, a best/runner-up candidate ratio of at least
-    ``initial_pose_min_ratio`` and a fitness of at least ``initial_pose_min_fitness``.
+    ``relocalization.min_inliers`` inliers, a best/runner-up candidate ratio of at least
+    ``relocalization.min_ratio`` and a fitness of at least ``relocalization.min_fitness``.
     """
     if e.ambiguous:
         return Refusal(Code.AMBIGUOUS, e.reason)
     if e.refusal is not None:
         return e.refusal
-    if e.num_inliers < cfg.initial_pose_min_inliers:
+    if e.num_inliers < cfg.relocalization.min_inliers:
         return Refusal(Code.FEW_INLIERS, (
-            f'{e.num_inliers} inliers < initial_pose_min_inliers '
-            f'{cfg.initial_pose_min_inliers}'))
+            f'{e.num_inliers} inliers < relocalization.min_inliers '
+            f'{cfg.relocalization.min_inliers}'))
     ratio = float(e.runner_up_ratio)
-    if ratio < cfg.initial_pose_min_ratio:
+    if ratio < cfg.relocalization.min_ratio:
         return Refusal(Code.LOW_RATIO, (
-            f'best/runner-up ratio {ratio:.2f} < initial_pose_min_ratio '
-            f'{cfg.initial_pose_min_ratio:g}'))
+            f'best/runner-up ratio {ratio:.2f} < relocalization.min_ratio '
+            f'{cfg.relocalization.min_ratio:g}'))
     fitness = float(e.fitness)
-    if fitness < cfg.initial_pose_min_fitness:
+    if fitness < cfg.relocalization.min_fitness:
         return Refusal(Code.LOW_FITNESS, (
-            f'fitness {fitness:.3f} < initial_pose_min_fitness '
-            f'{cfg.initial_pose_min_fitness:g}'))
+            f'fitness {fitness:.3f} < relocalization.min_fitness '
+            f'{cfg.relocalization.min_fitness:g}'))
     return None

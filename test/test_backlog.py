@@ -1,6 +1,6 @@
 """What a tracked stream's worker skips of its backlog (cgags_ros/pipeline/backlog.py)."""
 
-from cgags_ros.config.node import NodeConfig
+from cgags_ros.config.node import NodeConfig, PairingConfig
 from cgags_ros.config.pipeline import PipelineConfig
 from cgags_ros.config.tracking import TrackingConfig
 from cgags_ros.pipeline.backlog import Backlog, queue_depth, SKIPPED
@@ -11,8 +11,8 @@ import numpy as np
 MS = 10**6
 
 
-def node(**kwargs):
-    return NodeConfig(**kwargs)
+def node(mode='continuous', **pairing):
+    return NodeConfig(mode=mode, pairing=PairingConfig(**pairing))
 
 
 def tracking(enabled=True):

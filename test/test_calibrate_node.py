@@ -29,9 +29,9 @@ from waiting import CloudWire, ros_overrides, spun_context, wait_for  # noqa: E4
 pytestmark = pytest.mark.ros
 DOMAIN_ID = 96  # distinct from the other DDS test modules
 TOLERANCE = (0.2, 0.03)  # simulated rig: deg, m (the reference spread)
-PARAMS = {'mode': 'calibrate', 'voxel_size': 0.3, 'source_qos': 'reliable',
-          'source_depth': 10, 'target_durability': 'transient_local',
-          'diagnostics_period': 0.1}
+PARAMS = {'mode': 'calibrate', 'voxel_size': 0.3, 'pairing.source_qos': 'reliable',
+          'pairing.source_depth': 10, 'pairing.target_durability': 'transient_local',
+          'output.diagnostics_period': 0.1}
 
 
 class Wire(CloudWire):

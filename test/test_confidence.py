@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from cgags_ros.config import PipelineConfig
+from cgags_ros.config import GatesConfig, PipelineConfig
 from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.pipeline import confidence, register_clouds
 from cgags_ros.pipeline.result import Candidate, PipelineResult
@@ -58,12 +58,12 @@ def test_real_pairs_right_is_confident_and_the_threshold_refuses_below_it(redkit
     result = register_clouds(src, tgt, voxel_size=0.05)
     assert rotation_error_deg(result.transform, gt) < 15 and translation_error(
         result.transform, gt) < 0.3
-    assert result.valid and result.confidence >= PipelineConfig().min_confidence
+    assert result.valid and result.confidence >= PipelineConfig().gates.min_confidence
     assert result.confidence > 0.9
     assert result.summary()['confidence'] == pytest.approx(result.confidence)
     # The same estimate under a stricter operating point than its confidence: refused.
     strict = min(1.0, result.confidence + 1e-6)
     refused = register_clouds(src, tgt, voxel_size=0.05,
-                              config=PipelineConfig(min_confidence=strict))
+                              config=PipelineConfig(gates=GatesConfig(min_confidence=strict)))
     np.testing.assert_allclose(refused.transform, result.transform)
     assert not refused.valid and refused.reason.startswith('low confidence')

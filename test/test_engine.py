@@ -16,7 +16,7 @@ import sys
 import threading
 import time
 
-from cgags_ros.config.node import NodeConfig
+from cgags_ros.config.node import configs_from_parameters
 from cgags_ros.config.pipeline import PipelineConfig
 from cgags_ros.geometry import make_transform, quaternion_to_matrix
 from cgags_ros.io.clouds import write_cloud
@@ -75,9 +75,14 @@ def fake_register(source, target, *, config):
                           covariance=np.eye(6) * 1e-4)
 
 
+def node_config(**keys):
+    """Return the NodeConfig of configuration keys (``{'pairing.mode': ...}``)."""
+    return configs_from_parameters(keys)[1]
+
+
 def make(**node):
     out = Recorder()
-    engine = RegistrationEngine(PipelineConfig(), NodeConfig(**node), out, fake_register)
+    engine = RegistrationEngine(PipelineConfig(), node_config(**node), out, fake_register)
     engine.start()
     return engine, out
 
@@ -137,7 +142,7 @@ def test_inactive_sources_are_counted_then_pairs_publish_after_activate():
 
 
 def test_invalid_results_are_rejected_unless_publish_invalid():
-    engine, out = make(publish_aligned_cloud=True, broadcast_tf=True)
+    engine, out = make(**{'output.publish_aligned_cloud': True, 'output.broadcast_tf': True})
     engine.activate()
     try:
         send(engine, 'target', 1, frame='map')
@@ -148,9 +153,9 @@ def test_invalid_results_are_rejected_unless_publish_invalid():
         last = engine.snapshot()['last']  # /diagnostics: the code beside the message
         assert (last['valid'], last['refusal_code'], last['reason']) == (
             False, 'few_inliers', 'fake: 7')
-        engine.set_configs(PipelineConfig(), NodeConfig(publish_invalid=True,
-                                                        publish_aligned_cloud=True,
-                                                        broadcast_tf=True))
+        engine.set_configs(PipelineConfig(), node_config(**{
+            'output.publish_invalid': True, 'output.publish_aligned_cloud': True,
+            'output.broadcast_tf': True}))
         send(engine, 'source', 3, n=7)
         wait_for(lambda: out.estimates, 10, 'the invalid estimate')
         assert out.estimates[0].aligned.shape == (7, 3)
@@ -163,7 +168,7 @@ def test_invalid_results_are_rejected_unless_publish_invalid():
 
 def test_every_accounted_source_has_one_result_saying_what_became_of_it():
     """~/result: one record a source, published, rejected (when and why) or dropped."""
-    engine, out = make(max_waiting_sources=1)
+    engine, out = make(**{'pairing.max_waiting_sources': 1})
     try:
         send(engine, 'source', 1)  # inactive: rejected at once
         engine.activate()
@@ -201,8 +206,9 @@ def test_every_accounted_source_has_one_result_saying_what_became_of_it():
 
 def test_initial_pose_guards_extrinsic_and_max_auto():
     t, q = (0.3, -0.1, 0.8), (0.0, 0.0, 0.3826834, 0.9238795)
-    engine, out = make(publish_initial_pose=True, initial_pose_cooldown=0.0,
-                       initial_pose_max_auto=1, base_from_sensor=' '.join(map(str, t + q)))
+    engine, out = make(**{'relocalization.publish_initial_pose': True,
+                          'relocalization.cooldown': 0.0, 'relocalization.max_auto': 1,
+                          'relocalization.base_from_sensor': list(t + q)})
     engine.activate()
     try:
         send(engine, 'target', 1, frame='map')
@@ -220,7 +226,8 @@ def test_initial_pose_guards_extrinsic_and_max_auto():
         assert np.trace(base.covariance[:3, :3]) > np.trace(np.eye(3) * 1e-4)
     finally:
         engine.stop()
-    strict, out = make(publish_initial_pose=True, initial_pose_min_inliers=41)
+    strict, out = make(**{'relocalization.publish_initial_pose': True,
+                          'relocalization.min_inliers': 41})
     strict.activate()
     try:
         send(strict, 'target', 1, frame='map')
@@ -242,8 +249,9 @@ def test_one_quality_refusal_a_pair_serves_the_guard_and_the_answer(monkeypatch)
         return verdicts[-1]
 
     monkeypatch.setattr(engine_module, 'quality_refusal', counted)
-    engine, out = make(mode='on_demand', max_scan_age=30.0, relocalize_timeout=20.0,
-                       publish_initial_pose=True, initial_pose_min_inliers=41)
+    engine, out = make(mode='on_demand', **{
+        'relocalization.max_scan_age': 30.0, 'relocalization.timeout': 20.0,
+        'relocalization.publish_initial_pose': True, 'relocalization.min_inliers': 41})
     engine.activate()
     try:
         send(engine, 'target', 1, frame='map')
@@ -251,7 +259,7 @@ def test_one_quality_refusal_a_pair_serves_the_guard_and_the_answer(monkeypatch)
         wait_for(lambda: engine.snapshot()['pairing']['pending'], 5, 'a held pair')
         success, answer = engine.relocalize()
         assert not success and answer.startswith('few_inliers: not localized: 40 inliers < '
-                                                 'initial_pose_min_inliers 41; '), answer
+                                                 'relocalization.min_inliers 41; '), answer
         assert [v.code for v in verdicts] == [RefusalCode.FEW_INLIERS]  # once, for one pair
         stats = engine.statistics()
         assert stats['initial_pose.refused.few_inliers'] == 1
@@ -261,7 +269,8 @@ def test_one_quality_refusal_a_pair_serves_the_guard_and_the_answer(monkeypatch)
 
 
 def test_on_demand_registers_only_when_requested_and_answers():
-    engine, out = make(mode='on_demand', max_scan_age=30.0, relocalize_timeout=20.0)
+    engine, out = make(mode='on_demand', **{'relocalization.max_scan_age': 30.0,
+                                            'relocalization.timeout': 20.0})
     assert engine.relocalize() == (False, 'inactive: not localized: the node is not active')
     engine.activate()
     try:
@@ -297,7 +306,8 @@ def test_on_demand_registers_only_when_requested_and_answers():
 
 @pytest.mark.parametrize('mode', ['latest_target', 'synchronized'])
 def test_pairing_drops_are_accounted(mode):
-    engine, out = make(pairing_mode=mode, sync_slop=0.01, max_waiting_sources=1)
+    engine, out = make(**{'pairing.mode': mode, 'pairing.sync_slop': 0.01,
+                          'pairing.max_waiting_sources': 1})
     engine.activate()
     try:
         send(engine, 'source', 1)
@@ -327,7 +337,7 @@ def test_a_map_without_normals_loads_with_a_warning_and_one_with_normals_without
     write_cloud(tmp_path / 'signed.ply', points, -normals)
     config = PipelineConfig(voxel_size=0.2)
     for name, signed in (('bare.ply', 'origin'), ('signed.ply', 'file normals')):
-        cfg = NodeConfig(map_file=str(tmp_path / name))
+        cfg = node_config(**{'map.file': str(tmp_path / name)})
         logs = Recorder()
         target = MapTarget(cfg).load(None, config, cfg, logs.log)
         assert target is not None
@@ -358,9 +368,9 @@ def test_start_returns_once_the_process_is_warm_and_the_map_loaded(
     """start() blocks until a pair can be registered: the real process warm, the map ready."""
     write_cloud(tmp_path / 'map.ply', sphere()[0])
     out = Recorder()
-    engine = RegistrationEngine(PipelineConfig(voxel_size=0.2), NodeConfig(
-        map_file=str(tmp_path / 'map.ply') if with_map else '', map_cache_dir='',
-        registration_timeout=60.0), out)
+    engine = RegistrationEngine(PipelineConfig(voxel_size=0.2), node_config(**{
+        'map.file': str(tmp_path / 'map.ply') if with_map else '', 'map.cache_dir': '',
+        'worker.registration_timeout': 60.0}), out)
     engine.start()
     try:
         (process,) = processes
@@ -383,9 +393,9 @@ def test_start_returns_once_the_process_is_warm_and_the_map_loaded(
 def test_a_bad_map_fails_start_with_its_reason(tmp_path, case):
     """A missing, empty, unreadable or all-NaN map: StartFailed naming it, no worker thread."""
     path = bad_map(tmp_path, case)
-    cfg = NodeConfig(map_file=str(path), map_cache_dir=str(tmp_path / 'cache'))
+    cfg = node_config(**{'map.file': str(path), 'map.cache_dir': str(tmp_path / 'cache')})
     engine = RegistrationEngine(PipelineConfig(), cfg, Recorder(), fake_register)
-    with pytest.raises(StartFailed, match='map_file cannot be used') as failure:
+    with pytest.raises(StartFailed, match='map.file cannot be used') as failure:
         engine.start()
     assert path.name in str(failure.value)
     assert engine.statistics()['map.error'] == str(failure.value)
@@ -396,9 +406,10 @@ def test_a_bad_map_fails_start_with_its_reason(tmp_path, case):
 @pytest.mark.subprocess
 def test_a_bad_map_ends_the_registration_process_it_was_loaded_in(tmp_path, processes):
     """The map is loaded in the real process: start fails and that process is ended."""
-    engine = RegistrationEngine(PipelineConfig(), NodeConfig(
-        map_file=str(bad_map(tmp_path, 'unreadable')), registration_timeout=60.0), Recorder())
-    with pytest.raises(StartFailed, match='map_file cannot be used: .*broken.ply'):
+    engine = RegistrationEngine(PipelineConfig(), node_config(**{
+        'map.file': str(bad_map(tmp_path, 'unreadable')), 'worker.registration_timeout': 60.0}),
+        Recorder())
+    with pytest.raises(StartFailed, match='map.file cannot be used: .*broken.ply'):
         engine.start()
     (process,) = processes
     assert engine.registration is None and process.pid is None  # closed
@@ -408,8 +419,8 @@ def test_a_bad_map_ends_the_registration_process_it_was_loaded_in(tmp_path, proc
 @pytest.mark.subprocess
 def test_a_process_that_dies_while_warming_up_fails_start(processes):
     """Killed (-9) during its warm-up: StartFailed says so, and nothing is left running."""
-    engine = RegistrationEngine(PipelineConfig(), NodeConfig(registration_timeout=60.0),
-                                Recorder())
+    engine = RegistrationEngine(PipelineConfig(),
+                                node_config(**{'worker.registration_timeout': 60.0}), Recorder())
     failures = []
 
     def start():

@@ -90,10 +90,10 @@ def test_fixture_pair_over_dds_meets_ground_truth(tmp_path):
 
     env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED='1',
                ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
-    params = {'voxel_size': VOXEL_M, 'target_durability': 'transient_local',
+    params = {'voxel_size': VOXEL_M, 'pairing.target_durability': 'transient_local',
               # Reliable so the test is deterministic on a loaded machine; sensor-data
               # (best-effort) transport is the DDS tests' subject, not this one's.
-              'source_qos': 'reliable', 'diagnostics_period': 0.2}
+              'pairing.source_qos': 'reliable', 'output.diagnostics_period': 0.2}
     with spun_context(DOMAIN_ID, Wire) as (_, _, io):
         log = open(tmp_path / 'node.log', 'w+')  # a file, not a pipe: a full pipe would block
         proc = subprocess.Popen(

@@ -75,7 +75,7 @@ def test_a_pair_past_the_time_limit_restarts_the_process_and_the_next_one_runs(p
     try:
         iso.wait_ready()  # the warm-up is not counted against the limit
         pid = iso.pid
-        with pytest.raises(RegistrationTimeout, match='registration_timeout = 0.01 s'):
+        with pytest.raises(RegistrationTimeout, match='worker.registration_timeout = 0.01 s'):
             iso(source, target, config=CONFIG)
         assert iso.restarts == 1 and iso.crashes == 0 and iso.pid != pid
         wait_for(lambda: not running(pid), 10, 'the timed-out process to end')

@@ -34,8 +34,8 @@ pytestmark = pytest.mark.ros
 DOMAIN_ID = 89  # distinct from the other DDS test modules
 REPO = Path(__file__).resolve().parents[1]
 RATE_HZ, COUNT = 10.0, 100  # 10 s of a 10-Hz LiDAR
-NODE_PARAMS = {'voxel_size': 1.0, 'target_durability': 'transient_local',
-               'diagnostics_period': 0.2}
+NODE_PARAMS = {'voxel_size': 1.0, 'pairing.target_durability': 'transient_local',
+               'output.diagnostics_period': 0.2}
 
 
 class Diagnostics:

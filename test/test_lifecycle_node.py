@@ -29,11 +29,12 @@ from waiting import (call, CloudWire, lidar_bag, Lifecycle, ros_overrides,  # no
 pytestmark = pytest.mark.ros
 DOMAIN_ID = 91  # distinct from the other DDS test modules
 REPO = Path(__file__).resolve().parents[1]
-PARAMS = {'autostart': False, 'voxel_size': 0.4, 'source_qos': 'reliable',
-          'source_depth': 50, 'target_durability': 'transient_local', 'queue_depth': 10,
-          'diagnostics_period': 0.1, 'registration_timeout': 120.0,
+PARAMS = {'autostart': False, 'voxel_size': 0.4, 'pairing.source_qos': 'reliable',
+          'pairing.source_depth': 50, 'pairing.target_durability': 'transient_local',
+          'pairing.queue_depth': 10,
+          'output.diagnostics_period': 0.1, 'worker.registration_timeout': 120.0,
           # the guards of a relocalization answer, loose enough for a 6-scan bag
-          'initial_pose_min_ratio': 1.0, 'initial_pose_min_fitness': 0.0}
+          'relocalization.min_ratio': 1.0, 'relocalization.min_fitness': 0.0}
 
 
 class Wire(CloudWire):

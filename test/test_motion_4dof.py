@@ -80,7 +80,7 @@ def test_non_z_gravity_axis_any_length(bunny):
     p = make_correspondences(bunny, 1000, 0.98, rng=rng, transform=T)
     results = []
     for g in (up, 4.0 * up, -up):
-        cfg = CoreConfig(motion_model='4dof', gravity_x=g[0], gravity_y=g[1], gravity_z=g[2])
+        cfg = CoreConfig(motion_model='4dof', gravity=tuple(g))
         res = register_correspondences(p.src, p.dst, inlier_threshold=TAU, config=cfg)
         assert res.valid, res.reason
         assert rotation_error_deg(res.transform, T) < 2
@@ -144,20 +144,19 @@ def test_vertical_line_is_degenerate():
 @pytest.mark.parametrize('axis', [(0.0, 0.0, 0.0), (1e-12, 0.0, 0.0)])
 def test_zero_gravity_axis_is_refused(axis):
     with pytest.raises(InvalidConfigError, match='zero length'):
-        fields.validate(CoreConfig(motion_model='4dof', gravity_x=axis[0], gravity_y=axis[1],
-                                   gravity_z=axis[2]))
+        fields.validate(CoreConfig(motion_model='4dof', gravity=axis))
     with pytest.raises(InvalidConfigError, match='zero length'):
-        fields.update_from_flat(CoreConfig(), {'gravity_z': 0.0})
+        fields.update_from_flat(CoreConfig(), {'gravity': [0.0, 0.0, 0.0]})
 
 
 @pytest.mark.parametrize('bad', [float('nan'), float('inf')])
 def test_non_finite_gravity_axis_is_refused(bad):
     with pytest.raises(InvalidConfigError, match='finite'):
-        fields.update_from_flat(CoreConfig(), {'motion_model': '4dof', 'gravity_x': bad})
+        fields.update_from_flat(CoreConfig(), {'motion_model': '4dof', 'gravity': [bad, 0, 1]})
 
 
 def test_non_unit_gravity_axis_is_normalised():
-    cfg = fields.validate(CoreConfig(gravity_x=0.0, gravity_y=0.0, gravity_z=-9.81))
+    cfg = fields.validate(CoreConfig(gravity=(0.0, 0.0, -9.81)))
     assert cfg.gravity_axis == (0.0, 0.0, -1.0)
     frame = GravityFrame(cfg.gravity_axis)
     np.testing.assert_allclose(frame.A @ [0.0, 0.0, -1.0], [0.0, 0.0, 1.0], atol=1e-15)

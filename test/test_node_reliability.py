@@ -19,7 +19,7 @@ import sys
 import time
 
 from cgags_ros.config import fields
-from cgags_ros.config.ros_parameters import ros_parameter_descriptions, ros_to_keys
+from cgags_ros.config.node import ros_parameter_descriptions, ros_value
 from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.io.pointcloud2 import pose_to_transform
 from cgags_ros.pipeline.isolated import running
@@ -44,9 +44,9 @@ DOMAIN_ID = 53  # distinct from the other DDS test modules
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 RELIABLE = QoSProfile(depth=500, reliability=ReliabilityPolicy.RELIABLE)
-LIDAR = {'voxel_size': 0.4, 'source_qos': 'reliable', 'source_depth': 500,
-         'target_depth': 500, 'target_durability': 'transient_local',
-         'queue_depth': 50, 'diagnostics_period': 0.1}
+LIDAR = {'voxel_size': 0.4, 'pairing.source_qos': 'reliable', 'pairing.source_depth': 500,
+         'pairing.target_depth': 500, 'pairing.target_durability': 'transient_local',
+         'pairing.queue_depth': 50, 'output.diagnostics_period': 0.1}
 
 
 class Wire(CloudWire):
@@ -239,7 +239,7 @@ def test_parameter_fuzzing_applies_or_refuses_and_the_next_pair_uses_what_was_ac
         return PipelineResult(transform=np.eye(4), refusal=None, inliers=np.arange(10),
                               num_correspondences=20, inlier_threshold=0.05)
 
-    node = start(wire, record, diagnostics_period=0.1)
+    node = start(wire, record, **{'output.diagnostics_period': 0.1})
     try:
         rng = np.random.default_rng(7)
         expected = {name: node.get_parameter(name).value
@@ -267,9 +267,9 @@ def test_parameter_fuzzing_applies_or_refuses_and_the_next_pair_uses_what_was_ac
         msg.header.stamp.sec = 10**6
         io.source_pub.publish(msg)
         wait_for(lambda: seen, 20, 'the pair after fuzzing', node.statistics)
-        applied = fields.flatten(seen[-1])
-        expected_keys = {k: v for k, v in ros_to_keys(expected).items() if k in applied}
-        assert {'voxel_size', 'core.gravity_x', 'core.time_budget'} <= set(expected_keys)
+        applied = {k: ros_value(v) for k, v in fields.flatten(seen[-1]).items()}
+        expected_keys = {k: v for k, v in expected.items() if k in applied}
+        assert {'voxel_size', 'core.gravity', 'core.time_budget'} <= set(expected_keys)
         assert {k: applied[k] for k in expected_keys} == expected_keys
     finally:
         stop(wire, node)

@@ -15,7 +15,7 @@ from pathlib import Path
 import re
 import shlex
 
-from cgags_ros.config.ros_parameters import configs_from_ros, ros_parameter_descriptions
+from cgags_ros.config.node import configs_from_parameters, ros_parameter_descriptions
 from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.tools import calibrate_cli, register_cli, relocalize_cli, replay
 import numpy as np
@@ -84,7 +84,7 @@ def test_ros_parameters_of_readme_exist_and_are_accepted():
     assert given, 'README gives no -p name:=value'
     for name, value in given:
         assert name in names, f'README sets {name}, which is no ROS parameter of register_node'
-        configs_from_ros({name: yaml.safe_load(value)})
+        configs_from_parameters({name: yaml.safe_load(value)})
 
 
 def test_ros2_run_names_the_installed_executable():

@@ -147,8 +147,8 @@ def fake_register(source, target, *, config):
 
 def test_plumbing_parameters_outputs_and_rejections(ros):
     executor, io = ros
-    node = start_node(executor, fake_register, diagnostics_period=0.1,
-                      publish_aligned_cloud=True)
+    node = start_node(executor, fake_register, **{'output.diagnostics_period': 0.1,
+                                                  'output.publish_aligned_cloud': True})
     try:
         # parameters are generated from the dataclasses, with ranges and read-only flags
         names = {'voxel_size', 'core.gravity', 'pairing.mode', 'output.publish_invalid'}
@@ -184,9 +184,11 @@ def test_plumbing_parameters_outputs_and_rejections(ros):
         for name, value, why in [('core.motion_model', 'bogus', 'one of'),
                                  ('voxel_size', -1.0, 'out of range'),
                                  ('pairing.mode', 'synchronized', 'read-only'),
-                                 ('pairing_mode', 'synchronized', 'renamed: pairing.mode'),
-                                 ('core.edge_tournament', 4, 'config_file'),
-                                 ('core.gravity', [0.0, 0.0, 0.0], 'zero length')]:
+                                 ('pairing_mode', 'synchronized', 'unknown parameter'),
+                                 ('core.edge_tournament', 4,
+                                  'not a ROS parameter; set it in the YAML of config_file'),
+                                 ('core.gravity', [0.0, 0.0, 0.0], 'zero length'),
+                                 ('core.gravity', [0.0, 1.0], 'list of 3 finite numbers')]:
             result = node.set_parameters([Parameter(name, value=value)])[0]
             assert not result.successful and why in result.reason, (name, result.reason)
         assert node.set_parameters([Parameter('voxel_size', value=2.0)])[0].successful
@@ -212,13 +214,60 @@ def test_plumbing_parameters_outputs_and_rejections(ros):
 
 def test_invalid_startup_parameter_raises(ros):
     executor, _ = ros
-    with pytest.raises(InvalidConfigError, match='pairing_mode'):
+    with pytest.raises(InvalidConfigError, match="pairing.mode = 'nearest' is not one of"):
         RegisterNode(register_fn=fake_register, context=executor.context,
                      parameter_overrides=[Parameter('pairing.mode', value='nearest')])
-    # a name of the former flat interface: refused, naming the new one
-    with pytest.raises(InvalidConfigError, match=r'pairing_mode \(renamed: pairing.mode\)'):
+    # a name that is no ROS parameter: refused, saying where it belongs
+    with pytest.raises(InvalidConfigError, match='pairing_mode: unknown parameter'):
         RegisterNode(register_fn=fake_register, context=executor.context,
                      parameter_overrides=[Parameter('pairing_mode', value='synchronized')])
+    with pytest.raises(InvalidConfigError, match='core.p1: not a ROS parameter; set it in'):
+        RegisterNode(register_fn=fake_register, context=executor.context,
+                     parameter_overrides=[Parameter('core.p1', value=0.9)])
+
+
+def test_config_file_sits_between_the_defaults_and_the_ros_parameters(tmp_path):
+    """
+    Check a value's precedence in the node: default < config_file < params file < -p.
+
+    Through rclpy's own argument handling (``--ros-args --params-file ... -p ...``), as
+    ``ros2 run`` passes them. ``config_file`` may hold any key, ROS parameters included.
+    """
+    from rclpy.context import Context
+
+    config = tmp_path / 'config_file.yaml'  # nested and flat keys, wrapped as a params file
+    config.write_text('register_node:\n  ros__parameters:\n    voxel_size: 0.7\n'
+                      '    pairing:\n      sync_slop: 0.2\n      max_waiting_sources: 3\n'
+                      '    core.gravity: [0.0, 1.0, 0.0]\n    core.p1: 0.9\n'
+                      '    output.publish_invalid: true\n')
+    params = tmp_path / 'params.yaml'  # the same format: overrides config_file
+    params.write_text('/**:\n  ros__parameters:\n    pairing.sync_slop: 0.3\n'
+                      f'    config_file: {config}\n    output.publish_invalid: false\n')
+    context = Context()
+    rclpy.init(context=context, domain_id=DOMAIN_ID, args=[
+        '--ros-args', '--params-file', str(params), '-p', 'pairing.sync_slop:=0.4',
+        '-p', 'autostart:=false'])
+    node = RegisterNode(register_fn=fake_register, context=context)
+    try:
+        value = {name: node.get_parameter(name).value for name in (
+            'voxel_size', 'pairing.sync_slop', 'core.gravity', 'output.publish_invalid',
+            'output.diagnostics_period')}
+        assert value == {'voxel_size': 0.7,  # config_file over the default
+                         'pairing.sync_slop': 0.4,  # -p over the params file over the file
+                         'core.gravity': [0.0, 1.0, 0.0],  # an array, from config_file
+                         'output.publish_invalid': False,  # the params file over config_file
+                         'output.diagnostics_period': 1.0}  # the default
+        pipe, cfg = node._configs()
+        assert (pipe.voxel_size, pipe.core.p1, pipe.core.gravity) == (0.7, 0.9, (0.0, 1.0, 0.0))
+        assert (cfg.pairing.sync_slop, cfg.pairing.max_waiting_sources) == (0.4, 3)
+        assert not cfg.output.publish_invalid and cfg.config_file == str(config)
+        # a run-time change keeps config_file's other keys
+        assert node.set_parameters([Parameter('voxel_size', value=0.5)])[0].successful
+        pipe, cfg = node._configs()
+        assert (pipe.voxel_size, pipe.core.p1, cfg.pairing.max_waiting_sources) == (0.5, 0.9, 3)
+    finally:
+        node.destroy_node()
+        rclpy.shutdown(context=context)
 
 
 def test_callbacks_after_context_shutdown_do_not_raise():
@@ -265,8 +314,8 @@ def test_latched_target_then_live_voxel_changes_across_bags(ros, data_dir):
     bunny = bag(data_dir, 'bunny')
     stamp0, target0 = bunny.clouds('/target_cloud')[0]
     io.target_pub.publish(target0)  # latched before the node exists
-    node = start_node(executor, voxel_size=VOXEL['bunny'], target_durability='transient_local',
-                      diagnostics_period=0.2)
+    node = start_node(executor, voxel_size=VOXEL['bunny'], **{
+        'pairing.target_durability': 'transient_local', 'output.diagnostics_period': 0.2})
     try:
         wait_for(lambda: node.statistics().get('received_target') == 1, 10, 'latched target')
         for name in ('bunny', 'redkitchen', 'lidar'):
@@ -298,8 +347,9 @@ def test_faulty_bag_rejections_counted_and_good_pair_published(ros, data_dir):
     # One faulty cloud (2000 collinear points) must end as a counted rejection, and the
     # good pair after it still be published; registration_timeout (the node's watchdog)
     # bounds it should the core ever stall on it.
-    node = start_node(executor, voxel_size=VOXEL['faulty'], diagnostics_period=0.2,
-                      queue_depth=10, registration_timeout=20.0)
+    node = start_node(executor, voxel_size=VOXEL['faulty'], **{
+        'output.diagnostics_period': 0.2, 'pairing.queue_depth': 10,
+        'worker.registration_timeout': 20.0})
     try:
         # Configure returns once the registration process is warm; the subscriptions exist
         # from then, so wait until both sides of both topics have matched.
@@ -337,11 +387,12 @@ def test_separate_process_synchronized_lidar_then_sigterm(ros, data_dir, tmp_pat
     proc = subprocess.Popen(
         [sys.executable, '-m', 'cgags_ros.register_node', '--ros-args',
          '--params-file', str(REPO / 'config' / 'register_node.yaml')] + ros_args(
-            pairing_mode='synchronized', sync_slop=0.02, voxel_size=VOXEL['lidar'],
-            queue_depth=10, max_waiting_sources=10, diagnostics_period=0.2,
+            **{'pairing.mode': 'synchronized', 'pairing.sync_slop': 0.02,
+               'voxel_size': VOXEL['lidar'], 'pairing.queue_depth': 10,
+               'pairing.max_waiting_sources': 10, 'output.diagnostics_period': 0.2},
             # Reliable here so the test is deterministic: best-effort 1 MB clouds across
             # processes on a loaded machine lose samples (sensor_data is used in-process).
-            source_qos='reliable'),
+            **{'pairing.source_qos': 'reliable'}),
         cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, text=True)
     try:
         wait_for(lambda: io.source_pub.get_subscription_count() and

@@ -1,5 +1,5 @@
 """
-Relocalization through register_node over real DDS: map_file, on_demand, guarded initialpose.
+Relocalization through register_node over real DDS: map.file, on_demand, guarded initialpose.
 
 The node runs in this process with its own rclpy context and DDS domain. The map is the
 redkitchen fragments 0 and 4 merged at full resolution (ground truth from gt_pairs.txt);
@@ -136,11 +136,12 @@ def test_on_demand_relocalization_in_a_merged_kitchen_map(wire, kitchen, data_di
     path, (frag6, gt6), (frag4, gt4), raw = kitchen
     assert raw >= 500_000
     cache = tmp_path / 'cache'
-    params = dict(mode='on_demand', map_file=str(path), map_frame='map',
-                  map_cache_dir=str(cache), voxel_size=0.05, source_qos='reliable',
-                  **{'frontend.normal_orientation': 'centroid'},  # the scans are moved
-                  publish_initial_pose=True, initial_pose_cooldown=0.0,
-                  registration_timeout=120.0, diagnostics_period=0.2, max_scan_age=30.0)
+    params = {'mode': 'on_demand', 'map.file': str(path), 'map.frame': 'map',
+              'map.cache_dir': str(cache), 'voxel_size': 0.05, 'pairing.source_qos': 'reliable',
+              'frontend.normal_orientation': 'centroid',  # the scans are moved
+              'relocalization.publish_initial_pose': True, 'relocalization.cooldown': 0.0,
+              'worker.registration_timeout': 120.0, 'output.diagnostics_period': 0.2,
+              'relocalization.max_scan_age': 30.0}
     node = start(wire, **params)
     try:
         assert wait_map(io) == 'miss', io.values.get('map.error')
@@ -202,8 +203,8 @@ def test_lidar_initial_pose_is_the_base_pose(wire, data_dir, tmp_path):
     """
     Check the LiDAR pair's initial pose is the base's: ground truth and the extrinsic.
 
-    Continuous mode with base_from_sensor; the second scan is refused by
-    initial_pose_max_auto (counted), while ~/pose keeps the sensor pose.
+    Continuous mode with relocalization.base_from_sensor; the second scan is refused by
+    relocalization.max_auto (counted), while ~/pose keeps the sensor pose.
     """
     _, _, io = wire
     folder = data_dir / 'lidar' / 'small_gicp'
@@ -215,10 +216,11 @@ def test_lidar_initial_pose_is_the_base_pose(wire, data_dir, tmp_path):
     A = random_motion(rng)
     t, q = (0.3, -0.1, 0.8), (0.0, 0.0, 0.3826834, 0.9238795)  # 45 deg yaw, raised
     T_bs = make_transform(quaternion_to_matrix(q), t)
-    node = start(wire, map_file=str(map_path), map_cache_dir='', voxel_size=0.4,
-                 source_qos='reliable', publish_initial_pose=True, initial_pose_cooldown=0.0,
-                 initial_pose_max_auto=1, base_from_sensor=' '.join(map(str, t + q)),
-                 diagnostics_period=0.2)
+    node = start(wire, **{
+        'map.file': str(map_path), 'map.cache_dir': '', 'voxel_size': 0.4,
+        'pairing.source_qos': 'reliable', 'relocalization.publish_initial_pose': True,
+        'relocalization.cooldown': 0.0, 'relocalization.max_auto': 1,
+        'relocalization.base_from_sensor': list(t + q), 'output.diagnostics_period': 0.2})
     try:
         assert wait_map(io) == 'off', io.values.get('map.error')
         for _ in range(2):
@@ -257,8 +259,8 @@ def test_relocalize_calls_in_flight_hold_no_executor_thread(wire):
         return PipelineResult(transform=np.eye(4), refusal=None, inliers=np.arange(40),
                               num_correspondences=100, fitness=0.8)
 
-    node = start(wire, held, source_qos='reliable', relocalize_timeout=120.0,
-                 diagnostics_period=0.1)
+    node = start(wire, held, **{'pairing.source_qos': 'reliable', 'relocalization.timeout': 120.0,
+                                'output.diagnostics_period': 0.1})
     target = io.node.create_publisher(PointCloud2, 'target_cloud', RELIABLE)
     calls = []
     try:
@@ -307,9 +309,9 @@ def test_a_bad_map_file_fails_configure_and_leaves_nothing_running(
     """
     _, _, io = wire
     path = bad_map(tmp_path, case)
-    node = start(wire, map_file=str(path), map_cache_dir=str(tmp_path / 'c'),
-                 registration_timeout=30.0, voxel_size=0.4, diagnostics_period=0.2,
-                 autostart=autostart)
+    node = start(wire, **{'map.file': str(path), 'map.cache_dir': str(tmp_path / 'c'),
+                          'worker.registration_timeout': 30.0, 'voxel_size': 0.4,
+                          'output.diagnostics_period': 0.2, 'autostart': autostart})
     try:
         if not autostart:
             assert io.lifecycle.state() == 'unconfigured'
@@ -320,7 +322,7 @@ def test_a_bad_map_file_fails_configure_and_leaves_nothing_running(
         logged = [line for line in (console.err + console.out).splitlines()
                   if 'register_node' in line and 'cannot configure: ' in line]
         assert len(logged) == 1 and 'ERROR' in logged[0], logged
-        assert 'map_file cannot be used: ' in logged[0] and path.name in logged[0]
+        assert 'map.file cannot be used: ' in logged[0] and path.name in logged[0]
         wait_for(lambda: io.values.get('configure.error'), 10, 'the reason on /diagnostics')
         assert io.level == DiagnosticStatus.ERROR and path.name in io.values['configure.error']
         assert io.values['configure.refusal_code'] == 'start_failed'  # beside its message

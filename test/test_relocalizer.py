@@ -99,7 +99,7 @@ def test_a_sequence_one_scan_cannot_settle_is_confirmed_by_three(scene):
     for k, O in zip(HARD, odom):
         assert right(last.map_from_odom @ O, poses[k])
     best = last.hypotheses[0]
-    assert all(c.explains(reloc.sequence, cfg.refine.max_free_space_violation)
+    assert all(c.explains(reloc.sequence, cfg.gates.max_free_space_violation)
                for c in best.checks.values())
     assert len(last.hypotheses) > 1 and len(last.results) == 3
 
@@ -129,7 +129,7 @@ def test_odometry_that_contradicts_the_scans_is_refused_not_averaged(easy):
     assert last.done and not last.confirmed
     assert 'no pose explains every scan' in last.reason and 'odometry' in last.reason
     assert last.refusal.code is Code.UNEXPLAINED
-    limit = cfg.refine.max_free_space_violation
+    limit = cfg.gates.max_free_space_violation
     explained = [sum(i in h.checks and h.checks[i].explains(seq, limit) for i in range(3))
                  for h in last.hypotheses]
     assert 1 <= max(explained) < 3  # each scan fits some pose; no pose fits the three

@@ -201,7 +201,8 @@ def test_cli_errors(bags, tmp_path, capsys):
     assert 'not a rosbag2 bag' in _main_error(capsys, bags.parent / 'README.md')
     assert 'without metadata.yaml' in _main_error(capsys, tmp_path)
     assert 'does not exist' in _main_error(capsys, tmp_path / 'missing')
-    assert 'unknown parameter' in _main_error(capsys, bags / 'bunny', '--set', 'no_such_key=1')
+    assert "unknown configuration key 'no_such_key'" in _main_error(
+        capsys, bags / 'bunny', '--set', 'no_such_key=1')
 
 
 def test_cli_exit_code_and_single_line(bags, tmp_path):

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from cgags_ros.config import PipelineConfig
+from cgags_ros.config import GatesConfig, PipelineConfig
 from cgags_ros.frontend.matching import Correspondences
 from cgags_ros.frontend.refine import evaluate_alignment
 from cgags_ros.geometry import rotation_error_deg, translation_error
@@ -86,7 +86,8 @@ def test_a_slide_along_a_wall_is_refused_and_a_right_pose_kept(redkitchen_pair):
     assert result.reason.startswith('ambiguous')
     assert translation_error(result.candidates[1].transform, gt) < 0.3  # the rival is right
     off = register_clouds(src, tgt, voxel_size=0.05,
-                          config=PipelineConfig(structured_rivals=False, min_confidence=0.0))
+                          config=PipelineConfig(gates=GatesConfig(structured_rivals=False,
+                                                                  min_confidence=0.0)))
     assert off.valid  # the gates alone would have let the slid pose through
     src, tgt, gt = redkitchen_pair(0, 2)
     kept = register_clouds(src, tgt, voxel_size=0.05)

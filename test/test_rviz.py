@@ -106,7 +106,7 @@ def test_launch_declares_rviz_off_by_default(launch_description):
     _, actions = launch_description
     declared = arguments(actions)
     assert declared['rviz']['default_value'] == 'false'
-    assert declared['rviz_fixed_frame']['default_value'] == NodeConfig().map_frame
+    assert declared['rviz_fixed_frame']['default_value'] == NodeConfig().map.frame
 
 
 def test_rviz_true_starts_rviz2_with_the_installed_config(launch_description):
@@ -211,7 +211,7 @@ def test_fixed_frame_is_the_map_frame(rviz):
     # The pose and candidates are in the target cloud's frame; `map` unless the launch's
     # rviz_fixed_frame says otherwise.
     assert rviz['Visualization Manager']['Global Options']['Fixed Frame'] == \
-        NodeConfig().map_frame
+        NodeConfig().map.frame
 
 
 def test_rviz_shows_target_aligned_source_pose_candidates_and_tf(rviz, node_outputs,

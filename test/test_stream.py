@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import time
 
-from cgags_ros.config.node import NodeConfig
+from cgags_ros.config.node import NodeConfig, PairingConfig, WorkerConfig
 from cgags_ros.config.pipeline import PipelineConfig
 from cgags_ros.config.tracking import TrackingConfig
 from cgags_ros.geometry import rotation_error_deg, translation_error
@@ -29,11 +29,12 @@ VOXEL = 0.5
 PERIOD = 0.1  # seconds between scans: a 10 Hz LiDAR
 
 
-def start(registration_timeout=0.0, node=None, **tracking):
+def start(registration_timeout=0.0, pairing=None, **tracking):
     out = Recorder()
     engine = RegistrationEngine(
         PipelineConfig(voxel_size=VOXEL, tracking=TrackingConfig(**tracking)),
-        NodeConfig(registration_timeout=registration_timeout, **(node or {})), out)
+        NodeConfig(worker=WorkerConfig(registration_timeout=registration_timeout),
+                   pairing=PairingConfig(**(pairing or {}))), out)
     engine.start()
     engine.activate()
     return engine, out
@@ -121,7 +122,7 @@ def test_the_scans_behind_a_global_registration_are_tracked_in_order(kitti):
     indices = [3, 4, 5, 6, 7, 8, 9, 10]
     # A queue of one pair (the backlog off): the scan after the global one is the newest,
     # older than max_age and metres from the last pose: global again, the rest dropped.
-    engine, out = start(node={'backlog': 1})
+    engine, out = start(pairing={'backlog': 1})
     try:
         feed(engine, out, 'target', scans[0], 99.0)
         records = burst(engine, out, kitti, indices)
@@ -131,7 +132,7 @@ def test_the_scans_behind_a_global_registration_are_tracked_in_order(kitti):
     finally:
         engine.stop()
     # The backlog: every scan kept and tracked from its predecessor, in stamp order.
-    engine, out = start(node={'backlog_max_lag': 0.0})
+    engine, out = start(pairing={'backlog_max_lag': 0.0})
     try:
         feed(engine, out, 'target', scans[0], 99.0)
         records = burst(engine, out, kitti, indices)
@@ -155,7 +156,7 @@ def test_the_scans_behind_a_global_registration_are_tracked_in_order(kitti):
 def test_a_backlog_that_lags_skips_every_other_scan_once_tracked(kitti):
     scans, truth = kitti
     indices = [3, 4, 5, 6, 7, 8, 9, 10]
-    engine, out = start(node={'backlog_max_lag': 0.45})
+    engine, out = start(pairing={'backlog_max_lag': 0.45})
     try:
         feed(engine, out, 'target', scans[0], 99.0)
         records = burst(engine, out, kitti, indices)

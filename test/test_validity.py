@@ -17,7 +17,7 @@ import re
 from cgags_ros import validity
 from cgags_ros.config import pipeline_config_from, PipelineConfig
 from cgags_ros.config.core import CoreConfig
-from cgags_ros.config.node import NodeConfig
+from cgags_ros.config.node import configs_from_parameters
 from cgags_ros.errors import (BagError, CgagsError, DegenerateCorrespondencesError,
                               EmptyCloudError, InvalidConfigError, InvalidInputError,
                               MalformedCloudError)
@@ -210,11 +210,11 @@ def test_the_gates_in_order_on_measured_geometry():
     right = free_space_violation(source, room, T, 0.1, 2.0)
     assert validity.gate_refusal(passing(free_space_violation=right), CFG) is None
     # an estimate the correspondences did not settle is held to a tighter bound
-    between = 0.9 * CFG.refine.max_free_space_violation
+    between = 0.9 * CFG.gates.max_free_space_violation
     assert validity.gate_refusal(passing(free_space_violation=between), CFG) is None
     assert validity.gate_refusal(passing(free_space_violation=between), CFG,
                                  unsettled=True).code is Code.FREE_SPACE
-    fit = dataclasses.replace(CFG, refine=dataclasses.replace(CFG.refine, min_fitness=0.5))
+    fit = dataclasses.replace(CFG, gates=dataclasses.replace(CFG.gates, min_fitness=0.5))
     assert validity.gate_refusal(passing(fitness=0.2), fit).code is Code.LOW_FITNESS
     four = pipeline_config_from({'core.motion_model': '4dof'})
     steep = four.core.max_tilt_deg + 0.5
@@ -223,7 +223,7 @@ def test_the_gates_in_order_on_measured_geometry():
     worst = passing(chance_bound=60.0, fitness=0.2, observability=flat, tilt_deg=steep)
     assert validity.gate_refusal(worst, fit).code is Code.CHANCE_LEVEL
     assert validity.gate_refusal(passing(chance_bound=np.nan), CFG).code is Code.CHANCE_LEVEL
-    off = dataclasses.replace(CFG, refine=dataclasses.replace(CFG.refine, significance=0.0))
+    off = dataclasses.replace(CFG, gates=dataclasses.replace(CFG.gates, significance=0.0))
     assert validity.gate_refusal(passing(chance_bound=np.nan), off) is None
 
 
@@ -256,7 +256,7 @@ def test_only_a_collinear_core_refusal_is_left_to_the_gates():
     assert not validity.unsettled(
         dataclasses.replace(core, refusal=Refusal(Code.CHANCE_LEVEL, 'chance')), CFG)
     assert not validity.unsettled(dataclasses.replace(core, refusal=None), CFG)
-    for other in ({'refine.collinear_consensus': False}, {'refine.method': 'none'},
+    for other in ({'gates.collinear_consensus': False}, {'refine.method': 'none'},
                   {'core.motion_model': '4dof'}):
         assert not validity.unsettled(core, pipeline_config_from(other)), other
 
@@ -270,8 +270,8 @@ def test_a_structured_rival_is_ambiguous():
 
 
 def test_a_low_calibrated_confidence_is_refused():
-    assert validity.confidence_refusal(passing(confidence=0.9), CFG.min_confidence) is None
-    low = validity.confidence_refusal(passing(confidence=0.1), CFG.min_confidence)
+    assert validity.confidence_refusal(passing(confidence=0.9), CFG.gates.min_confidence) is None
+    low = validity.confidence_refusal(passing(confidence=0.1), CFG.gates.min_confidence)
     assert low.code is Code.LOW_CONFIDENCE and 'P(right) 0.10' in low.message
     assert validity.confidence_refusal(passing(confidence=0.1), 0.0) is None  # off
 
@@ -319,8 +319,9 @@ def test_the_result_topic_carries_the_refusal():
 
 # --- the node's initial pose ------------------------------------------------------------------
 def test_the_initial_pose_guards_in_order():
-    cfg = NodeConfig(initial_pose_min_inliers=20, initial_pose_min_ratio=2.0,
-                     initial_pose_min_fitness=0.3)
+    cfg = configs_from_parameters({'relocalization.min_inliers': 20,
+                                   'relocalization.min_ratio': 2.0,
+                                   'relocalization.min_fitness': 0.3})[1]
     assert validity.quality_refusal(passing(), cfg) is None
     invalid = Refusal(Code.FREE_SPACE, 'stacked walls')
     assert validity.quality_refusal(passing(refusal=invalid), cfg) is invalid  # its own

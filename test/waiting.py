@@ -144,17 +144,20 @@ def lidar_bag(data_dir):
 
 def ros_values(**flat):
     """
-    Return the node's ROS parameter values for flat configuration keys.
+    Return the node's ROS parameter values for configuration keys (their one names).
 
-    Keys that are no ROS parameter go to a YAML file named by ``config_file``.
+    Keys that are no ROS parameter go to a YAML file named by ``config_file``. Give dotted
+    keys as ``**{'pairing.mode': 'synchronized'}``.
     """
     from pathlib import Path
     import tempfile
 
-    from cgags_ros.config.ros_parameters import keys_to_ros
+    from cgags_ros.config.node import ros_parameter_descriptions, ros_value
     import yaml
 
-    ros, rest = keys_to_ros(flat)
+    names = ros_parameter_descriptions()
+    ros = {k: ros_value(v) for k, v in flat.items() if k in names}
+    rest = {k: ros_value(v) for k, v in flat.items() if k not in names}
     if rest:
         path = Path(tempfile.mkdtemp(prefix='cgags_test_')) / 'config_file.yaml'
         path.write_text(yaml.safe_dump(rest), encoding='utf-8')

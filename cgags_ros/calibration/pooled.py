@@ -34,7 +34,7 @@ def pooled_candidates(evidence: list[Evidence], cfg: PipelineConfig
     src = np.vstack([e.matches[0] for e in usable])
     dst = np.vstack([e.matches[1] for e in usable])
     resolution = float(np.mean([e.resolution for e in usable]))
-    tau = cfg.frontend.inlier_threshold or None
+    tau = cfg.core.inlier_threshold or None
     explained = np.zeros(len(src), dtype=bool)
     found: list[tuple[np.ndarray, float]] = []
     for attempt in range(cfg.num_candidates):

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import ClassVar
 
 from .fields import option
 from ..errors import InvalidConfigError
@@ -23,26 +22,16 @@ from ..errors import InvalidConfigError
 class CoreConfig:
     """Options of the registration core; the defaults are the paper's where it has one."""
 
-    # Former options whose question the ablation settled (docs/ablation.md): a
-    # configuration that still sets one is refused with this explanation.
-    REMOVED: ClassVar[dict[str, str]] = dict.fromkeys(
-        ('compatibility', 'edge_sampling', 'vertex_sampling', 'score', 'score_4dof',
-         'prescreen', 'max_up_mode', 'guided_start', 'guided_seed', 'guided_count',
-         'stage_one_estimate', 'refit', 'vertical_compatibility'),
-        'removed: the ablation settled it and its default is the only behaviour '
-        '(docs/ablation.md); delete the key')
-
     # --- motion model (docs/method.md, "4-DoF mode") -------------------------------------
     motion_model: str = option(
         '6dof', "Unknowns of the transform: '6dof' (any rotation and translation) or '4dof' "
         '(yaw about the gravity axis and translation, for clouds already levelled, e.g. by '
-        'an IMU: roll and pitch of the result are exactly zero).', choices=('6dof', '4dof'))
-    gravity_x: float = option(
-        0.0, "x component of the gravity (up) axis in both clouds' frames, used with "
-        "motion_model='4dof'. The axis (gravity_x, gravity_y, gravity_z) may have any "
-        'nonzero length (it is normalised) and either sign; a zero axis is refused.')
-    gravity_y: float = option(0.0, 'y component of the gravity axis (see gravity_x).')
-    gravity_z: float = option(1.0, 'z component of the gravity axis (see gravity_x).')
+        'an IMU: roll and pitch of the result are exactly zero).', choices=('6dof', '4dof'),
+        ros=True)
+    gravity: tuple[float, float, float] = option(
+        (0.0, 0.0, 1.0), "[x, y, z]: the gravity (up) axis in both clouds' frames, used with "
+        "motion_model='4dof'. It may have any nonzero length (it is normalised) and either "
+        'sign; a zero axis is refused.', ros=True)
     max_tilt_deg: float = option(
         3.0, "With motion_model='4dof': largest tilt (degrees) between the clouds' gravity "
         'axes that is accepted. The tilt is measured by a 6-DoF re-fit of the 4-DoF inliers '
@@ -55,6 +44,10 @@ class CoreConfig:
         'determined). 0 disables.', low=0.0, advanced=True)
 
     # --- thresholds (paper: tau = 6 pr, delta = 10 pr) -----------------------------------
+    inlier_threshold: float = option(
+        0.0, 'Inlier threshold tau in metres; 0 derives it from the point resolution pr (mean '
+        'nearest-neighbour distance of the downsampled clouds) as inlier_threshold_factor * '
+        'pr.', low=0.0)
     inlier_threshold_factor: float = option(
         6.0, 'Inlier threshold tau in units of the point resolution pr (paper: 6).', low=1e-6)
     compatibility_threshold_factor: float = option(
@@ -115,7 +108,7 @@ class CoreConfig:
     time_budget: float = option(
         0.0, 'Seconds after which sampling stops and the best model so far is used (the '
         "result then says stopped_by='time_budget'). 0: no limit, only max_iterations.",
-        low=0.0)
+        low=0.0, ros=True)
     min_iterations: int = option(
         0, 'Hypotheses generated before any adaptive stop.', low=0, advanced=True)
     p1: float = option(0.99, 'Confidence P1 of the compatible-sampling stage (paper: 0.99).',
@@ -149,16 +142,15 @@ class CoreConfig:
         """Check constraints between fields (called by ``fields.validate``)."""
         if self.guided_sampling and self.preference_length < 1:
             raise InvalidConfigError('preference_length must be >= 1 with guided sampling')
-        norm = math.sqrt(self.gravity_x ** 2 + self.gravity_y ** 2 + self.gravity_z ** 2)
+        norm = math.sqrt(sum(c * c for c in self.gravity))
         if not norm > 1e-9:
             raise InvalidConfigError(
-                f'the gravity axis (gravity_x, gravity_y, gravity_z) = ({self.gravity_x}, '
-                f'{self.gravity_y}, {self.gravity_z}) has zero length: give the up direction '
-                "of the clouds' frames, e.g. (0, 0, 1)")
+                f'core.gravity = {list(self.gravity)} has zero length: give the up direction '
+                "of the clouds' frames, e.g. [0, 0, 1]")
 
     @property
     def gravity_axis(self) -> tuple[float, float, float]:
-        """Return the unit gravity (up) axis (gravity_x, gravity_y, gravity_z) normalised."""
-        g = (self.gravity_x, self.gravity_y, self.gravity_z)
+        """Return the unit gravity (up) axis: ``gravity`` normalised."""
+        g = self.gravity
         norm = math.sqrt(sum(c * c for c in g))
         return (g[0] / norm, g[1] / norm, g[2] / norm)

@@ -2,10 +2,12 @@
 Typed, documented config fields: the one declaration every layer's options come from.
 
 Each config field is declared with :func:`option`, which records a description, the
-allowed range or choices and whether it is an advanced (research) switch in the field
-metadata. From that single declaration come validation (:func:`validate`), flattening to
-``section.name`` keys for YAML and ROS parameters (:func:`flatten`, :func:`update_from_flat`),
-the generated parameter file and docs (:mod:`cgags_ros.config.files`) and the ROS parameter
+allowed range or choices, whether it is an advanced (research) switch and whether it is a
+ROS parameter of the node (read-only or not) in the field metadata. A field's dotted path
+(``pairing.mode``, ``core.gravity``) is its one name: in YAML, ``--set``, the Python API
+and, for ``ros=True`` fields, as the ROS parameter. From that single declaration come
+validation (:func:`validate`), flattening (:func:`flatten`, :func:`update_from_flat`), the
+generated parameter file and docs (:mod:`cgags_ros.config.files`) and the ROS parameter
 descriptors (:mod:`cgags_ros.ros.parameters`). Pure Python: the core may import it.
 """
 
@@ -20,16 +22,38 @@ from ..errors import InvalidConfigError
 
 def option(default: Any, description: str, *, low: float | None = None,
            high: float | None = None, choices: tuple | None = None,
-           allow_none: bool = False, advanced: bool = False) -> Any:
+           allow_none: bool = False, advanced: bool = False, ros: bool = False,
+           read_only: bool = False) -> Any:
     """
     Declare a dataclass field with a description and a valid range or set of choices.
 
-    ``low``/``high`` are inclusive. ``advanced`` marks a research switch: still settable
-    everywhere, documented in docs/parameters.md, left out of the default parameter file.
+    ``low``/``high`` are inclusive. A tuple default declares a vector of that many finite
+    numbers (a YAML or ROS array). ``advanced`` marks a research switch: still settable
+    everywhere, documented in docs/parameters.md, never a ROS parameter. ``ros`` makes the
+    key a ROS parameter of the node; ``read_only`` fixes it once the node runs.
     """
-    meta = {'description': description, 'low': low, 'high': high,
-            'choices': choices, 'allow_none': allow_none, 'advanced': advanced}
+    if advanced and ros:
+        raise ValueError('a research switch (advanced) is never a ROS parameter')
+    meta = {'description': description, 'low': low, 'high': high, 'choices': choices,
+            'allow_none': allow_none, 'advanced': advanced, 'ros': ros, 'read_only': read_only}
     return dataclasses.field(default=default, metadata=meta)
+
+
+def section(cls: type) -> Any:
+    """Declare a nested section: its fields' keys are ``<section>.<field>``."""
+    return dataclasses.field(default_factory=cls)
+
+
+def _check_vector(name: str, default: tuple, value: Any) -> tuple:
+    """Return ``value`` as a tuple of ``len(default)`` finite floats, or raise."""
+    items = value.tolist() if hasattr(value, 'tolist') else value
+    if (isinstance(items, (str, bytes, Mapping)) or not hasattr(items, '__len__')
+            or len(items) != len(default)
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                       and math.isfinite(v) for v in items)):
+        raise InvalidConfigError(f'{name} must be a list of {len(default)} finite numbers, '
+                                 f'got {value!r}')
+    return tuple(float(v) for v in items)
 
 
 def _check_field(owner: str, f: dataclasses.Field, value: Any) -> Any:
@@ -40,6 +64,8 @@ def _check_field(owner: str, f: dataclasses.Field, value: Any) -> Any:
             return None
         raise InvalidConfigError(f'{name} must not be None')
     default = f.default
+    if isinstance(default, tuple):
+        return _check_vector(name, default, value)
     if isinstance(default, bool) or (default is None and isinstance(value, bool)):
         if not isinstance(value, bool):
             raise InvalidConfigError(f'{name} must be true or false, got {value!r}')
@@ -127,9 +153,6 @@ def update_from_flat(cfg: Any, values: Mapping[str, Any]) -> Any:
                 raise InvalidConfigError(f'unknown configuration key {key!r}')
             target = getattr(target, part)
         names = {f.name for f in dataclasses.fields(target)}
-        removed = getattr(type(target), 'REMOVED', {})
-        if parts[-1] in removed:
-            raise InvalidConfigError(f'configuration key {key!r} was {removed[parts[-1]]}')
         if parts[-1] not in names or dataclasses.is_dataclass(getattr(target, parts[-1])):
             raise InvalidConfigError(f'unknown configuration key {key!r}')
         setattr(target, parts[-1], value)

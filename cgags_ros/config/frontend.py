@@ -24,7 +24,7 @@ class FrontEndConfig:
         'origin', "Normal sign (FPFH depends on it): 'centroid' points normals towards the "
         "cloud's centroid (frame-independent), 'origin' towards the frame origin (the sensor "
         "for raw scans in the sensor frame), 'none' keeps PCA's arbitrary, frame-dependent "
-        'sign.', choices=('centroid', 'origin', 'none'))
+        'sign.', choices=('centroid', 'origin', 'none'), ros=True)
     fpfh_radius_factor: float = option(
         5.0, 'FPFH feature radius in voxel sizes.', low=0.5, high=100.0)
     fpfh_max_nn: int = option(100, 'Maximum neighbours for FPFH.', low=5, high=5000)
@@ -43,15 +43,11 @@ class FrontEndConfig:
         low=0)
     min_points: int = option(
         10, 'Fewer points than this after downsampling is rejected as an empty cloud.', low=3)
-    inlier_threshold: float = option(
-        0.0, 'Inlier threshold tau in metres handed to the core; 0 derives it from the point '
-        'resolution pr (mean nearest-neighbour distance of the downsampled clouds) as '
-        'core.inlier_threshold_factor * pr.', low=0.0)
 
 
 @dataclasses.dataclass
 class RefineConfig:
-    """Local refinement of the core's estimate and the validity gates after it."""
+    """Local refinement of the core's estimate (the gates that judge it: :mod:`.gates`)."""
 
     method: str = option(
         'point_to_plane', "Refinement after the global estimate: 'none', 'point_to_plane' "
@@ -65,38 +61,3 @@ class RefineConfig:
         'change by less than this (relative): it only has to bring the estimate within the '
         "final distance. The final stage keeps Open3D's 1e-6.", low=0.0, high=1.0,
         advanced=True)
-    min_fitness: float = option(
-        0.0, 'After refinement, a fitness (share of source points with a target point within '
-        'the refinement distance) below this marks the result invalid. 0 disables.',
-        low=0.0, high=1.0)
-    significance: float = option(
-        0.01, 'Chance-inlier gate: the estimate is invalid unless its inlier count is above '
-        'what the best of the generated hypotheses would reach with probability '
-        '`significance` if every correspondence were an outlier (Poisson model of the '
-        'correspondences that fall within tau of the estimate by chance). 0 disables.',
-        low=0.0, high=1.0)
-    min_observability: float = option(
-        0.02, 'Degeneracy gate: smallest / largest eigenvalue of the point-to-plane '
-        'information matrix over the overlapping points (rotation scaled by the overlap '
-        'radius). Planes, lines, spheres and cylinders leave some motion unconstrained and '
-        'give ~0; the estimate is then invalid. 0 disables.', low=0.0, high=1.0)
-    collinear_consensus: bool = option(
-        True, 'When the core refuses its estimate only because the inliers are nearly '
-        'collinear, refine it anyway and let the gates on the whole overlap decide '
-        '(observability, free space, chance inliers, ambiguity).', advanced=True)
-    max_free_space_violation: float = option(
-        0.3, "Free-space gate (sensor-frame clouds: frontend.normal_orientation 'origin'): "
-        "the share of aligned points in front of the other cloud's observed surface (by "
-        'over free_space_margin_factor voxels), among those in front or on it, the larger '
-        'direction; above this the pose puts surfaces where a sensor saw free space and is '
-        'invalid. 1 disables.', low=0.0, high=1.0)
-    free_space_settle_factor: float = option(
-        0.5, 'An estimate the correspondences alone did not settle (a collinear consensus, '
-        'or a rival within ambiguity_ratio) is trusted only below this times '
-        'max_free_space_violation.', low=0.0, high=1.0, advanced=True)
-    free_space_margin_factor: float = option(
-        2.0, 'Depth margin of the free-space gate in voxel sizes.', low=0.0, high=100.0,
-        advanced=True)
-    free_space_bin_deg: float = option(
-        2.0, "Angular bin (degrees) of the free-space gate's depth maps seen from each "
-        "cloud's origin.", low=0.05, high=30.0, advanced=True)

@@ -21,7 +21,7 @@ class TrackingConfig:
         True, 'Continuous mode (the node, cgags-replay): refine each scan from the pose '
         "predicted from the pair's last valid poses (constant velocity, or the odometry given) "
         'and keep it when it passes the same gates as a global result; else, and for the first '
-        'scan, run the global search. false registers every scan globally.')
+        'scan, run the global search. false registers every scan globally.', ros=True)
     max_age: float = option(
         0.5, 'Seconds (header stamps) since the last valid pose of the same pair beyond which '
         'no prediction is made (the scan is registered globally).', low=0.0, high=3600.0)

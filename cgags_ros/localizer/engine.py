@@ -3,7 +3,7 @@ What register_node does, without ROS: pairing, the registration process, the acc
 
 ROS-free: :class:`RegistrationEngine` owns the pairing of source and target clouds, the
 supervised registration process (:mod:`cgags_ros.pipeline.isolated`), the accounting
-(:mod:`.health`), the map of ``map_file``, the relocalization requests (:mod:`.relocalize`)
+(:mod:`.health`), the map of ``map.file``, the relocalization requests (:mod:`.relocalize`)
 and the initial-pose guards (:mod:`.initial_pose`); in ``mode: calibrate`` the pairs are
 calibration frames (:mod:`.calibration_run`); in continuous mode each scan is tracked from
 the pair's last pose where registration runs (:mod:`cgags_ros.pipeline.stream`, the counts
@@ -12,7 +12,7 @@ for :meth:`~RegistrationEngine.receive` and implements :class:`EngineOutputs`, t
 which the engine publishes, logs and asks for TF; it never reaches into the node.
 
 Threading: :meth:`~RegistrationEngine.receive` only pairs (any thread); registration runs
-on the engine's worker thread (in a child process unless ``registration_timeout`` is 0),
+on the engine's worker thread (in a child process unless ``worker.registration_timeout`` is 0),
 so a slow registration never blocks reception (the pairer's bounded queue drops the
 oldest pair). While inactive (:meth:`~RegistrationEngine.deactivate`, a lifecycle node's
 inactive state) sources are counted as rejected (``source_inactive``) and nothing is
@@ -71,16 +71,16 @@ class RegistrationEngine:
         self.registration: IsolatedRegistration | None = None  # the supervised process
         cfg = node_cfg
         # A map file is one latched target; on demand only the latest pair is kept.
-        pairing = ('latest_target' if cfg.map_file else
-                   'synchronized' if cfg.mode == 'calibrate' else cfg.pairing_mode)
+        pairing = ('latest_target' if cfg.map.file else
+                   'synchronized' if cfg.mode == 'calibrate' else cfg.pairing.mode)
         self._calibration = CalibrationRun.for_mode(cfg.mode, pipeline_cfg, calibration,
                                                     outputs)
         self._health = NodeHealth(Pairer.from_config(dataclasses.replace(
-            cfg, pairing_mode=pairing,
+            cfg.pairing, mode=pairing,
             queue_depth=1 if cfg.mode == 'on_demand' else backlog.queue_depth(cfg, pipeline_cfg))))
         self._backlog = backlog.Backlog()  # a tracked stream's scans waiting (continuous)
         self.on_demand = cfg.mode == 'on_demand'
-        self._map = MapTarget(cfg) if cfg.map_file else None
+        self._map = MapTarget(cfg) if cfg.map.file else None
         self._calls = RelocalizeCalls()
         self._initial_pose = InitialPoseGuard()
         self._candidates: list[Any] = []
@@ -97,7 +97,7 @@ class RegistrationEngine:
         """
         Start registering; return once a pair can be registered (see :mod:`.startup`).
 
-        Blocks while the registration process warms up and the map of ``map_file`` loads.
+        Blocks while the registration process warms up and the map of ``map.file`` loads.
 
         :raises StartFailed: why it cannot register; nothing it started is left running.
         """
@@ -156,7 +156,7 @@ class RegistrationEngine:
         """Use new (validated) configurations from the next pair on."""
         with self._lock:
             self._pipeline_cfg, self._node_cfg = pipeline_cfg, node_cfg
-        self._health.set_slop(node_cfg.sync_slop)
+        self._health.set_slop(node_cfg.pairing.sync_slop)
         if not self.on_demand:  # tracking switched on or off: the backlog follows
             self._health.set_queue_depth(backlog.queue_depth(node_cfg, pipeline_cfg))
 
@@ -208,7 +208,7 @@ class RegistrationEngine:
             if on_answer is not None:
                 on_answer(*answer)
             return answer
-        timeout = self.node_config.relocalize_timeout
+        timeout = self.node_config.relocalization.timeout
         req = self._calls.add(timeout, on_answer)
         if not wait:
             return True, 'requested'
@@ -244,7 +244,8 @@ class RegistrationEngine:
         cfg, pipe_cfg = self.node_config, self.pipeline_config
         if not tracks(cfg.mode, pipe_cfg):
             return 0
-        return self._backlog.to_skip(pending_ns, cfg.backlog_max_lag, pipe_cfg.tracking.max_age,
+        return self._backlog.to_skip(pending_ns, cfg.pairing.backlog_max_lag,
+                                     pipe_cfg.tracking.max_age,
                                      self._calls.waiting() is not None)
 
     def _ready(self) -> bool:
@@ -265,7 +266,7 @@ class RegistrationEngine:
         source, target = pair.source.payload, pair.target.payload
         pipe_cfg, cfg = self.pipeline_config, self.node_config
         stale = stale_scan(self._calls.waiting() if self.on_demand else None,
-                           source.receipt_ns, cfg.max_scan_age)
+                           source.receipt_ns, cfg.relocalization.max_scan_age)
         if stale:
             return 'on_demand_stale_scan', stale
         # Continuous mode is a stream: tracked from the last pose (a ~/relocalize call
@@ -292,7 +293,7 @@ class RegistrationEngine:
             RefusalCode.INTERNAL_ERROR, 'the estimated transform is not finite'))
         if self._map is not None:
             self._map.update(result)
-        frame = cfg.pose_frame_id or str(target.header.frame_id)
+        frame = cfg.output.pose_frame_id or str(target.header.frame_id)
         self._health.registered({
             'valid': refusal is None, 'reason': refusal.message if refusal else '',
             'refusal_code': refusal.code.value if refusal else '', 'inliers': result.num_inliers,
@@ -303,15 +304,16 @@ class RegistrationEngine:
             return 'inactive', Refusal(RefusalCode.INACTIVE, 'deactivated during registration')
         cov = np.asarray(result.covariance, dtype=np.float64)
         if refusal is not None:
-            if not cfg.publish_invalid or not np.isfinite(T).all():
+            if not cfg.output.publish_invalid or not np.isfinite(T).all():
                 self._finish(pair, result, T, cov, cfg, frame)
                 return 'invalid_result', Refusal(refusal.code,
                                                  f'invalid registration: {refusal.message}')
             self._health.count('published_invalid')
         self._outputs.publish_estimate(Estimate(
             T, cov, source.header, frame,
-            apply_transform(T, source.xyz) if cfg.publish_aligned_cloud else None,
-            (cfg.tf_child_frame or str(source.header.frame_id)) if cfg.broadcast_tf else ''))
+            apply_transform(T, source.xyz) if cfg.output.publish_aligned_cloud else None,
+            (cfg.output.tf_child_frame or str(source.header.frame_id))
+            if cfg.output.broadcast_tf else ''))
         self._finish(pair, result, T, cov, cfg, frame)
         return '', None
 
@@ -325,17 +327,18 @@ class RegistrationEngine:
         self._outputs.publish_candidates(header, frame_id, [
             c.transform for c in candidates if np.isfinite(c.transform).all()])
         called = self._calls.waiting() is not None
-        published, why = False, 'publish_initial_pose is off'
+        published, why = False, 'relocalization.publish_initial_pose is off'
         refusal = quality_refusal(result, cfg)  # once: the guard and the answer share it
-        if cfg.publish_initial_pose and (called or not self.on_demand):
+        reloc = cfg.relocalization
+        if reloc.publish_initial_pose and (called or not self.on_demand):
             lookup: ExtrinsicLookup = self._outputs.base_from_sensor
             why, T_map_base, cov_base = self._initial_pose.offer(
                 refusal, T, cov, str(header.frame_id), cfg, not called, lookup)
             if T_map_base is not None:
                 published = True
                 self._outputs.publish_initial_pose(BasePose(
-                    T_map_base, cov_base, header, cfg.map_frame,
-                    cfg.odom_frame if cfg.broadcast_map_to_odom else '', cfg.base_frame))
+                    T_map_base, cov_base, header, cfg.map.frame,
+                    reloc.odom_frame if reloc.broadcast_map_to_odom else '', reloc.base_frame))
         line = summary_line(result, T, refusal, published, why)
         with self._lock:
             self._candidates, self._last_summary = candidates, line
@@ -350,7 +353,7 @@ class RegistrationEngine:
         self._outputs.publish_result(PairResult(
             source.stamp_ns, source.frame_id, 'rejected' if cause else 'published', cause,
             refusal.message if refusal and cause else '', target.stamp_ns, target.frame_id,
-            self.node_config.pose_frame_id or target.frame_id, valid, result,
+            self.node_config.output.pose_frame_id or target.frame_id, valid, result,
             refusal if cause else None))
 
     def _settle(self, cause: str, refusal: Refusal | None) -> None:

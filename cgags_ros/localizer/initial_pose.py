@@ -3,16 +3,16 @@ The guards of the ``initialpose`` for Nav2/AMCL: the robot base's pose, only whe
 
 ROS-free. Quality guards (:func:`cgags_ros.validity.quality_refusal`, decided once per
 pair by the engine): a valid, unambiguous estimate with at least
-``initial_pose_min_inliers`` inliers, a best/runner-up candidate ratio of at least
-``initial_pose_min_ratio`` and a fitness of at least ``initial_pose_min_fitness``. Then
-``initial_pose_cooldown`` seconds since the last publish and, for scans registered without
-a relocalization request, at most ``initial_pose_max_auto`` publishes. Every publish and
+``relocalization.min_inliers`` inliers, a best/runner-up candidate ratio of at least
+``relocalization.min_ratio`` and a fitness of at least ``relocalization.min_fitness``. Then
+``relocalization.cooldown`` seconds since the last publish and, for scans registered without
+a relocalization request, at most ``relocalization.max_auto`` publishes. Every publish and
 every refusal is counted, refusals by code (``initial_pose.refused.<code>``).
 
 The pose is the base's: ``T_map_base = T_map_sensor inv(T_base_sensor)`` with the
-extrinsic from ``base_from_sensor``, or else from the node's TF lookup (``base_frame`` <-
-the scan's frame). Its covariance is the sensor pose's moved along the lever arm
-(:func:`~cgags_ros.pipeline.covariance.moved_covariance`).
+extrinsic from ``relocalization.base_from_sensor``, or else from the node's TF lookup
+(``relocalization.base_frame`` <- the scan's frame). Its covariance is the sensor pose's
+moved along the lever arm (:func:`~cgags_ros.pipeline.covariance.moved_covariance`).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..config.node import NodeConfig, parse_pose7
+from ..config.node import NodeConfig
 from ..geometry import make_transform, quaternion_to_matrix
 from ..pipeline.covariance import moved_covariance
 from ..refusal import Refusal, RefusalCode
@@ -34,8 +34,8 @@ ExtrinsicLookup = Callable[[str, str], 'np.ndarray | None']
 
 
 def extrinsic(cfg: NodeConfig) -> np.ndarray | None:
-    """Return ``T_base_sensor`` of ``base_from_sensor`` (4x4, metres), None when unset."""
-    values = parse_pose7(cfg.base_from_sensor)
+    """Return ``T_base_sensor`` of ``relocalization.base_from_sensor`` (4x4, metres) or None."""
+    values = cfg.relocalization.sensor_pose
     if values is None:
         return None
     return make_transform(quaternion_to_matrix(values[3:]), values[:3])
@@ -59,28 +59,29 @@ class InitialPoseGuard:
         :param cov: the 6x6 covariance of ``T`` (ROS order).
         :param automatic: the scan was registered without a relocalization request.
         :param lookup: the node's TF lookup of the extrinsic, for an unset
-            ``base_from_sensor``.
+            ``relocalization.base_from_sensor``.
         :returns: (what was published or why not: the refusal as ``code: message``,
             ``T_map_base`` or None, its covariance or None); a publish is counted as done.
         """
         now = time.monotonic()
         with self._lock:
             if not refusal and self._last_publish is not None \
-                    and now - self._last_publish < cfg.initial_pose_cooldown:
+                    and now - self._last_publish < cfg.relocalization.cooldown:
                 refusal = Refusal(RefusalCode.COOLDOWN, (
                     f'{now - self._last_publish:.1f} s since the last publish < '
-                    f'initial_pose_cooldown {cfg.initial_pose_cooldown:g} s'))
-            if not refusal and automatic and self.counts['auto'] >= cfg.initial_pose_max_auto:
+                    f'relocalization.cooldown {cfg.relocalization.cooldown:g} s'))
+            if not refusal and automatic and self.counts['auto'] >= cfg.relocalization.max_auto:
                 refusal = Refusal(RefusalCode.MAX_AUTO, (
-                    f'{self.counts["auto"]} automatic publishes = initial_pose_max_auto '
-                    f'{cfg.initial_pose_max_auto}'))
+                    f'{self.counts["auto"]} automatic publishes = relocalization.max_auto '
+                    f'{cfg.relocalization.max_auto}'))
         base = None
         if not refusal:
             base = extrinsic(cfg)
-            base = lookup(cfg.base_frame, sensor_frame) if base is None else base
+            base = lookup(cfg.relocalization.base_frame, sensor_frame) if base is None else base
         if not refusal and base is None:
             refusal = Refusal(RefusalCode.NO_EXTRINSIC, (
-                f'no TF {cfg.base_frame} <- {sensor_frame} (set base_from_sensor)'))
+                f'no TF {cfg.relocalization.base_frame} <- {sensor_frame} (set '
+                'relocalization.base_from_sensor)'))
         with self._lock:
             if refusal:
                 self.counts[f'refused.{refusal.code.value}'] += 1
@@ -89,7 +90,7 @@ class InitialPoseGuard:
             self.counts['auto'] += automatic
             self._last_publish = now
         sensor_base = np.linalg.inv(base)
-        return (f'initial pose published in {cfg.map_frame}', T @ sensor_base,
+        return (f'initial pose published in {cfg.map.frame}', T @ sensor_base,
                 moved_covariance(cov, T, sensor_base))
 
     def statistics(self) -> dict[str, int]:

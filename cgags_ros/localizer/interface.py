@@ -44,7 +44,7 @@ class Estimate:
     :ivar transform: 4x4 ``T`` with ``p_frame = R p_source + t`` (metres).
     :ivar covariance: 6x6 covariance of ``transform`` (ROS order, metres and radians).
     :ivar header: the source cloud's message header (its stamp is the outputs').
-    :ivar frame_id: frame of the pose (the target's, or ``pose_frame_id``).
+    :ivar frame_id: frame of the pose (the target's, or ``output.pose_frame_id``).
     :ivar aligned: the source points moved into ``frame_id``, or None (not published).
     :ivar tf_child_frame: child frame of the TF to broadcast; '' broadcasts none.
     """
@@ -113,7 +113,7 @@ class PairResult:
     :ivar message: why, in words ('' when published).
     :ivar target_stamp_ns: the target it was paired with (None: not paired).
     :ivar target_frame: that target's frame.
-    :ivar frame_id: the frame of the pose (the target's or ``pose_frame_id``; '' unpaired).
+    :ivar frame_id: the frame of the pose (the target's or ``output.pose_frame_id``; '' unpaired).
     :ivar valid: the registration is valid (and its transform finite).
     :ivar result: the registration's result (a ``PipelineResult``), None when none ran.
     :ivar refusal: why the node rejected or dropped the source (a timeout, a stale scan, a

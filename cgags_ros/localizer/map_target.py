@@ -1,5 +1,5 @@
 """
-The map of ``map_file`` as the node's one latched target: loaded where the pipeline runs.
+The map of ``map.file`` as the node's one latched target: loaded where the pipeline runs.
 
 ROS-free. The features are computed (or read from the on-disk cache) in the registration
 process, so the node's process never holds them; the node pairs every scan with a target
@@ -33,7 +33,7 @@ class MapTarget:
     """The map file, its load summary (``map.*`` of /diagnostics) or why it is unusable."""
 
     def __init__(self, cfg: NodeConfig):
-        self.ref = MapRef(os.path.expanduser(cfg.map_file), os.path.expanduser(cfg.map_cache_dir))
+        self.ref = MapRef(os.path.expanduser(cfg.map.file), os.path.expanduser(cfg.map.cache_dir))
         self.info: dict[str, Any] = {}
         self.error = ''
 
@@ -42,7 +42,7 @@ class MapTarget:
         """
         Load the map where the pipeline runs (features computed or from the cache).
 
-        In the registration process the load may take ``map_load_timeout``; in this
+        In the registration process the load may take ``map.load_timeout``; in this
         process (no registration process) it cannot be bounded.
 
         :returns: the map as the target of every scan.
@@ -53,11 +53,11 @@ class MapTarget:
         log('info', f'loading map {ref.path} (cache {ref.cache_dir or "off"})')
         try:
             if registration is not None:
-                info = registration.prepare_map(ref, config, cfg.map_load_timeout)
+                info = registration.prepare_map(ref, config, cfg.map.load_timeout)
             else:
                 info = prepare_map(ref, config)
         except CgagsError as exc:
-            self.error = f'map_file cannot be used: {exc}'
+            self.error = f'map.file cannot be used: {exc}'
             raise StartFailed(self.error) from exc
         self.info = info
         note = (f", {info['nonfinite_points']} non-finite points dropped"
@@ -70,7 +70,7 @@ class MapTarget:
                 "unlike a scan's (its sensor): fine for one scan kept in its sensor frame, "
                 'not for a map fused from many views; write the map with normals facing its '
                 'sensors, or set frontend.normal_orientation to centroid (docs/relocalization.md)')
-        return Cloud(ref, FrameHeader(cfg.map_frame), time.monotonic_ns())
+        return Cloud(ref, FrameHeader(cfg.map.frame), time.monotonic_ns())
 
     def update(self, result: PipelineResult) -> None:
         """Take the map summary a registration reports (the map may have been reloaded)."""

@@ -7,8 +7,8 @@ confident pose (valid, not ambiguous, every quality guard of the initial pose pa
 one-line summary (pose, inliers, best/runner-up ratio), or, on failure, a line that
 starts with the refusal's code (``ambiguous: not localized: ...``, :func:`not_localized`).
 In on_demand mode a request takes the latest scan if it was received within
-``max_scan_age`` before the request, or else waits for the next one; a request no
-registration answered within its timeout (``relocalize_timeout``) fails.
+``relocalization.max_scan_age`` before the request, or else waits for the next one; a
+request no registration answered within its timeout (``relocalization.timeout``) fails.
 """
 
 from __future__ import annotations
@@ -89,7 +89,7 @@ class RelocalizeCalls:
         for req in late:
             timeout = req.deadline - req.called
             refusal = Refusal(RefusalCode.NO_SCAN, 'no scan received within '
-                              f'relocalize_timeout = {timeout:g} s')
+                              f'relocalization.timeout = {timeout:g} s')
             self._finish(req, not_localized(refusal), refusal)
 
     def answer(self, message: str, refusal: Refusal | None = None) -> int:
@@ -155,4 +155,5 @@ def stale_scan(called: float | None, receipt_ns: int, max_scan_age: float) -> Re
         return None
     return Refusal(RefusalCode.STALE, (
         f'on_demand: the latest scan was received {age:.2f} s before the relocalization '
-        f'request (> max_scan_age {max_scan_age:g} s); waiting for the next one'))
+        f'request (> relocalization.max_scan_age {max_scan_age:g} s); waiting for the '
+        'next one'))

@@ -4,14 +4,14 @@ Starting registration: what a lifecycle node's configure transition waits for.
 ROS-free. :func:`start_registration` returns once a pair can be registered at once: the
 registration process (:class:`~cgags_ros.pipeline.isolated.IsolatedRegistration`) has
 finished its warm-up (the pipeline imported, its numba code compiled or read from its
-cache, one small registration) and, with ``map_file``, the map's features are prepared
+cache, one small registration) and, with ``map.file``, the map's features are prepared
 where the pipeline runs (:class:`~.map_target.MapTarget`). Otherwise it raises
 :class:`~.interface.StartFailed` with the reason and leaves nothing running, so that
 configure fails and the node stays unconfigured.
 
-Every wait is bounded when the pipeline runs in its own process (``registration_timeout``
+Every wait is bounded when the pipeline runs in its own process (``worker.registration_timeout``
 > 0, the default): the warm-up by :data:`~cgags_ros.pipeline.isolated.WARM_UP_LIMIT_S`, the
-map load by ``map_load_timeout``. In the node's own process (``registration_timeout`` 0, and
+map load by ``map.load_timeout``. In the node's own process (``worker.registration_timeout`` 0, and
 ``mode: calibrate``) a Python call cannot be interrupted: the import, the warm-up and the
 map load end when they end.
 """
@@ -34,7 +34,7 @@ def start_registration(pipeline_cfg: PipelineConfig, cfg: NodeConfig, in_process
     """
     Start what registers pairs and wait until it can (see the module doc).
 
-    :param in_process: run the pipeline in this process even if ``registration_timeout``
+    :param in_process: run the pipeline in this process even if ``worker.registration_timeout``
         asks for a registration process (the calibrate mode does).
     :param register_fn: replaces the pipeline (tests of the plumbing only).
     :param map_target: the :class:`~.map_target.MapTarget` to load, or None.
@@ -47,8 +47,8 @@ def start_registration(pipeline_cfg: PipelineConfig, cfg: NodeConfig, in_process
     try:
         if register_fn is not None:
             register = register_fn
-        elif cfg.registration_timeout > 0 and not in_process:
-            registration = IsolatedRegistration(cfg.registration_timeout)
+        elif cfg.worker.registration_timeout > 0 and not in_process:
+            registration = IsolatedRegistration(cfg.worker.registration_timeout)
             register = registration
             registration.wait_ready()
         else:  # import the pipeline (and Open3D) now, so the first pair is not slowed by it

@@ -4,10 +4,10 @@ A tracked stream's backlog: the scans that arrive while a registration runs.
 A global registration takes several scan periods. With a queue of one pair, the scan taken
 after it is the newest, too far from the last pose (and with no velocity yet) to be
 tracked, so the stream goes global again and never settles. A tracked stream
-(:func:`~.stream.tracks`) therefore keeps up to ``backlog`` pairs and registers
+(:func:`~.stream.tracks`) therefore keeps up to ``pairing.backlog`` pairs and registers
 them in stamp order, each from its predecessor's pose: tracking a scan takes less than a
 scan period, so the backlog drains and the stream keeps up. When it does not drain fast
-enough (the oldest waiting scan more than ``backlog_max_lag`` behind the newest) and the
+enough (the oldest waiting scan more than ``pairing.backlog_max_lag`` behind the newest) and the
 last scan was tracked, every other waiting scan is dropped, as long as the next one taken
 is within ``tracking.max_age`` of the last (beyond it the Tracker has no prediction);
 the Tracker scales the constant velocity to the next scan's stamp. When the oldest
@@ -31,8 +31,9 @@ SKIPPED = 'source_skipped_catching_up'  # the pairing drop reason of a skipped s
 
 
 def queue_depth(node: NodeConfig, config: PipelineConfig) -> int:
-    """Return the pairs to keep: ``queue_depth``, or ``backlog`` when larger and tracked."""
-    return max(node.queue_depth, node.backlog) if tracks(node.mode, config) else node.queue_depth
+    """Return the pairs to keep: ``pairing.queue_depth``, or ``pairing.backlog`` when tracked."""
+    depth = node.pairing.queue_depth
+    return max(depth, node.pairing.backlog) if tracks(node.mode, config) else depth
 
 
 class Backlog:
@@ -53,7 +54,7 @@ class Backlog:
         Return how many of the oldest waiting pairs to drop before the next is taken.
 
         :param pending_ns: the waiting pairs' source stamps, oldest first (nanoseconds).
-        :param max_lag: ``backlog_max_lag``, seconds (0: never skip for lag).
+        :param max_lag: ``pairing.backlog_max_lag``, seconds (0: never skip for lag).
         :param max_age: ``tracking.max_age``, seconds: no prediction beyond it.
         :param called: a ``~/relocalize`` call waits (it is answered from the newest scan).
         """

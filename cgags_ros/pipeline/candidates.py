@@ -122,7 +122,7 @@ def rank_candidates(result: PipelineResult, found: list[Candidate],
     result.candidates = found
     if len(found) > 1 and found[1].num_inliers > 0:
         result.runner_up_ratio = best.num_inliers / found[1].num_inliers
-        result.ambiguous = result.runner_up_ratio < cfg.ambiguity_ratio
+        result.ambiguous = result.runner_up_ratio < cfg.gates.ambiguity_ratio
 
 
 def verify_rivals(fs: CloudFeatures, ft: CloudFeatures, result: PipelineResult,
@@ -142,14 +142,14 @@ def verify_rivals(fs: CloudFeatures, ft: CloudFeatures, result: PipelineResult,
     is then returned, for the caller to make it the estimate. ``ambiguous`` stays True only
     when another plausible pose's overlap is above the chosen one's / ``ambiguity_ratio``,
     or when the chosen one's free-space violation is above the tighter bound of an
-    unsettled estimate (``refine.free_space_settle_factor``).
+    unsettled estimate (``gates.free_space_settle_factor``).
     """
-    if not (cfg.verify_rivals and result.ambiguous) or cfg.refine.method == 'none':
+    if not (cfg.gates.verify_rivals and result.ambiguous) or cfg.refine.method == 'none':
         return None
-    v, ratio = cfg.voxel_size, cfg.ambiguity_ratio
+    v, ratio = cfg.voxel_size, cfg.gates.ambiguity_ratio
     distance = cfg.refine.max_correspondence_distance_factor * v
     gravity = cfg.core.gravity_axis if cfg.core.motion_model == '4dof' else None
-    limit = cfg.refine.max_free_space_violation
+    limit = cfg.gates.max_free_space_violation
     best = result.candidates[0]
     # (candidate, overlap) of every plausible pose within the inlier ratio, best first.
     plausible = [] if result.free_space_violation > limit else [(best, result.overlap)]

@@ -36,9 +36,9 @@ def measure(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
                                            result.inlier_threshold)
     members = 2 if cfg.core.motion_model == '4dof' else 3
     result.chance_bound = float('nan')  # the gate is off
-    if cfg.refine.significance > 0:
+    if cfg.gates.significance > 0:
         result.chance_bound = chance_bound(result.chance_inliers, result.num_hypotheses,
-                                           cfg.refine.significance, members)
+                                           cfg.gates.significance, members)
     measure_overlap(fs.points, fs.tree, ft, result, cfg, map_target)
 
 
@@ -84,7 +84,7 @@ def measured_free_space(fs: CloudFeatures, ft: CloudFeatures, transform: np.ndar
     Return :func:`free_space_violation` of ``transform`` as the config asks for it.
 
     NaN when the gate does not apply: clouds not in their sensor frames (normals not
-    oriented to the origin) or the gate disabled (``refine.max_free_space_violation`` 1).
+    oriented to the origin) or the gate disabled (``gates.max_free_space_violation`` 1).
     """
     return free_space_of(fs.points, ft.points, transform, cfg, map_target)
 
@@ -92,11 +92,11 @@ def measured_free_space(fs: CloudFeatures, ft: CloudFeatures, transform: np.ndar
 def free_space_of(source: np.ndarray, target: np.ndarray, transform: np.ndarray,
                   cfg: PipelineConfig, map_target: bool = False) -> float:
     """Return :func:`measured_free_space` of the downsampled clouds' points (metres)."""
-    if cfg.frontend.normal_orientation != 'origin' or cfg.refine.max_free_space_violation >= 1:
+    if cfg.frontend.normal_orientation != 'origin' or cfg.gates.max_free_space_violation >= 1:
         return float('nan')
     return free_space_violation(source, target, transform,
-                                cfg.refine.free_space_margin_factor * cfg.voxel_size,
-                                cfg.refine.free_space_bin_deg, target_view=not map_target)
+                                cfg.gates.free_space_margin_factor * cfg.voxel_size,
+                                cfg.gates.free_space_bin_deg, target_view=not map_target)
 
 
 def free_space_violation(source: np.ndarray, target: np.ndarray, transform: np.ndarray,

@@ -4,7 +4,7 @@
 A pathological input that makes the pipeline loop costs one pair (the child is killed past
 the time limit and a fresh one started), and a child that dies (the OOM killer, a native
 crash in a library, ``kill -9``), idle or busy, is replaced; the caller keeps registering.
-The node runs every pair through it (``registration_timeout`` > 0); any other caller that
+The node runs every pair through it (``worker.registration_timeout`` > 0); any other caller that
 must survive a bad pair can too.
 
 Built on public API only: one ``multiprocessing`` spawn-context :class:`~multiprocessing.Process`
@@ -39,7 +39,7 @@ WARM_UP_LIMIT_S = 300.0  # with a cold numba cache the warm-up compiles the numb
 
 
 class RegistrationTimeout(CgagsError):
-    """A registration ran past ``registration_timeout`` and its process was killed."""
+    """A registration ran past ``worker.registration_timeout`` and its process was killed."""
 
     code = RefusalCode.TIMEOUT
 
@@ -51,7 +51,7 @@ class WorkerCrashed(CgagsError):
 
 
 _child_target: Any = None  # in the registration process: the last target
-_map_holder: Any = None  # in the process that runs the pipeline: the map of a map_file
+_map_holder: Any = None  # in the process that runs the pipeline: the map of a map.file
 
 
 @dataclasses.dataclass(frozen=True)
@@ -351,7 +351,8 @@ class IsolatedRegistration:
         try:
             result = self._in_child(
                 job, self.timeout_s,
-                f'registration took longer than registration_timeout = {self.timeout_s:g} s',
+                'registration took longer than worker.registration_timeout = '
+                f'{self.timeout_s:g} s',
                 'during this pair (killed, out of memory or a native crash)')
         except _TargetNotHeld:  # not expected (a restart forgets what was sent); resend
             return self(source, target, config=config, stamp=stamp)

@@ -103,7 +103,7 @@ def load_map(path: str | Path, config: PipelineConfig,
     start = time.perf_counter()
     path = Path(path)
     if not path.is_file():
-        raise InvalidInputError(f'map_file {str(path)!r}: no such file')
+        raise InvalidInputError(f'map.file {str(path)!r}: no such file')
     settings = feature_settings(config)
     digest = map_cache.file_digest(path)
     key = map_cache.cache_key(digest, settings)
@@ -121,7 +121,7 @@ def load_map(path: str | Path, config: PipelineConfig,
     finite = np.isfinite(points).all(axis=1)
     raw, nonfinite = len(points), int(len(points) - np.count_nonzero(finite))
     if not finite.any():
-        raise EmptyCloudError(f'map_file {str(path)!r}: no finite points ({raw} rows, all '
+        raise EmptyCloudError(f'map.file {str(path)!r}: no finite points ({raw} rows, all '
                               'empty or NaN/inf)')
     oriented_by = config.frontend.normal_orientation if sides is None else 'file normals'
     features = extract_features(points[finite], config.voxel_size, config.frontend, 'map',

@@ -62,12 +62,12 @@ class Pairer:
     @classmethod
     def from_config(cls, cfg, queue_depth: int | None = None) -> 'Pairer':
         """
-        Return the Pairer a :class:`~cgags_ros.config.node.NodeConfig` describes.
+        Return the Pairer a :class:`~cgags_ros.config.node.PairingConfig` describes.
 
         The node and the replay tool both build theirs here; ``queue_depth`` overrides
         the config's.
         """
-        return cls(cfg.pairing_mode, slop=cfg.sync_slop,
+        return cls(cfg.mode, slop=cfg.sync_slop,
                    queue_depth=queue_depth or cfg.queue_depth,
                    max_waiting_sources=cfg.max_waiting_sources,
                    max_waiting_targets=cfg.max_waiting_targets)

@@ -88,11 +88,11 @@ def _judged(result: PipelineResult, fs: CloudFeatures, ft: CloudFeatures,
         result, fs.points, ft.points, ft.normals, ft.tree,
         cfg.refine.max_correspondence_distance_factor * cfg.voxel_size,
         cfg.core.gravity_axis if four_dof else None)
-    result.confidence = probability(features(result, cfg.refine.significance,
+    result.confidence = probability(features(result, cfg.gates.significance,
                                              2 if four_dof else 3))
     if map_target or four_dof:
         return result.finish(start, refusal)
-    return result.finish(start, refusal or confidence_refusal(result, cfg.min_confidence))
+    return result.finish(start, refusal or confidence_refusal(result, cfg.gates.min_confidence))
 
 
 def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float | None,
@@ -172,7 +172,7 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
             refusal = gate_refusal(result, cfg, left_to_gates)
             chosen.fitness = result.fitness
     refusal = ambiguity_refusal(result, cfg) or refusal
-    if not refusal and cfg.structured_rivals:
+    if not refusal and cfg.gates.structured_rivals:
         with timed(result.timings, 'structured_rivals'):
             rival = structured_rival(fs, ft, corr, result, cfg, map_target, workers)
         if rival is not None:
@@ -269,7 +269,7 @@ def _global_estimate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences
         raise DegenerateCorrespondencesError(
             f'only {len(corr)} putative correspondence(s) (need {need}): the FPFH features '
             'do not match; check the voxel size and that the clouds overlap')
-    tau = cfg.frontend.inlier_threshold or None
+    tau = cfg.core.inlier_threshold or None
     try:
         return register_correspondences(
             fs.points[corr.source_index], ft.points[corr.target_index], inlier_threshold=tau,

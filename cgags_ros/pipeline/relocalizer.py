@@ -223,7 +223,7 @@ class Relocalizer:
             fused = np.vstack([apply_transform(to_latest @ s.odom, s.xyz) for s in self.scans])
             self.submaps.append(register_clouds(fused, self.prepared, config=self.config))
             self._propose_all(self.submaps[-1], index, 'submap')
-        limit = self.config.refine.max_free_space_violation
+        limit = self.config.gates.max_free_space_violation
         for h in self.hypotheses:
             # Its own scan first; a hypothesis a scan does not explain is refuted: the
             # other scans need not check it.
@@ -295,7 +295,7 @@ def judge(hypotheses: list[Hypothesis], results: list[PipelineResult], odom: lis
 
     A pure function of the checks, so that thresholds can be studied on recorded ones.
     """
-    n, limit = len(results), config.refine.max_free_space_violation
+    n, limit = len(results), config.gates.max_free_space_violation
 
     def explained(h: Hypothesis) -> list[bool]:  # a check left out: refuted earlier
         return [i in h.checks and h.checks[i].explains(seq, limit) for i in range(n)]

@@ -57,7 +57,7 @@ class PipelineResult(RegistrationResult):
     :ivar chance_inliers: inliers the estimate would collect if every correspondence were
         an outlier (expected value under a random pairing).
     :ivar chance_bound: the inlier count the best of ``num_hypotheses`` such estimates
-        exceeds with probability ``refine.significance`` (NaN when that gate is off).
+        exceeds with probability ``gates.significance`` (NaN when that gate is off).
     :ivar inlier_source_points: (K, 3) source side of the core's inlier correspondences
         (downsampled keypoints, source frame, metres).
     :ivar inlier_target_points: (K, 3) target side of the same correspondences (target

@@ -81,7 +81,7 @@ def structured_rival(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences
     """
     if (cfg.core.motion_model == '4dof' or cfg.refine.method == 'none' or map_target
             or cfg.frontend.normal_orientation != 'origin'
-            or cfg.refine.max_free_space_violation >= 1):
+            or cfg.gates.max_free_space_violation >= 1):
         return None
     v = cfg.voxel_size
     distance = cfg.refine.max_correspondence_distance_factor * v

@@ -14,25 +14,26 @@ otherwise set the manager's ``bond_timeout: 0.0`` (docs/lifecycle.md).
 
 Topics (relative names; remap them):
     source_cloud (sensor_msgs/PointCloud2, in): the cloud to align, in its sensor frame.
-        Sensor-data QoS by default (``source_qos``).
+        Sensor-data QoS by default (``pairing.source_qos``).
     target_cloud (sensor_msgs/PointCloud2, in): the reference (map or previous scan).
-        Reliable; durability ``target_durability``. Not subscribed with ``map_file``.
+        Reliable; durability ``pairing.target_durability``. Not subscribed with ``map.file``.
     ~/pose (geometry_msgs/PoseStamped, out): pose of the source frame in the target frame
         (``T``: ``p_target = R p_source + t``, metres), stamped with the source's stamp,
-        frame_id = target frame (or ``pose_frame_id``).
+        frame_id = target frame (or ``output.pose_frame_id``).
     ~/pose_with_covariance (geometry_msgs/PoseWithCovarianceStamped, out): the same with
         the pipeline result's covariance.
-    ~/aligned_cloud (sensor_msgs/PointCloud2, out, ``publish_aligned_cloud``).
+    ~/aligned_cloud (sensor_msgs/PointCloud2, out, ``output.publish_aligned_cloud``).
     ~/candidates (geometry_msgs/PoseArray, out): ranked candidate poses, best first.
     ~/result (std_msgs/String, out, JSON; reliable): what became of each source (published,
         rejected or dropped, and why) with its registration's result as ``cgags-register
         --json`` prints it (:class:`~cgags_ros.localizer.interface.PairResult`), also while
         inactive.
-    initialpose (geometry_msgs/PoseWithCovarianceStamped, out, ``publish_initial_pose``):
+    initialpose (geometry_msgs/PoseWithCovarianceStamped, out,
+        ``relocalization.publish_initial_pose``):
         the guarded base pose for Nav2/AMCL (:mod:`cgags_ros.localizer.initial_pose`).
     /diagnostics (diagnostic_msgs/DiagnosticArray, out): status and counters
         (:mod:`.diagnostics`), also while inactive.
-    /tf (``broadcast_tf``, when tf2_ros is importable): target frame -> source frame.
+    /tf (``output.broadcast_tf``, when tf2_ros is importable): target frame -> source frame.
     ``mode: calibrate`` publishes instead, once, latched: ~/calibration
     (geometry_msgs/PoseWithCovarianceStamped: child = source sensor in parent = target
     frame), ~/calibration_report (std_msgs/String, JSON) and /tf_static parent -> child;
@@ -46,13 +47,14 @@ answer keeps its group until then, and other calls and the topics go on beside i
         answer it holds no executor thread.
     reinitialize_global_localization (std_srvs/Empty, relative name, as Nav2 calls it):
         the same request, answered at once; its outcome is logged and, with
-        ``publish_initial_pose``, published on initialpose.
+        ``relocalization.publish_initial_pose``, published on initialpose.
 
-Parameters: the short grouped list of :mod:`cgags_ros.config.ros_parameters` (voxel_size,
-pairing.*, map.*, relocalization.*, output.*, frontend.*/core.*; vectors as arrays), with
-descriptions and ranges from the config dataclasses; every other configuration key is set
-in the YAML of ``config_file``. Changes at run time are validated and apply to the next
-pair; a name of the former flat interface is refused with its new name.
+Parameters: the configuration keys declared ``ros=True`` (:mod:`cgags_ros.config.node`:
+voxel_size, mode, pairing.*, map.*, relocalization.*, output.*, frontend.*/core.*; vectors
+as arrays), under their own names, with descriptions and ranges from the config dataclasses.
+``config_file`` (read first) may set any key; its values become the declared defaults, so a
+ROS parameter given to the node (params file, ``-p``) overrides it. Changes at run time are
+validated and apply to the next pair; a name that is no ROS parameter is refused.
 The node only wires: :class:`~cgags_ros.localizer.engine.RegistrationEngine` decides,
 :class:`~.outputs.Outputs` publishes.
 
@@ -79,10 +81,11 @@ from . import diagnostics
 from .outputs import Outputs
 from .parameters import descriptor
 from .qos import source_qos, target_qos
-from ..config.node import NodeConfig
+from ..config import fields
+from ..config.node import (calibration_config, configs_from_file, configs_from_parameters,
+                           NodeConfig, parameter_descriptions, ros_parameter_descriptions,
+                           ros_value)
 from ..config.pipeline import PipelineConfig
-from ..config.ros_parameters import (calibration_config, configs_from_ros, migration,
-                                     ros_parameter_descriptions)
 from ..errors import CgagsError, EmptyCloudError, InvalidConfigError, InvalidInputError
 from ..io.pointcloud2 import pointcloud2_to_xyz, stamp_to_ns
 from ..localizer.engine import RegistrationEngine
@@ -110,12 +113,7 @@ class RegisterNode(LifecycleNode):
         kwargs.setdefault('allow_undeclared_parameters', True)
         super().__init__(node_name, **kwargs)
         self._descriptions = ros_parameter_descriptions()
-        for name, meta in self._descriptions.items():
-            self.declare_parameter(name, meta['default'], descriptor(name, meta))
-        former = sorted(set(self._parameter_overrides) & set(migration()))
-        if former:  # a YAML or -p of the former interface: refused, naming the new name
-            raise InvalidConfigError('former parameters: ' + '; '.join(
-                f'{name} ({migration()[name]})' for name in former))
+        self._declare_parameters()
         _, cfg = self._configs()  # invalid startup values (a choice typo) raise here
         self._register_fn = register_fn
         self._engine: RegistrationEngine | None = None
@@ -154,17 +152,17 @@ class RegisterNode(LifecycleNode):
         self._entities = [
             self.create_subscription(PointCloud2, 'source_cloud', self._on_source,
                                      source_qos(cfg)),
-            self.create_timer(cfg.diagnostics_period, self._publish_diagnostics),
+            self.create_timer(cfg.output.diagnostics_period, self._publish_diagnostics),
             self.create_service(Trigger, '~/relocalize', self._on_relocalize,
                                 callback_group=self._service_group),
             self.create_service(Empty, 'reinitialize_global_localization',
                                 self._on_reinitialize, callback_group=self._service_group)]
-        if not cfg.map_file:
+        if not cfg.map.file:
             self._entities.append(self.create_subscription(
                 PointCloud2, 'target_cloud', self._on_target, target_qos(cfg)))
         self.get_logger().info(
-            f"registering source_cloud onto {cfg.map_file or 'target_cloud'} ({cfg.mode}, "
-            f'{cfg.pairing_mode}, voxel_size {pipe.voxel_size} m; '
+            f"registering source_cloud onto {cfg.map.file or 'target_cloud'} ({cfg.mode}, "
+            f'{cfg.pairing.mode}, voxel_size {pipe.voxel_size} m; '
             f"Fast DDS profile: {self._transport_profile or 'none'})")
         return super().on_configure(state)
 
@@ -218,16 +216,38 @@ class RegisterNode(LifecycleNode):
 
     # ------------------------------------------------------------------ parameters
 
+    def _declare_parameters(self) -> None:
+        """
+        Declare the ROS parameters, their defaults taken from ``config_file``.
+
+        ``config_file`` is declared (and read) first; every other parameter is declared with
+        the file's value as its default, so the parameters given to the node (params file,
+        ``-p``) override the file and the file overrides the dataclass defaults.
+        """
+        meta = self._descriptions['config_file']
+        path = self.declare_parameter('config_file', meta['default'],
+                                      descriptor('config_file', meta)).value
+        self._file_configs = configs_from_file(path)
+        defaults = {**fields.flatten(self._file_configs[0]),
+                    **fields.flatten(self._file_configs[1])}
+        for name, meta in self._descriptions.items():
+            if name != 'config_file':
+                self.declare_parameter(name, ros_value(defaults[name]), descriptor(name, meta))
+        unknown = sorted(n for n in self._parameter_overrides
+                         if not self.has_parameter(n) and not n.startswith('qos_overrides.'))
+        if unknown:  # a typo or a key that is no ROS parameter, in a params file or -p
+            raise InvalidConfigError('; '.join(_not_a_parameter(n) for n in unknown))
+
     def _configs(self) -> tuple[PipelineConfig, NodeConfig]:
-        """Return the validated configurations of the current parameter values."""
-        return configs_from_ros(
-            {name: self.get_parameter(name).value for name in self._descriptions})
+        """Return the validated configurations: config_file's, then the ROS parameters."""
+        return configs_from_parameters(
+            {name: self.get_parameter(name).value for name in self._descriptions},
+            base=self._file_configs)
 
     def _on_set_parameters(self, params: list[rclpy.parameter.Parameter]) -> SetParametersResult:
         for p in params:
             if not self.has_parameter(p.name):
-                why = migration().get(p.name, 'unknown parameter (docs/parameters.md)')
-                return SetParametersResult(successful=False, reason=f'{p.name}: {why}')
+                return SetParametersResult(successful=False, reason=_not_a_parameter(p.name))
         changes = {p.name: p.value for p in params if p.name in self._descriptions}
         if not changes:
             return SetParametersResult(successful=True)
@@ -235,7 +255,7 @@ class RegisterNode(LifecycleNode):
         try:
             base = ((engine.pipeline_config, engine.node_config) if engine is not None
                     else self._configs())
-            pipe, node = configs_from_ros(changes, base=base)
+            pipe, node = configs_from_parameters(changes, base=base)
         except InvalidConfigError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         if engine is not None:
@@ -253,7 +273,7 @@ class RegisterNode(LifecycleNode):
         stamp = 0
         try:
             stamp = stamp_to_ns(msg.header.stamp)
-            xyz = pointcloud2_to_xyz(msg, max_points=engine.node_config.max_cloud_points)
+            xyz = pointcloud2_to_xyz(msg, max_points=engine.node_config.pairing.max_cloud_points)
         except InvalidInputError as exc:
             cause = f"{role}_{'empty' if isinstance(exc, EmptyCloudError) else 'malformed'}"
             engine.receive(role, stamp, '', None, cause, f'{role} cloud rejected: {exc}')
@@ -318,6 +338,14 @@ class RegisterNode(LifecycleNode):
         outputs.publish_diagnostics(self.statistics())
 
 
+def _not_a_parameter(name: str) -> str:
+    """Say why ``name`` is no ROS parameter of the node, and where it is set instead."""
+    if name in parameter_descriptions():
+        return (f'{name}: not a ROS parameter; set it in the YAML of config_file '
+                '(docs/parameters.md)')
+    return f'{name}: unknown parameter (docs/parameters.md)'
+
+
 def _start_bond(node: RegisterNode) -> Any:
     """Form the bond nav2_lifecycle_manager watches, when bondpy is importable (else None)."""
     try:
@@ -353,7 +381,7 @@ def main(args: list[str] | None = None) -> None:
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except InvalidConfigError as exc:  # e.g. a pairing_mode typo in the YAML
+    except InvalidConfigError as exc:  # e.g. a pairing.mode typo in the YAML
         rclpy.logging.get_logger('register_node').fatal(str(exc))
         raise SystemExit(2) from None
     except RuntimeError:  # an rclpy call racing the signal handler's shutdown

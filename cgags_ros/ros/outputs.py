@@ -73,7 +73,7 @@ class Outputs:
         self._send(self._pose_cov_pub, cov_msg)
         if estimate.aligned is not None:
             self._send(self._aligned_pub, xyz_to_pointcloud2(estimate.aligned, header))
-        if estimate.tf_child_frame and self._tf_ready('broadcast_tf is set'):
+        if estimate.tf_child_frame and self._tf_ready('output.broadcast_tf is set'):
             self._broadcast(estimate.transform, header, estimate.tf_child_frame)
 
     def publish_candidates(self, header: Any, frame_id: str,
@@ -90,7 +90,7 @@ class Outputs:
         msg.pose.pose = transform_to_pose(pose.transform)
         msg.pose.covariance = [float(v) for v in pose.covariance.ravel()]
         self._send(self._initial_pub, msg)
-        if pose.odom_frame and self._tf_ready('broadcast_map_to_odom is set'):
+        if pose.odom_frame and self._tf_ready('relocalization.broadcast_map_to_odom is set'):
             T_odom_base = self._lookup(pose.odom_frame, pose.base_frame, msg.header.stamp)
             if T_odom_base is None:
                 self._count('map_to_odom.no_odom_tf')
@@ -123,7 +123,7 @@ class Outputs:
 
     def base_from_sensor(self, base_frame: str, sensor_frame: str) -> np.ndarray | None:
         """Return ``T_base_sensor`` from TF; the identity (said once) without tf2_ros."""
-        if not self._tf_ready('base_from_sensor is not set'):
+        if not self._tf_ready('relocalization.base_from_sensor is not set'):
             return np.eye(4)
         return self._lookup(base_frame, sensor_frame)
 
@@ -203,7 +203,7 @@ class Outputs:
                 self._tf_said = True
                 self.log('warning', f'{why} but tf2_ros is not importable: no TF is broadcast '
                          'or looked up (the sensor pose stands for the base pose unless '
-                         'base_from_sensor is set)')
+                         'relocalization.base_from_sensor is set)')
             return False
         self._tf_buffer = Buffer()
         self._tf_listener = TransformListener(self._tf_buffer, self._node)

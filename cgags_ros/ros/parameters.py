@@ -33,7 +33,7 @@ def descriptor(name: str, meta: dict[str, Any]) -> ParameterDescriptor:
                                                             step=0.0)]
     elif isinstance(default, str):
         desc.type = ParameterType.PARAMETER_STRING
-    elif isinstance(default, list):  # a vector of numbers (core.gravity, base_from_sensor)
+    elif isinstance(default, (list, tuple)):  # a vector (core.gravity, base_from_sensor)
         desc.type = ParameterType.PARAMETER_DOUBLE_ARRAY
     else:  # None default (optional value): let the YAML decide the type
         desc.dynamic_typing = True

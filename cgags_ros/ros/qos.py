@@ -15,20 +15,20 @@ from ..config.node import NodeConfig
 
 def source_qos(cfg: NodeConfig) -> QoSProfile:
     """Return the QoS of ``source_cloud``: sensor data (best effort) or reliable."""
-    if cfg.source_qos == 'sensor_data':
-        qos = QoSProfile(depth=cfg.source_depth)
+    if cfg.pairing.source_qos == 'sensor_data':
+        qos = QoSProfile(depth=cfg.pairing.source_depth)
         qos.reliability = qos_profile_sensor_data.reliability
         qos.durability = qos_profile_sensor_data.durability
         qos.history = HistoryPolicy.KEEP_LAST
         return qos
-    return QoSProfile(depth=cfg.source_depth, reliability=ReliabilityPolicy.RELIABLE)
+    return QoSProfile(depth=cfg.pairing.source_depth, reliability=ReliabilityPolicy.RELIABLE)
 
 
 def target_qos(cfg: NodeConfig) -> QoSProfile:
     """Return the QoS of ``target_cloud``: reliable, volatile or transient-local."""
-    durability = (DurabilityPolicy.TRANSIENT_LOCAL if cfg.target_durability == 'transient_local'
-                  else DurabilityPolicy.VOLATILE)
-    return QoSProfile(depth=cfg.target_depth, reliability=ReliabilityPolicy.RELIABLE,
+    transient = cfg.pairing.target_durability == 'transient_local'
+    durability = DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE
+    return QoSProfile(depth=cfg.pairing.target_depth, reliability=ReliabilityPolicy.RELIABLE,
                       durability=durability)
 
 

@@ -21,6 +21,8 @@ from ..calibration import Calibrator, TRANSFORM_WORDS
 from ..calibration.formats import to_json, to_text
 from ..config import fields
 from ..config.calibration import CalibrationConfig
+from ..config.node import calibration_from_keys
+from ..config.pipeline import load_yaml
 from ..errors import InvalidInputError
 from ..io.clouds import SUFFIXES
 
@@ -70,10 +72,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument('--min-frames', type=int, metavar='N',
                         help='frames taken before it may stop, converged (default '
                              f'{CalibrationConfig().min_frames})')
+    parser.add_argument('--config', type=Path, metavar='YAML',
+                        help="YAML of configuration keys, the node's format (the pipeline "
+                             'keys at the top level, the calibration keys under '
+                             "calibration.; the node's config_file reads the same)")
     parser.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
                         dest='overrides',
-                        help='override a calibration parameter, e.g. min_agreement=1 or '
-                             'pipeline.refine.max_iterations=80 (repeatable)')
+                        help='override one key, e.g. calibration.min_agreement=1 or '
+                             'refine.max_iterations=80 (repeatable)')
     parser.add_argument('--json', action='store_true',
                         help='print everything as JSON (covariance, per-frame agreement)')
     return parser
@@ -119,14 +125,15 @@ def _frames(args: argparse.Namespace) -> tuple[Iterator, str, str]:
 
 
 def _config(args: argparse.Namespace) -> CalibrationConfig:
-    values = fields.parse_key_values(args.overrides)
+    values = fields.flatten_mapping(load_yaml(args.config)) if args.config else {}
+    values.update(fields.parse_key_values(args.overrides))
     if args.voxel_size is not None:
-        values['pipeline.voxel_size'] = args.voxel_size
+        values['voxel_size'] = args.voxel_size
     if args.max_frames is not None:
-        values['max_frames'] = args.max_frames
+        values['calibration.max_frames'] = args.max_frames
     if args.min_frames is not None:
-        values['min_frames'] = args.min_frames
-    return fields.update_from_flat(CalibrationConfig(), values)
+        values['calibration.min_frames'] = args.min_frames
+    return calibration_from_keys(values)
 
 
 if __name__ == '__main__':

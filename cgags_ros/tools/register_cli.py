@@ -18,7 +18,8 @@ import numpy as np
 
 from .cli import EXIT_ERROR, Parser, run_cli
 from ..config import fields
-from ..config.pipeline import load_yaml, pipeline_config_from, PipelineConfig
+from ..config.node import pipeline_from_keys
+from ..config.pipeline import load_yaml, PipelineConfig
 from ..errors import InvalidInputError
 from ..geometry import apply_transform, rotation_error_deg
 from ..io.clouds import read_cloud, SUFFIXES, write_cloud
@@ -70,8 +71,9 @@ def add_config_options(parser: argparse.ArgumentParser) -> None:
                         help='voxel size in metres; every radius and threshold derives from '
                              f"it (default: the config's, {PipelineConfig().voxel_size:g})")
     parser.add_argument('--config', type=Path, metavar='YAML',
-                        help='YAML file with pipeline parameters (plain or ROS '
-                             "'node: {ros__parameters: ...}' layout)")
+                        help="YAML of configuration keys, the node's format (flat or nested "
+                             "keys, or a ROS 'node: {ros__parameters: ...}' file; the node's "
+                             'own keys are checked and ignored)')
     parser.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
                         dest='overrides',
                         help='override one parameter, e.g. core.max_iterations=20000 or '
@@ -113,12 +115,12 @@ def config_from_args(args: argparse.Namespace) -> PipelineConfig:
     if getattr(args, 'yaw_only', False):
         values['core.motion_model'] = '4dof'
     if getattr(args, 'gravity', None) is not None:
-        values.update(zip(('core.gravity_x', 'core.gravity_y', 'core.gravity_z'), args.gravity))
+        values['core.gravity'] = list(args.gravity)
     if args.seed is not None:
         values['seed'] = args.seed
     if args.candidates is not None:
         values['num_candidates'] = args.candidates
-    return pipeline_config_from(values)
+    return pipeline_from_keys(values)
 
 
 def format_result(result) -> str:

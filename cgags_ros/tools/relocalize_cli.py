@@ -108,7 +108,7 @@ def _relocalize(args: argparse.Namespace) -> int:
         answer = reloc.add(scan, odom)
         if answer.done:
             break
-    limit = config.refine.max_free_space_violation
+    limit = config.gates.max_free_space_violation
     out = {'confirmed': answer.confirmed, 'transform': answer.transform.tolist(),
            'map_from_odom': answer.map_from_odom.tolist(), 'scans_used': answer.scans_used,
            'reason': answer.reason, 'refusal': refusal_summary(answer.refusal),

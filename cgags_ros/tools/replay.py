@@ -4,7 +4,7 @@
 Offline (default, no ROS installation needed)::
 
     cgags-replay BAG [--source-topic /source_cloud] [--target-topic /target_cloud]
-                 [--ground-truth-topic /ground_truth] [--voxel-size V] [--params config.yaml]
+                 [--ground-truth-topic /ground_truth] [--voxel-size V] [--config config.yaml]
                  [--set key=value ...] [--pairing latest_target|synchronized] [--output OUT_DIR]
 
 reads the bag (:mod:`cgags_ros.io.bag`), pairs sources and targets with the node's
@@ -23,7 +23,7 @@ source->target, matched to sources by header stamp) every pair gets RE/TE and th
 a recall: success = valid and RE <= ``--max-re-deg`` and TE <= ``--max-te``.
 
 Voxel size (metres), first match wins: ``--voxel-size``; ``--set voxel_size=V``;
-``voxel_size`` in ``--params``; otherwise :func:`auto_voxel_size` of the first target cloud:
+``voxel_size`` in ``--config``; otherwise :func:`auto_voxel_size` of the first target cloud:
 the voxel at which it keeps about 5000 points after voxel downsampling (rounded to two
 significant digits; 2.5 mm for the bunny, 5 cm for the redkitchen fragment, 0.3 m for the
 LiDAR scan). The chosen value is printed.
@@ -72,8 +72,8 @@ def build_parser() -> argparse.ArgumentParser:
                         f'{DEFAULT_GT_TOPIC} when the bag has it; given explicitly, it must '
                         'exist)')
     p.add_argument('--voxel-size', type=float, default=None,
-                   help='metres (default: --set/--params, else chosen from the target cloud)')
-    p.add_argument('--params', default=None, help='YAML of node/pipeline parameters '
+                   help='metres (default: --set/--config, else chosen from the target cloud)')
+    p.add_argument('--config', default=None, help='YAML of node/pipeline keys '
                    '(ROS format or a plain mapping), e.g. config/register_node.yaml')
     p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
                    help='override one parameter (repeatable), e.g. --set core.p1=0.95')
@@ -81,7 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='levelled clouds: yaw + translation only (same as --set '
                    'core.motion_model=4dof)')
     p.add_argument('--pairing', choices=MODES, default=None,
-                   help="how sources meet targets, as the node's pairing_mode (default: "
+                   help="how sources meet targets, as the node's pairing.mode (default: "
                    "the parameters', latest_target)")
     p.add_argument('--output', type=Path, default=None, help='default: out/replay/<bag>')
     p.add_argument('--pose-topic', default=DEFAULT_POSE_TOPIC, help='topic in the output bag')
@@ -118,7 +118,7 @@ def options_from_args(args: argparse.Namespace) -> tuple[ReplayOptions, LiveOpti
         bag=args.bag, source_topic=args.source_topic, target_topic=args.target_topic,
         ground_truth_topic=args.ground_truth_topic or DEFAULT_GT_TOPIC,
         require_ground_truth=args.ground_truth_topic is not None,
-        parameters=user_parameters(args.params,
+        parameters=user_parameters(args.config,
                                    args.set + (['core.motion_model=4dof'] if args.yaw_only
                                                else []),
                                    args.voxel_size, args.pairing),
@@ -126,7 +126,7 @@ def options_from_args(args: argparse.Namespace) -> tuple[ReplayOptions, LiveOpti
         max_te=args.max_te, quiet=args.quiet, map_file=args.map,
         map_cache_dir=args.map_cache_dir)
     if args.map is not None and args.live:
-        raise InvalidConfigError('--map runs offline; for a live node set its map_file '
+        raise InvalidConfigError('--map runs offline; for a live node set its map.file '
                                  'parameter')
     live = LiveOptions(rate=args.rate, spawn=args.spawn, node_name=args.node_name,
                        timeout=args.timeout, startup_timeout=args.startup_timeout)

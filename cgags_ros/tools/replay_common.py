@@ -20,7 +20,7 @@ import numpy as np
 from .report import (BagReport, BrokenMessage, PairRow, pairs_table, SuccessCriteria,
                      summary_line, write_results)
 from ..config import fields
-from ..config.node import configs_from_parameters, NodeConfig
+from ..config.node import configs_from_parameters, NodeConfig, ros_value
 from ..config.pipeline import load_yaml, PipelineConfig
 from ..errors import CgagsError, InvalidInputError
 from ..geometry import voxel_size_for
@@ -148,17 +148,17 @@ def auto_voxel_size(points: np.ndarray, target_points: int = AUTO_VOXEL_POINTS) 
                           '--voxel-size') from exc
 
 
-def user_parameters(params_file: str | None, sets: Sequence[str], voxel_size: float | None,
+def user_parameters(config_file: str | None, sets: Sequence[str], voxel_size: float | None,
                     pairing: str | None) -> dict[str, Any]:
     """Merge the node/pipeline parameters in priority order: YAML < --set < explicit flags."""
     values: dict[str, Any] = {}
-    if params_file:
-        values.update(fields.flatten_mapping(load_yaml(params_file)))
+    if config_file:
+        values.update(fields.flatten_mapping(load_yaml(config_file)))
     values.update(fields.parse_key_values(sets))
     if voxel_size is not None:
         values['voxel_size'] = voxel_size
     if pairing is not None:
-        values['pairing_mode'] = pairing
+        values['pairing.mode'] = pairing
     return values
 
 
@@ -180,7 +180,7 @@ def resolve_configs(values: dict[str, Any], contents: BagContents
         how = f'auto: ~{AUTO_VOXEL_POINTS} target points'
     pipe, node = configs_from_parameters(values)
     flat = {**fields.flatten(pipe), **fields.flatten(node)}
-    return pipe, node, {k: flat[k] for k in values}, how
+    return pipe, node, {k: ros_value(flat[k]) for k in values}, how
 
 
 def iter_pairs(contents: BagContents, pairer: Pairer) -> Iterator[Pair]:
@@ -245,7 +245,7 @@ def start_report(opts: ReplayOptions, contents: BagContents, pipe: PipelineConfi
     criteria = SuccessCriteria(opts.max_re_deg, opts.max_te if opts.max_te is not None
                                else DEFAULT_MAX_TE_VOXELS * pipe.voxel_size)
     return BagReport(bag=opts.bag_name, mode=mode,
-                     voxel_size=pipe.voxel_size, pairing=node.pairing_mode, criteria=criteria,
+                     voxel_size=pipe.voxel_size, pairing=node.pairing.mode, criteria=criteria,
                      broken=list(contents.broken))
 
 

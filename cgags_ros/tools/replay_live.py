@@ -12,10 +12,11 @@ target, as the replay's own pairing of the bag shows) and every published pose a
 after ``--timeout`` seconds without progress; it never hangs. The spawned node is stopped
 with SIGINT (then SIGTERM, SIGKILL).
 
-A spawned node gets the replay's parameters (voxel size, ``--params``, ``--set``,
-``--pairing``) through a generated ``node_params.yaml`` in OUT_DIR, plus settings that make
-a replay lossless when the pipeline is slower than the bag: reliable source QoS and a
-queue as deep as the bag (unless given). Its log is ``node.log`` in OUT_DIR.
+A spawned node gets the replay's parameters (voxel size, ``--config``, ``--set``,
+``--pairing``) through a generated ``node_config.yaml`` (its ``config_file``) in OUT_DIR,
+plus settings that make a replay lossless when the pipeline is slower than the bag:
+reliable source QoS and a queue as deep as the bag (unless given). Its log is ``node.log``
+in OUT_DIR.
 """
 
 from __future__ import annotations
@@ -45,7 +46,6 @@ from .replay_common import (
 )
 from .replay_player import LiveSession, MAX_QUEUE, Received
 from .report import BagReport, PairRow
-from ..config.ros_parameters import keys_to_ros
 from ..pipeline.pairing import Pairer
 from ..refusal import Refusal, RefusalCode
 
@@ -59,7 +59,7 @@ def replay_live(opts: ReplayOptions, live: LiveOptions) -> BagReport:
     pipe, node_cfg, params, how = resolve_configs(opts.parameters, contents)
     report = start_report(opts, contents, pipe, node_cfg, 'live')
     report.notes.append(f'voxel size {pipe.voxel_size:g} m ({how})')
-    pairer = Pairer.from_config(node_cfg, queue_depth=MAX_QUEUE)
+    pairer = Pairer.from_config(node_cfg.pairing, queue_depth=MAX_QUEUE)
     expected = {p.source.stamp_ns: p for p in iter_pairs(contents, pairer)}
     left_waiting = pairer.waiting_sources  # the node holds these too: no result comes
     note_pairing_drops(report, pairer)
@@ -97,15 +97,14 @@ def spawn_node(opts: ReplayOptions, live: LiveOptions, params: dict[str, Any],
     import yaml
 
     depth = max(2, min(n_sources + 1, MAX_QUEUE))
-    values = {'source_qos': 'reliable', 'source_depth': depth, 'queue_depth': depth}
+    values = {'pairing.source_qos': 'reliable', 'pairing.source_depth': depth,
+              'pairing.queue_depth': depth}
     values.update(params)  # the user's own settings win
-    ros, rest = keys_to_ros(values)
-    if rest:  # the keys that are no ROS parameter: the node's config_file
-        config_file = out / 'node_config.yaml'
-        config_file.write_text(yaml.safe_dump(rest, sort_keys=False))
-        ros['config_file'] = str(config_file)
+    config_file = out / 'node_config.yaml'  # any key, ROS parameter or not, by its one name
+    config_file.write_text(yaml.safe_dump(values, sort_keys=False))
     params_file = out / 'node_params.yaml'
-    params_file.write_text(yaml.safe_dump({'/**': {'ros__parameters': ros}}, sort_keys=False))
+    params_file.write_text(yaml.safe_dump(
+        {'/**': {'ros__parameters': {'config_file': str(config_file)}}}, sort_keys=False))
     cmd = [sys.executable, '-m', 'cgags_ros.register_node', '--ros-args',
            '-r', f'__node:={live.node_name}', '--params-file', str(params_file),
            '-r', f'source_cloud:={opts.source_topic}', '-r', f'target_cloud:={opts.target_topic}']

@@ -33,7 +33,7 @@ def replay_offline(opts: ReplayOptions) -> BagReport:
     report.notes.append(f'voxel size {pipe.voxel_size:g} m ({how})')
     progress = tqdm(total=len(contents.sources), disable=opts.quiet or None, unit='pair',
                     leave=False)
-    pairer = Pairer.from_config(node)  # popped after every message: the queue never fills
+    pairer = Pairer.from_config(node.pairing)  # popped after every message: the queue never fills
     tracker = stream_tracker(pipe, node.mode)
     for pair in iter_pairs(contents, pairer):
         src, tgt = pair.source.payload, pair.target.payload

@@ -1,0 +1,77 @@
+"""
+Configuration of the validity gates: the settings :mod:`cgags_ros.validity` decides with.
+
+Read after the core and the refinement: the overlap (fitness), the chance level, the
+observability, the free-space gate, the ambiguity between candidates and its rivals, and
+the calibrated confidence. The core's own refusals (``core.min_inliers``,
+``core.distinct_ratio``, ``core.max_tilt_deg``) stay in :mod:`.core`, since its search stops
+on them too.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from .fields import option
+
+
+@dataclasses.dataclass
+class GatesConfig:
+    """When a refined estimate is valid, and when it is ambiguous."""
+
+    ambiguity_ratio: float = option(
+        1.5, 'The estimate is ambiguous (reported invalid, flagged ambiguous) when the best '
+        "candidate's inlier count is below this times the runner-up's: two poses are then "
+        'nearly equally supported (a symmetric room, a corridor).', low=1.0, high=100.0)
+    min_confidence: float = option(
+        0.5, 'The estimate is valid only when its confidence (the calibrated probability that '
+        "it is right, from the gates' measurements) is at least this, on top of every gate. "
+        '6-DoF pairs only: against a map or in 4-DoF mode the confidence is reported but '
+        'decides nothing. 0 leaves the decision to the gates.', low=0.0, high=1.0)
+    verify_rivals: bool = option(
+        True, 'Refine the rivals that make an estimate ambiguous; one that converges onto '
+        "it, whose overlap the estimate's exceeds ambiguity_ratio times, or that fails the "
+        'free-space gate is not plausible; only a plausible rival makes it ambiguous.',
+        advanced=True)
+    structured_rivals: bool = option(
+        True, 'Before calling an estimate valid, try the poses a near-symmetric or weakly '
+        'constrained scene would also accept (the estimate turned 180 degrees about the '
+        "overlap's principal axes, slid along its least constrained direction), each refined "
+        'and judged like the estimate; a plausible one makes the result ambiguous. 6-DoF '
+        'pairs of sensor-frame clouds only (the free-space gate must apply).',
+        advanced=True)
+    min_fitness: float = option(
+        0.0, 'After refinement, a fitness (share of source points with a target point within '
+        'the refinement distance) below this marks the result invalid. 0 disables.',
+        low=0.0, high=1.0)
+    significance: float = option(
+        0.01, 'Chance-inlier gate: the estimate is invalid unless its inlier count is above '
+        'what the best of the generated hypotheses would reach with probability '
+        '`significance` if every correspondence were an outlier (Poisson model of the '
+        'correspondences that fall within tau of the estimate by chance). 0 disables.',
+        low=0.0, high=1.0)
+    min_observability: float = option(
+        0.02, 'Degeneracy gate: smallest / largest eigenvalue of the point-to-plane '
+        'information matrix over the overlapping points (rotation scaled by the overlap '
+        'radius). Planes, lines, spheres and cylinders leave some motion unconstrained and '
+        'give ~0; the estimate is then invalid. 0 disables.', low=0.0, high=1.0)
+    collinear_consensus: bool = option(
+        True, 'When the core refuses its estimate only because the inliers are nearly '
+        'collinear, refine it anyway and let the gates on the whole overlap decide '
+        '(observability, free space, chance inliers, ambiguity).', advanced=True)
+    max_free_space_violation: float = option(
+        0.3, "Free-space gate (sensor-frame clouds: frontend.normal_orientation 'origin'): "
+        "the share of aligned points in front of the other cloud's observed surface (by "
+        'over free_space_margin_factor voxels), among those in front or on it, the larger '
+        'direction; above this the pose puts surfaces where a sensor saw free space and is '
+        'invalid. 1 disables.', low=0.0, high=1.0)
+    free_space_settle_factor: float = option(
+        0.5, 'An estimate the correspondences alone did not settle (a collinear consensus, '
+        'or a rival within ambiguity_ratio) is trusted only below this times '
+        'max_free_space_violation.', low=0.0, high=1.0, advanced=True)
+    free_space_margin_factor: float = option(
+        2.0, 'Depth margin of the free-space gate in voxel sizes.', low=0.0, high=100.0,
+        advanced=True)
+    free_space_bin_deg: float = option(
+        2.0, "Angular bin (degrees) of the free-space gate's depth maps seen from each "
+        "cloud's origin.", low=0.05, high=30.0, advanced=True)
