@@ -231,6 +231,7 @@ def summarize(client: StreamClient, stamps: list[int], truth: np.ndarray) -> dic
         'sent': len(stamps), 'published': len(latencies),
         'results': sum(s in client.results for s in stamps),
         'latency_p50_ms': _ms(lat, 50), 'latency_p95_ms': _ms(lat, 95),
+        'within_100ms': int(np.sum(lat <= 0.1)),
         'tracked': paths['tracked'], 'global': paths['global'], 'outcomes': outcomes,
         'global_because': global_because,
         'within_1deg_20cm': int(np.sum((rot_a <= 1.0) & (trans_a <= 0.2))),
