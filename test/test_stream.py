@@ -9,6 +9,7 @@ each scan's pose in scan 0's frame. What each scan became is read from ~/result'
 
 from __future__ import annotations
 
+import contextlib
 import time
 
 from cgags_ros.config.node import NodeConfig, PairingConfig, WorkerConfig
@@ -117,31 +118,36 @@ def burst(engine, out, kitti, indices, start_s=100.0):
     return [by_stamp[s] for s in stamps]
 
 
+@contextlib.contextmanager
+def behind_a_global_registration(kitti, indices, **pairing):
+    """Yield an engine, its outputs and the records of a burst of ``indices`` (scan 0 the map)."""
+    scans, _ = kitti
+    engine, out = start(pairing=pairing)
+    try:
+        feed(engine, out, 'target', scans[0], 99.0)
+        yield engine, out, burst(engine, out, kitti, indices)
+    finally:
+        engine.stop()
+
+
 def test_the_scans_behind_a_global_registration_are_tracked_in_order(kitti):
-    scans, truth = kitti
+    _, truth = kitti
     indices = [3, 4, 5, 6, 7, 8, 9, 10]
     # A queue of one pair (the backlog off): the scan after the global one is the newest,
     # older than max_age and metres from the last pose: global again, the rest dropped.
-    engine, out = start(pairing={'backlog': 1})
-    try:
-        feed(engine, out, 'target', scans[0], 99.0)
-        records = burst(engine, out, kitti, indices)
+    with behind_a_global_registration(kitti, indices, backlog=1) as (_, _, records):
         assert [r['outcome'] for r in records] == ['published'] + ['dropped'] * 6 + [
             'published'], records
         assert [records[0]['path'], records[-1]['path']] == ['global', 'global']
-    finally:
-        engine.stop()
     # The backlog: every scan kept and tracked from its predecessor, in stamp order.
-    engine, out = start(pairing={'backlog_max_lag': 0.0})
-    try:
-        feed(engine, out, 'target', scans[0], 99.0)
-        records = burst(engine, out, kitti, indices)
+    with behind_a_global_registration(kitti, indices, backlog_max_lag=0.0) as (
+            engine, out, records):
         assert [r['path'] for r in records] == ['global'] + ['tracked'] * 7, records
         assert all(r['outcome'] == 'published' and r['valid'] for r in records), records
         assert all(within(r, truth[k]) for k, r in zip(indices, records))
         assert [r['stats']['prediction'] for r in records[1:3]] == ['last pose',
                                                                     'constant velocity']
-        # A jump inside the backlog (10 -> 0: 8 m back) still falls back to global.
+        # A jump inside the backlog (12 -> 0: 9 m back) still falls back to global.
         records = burst(engine, out, kitti, [11, 12, 0, 1, 2], start_s=100.8)
         assert [r['path'] for r in records] == ['tracked', 'tracked', 'global', 'tracked',
                                                 'tracked'], records
@@ -149,17 +155,13 @@ def test_the_scans_behind_a_global_registration_are_tracked_in_order(kitti):
         assert records[2]['stats']['tracking_failure_code'], records[2]['stats']
         assert not within(records[2], truth[12], 5.0, 0.6)  # not the stale pose
         assert len(out.estimates) == 13
-    finally:
-        engine.stop()
 
 
 def test_a_backlog_that_lags_skips_every_other_scan_once_tracked(kitti):
-    scans, truth = kitti
+    _, truth = kitti
     indices = [3, 4, 5, 6, 7, 8, 9, 10]
-    engine, out = start(pairing={'backlog_max_lag': 0.45})
-    try:
-        feed(engine, out, 'target', scans[0], 99.0)
-        records = burst(engine, out, kitti, indices)
+    with behind_a_global_registration(kitti, indices, backlog_max_lag=0.45) as (
+            engine, _, records):
         # After the global scan (3) none is tracked yet: 4 is taken; then 5..10 wait, 0.5 s
         # apart (more than max_lag): 5 is skipped, 6 tracked; 7..10 are 0.3 s apart: in order.
         outcomes = [r['outcome'] + (f".{r['cause']}" if r['cause'] else '') for r in records]
@@ -170,8 +172,6 @@ def test_a_backlog_that_lags_skips_every_other_scan_once_tracked(kitti):
         assert all(within(r, truth[k]) for k, r in published)
         assert published[2][1]['stats']['prediction'] == 'constant velocity'  # over 0.2 s
         assert engine.snapshot()['pairing']['dropped.source_skipped_catching_up'] == 1
-    finally:
-        engine.stop()
 
 
 def test_a_new_target_drops_the_prior(kitti):
