@@ -20,7 +20,8 @@ reversing at the ends) and ``looped`` (0..15, 0..15, ...: a 12 m jump back every
 
 Per cell: scans sent, poses published, latency from publishing a scan to receiving its
 ``~/pose`` (p50/p95, this host's monotonic clock), the paths of the registered scans from
-``~/result`` (tracked/global), what the node dropped (queue full) or rejected, and every
+``~/result`` (tracked/global, and why each global one was), what the node dropped (queue
+full, skipped catching up) or rejected, and every
 published pose against ``pseudo_gt.txt`` (scan k in scan 0's frame): the worst rotation and
 translation error, how many are within 1 deg / 0.2 m, how many beyond 5 deg / 0.6 m; and the
 median stage times the node reports (``timings``) of tracked and of global scans, and the
@@ -41,8 +42,8 @@ import threading
 import time
 from typing import Any
 
-from bench.common import (add_set_option, argument_parser, machine, output_path,
-                          parse_overrides, stop_process, write_json, write_text)
+from bench.common import (argument_parser, machine, output_path, stop_process, write_json,
+                          write_text)
 import numpy as np
 import yaml
 
@@ -200,6 +201,7 @@ def summarize(client: StreamClient, stamps: list[int], truth: np.ndarray) -> dic
     latencies, rot, trans, overheads = [], [], [], []
     paths = {'tracked': 0, 'global': 0}
     outcomes: dict[str, int] = {}
+    global_because: dict[str, int] = {}
     stages: dict[str, dict[str, list[float]]] = {p: {s: [] for s in STAGES} for p in paths}
     for stamp in stamps:
         sent_at, k = client.sent[stamp]
@@ -209,6 +211,10 @@ def summarize(client: StreamClient, stamps: list[int], truth: np.ndarray) -> dic
             outcomes[why] = outcomes.get(why, 0) + 1
             if record.get('path') in paths:
                 paths[record['path']] += 1
+                because = record.get('stats', {}).get('global_because')
+                if record['path'] == 'global' and because:
+                    why = because.split(' (')[0]  # without the numbers
+                    global_because[why] = global_because.get(why, 0) + 1
                 for stage in STAGES:
                     if stage in record.get('timings', {}):
                         stages[record['path']][stage].append(record['timings'][stage])
@@ -225,7 +231,9 @@ def summarize(client: StreamClient, stamps: list[int], truth: np.ndarray) -> dic
         'sent': len(stamps), 'published': len(latencies),
         'results': sum(s in client.results for s in stamps),
         'latency_p50_ms': _ms(lat, 50), 'latency_p95_ms': _ms(lat, 95),
+        'within_100ms': int(np.sum(lat <= 0.1)),
         'tracked': paths['tracked'], 'global': paths['global'], 'outcomes': outcomes,
+        'global_because': global_because,
         'within_1deg_20cm': int(np.sum((rot_a <= 1.0) & (trans_a <= 0.2))),
         'beyond_5deg_60cm': int(np.sum((rot_a > 5.0) | (trans_a > 0.6))),
         'max_rotation_deg': float(rot_a.max()) if rot_a.size else None,
@@ -329,7 +337,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--rate', type=float, default=10.0, help='scans per second')
     parser.add_argument('--queue-depth', type=int, default=None,
                         help="pairing.queue_depth (default: the node's)")
-    add_set_option(parser)
+    parser.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
+                        help="a key of the node's config_file (repeatable), e.g. --set "
+                        'pairing.backlog=1 (a queue of one pair: the stream restarts from '
+                        'the newest scan after a global registration)')
     parser.add_argument('--output', default=None,
                         help='default: out/bench/node_tracking.json')
     args = parser.parse_args(argv)
@@ -340,10 +351,12 @@ def main(argv: list[str] | None = None) -> int:
     from rclpy.context import Context
     from rclpy.executors import MultiThreadedExecutor
 
-    from cgags_ros.config.node import NodeConfig
+    from cgags_ros.config.fields import parse_key_values
+    from cgags_ros.config.node import configs_from_parameters, NodeConfig
 
     queue_depth = args.queue_depth or NodeConfig().pairing.queue_depth
-    keys = parse_overrides(args.set)
+    keys = parse_key_values(args.set)
+    configs_from_parameters(keys)  # a typo fails here, not in the node
     msgs, truth = kitti_messages(), pseudo_ground_truth()
     context = Context()
     rclpy.init(context=context, domain_id=DOMAIN_ID)

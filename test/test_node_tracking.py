@@ -25,7 +25,8 @@ RATE_HZ = 10.0
 ORDER = list(range(10)) + [0, 1]  # scan 9 -> scan 0: a 7 m jump back
 NODE_PARAMS = {'voxel_size': 0.5, 'pairing.target_durability': 'transient_local',
                'pairing.source_qos': 'reliable', 'pairing.queue_depth': 30,
-               'output.diagnostics_period': 0.2}
+               'output.diagnostics_period': 0.2,
+               'pairing.backlog_max_lag': 0.0}  # every scan, in order: none skipped
 
 
 def reliable_client(context):

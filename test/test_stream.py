@@ -9,9 +9,10 @@ each scan's pose in scan 0's frame. What each scan became is read from ~/result'
 
 from __future__ import annotations
 
+import contextlib
 import time
 
-from cgags_ros.config.node import NodeConfig, WorkerConfig
+from cgags_ros.config.node import NodeConfig, PairingConfig, WorkerConfig
 from cgags_ros.config.pipeline import PipelineConfig
 from cgags_ros.config.tracking import TrackingConfig
 from cgags_ros.geometry import rotation_error_deg, translation_error
@@ -29,11 +30,12 @@ VOXEL = 0.5
 PERIOD = 0.1  # seconds between scans: a 10 Hz LiDAR
 
 
-def start(registration_timeout=0.0, **tracking):
+def start(registration_timeout=0.0, pairing=None, **tracking):
     out = Recorder()
     engine = RegistrationEngine(
         PipelineConfig(voxel_size=VOXEL, tracking=TrackingConfig(**tracking)),
-        NodeConfig(worker=WorkerConfig(registration_timeout=registration_timeout)), out)
+        NodeConfig(worker=WorkerConfig(registration_timeout=registration_timeout),
+                   pairing=PairingConfig(**(pairing or {}))), out)
     engine.start()
     engine.activate()
     return engine, out
@@ -93,6 +95,83 @@ def test_a_jump_falls_back_to_global_and_never_publishes_the_stale_pose(kitti):
         assert COUNTS_KEY not in record['stats']  # the Tracker did not see it
     finally:
         engine.stop()
+
+
+def burst(engine, out, kitti, indices, start_s=100.0):
+    """
+    Send a scan, and the others at once while it is registered; wait for them all.
+
+    The others arrive as a sensor's scans do during a global registration. Return each
+    scan's ~/result record, in the order sent.
+    """
+    scans, _ = kitti
+    stamps = [int(round((start_s + i * PERIOD) * 1e9)) for i in range(len(indices))]
+    taken = engine.snapshot()['pairing']['taken']
+    for i, (stamp, k) in enumerate(zip(stamps, indices)):
+        engine.receive('source', stamp, 'velodyne',
+                       Cloud(scans[k], Header('velodyne', stamp * 1e-9), time.monotonic_ns()))
+        if i == 0:
+            wait_for(lambda: engine.snapshot()['pairing']['taken'] > taken, 60, 'taken')
+    by_stamp = {}
+    wait_for(lambda: by_stamp.update({r['source_stamp_ns']: r for r in out.results})
+             or all(s in by_stamp for s in stamps), 300, 'every scan told')
+    return [by_stamp[s] for s in stamps]
+
+
+@contextlib.contextmanager
+def behind_a_global_registration(kitti, indices, **pairing):
+    """Yield an engine, its outputs and the records of a burst of ``indices`` (scan 0 the map)."""
+    scans, _ = kitti
+    engine, out = start(pairing=pairing)
+    try:
+        feed(engine, out, 'target', scans[0], 99.0)
+        yield engine, out, burst(engine, out, kitti, indices)
+    finally:
+        engine.stop()
+
+
+def test_the_scans_behind_a_global_registration_are_tracked_in_order(kitti):
+    _, truth = kitti
+    indices = [3, 4, 5, 6, 7, 8, 9, 10]
+    # A queue of one pair (the backlog off): the scan after the global one is the newest,
+    # older than max_age and metres from the last pose: global again, the rest dropped.
+    with behind_a_global_registration(kitti, indices, backlog=1) as (_, _, records):
+        assert [r['outcome'] for r in records] == ['published'] + ['dropped'] * 6 + [
+            'published'], records
+        assert [records[0]['path'], records[-1]['path']] == ['global', 'global']
+    # The backlog: every scan kept and tracked from its predecessor, in stamp order.
+    with behind_a_global_registration(kitti, indices, backlog_max_lag=0.0) as (
+            engine, out, records):
+        assert [r['path'] for r in records] == ['global'] + ['tracked'] * 7, records
+        assert all(r['outcome'] == 'published' and r['valid'] for r in records), records
+        assert all(within(r, truth[k]) for k, r in zip(indices, records))
+        assert [r['stats']['prediction'] for r in records[1:3]] == ['last pose',
+                                                                    'constant velocity']
+        # A jump inside the backlog (12 -> 0: 9 m back) still falls back to global.
+        records = burst(engine, out, kitti, [11, 12, 0, 1, 2], start_s=100.8)
+        assert [r['path'] for r in records] == ['tracked', 'tracked', 'global', 'tracked',
+                                                'tracked'], records
+        assert all(within(r, truth[k]) for k, r in zip([11, 12, 0, 1, 2], records))
+        assert records[2]['stats']['tracking_failure_code'], records[2]['stats']
+        assert not within(records[2], truth[12], 5.0, 0.6)  # not the stale pose
+        assert len(out.estimates) == 13
+
+
+def test_a_backlog_that_lags_skips_every_other_scan_once_tracked(kitti):
+    _, truth = kitti
+    indices = [3, 4, 5, 6, 7, 8, 9, 10]
+    with behind_a_global_registration(kitti, indices, backlog_max_lag=0.45) as (
+            engine, _, records):
+        # After the global scan (3) none is tracked yet: 4 is taken; then 5..10 wait, 0.5 s
+        # apart (more than max_lag): 5 is skipped, 6 tracked; 7..10 are 0.3 s apart: in order.
+        outcomes = [r['outcome'] + (f".{r['cause']}" if r['cause'] else '') for r in records]
+        assert outcomes == ['published', 'published',
+                            'dropped.source_skipped_catching_up'] + ['published'] * 5, outcomes
+        published = [(k, r) for k, r in zip(indices, records) if r['outcome'] == 'published']
+        assert [r['path'] for _, r in published] == ['global'] + ['tracked'] * 6
+        assert all(within(r, truth[k]) for k, r in published)
+        assert published[2][1]['stats']['prediction'] == 'constant velocity'  # over 0.2 s
+        assert engine.snapshot()['pairing']['dropped.source_skipped_catching_up'] == 1
 
 
 def test_a_new_target_drops_the_prior(kitti):

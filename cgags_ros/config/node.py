@@ -44,6 +44,18 @@ class PairingConfig:
         '(counted in /diagnostics). 1 gives the lowest latency (a new source waits only '
         'behind the pair in progress); more buffers bursts at the cost of latency.',
         low=1, high=1000, ros=True, read_only=True)
+    backlog: int = option(
+        20, 'Continuous mode with tracking.enabled: pairs kept while a registration runs, in '
+        'place of queue_depth when larger (the oldest dropped beyond). The scans that arrived '
+        'during a global registration are then tracked in stamp order, each from its '
+        "predecessor's pose, instead of restarting from the newest scan, too far from the "
+        'last pose to be tracked.', low=1, high=1000, read_only=True)
+    backlog_max_lag: float = option(
+        1.0, 'Continuous mode with tracking.enabled: while the newest waiting scan is more than '
+        'this (seconds, header stamps) ahead of the oldest and the last scan was tracked, every '
+        'other waiting scan within tracking.max_age is dropped (source_skipped_catching_up), so '
+        'that the backlog drains; a scan beyond it would go global: the newest is taken. 0 '
+        'tracks every scan in order.', low=0.0, high=3600.0)
     max_waiting_sources: int = option(
         1, 'Sources kept while no target (latest_target) or no matching target '
         '(synchronized) has arrived; the oldest is dropped beyond this.', low=1, high=1000,

@@ -41,6 +41,7 @@ from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError, InvalidInputError
 from ..geometry import apply_transform
+from ..pipeline import backlog
 from ..pipeline.isolated import (IsolatedRegistration, RegisterFn, RegistrationTimeout,
                                  WorkerCrashed)
 from ..pipeline.pairing import Pair, Pairer
@@ -77,7 +78,8 @@ class RegistrationEngine:
                                                     outputs)
         self._health = NodeHealth(Pairer.from_config(dataclasses.replace(
             cfg.pairing, mode=pairing,
-            queue_depth=1 if cfg.mode == 'on_demand' else cfg.pairing.queue_depth)))
+            queue_depth=1 if cfg.mode == 'on_demand' else backlog.queue_depth(cfg, pipeline_cfg))))
+        self._backlog = backlog.Backlog()  # a tracked stream's scans waiting (continuous)
         self.on_demand = cfg.mode == 'on_demand'
         self._map = MapTarget(cfg) if cfg.map.file else None
         self._calls = RelocalizeCalls()
@@ -158,6 +160,8 @@ class RegistrationEngine:
         with self._lock:
             self._pipeline_cfg, self._node_cfg = pipeline_cfg, node_cfg
         self._health.set_slop(node_cfg.pairing.sync_slop)
+        if not self.on_demand:  # tracking switched on or off: the backlog follows
+            self._health.set_queue_depth(backlog.queue_depth(node_cfg, pipeline_cfg))
 
     # ------------------------------------------------------------------ input
 
@@ -182,13 +186,17 @@ class RegistrationEngine:
                 self._outputs.publish_result(PairResult(
                     stamp_ns, frame_id, 'rejected', rejection, message,
                     refusal=Refusal(code, message)))
+        self._tell_dropped()
+        if lost:
+            self._log_lost_upstream()
+
+    def _tell_dropped(self) -> None:
+        """Publish what pairing dropped since the last call (a ~/result each)."""
         for reason, source in self._health.dropped_sources():
             why = f'dropped by pairing: {reason} (docs/pairing.md)'
             self._outputs.publish_result(PairResult(
                 source.stamp_ns, source.frame_id, 'dropped', reason, why,
                 refusal=Refusal(RefusalCode.UNPAIRED, why)))
-        if lost:
-            self._log_lost_upstream()
 
     def relocalize(self, wait: bool = True, on_answer: Answered | None = None
                    ) -> tuple[bool, str]:
@@ -221,9 +229,10 @@ class RegistrationEngine:
 
     def _work(self) -> None:
         while not self._stop.is_set():
-            pair = self._health.take(timeout=0.2) if self._ready() else None
+            pair = self._health.take(timeout=0.2, skip=self._skip) if self._ready() else None
             if pair is None:
                 continue
+            self._tell_dropped()  # the scans a backlog skipped
             cause, refusal = 'internal_error', Refusal(RefusalCode.INTERNAL_ERROR, 'pair failed')
             self._registered = None
             try:
@@ -237,6 +246,15 @@ class RegistrationEngine:
                 self._settle(cause, refusal)
             if cause and refusal and not self._stop.is_set():
                 self._log_rejection(cause, refusal.message)
+
+    def _skip(self, pending_ns: list[int]) -> int:
+        """Return how many of the oldest waiting pairs a tracked stream skips (the backlog)."""
+        cfg, pipe_cfg = self.node_config, self.pipeline_config
+        if not tracks(cfg.mode, pipe_cfg):
+            return 0
+        return self._backlog.to_skip(pending_ns, cfg.pairing.backlog_max_lag,
+                                     pipe_cfg.tracking.max_age,
+                                     self._calls.waiting() is not None)
 
     def _ready(self) -> bool:
         """Tell whether the worker may take a pair now; else wait a little."""
@@ -283,6 +301,7 @@ class RegistrationEngine:
             return 'pipeline_error', Refusal(exc.code, f'registration failed: {exc}')
         self._registered = result
         self._tracking.add(result)
+        self._backlog.saw(result, pair.source.stamp_ns)
         T = np.asarray(result.transform, dtype=np.float64)
         refusal = result.refusal or (None if np.isfinite(T).all() else Refusal(
             RefusalCode.INTERNAL_ERROR, 'the estimated transform is not finite'))

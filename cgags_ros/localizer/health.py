@@ -15,9 +15,10 @@ from __future__ import annotations
 import collections
 import threading
 import time
-from typing import Any
+from typing import Any, Callable
 
 from .transport import user_line
+from ..pipeline.backlog import SKIPPED
 from ..pipeline.pairing import is_source_drop, Pair, Pairer, Stamped
 from ..pipeline.upstream import UpstreamLoss
 
@@ -61,6 +62,11 @@ class NodeHealth:
         """End a :meth:`take` waiting for a pair (shutting down)."""
         self._pairer.wake()
 
+    def set_queue_depth(self, depth: int) -> None:
+        """Keep ``depth`` ready pairs from the next pair on (the oldest dropped beyond)."""
+        with self._lock:
+            self._pairer.queue_depth = depth
+
     def set_slop(self, slop: float) -> None:
         """Set the pairer's synchronization slop (seconds) for the next pairs."""
         with self._lock:
@@ -95,11 +101,19 @@ class NodeHealth:
             dropped, self._dropped = self._dropped, []
             return dropped
 
-    def take(self, timeout: float) -> Pair | None:
-        """Return the next ready pair (now in progress), or None after ``timeout`` s."""
+    def take(self, timeout: float, skip: Callable[[list[int]], int] | None = None
+             ) -> Pair | None:
+        """
+        Return the next ready pair (now in progress), or None after ``timeout`` s.
+
+        ``skip``: given the ready pairs' source stamps (ns, oldest first), how many of the
+        oldest to drop first (counted as ``backlog.SKIPPED``).
+        """
         if not self._pairer.wait_ready(timeout):
             return None
         with self._lock:
+            if skip is not None:
+                self._pairer.drop_oldest(skip(self._pairer.ready_stamps()), SKIPPED)
             pair = self._pairer.pop()
             self._in_progress += pair is not None
             return pair

@@ -168,6 +168,17 @@ class Pairer:
                 self._cond.wait(timeout)
             return bool(self._ready)
 
+    def ready_stamps(self) -> list[int]:
+        """Return the source stamps (ns) of the ready pairs, oldest first."""
+        with self._cond:
+            return [pair.source.stamp_ns for pair in self._ready]
+
+    def drop_oldest(self, count: int, reason: str) -> None:
+        """Drop the ``count`` oldest ready pairs (their sources), counted as ``reason``."""
+        with self._cond:
+            for _ in range(min(count, len(self._ready))):
+                self._drop(reason, [self._ready.popleft().source])
+
     def wake(self) -> None:
         """Release threads blocked in :meth:`wait_pop` (used on shutdown)."""
         with self._cond:
