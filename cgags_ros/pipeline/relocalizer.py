@@ -220,7 +220,11 @@ class Relocalizer:
                            self.sequence)
         if self.sequence.submap:
             to_latest = np.linalg.inv(odom)
-            fused = np.vstack([apply_transform(to_latest @ s.odom, s.xyz) for s in self.scans])
+            # On a micrometre grid: the voxel grid splits points at exact boundaries, so
+            # odometry that differs only in its last bits (a pose sent as a quaternion) would
+            # otherwise fuse a different cloud and register it differently.
+            fused = np.round(np.vstack([apply_transform(to_latest @ s.odom, s.xyz)
+                                        for s in self.scans]), 6)
             self.submaps.append(register_clouds(fused, self.prepared, config=self.config))
             self._propose_all(self.submaps[-1], index, 'submap')
         limit = self.config.gates.max_free_space_violation
