@@ -54,7 +54,7 @@ from cgags_ros.geometry import rotation_error_deg, spread, translation_error
 from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import cached_features, clear_feature_cache, register_clouds
 from cgags_ros.pipeline import rivals, set_feature_cache_size
-from cgags_ros.pipeline.gates import chance_bound, measured_free_space
+from cgags_ros.pipeline.gates import measured_free_space
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -180,8 +180,8 @@ def measure_pair(src: np.ndarray, tgt: np.ndarray, pair: tdm.GtPair,
         'num_source_points': int(result.num_source_points),
         'num_target_points': int(result.num_target_points),
     }
-    if math.isfinite(result.chance_inliers):
-        rec['chance_bound'] = chance_bound(result, cfg.gates.significance)
+    if math.isfinite(result.chance_bound):
+        rec['chance_bound'] = float(result.chance_bound)
     pts = result.inlier_source_points
     rec['inlier_spread_m'] = (spread(pts) / math.sqrt(len(pts))).tolist() if len(pts) > 2 \
         else None
