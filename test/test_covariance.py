@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from cgags_ros.pipeline.covariance import FLOOR_POSITION, overlap_covariance, pose_covariance
+from cgags_ros.pipeline.covariance import (FLOOR_POSITION, overlap_covariance, pose_covariance,
+                                           with_confidence, WRONG_POSITION, WRONG_ROTATION)
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -70,11 +71,27 @@ def test_the_pipeline_result_carries_the_covariance_of_its_estimate():
     ft = cached_features(target, 0.15, config.frontend, 'target')
     expected = overlap_covariance(fs.points, ft.points, ft.normals, ft.tree, result.transform,
                                   1.5 * 0.15, 0.15)
-    np.testing.assert_allclose(cov, expected)
+    np.testing.assert_allclose(cov, with_confidence(expected, result.confidence))
     assert np.array(result.summary()['covariance']) == pytest.approx(cov)
     # No estimate: no support, the "unknown" variances
     empty = register_clouds(source[:5], target, config=PipelineConfig(voxel_size=0.15))
     assert not empty.valid and np.all(np.diag(empty.covariance) == 1e6)
+
+
+def test_the_covariance_opens_by_the_chance_that_the_pose_is_wrong():
+    """A sure pose keeps its covariance; a doubtful one opens towards a wrong pose's spread."""
+    cov = np.diag([1e-4] * 3 + [1e-5] * 3)
+    np.testing.assert_array_equal(with_confidence(cov, 1.0), cov)
+    W = np.diag([WRONG_POSITION ** 2] * 3 + [WRONG_ROTATION ** 2] * 3)
+    assert WRONG_POSITION > 0 and WRONG_ROTATION > 0
+    np.testing.assert_allclose(with_confidence(cov, 0.0), cov + W)
+    doubt = [np.trace(with_confidence(cov, p) - cov) for p in (0.5, 0.9, 0.99, 0.999)]
+    assert doubt == sorted(doubt, reverse=True) and doubt[-1] < 1e-3 * doubt[0]
+    # Wrong by a metre and 90 degrees: far outside a sure pose's ellipsoid, inside that of
+    # a pose which is as likely wrong as right.
+    e = np.array([1.0, 0, 0, 0, 0, np.pi / 2])
+    assert e @ np.linalg.solve(with_confidence(cov, 1.0), e) > 1e3
+    assert e @ np.linalg.solve(with_confidence(cov, 0.5), e) < CHI2_6_95
 
 
 def test_4dof_covariance_has_no_roll_or_pitch_and_matches_the_yaw_only_fit():

@@ -14,6 +14,13 @@ CELL_FACTOR = 4
 SCALE = 12.7
 FLOOR_POSITION = 0.5
 FLOOR_ROTATION = 0.5
+# The spread of a wrong estimate's error (metres a position axis, radians a rotation axis)
+# by which a covariance opens with the chance that its pose is wrong, and how fast that
+# chance falls with the confidence (:func:`with_confidence`), chosen leave-one-scene-out on
+# the same pairs (docs/ablation.md).
+WRONG_POSITION = 4.0
+WRONG_ROTATION = np.pi
+DOUBT_EXPONENT = 1.5
 
 
 def pose_covariance(src: np.ndarray, dst: np.ndarray, T: np.ndarray,
@@ -148,6 +155,25 @@ def overlap_covariance(source: np.ndarray, target: np.ndarray, target_normals: n
     if np.linalg.cond(info) > 1e12:
         return B @ np.diag([1e6] * B.shape[1]) @ B.T
     return B @ (scale * np.linalg.inv(info) + B.T @ floor @ B) @ B.T
+
+
+def with_confidence(cov: np.ndarray, confidence: float) -> np.ndarray:
+    """
+    Return the covariance of a pose's error when the pose is right with ``confidence``.
+
+    A right pose errs as ``cov`` says; a wrong one (a slide along a wall, a turn a
+    near-symmetric room allows) by far more, with the spread ``W = diag(WRONG_POSITION^2 I,
+    WRONG_ROTATION^2 I)``. With ``q`` the chance of a wrong pose the mixture's second moment
+    is ``cov + q W``: a pose the pipeline is sure of keeps its ellipsoid, one it calls valid
+    with less to spare opens, so that the error of the wrong ones among them lies inside it
+    rather than far outside. ``q = (1 - confidence)^DOUBT_EXPONENT``: the confidence is
+    cautious at its top (estimates near 1 are right more often than it says), so the chance
+    of a wrong pose falls faster than ``1 - confidence``. ``confidence`` 0 (no estimate)
+    opens it by the whole of ``W``.
+    """
+    W = np.diag([WRONG_POSITION ** 2] * 3 + [WRONG_ROTATION ** 2] * 3)
+    doubt = (1.0 - min(max(confidence, 0.0), 1.0)) ** DOUBT_EXPONENT
+    return np.asarray(cov, dtype=np.float64) + doubt * W
 
 
 def result_covariance(result: Any, source: np.ndarray, target: np.ndarray,

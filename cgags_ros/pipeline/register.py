@@ -21,7 +21,7 @@ import numpy as np
 from .cache import cached_features
 from .candidates import find_candidates, rank_candidates, search_rivals, verify_rivals
 from .confidence import features, probability
-from .covariance import result_covariance
+from .covariance import result_covariance, with_confidence
 from .gates import measure
 from .map import matches_config, PreparedMap
 from .result import PipelineResult
@@ -79,9 +79,11 @@ def _judged(result: PipelineResult, fs: CloudFeatures, ft: CloudFeatures,
     Finish a result that has an estimate: its covariance and confidence, then the verdict.
 
     ``refusal`` is the gates' (None when they pass); a confidence below ``min_confidence``
-    refuses a 6-DoF pair's estimate the gates let through. Against a map or in 4-DoF mode
-    the confidence is reported but decides nothing: it was calibrated on 6-DoF pairs of
-    scans, and a map's overlap and rivals, or a yaw-only search, read differently.
+    refuses a 6-DoF pair's estimate the gates let through, and the covariance opens by the
+    chance that the pose is wrong (:func:`~.covariance.with_confidence`). Against a map or in
+    4-DoF mode the confidence is reported but decides nothing and the covariance is the
+    overlap's alone: it was calibrated on 6-DoF pairs of scans, and a map's overlap and
+    rivals, or a yaw-only search, read differently.
     """
     four_dof = cfg.core.motion_model == '4dof'
     result.covariance = result_covariance(
@@ -92,6 +94,7 @@ def _judged(result: PipelineResult, fs: CloudFeatures, ft: CloudFeatures,
                                              2 if four_dof else 3))
     if map_target or four_dof:
         return result.finish(start, refusal)
+    result.covariance = with_confidence(result.covariance, result.confidence)
     return result.finish(start, refusal or confidence_refusal(result, cfg.gates.min_confidence))
 
 

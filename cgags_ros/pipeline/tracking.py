@@ -26,7 +26,7 @@ import time
 import numpy as np
 
 from .cache import cached_features
-from .covariance import pose_covariance
+from .covariance import overlap_covariance
 from .gates import measure_overlap
 from .map import PreparedMap
 from .prediction import agree, difference, scaled_motion
@@ -211,15 +211,17 @@ class Tracker:
             result.refined = True
         with timed(result.timings, 'validation'):
             # no source tree: the target side of the overlap is for rival verification only
-            align = measure_overlap(points, None, ft, result, cfg,
-                                    isinstance(target, PreparedMap))
+            measure_overlap(points, None, ft, result, cfg,
+                            isinstance(target, PreparedMap))
             last_fitness = state.poses[-1].fitness if state.poses else 0.0
             refusal = (overlap_refusal(result, cfg)
                        or tracking_refusal(*difference(prediction, result.transform),
                                            result.fitness, last_fitness, cfg))
-        result.covariance = pose_covariance(points[align.source_index],
-                                            ft.points[align.target_index], result.transform,
-                                            gravity)
+        # The global path's covariance (the whole overlap, point-to-plane): a stream's poses
+        # keep one meaning whichever path made them.
+        result.covariance = overlap_covariance(
+            points, ft.points, ft.normals, ft.tree, result.transform,
+            cfg.refine.max_correspondence_distance_factor * v, v, gravity)
         return result.finish(start, refusal)
 
     def _target_features(self, target: np.ndarray | PreparedMap, cfg: PipelineConfig,
