@@ -137,9 +137,11 @@ def _hypothesis_record(h) -> dict:
 
 
 # The decision's thresholds tried (leave one scene out): min_fitness, refute_ratio,
-# min_scans, and whether the submap's candidates count.
-GRID = [(f, r, m, sub) for f in (0.3, 0.4, 0.5) for r in (1.2, 1.5, 2.0) for m in (1, 2)
-        for sub in (True, False)]
+# min_scans, whether the submap's candidates count, and the drift allowance a step
+# (drift_deg, drift_m): a check also absorbs the error of the pose it starts from.
+GRID = [(f, r, m, sub, deg, metres) for f in (0.3, 0.4, 0.5) for r in (1.2, 1.5, 2.0)
+        for m in (1, 2) for sub in (True, False) for deg in (2.0, 3.0, 5.0)
+        for metres in (0.05, 0.1, 0.2)]
 
 
 def _refusal(recorded: dict) -> Refusal | None:
@@ -187,9 +189,9 @@ def replay(record: dict, n: int, seq: SequenceConfig, submap: bool, cfg) -> dict
 
 def outcome(record: dict, scans: int, policy, cfg) -> dict:
     """Return the answer when allowed ``scans`` scans, stopping at the first confirmed one."""
-    f, r, m, sub = policy
+    f, r, m, sub, deg, metres = policy
     seq = SequenceConfig(max_scans=LENGTH, min_scans=m, min_fitness=f, refute_ratio=r,
-                         submap=sub)
+                         submap=sub, drift_deg=deg, drift_m=metres)
     seconds = 0.0
     for n in range(1, scans + 1):
         step = record['steps'][n - 1]
@@ -234,17 +236,17 @@ def report(paths: list[Path]) -> str:
     headers = ['scans (at most)', 'sequences', 'right & confirmed', 'confirmed but wrong',
                'refused', 'median s', 'median s / one scan']
     d = SequenceConfig()
-    default = (d.min_fitness, d.refute_ratio, d.min_scans, d.submap)
+    default = (d.min_fitness, d.refute_ratio, d.min_scans, d.submap, d.drift_deg, d.drift_m)
     out = [f'{len(records)} sequences of {len(scenes)} scenes; last scan overlapping the map '
            f'by >= {MIN_OVERLAP:g}.', '', f'Defaults {default} (min_fitness, refute_ratio, '
-           'min_scans, submap):', '', markdown_table(headers, table(records, lambda r: default,
-                                                                    cfg))]
+           'min_scans, submap, drift_deg, drift_m):', '',
+           markdown_table(headers, table(records, lambda r: default, cfg))]
     chosen = {s: choose([r for r in records if r['scene'] != s], cfg) for s in scenes}
     out += ['', 'Leave one scene out (thresholds chosen on the other scenes): '
             + '; '.join(f'{s[:20]}: {p}' for s, p in chosen.items()), '',
             markdown_table(headers, table(records, lambda r: chosen[r['scene']], cfg))]
-    for policy in sorted(set(chosen.values()) | {default, (0.3, 1.5, 2, True),
-                                                 (0.3, 1.5, 2, False), (0.3, 1.5, 1, False)}):
+    others = {default[:2] + (m, sub) + default[4:] for m in (1, 2) for sub in (True, False)}
+    for policy in sorted(set(chosen.values()) | {default} | others):
         out += ['', f'All scenes under {policy}:', '',
                 markdown_table(headers, table(records, lambda r: policy, cfg))]
     return '\n'.join(out)

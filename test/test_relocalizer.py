@@ -135,6 +135,28 @@ def test_odometry_that_contradicts_the_scans_is_refused_not_averaged(easy):
     assert 1 <= max(explained) < 3  # each scan fits some pose; no pose fits the three
 
 
+def test_a_scan_taken_outside_the_map_is_left_out_not_held_against_the_rest(easy, data_dir):
+    """A first scan of somewhere the map does not hold; the next ones settle the pose."""
+    prepared, cfg, poses, fragments, _ = easy
+    elsewhere = tdm.Fragments(data_dir / '3dmatch_benchmark', 'sun3d-hotel_uc-scan3')[0]
+    odom = odometry(poses, EASY, np.random.default_rng(2))
+    reloc = Relocalizer(prepared, cfg, SequenceConfig(max_scans=3, min_scans=1))
+    first, second, third = [reloc.add(scan, O) for scan, O in zip(
+        [elsewhere, fragments[EASY[1]], fragments[EASY[2]]], odom)]
+    assert not first.confirmed and not first.results[0].valid  # it fits nowhere
+    # Left out, the second scan is judged as it would be alone...
+    assert second.confirmed == second.results[1].valid
+    if not second.confirmed:  # its own refusal, "send another scan" added
+        assert second.refusal.code is second.results[1].refusal.code
+    # ...and the third settles it with the second, although the first fits no pose.
+    assert third.confirmed, third.reason
+    assert right(third.transform, poses[EASY[2]])
+    # No hypothesis explains it, not even those its own candidates proposed.
+    limit = cfg.gates.max_free_space_violation
+    assert not any(h.checks[0].explains(reloc.sequence, limit)
+                   for h in third.hypotheses if 0 in h.checks)
+
+
 def test_one_scan_is_judged_as_a_single_registration(easy):
     prepared, cfg, poses, fragments, _ = easy
     from cgags_ros.pipeline import register_clouds

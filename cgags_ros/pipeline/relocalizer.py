@@ -9,16 +9,18 @@ the odometry frame in the map (``map <- odom``). Every scan is registered onto t
 map as a single scan is (:func:`~.register.register_clouds`, the one path); each of its
 ranked candidates, composed with the scan's odometry pose, proposes a hypothesis (one that
 an earlier scan proposed already is merged into it). Each hypothesis is then checked on
-every scan: the scan is put where the hypothesis and the odometry predict and refined
-locally against the map (:func:`~..frontend.refine.refine_transform`, cheap from a close
-start), and the scan **explains** the hypothesis when the refinement stays within the
+every scan (first its own, which moves the hypothesis to where that scan settles: a
+candidate is good to about the core's inlier threshold): the scan is put where the
+hypothesis and the odometry predict and refined locally against the map
+(:func:`~..frontend.refine.refine_transform`, cheap from a close start), and the scan **explains** the hypothesis when the refinement stays within the
 odometry's drift allowance, the fitness is at least ``min_fitness`` and the pose passes the
 free-space gate. A hypothesis that explains a scan much worse than the best one does (its
 fitness ``refute_ratio`` times lower) or does not explain it is **refuted** by that scan.
 
 The answer is **confirmed** when one hypothesis explains every scan used and every distinct
 rival is refuted; until then it asks for another scan, and after ``max_scans`` it refuses
-with the reason. Odometry that contradicts the scans leaves no hypothesis explaining them
+with the reason. A scan that no hypothesis explains, not even its own (taken outside the
+map), is not used: it speaks for or against none of them. Odometry that contradicts the scans leaves no hypothesis explaining them
 all: it is refused, never averaged. One scan alone is judged exactly as
 :func:`~.register.register_clouds` judges it (confirmed when valid), at the same cost: the
 checks run only once a second scan arrives.
@@ -53,12 +55,15 @@ class SequenceConfig:
 
     :ivar max_scans: scans taken before an unconfirmed answer is refused.
     :ivar min_scans: scans a confirmed answer needs (1: one valid scan confirms, as a single
-        registration is judged).
+        registration is judged; 2, the default: a second scan must agree, since a valid
+        single scan is now and then a turned room).
     :ivar submap: from the second scan on, also register every scan so far, fused with the
         odometry into the latest scan's frame, onto the map; its candidates are hypotheses
         too (more of the place in view than any one scan).
-    :ivar drift_deg: rotation (degrees) the odometry may drift from one scan to the next.
-    :ivar drift_m: translation (metres) it may drift from one scan to the next...
+    :ivar drift_deg: rotation (degrees) a check may move a scan from where the hypothesis
+        puts it, a step: the odometry's drift and the error of the registration the
+        hypothesis came from (a few degrees and centimetres).
+    :ivar drift_m: translation (metres) it may move it, a step...
     :ivar drift_fraction: ...plus this share of the distance travelled.
     :ivar min_fitness: a scan explains a hypothesis only with at least this fitness.
     :ivar refute_ratio: a rival is refuted by a scan that the best hypothesis fits this
@@ -66,13 +71,13 @@ class SequenceConfig:
     """
 
     max_scans: int = 3
-    min_scans: int = 1
+    min_scans: int = 2
     submap: bool = True
-    drift_deg: float = 2.0
-    drift_m: float = 0.05
+    drift_deg: float = 5.0
+    drift_m: float = 0.2
     drift_fraction: float = 0.05
     min_fitness: float = 0.3
-    refute_ratio: float = 1.5
+    refute_ratio: float = 1.2
 
 
 @dataclasses.dataclass
@@ -200,7 +205,7 @@ class Relocalizer:
         :param scan_xyz: (N, 3) points in the sensor frame, metres.
         :param odom_from_sensor: 4x4 pose of the sensor in the odometry frame when the scan
             was taken (p_odom = T p_sensor); None: no odometry, the scan starts a new
-            sequence and is judged alone.
+            sequence and is judged alone (``min_scans`` does not apply).
         """
         if odom_from_sensor is None:
             self.reset()
@@ -215,9 +220,12 @@ class Relocalizer:
         index = len(self.scans) - 1
         self._propose_all(result, index, 'scan')
         if index == 0:
-            # One scan is judged as a single registration is.
+            # One scan is judged as a single registration is; with odometry a confirmation
+            # may ask for more (``min_scans``), without it there will be none.
+            seq = (self.sequence if odom_from_sensor is not None
+                   else dataclasses.replace(self.sequence, min_scans=1))
             return _settle(result.transform, odom, result.refusal, self.hypotheses, [result],
-                           self.sequence)
+                           seq)
         if self.sequence.submap:
             to_latest = np.linalg.inv(odom)
             # On a micrometre grid: the voxel grid splits points at exact boundaries, so
@@ -229,12 +237,15 @@ class Relocalizer:
             self._propose_all(self.submaps[-1], index, 'submap')
         limit = self.config.gates.max_free_space_violation
         for h in self.hypotheses:
-            # Its own scan first; a hypothesis a scan does not explain is refuted: the
-            # other scans need not check it.
+            # Its own scan first: a pose that does not explain the scan that proposed it is
+            # no pose at all. Then every other scan, so that a scan no hypothesis explains
+            # (one taken outside the map) is known as such (see :func:`judge`).
             for i in [h.scan] + [i for i in range(len(self.scans)) if i != h.scan]:
                 if i not in h.checks:
                     h.checks[i] = self._check(h, i)
-                if not h.checks[i].explains(self.sequence, limit):
+                    if i == h.scan:
+                        self._anchor(h, limit)
+                if i == h.scan and not h.checks[i].explains(self.sequence, limit):
                     break
         return judge(self.hypotheses, [s.result for s in self.scans],
                      [s.odom for s in self.scans], self.config, self.sequence)
@@ -254,6 +265,21 @@ class Relocalizer:
             else:
                 self.hypotheses.append(Hypothesis(c.transform @ np.linalg.inv(odom), index,
                                                   rank, c.num_inliers, source))
+
+    def _anchor(self, h: Hypothesis, max_free_space: float) -> None:
+        """
+        Move ``h`` to where its own scan's check settled, when the scan fits there.
+
+        A candidate is the core's estimate, good to about its inlier threshold (the best one
+        refined on the whole map, the others not): the check refines it against the map
+        near the scan, and the odometry has not drifted between a scan and itself. So the
+        refined pose is the hypothesis, and the other scans are checked against it.
+        """
+        c = h.checks[h.scan]
+        if c.fitness < self.sequence.min_fitness or c.free_space > max_free_space:
+            return
+        h.map_from_odom = c.transform @ np.linalg.inv(self.scans[h.scan].odom)
+        h.checks[h.scan] = dataclasses.replace(c, moved_deg=0.0, moved_m=0.0)
 
     def _check(self, h: Hypothesis, index: int) -> Check:
         """Put scan ``index`` where ``h`` predicts it and refine it against the map."""
@@ -297,31 +323,53 @@ def judge(hypotheses: list[Hypothesis], results: list[PipelineResult], odom: lis
     """
     Rank checked hypotheses over two scans or more and decide (see the module doc).
 
+    A scan that no hypothesis explains, not even one its own candidates proposed (each is
+    moved to where its scan settles first), fits the map nowhere: taken where the map has
+    nothing, or too little of it in view. It says nothing for or against any hypothesis and
+    is left out. With one scan left the answer is that scan's own verdict when it is the
+    latest (else refused: the latest scan is not in the map); with none, refused. A scan
+    that fits somewhere, but not where the odometry puts it under a hypothesis, refutes it.
+
     A pure function of the checks, so that thresholds can be studied on recorded ones.
     """
     n, limit = len(results), config.gates.max_free_space_violation
 
-    def explained(h: Hypothesis) -> list[bool]:  # a check left out: refuted earlier
-        return [i in h.checks and h.checks[i].explains(seq, limit) for i in range(n)]
+    def explains(h: Hypothesis, i: int) -> bool:  # a check left out: refuted earlier
+        return i in h.checks and h.checks[i].explains(seq, limit)
+
+    if not hypotheses:
+        return _settle(results[-1].transform, odom[-1], results[-1].refusal
+                       or Refusal(RefusalCode.NO_ESTIMATE, 'no scan gave a candidate pose'),
+                       [], results, seq)
+    void = [i for i in range(n) if not any(explains(h, i) for h in hypotheses)]
+    used = [i for i in range(n) if i not in void]
+
+    def explained(h: Hypothesis) -> list[bool]:  # only the scans some hypothesis explains
+        return [explains(h, i) for i in used]
 
     def score(h: Hypothesis) -> tuple:
         return (sum(explained(h)), sum(c.fitness for c in h.checks.values()), h.inliers)
 
+    def latest(h: Hypothesis) -> np.ndarray:  # the latest scan's pose under h
+        return (h.checks[n - 1].transform if explains(h, n - 1)
+                else h.map_from_odom @ odom[-1])
+
     ranked = sorted(hypotheses, key=score, reverse=True)
-    if not ranked:
-        return _settle(results[-1].transform, odom[-1], results[-1].refusal
-                       or Refusal(RefusalCode.NO_ESTIMATE, 'no scan gave a candidate pose'),
-                       ranked, results, seq)
+    if void and used == [n - 1]:
+        return _settle(results[-1].transform, odom[-1], results[-1].refusal, ranked,
+                       results, seq)
+    if void and len(used) < 2:
+        return _settle(results[-1].transform, odom[-1], unexplained_refusal(void), ranked,
+                       results, seq)
     best = ranked[0]
-    last = (best.checks[n - 1].transform if n - 1 in best.checks
-            else best.map_from_odom @ odom[-1])
-    misses = [i for i, ok in enumerate(explained(best)) if not ok]
+    last = latest(best)
+    misses = [i for i, ok in zip(used, explained(best)) if not ok]
     refusal = unexplained_refusal(misses) if misses else None
     for rival in ranked[1:] if not refusal else ():
         if any(not ok or rival.checks[i].fitness * seq.refute_ratio < best.checks[i].fitness
-               for i, ok in enumerate(explained(rival))):
+               for i, ok in zip(used, explained(rival))):
             continue  # refuted
-        pose = rival.checks[n - 1].transform
+        pose = latest(rival)
         if distinct(pose, last, config):
             refusal = sequence_ambiguity_refusal(n, rotation_error_deg(pose, last),
                                                  translation_error(pose, last))
@@ -334,7 +382,7 @@ def _settle(transform: np.ndarray, odom: np.ndarray, refusal: Refusal | None,
             seq: SequenceConfig) -> Answer:
     """Return the answer: confirmed without a refusal and with enough scans, else why not."""
     n = len(results)
-    refusal = refusal or more_scans_refusal(n, seq.min_scans)
+    refusal = refusal or more_scans_refusal(n, min(seq.min_scans, seq.max_scans))
     done = refusal is None or n >= seq.max_scans
     if refusal is not None and not done:
         refusal = Refusal(refusal.code,

@@ -51,8 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument('--odometry', type=Path, metavar='FILE',
                         help="one 'x y z qx qy qz qw' line a scan (sensor pose in odometry)")
     add_config_options(parser)
-    parser.add_argument('--min-scans', type=int, default=1, metavar='N',
-                        help='scans a confirmation needs (default 1: one valid scan confirms)')
+    parser.add_argument('--min-scans', type=int, default=2, metavar='N',
+                        help='scans a confirmation needs, at most those given (default 2: a '
+                        'second scan must agree; one scan given is judged alone)')
     parser.add_argument('--map-cache-dir', type=Path, metavar='DIR',
                         help="cache of the map's features (default: none)")
     parser.add_argument('--json', action='store_true',
