@@ -12,16 +12,19 @@ an earlier scan proposed already is merged into it). Each hypothesis is then che
 every scan (first its own, which moves the hypothesis to where that scan settles: a
 candidate is good to about the core's inlier threshold): the scan is put where the
 hypothesis and the odometry predict and refined locally against the map
-(:func:`~..frontend.refine.refine_transform`, cheap from a close start), and the scan **explains** the hypothesis when the refinement stays within the
-odometry's drift allowance, the fitness is at least ``min_fitness`` and the pose passes the
-free-space gate. A hypothesis that explains a scan much worse than the best one does (its
-fitness ``refute_ratio`` times lower) or does not explain it is **refuted** by that scan.
+(:func:`~..frontend.refine.refine_transform`, cheap from a close start), and the scan
+**explains** the hypothesis when the refinement stays within the drift allowance (the
+odometry's drift and the error of the registration the hypothesis came from), the fitness
+is at least ``min_fitness`` and the pose passes the free-space gate. A hypothesis that
+explains a scan much worse than the best one does (its fitness ``refute_ratio`` times lower)
+or does not explain it is **refuted** by that scan.
 
 The answer is **confirmed** when one hypothesis explains every scan used and every distinct
-rival is refuted; until then it asks for another scan, and after ``max_scans`` it refuses
-with the reason. A scan that no hypothesis explains, not even its own (taken outside the
-map), is not used: it speaks for or against none of them. Odometry that contradicts the scans leaves no hypothesis explaining them
-all: it is refused, never averaged. One scan alone is judged exactly as
+rival is refuted, over at least ``min_scans`` scans; until then it asks for another scan,
+and after ``max_scans`` it refuses with the reason. A scan that no hypothesis explains, not
+even its own (taken outside the map), is not used: it speaks for or against none of them.
+Odometry that contradicts the scans leaves no hypothesis explaining them all: it is refused,
+never averaged. One scan without odometry is judged exactly as
 :func:`~.register.register_clouds` judges it (confirmed when valid), at the same cost: the
 checks run only once a second scan arrives.
 """
