@@ -239,9 +239,17 @@ def summarize(client: StreamClient, stamps: list[int], truth: np.ndarray) -> dic
         'max_rotation_deg': float(rot_a.max()) if rot_a.size else None,
         'max_translation_m': float(trans_a.max()) if trans_a.size else None,
         'tracked_overhead_ms': _ms(np.array(overheads), 50),
+        # The node's own latency, from its callback's receipt of a scan to the result (its
+        # recent scans, /diagnostics): the rest of the latency above is outside the node.
+        'node_latency_p50_ms': _seconds_ms(client.value('latency_p50_s')),
+        'node_latency_p95_ms': _seconds_ms(client.value('latency_p95_s')),
         'stage_median_ms': {p: {s: _ms(np.array(v), 50) for s, v in by.items()}
                             for p, by in stages.items()},
     }
+
+
+def _seconds_ms(text: str | None) -> float | None:
+    return None if text is None else round(1e3 * float(text), 1)
 
 
 def _ms(values: np.ndarray, q: float) -> float | None:

@@ -360,7 +360,7 @@ def judge(hypotheses: list[Hypothesis], results: list[PipelineResult], odom: lis
     ranked = sorted(hypotheses, key=score, reverse=True)
     if void and used == [n - 1]:
         return _settle(results[-1].transform, odom[-1], results[-1].refusal, ranked,
-                       results, seq)
+                       results, seq, used=1)
     if void and len(used) < 2:
         return _settle(results[-1].transform, odom[-1], unexplained_refusal(void), ranked,
                        results, seq)
@@ -377,15 +377,21 @@ def judge(hypotheses: list[Hypothesis], results: list[PipelineResult], odom: lis
             refusal = sequence_ambiguity_refusal(n, rotation_error_deg(pose, last),
                                                  translation_error(pose, last))
             break
-    return _settle(last, odom[-1], refusal, ranked, results, seq)
+    return _settle(last, odom[-1], refusal, ranked, results, seq, used=len(used))
 
 
 def _settle(transform: np.ndarray, odom: np.ndarray, refusal: Refusal | None,
             hypotheses: list[Hypothesis], results: list[PipelineResult],
-            seq: SequenceConfig) -> Answer:
-    """Return the answer: confirmed without a refusal and with enough scans, else why not."""
+            seq: SequenceConfig, used: int | None = None) -> Answer:
+    """
+    Return the answer: confirmed without a refusal and with enough scans, else why not.
+
+    ``used``: the scans the decision rests on (default all; a scan left out does not count
+    towards ``min_scans``).
+    """
     n = len(results)
-    refusal = refusal or more_scans_refusal(n, min(seq.min_scans, seq.max_scans))
+    used = n if used is None else used
+    refusal = refusal or more_scans_refusal(used, min(seq.min_scans, seq.max_scans))
     done = refusal is None or n >= seq.max_scans
     if refusal is not None and not done:
         refusal = Refusal(refusal.code,
