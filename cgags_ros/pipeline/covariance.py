@@ -102,7 +102,8 @@ def map_to_odom(T_map_base: np.ndarray, T_odom_base: np.ndarray) -> np.ndarray:
 
 def overlap_covariance(source: np.ndarray, target: np.ndarray, target_normals: np.ndarray,
                        tree: cKDTree, T: np.ndarray, distance: float, voxel_size: float,
-                       gravity: np.ndarray | None = None) -> np.ndarray:
+                       gravity: np.ndarray | None = None,
+                       pairs: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """
     Return the 6x6 covariance of ``T`` from the whole overlap it aligns, ROS order.
 
@@ -124,23 +125,27 @@ def overlap_covariance(source: np.ndarray, target: np.ndarray, target_normals: n
     - ``gravity`` (4-DoF): the yaw-only information ``B^T H B`` as in
       :func:`pose_covariance`, the floor on yaw only.
 
+    ``pairs``: the overlap's (source index, target index) when the caller has them (the
+    nearest target point of each source point within ``distance`` under ``T``); else found
+    in ``tree``.
+
     Fewer than 6 overlapping points or a singular information: variances of 1e6.
     """
     src = np.asarray(source, dtype=np.float64)
     R, t = T[:3, :3], T[:3, 3]
-    rotated = src @ R.T
-    dist, nn = tree.query(rotated + t, k=1, distance_upper_bound=distance)
-    close = np.isfinite(dist)
-    n_points = int(np.count_nonzero(close))
+    if pairs is None:
+        dist, nn = tree.query(src @ R.T + t, k=1, distance_upper_bound=distance)
+        close = np.isfinite(dist)
+        pairs = np.flatnonzero(close), nn[close]
+    n_points = len(pairs[0])
     if n_points < 6:
         return np.diag([1e6] * 6)
-    p, nn = rotated[close], nn[close]
+    p, nn = src[pairs[0]] @ R.T, pairs[1]
     moved = p + t
     normals = np.asarray(target_normals, dtype=np.float64)[nn]
     J = np.hstack([normals, np.cross(p, normals)])
     r = np.einsum('ij,ij->i', normals, moved - np.asarray(target, dtype=np.float64)[nn])
-    cells = len(np.unique(np.floor(moved / (CELL_FACTOR * voxel_size)).astype(np.int64),
-                          axis=0))
+    cells = _occupied_cells(moved, CELL_FACTOR * voxel_size)
     sigma2 = max(float(r @ r) / max(n_points - 6, 1), 1e-12)
     scale = SCALE * sigma2 * n_points / max(cells, 1)
     radius = np.sqrt(np.mean(np.sum((moved - moved.mean(axis=0)) ** 2, axis=1)))
@@ -155,6 +160,16 @@ def overlap_covariance(source: np.ndarray, target: np.ndarray, target_normals: n
     if np.linalg.cond(info) > 1e12:
         return B @ np.diag([1e6] * B.shape[1]) @ B.T
     return B @ (scale * np.linalg.inv(info) + B.T @ floor @ B) @ B.T
+
+
+def _occupied_cells(points: np.ndarray, size: float) -> int:
+    """Return how many cubic cells of ``size`` metres hold ``points``."""
+    ijk = np.floor(points / size).astype(np.int64)
+    ijk -= ijk.min(axis=0)
+    span = ijk.max(axis=0) + 1
+    if float(np.prod(span.astype(np.float64))) >= 2.0 ** 62:  # too far apart for one key
+        return len(np.unique(ijk, axis=0))
+    return len(np.unique((ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]))
 
 
 def with_confidence(cov: np.ndarray, confidence: float) -> np.ndarray:

@@ -211,8 +211,8 @@ class Tracker:
             result.refined = True
         with timed(result.timings, 'validation'):
             # no source tree: the target side of the overlap is for rival verification only
-            measure_overlap(points, None, ft, result, cfg,
-                            isinstance(target, PreparedMap))
+            align = measure_overlap(points, None, ft, result, cfg,
+                                    isinstance(target, PreparedMap))
             last_fitness = state.poses[-1].fitness if state.poses else 0.0
             refusal = (overlap_refusal(result, cfg)
                        or tracking_refusal(*difference(prediction, result.transform),
@@ -221,7 +221,8 @@ class Tracker:
         # keep one meaning whichever path made them.
         result.covariance = overlap_covariance(
             points, ft.points, ft.normals, ft.tree, result.transform,
-            cfg.refine.max_correspondence_distance_factor * v, v, gravity)
+            cfg.refine.max_correspondence_distance_factor * v, v, gravity,
+            (align.source_index, align.target_index))
         return result.finish(start, refusal)
 
     def _target_features(self, target: np.ndarray | PreparedMap, cfg: PipelineConfig,
