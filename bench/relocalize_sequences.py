@@ -109,8 +109,8 @@ def run_scene(root: Path, scene: str, starts: int, cfg, seq: SequenceConfig, dri
                           'refusal': summary(answer.refusal),
                           'single_valid': bool(answer.results[-1].valid),
                           'single_s': float(answer.results[-1].timings.get('total', 0.0)),
-                          'submap_s': float(reloc.submaps[-1].timings.get('total', 0.0))
-                          if reloc.submaps and len(reloc.submaps) == len(steps) else 0.0})
+                          'submap_s': float(reloc.submaps[len(steps)].timings.get('total', 0.0))
+                          if len(steps) in reloc.submaps else 0.0})
         records.append({'scene': scene, 'start': k, 'overlap': overlap, 'steps': steps,
                         'truth': [T.tolist() for T in truth],
                         'odom': [T.tolist() for T in odom],

@@ -60,9 +60,10 @@ class SequenceConfig:
     :ivar min_scans: scans a confirmed answer needs (1: one valid scan confirms, as a single
         registration is judged; 2, the default: a second scan must agree, since a valid
         single scan is now and then a turned room).
-    :ivar submap: from the second scan on, also register every scan so far, fused with the
-        odometry into the latest scan's frame, onto the map; its candidates are hypotheses
-        too (more of the place in view than any one scan).
+    :ivar submap: from the second scan on, when the scans' own candidates do not settle it,
+        also register every scan so far, fused with the odometry into the latest scan's
+        frame, onto the map; its candidates are hypotheses too (more of the place in view
+        than any one scan).
     :ivar drift_deg: rotation (degrees) a check may move a scan from where the hypothesis
         puts it, a step: the odometry's drift and the error of the registration the
         hypothesis came from (a few degrees and centimetres).
@@ -189,7 +190,7 @@ class Relocalizer:
         self.sequence = sequence or SequenceConfig()
         self.scans: list[_Scan] = []
         self.hypotheses: list[Hypothesis] = []
-        self.submaps: list[PipelineResult] = []
+        self.submaps: dict[int, PipelineResult] = {}  # scan index -> its submap's result
         # Map points by coarse cell, so that a check refines against the map near the scan.
         self._cell = 0.5 + 4 * config.voxel_size
         self._map_cells = _cells(prepared.features.points, self._cell)
@@ -199,7 +200,7 @@ class Relocalizer:
 
     def reset(self) -> None:
         """Forget every scan and hypothesis."""
-        self.scans, self.hypotheses, self.submaps = [], [], []
+        self.scans, self.hypotheses, self.submaps = [], [], {}
 
     def add(self, scan_xyz: np.ndarray, odom_from_sensor: np.ndarray | None = None) -> Answer:
         """
@@ -229,15 +230,23 @@ class Relocalizer:
                    else dataclasses.replace(self.sequence, min_scans=1))
             return _settle(result.transform, odom, result.refusal, self.hypotheses, [result],
                            seq)
-        if self.sequence.submap:
+        answer = self._judge()
+        if self.sequence.submap and not answer.confirmed:
+            # The scans alone did not settle it: the scans so far, fused with the odometry,
+            # show more of the place than any one of them, and their candidates join in.
             to_latest = np.linalg.inv(odom)
             # On a micrometre grid: the voxel grid splits points at exact boundaries, so
             # odometry that differs only in its last bits (a pose sent as a quaternion) would
             # otherwise fuse a different cloud and register it differently.
             fused = np.round(np.vstack([apply_transform(to_latest @ s.odom, s.xyz)
                                         for s in self.scans]), 6)
-            self.submaps.append(register_clouds(fused, self.prepared, config=self.config))
-            self._propose_all(self.submaps[-1], index, 'submap')
+            self.submaps[index] = register_clouds(fused, self.prepared, config=self.config)
+            self._propose_all(self.submaps[index], index, 'submap')
+            answer = self._judge()
+        return answer
+
+    def _judge(self) -> Answer:
+        """Check every hypothesis not yet checked on every scan, then decide."""
         limit = self.config.gates.max_free_space_violation
         for h in self.hypotheses:
             # Its own scan first: a pose that does not explain the scan that proposed it is
