@@ -193,16 +193,18 @@ def with_confidence(cov: np.ndarray, confidence: float) -> np.ndarray:
 
 def result_covariance(result: Any, source: np.ndarray, target: np.ndarray,
                       target_normals: np.ndarray, tree: cKDTree, distance: float,
-                      gravity: np.ndarray | None = None) -> np.ndarray:
+                      gravity: np.ndarray | None = None,
+                      pairs: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """
     Return the 6x6 covariance (:func:`overlap_covariance`) of a pipeline result's estimate.
 
     Over the overlap its final ``transform`` aligns (downsampled clouds, ``distance`` the
-    refinement's); variances of 1e6 when fewer than three correspondences support the
-    estimate (there is none). ``gravity`` is the unit up axis of a 4-DoF estimate.
+    refinement's; ``pairs`` that overlap when the caller measured it); variances of 1e6 when
+    fewer than three correspondences support the estimate (there is none). ``gravity`` is
+    the unit up axis of a 4-DoF estimate.
     """
     if len(result.inlier_source_points) < 3:
         return np.diag([1e6] * 6)
     return overlap_covariance(source, target, target_normals, tree,
                               np.asarray(result.transform, dtype=np.float64), distance,
-                              float(result.voxel_size), gravity)
+                              float(result.voxel_size), gravity, pairs)

@@ -22,14 +22,15 @@ from ..registration import poisson_isf
 
 
 def measure(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
-            result: PipelineResult, cfg: PipelineConfig, map_target: bool = False) -> None:
+            result: PipelineResult, cfg: PipelineConfig, map_target: bool = False
+            ) -> Alignment:
     """
     Set the measurements the gates judge on ``result`` (its ``transform`` is the estimate).
 
     The chance-level inliers of the correspondences and their bound, then
-    :func:`measure_overlap`. ``map_target``: the target is a map fused from many viewpoints,
-    so it has no sensor at its origin (the free-space violation is then measured against the
-    scan's view only).
+    :func:`measure_overlap`, whose overlap is returned. ``map_target``: the target is a map
+    fused from many viewpoints, so it has no sensor at its origin (the free-space violation
+    is then measured against the scan's view only).
     """
     result.chance_inliers = chance_inliers(fs.points[corr.source_index],
                                            ft.points[corr.target_index], result.coarse_transform,
@@ -39,7 +40,7 @@ def measure(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
     if cfg.gates.significance > 0:
         result.chance_bound = chance_bound(result.chance_inliers, result.num_hypotheses,
                                            cfg.gates.significance, members)
-    measure_overlap(fs.points, fs.tree, ft, result, cfg, map_target)
+    return measure_overlap(fs.points, fs.tree, ft, result, cfg, map_target)
 
 
 def measure_overlap(source: np.ndarray, source_tree: cKDTree | None, ft: CloudFeatures,

@@ -32,7 +32,7 @@ from ..errors import DegenerateCorrespondencesError, EmptyCloudError, InvalidCon
 from ..frontend.features import CloudFeatures, finite_points
 from ..frontend.keypoints import match_keypoints
 from ..frontend.matching import Correspondences
-from ..frontend.refine import refine_transform
+from ..frontend.refine import Alignment, refine_transform
 from ..geometry import cross_spread
 from ..parallel import DEFAULT_WORKERS, in_background
 from ..refusal import Refusal
@@ -74,7 +74,7 @@ def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
 
 def _judged(result: PipelineResult, fs: CloudFeatures, ft: CloudFeatures,
             cfg: PipelineConfig, start: float, refusal: Refusal | None,
-            map_target: bool = False) -> PipelineResult:
+            map_target: bool = False, overlap: Alignment | None = None) -> PipelineResult:
     """
     Finish a result that has an estimate: its covariance and confidence, then the verdict.
 
@@ -83,13 +83,15 @@ def _judged(result: PipelineResult, fs: CloudFeatures, ft: CloudFeatures,
     chance that the pose is wrong (:func:`~.covariance.with_confidence`). Against a map or in
     4-DoF mode the confidence is reported but decides nothing and the covariance is the
     overlap's alone: it was calibrated on 6-DoF pairs of scans, and a map's overlap and
-    rivals, or a yaw-only search, read differently.
+    rivals, or a yaw-only search, read differently. ``overlap``: the gates' overlap of the
+    final transform, when they measured one (the covariance's point pairs).
     """
     four_dof = cfg.core.motion_model == '4dof'
     result.covariance = result_covariance(
         result, fs.points, ft.points, ft.normals, ft.tree,
         cfg.refine.max_correspondence_distance_factor * cfg.voxel_size,
-        cfg.core.gravity_axis if four_dof else None)
+        cfg.core.gravity_axis if four_dof else None,
+        None if overlap is None else (overlap.source_index, overlap.target_index))
     result.confidence = probability(features(result, cfg.gates.significance,
                                              2 if four_dof else 3))
     if map_target or four_dof:
@@ -163,7 +165,7 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
     # in compiled numba functions and k-d tree queries).
     rivals = in_background(lambda: _search_rivals(fs, ft, corr, result, cfg), workers > 1)
     with timed(result.timings, 'validation'):
-        measure(fs, ft, corr, result, cfg, map_target)
+        overlap = measure(fs, ft, corr, result, cfg, map_target)
         refusal = gate_refusal(result, cfg, left_to_gates)
     found, result.timings['candidates'] = rivals()
     rank_candidates(result, found, cfg)
@@ -171,7 +173,7 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
         chosen = verify_rivals(fs, ft, result, cfg, map_target, workers)
         if chosen is not None:  # the geometry prefers a rival: it is the estimate now
             result.transform = chosen.transform
-            measure(fs, ft, corr, result, cfg, map_target)
+            overlap = measure(fs, ft, corr, result, cfg, map_target)
             refusal = gate_refusal(result, cfg, left_to_gates)
             chosen.fitness = result.fitness
     refusal = ambiguity_refusal(result, cfg) or refusal
@@ -181,7 +183,7 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
         if rival is not None:
             mark_ambiguous(result, rival)
             refusal = ambiguity_refusal(result, cfg)
-    return _judged(result, fs, ft, cfg, start, refusal, map_target)
+    return _judged(result, fs, ft, cfg, start, refusal, map_target, overlap)
 
 
 def _target_features(target: np.ndarray | PreparedMap, points: np.ndarray | None,
