@@ -389,14 +389,21 @@ def test_separate_process_synchronized_lidar_then_sigterm(ros, data_dir, tmp_pat
          '--params-file', str(REPO / 'config' / 'register_node.yaml')] + ros_args(
             **{'pairing.mode': 'synchronized', 'pairing.sync_slop': 0.02,
                'voxel_size': VOXEL['lidar'], 'pairing.queue_depth': 10,
-               'pairing.max_waiting_sources': 10, 'output.diagnostics_period': 0.2},
+               'pairing.max_waiting_sources': 10, 'pairing.target_depth': 10,
+               'output.diagnostics_period': 0.2},
             # Reliable here so the test is deterministic: best-effort 1 MB clouds across
             # processes on a loaded machine lose samples (sensor_data is used in-process).
             **{'pairing.source_qos': 'reliable'}),
         cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, text=True)
+    # Every target is paired here, so none may be overwritten before delivery: the latched
+    # publisher keeps only its last sample, and a 1-MB cloud still unacknowledged when the
+    # next is published (a loaded machine) would be lost from its history. Both ends keep
+    # ten (the node through pairing.target_depth above).
+    targets = io.node.create_publisher(
+        PointCloud2, 'target_cloud', QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
     try:
         wait_for(lambda: io.source_pub.get_subscription_count() and
-                 io.target_pub.get_subscription_count() and
+                 targets.get_subscription_count() and
                  io.node.count_publishers('/register_node/pose'), 30, 'node discovery')
         # The publisher can see the match before the subscriber does; a sample sent in
         # between is lost even when reliable, so wait until the node reports itself.
@@ -414,7 +421,7 @@ def test_separate_process_synchronized_lidar_then_sigterm(ros, data_dir, tmp_pat
             assert future.result().results[0].successful is ok
         io.poses.clear()
         for topic, _, msg in b.records:
-            (io.target_pub if topic == '/target_cloud' else io.source_pub).publish(msg)
+            (targets if topic == '/target_cloud' else io.source_pub).publish(msg)
             time.sleep(0.1)
         sources = [stamp for stamp, _ in b.clouds('/source_cloud')]
         # the first source (0.1 s) has no target within 20 ms; the five others pair exactly
@@ -427,6 +434,7 @@ def test_separate_process_synchronized_lidar_then_sigterm(ros, data_dir, tmp_pat
                         .get('pairing.dropped.source_no_target_within_slop'), 10, 'diagnostics')
         assert diag == '1'
     finally:
+        io.node.destroy_publisher(targets)
         out = stop_process(proc, log)
     assert proc.returncode == 0, out
     assert 'Traceback' not in out, out
