@@ -287,7 +287,7 @@ class RegistrationEngine:
         stream = (step is None and tracks(cfg.mode, pipe_cfg) and self._register_fn is None
                   and self._calls.waiting() is None)
         try:
-            result = self._register(source.xyz, step or target.xyz, config=pipe_cfg,
+            result = self._register(source.xyz, step or target.as_target(), config=pipe_cfg,
                                     **({'stamp': pair.source.stamp_ns * 1e-9} if stream else {}))
             answer, result = (result, result.result) if step else (None, result)
         except InvalidInputError as exc:
@@ -343,7 +343,8 @@ class RegistrationEngine:
         frame = str(pair.source.payload.header.frame_id)
         base = extrinsic(cfg)
         base = self._outputs.base_from_sensor(reloc.base_frame, frame) if base is None else base
-        return seq.step(pair.target.payload.xyz, pair.source.stamp_ns, base, reloc.max_scans)
+        return seq.step(pair.target.payload.as_target(), pair.source.stamp_ns, base,
+                        reloc.max_scans)
 
     def _finish(self, pair: Pair, result: PipelineResult, T: np.ndarray, cov: np.ndarray,
                 cfg: NodeConfig, frame_id: str, answer: Any = None) -> None:

@@ -1,7 +1,8 @@
 """
 What the registration engine and its node exchange, without ROS.
 
-The node decodes each message into a :class:`Cloud`; the engine
+The node decodes each message into a :class:`Cloud` (the map of ``map.file`` is a
+:class:`MapCloud`); the engine
 (:class:`~.engine.RegistrationEngine`) hands back what to publish (:class:`Estimate`,
 :class:`BasePose`, :class:`Calibration`, :class:`PairResult`) through :class:`EngineOutputs`,
 which the node implements
@@ -34,6 +35,29 @@ class Cloud:
 
     def __init__(self, xyz: np.ndarray, header: Any, receipt_ns: int):
         self.xyz, self.header, self.receipt_ns = xyz, header, receipt_ns
+
+    def as_target(self) -> np.ndarray:
+        """Return what a registration onto this cloud takes: its points."""
+        return self.xyz
+
+
+class MapCloud:
+    """
+    The prior map (``map.file``) as the target of every scan: a reference, not points.
+
+    The registration process loads the map and holds its features; this process passes
+    only the reference (:class:`~cgags_ros.pipeline.isolated.MapRef`). ``header`` has the
+    map's ``frame_id`` and no stamp.
+    """
+
+    __slots__ = ('ref', 'header', 'receipt_ns')
+
+    def __init__(self, ref: Any, header: Any, receipt_ns: int):
+        self.ref, self.header, self.receipt_ns = ref, header, receipt_ns
+
+    def as_target(self) -> Any:
+        """Return what a registration onto the map takes: its reference."""
+        return self.ref
 
 
 @dataclasses.dataclass(frozen=True)

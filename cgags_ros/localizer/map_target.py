@@ -3,7 +3,7 @@ The map of ``map.file`` as the node's one latched target: loaded where the pipel
 
 ROS-free. The features are computed (or read from the on-disk cache) in the registration
 process, so the node's process never holds them; the node pairs every scan with a target
-whose points are the :class:`~cgags_ros.pipeline.isolated.MapRef`.
+that is the map's reference (:class:`~.interface.MapCloud`), never its points.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import os
 import time
 from typing import Any, Callable
 
-from .interface import Cloud, StartFailed
+from .interface import MapCloud, StartFailed
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError
@@ -38,7 +38,7 @@ class MapTarget:
         self.error = ''
 
     def load(self, registration: IsolatedRegistration | None, config: PipelineConfig,
-             cfg: NodeConfig, log: Callable[[str, str], None]) -> Cloud:
+             cfg: NodeConfig, log: Callable[[str, str], None]) -> MapCloud:
         """
         Load the map where the pipeline runs (features computed or from the cache).
 
@@ -70,7 +70,7 @@ class MapTarget:
                 "unlike a scan's (its sensor): fine for one scan kept in its sensor frame, "
                 'not for a map fused from many views; write the map with normals facing its '
                 'sensors, or set frontend.normal_orientation to centroid (docs/relocalization.md)')
-        return Cloud(ref, FrameHeader(cfg.map.frame), time.monotonic_ns())
+        return MapCloud(ref, FrameHeader(cfg.map.frame), time.monotonic_ns())
 
     def update(self, result: PipelineResult) -> None:
         """Take the map summary a registration reports (the map may have been reloaded)."""
