@@ -12,7 +12,7 @@ an earlier scan proposed already is merged into it). Each hypothesis is then che
 every scan (first its own, which moves the hypothesis to where that scan settles: a
 candidate is good to about the core's inlier threshold): the scan is put where the
 hypothesis and the odometry predict and refined locally against the map
-(:func:`~..frontend.refine.refine_transform`, cheap from a close start), and the scan
+(point-to-plane on the map's k-d tree, cheap from a close start), and the scan
 **explains** the hypothesis when the refinement stays within the drift allowance (the
 odometry's drift and the error of the registration the hypothesis came from), the fitness
 is at least ``min_fitness`` and the pose passes the free-space gate. A hypothesis that
@@ -45,10 +45,13 @@ from .result import PipelineResult
 from ..config.pipeline import PipelineConfig
 from ..errors import InvalidInputError
 from ..frontend.features import CloudFeatures, finite_points
-from ..frontend.refine import evaluate_alignment, refine_transform
+from ..frontend.refine import evaluate_alignment, point_to_plane_6dof
 from ..geometry import apply_transform, rotation_error_deg, translation_error
 from ..refusal import Judged, Refusal, RefusalCode
 from ..validity import more_scans_refusal, sequence_ambiguity_refusal, unexplained_refusal
+
+CHECK_ITERATIONS = 6  # Gauss-Newton steps a stage of a check, at most
+CHECK_STRIDE = 2  # a check settles on every second scan point; its fitness counts them all
 
 
 @dataclasses.dataclass
@@ -191,12 +194,8 @@ class Relocalizer:
         self.scans: list[_Scan] = []
         self.hypotheses: list[Hypothesis] = []
         self.submaps: dict[int, PipelineResult] = {}  # scan index -> its submap's result
-        # Map points by coarse cell, so that a check refines against the map near the scan.
-        self._cell = 0.5 + 4 * config.voxel_size
-        self._map_cells = _cells(prepared.features.points, self._cell)
-        # A check starts within the drift of the truth: one short refinement stage.
-        self._check_refine = dataclasses.replace(config.refine, max_iterations=min(
-            config.refine.max_iterations, 6), coarse_stage_tolerance=1e-3)
+        # A check starts within the drift of the truth: a few iterations a stage suffice.
+        self._check_iterations = min(config.refine.max_iterations, CHECK_ITERATIONS)
 
     def reset(self) -> None:
         """Forget every scan and hypothesis."""
@@ -306,28 +305,19 @@ class Relocalizer:
         # Where the prediction leaves too little of the scan near the map even at the drift
         # allowance, no refinement can make the scan explain it: skip the refinement.
         loose = evaluate_alignment(points, ft.tree, predicted, reach + final).fitness
-        near = np.isin(self._map_cells, _cells(apply_transform(predicted, points), self._cell,
-                                               dilate=True))
-        if loose < seq.min_fitness or np.count_nonzero(near) < 3:
+        if loose < seq.min_fitness:
             return Check(predicted, 0.0, 0.0, steps, travelled, loose, float('nan'))
-        T = refine_transform(points, ft.points[near], predicted, voxel_size=cfg.voxel_size,
-                             config=self._check_refine, target_normals=ft.normals[near],
-                             coarse_distance=reach + final)
+        # The map's own k-d tree and normals, built once with its features: a check costs
+        # its few Gauss-Newton steps, not a tree of the map near the scan.
+        T = predicted
+        for distance, tolerance in ([(reach + final, cfg.refine.coarse_stage_tolerance)]
+                                    if reach > 0 else []) + [(final, 1e-6)]:
+            T = point_to_plane_6dof(points[::CHECK_STRIDE], ft.points, ft.normals, T, distance,
+                                    self._check_iterations, tolerance, ft.tree)
         fitness = evaluate_alignment(points, ft.tree, T, final).fitness
         return Check(T, rotation_error_deg(T, predicted), translation_error(T, predicted),
                      steps, travelled, fitness,
                      measured_free_space(scan.features, ft, T, cfg, map_target=True))
-
-
-def _cells(points: np.ndarray, size: float, dilate: bool = False) -> np.ndarray:
-    """Return the int64 keys of the cubic cells (``size`` metres) holding ``points``."""
-    ijk = np.floor(points / size).astype(np.int64)
-    if dilate:
-        ijk = np.unique(ijk, axis=0)
-        steps = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing='ij'), -1).reshape(-1, 3)
-        ijk = (ijk[:, None, :] + steps[None]).reshape(-1, 3)
-    ijk += 1 << 20  # non-negative below 2^21 per axis: one key of 63 bits
-    return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
 
 
 def judge(hypotheses: list[Hypothesis], results: list[PipelineResult], odom: list[np.ndarray],
