@@ -9,6 +9,7 @@ compares ~/pose with the bag's /ground_truth (same stamp as the source cloud).
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 import subprocess
@@ -378,6 +379,20 @@ def test_faulty_bag_rejections_counted_and_good_pair_published(ros, data_dir):
         stop_node(executor, node)
 
 
+def test_synchronized_targets_keep_a_history_like_the_sources():
+    from cgags_ros.config.node import NodeConfig
+    from cgags_ros.ros.qos import target_qos
+
+    cfg = NodeConfig()
+    assert target_qos(cfg).depth == cfg.pairing.target_depth == 1  # a map: the newest
+    synced = dataclasses.replace(cfg, pairing=dataclasses.replace(
+        cfg.pairing, mode='synchronized', source_depth=7))
+    assert target_qos(synced).depth == 7
+    deeper = dataclasses.replace(synced, pairing=dataclasses.replace(
+        synced.pairing, target_depth=20))
+    assert target_qos(deeper).depth == 20
+
+
 def test_separate_process_synchronized_lidar_then_sigterm(ros, data_dir, tmp_path):
     executor, io = ros
     b = bag(data_dir, 'lidar')
@@ -389,16 +404,15 @@ def test_separate_process_synchronized_lidar_then_sigterm(ros, data_dir, tmp_pat
          '--params-file', str(REPO / 'config' / 'register_node.yaml')] + ros_args(
             **{'pairing.mode': 'synchronized', 'pairing.sync_slop': 0.02,
                'voxel_size': VOXEL['lidar'], 'pairing.queue_depth': 10,
-               'pairing.max_waiting_sources': 10, 'pairing.target_depth': 10,
-               'output.diagnostics_period': 0.2},
+               'pairing.max_waiting_sources': 10, 'output.diagnostics_period': 0.2},
             # Reliable here so the test is deterministic: best-effort 1 MB clouds across
             # processes on a loaded machine lose samples (sensor_data is used in-process).
             **{'pairing.source_qos': 'reliable'}),
         cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, text=True)
     # Every target is paired here, so none may be overwritten before delivery: the latched
     # publisher keeps only its last sample, and a 1-MB cloud still unacknowledged when the
-    # next is published (a loaded machine) would be lost from its history. Both ends keep
-    # ten (the node through pairing.target_depth above).
+    # next is published (a loaded machine) would be lost from its history. This one keeps
+    # ten; the node's synchronized subscription keeps pairing.source_depth.
     targets = io.node.create_publisher(
         PointCloud2, 'target_cloud', QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
     try:

@@ -75,8 +75,10 @@ class PairingConfig:
         "transient-local publishers; 'volatile' connects to every publisher, new messages "
         'only. Reliable either way.', choices=('volatile', 'transient_local'), ros=True,
         read_only=True)
-    target_depth: int = option(1, 'History depth of the target_cloud subscription.',
-                               low=1, high=1000, read_only=True)
+    target_depth: int = option(
+        1, 'History depth of the target_cloud subscription (the newest target is the one '
+        'used in latest_target mode); synchronized mode keeps at least source_depth, since '
+        'every target is paired.', low=1, high=1000, read_only=True)
     max_cloud_points: int = option(
         20_000_000, 'A PointCloud2 claiming more points than this is rejected as malformed.',
         low=1)

@@ -25,11 +25,19 @@ def source_qos(cfg: NodeConfig) -> QoSProfile:
 
 
 def target_qos(cfg: NodeConfig) -> QoSProfile:
-    """Return the QoS of ``target_cloud``: reliable, volatile or transient-local."""
-    transient = cfg.pairing.target_durability == 'transient_local'
+    """
+    Return the QoS of ``target_cloud``: reliable, volatile or transient-local.
+
+    In synchronized mode every target is paired with a source, so the history keeps at least
+    ``source_depth`` (a second target arriving before the first was taken would otherwise
+    replace it, and its source would be dropped for want of a target).
+    """
+    pairing = cfg.pairing
+    transient = pairing.target_durability == 'transient_local'
     durability = DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE
-    return QoSProfile(depth=cfg.pairing.target_depth, reliability=ReliabilityPolicy.RELIABLE,
-                      durability=durability)
+    depth = (pairing.target_depth if pairing.mode == 'latest_target'
+             else max(pairing.target_depth, pairing.source_depth))
+    return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE, durability=durability)
 
 
 def latched_qos() -> QoSProfile:
