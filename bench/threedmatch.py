@@ -97,6 +97,10 @@ def diagnostics(result, src: np.ndarray, tgt: np.ndarray, gt: np.ndarray,
         'num_inliers': int(result.num_inliers) if hasattr(result, 'num_inliers') else None,
         'num_correspondences': int(result.num_correspondences),
         'num_hypotheses': int(result.num_hypotheses),
+        # the core's draws in all, and how many it had made when it last improved its best
+        'draws': int(result.stats.get('compatible_samples', 0)
+                     + result.stats.get('guided_samples', 0)),
+        'best_found_at': int(result.stats.get('best_found_at', 0)),
         'chance_inliers': _num(result.chance_inliers), 'fitness': _num(result.fitness),
         'overlap': _num(result.overlap), 'inlier_rmse': _num(result.inlier_rmse),
         'observability': _num(result.observability),

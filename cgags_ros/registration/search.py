@@ -65,7 +65,7 @@ class Search:
         self.restarts = 0  # stage one resumed after a stage two without a significant model
         self.stats = {'compatible_samples': 0, 'guided_samples': 0, 'rejected_collinear': 0,
                       'empty_common_neighbourhood': 0, 'kernel_refreshes': 0,
-                      'best_updates': 0, 'stage_one_bound': float('inf'),
+                      'best_updates': 0, 'best_found_at': 0, 'stage_one_bound': float('inf'),
                       'stage_two_bound': float('inf')}
 
     def report(self) -> dict:
@@ -175,6 +175,7 @@ class Search:
         self.best_mask[:] = False
         self.best_mask[self.best_inliers] = True
         self.stats['best_updates'] += 1
+        self.stats['best_found_at'] = self.num_drawn  # the draws the best model took to find
         return True
 
     # --- step 7: significance and the caps ---------------------------------------------------
