@@ -80,10 +80,8 @@ def refine_transform(source: np.ndarray, target: np.ndarray, initial: np.ndarray
         return _refine_4dof(source, target, initial, voxel_size, config, target_normals,
                             coarse_distance, gravity, workers, tolerance)
     final = config.max_correspondence_distance_factor * voxel_size
-    stages = ([final] if not coarse_distance or coarse_distance <= final
-              else [coarse_distance, final])
     T = np.asarray(initial, dtype=np.float64)
-    for distance in stages:
+    for distance in stages(coarse_distance, final):
         stop = config.coarse_stage_tolerance if distance > final else tolerance
         if config.method == 'point_to_plane':
             T = _point_to_plane(source, target, target_normals, T, distance, voxel_size, config,
@@ -135,17 +133,16 @@ def _refine_4dof(source, target, initial, voxel_size, config, target_normals, co
                                                                     max_nn=30))
         target_normals = np.asarray(cloud.normals)
     final = config.max_correspondence_distance_factor * voxel_size
-    stages = ([final] if not coarse_distance or coarse_distance <= final
-              else [coarse_distance, final])
+    distances = stages(coarse_distance, final)
     T = frame.to_gravity_transform(np.asarray(initial, dtype=np.float64))
     src, dst = frame.to_gravity(source), frame.to_gravity(target)
     normals = frame.to_gravity(target_normals)
     if config.method == 'gicp':
         T6 = frame.to_gravity_transform(_gicp(source, target, frame.from_gravity(T),
-                                              stages[-1], voxel_size, config))
+                                              distances[-1], voxel_size, config))
         T = nearest_yaw_motion(T6)
     tree = cKDTree(dst)
-    for distance in stages:
+    for distance in distances:
         tolerance = config.coarse_stage_tolerance if distance > final else final_tolerance
         T = point_to_plane_4dof(src, dst, normals, T, distance, config.max_iterations,
                                 tolerance, tree, workers)
@@ -177,6 +174,32 @@ def point_to_plane_4dof(source: np.ndarray, target: np.ndarray, normals: np.ndar
     tree = tree if tree is not None else cKDTree(target)
     return _gauss_newton(source, target, normals, initial, distance, iterations, tolerance,
                          tree, workers, _Yaw)
+
+
+def stages(coarse_distance: float | None, final: float) -> list[float]:
+    """Return a refinement's correspondence distances: a coarse stage first when it is larger."""
+    if not coarse_distance or coarse_distance <= final:
+        return [final]
+    return [coarse_distance, final]
+
+
+def staged_point_to_plane(source: np.ndarray, target: np.ndarray, normals: np.ndarray,
+                          tree: cKDTree, initial: np.ndarray, coarse_distance: float,
+                          final: float, iterations: int, coarse_tolerance: float,
+                          workers: int = 1) -> np.ndarray:
+    """
+    Run :func:`point_to_plane_6dof` in a refinement's stages, against a prebuilt ``tree``.
+
+    The ``coarse_distance`` stage first when it is the larger (stopping at
+    ``coarse_tolerance``), then the ``final`` one (1e-6), ``iterations`` each: for the many
+    short refinements against one target (rivals, relocalization checks).
+    """
+    T = np.asarray(initial, dtype=np.float64)
+    for distance in stages(coarse_distance, final):
+        tolerance = coarse_tolerance if distance > final else 1e-6
+        T = point_to_plane_6dof(source, target, normals, T, distance, iterations, tolerance,
+                                tree, workers)
+    return T
 
 
 def point_to_plane_6dof(source: np.ndarray, target: np.ndarray, normals: np.ndarray,

@@ -45,7 +45,7 @@ from .result import PipelineResult
 from ..config.pipeline import PipelineConfig
 from ..errors import InvalidInputError
 from ..frontend.features import CloudFeatures, finite_points
-from ..frontend.refine import evaluate_alignment, point_to_plane_6dof
+from ..frontend.refine import evaluate_alignment, staged_point_to_plane
 from ..geometry import apply_transform, rotation_error_deg, translation_error
 from ..refusal import Judged, Refusal, RefusalCode
 from ..validity import more_scans_refusal, sequence_ambiguity_refusal, unexplained_refusal
@@ -309,11 +309,9 @@ class Relocalizer:
             return Check(predicted, 0.0, 0.0, steps, travelled, loose, float('nan'))
         # The map's own k-d tree and normals, built once with its features: a check costs
         # its few Gauss-Newton steps, not a tree of the map near the scan.
-        T = predicted
-        for distance, tolerance in ([(reach + final, cfg.refine.coarse_stage_tolerance)]
-                                    if reach > 0 else []) + [(final, 1e-6)]:
-            T = point_to_plane_6dof(points[::CHECK_STRIDE], ft.points, ft.normals, T, distance,
-                                    self._check_iterations, tolerance, ft.tree)
+        T = staged_point_to_plane(points[::CHECK_STRIDE], ft.points, ft.normals, ft.tree,
+                                  predicted, reach + final, final, self._check_iterations,
+                                  cfg.refine.coarse_stage_tolerance)
         fitness = evaluate_alignment(points, ft.tree, T, final).fitness
         return Check(T, rotation_error_deg(T, predicted), translation_error(T, predicted),
                      steps, travelled, fitness,

@@ -31,7 +31,7 @@ from .result import Candidate, PipelineResult
 from ..config.pipeline import PipelineConfig
 from ..frontend.features import CloudFeatures
 from ..frontend.matching import Correspondences
-from ..frontend.refine import evaluate_alignment, point_to_plane_6dof
+from ..frontend.refine import evaluate_alignment, staged_point_to_plane
 from ..geometry import rotation_error_deg, translation_error
 
 SLIDE = 10.0
@@ -81,12 +81,9 @@ def settle(fs: CloudFeatures, ft: CloudFeatures, start: np.ndarray, coarse_dista
     rival.
     """
     final = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
-    T = np.asarray(start, dtype=np.float64)
-    for distance in ([coarse_distance, final] if coarse_distance > final else [final]):
-        tolerance = cfg.refine.coarse_stage_tolerance if distance > final else 1e-6
-        T = point_to_plane_6dof(fs.points[::STRIDE], ft.points, ft.normals, T, distance,
-                                ITERATIONS, tolerance, ft.tree, workers)
-    return T
+    return staged_point_to_plane(fs.points[::STRIDE], ft.points, ft.normals, ft.tree, start,
+                                 coarse_distance, final, ITERATIONS,
+                                 cfg.refine.coarse_stage_tolerance, workers)
 
 
 def structured_rival(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
