@@ -14,6 +14,7 @@ import threading
 from typing import Callable, MutableMapping, Sequence, TypeVar
 
 T = TypeVar('T')
+R = TypeVar('R')
 
 CHUNK = 512  # rows per task, so that threads finish close together
 # Threads a registration uses by default: the machine's cores, at most four.
@@ -109,6 +110,34 @@ def in_background(task: Callable[[], T], enabled: bool = True) -> Callable[[], T
         return value
 
     return wait
+
+
+def map_ordered(task: Callable[[T], R], items: Sequence[T], workers: int) -> list[R]:
+    """
+    Return ``[task(x) for x in items]``, the items dealt over ``workers`` threads.
+
+    For independent tasks that spend most of their time outside the GIL (k-d tree queries,
+    numpy on large arrays, Open3D): this thread takes a share too, so ``workers`` threads
+    run in all. The results, in the items' order, do not depend on ``workers``. Each share
+    runs on a thread of its own, as :func:`in_background`: a task may use the pool.
+    """
+    items = list(items)
+    n = max(1, min(workers, len(items)))
+    out: list = [None] * len(items)
+
+    def share(k: int) -> Callable[[], None]:
+        def run() -> None:
+            for i in range(k, len(items), n):
+                out[i] = task(items[i])
+        return run
+
+    waits = [in_background(share(k)) for k in range(1, n)]
+    try:
+        share(0)()
+    finally:
+        for wait in waits:
+            wait()
+    return out
 
 
 def _shared_pool(workers: int) -> ThreadPoolExecutor:

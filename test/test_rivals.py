@@ -116,3 +116,16 @@ def test_the_study_judges_the_rivals_as_the_pipeline_does():
             assert x['refined'] == (x['start_fitness'] >= PROMISING * result.fitness)
     assert verdicts == [True, False]
     assert PROMISING <= min(RIVAL_GRID['promising']) <= rivals.PROMISING
+
+
+def test_the_rivals_judged_side_by_side_are_those_judged_in_turn():
+    """The starts are judged on several threads; the first plausible one is still the rival."""
+    cfg = PipelineConfig(voxel_size=VOXEL)
+    for points in (_room(), _corner()):
+        fs, ft, corr, result = _estimate(points, cfg)
+        alone = structured_rival(fs, ft, corr, result, cfg, workers=1)
+        side_by_side = structured_rival(fs, ft, corr, result, cfg, workers=3)
+        assert (alone is None) == (side_by_side is None)
+        if alone is not None:
+            np.testing.assert_array_equal(alone.transform, side_by_side.transform)
+            assert alone.num_inliers == side_by_side.num_inliers

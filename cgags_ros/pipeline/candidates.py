@@ -38,6 +38,7 @@ from ..frontend.features import CloudFeatures
 from ..frontend.matching import Correspondences
 from ..frontend.refine import evaluate_alignment, refine_transform
 from ..geometry import apply_transform, rotation_error_deg, translation_error
+from ..parallel import map_ordered
 from ..registration import register_correspondences
 from ..validity import free_space_limit
 
@@ -155,23 +156,31 @@ def verify_rivals(fs: CloudFeatures, ft: CloudFeatures, result: PipelineResult,
     plausible = [] if result.free_space_violation > limit else [(best, result.overlap)]
     violation = {id(best): result.free_space_violation}
     kept = [best]
-    for c in result.candidates[1:]:
-        if c.num_inliers * ratio <= best.num_inliers:
-            kept.append(c)  # clearly less supported: no rival, left as found
-            continue
+
+    def refined(c: Candidate) -> tuple[np.ndarray, float, float, float] | None:
+        """Return the rival refined: its transform, fitness both ways and free-space violation."""
         T = refine_transform(fs.points, ft.points, c.transform, voxel_size=v,
                              config=cfg.refine, target_normals=ft.normals,
-                             coarse_distance=result.inlier_threshold, gravity=gravity,
-                             workers=workers)
+                             coarse_distance=result.inlier_threshold, gravity=gravity)
         if not distinct(T, best.transform, cfg):
-            continue  # converged onto the estimate: it supports it
+            return None  # converged onto the estimate: it supports it
         ahead = evaluate_alignment(fs.points, ft.tree, T, distance).fitness
         back = evaluate_alignment(ft.points, fs.tree, np.linalg.inv(T), distance).fitness
-        c.transform, c.fitness = T, ahead
+        return T, ahead, back, measured_free_space(fs, ft, T, cfg, map_target)
+
+    contenders = [c for c in result.candidates[1:] if c.num_inliers * ratio > best.num_inliers]
+    # Each contender refines on its own: side by side (their ICP runs outside the GIL).
+    settled = dict(zip(map(id, contenders), map_ordered(refined, contenders, workers)))
+    for c in result.candidates[1:]:
+        if id(c) not in settled:
+            kept.append(c)  # clearly less supported: no rival, left as found
+            continue
+        if settled[id(c)] is None:
+            continue
+        c.transform, c.fitness, back, violation[id(c)] = settled[id(c)]
         kept.append(c)
-        violation[id(c)] = measured_free_space(fs, ft, T, cfg, map_target)
         if not violation[id(c)] > limit:  # NaN: the gate does not apply
-            plausible.append((c, min(ahead, back)))
+            plausible.append((c, min(c.fitness, back)))
     chosen, support = best, result.overlap
     if plausible:
         top, top_support = max(plausible, key=lambda p: p[1])

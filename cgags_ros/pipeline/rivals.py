@@ -33,6 +33,7 @@ from ..frontend.features import CloudFeatures
 from ..frontend.matching import Correspondences
 from ..frontend.refine import evaluate_alignment, staged_point_to_plane
 from ..geometry import rotation_error_deg, translation_error
+from ..parallel import map_ordered
 
 SLIDE = 10.0
 PROMISING = 0.45
@@ -69,7 +70,7 @@ def rival_starts(fs: CloudFeatures, ft: CloudFeatures, T: np.ndarray,
 
 
 def settle(fs: CloudFeatures, ft: CloudFeatures, start: np.ndarray, coarse_distance: float,
-           cfg: PipelineConfig, workers: int = 1) -> np.ndarray:
+           cfg: PipelineConfig) -> np.ndarray:
     """
     Return where a rival starting at ``start`` settles (4x4 source -> target, metres).
 
@@ -83,7 +84,7 @@ def settle(fs: CloudFeatures, ft: CloudFeatures, start: np.ndarray, coarse_dista
     final = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
     return staged_point_to_plane(fs.points[::STRIDE], ft.points, ft.normals, ft.tree, start,
                                  coarse_distance, final, ITERATIONS,
-                                 cfg.refine.coarse_stage_tolerance, workers)
+                                 cfg.refine.coarse_stage_tolerance)
 
 
 def structured_rival(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
@@ -105,23 +106,29 @@ def structured_rival(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences
     v = cfg.voxel_size
     distance = cfg.refine.max_correspondence_distance_factor * v
     T = np.asarray(result.transform, dtype=np.float64)
-    for start in rival_starts(fs, ft, T, distance, v):
+
+    def judge(start: np.ndarray) -> Candidate | None:
+        """Return the rival settled from ``start`` when it is plausible (see the module doc)."""
         if evaluate_alignment(fs.points, ft.tree, start, distance).fitness \
                 < PROMISING * result.fitness:
-            continue
-        R = settle(fs, ft, start, float(result.inlier_threshold), cfg, workers)
+            return None
+        R = settle(fs, ft, start, float(result.inlier_threshold), cfg)
         if (rotation_error_deg(R, T) <= cfg.candidate_min_rotation_deg
                 and translation_error(R, T) <= APART * v):
-            continue  # settled back onto the estimate: it is constrained there
+            return None  # settled back onto the estimate: it is constrained there
         fitness = evaluate_alignment(fs.points, ft.tree, R, distance).fitness
         if fitness * OVERLAP_RATIO < result.fitness:
-            continue
+            return None
         if measured_free_space(fs, ft, R, cfg, map_target) > MAX_VIOLATION:
-            continue
+            return None
         inliers = support(fs.points[corr.source_index], ft.points[corr.target_index], R,
                           float(result.inlier_threshold))
         return Candidate(R, int(np.count_nonzero(inliers)), fitness)
-    return None
+
+    # The starts are independent: judged side by side, the first plausible one in their
+    # order is the rival, as if they were judged one after the other.
+    rivals = map_ordered(judge, rival_starts(fs, ft, T, distance, v), workers)
+    return next((rival for rival in rivals if rival is not None), None)
 
 
 def mark_ambiguous(result: PipelineResult, rival: Candidate) -> None:
