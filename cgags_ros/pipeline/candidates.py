@@ -156,20 +156,23 @@ def verify_rivals(fs: CloudFeatures, ft: CloudFeatures, result: PipelineResult,
     plausible = [] if result.free_space_violation > limit else [(best, result.overlap)]
     violation = {id(best): result.free_space_violation}
     kept = [best]
+    contenders = [c for c in result.candidates[1:] if c.num_inliers * ratio > best.num_inliers]
+    # Each contender refines on its own: side by side (their ICP runs outside the GIL); a
+    # lone one keeps the threads for its refinement's neighbour queries (4-DoF).
+    inner = max(1, workers // max(1, len(contenders)))
 
     def refined(c: Candidate) -> tuple[np.ndarray, float, float, float] | None:
         """Return the rival refined: its transform, fitness both ways and free-space violation."""
         T = refine_transform(fs.points, ft.points, c.transform, voxel_size=v,
                              config=cfg.refine, target_normals=ft.normals,
-                             coarse_distance=result.inlier_threshold, gravity=gravity)
+                             coarse_distance=result.inlier_threshold, gravity=gravity,
+                             workers=inner)
         if not distinct(T, best.transform, cfg):
             return None  # converged onto the estimate: it supports it
         ahead = evaluate_alignment(fs.points, ft.tree, T, distance).fitness
         back = evaluate_alignment(ft.points, fs.tree, np.linalg.inv(T), distance).fitness
         return T, ahead, back, measured_free_space(fs, ft, T, cfg, map_target)
 
-    contenders = [c for c in result.candidates[1:] if c.num_inliers * ratio > best.num_inliers]
-    # Each contender refines on its own: side by side (their ICP runs outside the GIL).
     settled = dict(zip(map(id, contenders), map_ordered(refined, contenders, workers)))
     for c in result.candidates[1:]:
         if id(c) not in settled:
