@@ -78,11 +78,16 @@ def run_cgags(src: np.ndarray, tgt: np.ndarray, voxel: float, gt: np.ndarray,
 
     if not warm:
         clear_feature_cache()
-    t0, c0 = time.perf_counter(), time.process_time()
-    result = register_clouds(src, tgt, voxel_size=voxel, config=config)
-    elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
-    return result.transform, result.valid, {'time_s': elapsed, 'cpu_s': cpu,
+    result, times = timed_call(register_clouds, src, tgt, voxel_size=voxel, config=config)
+    return result.transform, result.valid, {**times,
                                             **diagnostics(result, src, tgt, gt, config)}
+
+
+def timed_call(fn, *args, **kwargs) -> tuple:
+    """Return ``fn(*args, **kwargs)`` and its seconds: wall ``time_s``, process CPU ``cpu_s``."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    out = fn(*args, **kwargs)
+    return out, {'time_s': time.perf_counter() - t0, 'cpu_s': time.process_time() - c0}
 
 
 def diagnostics(result, src: np.ndarray, tgt: np.ndarray, gt: np.ndarray,
@@ -143,16 +148,13 @@ def diagnostics(result, src: np.ndarray, tgt: np.ndarray, gt: np.ndarray,
 
 
 def run_kiss(src: np.ndarray, tgt: np.ndarray, voxel: float) -> tuple[np.ndarray, bool, dict]:
-    t0, c0 = time.perf_counter(), time.process_time()
-    out = kiss_matcher_estimate(src, tgt, voxel)
-    return out.transform, out.valid, {'time_s': time.perf_counter() - t0,
-                                      'cpu_s': time.process_time() - c0, **out.info}
+    out, times = timed_call(kiss_matcher_estimate, src, tgt, voxel)
+    return out.transform, out.valid, {**times, **out.info}
 
 
 def run_open3d(src: np.ndarray, tgt: np.ndarray, voxel: float) -> tuple[np.ndarray, bool, dict]:
-    t0, c0 = time.perf_counter(), time.process_time()
-    T = open3d_fpfh_ransac(src, tgt, voxel)
-    return T, True, {'time_s': time.perf_counter() - t0, 'cpu_s': time.process_time() - c0}
+    T, times = timed_call(open3d_fpfh_ransac, src, tgt, voxel)
+    return T, True, times
 
 
 def _num(x) -> float | None:
