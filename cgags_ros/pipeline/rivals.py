@@ -22,6 +22,8 @@ runner-up. The settings were chosen leave-one-scene-out on real RGB-D pairs
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -44,9 +46,16 @@ MAX_VIOLATION = 0.1
 OVERLAP_RATIO = 1.5
 
 
-def rival_starts(fs: CloudFeatures, ft: CloudFeatures, T: np.ndarray,
-                 distance: float, voxel_size: float) -> list[np.ndarray]:
-    """Return the starting poses of the structured rivals of ``T`` (see the module doc)."""
+def rival_starts(fs: CloudFeatures, ft: CloudFeatures, T: np.ndarray, distance: float,
+                 voxel_size: float, candidates: Sequence[np.ndarray] = ()
+                 ) -> list[tuple[str, np.ndarray]]:
+    """
+    Return the structured rivals' starting poses of ``T``, each with its name.
+
+    In this order: ``flip0..2``, ``slide1``/``slide-1``, ``turn0..2`` with ``+``/``-``, and
+    ``candidate1..`` (``candidates``: the other distinct poses the correspondences support).
+    See the module doc.
+    """
     align = evaluate_alignment(fs.points, ft.tree, T, distance)
     if len(align.source_index) < 6:
         return []
@@ -54,19 +63,29 @@ def rival_starts(fs: CloudFeatures, ft: CloudFeatures, T: np.ndarray,
     moved = rotated + T[:3, 3]
     centroid = moved.mean(axis=0)
     _, axes = np.linalg.eigh(np.cov(moved.T))
-    starts = []
-    for axis in axes.T:
-        M = np.eye(4)
-        M[:3, :3] = Rotation.from_rotvec(np.pi * axis).as_matrix()
-        M[:3, 3] = centroid - M[:3, :3] @ centroid
-        starts.append(M @ T)
+    starts = [(f'flip{i}', _turned(T, axis, np.pi, centroid)) for i, axis in enumerate(axes.T)]
     normals = ft.normals[align.target_index]
     _, directions = np.linalg.eigh(normals.T @ normals)  # least constrained translation first
-    for sign in (1.0, -1.0):
+    for sign in (1, -1):
         M = np.eye(4)
         M[:3, 3] = sign * SLIDE * voxel_size * directions[:, 0]
-        starts.append(M @ T)
+        starts.append((f'slide{sign}', M @ T))
+    # A room's walls and floor face along a few directions, and the eigenvectors of the
+    # normals' scatter are those directions: a four-fold symmetric room turns about one.
+    for i, axis in enumerate(directions.T):
+        for sign, label in ((1, '+'), (-1, '-')):
+            starts.append((f'turn{i}{label}', _turned(T, axis, sign * np.pi / 2, centroid)))
+    starts.extend((f'candidate{k}', np.asarray(C, dtype=np.float64))
+                  for k, C in enumerate(candidates, start=1))
     return starts
+
+
+def _turned(T: np.ndarray, axis: np.ndarray, angle: float, centre: np.ndarray) -> np.ndarray:
+    """Return ``T`` followed by a turn of ``angle`` radians about ``axis`` through ``centre``."""
+    M = np.eye(4)
+    M[:3, :3] = Rotation.from_rotvec(angle * axis).as_matrix()
+    M[:3, 3] = centre - M[:3, :3] @ centre
+    return M @ T
 
 
 def settle(fs: CloudFeatures, ft: CloudFeatures, start: np.ndarray, coarse_distance: float,
@@ -127,7 +146,9 @@ def structured_rival(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences
 
     # The starts are independent: judged side by side, the first plausible one in their
     # order is the rival, as if they were judged one after the other.
-    rivals = map_ordered(judge, rival_starts(fs, ft, T, distance, v), workers)
+    others = [c.transform for c in result.candidates[1:]]
+    starts = [start for _, start in rival_starts(fs, ft, T, distance, v, others)]
+    rivals = map_ordered(judge, starts, workers)
     return next((rival for rival in rivals if rival is not None), None)
 
 
