@@ -114,11 +114,8 @@ def overlap_information(fs, ft, T: np.ndarray, distance: float, voxel: float) ->
     return out
 
 
-RIVAL_NAMES = ('flip0', 'flip1', 'flip2', 'slide1', 'slide-1')  # rivals.rival_starts' order
-
-
 def structured_rivals(fs, ft, T: np.ndarray, cfg: PipelineConfig, tau: float,
-                      gt: np.ndarray, fitness: float) -> list[dict]:
+                      gt: np.ndarray, fitness: float, candidates=()) -> list[dict]:
     """
     Return the structured rivals of ``T`` (see the module doc), refined and measured.
 
@@ -129,7 +126,7 @@ def structured_rivals(fs, ft, T: np.ndarray, cfg: PipelineConfig, tau: float,
     v = cfg.voxel_size
     distance = cfg.refine.max_correspondence_distance_factor * v
     out = []
-    for name, start in zip(RIVAL_NAMES, rivals.rival_starts(fs, ft, T, distance, v)):
+    for name, start in rivals.rival_starts(fs, ft, T, distance, v, candidates):
         t0 = time.perf_counter()
         first = evaluate_alignment(fs.points, ft.tree, start, distance)
         promising = first.fitness >= PROMISING * fitness
@@ -168,6 +165,8 @@ def measure_pair(src: np.ndarray, tgt: np.ndarray, pair: tdm.GtPair,
         'time_s': elapsed, 'timings': {k: float(x) for k, x in result.timings.items()},
         'covariance': np.asarray(result.covariance).tolist(),
         'ambiguous': bool(result.ambiguous), 'refined': bool(result.refined),
+        'confidence': float(result.confidence), 'refusal': result.refusal.code.value
+        if result.refusal else None,
         'num_inliers': int(result.num_inliers),
         'num_correspondences': int(result.num_correspondences),
         'num_hypotheses': int(result.num_hypotheses),
@@ -201,7 +200,8 @@ def measure_pair(src: np.ndarray, tgt: np.ndarray, pair: tdm.GtPair,
     rec['overlap_info'] = info
     if result.valid:  # rivals can only refuse: measured where there is something to refuse
         rec['rivals'] = structured_rivals(fs, ft, T, cfg, float(result.inlier_threshold), gt,
-                                          float(result.fitness))
+                                          float(result.fitness),
+                                          [c.transform for c in result.candidates[1:]])
     return rec
 
 
@@ -212,6 +212,9 @@ def _num(x) -> float | None:
 
 def measure(args) -> None:
     cfg = PipelineConfig(voxel_size=args.voxel)
+    if args.gates_only:
+        cfg = PipelineConfig(voxel_size=args.voxel, gates=GatesConfig(
+            structured_rivals=False, min_confidence=0.0))
     args.output.parent.mkdir(parents=True, exist_ok=True)
     done = set()
     if args.resume and args.output.exists():
@@ -264,7 +267,8 @@ def remeasure_rivals(args) -> None:
                                          'target')
                     r['rivals'] = structured_rivals(
                         fs, ft, np.asarray(r['transform']), cfg, r['inlier_threshold'],
-                        np.asarray(r['gt']), r['fitness'])
+                        np.asarray(r['gt']), r['fitness'],
+                        [np.asarray(c['transform']) for c in r['candidates'][1:]])
                 sink.write(json.dumps(r) + '\n')
     print(f'wrote {args.output} in {time.time() - t_start:.0f} s')
 
@@ -316,6 +320,9 @@ def main(argv: list[str] | None = None) -> int:
     m.add_argument('--seed', type=int, default=0)
     m.add_argument('--voxel', type=float, default=0.05)
     m.add_argument('--resume', action='store_true', help='skip pairs already recorded')
+    m.add_argument('--gates-only', action='store_true',
+                   help='without the structured rivals and the confidence threshold, so that '
+                   "every estimate the gates pass has its rivals measured (a study's base)")
     m.add_argument('--output', type=Path, default=Path('out/loso_trust/records.jsonl'))
     t = sub.add_parser('timing', help='time the defaults, the levers off and KISS-Matcher')
     t.add_argument('--root', type=Path, default=shared_data_dir() / '3dmatch_benchmark')

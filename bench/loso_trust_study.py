@@ -45,7 +45,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 from bench.common import argument_parser, markdown_table
-from cgags_ros.pipeline import confidence
+from cgags_ros.pipeline import confidence, covariance
 import numpy as np
 
 VOXEL = 0.05
@@ -388,10 +388,18 @@ def rivals_study(records: list[dict], valid: np.ndarray) -> dict:
 FEATURES = confidence.FEATURES
 
 
+def overlap_covariance(r: dict) -> np.ndarray:
+    """Return the overlap's covariance of a record: the reported one less its doubt."""
+    W = np.diag([covariance.WRONG_POSITION ** 2] * 3 + [covariance.WRONG_ROTATION ** 2] * 3)
+    return np.asarray(r['covariance']) \
+        - (1.0 - r['confidence']) ** covariance.DOUBT_EXPONENT * W
+
+
 def as_result(r: dict) -> SimpleNamespace:
     """Return a record as the attributes :func:`confidence.features` reads of a result."""
     nan = float('nan')
     return SimpleNamespace(
+        covariance=overlap_covariance(r),
         candidates=[SimpleNamespace(fitness=nan if c['fitness'] is None else c['fitness'])
                     for c in r['candidates']],
         fitness=r['fitness'] or 0.0, num_inliers=r['num_inliers'],

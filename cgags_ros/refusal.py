@@ -40,6 +40,7 @@ class RefusalCode(enum.Enum):
     UNEXPLAINED = 'unexplained'  # no pose explains every scan (odometry or map contradict)
     MORE_SCANS = 'more_scans'  # fewer scans than a confirmation needs
     LOW_CONFIDENCE = 'low_confidence'  # the calibrated P(right) is below min_confidence
+    UNCERTAIN = 'uncertain'  # the covariance's loosest sigma is too large to act on
     TRACKING_LOST = 'tracking_lost'  # a tracked pose jumped from its prediction or lost fit
     # The node and its services
     TIMEOUT = 'timeout'  # past worker.registration_timeout (or map.load_timeout)

@@ -270,6 +270,24 @@ def confidence_refusal(e: Trusted, min_confidence: float) -> Refusal | None:
         'overlap, free space, rivals) are too often wrong'))
 
 
+def uncertainty_refusal(sigma: float, cfg: PipelineConfig) -> Refusal | None:
+    """
+    Return why a pose is too uncertain to act on, or None.
+
+    ``sigma``: the position sigma (metres) along the covariance's loosest direction. Above
+    ``gates.max_position_sigma`` voxel sizes the covariance itself says the pose may be
+    metres off along some direction: no robot can use it, however well the rest fits.
+    """
+    bound = cfg.gates.max_position_sigma * cfg.voxel_size
+    if bound <= 0 or sigma <= bound:
+        return None
+    return Refusal(Code.UNCERTAIN, (
+        f'too uncertain to use: the position sigma along the loosest direction is '
+        f'{sigma:.3g} m (> gates.max_position_sigma {cfg.gates.max_position_sigma:g} voxels, '
+        f'{bound:.3g} m): the overlap leaves the pose loose there, or the confidence leaves '
+        'room for a wrong pose; the covariance says which'))
+
+
 def ambiguity_refusal(e: Estimate, cfg: PipelineConfig) -> Refusal | None:
     """Return why the estimate is ambiguous among its candidates, or None when it is not."""
     if not e.ambiguous:

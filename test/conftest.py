@@ -54,15 +54,16 @@ def redkitchen_pair(data_dir):
     """
     Return ``pair(target, source)`` -> (source points, target points, 4x4 truth).
 
-    A pair of the 3DMatch list of the benchmark's redkitchen scene (fragments ``source`` into
-    ``target``, the truth projected onto a rotation).
+    A pair of the 3DMatch or 3DLoMatch list of the benchmark's redkitchen scene (fragments
+    ``source`` into ``target``, the truth projected onto a rotation).
     """
     from bench.datasets import threedmatch as tdm
 
     root = require_shared(data_dir / '3dmatch_benchmark', '3dmatch_benchmark',
                           marker='benchmarks')
     scene = '7-scenes-redkitchen'
-    pairs = {(p.target, p.source): p for p in tdm.registration_pairs(root, '3DMatch', scene)}
+    pairs = {(p.target, p.source): p for benchmark in tdm.BENCHMARKS
+             for p in tdm.registration_pairs(root, benchmark, scene)}
     fragments = tdm.Fragments(root, scene)
 
     def pair(target: int, source: int):

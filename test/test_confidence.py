@@ -6,7 +6,7 @@ import math
 
 from cgags_ros.config import GatesConfig, PipelineConfig
 from cgags_ros.geometry import rotation_error_deg, translation_error
-from cgags_ros.pipeline import confidence, register_clouds
+from cgags_ros.pipeline import confidence, covariance, register_clouds
 from cgags_ros.pipeline.result import Candidate, PipelineResult
 import numpy as np
 import pytest
@@ -17,7 +17,7 @@ def _measured(**values) -> PipelineResult:
     result = PipelineResult(voxel_size=0.05, fitness=0.7, overlap=0.6, inlier_rmse=0.025,
                             observability=0.1, chance_inliers=2.0, free_space_violation=0.05,
                             num_hypotheses=1000, num_correspondences=2000,
-                            inliers=np.arange(300))
+                            inliers=np.arange(300), covariance=np.diag([0.03 ** 2] * 6))
     result.candidates = [Candidate(np.eye(4), 300, 0.7), Candidate(np.eye(4), 20, 0.2)]
     result.runner_up_ratio = 15.0
     for name, value in values.items():
@@ -28,15 +28,24 @@ def _measured(**values) -> PipelineResult:
 def test_confidence_is_a_probability_that_falls_with_the_evidence():
     strong = confidence.probability(confidence.features(_measured(), 0.01))
     assert 0.0 <= strong <= 1.0 and strong > 0.9
-    # Fewer inliers, closer to chance; a surface stacked in free space; a rival as good.
-    weak = _measured(inliers=np.arange(12), runner_up_ratio=1.1)
-    weak.candidates[1].fitness = 0.7
-    for result in (weak, _measured(free_space_violation=0.6)):
+    # Fewer inliers, closer to chance; an overlap loose along a wall; a surface stacked in
+    # free space: each alone makes it less sure.
+    loose = np.diag([0.03 ** 2] * 6)
+    loose[0, 0] = 1.0
+    for result in (_measured(inliers=np.arange(12)), _measured(covariance=loose),
+                   _measured(free_space_violation=0.3)):
         p = confidence.probability(confidence.features(result, 0.01))
         assert 0.0 <= p < strong
     # No estimate: nothing to be confident about.
     assert confidence.features(PipelineResult(voxel_size=0.05), 0.01) is None
     assert confidence.probability(None) == 0.0
+
+
+def test_each_input_moves_the_confidence_one_way():
+    """Monotone: a weight's sign is its input's meaning, whatever the fit."""
+    assert set(confidence.SIGNS) == set(confidence.FEATURES)
+    for name, sign in confidence.SIGNS.items():
+        assert confidence.WEIGHTS[name] * sign > 0
 
 
 def test_every_feature_has_a_weight_and_the_weights_are_finite():
@@ -67,3 +76,24 @@ def test_real_pairs_right_is_confident_and_the_threshold_refuses_below_it(redkit
                               config=PipelineConfig(gates=GatesConfig(min_confidence=strict)))
     np.testing.assert_allclose(refused.transform, result.transform)
     assert not refused.valid and refused.reason.startswith('low confidence')
+
+
+def test_a_pose_too_loose_to_use_is_refused_with_its_covariance_kept(redkitchen_pair):
+    """
+    A near miss whose covariance says it may be metres off is no usable pose.
+
+    A 3DLoMatch pair 36 cm off whose every gate passes: its covariance, opened by the doubt
+    its confidence leaves, is far looser than any robot can act on.
+    """
+    src, tgt, gt = redkitchen_pair(22, 38)
+    result = register_clouds(src, tgt, voxel_size=0.05)
+    assert translation_error(result.transform, gt) > 0.3  # wrong, if only just
+    assert not result.valid and result.refusal.code.value == 'uncertain'
+    sigma = covariance.loosest_sigma(result.covariance)
+    assert sigma > PipelineConfig().gates.max_position_sigma * 0.05
+    assert result.confidence >= PipelineConfig().gates.min_confidence  # not that refusal
+    # The bound off: the same pose, called valid.
+    loose = register_clouds(src, tgt, voxel_size=0.05, config=PipelineConfig(
+        gates=GatesConfig(max_position_sigma=0.0)))
+    np.testing.assert_allclose(loose.transform, result.transform)
+    assert loose.valid

@@ -257,3 +257,50 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, case, message):
     err = capsys.readouterr().err
     assert message in err and 'Traceback' not in err
     assert len(err.strip().splitlines()) == 1 and err.startswith('cgags-relocalize: error:')
+
+
+def test_a_square_room_is_not_confirmed_from_scans_that_share_its_symmetry(tmp_path):
+    """
+    A near-square room's quarter-turned pose is refused, not confirmed.
+
+    Two scans agree on the truth turned a quarter of the way about the room: without the
+    map's symmetries that pose is confirmed; with them, its twin (the truth) explains every
+    scan as well and the answer is refused as ambiguous.
+    """
+    from bench.datasets import square_room
+
+    room, furniture = square_room.square_room(clutter=5, seed=0)
+    cfg = pipeline_config_from({'voxel_size': 0.05})
+    path = tmp_path / 'room.ply'
+    write_cloud(path, *square_room.room_map(room, furniture, cfg.voxel_size, cfg.frontend))
+    x, y, yaw = -0.92, 0.06, 165.4
+    drift = Rotation.from_euler('z', -0.88, degrees=True).as_matrix()
+    scans = []
+    for k in range(3):
+        heading = np.radians(yaw)
+        P = square_room.sensor_pose(x + 0.3 * k * np.cos(heading),
+                                    y + 0.3 * k * np.sin(heading), yaw + 20 * k, pitch_deg=15)
+        odom = P.copy()  # the odometry turns and slides away from the truth, a little a step
+        odom[:3, :3] = np.linalg.matrix_power(drift, k) @ P[:3, :3]
+        odom[:3, 3] += [0.02 * k, -0.01 * k, 0.0]
+        scans.append((square_room.scan(room, furniture, P, seed=10 + k), odom, P))
+
+    def relocalize(symmetries):
+        prepared = load_map(path, cfg)
+        if symmetries is not None:
+            prepared.symmetries = symmetries
+        reloc = Relocalizer(prepared, cfg)
+        for cloud, odom, P in scans:
+            answer = reloc.add(cloud, odom)
+            if answer.done:
+                break
+        return answer, P, prepared
+
+    blind, P, _ = relocalize([])
+    assert blind.confirmed and abs(rotation_error_deg(blind.transform, P) - 90) < 5
+    answer, P, prepared = relocalize(None)
+    turns = [rotation_error_deg(S, np.eye(4)) for S in prepared.symmetries]
+    assert any(abs(t - 90) < 5 for t in turns)  # a quarter turn puts the room onto itself
+    assert not answer.confirmed and answer.refusal.code is Code.AMBIGUOUS
+    assert any(rotation_error_deg(h.map_from_odom @ scans[-1][1], P) < 5
+               for h in answer.hypotheses if h.source == 'symmetry')

@@ -86,8 +86,9 @@ def test_a_slide_along_a_wall_is_refused_and_a_right_pose_kept(redkitchen_pair):
     assert result.reason.startswith('ambiguous')
     assert translation_error(result.candidates[1].transform, gt) < 0.3  # the rival is right
     off = register_clouds(src, tgt, voxel_size=0.05,
-                          config=PipelineConfig(gates=GatesConfig(structured_rivals=False,
-                                                                  min_confidence=0.0)))
+                          config=PipelineConfig(gates=GatesConfig(
+                              structured_rivals=False, min_confidence=0.0,
+                              max_position_sigma=0.0)))
     assert off.valid  # the gates alone would have let the slid pose through
     src, tgt, gt = redkitchen_pair(0, 2)
     kept = register_clouds(src, tgt, voxel_size=0.05)
@@ -154,7 +155,8 @@ def test_a_quarter_turn_in_a_square_room_is_refused():
 
     src, tgt, gt = _square_room_pair((0.28, -0.28, 246.8), (1.19, 1.15, 264.9))
     off = register_clouds(src, tgt, config=PipelineConfig(
-        voxel_size=0.05, gates=GatesConfig(structured_rivals=False, min_confidence=0.0)))
+        voxel_size=0.05, gates=GatesConfig(structured_rivals=False, min_confidence=0.0,
+                                           max_position_sigma=0.0)))
     assert off.valid and abs(rotation_error_deg(off.transform, gt) - 90) < 5
     result = register_clouds(src, tgt, voxel_size=0.05)
     assert not result.valid and result.refusal.code.value == 'ambiguous'

@@ -125,3 +125,25 @@ def pair(room: Box, boxes: list[Box], source_pose: np.ndarray, target_pose: np.n
     source = scan(room, boxes, source_pose, seed=1, **scan_options)
     target = scan(room, boxes, target_pose, seed=2, **scan_options)
     return source, target, np.linalg.inv(target_pose) @ source_pose
+
+
+def room_map(room: Box, boxes: list[Box], voxel_size: float, frontend,
+             positions: tuple = ((-1.2, -1.2), (1.2, -1.2), (1.2, 1.2), (-1.2, 1.2), (0, 0))
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Return a prior map of the room: points and normals (room frame), each facing its sensor.
+
+    Spinning scans (360 x 90 degrees) from ``positions`` (x, y at sensor height), fused; each
+    scan's normals estimated in its own frame with ``frontend`` (a ``FrontendConfig``), as a
+    map fused from a robot's scans carries them.
+    """
+    from cgags_ros.frontend.features import estimate_normals
+    from cgags_ros.geometry import apply_transform
+
+    points, normals = [], []
+    for x, y in positions:
+        P = sensor_pose(x, y, 0.0)
+        cloud = scan(room, boxes, P, fov_deg=(360.0, 90.0), step_deg=0.5)
+        points.append(apply_transform(P, cloud))
+        normals.append(estimate_normals(cloud, voxel_size, frontend) @ P[:3, :3].T)
+    return np.vstack(points), np.vstack(normals)

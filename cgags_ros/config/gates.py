@@ -28,6 +28,12 @@ class GatesConfig:
         "it is right, from the gates' measurements) is at least this, on top of every gate. "
         '6-DoF pairs only: against a map or in 4-DoF mode the confidence is reported but '
         'decides nothing. 0 leaves the decision to the gates.', low=0.0, high=1.0)
+    max_position_sigma: float = option(
+        34.0, "Valid means usable: the estimate is invalid when its covariance's position "
+        "sigma along its loosest direction (the overlap's, opened by the doubt the "
+        "confidence leaves; against a map, the overlap's alone) is above this many voxel "
+        'sizes; the covariance is still reported. 6-DoF pairs of scans, and the '
+        "relocalizer's confirmed poses. 0 disables.", low=0.0, high=1e6)
     verify_rivals: bool = option(
         True, 'Refine the rivals that make an estimate ambiguous; one that converges onto '
         "it, whose overlap the estimate's exceeds ambiguity_ratio times, or that fails the "

@@ -1,12 +1,15 @@
 """
 Confidence: the probability that a pipeline result's estimate is right, from its measurements.
 
-A logistic model over what the gates and the candidate search measured (inliers against
-their chance level, the runner-up's support, overlap, fitness, observability, free-space
-violation, residuals), fit on real RGB-D pairs with each scene's probabilities predicted by
-a model fit on the others (docs/confidence.md). "Right" is the benchmark's: within 15
-degrees and 30 cm of the truth. ``valid`` requires ``confidence >= min_confidence`` on top of
-the gates: the operating point trades right estimates kept against wrong ones passed.
+A logistic model over three measurements that each mean one thing and move P(right) one
+way: the core's inliers over the chance bound of the same correspondences (more margin, more
+trust), the loosest position sigma of the overlap's covariance in voxels (a looser overlap,
+less) and the free-space violation (surfaces where a sensor saw free space, less). Fit on
+real RGB-D pairs, then rescaled to how sure it may be on a scene it was not fit on (each
+training scene predicted by a model fit on the others), and checked on harder scenes than
+those it was chosen on (docs/confidence.md). "Right" is the benchmark's: within 15 degrees
+and 30 cm of the truth. ``valid`` requires ``confidence >= min_confidence`` on top of the
+gates, and the covariance opens by the doubt it leaves (:func:`~.covariance.with_confidence`).
 """
 
 from __future__ import annotations
@@ -14,22 +17,20 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from .covariance import loosest_sigma
 from .gates import chance_bound
 
-# Inputs of the model, each a number every estimate has (see :func:`features`).
-FEATURES = ('log_inliers', 'log_margin', 'log_runner_up', 'overlap', 'fitness',
-            'log_observability', 'free_space', 'rmse_voxels', 'log_correspondences',
-            'inlier_share', 'rival_fitness')
+# Inputs of the model, each a number every estimate has (see :func:`features`), with the
+# sign its weight must have.
+SIGNS = {'log_margin': 1.0, 'log_sigma': -1.0, 'free_space': -1.0}
+FEATURES = tuple(SIGNS)
 
-# Weights of the logistic model (on the raw features) and its intercept, fit on every
-# pair of the shared 3DMatch scenes by ``bench/loso_trust_study.py``.
-WEIGHTS = {'log_inliers': 0.07082, 'log_margin': 2.054, 'log_runner_up': -0.3696,
-           'overlap': 0.2475, 'fitness': -0.6355, 'log_observability': 2.198,
-           'free_space': -12.83, 'rmse_voxels': -18.26, 'log_correspondences': -1.052,
-           'inlier_share': -1.499, 'rival_fitness': -1.224}
-INTERCEPT = 27.74
+# Weights of the logistic model (on the raw features) and its intercept, fit on every pair
+# of the shared 3DMatch scenes by ``python -m bench.trust_shift``.
+WEIGHTS = {'log_margin': 1.007, 'log_sigma': -4.209, 'free_space': -19.09}
+INTERCEPT = 5.614
 
-RUNNER_UP_CAP = 20.0  # a runner-up this far behind is as good as none
+SIGMA_FLOOR = 1e-3  # voxels: log of a sigma that no overlap reaches
 
 
 def features(result: Any, significance: float, members: int = 3) -> dict[str, float] | None:
@@ -39,6 +40,7 @@ def features(result: Any, significance: float, members: int = 3) -> dict[str, fl
     None when there is no estimate to judge (no candidate: the core found nothing). The
     chance bound is the gates' (:func:`~.gates.chance_bound`): the inliers the best of the
     hypotheses reaches by chance at ``significance``; ``members`` define a hypothesis.
+    ``result.covariance`` is the overlap's, before the doubt opens it.
     """
     if not result.candidates or not result.fitness > 0:
         return None
@@ -46,23 +48,12 @@ def features(result: Any, significance: float, members: int = 3) -> dict[str, fl
     bound = chance_bound(result.chance_inliers, result.num_hypotheses, significance,
                          members) \
         if math.isfinite(result.chance_inliers) else members
-    voxel = float(result.voxel_size)
-    rmse = result.inlier_rmse if math.isfinite(result.inlier_rmse) else 1.5 * voxel
     violation = result.free_space_violation
-    rivals = [c.fitness for c in result.candidates[1:] if math.isfinite(c.fitness)]
+    sigma = loosest_sigma(result.covariance) / float(result.voxel_size)
     return {
-        'log_inliers': math.log(inliers),
         'log_margin': math.log(inliers / max(bound, 1)),
-        'log_runner_up': math.log(min(result.runner_up_ratio, RUNNER_UP_CAP)),
-        'overlap': float(result.overlap),
-        'fitness': float(result.fitness),
-        'log_observability': math.log(max(float(result.observability), 0.0) + 1e-3)
-        if math.isfinite(result.observability) else math.log(1e-3),
+        'log_sigma': math.log(max(sigma, SIGMA_FLOOR)),
         'free_space': float(violation) if math.isfinite(violation) else 0.0,
-        'rmse_voxels': rmse / voxel,
-        'log_correspondences': math.log(max(int(result.num_correspondences), 1)),
-        'inlier_share': inliers / max(int(result.num_correspondences), 1),
-        'rival_fitness': max(rivals) / max(result.fitness, 1e-3) if rivals else 0.0,
     }
 
 

@@ -191,6 +191,11 @@ def with_confidence(cov: np.ndarray, confidence: float) -> np.ndarray:
     return np.asarray(cov, dtype=np.float64) + doubt * W
 
 
+def loosest_sigma(cov: np.ndarray) -> float:
+    """Return the position sigma (metres) along the loosest direction of a 6x6 covariance."""
+    return float(np.sqrt(max(np.linalg.eigvalsh(np.asarray(cov)[:3, :3])[-1], 0.0)))
+
+
 def result_covariance(result: Any, source: np.ndarray, target: np.ndarray,
                       target_normals: np.ndarray, tree: cKDTree, distance: float,
                       gravity: np.ndarray | None = None,

@@ -57,6 +57,8 @@ class PreparedMap:
     :ivar load_s: seconds to read, hash and featurise (or read back) the map.
     :ivar oriented_by: what signed the map's normals: 'file normals' or the configured
         ``normal_orientation``.
+    :ivar symmetries: the turns that map the map onto itself (4x4 each,
+        :func:`~.rivals.map_symmetries`), found when first asked for; None until then.
     """
 
     features: CloudFeatures
@@ -69,6 +71,7 @@ class PreparedMap:
     num_nonfinite: int
     load_s: float
     oriented_by: str = ''
+    symmetries: list[np.ndarray] | None = None
 
     def info(self) -> dict[str, Any]:
         """Return a small, picklable summary (what the node reports; no arrays)."""

@@ -21,7 +21,7 @@ import numpy as np
 from .cache import cached_features
 from .candidates import find_candidates, rank_candidates, search_rivals, verify_rivals
 from .confidence import features, probability
-from .covariance import result_covariance, with_confidence
+from .covariance import loosest_sigma, result_covariance, with_confidence
 from .gates import measure
 from .map import matches_config, PreparedMap
 from .result import PipelineResult
@@ -39,7 +39,7 @@ from ..refusal import Refusal
 from ..registration import register_correspondences, RegistrationResult, single_blas_thread
 from ..timing import timed
 from ..validity import (ambiguity_refusal, confidence_refusal, gate_refusal,
-                        line_cloud_refusal, unsettled)
+                        line_cloud_refusal, uncertainty_refusal, unsettled)
 
 
 def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
@@ -97,7 +97,9 @@ def _judged(result: PipelineResult, fs: CloudFeatures, ft: CloudFeatures,
     if map_target or four_dof:
         return result.finish(start, refusal)
     result.covariance = with_confidence(result.covariance, result.confidence)
-    return result.finish(start, refusal or confidence_refusal(result, cfg.gates.min_confidence))
+    return result.finish(start, refusal
+                         or confidence_refusal(result, cfg.gates.min_confidence)
+                         or uncertainty_refusal(loosest_sigma(result.covariance), cfg))
 
 
 def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float | None,

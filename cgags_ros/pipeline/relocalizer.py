@@ -38,17 +38,20 @@ import numpy as np
 
 from .cache import cached_features
 from .candidates import distinct
+from .covariance import loosest_sigma, overlap_covariance
 from .gates import measured_free_space
 from .map import PreparedMap
 from .register import register_clouds
 from .result import PipelineResult
+from .rivals import map_symmetries
 from ..config.pipeline import PipelineConfig
 from ..errors import InvalidInputError
 from ..frontend.features import CloudFeatures, finite_points
 from ..frontend.refine import evaluate_alignment, staged_point_to_plane
 from ..geometry import apply_transform, rotation_error_deg, translation_error
 from ..refusal import Judged, Refusal, RefusalCode
-from ..validity import more_scans_refusal, sequence_ambiguity_refusal, unexplained_refusal
+from ..validity import (more_scans_refusal, sequence_ambiguity_refusal, uncertainty_refusal,
+                        unexplained_refusal)
 
 CHECK_ITERATIONS = 6  # Gauss-Newton steps a stage of a check, at most
 CHECK_STRIDE = 2  # a check settles on every second scan point; its fitness counts them all
@@ -124,7 +127,8 @@ class Hypothesis:
 
     :ivar map_from_odom: 4x4 map <- odom as proposed (metres).
     :ivar scan: the scan whose candidate proposed it; ``rank`` that candidate's rank;
-        ``source`` 'scan' or 'submap' (the scans so far fused, in that scan's frame).
+        ``source`` 'scan', 'submap' (the scans so far fused, in that scan's frame) or
+        'symmetry' (a hypothesis turned by a symmetry of the map).
     :ivar inliers: the proposing candidates' inliers (summed when several proposed it).
     :ivar checks: scan index -> :class:`Check`.
     """
@@ -245,6 +249,43 @@ class Relocalizer:
         return answer
 
     def _judge(self) -> Answer:
+        """
+        Decide; before confirming a pose, also check its twins under the map's symmetries.
+
+        Scans that all see a near-square room alike cannot tell a pose from the pose turned
+        about the room: each twin (:func:`~.rivals.map_symmetries`) is checked on every
+        scan as a hypothesis, and one that explains them as well leaves the answer
+        ambiguous. A confirmed pose must also be usable: its covariance over the latest
+        scan's overlap with the map at most ``gates.max_position_sigma`` voxels along its
+        loosest direction (a corridor leaves the pose loose along it).
+        """
+        answer = self._checked()
+        if answer.confirmed and self._add_twins(answer.hypotheses[0]):
+            answer = self._checked()
+        if not answer.confirmed:
+            return answer
+        scan, ft, cfg = self.scans[-1], self.prepared.features, self.config
+        cov = overlap_covariance(scan.features.points, ft.points, ft.normals, ft.tree,
+                                 answer.transform,
+                                 cfg.refine.max_correspondence_distance_factor
+                                 * cfg.voxel_size, cfg.voxel_size)
+        refusal = uncertainty_refusal(loosest_sigma(cov), cfg)
+        if refusal is None:
+            return answer
+        return _settle(answer.transform, scan.odom, refusal, answer.hypotheses, answer.results,
+                       self.sequence)
+
+    def _add_twins(self, best: Hypothesis) -> bool:
+        """Add ``best`` turned by each symmetry of the map; tell whether any is new."""
+        added = False
+        for S in map_symmetries(self.prepared, self.config):
+            twin = S @ best.map_from_odom
+            if all(distinct(h.map_from_odom, twin, self.config) for h in self.hypotheses):
+                self.hypotheses.append(Hypothesis(twin, best.scan, best.rank, 0, 'symmetry'))
+                added = True
+        return added
+
+    def _checked(self) -> Answer:
         """Check every hypothesis not yet checked on every scan, then decide."""
         limit = self.config.gates.max_free_space_violation
         for h in self.hypotheses:

@@ -2,21 +2,25 @@
 Structured rivals: the poses a near-symmetric or weakly constrained scene would also accept.
 
 The candidate search (:mod:`.candidates`) finds rivals the correspondences support. A room
-that looks alike turned half-way round, or a wall along which the overlap can slide, may
-give its wrong pose few distinct correspondences but as good a fit on the surfaces. So
-before an estimate is called valid, the poses such a scene would confuse it with are tried
-directly: the estimate turned 180 degrees about each principal axis of the overlap (through
-its centroid), and slid both ways along the translation the overlap constrains least
-(``SLIDE`` voxels). Each start that already fits reasonably (at least ``PROMISING`` times
-the estimate's fitness; most that start worse never settle anywhere plausible) is refined
-in the estimate's stages (``ITERATIONS`` a stage of point-to-plane against the target's k-d
-tree, built once with its features: a rival only has to show where it settles) and judged
-like the estimate. A rival is plausible when it settles away from the estimate (more than
+that looks alike turned round, or a wall along which the overlap can slide, may give its
+wrong pose few distinct correspondences but as good a fit on the surfaces. So before an
+estimate is called valid, the poses such a scene would confuse it with are tried directly:
+the estimate turned 180 degrees about each principal axis of the overlap (through its
+centroid); slid both ways along the translation the overlap constrains least (``SLIDE``
+voxels); turned a quarter of the way both ways about each principal axis of the overlap's
+normals (a room's walls and floor face along those axes, and a near-square room turns
+about its vertical one); and the other distinct poses the correspondences support (the
+candidates within the ambiguity ratio were refined already; the others were not). Each
+start that already fits reasonably (at least ``PROMISING`` times the estimate's fitness;
+most that start worse never settle anywhere plausible) is refined in the estimate's stages
+(``ITERATIONS`` a stage of point-to-plane against the target's k-d tree, built once with
+its features: a rival only has to show where it settles) and judged like the estimate. A
+rival is plausible when it settles away from the estimate (more than
 ``candidate_min_rotation_deg`` or ``APART`` voxels), does not stack surfaces where a sensor
-saw free space (violation at most ``MAX_VIOLATION``) and fits at least
-``1 / OVERLAP_RATIO`` as well as the estimate (fitness, the share of source points on the target:
-a large target's share would say nothing): the result is then ambiguous, with the rival as
-runner-up. The settings were chosen leave-one-scene-out on real RGB-D pairs
+saw free space (violation at most ``MAX_VIOLATION``) and fits at least ``1 /
+OVERLAP_RATIO`` as well as the estimate (fitness, the share of source points on the
+target: a large target's share would say nothing): the result is then ambiguous, with the
+rival as runner-up. The settings were chosen leave-one-scene-out on real RGB-D pairs
 (docs/ablation.md); a map target is not checked.
 """
 
@@ -29,6 +33,7 @@ from scipy.spatial.transform import Rotation
 
 from .candidates import support
 from .gates import measured_free_space
+from .map import PreparedMap
 from .result import Candidate, PipelineResult
 from ..config.pipeline import PipelineConfig
 from ..frontend.features import CloudFeatures
@@ -38,12 +43,14 @@ from ..geometry import rotation_error_deg, translation_error
 from ..parallel import map_ordered
 
 SLIDE = 10.0
+SYMMETRY_FIT = 0.5  # a turn is a symmetry of a map when it puts half of the map on itself
+SYMMETRY_STRIDE = 4  # the map's points a symmetry is refined and judged on
 PROMISING = 0.45
 ITERATIONS = 5
 STRIDE = 2
 APART = 4.0
 MAX_VIOLATION = 0.1
-OVERLAP_RATIO = 1.5
+OVERLAP_RATIO = 1.25
 
 
 def rival_starts(fs: CloudFeatures, ft: CloudFeatures, T: np.ndarray, distance: float,
@@ -160,3 +167,35 @@ def mark_ambiguous(result: PipelineResult, rival: Candidate) -> None:
     result.ambiguous = True
     if rival.num_inliers > 0:
         result.runner_up_ratio = best.num_inliers / rival.num_inliers
+
+
+def map_symmetries(prepared: PreparedMap, cfg: PipelineConfig) -> list[np.ndarray]:
+    """
+    Return the turns of a map that put it onto itself (4x4 each, map frame), found once.
+
+    A room, a hall or a box-like store whose floor plan is near-square looks alike turned a
+    quarter or half of the way about its vertical: every pose in it has such twins, whatever
+    the scans show of the room. The map is turned by 90, -90 and 180 degrees about each
+    principal axis of its normals' scatter, through its centroid, each turn refined map onto
+    map (point-to-plane, from every ``SYMMETRY_STRIDE``-th point); one that then puts at least
+    ``SYMMETRY_FIT`` of those points on the map is a symmetry. Kept on ``prepared``.
+    """
+    if prepared.symmetries is not None:
+        return prepared.symmetries
+    ft = prepared.features
+    final = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
+    points = ft.points[::SYMMETRY_STRIDE]
+    found = []
+    if len(points) >= 6:
+        centre = ft.points.mean(axis=0)
+        _, axes = np.linalg.eigh(ft.normals.T @ ft.normals)
+        for axis in axes.T:
+            for angle in (np.pi / 2, -np.pi / 2, np.pi):
+                S = staged_point_to_plane(points, ft.points, ft.normals, ft.tree,
+                                          _turned(np.eye(4), axis, angle, centre),
+                                          SLIDE * cfg.voxel_size, final, 2 * ITERATIONS,
+                                          cfg.refine.coarse_stage_tolerance)
+                if evaluate_alignment(points, ft.tree, S, final).fitness >= SYMMETRY_FIT:
+                    found.append(S)
+    prepared.symmetries = found
+    return found
