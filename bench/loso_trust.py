@@ -8,8 +8,11 @@ Run by hand from the repository root, one run at a time (it takes a while)::
         [--output out/loso_trust/records.jsonl]
 
 ``measure`` registers every pair of both lists (3DMatch, 3DLoMatch) of every scene once,
-with the default pipeline (each fragment featurised once a scene: the estimates are those of
-a cold run, the whole-pair times are not) and writes one JSON line a pair holding every
+with the default pipeline (``--gates-only``: without the structured rivals and the
+confidence threshold, so that every estimate the gates pass has its rivals recorded, the
+base :mod:`bench.trust_shift` chooses those levers on; each fragment featurised once a
+scene: the estimates are those of a cold run, the whole-pair times are not) and writes one
+JSON line a pair holding every
 measurement the pipeline has: the gates' values (inliers, chance level and its bound,
 runner-up ratio and the candidates' support, fitness, overlap, observability, free-space
 violation, RMSE, tilt), the refusal reason, the covariance and the timings; the ground
@@ -128,7 +131,7 @@ def structured_rivals(fs, ft, T: np.ndarray, cfg: PipelineConfig, tau: float,
     out = []
     for name, start in rivals.rival_starts(fs, ft, T, distance, v, candidates):
         t0 = time.perf_counter()
-        first = evaluate_alignment(fs.points, ft.tree, start, distance)
+        first = evaluate_alignment(fs.points[::rivals.STRIDE], ft.tree, start, distance)
         promising = first.fitness >= PROMISING * fitness
         R = rivals.settle(fs, ft, start, tau, cfg) if promising else start
         ahead = evaluate_alignment(fs.points, ft.tree, R, distance)

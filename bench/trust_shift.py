@@ -48,7 +48,7 @@ import math
 from pathlib import Path
 
 from bench.common import argument_parser, markdown_table
-from bench.loso_trust_study import (as_result, CHI2_999, fit_logistic, fit_rivals,
+from bench.loso_trust_study import (as_result, CHI2_95, CHI2_999, fit_logistic, fit_rivals,
                                     flag_counts, load, overlap_covariance, predict,
                                     reliability, rival_refuses, short, SIGNIFICANCE,
                                     threshold_for, VOXEL)
@@ -119,10 +119,18 @@ def reported_sigma(r: dict, p: float) -> float:
     return covariance.loosest_sigma(covariance.with_confidence(overlap_covariance(r), p))
 
 
-def nees_reported(r: dict, p: float) -> float:
-    S = covariance.with_confidence(overlap_covariance(r), p)
-    e = np.asarray(r['error'])
-    return float(e @ np.linalg.solve(S, e))
+def covariance_figures(records: list[dict], p: np.ndarray, valid: np.ndarray) -> dict:
+    """Return the reported covariance's NEES of the valid poses, right and wrong, and sigmas."""
+    out = {'nees_right': [], 'nees_wrong': [], 'sigma_voxels': []}
+    for r, q, v in zip(records, p, valid):
+        if not v:
+            continue
+        S = covariance.with_confidence(overlap_covariance(r), q)
+        e = np.asarray(r['error'])
+        out['nees_right' if r['success'] else 'nees_wrong'].append(
+            float(e @ np.linalg.solve(S, e)))
+        out['sigma_voxels'].append(float(np.sqrt(np.trace(S[:3, :3]))) / VOXEL)
+    return out
 
 
 def fit_confidence(X: np.ndarray, has: np.ndarray, right: np.ndarray, scene: np.ndarray,
@@ -203,10 +211,7 @@ def study(records: list[dict]) -> dict:
             m = test & (bench == b)
             t = [r for r, x in zip(records, m) if x]
             fold[b] = {k: flag_counts(t, v[m]) for k, v in flags.items()}
-            final = flags['+ confidence'] & m
-            fold[b]['confidently_wrong'] = int(sum(
-                nees_reported(r, q) > CHI2_999 for r, q, f, ok in
-                zip(records, p, final, right) if f and not ok))
+            fold[b]['covariance'] = covariance_figures(t, p[m], flags['+ confidence'][m])
         fold['p'] = p[test & has].tolist()
         fold['right'] = right[test & has].tolist()
     return out
@@ -223,7 +228,7 @@ def report(out: dict, excluded: dict) -> str:
     for split, folds in out.items():
         rows = []
         levers = list(next(iter(folds.values()))['3DMatch'])
-        levers.remove('confidently_wrong')
+        levers.remove('covariance')
         for lever in levers:
             for b in ('3DMatch', '3DLoMatch'):
                 cells = [f"{100 * f[b][lever]['keeps']:.1f} / {f[b][lever]['wrong_valid']} of "
@@ -235,11 +240,16 @@ def report(out: dict, excluded: dict) -> str:
                 rows.append((lever, b, *cells))
         parts.append(f'### {split}: keeps [%] / valid but wrong (test scenes)\n\n'
                      + markdown_table(('flag', 'list', *folds, 'all'), rows))
-        cw = {b: sum(f[b]['confidently_wrong'] for f in folds.values())
-              for b in ('3DMatch', '3DLoMatch')}
-        parts.append('confidently wrong (valid, wrong, NEES > 22.5): '
-                     + ', '.join(f'{b} {cw[b]} of {totals(folds, "+ confidence", b)["valid"]}'
-                                 for b in cw))
+        for b in ('3DMatch', '3DLoMatch'):
+            c = {k: sum((f[b]['covariance'][k] for f in folds.values()), [])
+                 for k in ('nees_right', 'nees_wrong', 'sigma_voxels')}
+            right_nees = np.asarray(c['nees_right'])
+            parts.append(
+                f'{b} covariance of the valid poses: {100 * np.mean(right_nees <= CHI2_95):.1f} %'
+                f' of the right ones inside their 95 % ellipsoid (median NEES '
+                f'{np.median(right_nees):.2f}); confidently wrong (valid, wrong, NEES > 22.5) '
+                f"{sum(d > CHI2_999 for d in c['nees_wrong'])} of {len(c['sigma_voxels'])}; "
+                f"median position sigma {np.median(c['sigma_voxels']):.2f} voxels")
         p = np.concatenate([f['p'] for f in folds.values()])
         right = np.concatenate([f['right'] for f in folds.values()]).astype(bool)
         top = p >= 0.9

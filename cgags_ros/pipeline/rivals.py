@@ -11,8 +11,9 @@ voxels); turned a quarter of the way both ways about each principal axis of the 
 normals (a room's walls and floor face along those axes, and a near-square room turns
 about its vertical one); and the other distinct poses the correspondences support (the
 candidates within the ambiguity ratio were refined already; the others were not). Each
-start that already fits reasonably (at least ``PROMISING`` times the estimate's fitness;
-most that start worse never settle anywhere plausible) is refined in the estimate's stages
+start that already fits reasonably (at least ``PROMISING`` times the estimate's fitness,
+on every ``STRIDE``-th source point: a share needs no more to be told apart; most that
+start worse never settle anywhere plausible) is refined in the estimate's stages
 (``ITERATIONS`` a stage of point-to-plane against the target's k-d tree, built once with
 its features: a rival only has to show where it settles) and judged like the estimate. A
 rival is plausible when it settles away from the estimate (more than
@@ -44,7 +45,8 @@ from ..parallel import map_ordered
 
 SLIDE = 10.0
 SYMMETRY_FIT = 0.5  # a turn is a symmetry of a map when it puts half of the map on itself
-SYMMETRY_STRIDE = 4  # the map's points a symmetry is refined and judged on
+SYMMETRY_START = 1 / 3  # ...and it is refined only when it starts with a third there
+SYMMETRY_POINTS = 2000  # about this many of the map's points judge a turn
 PROMISING = 0.45
 ITERATIONS = 5
 STRIDE = 2
@@ -135,7 +137,7 @@ def structured_rival(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences
 
     def judge(start: np.ndarray) -> Candidate | None:
         """Return the rival settled from ``start`` when it is plausible (see the module doc)."""
-        if evaluate_alignment(fs.points, ft.tree, start, distance).fitness \
+        if evaluate_alignment(fs.points[::STRIDE], ft.tree, start, distance).fitness \
                 < PROMISING * result.fitness:
             return None
         R = settle(fs, ft, start, float(result.inlier_threshold), cfg)
@@ -176,23 +178,26 @@ def map_symmetries(prepared: PreparedMap, cfg: PipelineConfig) -> list[np.ndarra
     A room, a hall or a box-like store whose floor plan is near-square looks alike turned a
     quarter or half of the way about its vertical: every pose in it has such twins, whatever
     the scans show of the room. The map is turned by 90, -90 and 180 degrees about each
-    principal axis of its normals' scatter, through its centroid, each turn refined map onto
-    map (point-to-plane, from every ``SYMMETRY_STRIDE``-th point); one that then puts at least
-    ``SYMMETRY_FIT`` of those points on the map is a symmetry. Kept on ``prepared``.
+    principal axis of its normals' scatter, through its centroid (a symmetric room's centre);
+    a turn that puts at least ``SYMMETRY_START`` of about ``SYMMETRY_POINTS`` evenly spread
+    map points back on the map is refined map onto map (point-to-plane), and one that then
+    puts at least ``SYMMETRY_FIT`` of them there is a symmetry. Kept on ``prepared``.
     """
     if prepared.symmetries is not None:
         return prepared.symmetries
     ft = prepared.features
     final = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
-    points = ft.points[::SYMMETRY_STRIDE]
+    points = ft.points[::max(1, len(ft.points) // SYMMETRY_POINTS)]
     found = []
     if len(points) >= 6:
         centre = ft.points.mean(axis=0)
         _, axes = np.linalg.eigh(ft.normals.T @ ft.normals)
         for axis in axes.T:
             for angle in (np.pi / 2, -np.pi / 2, np.pi):
-                S = staged_point_to_plane(points, ft.points, ft.normals, ft.tree,
-                                          _turned(np.eye(4), axis, angle, centre),
+                start = _turned(np.eye(4), axis, angle, centre)
+                if evaluate_alignment(points, ft.tree, start, final).fitness < SYMMETRY_START:
+                    continue
+                S = staged_point_to_plane(points, ft.points, ft.normals, ft.tree, start,
                                           SLIDE * cfg.voxel_size, final, 2 * ITERATIONS,
                                           cfg.refine.coarse_stage_tolerance)
                 if evaluate_alignment(points, ft.tree, S, final).fitness >= SYMMETRY_FIT:
