@@ -33,6 +33,7 @@ setup(
             'cgags-demo = cgags_ros.tools.demo:main',
             'cgags-calibrate = cgags_ros.tools.calibrate_cli:main',
             'cgags-relocalize = cgags_ros.tools.relocalize_cli:main',
+            'cgags-tune = cgags_ros.tools.tune:main',
         ],
     },
 )

@@ -72,6 +72,7 @@ ROSDEP_KEYS = {
 # comment names them for `pip install` instead. Only optional imports belong here.
 PIP_ONLY = {
     'mcap': 'mcap',
+    'optuna': 'optuna',
     'small_gicp': 'small_gicp',
     'threadpoolctl': 'threadpoolctl',
 }

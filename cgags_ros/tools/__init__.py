@@ -1,5 +1,7 @@
 """
-The command-line tools: cgags-register, cgags-replay, cgags-calibrate, cgags-demo.
+The command-line tools.
+
+cgags-register, cgags-replay, cgags-relocalize, cgags-calibrate, cgags-tune, cgags-demo.
 
 Each runs the pipeline in its own process, so this package, imported before any of them
 loads numpy or Open3D, makes their idle threads sleep instead of spin

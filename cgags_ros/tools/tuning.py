@@ -1,0 +1,220 @@
+"""
+Tuning from recorded data: the settings that register a user's own bags best, as ROS parameters.
+
+One **trial** replays every pair of the bags through the path ``cgags-replay`` takes
+(:func:`~.replay_offline.register_row`, a stream tracked as the node tracks it) with one
+set of settings and scores it against the bags' ground truth: the pairs right and valid
+count, a valid pair that is wrong counts against it (at most ``max_wrong`` are tolerated),
+and among equals the faster median pair wins. Optuna's seeded TPE sampler proposes the
+settings; a study lives in a storage (a local SQLite file by default) so that it can be
+stopped and resumed, or shared by several machines.
+
+The search space is small on purpose: ``voxel_size`` (the one number users tune), on a
+log grid of ``GRID_STEPS`` steps a decade around the reference voxel (the automatic
+choice, and the user's start), so that a voxel tried twice reuses its features; and a
+setting only where the bags' own refusals name it as the fix (docs/refusals.md):
+``frontend.normal_orientation`` for free-space refusals (clouds not in their sensor frame),
+``core.motion_model`` for tilt refusals (levelled clouds expected), ``core.time_budget``
+for pairs that ran into a timeout. No research switch is searched.
+
+Part of the pairs (``holdout``) is held out, chosen by a seeded shuffle: the search sees
+only the rest, and the best trial is then replayed on both, so that a setting that only
+fits the pairs it was chosen on shows as such.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+from .replay_common import (auto_voxel_size, DEFAULT_MAX_RE_DEG, DEFAULT_MAX_TE_VOXELS,
+                            iter_pairs, read_bag_contents, ReplayError)
+from .replay_offline import register_row, stream_tracker
+from .report import PairRow, SuccessCriteria
+from ..config.node import configs_from_parameters, NODE_NAME, ros_value
+from ..pipeline.pairing import Pairer
+from ..refusal import RefusalCode
+
+GRID_STEPS = 10  # voxel sizes a decade: neighbours 26 % apart
+GRID_SPAN = 1.5  # decades either side of the reference (and of the user's start)
+WRONG_PENALTY = 1000.0  # a wrong valid pair past max_wrong outweighs any right one
+# The refusal codes whose documented fix is a setting, and that setting's choices.
+FIXES = {
+    RefusalCode.FREE_SPACE: ('frontend.normal_orientation', ('origin', 'centroid')),
+    RefusalCode.TILT: ('core.motion_model', ('6dof', '4dof')),
+    RefusalCode.TIMEOUT: ('core.time_budget', (0.0, 0.5, 1.0, 2.0)),
+}
+
+
+@dataclasses.dataclass
+class TunePair:
+    """One pair of a bag: both clouds (their frames, metres), the truth and the stream stamp."""
+
+    bag: str
+    index: int
+    source: np.ndarray
+    target: np.ndarray
+    truth: np.ndarray
+    stamp_ns: int
+    source_frame: str
+    target_frame: str
+
+
+@dataclasses.dataclass
+class Score:
+    """A replay's outcome: pairs right and valid, valid but wrong, refusal codes, time."""
+
+    pairs: int
+    right: int
+    wrong: int
+    median_s: float
+    refusals: dict[str, int]
+
+    @property
+    def recall(self) -> float:
+        """Return the share of the pairs that are right and valid."""
+        return self.right / self.pairs if self.pairs else 0.0
+
+    def value(self, max_wrong: int) -> float:
+        """
+        Return the objective: pairs right and valid, less every wrong one past ``max_wrong``.
+
+        No time in it, so that a seed replays the same proposals; the median time breaks
+        ties when the best trial is picked.
+        """
+        return self.right - WRONG_PENALTY * max(0, self.wrong - max_wrong)
+
+
+def load_pairs(bags: Sequence[Path], source_topic: str, target_topic: str,
+               ground_truth_topic: str, ground_truth_file: Path | None = None
+               ) -> list[TunePair]:
+    """
+    Return every pair of ``bags`` with ground truth, as the node pairs them (defaults).
+
+    :raises ReplayError: a bag without a cloud topic, without pairs, or whose ground truth
+        matches no source stamp (the objective needs it).
+    """
+    pairs = []
+    for bag in bags:
+        contents = read_bag_contents(bag, source_topic, target_topic,
+                                     None if ground_truth_file else ground_truth_topic,
+                                     require_ground_truth=ground_truth_file is None)
+        if ground_truth_file is not None:
+            contents.ground_truth = read_ground_truth(ground_truth_file)
+        name = bag.stem if bag.suffix == '.mcap' else bag.resolve().name
+        _, node = configs_from_parameters({})
+        found = 0
+        for pair in iter_pairs(contents, Pairer.from_config(node.pairing)):
+            src, tgt = pair.source.payload, pair.target.payload
+            found += 1
+            truth = contents.ground_truth.get(int(src.stamp_ns))
+            if truth is not None:
+                pairs.append(TunePair(name, found - 1, src.xyz, tgt.xyz, truth,
+                                      int(src.stamp_ns), src.frame_id, tgt.frame_id))
+        if not found:
+            raise ReplayError(f'{bag}: no pair of a {source_topic} and a {target_topic} cloud')
+        if not any(p.bag == name for p in pairs):
+            raise ReplayError(f'{bag}: the ground truth matches no source stamp (tuning '
+                              'needs the truth of some pairs)')
+    return pairs
+
+
+def read_ground_truth(path: Path) -> dict[int, np.ndarray]:
+    """
+    Read ``STAMP_NS x y z qx qy qz qw`` lines (source -> target, metres) into a stamp map.
+
+    Lines starting with ``#`` are comments.
+    """
+    from ..geometry import make_transform, quaternion_to_matrix
+
+    truth = {}
+    try:
+        lines = Path(path).read_text(encoding='utf-8').splitlines()
+    except OSError as exc:
+        raise ReplayError(f'cannot read the ground truth {path}: {exc}') from exc
+    for number, line in enumerate(lines, 1):
+        parts = line.split('#', 1)[0].split()
+        if not parts:
+            continue
+        try:
+            stamp, values = int(parts[0]), [float(x) for x in parts[1:]]
+        except ValueError:
+            values = []
+        if len(values) != 7:
+            raise ReplayError(f'{path}:{number}: expected STAMP_NS x y z qx qy qz qw')
+        truth[stamp] = make_transform(quaternion_to_matrix(values[3:]), values[:3])
+    return truth
+
+
+def holdout_split(pairs: Sequence[TunePair], share: float, seed: int
+                  ) -> tuple[list[TunePair], list[TunePair]]:
+    """Return (tuned on, held out): ``share`` of the pairs, chosen by a seeded shuffle."""
+    order = np.random.default_rng(seed).permutation(len(pairs))
+    held = int(round(share * len(pairs))) if len(pairs) > 1 else 0
+    held = min(held, len(pairs) - 1)
+    keep = sorted(order[held:])
+    return [pairs[i] for i in keep], [pairs[i] for i in sorted(order[:held])]
+
+
+def reference_voxel(pairs: Sequence[TunePair]) -> float:
+    """Return the automatic voxel size of the first pair's target (as ``cgags-replay``)."""
+    return auto_voxel_size(pairs[0].target)
+
+
+def criteria_for(voxel: float, max_re_deg: float | None, max_te_m: float | None
+                 ) -> SuccessCriteria:
+    """Return fixed success limits: a trial's own voxel must not loosen them."""
+    return SuccessCriteria(DEFAULT_MAX_RE_DEG if max_re_deg is None else max_re_deg,
+                           DEFAULT_MAX_TE_VOXELS * voxel if max_te_m is None else max_te_m)
+
+
+def voxel_grid(reference: float, start: float | None) -> list[float]:
+    """Return the voxel sizes searched: a log grid covering the reference and the start."""
+    lo = min(reference, start or reference) / 10 ** GRID_SPAN
+    hi = max(reference, start or reference) * 10 ** GRID_SPAN
+    k_lo = math.floor(GRID_STEPS * math.log10(lo / reference))
+    k_hi = math.ceil(GRID_STEPS * math.log10(hi / reference))
+    return [float(f'{reference * 10 ** (k / GRID_STEPS):.3g}') for k in range(k_lo, k_hi + 1)]
+
+
+def search_space(refusals: Iterable[str]) -> dict[str, tuple]:
+    """Return the settings beside ``voxel_size`` that the bags' refusal codes call for."""
+    codes = {RefusalCode(code) for code in refusals}
+    return {name: choices for code, (name, choices) in FIXES.items() if code in codes}
+
+
+def replay(pairs: Sequence[TunePair], settings: dict[str, Any],
+           criteria: SuccessCriteria) -> tuple[Score, list[PairRow]]:
+    """Register every pair with ``settings`` (bag by bag, a stream each) and score it."""
+    pipe, node = configs_from_parameters(settings)
+    rows = []
+    for bag in dict.fromkeys(p.bag for p in pairs):
+        tracker = stream_tracker(pipe, node.mode)
+        for p in (p for p in pairs if p.bag == bag):
+            row = PairRow(index=p.index, source_stamp_ns=p.stamp_ns, target_stamp_ns=None,
+                          source_frame=p.source_frame, target_frame=p.target_frame,
+                          valid=False, ground_truth=p.truth)
+            row = register_row(row, p.source, p.target, pipe, tracker=tracker)
+            row.evaluate(criteria)
+            rows.append(row)
+    refusals: dict[str, int] = {}
+    for row in rows:
+        if row.refusal is not None:
+            refusals[row.refusal.code.value] = refusals.get(row.refusal.code.value, 0) + 1
+    right = sum(bool(r.success) for r in rows)
+    wrong = sum(bool(r.valid and not r.success) for r in rows)
+    median = float(np.median([r.time_s for r in rows])) if rows else 0.0
+    return Score(len(rows), right, wrong, median, refusals), rows
+
+
+def params_yaml(settings: dict[str, Any], comment: str = '') -> str:
+    """Return a ROS 2 parameters file (``register_node: ros__parameters:``) of ``settings``."""
+    import yaml
+
+    values = {k: ros_value(v) for k, v in sorted(settings.items())}
+    head = ''.join(f'# {line}\n' for line in comment.splitlines())
+    return head + yaml.safe_dump({NODE_NAME: {'ros__parameters': values}}, sort_keys=False)
