@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 from cgags_ros.config import PipelineConfig
@@ -141,6 +142,8 @@ def test_a_voxel_ten_times_too_large_is_tuned_back_and_the_node_file_reproduces_
     report = run(*options_from_args(args))
     assert sum(bool(r.success) for r in report.rows) == 4
     assert outcome.paths['report'].read_text().startswith('# cgags-tune')
+    summary = json.loads(outcome.paths['summary'].read_text())
+    assert summary['best'] == outcome.best and len(summary['trials']) == 8
     assert outcome.paths['plot'].stat().st_size > 0
 
 

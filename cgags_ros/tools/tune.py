@@ -20,7 +20,8 @@ qw``) and writes to DIR (default ``out/tune/<first bag>``):
 - ``report.md``: the best trial against the defaults on the pairs tuned on and on the
   held-out ones (pairs right and valid, valid but wrong, median seconds a pair), a warning
   when the held-out pairs fare worse than noise allows, and every trial;
-- ``trials.png``: every trial's recall against its median time, the Pareto front marked.
+- ``trials.png``: every trial's recall against its median time, the Pareto front marked;
+- ``summary.json``: the same for programs (best settings, each split's score, every trial).
 
 The study is stored in ``out/tune/<first bag>.db`` (SQLite) unless ``--storage`` names
 another Optuna storage URL (a shared database lets several machines work on one study);
@@ -32,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import math
 from pathlib import Path
 import sys
@@ -227,10 +229,14 @@ def _finish(study: Any, opts: Options, tuned_on: list, held_out: list, criteria:
     comment = (f'cgags-tune {" ".join(map(str, opts.bags))}: {len(trials)} trials, seed '
                f'{opts.seed}; report.md beside this file')
     paths = {'params': out / 'params.yaml', 'report': out / 'report.md',
-             'plot': out / 'trials.png'}
+             'plot': out / 'trials.png', 'summary': out / 'summary.json'}
     paths['params'].write_text(tuning.params_yaml(best, comment), encoding='utf-8')
     outcome = Outcome(best, defaults, scores, rows, warning, paths)
     paths['report'].write_text(report_markdown(outcome, opts), encoding='utf-8')
+    paths['summary'].write_text(json.dumps({
+        'best': best, 'defaults': defaults, 'warning': warning, 'trials': rows,
+        'scores': [{'settings': name, 'split': split, **dataclasses.asdict(score)}
+                   for (name, split), score in scores.items()]}, indent=1), encoding='utf-8')
     plot_trials(rows, paths['plot'])
     if not opts.quiet:
         print(report_markdown(outcome, opts))
