@@ -43,6 +43,7 @@ Outputs ``--output`` + ``.md`` / ``.json``.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -165,55 +166,77 @@ def sigmas(records: list[dict], p: np.ndarray, has: np.ndarray) -> np.ndarray:
                      for r, q, h in zip(records, p, has)]) / VOXEL
 
 
+@dataclasses.dataclass
+class Design:
+    """Every record's candidate confidence inputs, its truth, the gates' verdict, list, scene."""
+
+    X: np.ndarray
+    has: np.ndarray
+    right: np.ndarray
+    gates: np.ndarray
+    bench: np.ndarray
+    scene: np.ndarray
+
+    @classmethod
+    def of(cls, records: list[dict]) -> 'Design':
+        rows = [inputs(r) for r in records]
+        return cls(np.array([[x[n] for n in MONOTONE] if x else [0.0] * len(MONOTONE)
+                             for x in rows]),
+                   np.array([x is not None for x in rows]),
+                   np.array([r['success'] for r in records], dtype=bool),
+                   np.array([r['valid'] for r in records], dtype=bool),
+                   np.array([r['benchmark'] for r in records]),
+                   np.array([r['scene'] for r in records]))
+
+
+def choose(records: list[dict], d: Design, train: np.ndarray) -> dict:
+    """Return every lever chosen on the ``train`` records, in the pipeline's order."""
+    rivals = fit_rivals([r for r, t in zip(records, train) if t], d.gates[train])
+    refused = np.array([g and rival_refuses(r, *rivals) for r, g in zip(records, d.gates)],
+                       dtype=bool)
+    model, p_inner = fit_confidence(d.X, d.has, d.right, d.scene, train, list(MONOTONE))
+    inner_sigma = sigmas(records, p_inner, d.has)
+    after = d.gates & ~refused
+    kept = inner_sigma[train & after & d.right]
+    bound = float(np.quantile(kept, SHARP)) if len(kept) else math.inf
+    threshold = threshold_for(p_inner[train], (after & (inner_sigma <= bound))[train],
+                              d.right[train], d.bench[train])
+    return {'rivals': rivals, 'refused': refused, 'model': model, 'sigma_voxels': bound,
+            'threshold': max(threshold, FLOOR)}
+
+
 def study(records: list[dict]) -> dict:
     """Choose every lever on each fold's training scenes; return the test figures."""
-    names = list(MONOTONE)
-    rows = [inputs(r) for r in records]
-    has = np.array([x is not None for x in rows])
-    X = np.array([[x[n] for n in names] if x else [0.0] * len(names) for x in rows])
-    right = np.array([r['success'] for r in records], dtype=bool)
-    gates = np.array([r['valid'] for r in records], dtype=bool)
-    bench = np.array([r['benchmark'] for r in records])
-    scene = np.array([r['scene'] for r in records])
+    d = Design.of(records)
     flips = [{**r, 'rivals': [x for x in r.get('rivals', [])
                               if x['name'].startswith(FLIPS_SLIDES)]} for r in records]
     # Today's flag as it shipped: half turns and slides at their settings, its confidence
     # (fit on all four scenes, the test scenes too) at 0.5, as the records measured it.
-    today = gates & np.array([not rival_refuses(r, *TODAY_RIVALS) and r['confidence'] >= 0.5
-                              for r in flips])
+    today = d.gates & np.array([not rival_refuses(r, *TODAY_RIVALS) and r['confidence'] >= 0.5
+                                for r in flips])
     out = {}
     for split, name, train, test in splits(records):
         fold = out.setdefault(split, {}).setdefault(name, {})
-        tr = [r for r, t in zip(records, train) if t]
-        riv = fit_rivals(tr, gates[train])
-        riv_flips = fit_rivals([r for r, t in zip(flips, train) if t], gates[train])
-        refuse = np.array([g and rival_refuses(r, *riv) for r, g in zip(records, gates)])
+        chosen = choose(records, d, train)
+        riv_flips = fit_rivals([r for r, t in zip(flips, train) if t], d.gates[train])
         refuse_flips = np.array([g and rival_refuses(r, *riv_flips)
-                                 for r, g in zip(flips, gates)])
-        model, p_inner = fit_confidence(X, has, right, scene, train, names)
-        p = np.where(has, predict(model, X), 0.0)
-        sigma = sigmas(records, p, has)
-        inner_sigma = sigmas(records, p_inner, has)
-        after_rivals = gates & ~refuse
-        kept = inner_sigma[train & after_rivals & right]
-        bound = float(np.quantile(kept, SHARP)) if len(kept) else math.inf
-        usable = after_rivals & (sigma <= bound)
-        threshold = threshold_for(p_inner[train], (after_rivals & (inner_sigma <= bound))[train],
-                                  right[train], bench[train])
-        threshold = max(threshold, FLOOR)
-        flags = {'today (shipped before)': today, 'gates': gates,
-                 'rivals (flips, slides)': gates & ~refuse_flips,
+                                 for r, g in zip(flips, d.gates)], dtype=bool)
+        p = np.where(d.has, predict(chosen['model'], d.X), 0.0)
+        after_rivals = d.gates & ~chosen['refused']
+        usable = after_rivals & (sigmas(records, p, d.has) <= chosen['sigma_voxels'])
+        flags = {'today (shipped before)': today, 'gates': d.gates,
+                 'rivals (flips, slides)': d.gates & ~refuse_flips,
                  'rivals (all)': after_rivals, '+ sigma': usable,
-                 '+ confidence': usable & (p >= threshold)}
-        fold['settings'] = {'rivals': riv, 'rivals_flips': riv_flips, 'sigma_voxels': bound,
-                            'threshold': threshold, 'model': model}
+                 '+ confidence': usable & (p >= chosen['threshold'])}
+        fold['settings'] = {**{k: v for k, v in chosen.items() if k != 'refused'},
+                            'rivals_flips': riv_flips}
         for b in ('3DMatch', '3DLoMatch'):
-            m = test & (bench == b)
+            m = test & (d.bench == b)
             t = [r for r, x in zip(records, m) if x]
             fold[b] = {k: flag_counts(t, v[m]) for k, v in flags.items()}
             fold[b]['covariance'] = covariance_figures(t, p[m], flags['+ confidence'][m])
-        fold['p'] = p[test & has].tolist()
-        fold['right'] = right[test & has].tolist()
+        fold['p'] = p[test & d.has].tolist()
+        fold['right'] = d.right[test & d.has].tolist()
     return out
 
 
@@ -266,23 +289,11 @@ def report(out: dict, excluded: dict) -> str:
 
 def shipped(records: list[dict]) -> dict:
     """Return every lever chosen on all scenes as the folds choose them (what ships)."""
-    names = list(MONOTONE)
-    rows = [inputs(r) for r in records]
-    has = np.array([x is not None for x in rows])
-    X = np.array([[x[n] for n in names] if x else [0.0] * len(names) for x in rows])
-    right = np.array([r['success'] for r in records], dtype=bool)
-    scene = np.array([r['scene'] for r in records])
-    bench = np.array([r['benchmark'] for r in records])
-    everything = np.ones(len(records), dtype=bool)
-    model, p_inner = fit_confidence(X, has, right, scene, everything, names)
-    gates = np.array([r['valid'] for r in records], dtype=bool)
-    riv = fit_rivals(records, gates)
-    after = gates & ~np.array([g and rival_refuses(r, *riv) for r, g in zip(records, gates)])
-    sigma = sigmas(records, p_inner, has)
-    bound = float(np.quantile(sigma[after & right], SHARP))
-    threshold = threshold_for(p_inner, after & (sigma <= bound), right, bench)
-    return {'weights': dict(zip(names, model['weights'])), 'intercept': model['intercept'],
-            'rivals': riv, 'sigma_voxels': bound, 'threshold': threshold}
+    chosen = choose(records, Design.of(records), np.ones(len(records), dtype=bool))
+    model = chosen.pop('model')
+    del chosen['refused']
+    return {'weights': dict(zip(MONOTONE, model['weights'])), 'intercept': model['intercept'],
+            **chosen}
 
 
 def main(argv: list[str] | None = None) -> int:
