@@ -12,6 +12,7 @@ from pathlib import Path
 
 from bench.datasets.rigs import OPENCALIB, opencalib_rig, REFERENCE
 from cgags_ros.geometry import make_transform, rotation_error_deg, translation_error
+from cgags_ros.io.bag import write_bag
 from cgags_ros.tools import calibrate_cli
 import numpy as np
 import pytest
@@ -61,38 +62,13 @@ def test_files_print_the_four_forms(rig, capsys):
 
 
 def _write_bag(path: Path, frames, offset_s: float = 0.0) -> None:
-    from rosbags.rosbag2 import Writer
-    from rosbags.rosbag2.enums import StoragePlugin
-    from rosbags.typesys import get_typestore, Stores
-
-    store = get_typestore(Stores.ROS2_JAZZY)
-    types = store.types
-    cloud_type = 'sensor_msgs/msg/PointCloud2'
-
-    def cloud(points: np.ndarray, stamp_ns: int, frame_id: str):
-        data = np.ascontiguousarray(points, dtype=np.float32)
-        fields = [types['sensor_msgs/msg/PointField'](name=n, offset=4 * i, datatype=7, count=1)
-                  for i, n in enumerate('xyz')]
-        sec, nanosec = divmod(stamp_ns, 10**9)
-        header = types['std_msgs/msg/Header'](
-            stamp=types['builtin_interfaces/msg/Time'](sec=sec, nanosec=nanosec),
-            frame_id=frame_id)
-        return types[cloud_type](header=header, height=1, width=len(data), fields=fields,
-                                 is_bigendian=False, point_step=12, row_step=12 * len(data),
-                                 data=data.view(np.uint8).ravel(), is_dense=True)
-
-    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        top = writer.add_connection('/top/points', cloud_type, typestore=store)
-        side = writer.add_connection('/right/points', cloud_type, typestore=store)
-        messages = []
-        for k, f in enumerate(frames):
-            base = 100 * 10**9 + k * 5 * 10**9  # frames 5 s apart, real offsets within
-            parent_ns = base
-            child_ns = base + (f.child_stamp_ns - f.parent_stamp_ns) + int(offset_s * 1e9)
-            messages += [(parent_ns, top, cloud(f.parent, parent_ns, 'top')),
-                         (child_ns, side, cloud(f.child, child_ns, 'right'))]
-        for stamp, conn, msg in sorted(messages, key=lambda m: m[0]):
-            writer.write(conn, stamp, store.serialize_cdr(msg, cloud_type))
+    messages = []
+    for k, f in enumerate(frames):
+        base = 100 * 10**9 + k * 5 * 10**9  # frames 5 s apart, real offsets within
+        child_ns = base + (f.child_stamp_ns - f.parent_stamp_ns) + int(offset_s * 1e9)
+        messages += [('/top/points', base, 'top', f.parent),
+                     ('/right/points', child_ns, 'right', f.child)]
+    write_bag(path, messages)
 
 
 @pytest.mark.slow

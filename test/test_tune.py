@@ -160,3 +160,44 @@ def test_a_study_resumes_without_repeating_trials_and_a_seed_replays_it(bunny, t
         return [{k: v for k, v in t.items() if k != 'median_s'} for t in outcome.trials]
 
     assert proposals(_tune(bunny, tmp_path / 'b', trials=3)) == proposals(first)
+
+
+def moved_bunny_bag(data_dir: Path, path: Path) -> Path:
+    """
+    Write the turntable scans' four pairs as a bag whose clouds are not in their sensor frame.
+
+    Every scan moved by one rigid motion (as a tool that re-centres clouds would), the
+    ground truth moved with them: the sensors' origins are no longer the clouds' origins.
+    """
+    from bench.datasets.gt_pairs import read_gt_pairs
+    from cgags_ros.geometry import apply_transform, make_transform
+    from cgags_ros.io.bag import write_bag
+    from cgags_ros.io.clouds import read_cloud
+    from scipy.spatial.transform import Rotation
+
+    M = make_transform(Rotation.from_euler('xyz', [70, -40, 120], degrees=True).as_matrix(),
+                       [0.4, -0.3, 0.25])
+    messages = []
+    pairs = read_gt_pairs(data_dir / 'objects' / 'stanford_bunny_scans' / 'gt_pairs.txt')
+    for k, (source, target, truth) in enumerate(pairs):
+        stamp = (k + 1) * 10**9
+        messages += [('/target_cloud', stamp, 'turntable', apply_transform(M, read_cloud(target))),
+                     ('/source_cloud', stamp + 10**7, 'scanner',
+                      apply_transform(M, read_cloud(source))),
+                     ('/ground_truth', stamp + 10**7, 'turntable',
+                      M @ truth @ np.linalg.inv(M))]
+    write_bag(path, messages)
+    return path
+
+
+@pytest.mark.slow
+def test_clouds_out_of_their_sensor_frame_are_tuned_to_the_fix_free_space_names(
+        data_dir, tmp_path):
+    """The defaults refuse right poses for free space; the tuned setting keeps them."""
+    bag = moved_bunny_bag(data_dir, tmp_path / 'moved_bunny')
+    outcome = _tune(bag, tmp_path, trials=6, holdout=0.0)
+    start = outcome.scores['defaults', 'tuned on']
+    assert start.refusals.get('free_space', 0) >= 1 and start.right < 4
+    assert outcome.best['frontend.normal_orientation'] == 'centroid'
+    best = outcome.scores['best', 'tuned on']
+    assert best.right == 4 and best.wrong == 0

@@ -20,6 +20,7 @@ from ..errors import BagError, BagTopicError, InvalidInputError
 from ..geometry import matrix_to_quaternion
 
 POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
+POINTCLOUD2 = 'sensor_msgs/msg/PointCloud2'
 
 
 @dataclasses.dataclass(frozen=True)
@@ -203,6 +204,24 @@ def write_poses_mcap(path: str | Path, records: Iterable[tuple[int, str, np.ndar
     :param topic: output topic.
     :returns: the number of messages written.
     """
+    poses = [(topic, stamp, frame, np.asarray(T, dtype=np.float64))
+             for stamp, frame, T in records]
+    for _, stamp, _, T in poses:
+        if T.shape != (4, 4):
+            raise InvalidInputError(f'pose at {stamp} ns is not a finite 4x4 transform')
+    return write_bag(path, poses)
+
+
+def write_bag(path: str | Path, messages: Iterable[tuple[str, int, str, np.ndarray]]) -> int:
+    """
+    Write clouds and poses to a new rosbag2 MCAP bag directory, in log-time order.
+
+    :param messages: ``(topic, stamp_ns, frame_id, array)``: an (N, 3) array is written as
+        a ``sensor_msgs/msg/PointCloud2`` (float32 x, y, z), a 4x4 one as a
+        ``geometry_msgs/msg/PoseStamped`` (its pose); the stamp is the header stamp and the
+        log time.
+    :returns: the number of messages written.
+    """
     from rosbags.rosbag2 import Writer
     from rosbags.rosbag2.enums import StoragePlugin
     from rosbags.typesys import get_typestore, Stores
@@ -211,25 +230,46 @@ def write_poses_mcap(path: str | Path, records: Iterable[tuple[int, str, np.ndar
     if path.exists():
         raise BagError(f'{path} exists already; rosbags writes new bags only')
     store = get_typestore(Stores.ROS2_JAZZY)
-    PoseStamped = store.types[POSE_STAMPED]
-    Header = store.types['std_msgs/msg/Header']
-    Time = store.types['builtin_interfaces/msg/Time']
-    Pose = store.types['geometry_msgs/msg/Pose']
-    Point = store.types['geometry_msgs/msg/Point']
-    Quaternion = store.types['geometry_msgs/msg/Quaternion']
     count = 0
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        conn = writer.add_connection(topic, POSE_STAMPED, typestore=store)
-        for stamp_ns, frame_id, T in records:
-            T = np.asarray(T, dtype=np.float64)
-            if T.shape != (4, 4) or not np.isfinite(T).all():
-                raise InvalidInputError(f'pose at {stamp_ns} ns is not a finite 4x4 transform')
+        connections: dict[str, Any] = {}
+        for topic, stamp_ns, frame_id, array in sorted(messages, key=lambda m: m[1]):
+            array = np.asarray(array, dtype=np.float64)
             sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
-            qx, qy, qz, qw = (float(v) for v in matrix_to_quaternion(T[:3, :3]))
-            msg = PoseStamped(
-                header=Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=str(frame_id)),
-                pose=Pose(position=Point(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
-                          orientation=Quaternion(x=qx, y=qy, z=qz, w=qw)))
-            writer.write(conn, int(stamp_ns), store.serialize_cdr(msg, POSE_STAMPED))
+            header = store.types['std_msgs/msg/Header'](
+                stamp=store.types['builtin_interfaces/msg/Time'](sec=sec, nanosec=nanosec),
+                frame_id=str(frame_id))
+            if array.shape == (4, 4):
+                msgtype, msg = POSE_STAMPED, _pose_stamped(store, header, array, stamp_ns)
+            elif array.ndim == 2 and array.shape[1] == 3:
+                msgtype, msg = POINTCLOUD2, _pointcloud2(store, header, array)
+            else:
+                raise InvalidInputError(f'{topic} at {stamp_ns} ns: neither a 4x4 pose nor '
+                                        f'(N, 3) points, shape {array.shape}')
+            if topic not in connections:
+                connections[topic] = writer.add_connection(topic, msgtype, typestore=store)
+            writer.write(connections[topic], int(stamp_ns), store.serialize_cdr(msg, msgtype))
             count += 1
     return count
+
+
+def _pose_stamped(store: Any, header: Any, T: np.ndarray, stamp_ns: int) -> Any:
+    if not np.isfinite(T).all():
+        raise InvalidInputError(f'pose at {stamp_ns} ns is not a finite 4x4 transform')
+    types = store.types
+    qx, qy, qz, qw = (float(v) for v in matrix_to_quaternion(T[:3, :3]))
+    x, y, z = (float(v) for v in T[:3, 3])
+    position = types['geometry_msgs/msg/Point'](x=x, y=y, z=z)
+    orientation = types['geometry_msgs/msg/Quaternion'](x=qx, y=qy, z=qz, w=qw)
+    return types[POSE_STAMPED](header=header, pose=types['geometry_msgs/msg/Pose'](
+        position=position, orientation=orientation))
+
+
+def _pointcloud2(store: Any, header: Any, points: np.ndarray) -> Any:
+    types = store.types
+    data = np.ascontiguousarray(points, dtype=np.float32)
+    fields = [types['sensor_msgs/msg/PointField'](name=n, offset=4 * i, datatype=7, count=1)
+              for i, n in enumerate('xyz')]
+    return types[POINTCLOUD2](header=header, height=1, width=len(data), fields=fields,
+                              is_bigendian=False, point_step=12, row_step=12 * len(data),
+                              data=data.view(np.uint8).ravel(), is_dense=True)
