@@ -160,7 +160,7 @@ def tune(opts: Options) -> Outcome:
     start = opts.voxel_size or reference
     criteria = tuning.criteria_for(reference, opts.max_re_deg, opts.max_te)
     grid = tuning.voxel_grid(reference, start)
-    start = min(grid, key=lambda v: abs(math.log(v / start)))
+    start, automatic = (min(grid, key=lambda v: abs(math.log(v / x))) for x in (start, reference))
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     try:
         study = optuna.create_study(study_name=opts.name, storage=opts.storage_url,
@@ -181,8 +181,8 @@ def tune(opts: Options) -> Outcome:
         space = tuning.search_space(baseline.refusals)
         study.set_user_attr('space', {k: list(v) for k, v in space.items()})
         study.enqueue_trial({'voxel_size': start})
-        if reference != start:
-            study.enqueue_trial({'voxel_size': reference})
+        if automatic != start:
+            study.enqueue_trial({'voxel_size': automatic})
 
     def objective(trial: Any) -> float:
         settings = {'voxel_size': trial.suggest_categorical('voxel_size', grid)}
