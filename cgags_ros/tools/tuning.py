@@ -9,9 +9,12 @@ and among equals the faster median pair wins. Optuna's seeded TPE sampler propos
 settings; a study lives in a storage (a local SQLite file by default) so that it can be
 stopped and resumed, or shared by several machines.
 
+Features are computed afresh in every trial (the pipeline's cache keeps only the last two
+clouds): a trial's median time is a cold pair's, so times compare across trials.
+
 The search space is small on purpose: ``voxel_size`` (the one number users tune), on a
 log grid of ``GRID_STEPS`` steps a decade around the reference voxel (the automatic
-choice, and the user's start), so that a voxel tried twice reuses its features; and a
+choice, and the user's start); and a
 setting only where the bags' own refusals name it as the fix (docs/refusals.md):
 ``frontend.normal_orientation`` for free-space refusals (clouds not in their sensor frame),
 ``core.motion_model`` for tilt refusals (levelled clouds expected), ``core.time_budget``
