@@ -8,6 +8,8 @@ what they share (output paths, ``--set``, tables, plots), :mod:`bench.problems` 
 benchmark's problems, :mod:`bench.revision` an earlier revision's core, and
 :mod:`bench.datasets` the benchmark data readers (3DMatch, calibration rigs,
 ``gt_pairs.txt``, synthetic correspondences), which the installed package does not ship.
+The one-off studies behind the shipped defaults are :mod:`bench.studies`
+(``python -m bench.studies.<name>``); no benchmark here imports them.
 """
 
 from cgags_ros.parallel import quiet_idle_threads

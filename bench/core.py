@@ -1,5 +1,5 @@
 r"""
-Core benchmark (issue 2): our registration core vs Open3D RANSAC vs KISS-Matcher.
+Core benchmark: our registration core vs Open3D RANSAC vs KISS-Matcher.
 
 All solvers run on the SAME synthetic putative correspondences (Stanford bunny, unit-scaled:
 largest extent 1; :mod:`bench.problems`), one problem at a time,
@@ -36,7 +36,7 @@ Solvers are pluggable: ``--solvers`` takes built-in names (``ours``, ``open3d``,
 ``module:function`` entries, where the function is ``(src, dst, tau) -> 4x4``. A built-in solver
 that cannot be imported (e.g. ``ours`` before the core lands) is skipped with a note.
 
-``--motion 4dof`` (issue 14): yaw-only problems (yaw uniform in [-180, 180) deg about +z,
+``--motion 4dof``: yaw-only problems (yaw uniform in [-180, 180) deg about +z,
 translation uniform in [-1, 1]^3, plus an optional ``--tilt-noise`` in degrees about a random
 horizontal axis), default solvers ``ours-4dof`` (``CoreConfig(motion_model='4dof')``),
 ``ours-6dof`` (the default 6-DoF core) and ``kiss-quatro`` (KISS-Matcher with
@@ -596,7 +596,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                          f"and/or module:function (default: {','.join(DEFAULT_SOLVERS)}; "
                          f"with --motion 4dof: {','.join(DEFAULT_SOLVERS_4DOF)})")
     ap.add_argument('--motion', choices=('6dof', '4dof'), default='6dof',
-                    help='6dof: random rotations; 4dof: yaw-only problems (issue 14)')
+                    help='6dof: random rotations; 4dof: yaw-only problems')
     ap.add_argument('--tilt-noise', type=float, default=0.0,
                     help='with --motion 4dof: tilt (deg) about a random horizontal axis')
     ap.add_argument('--ratios', type=_floats, default=None,

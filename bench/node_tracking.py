@@ -6,15 +6,17 @@ namespace of its own, as the DDS tests run)::
 
     .venv/bin/python -m bench.node_tracking --duration 60 \
         [--voxels 0.3 0.5 1.0] [--tracking on off] [--orders pingpong looped] \
-        [--output out/bench/node_tracking.json]
+        [--repos . /tmp/main --rounds 2] [--output out/bench/node_tracking.json]
 
-For each voxel size and tracking setting a ``register_node`` process is started as users
-run it (``python -m cgags_ros.register_node``, registration in its child process, the
-default queue depth); this process publishes scan 0 of ``<shared data>/kitti/seq00_16scans``
-latched on ``target_cloud`` (transient local: the map) and then, per order, the 16 scans
-(~4 MB PointCloud2 each, all their fields) on ``source_cloud`` with sensor-data QoS at
-``--rate`` for ``--duration`` seconds, stamped by a regular sensor clock. Both processes load
-the shipped Fast DDS profile (``config/fastdds_large_data.xml`` through
+For each voxel size and tracking setting a ``register_node`` process is started as users run
+it (``python -m cgags_ros.register_node``, registration in its child process, the default
+queue depth); with ``--repos`` the node runs from each checkout in turn (an A/B against
+another revision: ``git worktree add /tmp/main main``), ``--rounds`` times, so that the
+machine's drift falls on both alike; this process publishes scan 0 of ``<shared
+data>/kitti/seq00_16scans`` latched on ``target_cloud`` (transient local: the map) and then,
+per order, the 16 scans (~4 MB PointCloud2 each, all their fields) on ``source_cloud`` with
+sensor-data QoS at ``--rate`` for ``--duration`` seconds, stamped by a regular sensor clock.
+Both processes load the shipped Fast DDS profile (``config/fastdds_large_data.xml`` through
 FASTRTPS_DEFAULT_PROFILES_FILE). Orders: ``pingpong`` (0..15, 14..1, ...: smooth motion,
 reversing at the ends) and ``looped`` (0..15, 0..15, ...: a 12 m jump back every 16 scans).
 
@@ -26,7 +28,9 @@ published pose against ``pseudo_gt.txt`` (scan k in scan 0's frame): the worst r
 translation error, how many are within 1 deg / 0.2 m, how many beyond 5 deg / 0.6 m; and the
 median stage times the node reports (``timings``) of tracked and of global scans, and the
 median of a tracked scan's latency minus its registration time: what transport, decoding,
-queueing, the transfer to the registration process and back, and publishing cost. The
+queueing, the transfer to the registration process and back, and publishing cost; and the
+node's own latency (its receipt of a scan to the result), of all scans from /diagnostics
+and of the tracked ones from ``~/result``'s ``latency_s`` (where the node reports it). The
 machine may be loaded by other work: compare cells of one run, and note the load average
 printed with the table.
 """
@@ -70,14 +74,29 @@ def dds_environment(domain_id: int) -> dict[str, str]:
     return env
 
 
-def start_node(ros_args: list[str], env: dict[str, str], log_path: Path
-               ) -> tuple[subprocess.Popen, Any]:
-    """Start ``python -m cgags_ros.register_node --ros-args ROS_ARGS``; return it and its log."""
+def start_node(ros_args: list[str], env: dict[str, str], log_path: Path,
+               repo: Path = REPO) -> tuple[subprocess.Popen, Any]:
+    """
+    Start ``python -m cgags_ros.register_node --ros-args ROS_ARGS``; return it and its log.
+
+    ``repo``: the checkout whose ``cgags_ros`` runs (``-m`` imports from the working
+    directory first).
+    """
     log = open(log_path, 'w+', encoding='utf-8')
     proc = subprocess.Popen([sys.executable, '-m', 'cgags_ros.register_node', '--ros-args']
-                            + ros_args, cwd=REPO, env=env, stdout=log,
-                            stderr=subprocess.STDOUT, text=True)
+                            + ros_args, cwd=repo, env=dict(env, PYTHONPATH=str(repo)),
+                            stdout=log, stderr=subprocess.STDOUT, text=True)
     return proc, log
+
+
+def revision(repo: Path) -> str:
+    """Return the short commit of ``repo`` (with '+' when its tree has changes)."""
+    def git(*args: str) -> str:
+        return subprocess.run(['git', '-C', str(repo), *args], capture_output=True,
+                              text=True).stdout.strip()
+
+    changed = git('status', '--porcelain', '--untracked-files=no')
+    return git('rev-parse', '--short', 'HEAD') + ('+' if changed else '')
 
 
 class StreamClient:
@@ -198,7 +217,7 @@ def summarize(client: StreamClient, stamps: list[int], truth: np.ndarray) -> dic
     """Return one cell's numbers for the scans published with ``stamps``."""
     from cgags_ros.geometry import rotation_error_deg, translation_error
 
-    latencies, rot, trans, overheads = [], [], [], []
+    latencies, rot, trans, overheads, node_tracked = [], [], [], [], []
     paths = {'tracked': 0, 'global': 0}
     outcomes: dict[str, int] = {}
     global_because: dict[str, int] = {}
@@ -224,6 +243,8 @@ def summarize(client: StreamClient, stamps: list[int], truth: np.ndarray) -> dic
         latencies.append(pose[0] - sent_at)
         if record is not None and record.get('path') == 'tracked':
             overheads.append(latencies[-1] - record['timings'].get('total', np.nan))
+            if record.get('latency_s') is not None:
+                node_tracked.append(record['latency_s'])
         rot.append(rotation_error_deg(pose[1], truth[k]))
         trans.append(translation_error(pose[1], truth[k]))
     rot_a, trans_a, lat = np.array(rot), np.array(trans), np.array(latencies)
@@ -243,6 +264,11 @@ def summarize(client: StreamClient, stamps: list[int], truth: np.ndarray) -> dic
         # recent scans, /diagnostics): the rest of the latency above is outside the node.
         'node_latency_p50_ms': _seconds_ms(client.value('latency_p50_s')),
         'node_latency_p95_ms': _seconds_ms(client.value('latency_p95_s')),
+        'node_tracked_latency_p50_ms': _ms(np.array(node_tracked), 50),
+        'node_tracked_latency_p95_ms': _ms(np.array(node_tracked), 95),
+        'periodic_checks': client.value('tracking.periodic_checks'),
+        'checks_rss_mb': client.value('memory.checks_rss_mb'),
+        'worker_rss_mb': client.value('memory.worker_rss_mb'),
         'stage_median_ms': {p: {s: _ms(np.array(v), 50) for s, v in by.items()}
                             for p, by in stages.items()},
     }
@@ -258,11 +284,13 @@ def _ms(values: np.ndarray, q: float) -> float | None:
 
 def run_node(client: StreamClient, msgs: list, truth: np.ndarray, voxel: float,
              tracking: bool, names: list[str], duration: float, rate: float,
-             folder: Path, queue_depth: int, keys: dict[str, Any]) -> list[dict[str, Any]]:
+             folder: Path, queue_depth: int, keys: dict[str, Any],
+             repo: Path = REPO) -> list[dict[str, Any]]:
     """
     Start a node for one voxel size and tracking setting; stream each order through it.
 
-    ``keys``: configuration keys for the node's ``config_file`` (none when empty).
+    ``keys``: configuration keys for the node's ``config_file`` (none when empty); ``repo``:
+    the checkout the node runs from.
     """
     args = ['-p', f'voxel_size:={voxel}', '-p', 'pairing.target_durability:=transient_local',
             '-p', f"tracking.enabled:={'true' if tracking else 'false'}",
@@ -274,7 +302,7 @@ def run_node(client: StreamClient, msgs: list, truth: np.ndarray, voxel: float,
     # A node stopped before leaves its match and its last /diagnostics behind a while.
     _wait(lambda: not client.source_pub.get_subscription_count(), 60, 'the last node gone')
     client.forget()
-    proc, log = start_node(args, dds_environment(DOMAIN_ID), log_path)
+    proc, log = start_node(args, dds_environment(DOMAIN_ID), log_path, repo)
     cells = []
     try:
         _wait(lambda: client.value('worker.ready') == 'True', 300, 'the node warm', proc)
@@ -286,7 +314,8 @@ def run_node(client: StreamClient, msgs: list, truth: np.ndarray, voxel: float,
             time.sleep(1.0)  # a gap longer than tracking.max_age between the orders
             stamps = client.play(msgs, orders(count)[name], rate)
             client.settle(stamps)
-            cell = {'voxel_size': voxel, 'tracking': tracking, 'order': name,
+            cell = {'revision': revision(repo), 'voxel_size': voxel, 'tracking': tracking,
+                    'order': name,
                     'duration_s': duration, 'rate_hz': rate, 'queue_depth': queue_depth,
                     'config_file': keys,
                     'load_average': os.getloadavg()[0],
@@ -310,21 +339,28 @@ def _wait(predicate: Any, timeout: float, what: str,
 
 def table(cells: list[dict[str, Any]]) -> str:
     """Return the Markdown table of docs/benchmarks.md."""
-    lines = ['| voxel | tracking | order | sent | published | latency p50 / p95 ms | '
-             'tracked / global | dropped | worst | within 1° / 0.2 m; beyond 5° / 0.6 m | '
+    lines = ['| revision | voxel | tracking | order | sent | published | latency p50 / p95 ms | '
+             'node p50 / p95 ms (tracked) | tracked / global | dropped | worst | '
+             'within 1° / 0.2 m; beyond 5° / 0.6 m | '
              'tracked ms: downsample / refinement / gates / total; latency - total | '
              'global total ms |',
-             '|---|---|---|---|---|---|---|---|---|---|---|---|']
+             '|---|---|---|---|---|---|---|---|---|---|---|---|---|---|']
     for c in cells:
         tracked, glob = c['stage_median_ms']['tracked'], c['stage_median_ms']['global']
         dropped = sum(v for k, v in c['outcomes'].items() if k.startswith('dropped'))
         worst = ('' if c['max_rotation_deg'] is None else
                  f"{c['max_rotation_deg']:.2f}° / {100 * c['max_translation_m']:.1f} cm")
         stages = ' / '.join(_text(tracked[s]) for s in STAGES)
+        node = (f"{_text(c['node_latency_p50_ms'])} / {_text(c['node_latency_p95_ms'])}"
+                + (f" ({_text(c['node_tracked_latency_p50_ms'])} / "
+                   f"{_text(c['node_tracked_latency_p95_ms'])})"
+                   if c.get('node_tracked_latency_p95_ms') is not None else ''))
         lines.append(
-            f"| {c['voxel_size']:g} m | {'on' if c['tracking'] else 'off'} | {c['order']} | "
+            f"| {c.get('revision', '')} | {c['voxel_size']:g} m | "
+            f"{'on' if c['tracking'] else 'off'} | {c['order']} | "
             f"{c['sent']} | {c['published']} | {_text(c['latency_p50_ms'])} / "
-            f"{_text(c['latency_p95_ms'])} | {c['tracked']} / {c['global']} | {dropped} | "
+            f"{_text(c['latency_p95_ms'])} | {node} | {c['tracked']} / {c['global']} | "
+            f'{dropped} | '
             f"{worst} | {c['within_1deg_20cm']}; {c['beyond_5deg_60cm']} | {stages}; "
             f"{_text(c['tracked_overhead_ms'])} | "
             f"{_text(glob['total'])} |")
@@ -349,6 +385,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="a key of the node's config_file (repeatable), e.g. --set "
                         'pairing.backlog=1 (a queue of one pair: the stream restarts from '
                         'the newest scan after a global registration)')
+    parser.add_argument('--repos', nargs='+', type=Path, default=[REPO],
+                        help='checkouts to run the node from, alternated (default: this one)')
+    parser.add_argument('--rounds', type=int, default=1,
+                        help='times each checkout runs each cell, alternated')
     parser.add_argument('--output', default=None,
                         help='default: out/bench/node_tracking.json')
     args = parser.parse_args(argv)
@@ -376,10 +416,13 @@ def main(argv: list[str] | None = None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     cells = []
     try:
-        for voxel in args.voxels:
-            for tracking in args.tracking:
-                cells += run_node(client, msgs, truth, voxel, tracking == 'on', args.orders,
-                                  args.duration, args.rate, out.parent, queue_depth, keys)
+        for _ in range(args.rounds):
+            for voxel in args.voxels:
+                for tracking in args.tracking:
+                    for repo in args.repos:
+                        cells += run_node(client, msgs, truth, voxel, tracking == 'on',
+                                          args.orders, args.duration, args.rate, out.parent,
+                                          queue_depth, keys, repo.resolve())
     finally:
         executor.shutdown(timeout_sec=2.0)
         client.node.destroy_node()

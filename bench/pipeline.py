@@ -1,5 +1,5 @@
 r"""
-Pipeline benchmark on the bundled bags (issue 3).
+Pipeline benchmark on the bundled bags.
 
 Run by hand::
 
@@ -8,7 +8,7 @@ Run by hand::
 
 For every bag in ``<shared data>/bags`` (or ``--bags-dir``) and every source cloud with
 ground truth, paired with its target exactly as ``cgags-replay`` pairs them (the node's
-:class:`~cgags_ros.pipeline.pairing.Pairer`), it runs:
+:class:`~cgags_ros.localizer.pairing.Pairer`), it runs:
 
 ``cgags``
     :func:`cgags_ros.pipeline.register_clouds` with default parameters, or those changed by
@@ -26,7 +26,7 @@ ground truth, paired with its target exactly as ``cgags-replay`` pairs them (the
     no refinement). Its config refuses ``voxel_size < 5e-3`` ("Too small voxel size"),
     so object-scale data fails as is.
 ``cgags_4dof``
-    The same with ``core.motion_model='4dof'`` (yaw about +z + translation; issue 14).
+    The same with ``core.motion_model='4dof'`` (yaw about +z + translation).
 ``kiss_matcher_quatro``
     ``KISSMatcherConfig(voxel_size=v, use_quatro=True)`` (its 4-DoF mode), otherwise as
     ``kiss_matcher``.
@@ -63,7 +63,7 @@ from cgags_ros.geometry import rotation_error_deg, translation_error, voxel_size
 from cgags_ros.io.bag import read_messages
 from cgags_ros.io.pointcloud2 import pointcloud2_to_xyz, pose_to_transform
 from cgags_ros.io.shared_data import shared_data_dir
-from cgags_ros.pipeline.pairing import Pairer
+from cgags_ros.localizer.pairing import Pairer
 import numpy as np
 
 KISS_DEFAULT_VOXEL = 0.3

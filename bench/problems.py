@@ -3,7 +3,7 @@ The core benchmark's problems: one seed, ground truth and correspondence set a c
 
 A problem depends only on (seed, outlier ratio, N, trial), never on which cells or solvers
 a run has, so ``bench.core``, ``bench.ab_core`` (the core against an earlier revision's)
-and ``bench.chance_sample`` see the same problems for the same cell.
+and ``bench.studies.chance_sample`` see the same problems for the same cell.
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ fragment's normals facing its sensor (a PLY map file, prepared by ``load_map`` a
 does), turned and shifted at random (any-angle start). The odometry is the fragment poses'
 steps with seeded drift: each step turned by ``--drift-deg`` about a random axis and shifted
 by ``--drift-m`` plus ``--drift-fraction`` of the step's length in a random direction. The
-scans go one by one into a :class:`~cgags_ros.pipeline.relocalizer.Relocalizer`
+scans go one by one into a :class:`~cgags_ros.relocalization.relocalizer.Relocalizer`
 (``max_scans`` 3); "n scans" is the relocalizer allowed up to n scans, stopping at the
 first confirmed answer. Right: RE < 10 deg and TE < 0.3 m for the last scan used. Counted:
 sequences whose last scan (of the n) overlaps the map by at least 30 % (share of its points
@@ -42,9 +42,9 @@ from cgags_ros.geometry import translation_error
 from cgags_ros.io.clouds import write_cloud
 from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline.map import load_map
-from cgags_ros.pipeline.relocalizer import Check, Hypothesis, judge, Relocalizer
-from cgags_ros.pipeline.relocalizer import SequenceConfig
 from cgags_ros.refusal import Refusal, RefusalCode, summary
+from cgags_ros.relocalization.hypotheses import Check, Hypothesis, judge, SequenceConfig
+from cgags_ros.relocalization.relocalizer import Relocalizer
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation

@@ -1,5 +1,5 @@
 r"""
-Scaling benchmark: time and memory of one registration against points per cloud (issue 11).
+Scaling benchmark: time and memory of one registration against points per cloud.
 
 Run by hand::
 

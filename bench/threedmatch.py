@@ -41,7 +41,7 @@ Outputs: ``--output`` + ``.md`` / ``.json`` / ``.png`` (tables, summary, plot; d
 gates and candidate search saw (inliers, chance level, hypotheses, fitness and overlap,
 candidates with their inliers, fitness both ways and their geometry relative to the best
 and to the ground truth): gate changes can be studied on them without re-running
-(``python -m bench.gate_study``).
+(``python -m bench.studies.gate_study``).
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ Run from the repository root::
         [--global-scans 8] [--set KEY=VALUE] [--output out/bench/tracking_offline.json]
 
 The 16 real KITTI scans (``<shared data>/kitti/seq00_16scans``) go scan-to-map against scan
-0 as the map through :class:`cgags_ros.pipeline.Tracker` (default configuration, stamps
+0 as the map through :class:`cgags_ros.tracking.Tracker` (default configuration, stamps
 10 Hz apart), numpy in (decoding excluded), in two orders: ``pingpong`` (0..15, 14..0, 1..:
 smooth motion, the velocity reverses at the ends) and ``looped`` (0..15, 0..15, ...: a 12 m
 jump every 16 scans). Per voxel size and order: the share of scans tracked, the tracker's
@@ -38,8 +38,9 @@ from cgags_ros.config.tracking import TrackingConfig
 from cgags_ros.frontend.features import downsample, estimate_normals
 from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.io.shared_data import shared_data_dir
-from cgags_ros.pipeline import cached_features, register_clouds, Tracker, warm_up
-from cgags_ros.pipeline.tracking import target_key
+from cgags_ros.pipeline import cached_features, register_clouds, warm_up
+from cgags_ros.tracking import Tracker
+from cgags_ros.tracking.tracker import target_key
 import numpy as np
 import open3d as o3d
 

@@ -3,7 +3,7 @@ Fragments whose 3DMatch ground-truth pose the trusted estimates contradict; the 
 
 A pair's truth is ``inv(P_i) P_j`` of two fragment poses (:mod:`bench.datasets.threedmatch`):
 one pose off makes every pair holding that fragment judged against a wrong truth. Each
-estimate the pipeline trusted (``valid``, both lists of ``bench/loso_trust.py measure``'s
+estimate the pipeline trusted (``valid``, both lists of ``bench/studies/loso_trust.py measure``'s
 records), ``T_ij`` (fragment j into fragment i), implies the world pose ``P_i T_ij`` of j and
 ``P_j inv(T_ij)`` of i. Per fragment, the implied pose with the most others within AGREE_DEG
 and AGREE_M (the medoid) and those near it form the largest agreeing group, whose consensus

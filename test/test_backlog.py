@@ -3,10 +3,8 @@
 from cgags_ros.config.node import NodeConfig, PairingConfig
 from cgags_ros.config.pipeline import PipelineConfig
 from cgags_ros.config.tracking import TrackingConfig
-from cgags_ros.pipeline.backlog import Backlog, queue_depth, SKIPPED
-from cgags_ros.pipeline.pairing import is_source_drop, Pairer
-from cgags_ros.pipeline.result import PipelineResult
-import numpy as np
+from cgags_ros.localizer.backlog import Backlog, queue_depth, SKIPPED
+from cgags_ros.localizer.pairing import is_source_drop, Pairer
 
 MS = 10**6
 
@@ -30,9 +28,9 @@ def test_a_tracked_stream_keeps_the_backlog_other_streams_their_queue():
 def test_every_other_scan_is_skipped_while_lagging_after_a_tracked_scan():
     backlog = Backlog()
     lagging = [100 * MS, 200 * MS, 300 * MS, 400 * MS, 500 * MS, 700 * MS]  # 0.6 s behind
-    backlog.saw(PipelineResult(path='global', transform=np.eye(4), refusal=None), 0)
+    backlog.saw(False, 0)  # a global scan
     assert backlog.to_skip(lagging, 0.5, 0.5, called=False) == 0  # no velocity yet
-    backlog.saw(PipelineResult(path='tracked', transform=np.eye(4), refusal=None), 0)
+    backlog.saw(True, 0)  # a tracked, valid scan
     assert backlog.tracked
     assert backlog.to_skip(lagging, 0.5, 0.5, called=False) == 1
     assert backlog.to_skip(lagging[:-1], 0.5, 0.5, called=False) == 0  # 0.4 s: in order
@@ -42,7 +40,7 @@ def test_every_other_scan_is_skipped_while_lagging_after_a_tracked_scan():
     assert backlog.to_skip(lagging, 0.5, 0.15, called=False) == 0
     # The oldest already beyond it would go global anyway: the newest is taken.
     assert backlog.to_skip(lagging, 0.5, 0.05, called=False) == 5
-    backlog.saw(PipelineResult(path='tracked', transform=np.eye(4)), 0)  # refused
+    backlog.saw(False, 0)  # a tracked scan refused
     assert backlog.to_skip(lagging, 0.5, 0.5, called=False) == 0
 
 

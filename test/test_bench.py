@@ -4,7 +4,8 @@ bench/ as a package: each benchmark runs as ``python -m bench.<name>`` from the 
 Checked from the sources with ast: no module edits sys.path, imports cgags_ros.tools or a
 private name of cgags_ros, and the bench modules import one another without a cycle. The
 benchmark data readers live in bench/datasets/, not in the installed package, and every
-``python -m bench.<name>`` and ``bench/<file>.py`` that README and docs/ name exists.
+``python -m bench.<name>`` and ``bench/<file>.py`` that README and docs/ name exists. The
+one-off studies live in bench/studies/: no test and no other bench module imports one.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ REPO = BENCH.parent
 MODULES = ['bench', *sorted(info.name for info in pkgutil.walk_packages([str(BENCH)], 'bench.'))]
 # The benchmark-only data readers, moved out of the package into bench/datasets/.
 BENCH_ONLY = ('threedmatch.py', 'rigs.py', 'gt_pairs.py', 'synthetic.py')
+STUDIES = 'bench.studies'
 
 
 def _source(name: str) -> Path:
@@ -66,9 +68,14 @@ def _bench_edges(name: str) -> set[str]:
     return edges
 
 
+def _is_study(name: str) -> bool:
+    return name == STUDIES or name.startswith(f'{STUDIES}.')
+
+
 def test_every_module_is_found():
     assert {'bench.common', 'bench.core', 'bench.ab_core', 'bench.pipeline',
-            'bench.threedmatch', 'bench.datasets.threedmatch'} <= set(MODULES)
+            'bench.threedmatch', 'bench.datasets.threedmatch', 'bench.studies.fit',
+            'bench.studies.trust_shift'} <= set(MODULES)
     assert all(_source(name).is_file() for name in MODULES)
 
 
@@ -142,3 +149,36 @@ def test_commands_and_paths_of_readme_and_docs_exist():
         for file in re.findall(r'\bbench/[\w/]+\.py\b', text):
             assert (REPO / file).is_file(), f'{path.name} names {file}, which does not exist'
     assert named, 'no `python -m bench.<name>` command found in README.md or docs/'
+
+
+def test_the_studies_package_lists_every_study():
+    listed = importlib.import_module(STUDIES).__doc__
+    for name in MODULES:
+        if _is_study(name) and name != STUDIES:
+            assert f':mod:`.{name.rpartition(".")[2]}`' in listed, f'{STUDIES} omits {name}'
+
+
+def test_no_other_bench_module_imports_a_study():
+    """The tools stay whole without the lab notebook; a study may import a tool."""
+    for name in MODULES:
+        if not _is_study(name):
+            assert not [m for m in _bench_edges(name) if _is_study(m)], f'{name} imports a study'
+
+
+def test_no_test_imports_a_study():
+    """A test checks what ships, in the package; a study's code is not what ships."""
+    for path in sorted((REPO / 'test').rglob('*.py')):
+        for node in ast.walk(ast.parse(path.read_text(encoding='utf-8'))):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and not node.level:
+                names = [node.module or '', *(f'{node.module}.{a.name}' for a in node.names)]
+            elif (isinstance(node, ast.Call) and node.args
+                    and isinstance(node.args[0], ast.Constant)
+                    and isinstance(node.args[0].value, str)
+                    and getattr(node.func, 'attr', getattr(node.func, 'id', None))
+                    in ('import_module', '__import__')):
+                names = [node.args[0].value]
+            assert not [n for n in names if _is_study(n)], \
+                f'{path.relative_to(REPO)}:{node.lineno} imports a study'

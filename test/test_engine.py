@@ -18,14 +18,17 @@ import time
 
 from cgags_ros.config.node import configs_from_parameters
 from cgags_ros.config.pipeline import PipelineConfig
+from cgags_ros.config.tracking import TrackingConfig
 from cgags_ros.geometry import make_transform, quaternion_to_matrix
 from cgags_ros.io.clouds import write_cloud
 from cgags_ros.localizer import startup
 from cgags_ros.localizer.engine import RegistrationEngine
 from cgags_ros.localizer.interface import Cloud, StartFailed
-from cgags_ros.pipeline.isolated import IsolatedRegistration, running
 from cgags_ros.pipeline.result import PipelineResult
 from cgags_ros.refusal import Refusal, RefusalCode
+from cgags_ros.runtime.procfs import running
+from cgags_ros.runtime.session import ChildSession
+from cgags_ros.runtime.supervisor import Supervisor
 import numpy as np
 import pytest
 from waiting import bad_map, wait_for
@@ -80,11 +83,23 @@ def node_config(**keys):
     return configs_from_parameters(keys)[1]
 
 
+# Pairs, not a tracked stream: these check the plumbing on a stand-in registration.
+PIPE = PipelineConfig(tracking=TrackingConfig(enabled=False))
+
+
 def make(**node):
     out = Recorder()
-    engine = RegistrationEngine(PipelineConfig(), node_config(**node), out, fake_register)
+    engine = RegistrationEngine(PIPE, node_config(**node), out, fake_register)
     engine.start()
     return engine, out
+
+
+def ask(engine, timeout=30.0):
+    """Request a relocalization; return its answer (success, message)."""
+    answers, done = [], threading.Event()
+    engine.relocalize(lambda *answer: (answers.append(answer), done.set()))
+    assert done.wait(timeout), 'no answer'
+    return answers[0]
 
 
 def send(engine, role, stamp_s, n=50, frame='lidar'):
@@ -116,7 +131,7 @@ def test_inactive_sources_are_counted_then_pairs_publish_after_activate():
         send(engine, 'target', 1, frame='map')
         send(engine, 'source', 2)
         stats = engine.snapshot()
-        assert stats['rejected'] == {'source_inactive': 1} and not out.estimates
+        assert stats['rejected'] == {'inactive': 1} and not out.estimates
         assert balanced(engine)['targets']['pending'] == 1  # the target is still held
         engine.activate()
         send(engine, 'source', 3)
@@ -133,7 +148,7 @@ def test_inactive_sources_are_counted_then_pairs_publish_after_activate():
                                   'pending': 0, 'lost_upstream': 0}
         engine.deactivate()
         send(engine, 'source', 4)
-        assert engine.snapshot()['rejected']['source_inactive'] == 2
+        assert engine.snapshot()['rejected']['inactive'] == 2
         assert len(out.estimates) == 1
         assert engine.statistics()['active'] is False
     finally:
@@ -147,13 +162,13 @@ def test_invalid_results_are_rejected_unless_publish_invalid():
     try:
         send(engine, 'target', 1, frame='map')
         send(engine, 'source', 2, n=7)
-        wait_for(lambda: engine.snapshot()['rejected'].get('invalid_result'), 10, 'rejection')
+        wait_for(lambda: engine.snapshot()['rejected'].get('few_inliers'), 10, 'rejection')
         assert not out.estimates
         assert any('invalid registration: fake: 7' in m for _, m in out.logs)
         last = engine.snapshot()['last']  # /diagnostics: the code beside the message
         assert (last['valid'], last['refusal_code'], last['reason']) == (
             False, 'few_inliers', 'fake: 7')
-        engine.set_configs(PipelineConfig(), node_config(**{
+        engine.set_configs(PIPE, node_config(**{
             'output.publish_invalid': True, 'output.publish_aligned_cloud': True,
             'output.broadcast_tf': True}))
         send(engine, 'source', 3, n=7)
@@ -174,7 +189,8 @@ def test_every_accounted_source_has_one_result_saying_what_became_of_it():
         engine.activate()
         send(engine, 'source', 2)  # no target yet: waits, then is superseded by 3
         send(engine, 'source', 3)
-        engine.receive('source', 4 * 10**9, 'lidar', None, 'source_malformed', 'bad cloud')
+        engine.receive('source', 4 * 10**9, 'lidar', None,
+                       Refusal(RefusalCode.BAD_INPUT, 'bad cloud'))
         send(engine, 'target', 5, frame='map')  # pairs 3
         wait_for(lambda: out.estimates, 10, 'the pose of 3')
         send(engine, 'source', 6, n=7)  # registered, invalid
@@ -184,9 +200,8 @@ def test_every_accounted_source_has_one_result_saying_what_became_of_it():
         engine.stop()
     by_stamp = {r['source_stamp_ns'] // 10**9: r for r in out.results}
     assert {k: (r['outcome'], r['cause']) for k, r in by_stamp.items()} == {
-        1: ('rejected', 'source_inactive'), 2: ('dropped', 'source_superseded_before_target'),
-        3: ('published', ''), 4: ('rejected', 'source_malformed'),
-        6: ('rejected', 'invalid_result')}
+        1: ('rejected', 'inactive'), 2: ('dropped', 'source_superseded_before_target'),
+        3: ('published', ''), 4: ('rejected', 'bad_input'), 6: ('rejected', 'few_inliers')}
     published, invalid = by_stamp[3], by_stamp[6]
     np.testing.assert_allclose(published['transform'], T_TRUE)  # register_clouds' summary
     assert published['valid'] is True and published['num_inliers'] == 40
@@ -240,7 +255,7 @@ def test_initial_pose_guards_extrinsic_and_max_auto():
 
 
 def test_one_quality_refusal_a_pair_serves_the_guard_and_the_answer(monkeypatch):
-    from cgags_ros.localizer import engine as engine_module
+    from cgags_ros.localizer import localization as engine_module
 
     decide, verdicts = engine_module.quality_refusal, []
 
@@ -257,7 +272,7 @@ def test_one_quality_refusal_a_pair_serves_the_guard_and_the_answer(monkeypatch)
         send(engine, 'target', 1, frame='map')
         send(engine, 'source', 2)
         wait_for(lambda: engine.snapshot()['pairing']['pending'], 5, 'a held pair')
-        success, answer = engine.relocalize()
+        success, answer = ask(engine)
         assert not success and answer.startswith('few_inliers: not localized: 40 inliers < '
                                                  'relocalization.min_inliers 41; '), answer
         assert [v.code for v in verdicts] == [RefusalCode.FEW_INLIERS]  # once, for one pair
@@ -271,7 +286,7 @@ def test_one_quality_refusal_a_pair_serves_the_guard_and_the_answer(monkeypatch)
 def test_on_demand_registers_only_when_requested_and_answers():
     engine, out = make(mode='on_demand', **{'relocalization.max_scan_age': 30.0,
                                             'relocalization.timeout': 20.0})
-    assert engine.relocalize() == (False, 'inactive: not localized: the node is not active')
+    assert ask(engine) == (False, 'inactive: not localized: the node is not active')
     engine.activate()
     try:
         send(engine, 'target', 1, frame='map')
@@ -279,14 +294,13 @@ def test_on_demand_registers_only_when_requested_and_answers():
         assert wait_for(lambda: engine.snapshot()['pairing']['pending'], 5, 'a held pair')
         assert not out.estimates  # nothing registered before a request
         answers = []
-        caller = threading.Thread(target=lambda: answers.append(engine.relocalize()))
+        caller = threading.Thread(target=lambda: answers.append(ask(engine)))
         caller.start()
         caller.join(20)
         assert answers and answers[0][0], answers
         assert answers[0][1].startswith('localized: x 1.000 y 2.000 z 0.500 m, yaw 30.0 deg')
         later = []
-        assert engine.relocalize(wait=False, on_answer=lambda *a: later.append(a)) == (
-            True, 'requested')
+        engine.relocalize(lambda *a: later.append(a))
         send(engine, 'source', 3)
         wait_for(lambda: later, 10, 'the answer of a request not waited for')
         assert later[0][0]
@@ -295,7 +309,7 @@ def test_on_demand_registers_only_when_requested_and_answers():
         assert stats['relocalize.failed.inactive'] == 1
         # a request pending when the node is deactivated fails at once, not at its deadline
         pending = []
-        engine.relocalize(wait=False, on_answer=lambda *a: pending.append(a))
+        engine.relocalize(lambda *a: pending.append(a))
         engine.deactivate()
         assert pending == [(False, 'inactive: not localized: the node was deactivated')]
         assert engine.statistics()['relocalize.failed.inactive'] == 2
@@ -339,7 +353,7 @@ def test_a_map_without_normals_loads_with_a_warning_and_one_with_normals_without
     for name, signed in (('bare.ply', 'origin'), ('signed.ply', 'file normals')):
         cfg = node_config(**{'map.file': str(tmp_path / name)})
         logs = Recorder()
-        target = MapTarget(cfg).load(None, config, cfg, logs.log)
+        target = MapTarget(cfg).load(ChildSession(), config, cfg, logs.log)
         assert target is not None
         warned = [m for level, m in logs.logs if level == 'warning']
         assert any(f'normals signed by {signed}' in m for _, m in logs.logs)
@@ -352,12 +366,12 @@ def processes(monkeypatch):
     """Record every registration process the engine starts (its pid tells if it still runs)."""
     started = []
 
-    class Recorded(IsolatedRegistration):
+    class Recorded(Supervisor):
         def __init__(self, *args, **kwargs):
             super().__init__(*args, **kwargs)
             started.append(self)
 
-    monkeypatch.setattr(startup, 'IsolatedRegistration', Recorded)
+    monkeypatch.setattr(startup, 'Supervisor', Recorded)
     return started
 
 

@@ -84,7 +84,7 @@ def test_three_synchronized_frames_give_the_reference_extrinsic(rig):
             if k == 1:  # a deactivate/activate cycle keeps the frames taken so far
                 engine.deactivate()
                 send_frame(engine, 1, f.parent, f.child)
-                assert engine.snapshot()['rejected'] == {'source_inactive': 1}
+                assert engine.snapshot()['rejected'] == {'inactive': 1}
                 engine.activate()
             send_frame(engine, k + 2, f.parent, f.child)
             wait_for(taken(engine, k + 1), 300, f'frame {k} taken')
@@ -107,7 +107,7 @@ def test_three_synchronized_frames_give_the_reference_extrinsic(rig):
         # A pair after the end is counted, not used; nothing more is published.
         f = frames[0]
         send_frame(engine, 9, f.parent, f.child)
-        wait_for(lambda: engine.snapshot()['rejected'].get('calibration_done') == 1, 30,
+        wait_for(lambda: engine.snapshot()['rejected'].get('ignored') == 1, 30,
                  'the extra pair counted')
         assert len(out.calibrations) == 1
         balanced(engine)

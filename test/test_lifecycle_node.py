@@ -14,7 +14,7 @@ from pathlib import Path
 from cgags_ros.config.pipeline import load_yaml
 from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.io.pointcloud2 import pose_to_transform
-from cgags_ros.pipeline.isolated import running
+from cgags_ros.runtime.procfs import running
 import pytest
 
 rclpy = pytest.importorskip('rclpy')
@@ -126,7 +126,7 @@ def test_transitions_through_lifecycle_services(wire, scans):
     """
     Drive configure, activate, deactivate, activate, deactivate, cleanup over DDS.
 
-    Inactive: sources are counted (rejected.source_inactive), no pose is published.
+    Inactive: sources are counted (rejected.inactive), no pose is published.
     Active: poses match ground truth. After cleanup the registration process is gone.
     """
     context, executor, io = wire
@@ -150,7 +150,7 @@ def test_transitions_through_lifecycle_services(wire, scans):
         io.source_pub.publish(msg)
         values = wait_for(lambda: io.values.get('sources.received') == '1' and io.values, 30,
                           'the inactive source counted')
-        assert values['rejected.source_inactive'] == '1' and values['active'] == 'False'
+        assert values['rejected.inactive'] == '1' and values['active'] == 'False'
         assert values['targets.pending'] == '1' and values['accounting.ok'] == 'True'
         assert io.pose_at(stamp) is None
 
@@ -166,7 +166,7 @@ def test_transitions_through_lifecycle_services(wire, scans):
             wait_for(lambda: io.values.get('sources.received') == str(k + 2), 30,
                      'the source while inactive counted')
             assert io.pose_at(stamp) is None
-        values = wait_for(lambda: io.values.get('rejected.source_inactive') == '3'
+        values = wait_for(lambda: io.values.get('rejected.inactive') == '3'
                           and io.values, 10, 'three inactive sources')
         assert values['sources.published'] == '2' and values['accounting.ok'] == 'True'
         assert len(io.poses) == 2

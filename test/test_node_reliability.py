@@ -22,8 +22,8 @@ from cgags_ros.config import fields
 from cgags_ros.config.node import ros_parameter_descriptions, ros_value
 from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.io.pointcloud2 import pose_to_transform
-from cgags_ros.pipeline.isolated import running
 from cgags_ros.pipeline.result import PipelineResult
+from cgags_ros.runtime.procfs import running
 import numpy as np
 import pytest
 
@@ -69,6 +69,8 @@ def lidar(data_dir):
 
 
 def start(wire, register_fn=None, **params):
+    if register_fn is not None:  # pairs, not a tracked stream, for a stand-in registration
+        params.setdefault('tracking.enabled', False)
     context, executor, io = wire
     node = RegisterNode(register_fn=register_fn, context=context,
                         parameter_overrides=ros_overrides(**params))
@@ -217,7 +219,7 @@ def test_malformed_floods_on_both_topics_are_counted_then_a_good_pair_publishes(
         balanced(values)
         assert values['sources.received'] == values['targets.received'] == '201'
         assert values['sources.rejected'] == values['targets.rejected'] == '200'
-        assert int(values['rejected.source_malformed']) + int(values['rejected.source_empty'])\
+        assert int(values['rejected.bad_input']) + int(values['rejected.too_few_points'])\
             == 200
     finally:
         io.node.destroy_publisher(burst)

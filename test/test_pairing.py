@@ -1,4 +1,4 @@
-"""cgags_ros.pipeline.pairing: both modes, waiting sources, bounded queue, drop counters."""
+"""cgags_ros.localizer.pairing: both modes, waiting sources, bounded queue, drop counters."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import collections
 import threading
 
 from cgags_ros.io.bag import read_messages
-from cgags_ros.pipeline.pairing import is_source_drop, Pairer
+from cgags_ros.localizer.pairing import is_source_drop, Pairer
 import numpy as np
 import pytest
 

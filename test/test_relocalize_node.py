@@ -86,6 +86,8 @@ def wire():
 
 
 def start(wire, register_fn=None, **params):
+    if register_fn is not None:  # pairs, not a tracked stream, for a stand-in registration
+        params.setdefault('tracking.enabled', False)
     context, executor, io = wire
     io.values, io.level = {}, None
     io.initial.clear()

@@ -18,8 +18,8 @@ from cgags_ros.geometry import make_transform, rotation_error_deg
 from cgags_ros.geometry import translation_error
 from cgags_ros.io.clouds import write_cloud
 from cgags_ros.pipeline.map import load_map
-from cgags_ros.pipeline.relocalizer import Relocalizer, SequenceConfig
 from cgags_ros.refusal import RefusalCode as Code
+from cgags_ros.relocalization.relocalizer import Relocalizer, SequenceConfig
 from cgags_ros.tools import relocalize_cli
 from cgags_ros.tools.cli import EXIT_ERROR
 import numpy as np

@@ -165,7 +165,7 @@ def test_faulty_bag_live(bags, out, ros_env):
     assert len(report.broken) == 4
     assert report.recall == 1.0
     assert not any('stopped waiting' in n for n in report.notes)  # the node accounted for all
-    assert any('source_malformed' in n for n in report.notes)
+    assert any('rejected.bad_input' in n for n in report.notes)
     # the node's code for each refused pair (no_pose: no diagnostics sample caught that pair)
     for row, code in zip(report.rows, FAULTY_CODES, strict=True):
         assert _code(row.refusal) in ({code, 'no_pose'} if code else {None}), row

@@ -6,7 +6,8 @@ from cgags_ros.config import GatesConfig, PipelineConfig
 from cgags_ros.frontend.matching import Correspondences
 from cgags_ros.frontend.refine import evaluate_alignment
 from cgags_ros.geometry import rotation_error_deg, translation_error
-from cgags_ros.pipeline import cached_features
+from cgags_ros.pipeline import cached_features, rivals
+from cgags_ros.pipeline.gates import measured_free_space
 from cgags_ros.pipeline.result import Candidate, PipelineResult
 from cgags_ros.pipeline.rivals import mark_ambiguous, structured_rival
 import numpy as np
@@ -95,30 +96,53 @@ def test_a_slide_along_a_wall_is_refused_and_a_right_pose_kept(redkitchen_pair):
     assert kept.valid and translation_error(kept.transform, gt) < 0.3
 
 
-def test_the_study_judges_the_rivals_as_the_pipeline_does():
-    """bench.loso_trust measures the pipeline's rivals; the study's verdict is the pipeline's."""
-    from bench.loso_trust import PROMISING, structured_rivals
-    from bench.loso_trust_study import rival_refuses, RIVAL_GRID
-    from cgags_ros.pipeline import rivals
+def test_the_verdict_on_measured_rivals_is_the_pipelines():
+    """
+    Each start measured and judged by the module's tests refuses as structured_rival does.
 
+    A study judging recorded rivals (their start's fit, where they settle, their fitness and
+    violation) calls these tests, so it judges them as the pipeline does.
+    """
     cfg = PipelineConfig(voxel_size=VOXEL)
-    shipped = (rivals.MAX_VIOLATION, rivals.OVERLAP_RATIO, rivals.APART, rivals.PROMISING)
+    distance = cfg.refine.max_correspondence_distance_factor * VOXEL
     verdicts = []
     for points in (_room(), _corner()):
         fs, ft, corr, result = _estimate(points, cfg)
-        measured = structured_rivals(fs, ft, np.eye(4), cfg, result.inlier_threshold,
-                                     np.eye(4), result.fitness)
-        assert [x['name'] for x in measured] == [
+        starts = rivals.rival_starts(fs, ft, np.eye(4), distance, VOXEL)
+        assert [name for name, _ in starts] == [
             'flip0', 'flip1', 'flip2', 'slide1', 'slide-1',
             'turn0+', 'turn0-', 'turn1+', 'turn1-', 'turn2+', 'turn2-']
-        refused = rival_refuses({'fitness': result.fitness, 'rivals': measured}, *shipped)
+        refused = False
+        for _, start in starts:
+            first = evaluate_alignment(fs.points[::rivals.STRIDE], ft.tree, start, distance)
+            if not rivals.worth_refining(first.fitness, result.fitness):
+                continue
+            R = rivals.settle(fs, ft, start, result.inlier_threshold, cfg)
+            refused |= (rivals.settled_apart(rotation_error_deg(R, np.eye(4)),
+                                             translation_error(R, np.eye(4)), VOXEL,
+                                             cfg.candidate_min_rotation_deg)
+                        and rivals.fits_as_well(
+                            evaluate_alignment(fs.points, ft.tree, R, distance).fitness,
+                            result.fitness)
+                        and rivals.clear_of_free_space(measured_free_space(fs, ft, R, cfg)))
         assert refused == (structured_rival(fs, ft, corr, result, cfg) is not None)
         verdicts.append(refused)
-        # Measured for every share the study may choose; a start below it is not refined.
-        for x in measured:
-            assert x['refined'] == (x['start_fitness'] >= PROMISING * result.fitness)
     assert verdicts == [True, False]
-    assert PROMISING <= min(RIVAL_GRID['promising']) <= rivals.PROMISING
+
+
+def test_each_test_of_the_verdict_at_its_limit():
+    """The shipped limits by default, a study's by argument; an unmeasured violation is clear."""
+    assert rivals.worth_refining(rivals.PROMISING, 1.0)
+    assert not rivals.worth_refining(0.2, 1.0, promising=0.25)
+    assert rivals.settled_apart(10.5, 0.0, VOXEL, 10.0)
+    assert rivals.settled_apart(0.0, (rivals.APART + 0.1) * VOXEL, VOXEL, 10.0)
+    assert not rivals.settled_apart(10.0, rivals.APART * VOXEL, VOXEL, 10.0)
+    assert not rivals.settled_apart(0.0, 3 * VOXEL, VOXEL, 10.0, apart=6.0)
+    assert rivals.fits_as_well(1.01 / rivals.OVERLAP_RATIO, 1.0)
+    assert not rivals.fits_as_well(0.5, 1.0, ratio=1.5)
+    assert rivals.clear_of_free_space(rivals.MAX_VIOLATION)
+    assert not rivals.clear_of_free_space(0.2, limit=0.15)
+    assert rivals.clear_of_free_space(float('nan'))
 
 
 def test_the_rivals_judged_side_by_side_are_those_judged_in_turn():

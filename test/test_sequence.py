@@ -1,5 +1,5 @@
 """
-cgags_ros.localizer.sequence without ROS: odometry matched to scans, the node's decisions.
+cgags_ros.relocalization.sequence without ROS: odometry matched to scans, the node's decisions.
 
 The odometry track and the verdicts are checked on synthetic answers; then the engine, with
 the real pipeline in its own process and a map fused from the redkitchen fragments (as in
@@ -17,9 +17,9 @@ from cgags_ros.geometry import make_transform, quaternion_to_matrix
 from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.localizer.engine import RegistrationEngine
 from cgags_ros.localizer.interface import Cloud
-from cgags_ros.localizer.sequence import OdometryTrack, SequenceRun, TOLERANCE_S
-from cgags_ros.pipeline.sequence_step import StepAnswer
 from cgags_ros.refusal import Refusal, RefusalCode
+from cgags_ros.relocalization.odometry import OdometryTrack, TOLERANCE_S
+from cgags_ros.relocalization.sequence import SequenceRun, StepAnswer
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -87,20 +87,20 @@ def test_verdicts_answer_a_confirmed_pose_and_refuse_when_the_scans_run_out():
 
 
 def test_a_scan_without_odometry_near_its_stamp_is_judged_alone_and_starts_over():
-    run, ref = SequenceRun(), object()
-    assert run.step(ref, 5 * S, np.eye(4), 3) is None  # no odometry at all: as before
+    run = SequenceRun()
+    assert run.step(5 * S, np.eye(4)) is None  # no odometry at all: one scan at a time
     run.track.add(5 * S, turn(10, (1.0, 0.0, 0.0)))
     base = make_transform(quaternion_to_matrix(BASE_FROM_SENSOR[3:]), BASE_FROM_SENSOR[:3])
-    first = run.step(ref, 5 * S, base, 3)
-    assert first.restart and first.map_target is ref and first.max_scans == 3
-    np.testing.assert_allclose(first.odom_from_sensor, turn(10, (1.0, 0.0, 0.0)) @ base)
-    gap = run.step(ref, 7 * S, base, 3)  # two seconds from any odometry
-    assert gap.odom_from_sensor is None and not gap.restart
+    odom, restart = run.step(5 * S, base)
+    assert restart
+    np.testing.assert_allclose(odom, turn(10, (1.0, 0.0, 0.0)) @ base)
+    odom, restart = run.step(7 * S, base)  # two seconds from any odometry
+    assert odom is None and not restart
     run.judge(answer(False, 1), None, 3)
     assert run.judge(answer(True, 1), None, 3).map_from_odom is None  # no odometry: no map->odom
     run.track.add(8 * S, turn(10, (1.0, 0.0, 0.0)))
-    assert run.step(ref, 8 * S, base, 3).restart  # the scan after the gap starts over
-    assert run.step(ref, 8 * S, None, 3).odom_from_sensor is None  # unknown extrinsic
+    assert run.step(8 * S, base)[1]  # the scan after the gap starts over
+    assert run.step(8 * S, None)[0] is None  # unknown extrinsic
 
 
 # --- the engine on real fragments -------------------------------------------------------------
@@ -137,7 +137,7 @@ def relocalize(scene_data, ids, odom_sensor, **node):
     engine.activate()
     answers, steps = [], []
     try:
-        engine.relocalize(wait=False, on_answer=lambda *a: answers.append(a))
+        engine.relocalize(lambda *a: answers.append(a))
         for i, (k, O) in enumerate(zip(ids, odom_sensor)):
             stamp = (100 + i) * S
             O_base = O @ np.linalg.inv(base)

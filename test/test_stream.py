@@ -1,5 +1,5 @@
 """
-The node's stream through the Tracker (cgags_ros/pipeline/stream.py), ROS-free, real scans.
+The node's stream through the Tracker (cgags_ros/tracking), ROS-free, real scans.
 
 The engine (continuous mode, the real pipeline) is fed real KITTI scans one at a time with
 10 Hz stamps, scan-to-map against scan 0 latched as the target; ``pseudo_gt.txt`` holds
@@ -10,6 +10,8 @@ each scan's pose in scan 0's frame. What each scan became is read from ~/result'
 from __future__ import annotations
 
 import contextlib
+import os
+import signal
 import time
 
 from cgags_ros.config.node import NodeConfig, PairingConfig, WorkerConfig
@@ -18,8 +20,7 @@ from cgags_ros.config.tracking import TrackingConfig
 from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.localizer.engine import RegistrationEngine
 from cgags_ros.localizer.interface import Cloud
-from cgags_ros.pipeline.result import PipelineResult
-from cgags_ros.pipeline.stream import COUNTS_KEY, StreamCounts, tracks
+from cgags_ros.tracking.counts import StreamCounts, tracks
 import numpy as np
 import pytest
 from test_engine import Header, Recorder
@@ -89,10 +90,11 @@ def test_a_jump_falls_back_to_global_and_never_publishes_the_stale_pose(kitti):
                     3, 2, 1, 0), stats
         assert engine.snapshot()['last']['path'] == 'tracked'
         # A ~/relocalize call is answered by a global search, not by the prior.
-        engine.relocalize(wait=False)
+        engine.relocalize(lambda success, message: None)
         (record,) = stream(engine, out, kitti, [2], start_s=100.5)
         assert record['path'] == 'global' and within(record, truth[2])
-        assert COUNTS_KEY not in record['stats']  # the Tracker did not see it
+        stats = engine.statistics()  # the Tracker did not see it
+        assert (stats['tracking.tracked'], stats['tracking.global']) == (3, 2), stats
     finally:
         engine.stop()
 
@@ -184,7 +186,6 @@ def test_a_new_target_drops_the_prior(kitti):
         feed(engine, out, 'target', scans[5], 100.15)  # a new map: scan 5's frame
         (record,) = stream(engine, out, kitti, [6], start_s=100.2)
         assert record['path'] == 'global', record['stats']
-        assert record['stats'][COUNTS_KEY]['target_changes'] == 1
         expected = np.linalg.inv(truth[5]) @ truth[6]  # scan 6 in scan 5's frame
         assert within(record, expected)
         assert engine.statistics()['tracking.target_changes'] == 1
@@ -240,8 +241,48 @@ def test_stream_counts_add_up_the_scans_shares():
     assert counts.statistics() == {'tracking.global': 0, 'tracking.periodic_checks': 0,
                                    'tracking.tracked': 0, 'tracking.tracking_failures': 0}
     for share in ({'tracked': 1}, {'global': 1, 'tracking_failures': 1}, {'tracked': 1}):
-        counts.add(PipelineResult(stats={COUNTS_KEY: share}))
-    counts.add(PipelineResult())  # registered without the Tracker: counts nothing
+        counts.add(share)
+    counts.add({})  # registered without the Tracker: counts nothing
     stats = counts.statistics()
     assert (stats['tracking.tracked'], stats['tracking.global'],
             stats['tracking.tracking_failures']) == (2, 1, 1)
+
+
+@pytest.mark.subprocess
+def test_a_periodic_check_runs_beside_the_stream_which_never_waits_for_it(kitti):
+    """
+    With a registration process, the check of a tracked scan runs in the second lane.
+
+    The scan is tracked, and the stream goes on while the check's process is stopped (a check
+    made slow on purpose: SIGSTOP); once it lands, its verdict (it agrees) is applied to the
+    next scan and the motion is kept.
+    """
+    scans, truth = kitti
+    engine, out = start(registration_timeout=120.0, global_check_interval=3,
+                        global_check_period=0.0)
+    try:
+        feed(engine, out, 'target', scans[0], 99.0)
+        records = stream(engine, out, kitti, [1, 2, 3, 4])  # 4: its check is due
+        assert [r['path'] for r in records] == ['global'] + ['tracked'] * 3, records
+        lane = engine.checks  # started by the first check due, which it skips (warming up)
+        assert lane is not None and engine.statistics()['checks.skipped_busy'] == 1
+        wait_for(lambda: lane.supervisor.ready, 300, 'the checks process warmed up')
+        records = stream(engine, out, kitti, [5, 6, 7], start_s=100.4)  # 7: due, offered
+        assert lane.supervisor.busy.is_set()
+        os.kill(lane.supervisor.pid, signal.SIGSTOP)  # the check cannot end now
+        try:
+            later = stream(engine, out, kitti, [8, 9], start_s=100.7)
+            assert [r['path'] for r in records + later] == ['tracked'] * 5, records + later
+            assert lane.supervisor.busy.is_set()  # the stream never waited for it
+        finally:
+            os.kill(lane.supervisor.pid, signal.SIGCONT)
+        wait_for(lambda: not lane.supervisor.in_flight, 300, 'the check landed')
+        records = stream(engine, out, kitti, [10, 11], start_s=100.9)
+        assert [r['path'] for r in records] == ['tracked', 'tracked'], records
+        stats = engine.statistics()
+        assert stats['tracking.periodic_checks'] == 1, stats  # its verdict applied
+        assert stats.get('tracking.check_disagreements', 0) == 0  # it agreed
+        assert stats['checks.valid'] == 1 and stats['checks.pid'] > 0
+        assert all(within(r, truth[k]) for k, r in zip([10, 11], records))
+    finally:
+        engine.stop()

@@ -19,7 +19,7 @@ MODULES = sorted(HERE.glob('test_*.py'))
 
 DDS = re.compile(r'spun_context\(|rclpy\.init\(|RegisterNode\(|--live|'
                  r"'-m', 'cgags_ros\.register_node'")
-PROCESS = re.compile(r'subprocess\.(run|Popen|check_output|call)\(|IsolatedRegistration\(|'
+PROCESS = re.compile(r'subprocess\.(run|Popen|check_output|call)\(|Supervisor\(|CheckLane\(|'
                      r'multiprocessing\.|colcon\', \'build')
 DOMAIN = re.compile(r"^DOMAIN_ID = (\d+)|'ROS_DOMAIN_ID': '(\d+)'", re.M)
 

@@ -1,5 +1,5 @@
 """
-The temporal prior (cgags_ros/pipeline/tracking.py) on real KITTI scans, ROS-free.
+The temporal prior (cgags_ros/tracking/tracker.py) on real KITTI scans, ROS-free.
 
 Scan-to-map against scan 0 as the map; ``pseudo_gt.txt`` holds each scan's pose in scan
 0's frame, i.e. the source->target transform of scan k onto scan 0.
@@ -7,9 +7,9 @@ Scan-to-map against scan 0 as the map; ``pseudo_gt.txt`` holds each scan's pose 
 
 from cgags_ros.config import PipelineConfig, TrackingConfig
 from cgags_ros.geometry import apply_transform, rotation_error_deg, translation_error
-from cgags_ros.pipeline import PipelineResult, Tracker
-from cgags_ros.pipeline import tracking as tracking_module
+from cgags_ros.pipeline import PipelineResult
 from cgags_ros.refusal import Refusal, RefusalCode as Code
+from cgags_ros.tracking import Tracker
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -105,7 +105,7 @@ def test_kidnap_falls_back_and_never_returns_the_stale_pose(kitti, monkeypatch):
     def refuse(source, target, *, config=None):
         return PipelineResult().finish(0.0, Refusal(Code.NO_ESTIMATE, 'refused'))
 
-    monkeypatch.setattr(tracking_module, 'register_clouds', refuse)
+    tracker.global_registration = refuse
     result = tracker.register(kidnapped, scans[0], 3 * PERIOD, config=config)
     assert not result.valid and result.path == 'global'
     assert result.refusal.code is Code.NO_ESTIMATE  # the global search's, not the tracker's
@@ -193,3 +193,29 @@ def test_a_prepared_map_is_tracked(kitti, tmp_path):
     # a map is recognised by its file and digest: the same points sent as a cloud are new
     assert tracker.register(scans[4], scans[0], 3 * PERIOD, config=config).path == 'global'
     assert tracker.counts()['target_changes'] == 1
+
+
+def test_a_check_beside_the_stream_resets_the_motion_only_when_it_disagrees(kitti):
+    """With ``defer_checks`` the due scan is tracked; the caller's verdict decides later."""
+    scans, truth = kitti
+    tracker, config = Tracker(), _config(global_check_interval=3, global_check_period=0.0)
+
+    def register(k):
+        return tracker.register(scans[k], scans[0], k * PERIOD, config=config,
+                                defer_checks=True)
+
+    assert [register(k).path for k in (1, 2, 3, 4)] == ['global'] + ['tracked'] * 3
+    assert tracker.check_due  # scan 4's check is the caller's to run
+    tracker.apply_check(4 * PERIOD, truth[4])  # a global result that agrees
+    assert [register(k).path for k in (5, 6, 7)] == ['tracked'] * 3 and tracker.check_due
+    counts = tracker.counts()
+    assert (counts['periodic_checks'], counts['check_disagreements'], counts['global']) == (
+        1, 0, 1)
+    turned = truth[7] @ np.block([[Rotation.from_euler('z', 10, degrees=True).as_matrix(),
+                                   np.zeros((3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]])
+    tracker.apply_check(7 * PERIOD, turned)  # one that disagrees: the motion is reset
+    tracker.apply_check(7 * PERIOD, turned)  # a verdict is applied once
+    tracker.apply_check(5 * PERIOD, turned)  # and only for a scan asked to be checked
+    assert tracker.counts()['check_disagreements'] == 1
+    result = register(8)
+    assert result.path == 'global' and result.valid and _within(result, truth[8])

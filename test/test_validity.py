@@ -26,12 +26,12 @@ from cgags_ros.geometry import apply_transform, cross_spread
 from cgags_ros.localizer.interface import PairResult, StartFailed
 from cgags_ros.pipeline import register_clouds
 from cgags_ros.pipeline.gates import free_space_violation, observability
-from cgags_ros.pipeline.isolated import RegistrationTimeout, WorkerCrashed
-from cgags_ros.pipeline.prediction import difference
 from cgags_ros.pipeline.result import Candidate, PipelineResult
 from cgags_ros.pipeline.rivals import mark_ambiguous
 from cgags_ros.refusal import Refusal, RefusalCode as Code, summary
 from cgags_ros.registration import register_correspondences, RegistrationResult
+from cgags_ros.runtime.supervisor import RegistrationTimeout, WorkerCrashed
+from cgags_ros.tracking.prediction import difference
 import numpy as np
 import pytest
 from waiting import box_room
@@ -306,9 +306,9 @@ def test_the_relocalizer_refusals():
 
 def test_the_result_topic_carries_the_refusal():
     rejected = Refusal(Code.BAD_INPUT, 'source cloud rejected: no x field')
-    out = json.loads(PairResult(5, 'lidar', 'rejected', 'source_malformed', rejected.message,
-                                refusal=rejected).to_json())
+    out = json.loads(PairResult(5, 'lidar', 'rejected', refusal=rejected).to_json())
     assert out['refusal'] == {'code': 'bad_input', 'message': rejected.message}
+    assert (out['cause'], out['message']) == ('bad_input', rejected.message)  # one classification
     assert out['reason'] == rejected.message and out['valid'] is False
     refused = passing(refusal=Refusal(Code.LOW_FITNESS, 'fitness 0.1'))
     out = json.loads(PairResult(5, 'lidar', 'published', result=refused).to_json())

@@ -1,7 +1,7 @@
 """
 Configuration of the temporal prior: a stream's next scan refined from its last pose.
 
-Used by :class:`cgags_ros.pipeline.tracking.Tracker`, which a stream's caller (the node in
+Used by :class:`cgags_ros.tracking.Tracker`, which a stream's caller (the node in
 continuous mode, ``cgags-replay``) holds per source/target pair; ``register_clouds`` never
 reads it. Lengths are in voxel sizes, so that one number tunes them as every other radius.
 """

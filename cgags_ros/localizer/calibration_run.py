@@ -20,7 +20,7 @@ import numpy as np
 from .interface import Calibration, EngineOutputs
 from ..config.calibration import CalibrationConfig
 from ..config.pipeline import PipelineConfig
-from ..pipeline.pairing import Pair
+from ..localizer.pairing import Pair
 from ..refusal import Refusal, RefusalCode
 
 COLLECTING, CONVERGED, FINAL, FAILED = 'collecting', 'converged', 'max_frames', 'failed'
@@ -50,11 +50,11 @@ class CalibrationRun:
         with self._lock:
             return self.status != COLLECTING
 
-    def take(self, pair: Pair) -> tuple[str, Refusal | None]:
+    def take(self, pair: Pair) -> Refusal | None:
         """
         Add one synchronized pair as a frame; solve, and publish once done.
 
-        :returns: ('', None) or a rejection (cause, refusal) for the engine's accounting.
+        :returns: None, or why the pair is not used, for the engine's accounting.
         """
         # Imported on the first frame: it loads the pipeline (the other modes load it in
         # the engine's start()).
@@ -62,7 +62,7 @@ class CalibrationRun:
         from ..calibration.formats import as_dict
 
         if self.done:
-            return 'calibration_done', Refusal(RefusalCode.IGNORED, (
+            return Refusal(RefusalCode.IGNORED, (
                 f'calibration {self.status}: further pairs are not used (reconfigure the node '
                 'to calibrate again)'))
         child, parent = pair.source.payload, pair.target.payload
@@ -71,7 +71,7 @@ class CalibrationRun:
         if cal is None:
             cal = Calibrator(self.config, parent_frame=parent_id, child_frame=child_id)
         elif (parent_id, child_id) != (cal.parent_frame, cal.child_frame):
-            return 'calibration_frames', Refusal(RefusalCode.IGNORED, (
+            return Refusal(RefusalCode.IGNORED, (
                 f'calibration pair {parent_id} <- {child_id} is not the one being calibrated '
                 f'({cal.parent_frame} <- {cal.child_frame}): ignored'))
         cal.add(Frame(parent.xyz, child.xyz, f'{pair.target.stamp_ns}',
@@ -81,7 +81,7 @@ class CalibrationRun:
         if len(cal.evidence) >= cal.config.min_frames:
             cal.solve()
         if not cal.done:
-            return '', None
+            return None
         result = cal.result if cal.result is not None else cal.solve()
         status = CONVERGED if result.converged else FINAL
         if not result.valid or result.transform is None:
@@ -91,7 +91,7 @@ class CalibrationRun:
         frames = f'{result.num_agreeing} of {len(result.frames)} frames agree'
         if status == FAILED:
             self._outputs.log('error', f'calibration FAILED ({frames}): {result.refusal}')
-            return '', None
+            return None
         report = as_dict(result)
         self._outputs.publish_calibration(Calibration(
             np.asarray(result.transform, dtype=np.float64),
@@ -100,7 +100,7 @@ class CalibrationRun:
         self._outputs.log('info', f'calibration {status} ({frames}): {TRANSFORM_WORDS}, '
                           f'parent {result.parent_frame}, child {result.child_frame}: '
                           f"{report.get('static_transform_publisher', '')}")
-        return '', None
+        return None
 
     def statistics(self) -> dict[str, Any]:
         """Return the ``calibration.*`` keys of /diagnostics."""

@@ -1,22 +1,24 @@
 """
-What register_node does, without ROS: pairing, the registration process, the accounting.
+What register_node does, without ROS: pairs in, one job a pair, what to publish out.
 
-ROS-free: :class:`RegistrationEngine` owns the pairing of source and target clouds, the
-supervised registration process (:mod:`cgags_ros.pipeline.isolated`), the accounting
-(:mod:`.health`), the map of ``map.file``, the relocalization requests (:mod:`.relocalize`)
-and the initial-pose guards (:mod:`.initial_pose`); in ``mode: calibrate`` the pairs are
-calibration frames (:mod:`.calibration_run`); in continuous mode each scan is tracked from
-the pair's last pose where registration runs (:mod:`cgags_ros.pipeline.stream`, the counts
-``tracking.*``). The node decodes messages into :class:`Cloud`
-for :meth:`~RegistrationEngine.receive` and implements :class:`EngineOutputs`, through
-which the engine publishes, logs and asks for TF; it never reaches into the node.
+ROS-free. :class:`RegistrationEngine` owns the accounting (:mod:`.accounting`: pairing,
+upstream losses, the backlog, the counts, under one lock), the registration process
+(:class:`~cgags_ros.runtime.supervisor.Supervisor`), the lane of a tracked stream's
+periodic checks (:class:`~cgags_ros.runtime.checks.CheckLane`), the map of ``map.file``
+and what a pose means for localization (:mod:`.localization`); in ``mode: calibrate`` the
+pairs are calibration frames (:mod:`.calibration_run`). The node decodes messages into
+:class:`Cloud` for :meth:`~RegistrationEngine.receive` and implements
+:class:`EngineOutputs`, through which the engine publishes, logs and asks for TF; it never
+reaches into the node.
 
-Threading: :meth:`~RegistrationEngine.receive` only pairs (any thread); registration runs
-on the engine's worker thread (in a child process unless ``worker.registration_timeout`` is 0),
-so a slow registration never blocks reception (the pairer's bounded queue drops the
-oldest pair). While inactive (:meth:`~RegistrationEngine.deactivate`, a lifecycle node's
-inactive state) sources are counted as rejected (``source_inactive``) and nothing is
-published; targets are still held, so a latched map survives a deactivation.
+One worker thread takes each pair, chooses its job once (:meth:`~RegistrationEngine._job`:
+a scan of a relocalization over several scans, a tracked stream's scan, or a pair), runs it
+in the registration process (in this process when ``worker.registration_timeout`` is 0)
+and publishes what its typed answer says. Configuration alone decides the kind: continuous
+mode with ``tracking.enabled`` is a stream. Reception never waits for it: the accounting's
+bounded queue drops the oldest pair. While inactive (a lifecycle node's inactive state)
+sources are counted as rejected (``inactive``) and nothing is published; targets are still
+held, so a latched map survives a deactivation.
 """
 
 from __future__ import annotations
@@ -29,36 +31,37 @@ from typing import Any
 
 import numpy as np
 
+from . import backlog
+from .accounting import Accounting, LOG_REPEAT_S, lost_upstream_message
 from .calibration_run import CalibrationConfig, CalibrationRun
-from .health import LOG_REPEAT_S, lost_upstream_message, NodeHealth
-from .initial_pose import extrinsic, ExtrinsicLookup, InitialPoseGuard
-from .interface import BasePose, Cloud, EngineOutputs, Estimate, PairResult
+from .interface import Cloud, EngineOutputs, Estimate, PairResult
+from .localization import Localization
 from .map_target import MapTarget
-from .relocalize import Answered, RelocalizeCalls, stale_scan, summary_line
-from .sequence import SequenceRun, Verdict
+from .pairing import Pair
 from .startup import start_registration
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
-from ..errors import CgagsError, InvalidInputError
+from ..errors import CgagsError
 from ..geometry import apply_transform
-from ..pipeline import backlog
-from ..pipeline.isolated import (IsolatedRegistration, RegisterFn, RegistrationTimeout,
-                                 WorkerCrashed)
-from ..pipeline.pairing import Pair, Pairer
-from ..pipeline.result import PipelineResult
-from ..pipeline.stream import StreamCounts, tracks
 from ..refusal import Refusal, RefusalCode
-from ..validity import quality_refusal
+from ..relocalization.requests import Answered, stale_scan
+from ..runtime.checks import CheckLane
+from ..runtime.jobs import (CheckVerdict, Job, RegisterPair, result_of, SequenceScan, Tracked,
+                            TrackScan)
+from ..runtime.session import RegisterFn
+from ..runtime.supervisor import Supervisor
+from ..tracking.counts import StreamCounts, tracks
 
 
 class RegistrationEngine:
     """
     Registers paired clouds and decides what is published (see the module doc).
 
-    ``register_fn`` replaces the pipeline; it exists for tests of the plumbing only. The
-    engine is built stopped and inactive: :meth:`start` starts the registration process,
-    waits for it and the map, and starts the worker; :meth:`activate` lets sources in and
-    outputs out; :meth:`stop` ends the process and the worker for good.
+    ``register_fn`` replaces ``register_clouds`` in every job (tests of the plumbing only;
+    the job kinds are chosen as without it). The engine is built stopped and inactive:
+    :meth:`start` starts the registration process, waits for it and the map, and starts the
+    worker; :meth:`activate` lets sources in and outputs out; :meth:`stop` ends the
+    processes and the worker for good.
     """
 
     def __init__(self, pipeline_cfg: PipelineConfig, node_cfg: NodeConfig,
@@ -68,30 +71,25 @@ class RegistrationEngine:
         self._pipeline_cfg, self._node_cfg = pipeline_cfg, node_cfg
         self._outputs = outputs
         self._register_fn = register_fn
-        self._register: RegisterFn | None = None
-        self.registration: IsolatedRegistration | None = None  # the supervised process
+        self._runner: Any = None  # runs a job: the Supervisor, or a ChildSession in-process
+        self.registration: Supervisor | None = None  # the stream's supervised process
+        self.checks: CheckLane | None = None  # the periodic checks' lane, while tracked
+        self._verdict: CheckVerdict | None = None  # a check landed, for the next scan
         cfg = node_cfg
         # A map file is one latched target; on demand only the latest pair is kept.
         pairing = ('latest_target' if cfg.map.file else
                    'synchronized' if cfg.mode == 'calibrate' else cfg.pairing.mode)
         self._calibration = CalibrationRun.for_mode(cfg.mode, pipeline_cfg, calibration,
                                                     outputs)
-        self._health = NodeHealth(Pairer.from_config(dataclasses.replace(
-            cfg.pairing, mode=pairing,
-            queue_depth=1 if cfg.mode == 'on_demand' else backlog.queue_depth(cfg, pipeline_cfg))))
-        self._backlog = backlog.Backlog()  # a tracked stream's scans waiting (continuous)
+        self._accounting = Accounting(
+            dataclasses.replace(cfg.pairing, mode=pairing),
+            1 if cfg.mode == 'on_demand' else backlog.queue_depth(cfg, pipeline_cfg))
         self.on_demand = cfg.mode == 'on_demand'
         self._map = MapTarget(cfg) if cfg.map.file else None
-        self._calls = RelocalizeCalls()
-        # With odometry, a relocalization goes on over the next scans (see .sequence).
-        self._sequence = SequenceRun() if cfg.map.file else None
-        self._initial_pose = InitialPoseGuard()
-        self._candidates: list[Any] = []
-        self._last_summary = ''
+        self._localization = Localization(cfg, outputs)
         self._active = False
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
-        self._registered: PipelineResult | None = None  # the worker's pair, once registered
         self._tracking = StreamCounts()
 
     # ------------------------------------------------------------------ lifecycle
@@ -104,11 +102,11 @@ class RegistrationEngine:
 
         :raises StartFailed: why it cannot register; nothing it started is left running.
         """
-        self._register, self.registration, target = start_registration(
+        self._runner, self.registration, target = start_registration(
             self.pipeline_config, self.node_config, self._calibration is not None,
             self._register_fn, self._map, self._outputs.log)
         if target is not None:
-            self._health.receive('target', 0, target.header.frame_id, target)
+            self._accounting.receive('target', 0, target.frame_id, target)
         self._worker = threading.Thread(target=self._work, name='register_worker', daemon=True)
         self._worker.start()
 
@@ -121,8 +119,9 @@ class RegistrationEngine:
         """Ignore sources (counted as rejected), publish nothing, fail pending requests."""
         with self._lock:
             self._active = False
-        self._calls.wake()  # no scan is registered for a pending request until activated
-        self._calls.fail(Refusal(RefusalCode.INACTIVE, 'the node was deactivated'))
+        calls = self._localization.calls
+        calls.wake()  # no scan is registered for a pending request until activated
+        calls.fail(Refusal(RefusalCode.INACTIVE, 'the node was deactivated'))
 
     @property
     def active(self) -> bool:
@@ -131,13 +130,14 @@ class RegistrationEngine:
             return self._active
 
     def stop(self) -> None:
-        """End the worker and the registration process; answer pending requests."""
-        self._calls.fail(Refusal(RefusalCode.SHUTDOWN, 'the node is shutting down'))
+        """End the worker and the registration processes; answer pending requests."""
+        self._localization.calls.fail(Refusal(RefusalCode.SHUTDOWN, 'the node is shutting down'))
         self.deactivate()
         self._stop.set()
-        self._health.wake()
-        if self.registration is not None:
-            self.registration.close()  # ends a registration in flight at once
+        self._accounting.wake()
+        for process in (self.registration, self.checks):
+            if process is not None:
+                process.close()  # ends a job in flight at once
         if self._worker is not None:
             self._worker.join(timeout=5.0)
 
@@ -159,292 +159,235 @@ class RegistrationEngine:
         """Use new (validated) configurations from the next pair on."""
         with self._lock:
             self._pipeline_cfg, self._node_cfg = pipeline_cfg, node_cfg
-        self._health.set_slop(node_cfg.pairing.sync_slop)
+        self._accounting.set_slop(node_cfg.pairing.sync_slop)
         if not self.on_demand:  # tracking switched on or off: the backlog follows
-            self._health.set_queue_depth(backlog.queue_depth(node_cfg, pipeline_cfg))
+            self._accounting.set_queue_depth(backlog.queue_depth(node_cfg, pipeline_cfg))
 
     # ------------------------------------------------------------------ input
 
     def receive(self, role: str, stamp_ns: int, frame_id: str, cloud: Cloud | None,
-                rejection: str = '', message: str = '') -> None:
+                rejection: Refusal | None = None) -> None:
         """
         Count and pair a received ``role`` ('source' or 'target') cloud.
 
-        ``rejection`` (with a log ``message``) counts a cloud the node could not decode;
+        ``rejection`` counts a cloud the node could not decode (its code and why);
         ``stamp_ns`` is 0 when even its header could not be read.
         """
-        if not rejection and role == 'source' and not self.active:
-            rejection = 'source_inactive'
-            message = 'source cloud ignored: the node is inactive (lifecycle)'
-        lost = self._health.receive(role, stamp_ns, frame_id, cloud, rejection=rejection)
-        if rejection:
-            self._log_rejection(rejection, message)
+        if rejection is None and role == 'source' and not self.active:
+            rejection = Refusal(RefusalCode.INACTIVE,
+                                'source cloud ignored: the node is inactive (lifecycle)')
+        lost = self._accounting.receive(role, stamp_ns, frame_id, cloud, rejection)
+        if rejection is not None:
+            self._log_rejection(rejection, role)
             if role == 'source':
-                code = (RefusalCode.INACTIVE if rejection == 'source_inactive'
-                        else RefusalCode.TOO_FEW_POINTS if rejection.endswith('_empty')
-                        else RefusalCode.BAD_INPUT)
-                self._outputs.publish_result(PairResult(
-                    stamp_ns, frame_id, 'rejected', rejection, message,
-                    refusal=Refusal(code, message)))
+                self._outputs.publish_result(PairResult(stamp_ns, frame_id, 'rejected',
+                                                        refusal=rejection))
         self._tell_dropped()
         if lost:
-            self._log_lost_upstream()
+            n, due = self._accounting.lost_upstream()
+            if due:
+                self._outputs.log('warning', lost_upstream_message(n))
 
     def _tell_dropped(self) -> None:
         """Publish what pairing dropped since the last call (a ~/result each)."""
-        for reason, source in self._health.dropped_sources():
+        for reason, source in self._accounting.dropped_sources():
             why = f'dropped by pairing: {reason} (docs/pairing.md)'
             self._outputs.publish_result(PairResult(
-                source.stamp_ns, source.frame_id, 'dropped', reason, why,
+                source.stamp_ns, source.frame_id, 'dropped', reason,
                 refusal=Refusal(RefusalCode.UNPAIRED, why)))
 
-    def relocalize(self, wait: bool = True, on_answer: Answered | None = None
-                   ) -> tuple[bool, str]:
+    def relocalize(self, on_answer: Answered) -> None:
         """
-        Request a relocalization: the next registration answers it (see :mod:`.relocalize`).
+        Request a relocalization: the next registration answers it.
 
-        :param wait: block until answered and return (success, message); else return
-            (True, 'requested') at once and report the answer to ``on_answer``.
+        The answer goes to ``on_answer(success, message)``, from the worker thread, or at
+        once when inactive (:mod:`cgags_ros.relocalization.requests`).
         """
         if not self.active:
-            answer = self._calls.refuse(Refusal(RefusalCode.INACTIVE, 'the node is not active'))
-            if on_answer is not None:
-                on_answer(*answer)
-            return answer
-        timeout = self.node_config.relocalization.timeout
-        req = self._calls.add(timeout, on_answer)
-        if not wait:
-            return True, 'requested'
-        # The worker answers, or expire() does at the deadline; the margin covers a
-        # registration that started just before the deadline.
-        req.done.wait(timeout + 3600.0)
-        return req.answer
+            on_answer(*self._localization.calls.refuse(
+                Refusal(RefusalCode.INACTIVE, 'the node is not active')))
+            return
+        self._localization.request(self.node_config.relocalization.timeout, on_answer)
 
     def odometry(self, stamp_ns: int, odom_from_base: np.ndarray) -> None:
         """Take the robot's odometry: ``odom <- base`` (4x4, metres) at ``stamp_ns``."""
-        if self._sequence is not None:
-            self._sequence.track.add(stamp_ns, odom_from_base)
+        sequence = self._localization.sequence
+        if sequence is not None:
+            sequence.track.add(stamp_ns, odom_from_base)
 
     # ------------------------------------------------------------------ worker
 
     def _work(self) -> None:
         while not self._stop.is_set():
-            pair = self._health.take(timeout=0.2, skip=self._skip) if self._ready() else None
+            self._collect_check()
+            pair = self._accounting.take(0.1, self._skip) if self._ready() else None
             if pair is None:
                 continue
             self._tell_dropped()  # the scans a backlog skipped
-            cause, refusal = 'internal_error', Refusal(RefusalCode.INTERNAL_ERROR, 'pair failed')
-            self._registered = None
+            refusal: Refusal | None = Refusal(RefusalCode.INTERNAL_ERROR, 'pair failed')
+            result = None
             try:
-                cause, refusal = self._process(pair)
+                refusal, result = self._process(pair)
             except Exception as exc:  # noqa: BLE001 - the worker must outlive any bad pair
-                refusal = Refusal(refusal.code, f'pair failed: {exc!r}\n{traceback.format_exc()}')
+                refusal = Refusal(RefusalCode.INTERNAL_ERROR,
+                                  f'pair failed: {exc!r}\n{traceback.format_exc()}')
             finally:
                 latency = (time.monotonic_ns() - pair.source.payload.receipt_ns) * 1e-9
-                self._publish_result(pair, cause, refusal)
-                self._health.finish(cause, latency)
-                self._settle(cause, refusal)
-            if cause and refusal and not self._stop.is_set():
-                self._log_rejection(cause, refusal.message)
+                self._publish_result(pair, refusal, result, latency)
+                self._accounting.finish(refusal, latency)
+                self._localization.settle(refusal, result is not None)
+            if refusal is not None and not self._stop.is_set():
+                self._log_rejection(refusal, 'source')
 
-    def _skip(self, pending_ns: list[int]) -> int:
+    def _skip(self, pending_ns: list[int], log: backlog.Backlog) -> int:
         """Return how many of the oldest waiting pairs a tracked stream skips (the backlog)."""
         cfg, pipe_cfg = self.node_config, self.pipeline_config
         if not tracks(cfg.mode, pipe_cfg):
             return 0
-        return self._backlog.to_skip(pending_ns, cfg.pairing.backlog_max_lag,
-                                     pipe_cfg.tracking.max_age,
-                                     self._calls.waiting() is not None)
+        return log.to_skip(pending_ns, cfg.pairing.backlog_max_lag, pipe_cfg.tracking.max_age,
+                           self._localization.calls.waiting() is not None)
 
     def _ready(self) -> bool:
         """Tell whether the worker may take a pair now; else wait a little."""
-        seq = self._sequence
-        late = seq.timed_out(self.node_config.relocalization.timeout) if seq else None
-        if self._calls.expire(late) and seq is not None and self._calls.waiting() is None:
-            seq.reset()
+        self._localization.tick(self.node_config.relocalization.timeout)
         if not self.active:
-            self._stop.wait(0.2)
+            self._stop.wait(0.1)
             return False
-        if self.on_demand and self._calls.waiting() is None:
-            self._calls.wait(0.2)
+        if self.on_demand and self._localization.calls.waiting() is None:
+            self._localization.calls.wait(0.1)
             return False
         return True
 
-    def _process(self, pair: Pair) -> tuple[str, Refusal | None]:
-        """Register and publish a pair; return ('', None) or its rejection (cause, refusal)."""
+    def _job(self, pair: Pair, cfg: NodeConfig, pipe_cfg: PipelineConfig) -> Job:
+        """Choose the pair's job, once: a sequence's scan, a tracked stream's scan, or a pair."""
+        source, target = pair.source.payload.xyz, pair.target.payload.as_target()
+        step = self._localization.step(pair, cfg, self.on_demand)
+        if step is not None:
+            return SequenceScan(source, target, pipe_cfg, step[0],
+                                cfg.relocalization.max_scans, step[1])
+        # A ~/relocalize call is answered from a global search, as the other modes are.
+        if tracks(cfg.mode, pipe_cfg) and self._localization.calls.waiting() is None:
+            verdict, self._verdict = self._verdict, None
+            return TrackScan(source, target, pipe_cfg, pair.source.stamp_ns * 1e-9,
+                             checks_beside=self.registration is not None, verdict=verdict)
+        return RegisterPair(source, target, pipe_cfg)
+
+    def _process(self, pair: Pair) -> tuple[Refusal | None, Any]:
+        """Register and publish a pair; return (None or why it is rejected, its result)."""
         if self._calibration is not None:
-            return self._calibration.take(pair)
-        source, target = pair.source.payload, pair.target.payload
+            return self._calibration.take(pair), None
+        source = pair.source.payload
         pipe_cfg, cfg = self.pipeline_config, self.node_config
-        stale = stale_scan(self._calls.waiting() if self.on_demand else None,
+        stale = stale_scan(self._localization.calls.waiting() if self.on_demand else None,
                            source.receipt_ns, cfg.relocalization.max_scan_age)
         if stale:
-            return 'on_demand_stale_scan', stale
-        step = self._step(pair, cfg)
-        # Continuous mode is a stream: tracked from the last pose (a ~/relocalize call, a
-        # relocalization over scans and the other modes search globally); a test's
-        # register_fn replaces both paths.
-        stream = (step is None and tracks(cfg.mode, pipe_cfg) and self._register_fn is None
-                  and self._calls.waiting() is None)
+            return stale, None
+        job = self._job(pair, cfg, pipe_cfg)
         try:
-            result = self._register(source.xyz, step or target.as_target(), config=pipe_cfg,
-                                    **({'stamp': pair.source.stamp_ns * 1e-9} if stream else {}))
-            answer, result = (result, result.result) if step else (None, result)
-        except InvalidInputError as exc:
-            return 'pipeline_input', Refusal(exc.code, f'pair rejected by the pipeline: {exc}')
-        except RegistrationTimeout as exc:
-            return 'timeout', exc.refusal
-        except WorkerCrashed as exc:
-            self._health.failed('worker_crashed')
-            return 'worker_crashed', exc.refusal
+            answer = self._runner.run(job)
         except CgagsError as exc:
-            return 'pipeline_error', Refusal(exc.code, f'registration failed: {exc}')
-        self._registered = result
-        self._tracking.add(result)
-        self._backlog.saw(result, pair.source.stamp_ns)
+            if exc.code is RefusalCode.WORKER_CRASHED:
+                self._accounting.failed(exc.code.value)
+            return Refusal(exc.code, f'registration failed: {exc}'), None
+        result = result_of(answer)
+        if isinstance(answer, Tracked):
+            self._tracking.add(answer.counts)
+            if answer.check_due:
+                self._offer_check(job)
         T = np.asarray(result.transform, dtype=np.float64)
         refusal = result.refusal or (None if np.isfinite(T).all() else Refusal(
             RefusalCode.INTERNAL_ERROR, 'the estimated transform is not finite'))
         if self._map is not None:
             self._map.update(result)
-        frame = cfg.output.pose_frame_id or str(target.header.frame_id)
-        self._health.registered({
+        frame = cfg.output.pose_frame_id or pair.target.frame_id
+        self._accounting.registered({
             'valid': refusal is None, 'reason': refusal.message if refusal else '',
             'refusal_code': refusal.code.value if refusal else '', 'inliers': result.num_inliers,
             'fitness': float(result.fitness), 'voxel_size': pipe_cfg.voxel_size,
-            'path': result.path,
-            'timings': dict(result.timings), 'source_stamp_ns': pair.source.stamp_ns})
+            'path': result.path, 'timings': dict(result.timings),
+            'source_stamp_ns': pair.source.stamp_ns},
+            result.path, refusal is None, pair.source.stamp_ns)
         if not self.active:
-            return 'inactive', Refusal(RefusalCode.INACTIVE, 'deactivated during registration')
+            return Refusal(RefusalCode.INACTIVE, 'deactivated during registration'), result
         cov = np.asarray(result.covariance, dtype=np.float64)
+        step = answer if isinstance(job, SequenceScan) else None
         if refusal is not None:
             if not cfg.output.publish_invalid or not np.isfinite(T).all():
-                self._finish(pair, result, T, cov, cfg, frame, answer)
-                return 'invalid_result', Refusal(refusal.code,
-                                                 f'invalid registration: {refusal.message}')
-            self._health.count('published_invalid')
+                self._localization.finish(pair, result, T, cov, cfg, frame, self.on_demand, step)
+                return Refusal(refusal.code, f'invalid registration: {refusal.message}'), result
+            self._accounting.count('published_invalid')
+        out = cfg.output
         self._outputs.publish_estimate(Estimate(
             T, cov, source.header, frame,
-            apply_transform(T, source.xyz) if cfg.output.publish_aligned_cloud else None,
-            (cfg.output.tf_child_frame or str(source.header.frame_id))
-            if cfg.output.broadcast_tf else ''))
-        self._finish(pair, result, T, cov, cfg, frame, answer)
-        return '', None
+            apply_transform(T, source.xyz) if out.publish_aligned_cloud else None,
+            (out.tf_child_frame or pair.source.frame_id) if out.broadcast_tf else ''))
+        self._localization.finish(pair, result, T, cov, cfg, frame, self.on_demand, step)
+        return None, result
 
-    # ------------------------------------------------------------------ map and requests
+    # ------------------------------------------------------------------ the second lane
 
-    def _step(self, pair: Pair, cfg: NodeConfig) -> Any:
-        """Return the scan's step of a relocalization over several scans, or None."""
-        seq, called = self._sequence, self._calls.waiting() is not None
-        reloc = cfg.relocalization
-        if seq is None or not (called or (reloc.publish_initial_pose and not self.on_demand
-                                          and self._initial_pose.may_publish_auto(cfg))):
-            return None
-        frame = str(pair.source.payload.header.frame_id)
-        base = extrinsic(cfg)
-        base = self._outputs.base_from_sensor(reloc.base_frame, frame) if base is None else base
-        return seq.step(pair.target.payload.as_target(), pair.source.stamp_ns, base,
-                        reloc.max_scans)
+    def _offer_check(self, job: Job) -> None:
+        """Run the periodic check of a tracked scan in the checks' lane (started once)."""
+        if self.checks is None:
+            self.checks = CheckLane(self.node_config.worker.registration_timeout)
+            if self._map is not None:
+                self.checks.prepare_map(self._map.ref, job.config,
+                                        self.node_config.map.load_timeout)
+                return  # the map loads there first: the next check runs on it
+        self.checks.offer(job.source, job.target, job.config, job.stamp)
 
-    def _finish(self, pair: Pair, result: PipelineResult, T: np.ndarray, cov: np.ndarray,
-                cfg: NodeConfig, frame_id: str, answer: Any = None) -> None:
-        """Publish the candidates, offer the initial pose, answer pending requests."""
-        header = pair.source.payload.header
-        candidates = list(result.candidates)
-        self._outputs.publish_candidates(header, frame_id, [
-            c.transform for c in candidates if np.isfinite(c.transform).all()])
-        called = self._calls.waiting() is not None
-        published, why = False, 'relocalization.publish_initial_pose is off'
-        refusal = quality_refusal(result, cfg)  # once: the guard and the answer share it
-        reloc = cfg.relocalization
-        verdict: Verdict | None = None
-        if answer is not None:  # a scan of a relocalization over several scans
-            verdict = self._sequence.judge(answer, refusal, reloc.max_scans)
-            refusal, T = verdict.refusal, verdict.transform
-        if verdict is not None and not verdict.finished:
-            why = 'not confirmed yet'
-        elif reloc.publish_initial_pose and (called or not self.on_demand):
-            lookup: ExtrinsicLookup = self._outputs.base_from_sensor
-            why, T_map_base, cov_base = self._initial_pose.offer(
-                refusal, T, cov, str(header.frame_id), cfg, not called, lookup)
-            if T_map_base is not None:
-                published = True
-                self._outputs.publish_initial_pose(BasePose(
-                    T_map_base, cov_base, header, cfg.map.frame,
-                    reloc.odom_frame if reloc.broadcast_map_to_odom else '', reloc.base_frame,
-                    verdict.map_from_odom if verdict else None))
-        line = (verdict.line(published, why) if verdict
-                else summary_line(result, T, refusal, published, why))
-        with self._lock:
-            self._candidates, self._last_summary = candidates, line
-        if called and (verdict is None or verdict.finished):
-            self._calls.answer(line, refusal)
+    def _collect_check(self) -> None:
+        """Keep a check that landed for the stream's next scan."""
+        if self.checks is not None:
+            verdict = self.checks.landed()
+            if verdict is not None:
+                self._verdict = verdict
 
-    def _publish_result(self, pair: Pair, cause: str, refusal: Refusal | None) -> None:
+    # ------------------------------------------------------------------ results and health
+
+    def _publish_result(self, pair: Pair, refusal: Refusal | None, result: Any,
+                        latency_s: float) -> None:
         """Publish what became of the worker's pair (before it is counted as done)."""
-        result, source, target = self._registered, pair.source, pair.target
+        source, target = pair.source, pair.target
         valid = (result is not None and bool(result.valid)
                  and bool(np.isfinite(result.transform).all()))
         self._outputs.publish_result(PairResult(
-            source.stamp_ns, source.frame_id, 'rejected' if cause else 'published', cause,
-            refusal.message if refusal and cause else '', target.stamp_ns, target.frame_id,
-            self.node_config.output.pose_frame_id or target.frame_id, valid, result,
-            refusal if cause else None))
-
-    def _settle(self, cause: str, refusal: Refusal | None) -> None:
-        """Answer requests still pending after a pair that failed before :meth:`_finish`."""
-        if (refusal and refusal.code is not RefusalCode.STALE and cause != 'invalid_result'
-                and self._calls.waiting() is not None):
-            self._calls.fail(refusal)
-            if self._sequence is not None:
-                self._sequence.reset()
-
-    # ------------------------------------------------------------------ health
+            source.stamp_ns, source.frame_id, 'rejected' if refusal else 'published', '',
+            target.stamp_ns, target.frame_id,
+            self.node_config.output.pose_frame_id or target.frame_id, valid, result, refusal,
+            round(latency_s, 4)))
 
     def supervise(self) -> None:
         """Replace a registration process that died while idle (call it periodically)."""
         if self.registration is not None and self.registration.supervise():
-            self._health.failed('worker_crashed')
+            self._accounting.failed(RefusalCode.WORKER_CRASHED.value)
             self._outputs.log('warning', 'the registration process had died while idle; a '
                               'fresh one was started')
+        if self.checks is not None:
+            self.checks.supervisor.supervise()
 
-    def _log_rejection(self, cause: str, message: str) -> None:
-        """Log a counted rejection, once per cause and then at most every 30 s."""
-        n, due = self._health.reject_count(cause)
+    def _log_rejection(self, refusal: Refusal, role: str) -> None:
+        """Log a counted rejection, once per role and code, then at most every 30 s."""
+        n, due = self._accounting.log_due(role, refusal.code.value)
         if due and not self._stop.is_set():
             suffix = (f' ({n} so far; repeats are logged every {LOG_REPEAT_S:.0f} s)'
                       if n > 1 else '')
-            self._outputs.log('warning', message + suffix)
-
-    def _log_lost_upstream(self) -> None:
-        """Warn that source scans went missing before the node, at most every 30 s."""
-        n, due = self._health.lost_upstream()
-        if due:
-            self._outputs.log('warning', lost_upstream_message(n))
+            self._outputs.log('warning', refusal.message + suffix)
 
     def snapshot(self) -> dict[str, Any]:
-        """Return the counters of the accounting (see NodeHealth.snapshot)."""
-        return self._health.snapshot()
+        """Return the counters of the accounting (see Accounting.snapshot)."""
+        return self._accounting.snapshot()
 
     def statistics(self) -> dict[str, Any]:
         """Return the engine's keys of /diagnostics beside the accounting snapshot's."""
-        with self._lock:
-            candidates, line, active = list(self._candidates), self._last_summary, self._active
-        stats: dict[str, Any] = {'mode': self.node_config.mode, 'active': active,
+        stats: dict[str, Any] = {'mode': self.node_config.mode, 'active': self.active,
                                  **self._tracking.statistics()}
         if self._map is not None:
             stats.update(self._map.statistics())
-            stats['odometry.samples'] = self._sequence.track.samples
-        stats['candidates.count'] = len(candidates)
-        for i, c in enumerate(candidates):
-            stats[f'candidates.{i}.inliers'] = c.num_inliers
-            stats[f'candidates.{i}.fitness'] = round(c.fitness, 4)
-            stats[f'candidates.{i}.ratio'] = round(c.ratio, 4)
-        if line:
-            stats['last_summary'] = line
+        stats.update(self._localization.statistics())
         stats.update(self._calibration.statistics() if self._calibration else {})
-        stats.update(self._initial_pose.statistics())
-        stats.update(self._calls.statistics())
         if self.registration is not None:
             stats.update(self.registration.health())
+        if self.checks is not None:
+            stats.update(self.checks.statistics())
         return stats

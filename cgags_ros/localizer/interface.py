@@ -2,7 +2,7 @@
 What the registration engine and its node exchange, without ROS.
 
 The node decodes each message into a :class:`Cloud` (the map of ``map.file`` is a
-:class:`MapCloud`); the engine
+:class:`MapCloud`, which has a frame and no header); the engine
 (:class:`~.engine.RegistrationEngine`) hands back what to publish (:class:`Estimate`,
 :class:`BasePose`, :class:`Calibration`, :class:`PairResult`) through :class:`EngineOutputs`,
 which the node implements
@@ -46,14 +46,13 @@ class MapCloud:
     The prior map (``map.file``) as the target of every scan: a reference, not points.
 
     The registration process loads the map and holds its features; this process passes
-    only the reference (:class:`~cgags_ros.pipeline.isolated.MapRef`). ``header`` has the
-    map's ``frame_id`` and no stamp.
+    only the reference (:class:`~cgags_ros.runtime.jobs.MapRef`) in the map's frame.
     """
 
-    __slots__ = ('ref', 'header', 'receipt_ns')
+    __slots__ = ('ref', 'frame_id', 'receipt_ns')
 
-    def __init__(self, ref: Any, header: Any, receipt_ns: int):
-        self.ref, self.header, self.receipt_ns = ref, header, receipt_ns
+    def __init__(self, ref: Any, frame_id: str, receipt_ns: int):
+        self.ref, self.frame_id, self.receipt_ns = ref, frame_id, receipt_ns
 
     def as_target(self) -> Any:
         """Return what a registration onto the map takes: its reference."""
@@ -135,30 +134,42 @@ class PairResult:
     :ivar source_stamp_ns: the source's stamp (0 when its header could not be read).
     :ivar source_frame: its frame ('' when unknown).
     :ivar outcome: 'published' (a pose went out), 'rejected' or 'dropped' (by pairing).
-    :ivar cause: '' when published, else the ``rejected.<cause>`` or ``pairing.dropped.<reason>``
-        key of /diagnostics it is counted under.
-    :ivar message: why, in words ('' when published).
+    :ivar dropped_by: the pairing reason of a dropped source (``pairing.dropped.<reason>``
+        of /diagnostics), else ''.
     :ivar target_stamp_ns: the target it was paired with (None: not paired).
     :ivar target_frame: that target's frame.
     :ivar frame_id: the frame of the pose (the target's or ``output.pose_frame_id``; '' unpaired).
     :ivar valid: the registration is valid (and its transform finite).
     :ivar result: the registration's result (a ``PipelineResult``), None when none ran.
-    :ivar refusal: why the node rejected or dropped the source (a timeout, a stale scan, a
-        message it could not decode, ...); None when it did not. The JSON's ``refusal`` is
-        the result's own when it has one (its ``reason``), else this.
+    :ivar refusal: why the node rejected or dropped the source (a refused registration, a
+        timeout, a stale scan, a message it could not decode, ...); None when published.
+    :ivar latency_s: seconds from the node's receipt of the source to this result (None when
+        it was not paired): what the node itself adds to a pose's delay.
     """
 
     source_stamp_ns: int
     source_frame: str
     outcome: str
-    cause: str = ''
-    message: str = ''
+    dropped_by: str = ''
     target_stamp_ns: int | None = None
     target_frame: str = ''
     frame_id: str = ''
     valid: bool = False
     result: Any = None
     refusal: Refusal | None = None
+    latency_s: float | None = None
+
+    @property
+    def cause(self) -> str:
+        """
+        Return the key the source is counted under.
+
+        '' when published, the refusal's code when rejected (``rejected.<code>``), the
+        pairing reason when dropped (``pairing.dropped.<reason>``).
+        """
+        if self.outcome == 'dropped':
+            return self.dropped_by
+        return self.refusal.code.value if self.refusal is not None else ''
 
     def to_json(self) -> str:
         """
@@ -168,13 +179,17 @@ class PairResult:
         ``valid``, ``reason``, ``transform``, ``covariance``, ``num_inliers``, ``fitness``,
         ``timings``, ``candidates``, ...) when a registration ran, else ``valid`` false and
         ``reason`` the message; plus every field of this class but ``result``, ``refusal``
-        as ``{"code": ..., "message": ...}`` (null when valid; docs/refusals.md).
+        and ``dropped_by``; ``cause`` (:attr:`cause`), ``message`` (why, in words, '' when
+        published) and ``refusal`` as ``{"code": ..., "message": ...}`` (null when valid;
+        docs/refusals.md): the result's own when it has one, else the node's.
         """
+        message = self.refusal.message if self.refusal is not None else ''
         out: dict[str, Any] = (self.result.summary() if self.result is not None
-                               else {'reason': self.message})
+                               else {'reason': message})
         out.update({f.name: getattr(self, f.name) for f in dataclasses.fields(self)
-                    if f.name not in ('result', 'refusal')})
-        refusal = getattr(self.result, 'refusal', None) or self.refusal
+                    if f.name not in ('result', 'refusal', 'dropped_by')})
+        out['cause'], out['message'] = self.cause, message
+        refusal = (self.result.refusal if self.result is not None else None) or self.refusal
         out['refusal'] = None if refusal is None else refusal.summary()
         return json.dumps(out)
 

@@ -16,17 +16,9 @@ from .interface import MapCloud, StartFailed
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError
-from ..pipeline.isolated import IsolatedRegistration, MapRef, prepare_map
 from ..pipeline.result import PipelineResult
-
-
-class FrameHeader:
-    """The header of the map target: a frame and no stamp (the map is not a message)."""
-
-    __slots__ = ('frame_id',)
-
-    def __init__(self, frame_id: str):
-        self.frame_id = frame_id
+from ..runtime.jobs import MapReady, MapRef, PrepareMap
+from ..runtime.supervisor import Supervisor
 
 
 class MapTarget:
@@ -37,13 +29,14 @@ class MapTarget:
         self.info: dict[str, Any] = {}
         self.error = ''
 
-    def load(self, registration: IsolatedRegistration | None, config: PipelineConfig,
-             cfg: NodeConfig, log: Callable[[str, str], None]) -> MapCloud:
+    def load(self, runner: Any, config: PipelineConfig, cfg: NodeConfig,
+             log: Callable[[str, str], None]) -> MapCloud:
         """
         Load the map where the pipeline runs (features computed or from the cache).
 
-        In the registration process the load may take ``map.load_timeout``; in this
-        process (no registration process) it cannot be bounded.
+        ``runner`` runs the job: in the registration process (a :class:`Supervisor`) the
+        load may take ``map.load_timeout``; in this process (a ``ChildSession``) it cannot
+        be bounded.
 
         :returns: the map as the target of every scan.
         :raises StartFailed: the map is missing, unreadable or empty, or its load failed
@@ -52,10 +45,11 @@ class MapTarget:
         ref = self.ref
         log('info', f'loading map {ref.path} (cache {ref.cache_dir or "off"})')
         try:
-            if registration is not None:
-                info = registration.prepare_map(ref, config, cfg.map.load_timeout)
-            else:
-                info = prepare_map(ref, config)
+            job = PrepareMap(ref, config)
+            answer = (runner.run(job, cfg.map.load_timeout) if isinstance(runner, Supervisor)
+                      else runner.run(job))
+            assert isinstance(answer, MapReady)
+            info = answer.info
         except CgagsError as exc:
             self.error = f'map.file cannot be used: {exc}'
             raise StartFailed(self.error) from exc
@@ -70,7 +64,7 @@ class MapTarget:
                 "unlike a scan's (its sensor): fine for one scan kept in its sensor frame, "
                 'not for a map fused from many views; write the map with normals facing its '
                 'sensors, or set frontend.normal_orientation to centroid (docs/relocalization.md)')
-        return MapCloud(ref, FrameHeader(cfg.map.frame), time.monotonic_ns())
+        return MapCloud(ref, cfg.map.frame, time.monotonic_ns())
 
     def update(self, result: PipelineResult) -> None:
         """Take the map summary a registration reports (the map may have been reloaded)."""

@@ -5,7 +5,7 @@ The node's /diagnostics, ROS-free: one flat key space and its status, decided he
 and :func:`status` says what they amount to (a level and one line, which
 ``cgags_ros.ros.diagnostics`` puts into the message); what became of each source, typed,
 is on ``~/result``. ``sources.*`` and
-``targets.*`` are the accounting buckets of :mod:`cgags_ros.localizer.health`
+``targets.*`` are the accounting buckets of :mod:`cgags_ros.localizer.accounting`
 (``accounting.ok``: they balance; ``sources.lost_upstream``, scans that never arrived,
 stands outside the balance); ``worker.*`` and ``memory.*`` the registration process and the
 resident memory (MB); ``transport.profile`` the Fast DDS profile loaded; ``configure.error``
@@ -21,13 +21,14 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .health import lost_upstream_message
+from .accounting import lost_upstream_message
 from .transport import user_line
 
 # The levels of diagnostic_msgs/DiagnosticStatus, by name.
 OK, WARN, ERROR, STALE = 'OK', 'WARN', 'ERROR', 'STALE'
-REJECTED = 'rejected.'  # rejected.<cause>: clouds or pairs the node refused, per cause
-PAIRING = 'pairing.'  # pairing.<counter> of cgags_ros.pipeline.pairing.Pairer.counters()
+REJECTED = 'rejected.'  # rejected.<code>: sources the node refused, per refusal code
+REJECTED_TARGETS = 'rejected_targets.'  # rejected_targets.<code>: targets it could not use
+PAIRING = 'pairing.'  # pairing.<counter> of cgags_ros.localizer.pairing.Pairer.counters()
 DROPPED = PAIRING + 'dropped.'  # pairing.dropped.<reason>
 LAST = 'last_'  # last_<field>: the most recent registration
 REFUSAL_CODE = LAST + 'refusal_code'  # its refusal's code ('' when valid), beside last_reason
@@ -43,13 +44,15 @@ def build_statistics(snapshot: Mapping[str, Any], voxel_size: float,
     """
     Return the flat statistics of the node (what /diagnostics carries).
 
-    ``snapshot`` is :meth:`cgags_ros.localizer.health.NodeHealth.snapshot`; ``extra`` holds
+    ``snapshot`` is :meth:`cgags_ros.localizer.accounting.Accounting.snapshot`; ``extra`` holds
     the worker's and the memory's keys.
     """
     counts, rejected, last = snapshot['counts'], snapshot['rejected'], snapshot['last']
     latencies, pairing = snapshot['latencies'], snapshot['pairing']
     stats: dict[str, Any] = dict(counts)
     stats.update({f'{REJECTED}{k}': v for k, v in sorted(rejected.items())})
+    stats.update({f'{REJECTED_TARGETS}{k}': v
+                  for k, v in sorted(snapshot['rejected_targets'].items())})
     stats['rejected'] = sum(rejected.values())
     for key, value in last.items():
         if key == 'timings':
@@ -117,7 +120,7 @@ def status(stats: Mapping[str, Any]) -> tuple[str, str]:
         level = WARN
         message = (f'last registration invalid ({stats.get(REFUSAL_CODE, "")}): '
                    f"{stats.get(f'{LAST}reason', '')}")
-    elif stats['rejected'] or stats[f'{PAIRING}dropped']:
+    elif stats['rejected'] or stats.get('targets.rejected') or stats[f'{PAIRING}dropped']:
         level = WARN
         message = 'running; some clouds rejected or dropped'
     else:

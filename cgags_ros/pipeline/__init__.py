@@ -4,13 +4,13 @@ Clouds in, result out: the one registration path of the node, the CLIs and bench
 :func:`register_clouds` (``register.py``) runs the front end, the core, refinement and the
 validity gates (``gates.py``), tries the structured rivals (``rivals.py``) and rates the
 estimate (``confidence.py``); features of recent clouds are cached (``cache.py``);
-``covariance.py`` turns a result into a pose covariance, ``pairing.py`` pairs sources with
-targets for the node and the replay tool; ``tracking.py``'s :class:`Tracker` registers a
-stream's scans from their predicted pose when the gates allow, else globally.
+``covariance.py`` turns a result into a pose covariance; ``map.py`` prepares a map file's
+features once. A stream's scans (:mod:`cgags_ros.tracking`) and a relocalization over
+several scans (:mod:`cgags_ros.relocalization`) build on this one pair.
 
-``register_clouds``, ``warm_up``, ``Tracker`` and the cache functions are imported on first
-use: they bring in Open3D, which the node's own process (pairing, covariance, unpickling
-results from its registration process) never needs.
+``register_clouds``, ``warm_up`` and the cache functions are imported on first use: they
+bring in Open3D, which the node's own process (covariance, unpickling results from its
+registration process) never needs.
 """
 
 import importlib
@@ -20,9 +20,9 @@ from .result import PipelineResult
 
 _LAZY = {'register_clouds': 'register', 'warm_up': 'register',
          'cached_features': 'cache', 'clear_feature_cache': 'cache',
-         'set_feature_cache_size': 'cache', 'Tracker': 'tracking'}
+         'set_feature_cache_size': 'cache'}
 
-__all__ = ['PipelineResult', 'Tracker', 'cached_features', 'clear_feature_cache',
+__all__ = ['PipelineResult', 'cached_features', 'clear_feature_cache',
            'register_clouds', 'set_feature_cache_size', 'warm_up']
 
 

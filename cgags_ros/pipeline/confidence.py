@@ -26,7 +26,8 @@ SIGNS = {'log_margin': 1.0, 'log_sigma': -1.0, 'free_space': -1.0}
 FEATURES = tuple(SIGNS)
 
 # Weights of the logistic model (on the raw features) and its intercept, fit on every pair
-# of the shared 3DMatch scenes by ``python -m bench.trust_shift``.
+# of the shared 3DMatch scenes (docs/confidence.md); ``python -m bench.studies.fit``
+# regenerates them from the study's records.
 WEIGHTS = {'log_margin': 1.007, 'log_sigma': -4.209, 'free_space': -19.09}
 INTERCEPT = 5.614
 

@@ -9,7 +9,8 @@ from scipy.spatial import cKDTree
 
 # The overlap covariance's settings (:func:`overlap_covariance`), chosen leave-one-scene-out
 # on real RGB-D pairs so that right poses fall inside their ellipsoids as often as the
-# normal law says while the ellipsoids stay as small as that allows (docs/ablation.md).
+# normal law says while the ellipsoids stay as small as that allows (docs/ablation.md);
+# ``python -m bench.studies.fit`` regenerates them from the study's records.
 CELL_FACTOR = 4
 SCALE = 12.7
 FLOOR_POSITION = 0.5
@@ -17,7 +18,7 @@ FLOOR_ROTATION = 0.5
 # The spread of a wrong estimate's error (metres a position axis, radians a rotation axis)
 # by which a covariance opens with the chance that its pose is wrong, and how fast that
 # chance falls with the confidence (:func:`with_confidence`), chosen leave-one-scene-out on
-# the same pairs (docs/ablation.md).
+# the same pairs (docs/ablation.md); ``python -m bench.studies.fit`` regenerates them too.
 WRONG_POSITION = 4.0
 WRONG_ROTATION = np.pi
 DOUBT_EXPONENT = 1.5

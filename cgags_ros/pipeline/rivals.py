@@ -21,8 +21,10 @@ rival is plausible when it settles away from the estimate (more than
 saw free space (violation at most ``MAX_VIOLATION``) and fits at least ``1 /
 OVERLAP_RATIO`` as well as the estimate (fitness, the share of source points on the
 target: a large target's share would say nothing): the result is then ambiguous, with the
-rival as runner-up. The settings were chosen leave-one-scene-out on real RGB-D pairs
-(docs/ablation.md); a map target is not checked.
+rival as runner-up. Each test of that verdict is a function of its own (:func:`worth_refining`,
+:func:`settled_apart`, :func:`fits_as_well`, :func:`clear_of_free_space`), so that a study
+judging recorded rivals judges them as the pipeline does. The settings were chosen
+leave-one-scene-out on real RGB-D pairs (docs/ablation.md); a map target is not checked.
 """
 
 from __future__ import annotations
@@ -47,12 +49,36 @@ SLIDE = 10.0
 SYMMETRY_FIT = 0.5  # a turn is a symmetry of a map when it puts half of the map on itself
 SYMMETRY_START = 1 / 3  # ...and it is refined only when it starts with a third there
 SYMMETRY_POINTS = 2000  # about this many of the map's points judge a turn
-PROMISING = 0.45
 ITERATIONS = 5
 STRIDE = 2
+# The verdict's limits (:func:`worth_refining`, :func:`settled_apart`, :func:`fits_as_well`,
+# :func:`clear_of_free_space`), chosen on real RGB-D pairs (docs/ablation.md);
+# ``python -m bench.studies.fit`` regenerates them from the study's records.
+PROMISING = 0.45
 APART = 4.0
 MAX_VIOLATION = 0.1
 OVERLAP_RATIO = 1.25
+
+
+def worth_refining(start_fitness: float, fitness: float, promising: float = PROMISING) -> bool:
+    """Tell whether a rival is refined: its start fits ``promising`` times the estimate's."""
+    return start_fitness >= promising * fitness
+
+
+def settled_apart(rotation_deg: float, translation_m: float, voxel_size: float,
+                  min_rotation_deg: float, apart: float = APART) -> bool:
+    """Tell whether a rival settled this far from the estimate is another pose, not it."""
+    return rotation_deg > min_rotation_deg or translation_m > apart * voxel_size
+
+
+def fits_as_well(fitness: float, estimate_fitness: float, ratio: float = OVERLAP_RATIO) -> bool:
+    """Tell whether a rival's fitness is at least ``1 / ratio`` of the estimate's."""
+    return fitness * ratio >= estimate_fitness
+
+
+def clear_of_free_space(violation: float, limit: float = MAX_VIOLATION) -> bool:
+    """Tell whether a rival stacks few enough surfaces in free space (NaN: not measured)."""
+    return not violation > limit
 
 
 def rival_starts(fs: CloudFeatures, ft: CloudFeatures, T: np.ndarray, distance: float,
@@ -137,17 +163,18 @@ def structured_rival(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences
 
     def judge(start: np.ndarray) -> Candidate | None:
         """Return the rival settled from ``start`` when it is plausible (see the module doc)."""
-        if evaluate_alignment(fs.points[::STRIDE], ft.tree, start, distance).fitness \
-                < PROMISING * result.fitness:
+        if not worth_refining(
+                evaluate_alignment(fs.points[::STRIDE], ft.tree, start, distance).fitness,
+                result.fitness):
             return None
         R = settle(fs, ft, start, float(result.inlier_threshold), cfg)
-        if (rotation_error_deg(R, T) <= cfg.candidate_min_rotation_deg
-                and translation_error(R, T) <= APART * v):
+        if not settled_apart(rotation_error_deg(R, T), translation_error(R, T), v,
+                             cfg.candidate_min_rotation_deg):
             return None  # settled back onto the estimate: it is constrained there
         fitness = evaluate_alignment(fs.points, ft.tree, R, distance).fitness
-        if fitness * OVERLAP_RATIO < result.fitness:
+        if not fits_as_well(fitness, result.fitness):
             return None
-        if measured_free_space(fs, ft, R, cfg, map_target) > MAX_VIOLATION:
+        if not clear_of_free_space(measured_free_space(fs, ft, R, cfg, map_target)):
             return None
         inliers = support(fs.points[corr.source_index], ft.points[corr.target_index], R,
                           float(result.inlier_threshold))

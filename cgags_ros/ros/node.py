@@ -18,7 +18,7 @@ Topics (relative names; remap them):
     target_cloud (sensor_msgs/PointCloud2, in): the reference (map or previous scan).
         Reliable; durability ``pairing.target_durability``. Not subscribed with ``map.file``.
     odom (nav_msgs/Odometry, in, with ``map.file``; else TF odom -> base): relocalization
-        over the next scans (:mod:`cgags_ros.localizer.sequence`).
+        over the next scans (:mod:`cgags_ros.relocalization.sequence`).
     ~/pose (geometry_msgs/PoseStamped, out): pose of the source frame in the target frame
         (``T``: ``p_target = R p_source + t``, metres), stamped with the source's stamp,
         frame_id = target frame (or ``output.pose_frame_id``).
@@ -82,21 +82,24 @@ from rclpy.task import Future
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Empty, Trigger
 
+from .bond import start_bond
 from .outputs import Outputs
-from .parameters import descriptor
+from .parameters import descriptor, not_a_parameter
 from .qos import source_qos, target_qos
 from ..config import fields
 from ..config.node import (calibration_config, configs_from_file, configs_from_parameters,
-                           NodeConfig, parameter_descriptions, ros_parameter_descriptions,
+                           NodeConfig, ros_parameter_descriptions,
                            ros_value)
 from ..config.pipeline import PipelineConfig
-from ..errors import CgagsError, EmptyCloudError, InvalidConfigError, InvalidInputError
+from ..errors import CgagsError, InvalidConfigError, InvalidInputError
 from ..io.pointcloud2 import pointcloud2_to_xyz, pose_to_transform, stamp_to_ns
 from ..localizer import statistics
 from ..localizer.engine import RegistrationEngine
 from ..localizer.interface import Cloud
 from ..localizer.transport import PROFILE_VARIABLE, use_large_data_profile
-from ..pipeline.isolated import RegisterFn, rss_mb
+from ..refusal import Refusal
+from ..runtime.procfs import rss_mb
+from ..runtime.session import RegisterFn
 
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
 # How the node destroys what configure created (so that it leaves the node's lists too).
@@ -108,7 +111,7 @@ class RegisterNode(LifecycleNode):
     """
     Wires topics, services, parameters and diagnostics around a :class:`RegistrationEngine`.
 
-    ``register_fn`` replaces the pipeline; it exists for unit tests of the plumbing only.
+    ``register_fn`` replaces ``register_clouds`` in every job; for tests of the plumbing only.
     Invalid parameters at construction raise :class:`InvalidConfigError`.
     """
 
@@ -178,7 +181,7 @@ class RegisterNode(LifecycleNode):
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Consume sources and publish."""
         self._engine.activate()
-        self._bond = _start_bond(self)
+        self._bond = start_bond(self)
         return super().on_activate(state)
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -245,7 +248,7 @@ class RegisterNode(LifecycleNode):
         unknown = sorted(n for n in self._parameter_overrides
                          if not self.has_parameter(n) and not n.startswith('qos_overrides.'))
         if unknown:  # a typo or a key that is no ROS parameter, in a params file or -p
-            raise InvalidConfigError('; '.join(_not_a_parameter(n) for n in unknown))
+            raise InvalidConfigError('; '.join(not_a_parameter(n) for n in unknown))
 
     def _configs(self) -> tuple[PipelineConfig, NodeConfig]:
         """Return the validated configurations: config_file's, then the ROS parameters."""
@@ -256,7 +259,7 @@ class RegisterNode(LifecycleNode):
     def _on_set_parameters(self, params: list[rclpy.parameter.Parameter]) -> SetParametersResult:
         for p in params:
             if not self.has_parameter(p.name):
-                return SetParametersResult(successful=False, reason=_not_a_parameter(p.name))
+                return SetParametersResult(successful=False, reason=not_a_parameter(p.name))
         changes = {p.name: p.value for p in params if p.name in self._descriptions}
         if not changes:
             return SetParametersResult(successful=True)
@@ -284,15 +287,16 @@ class RegisterNode(LifecycleNode):
             stamp = stamp_to_ns(msg.header.stamp)
             xyz = pointcloud2_to_xyz(msg, max_points=engine.node_config.pairing.max_cloud_points)
         except InvalidInputError as exc:
-            cause = f"{role}_{'empty' if isinstance(exc, EmptyCloudError) else 'malformed'}"
-            engine.receive(role, stamp, '', None, cause, f'{role} cloud rejected: {exc}')
+            engine.receive(role, stamp, '', None,
+                           Refusal(exc.code, f'{role} cloud rejected: {exc}'))
         else:
             engine.receive(role, stamp, str(msg.header.frame_id),
                            Cloud(xyz, msg.header, receipt))
 
     def _on_source(self, msg: PointCloud2) -> None:
         engine, outputs = self._engine, self.outputs
-        if not self._odometry_topic and engine is not None and outputs is not None:
+        if (not self._odometry_topic and engine is not None and outputs is not None
+                and engine.node_config.map.file):
             cfg = engine.node_config  # no odom topic: TF odom -> base, if tf2_ros has it
             reloc = cfg.relocalization
             T = outputs.odometry(reloc.odom_frame, reloc.base_frame, msg.header.stamp)
@@ -325,14 +329,14 @@ class RegisterNode(LifecycleNode):
             if executor is not None:
                 executor.wake()  # the executor resumes an awaiting callback when it wakes
 
-        engine.relocalize(wait=False, on_answer=on_answer)
+        engine.relocalize(on_answer)
         response.success, response.message = await answer
         return response
 
     def _on_reinitialize(self, request: Any, response: Any) -> Any:
         engine = self._engine
         if engine is not None:
-            engine.relocalize(wait=False, on_answer=self._log_reinitialized)
+            engine.relocalize(self._log_reinitialized)
         return response
 
     def _log_reinitialized(self, success: bool, message: str) -> None:
@@ -359,30 +363,6 @@ class RegisterNode(LifecycleNode):
             return  # cleaned up while the executor held this timer's callback
         engine.supervise()
         outputs.publish_diagnostics(self.statistics())
-
-
-def _not_a_parameter(name: str) -> str:
-    """Say why ``name`` is no ROS parameter of the node, and where it is set instead."""
-    if name in parameter_descriptions():
-        return (f'{name}: not a ROS parameter; set it in the YAML of config_file '
-                '(docs/parameters.md)')
-    return f'{name}: unknown parameter (docs/parameters.md)'
-
-
-def _start_bond(node: RegisterNode) -> Any:
-    """Form the bond nav2_lifecycle_manager watches, when bondpy is importable (else None)."""
-    try:
-        from bondpy.bondpy import Bond
-    except ImportError:
-        return None
-    try:
-        bond = Bond(node, 'bond', node.get_name())
-        bond.start()
-    except Exception as exc:  # noqa: BLE001 - bondpy's API differs between releases
-        node.get_logger().warning(f'bondpy is importable but the bond failed: {exc!r}; set '
-                                  "the lifecycle manager's bond_timeout: 0.0")
-        return None
-    return bond
 
 
 def main(args: list[str] | None = None) -> None:

@@ -6,6 +6,8 @@ from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 
+from ..config.node import parameter_descriptions
+
 _INT64_MAX = 2**63 - 1
 _FLOAT_MAX = 1.7976931348623157e308
 
@@ -45,3 +47,11 @@ def _bounds(meta: dict[str, Any], kind: type, largest: Any) -> tuple[Any, Any]:
     low, high = meta.get('low'), meta.get('high')
     return (kind(low) if low is not None else -largest,
             kind(high) if high is not None else largest)
+
+
+def not_a_parameter(name: str) -> str:
+    """Say why ``name`` is no ROS parameter of the node, and where it is set instead."""
+    if name in parameter_descriptions():
+        return (f'{name}: not a ROS parameter; set it in the YAML of config_file '
+                '(docs/parameters.md)')
+    return f'{name}: unknown parameter (docs/parameters.md)'

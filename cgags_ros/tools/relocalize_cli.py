@@ -3,7 +3,7 @@
 
 Thin edge tool: prepares the map as the node does (:func:`~cgags_ros.pipeline.map.load_map`,
 its normals and feature cache), feeds the scans in time order, each with its odometry pose,
-to a :class:`~cgags_ros.pipeline.relocalizer.Relocalizer` and stops at the first confirmed
+to a :class:`~cgags_ros.relocalization.relocalizer.Relocalizer` and stops at the first confirmed
 answer. Errors the user can fix are one line on stderr and exit status 2.
 """
 
@@ -100,7 +100,7 @@ def _relocalize(args: argparse.Namespace) -> int:
                 else [None] * len(args.scans))
     scans = [read_cloud(path) for path in args.scans]
     from ..pipeline.map import load_map  # after the cheap checks: imports Open3D
-    from ..pipeline.relocalizer import Relocalizer, SequenceConfig
+    from ..relocalization.relocalizer import Relocalizer, SequenceConfig
 
     prepared = load_map(args.map, config, args.map_cache_dir)
     sequence = SequenceConfig(max_scans=len(scans), min_scans=min(args.min_scans, len(scans)))

@@ -4,7 +4,7 @@ What offline and live replay share: the bag's contents, configuration, pairing, 
 :func:`read_bag_contents` decodes the bag (:mod:`cgags_ros.io.bag`,
 :mod:`cgags_ros.io.pointcloud2`); :func:`resolve_configs` applies the user's parameters
 (or :func:`auto_voxel_size`); :func:`iter_pairs` forms pairs with the node's own
-:class:`~cgags_ros.pipeline.pairing.Pairer`; :func:`finish_report` evaluates against the
+:class:`~cgags_ros.localizer.pairing.Pairer`; :func:`finish_report` evaluates against the
 ground truth and writes the poses bag and result files.
 """
 
@@ -26,7 +26,7 @@ from ..errors import CgagsError, InvalidInputError
 from ..geometry import voxel_size_for
 from ..io.bag import BagReader, BagRecord, write_poses_mcap
 from ..io.pointcloud2 import pointcloud2_to_xyz, pose_to_transform
-from ..pipeline.pairing import Pair, Pairer
+from ..localizer.pairing import Pair, Pairer
 
 DEFAULT_POSE_TOPIC = '/cgags/pose'
 DEFAULT_GT_TOPIC = '/ground_truth'

@@ -2,7 +2,7 @@
 Offline replay: every pair of a bag through :func:`register_clouds`, in-process, no ROS.
 
 In continuous mode with ``tracking.enabled`` (the defaults) the pairs are a stream, as in
-the node: one :class:`~cgags_ros.pipeline.Tracker` registers them, falling back to
+the node: one :class:`~cgags_ros.tracking.Tracker` registers them, falling back to
 ``register_clouds``; each row says which path made it.
 """
 
@@ -19,9 +19,9 @@ from .replay_common import (finish_report, iter_pairs, load_contents, make_row, 
 from .report import BagReport, PairRow
 from ..config.pipeline import PipelineConfig
 from ..errors import InvalidInputError
-from ..pipeline.pairing import Pairer
-from ..pipeline.stream import track, tracks
+from ..localizer.pairing import Pairer
 from ..refusal import Refusal
+from ..tracking.counts import tracks
 
 
 def replay_offline(opts: ReplayOptions) -> BagReport:
@@ -49,8 +49,8 @@ def replay_offline(opts: ReplayOptions) -> BagReport:
 
 
 def stream_tracker(pipe: PipelineConfig, mode: str) -> Any:
-    """Return a :class:`~cgags_ros.pipeline.Tracker` for the bag's stream, as the node's."""
-    from ..pipeline import Tracker  # here: the replay CLI must start without Open3D
+    """Return a :class:`~cgags_ros.tracking.Tracker` for the bag's stream, as the node's."""
+    from ..tracking import Tracker  # here: the replay CLI must start without Open3D
 
     return Tracker() if tracks(mode, pipe) else None
 
@@ -77,7 +77,7 @@ def register_row(row: PairRow, source: np.ndarray, target: Any, pipe: PipelineCo
     t0 = time.perf_counter()
     try:
         result = (register_clouds(source, target, config=pipe) if tracker is None
-                  else track(tracker, source, target, row.source_stamp_ns * 1e-9, pipe))
+                  else tracker.register(source, target, row.source_stamp_ns * 1e-9, config=pipe))
     except InvalidInputError as exc:
         row.refusal = Refusal(exc.code, f'rejected by the pipeline: {exc}')
     else:

@@ -39,7 +39,7 @@ from .replay_common import (auto_voxel_size, DEFAULT_MAX_RE_DEG, DEFAULT_MAX_TE_
 from .replay_offline import register_row, stream_tracker
 from .report import PairRow, SuccessCriteria
 from ..config.node import configs_from_parameters, NODE_NAME, ros_value
-from ..pipeline.pairing import Pairer
+from ..localizer.pairing import Pairer
 from ..refusal import RefusalCode
 
 GRID_STEPS = 10  # voxel sizes a decade: neighbours 26 % apart

@@ -10,10 +10,14 @@ no matching, no core) and judges it by the gates a global result passes
 (:func:`~cgags_ros.validity.tracking_refusal`): the refinement must not have moved the
 prediction far, and its fitness must not fall far below the last accepted pose's. When it
 fails (a jump, a kidnap, a degenerate view), when the target changed, when the last pose
-is too old, and periodically, the scan goes through :func:`~.register.register_clouds`, the
-one global path. ``result.path`` says which path produced the result; a pose refined from a
-prediction is never returned as valid unless it passed the gates. Transforms are 4x4
-source->target (``p_target = R p_source + t``), metres; stamps in seconds.
+is too old, the scan goes through :func:`~cgags_ros.pipeline.register.register_clouds`, the
+one global path. Periodically a global search checks the tracked pose: in line (the scan
+waits for it), or beside the stream (``defer_checks``: the scan is tracked, the caller runs
+the check elsewhere and hands its verdict back with :meth:`Tracker.apply_check`; a
+disagreement resets the motion either way). ``result.path`` says which path produced the
+result; a pose refined from a prediction is never returned as valid unless it passed the
+gates, and the usable-covariance bound (``gates.max_position_sigma``) as a global pose does.
+Transforms are 4x4 source->target (``p_target = R p_source + t``), metres; stamps in seconds.
 """
 
 from __future__ import annotations
@@ -25,13 +29,7 @@ import time
 
 import numpy as np
 
-from .cache import cached_features
-from .covariance import overlap_covariance
-from .gates import measure_overlap
-from .map import PreparedMap
 from .prediction import agree, difference, scaled_motion
-from .register import register_clouds
-from .result import PipelineResult
 from ..config import fields
 from ..config.pipeline import PipelineConfig
 from ..errors import EmptyCloudError
@@ -39,10 +37,18 @@ from ..frontend.features import CloudFeatures, downsample, finite_points
 from ..frontend.refine import refine_transform
 from ..geometry import cross_spread
 from ..parallel import DEFAULT_WORKERS
+from ..pipeline.cache import cached_features
+from ..pipeline.covariance import loosest_sigma, overlap_covariance
+from ..pipeline.gates import measure_overlap
+from ..pipeline.map import PreparedMap
+from ..pipeline.register import register_clouds
+from ..pipeline.result import PipelineResult
 from ..registration import single_blas_thread
 from ..timing import timed
-from ..validity import line_cloud_refusal, overlap_refusal, tracking_refusal
+from ..validity import (line_cloud_refusal, overlap_refusal, tracking_refusal,
+                        uncertainty_refusal)
 
+MAX_AWAITED = 4  # tracked poses kept for checks beside the stream that have not landed
 COUNTS = ('tracked', 'global', 'invalid', 'tracking_failures', 'periodic_checks',
           'check_disagreements', 'target_changes')
 
@@ -66,6 +72,7 @@ class _PairState:
     poses: list[_Pose] = dataclasses.field(default_factory=list)
     tracked_since_global: int = 0
     last_global_stamp: float = float('-inf')
+    checked: dict[float, np.ndarray] = dataclasses.field(default_factory=dict)  # awaiting checks
 
 
 class Tracker:
@@ -79,6 +86,8 @@ class Tracker:
     def __init__(self) -> None:
         self._state: _PairState | None = None
         self._counts: Counter[str] = Counter({name: 0 for name in COUNTS})
+        self.check_due = False  # the last scan's periodic check is the caller's to run
+        self.global_registration = register_clouds  # the global path (tests replace it)
 
     def counts(self) -> dict[str, int]:
         """
@@ -98,8 +107,8 @@ class Tracker:
         self._state = None
 
     def register(self, source: np.ndarray, target: np.ndarray | PreparedMap, stamp: float, *,
-                 config: PipelineConfig | None = None,
-                 odometry: np.ndarray | None = None) -> PipelineResult:
+                 config: PipelineConfig | None = None, odometry: np.ndarray | None = None,
+                 defer_checks: bool = False) -> PipelineResult:
         """
         Register the stream's next scan ``source`` onto ``target``.
 
@@ -115,21 +124,33 @@ class Tracker:
         :param odometry: optional 4x4 motion of the sensor since the previous scan (pose of
             this scan's frame in the previous scan's frame, metres): the prediction is then
             the last pose times it instead of a constant velocity.
+        :param defer_checks: a periodic check that is due does not run here: the scan is
+            tracked, :attr:`check_due` is set, and the caller runs the global search of
+            this scan elsewhere and hands its verdict to :meth:`apply_check`.
         :returns: a :class:`PipelineResult` with ``path`` 'tracked' or 'global'; a tracked
             result is always valid (a failed prediction goes global).
         :raises: as :func:`~.register.register_clouds`.
         """
         cfg = fields.update_from_flat(config or PipelineConfig(), {})  # validated copy
         source = finite_points(source, 'source')
+        self.check_due = False
         state = self._pair(target, cfg)
         prediction, kind = self._predict(state, stamp, cfg, odometry)
         if prediction is None:
             return self._global(source, target, stamp, cfg, state, kind)
-        if self._check_due(state, stamp, cfg):
+        due = self._check_due(state, stamp, cfg)
+        if due and not defer_checks:
             return self._periodic_check(source, target, stamp, cfg, state, prediction, kind)
         with single_blas_thread():
             tracked = self._track(source, target, prediction, cfg, state)
         if tracked.valid:
+            if due:  # checked beside the stream: the next check waits its interval again
+                state.tracked_since_global, state.last_global_stamp = 0, stamp
+                state.checked[stamp] = tracked.transform.copy()
+                while len(state.checked) > MAX_AWAITED:  # checks the caller never ran
+                    del state.checked[next(iter(state.checked))]
+                self.check_due = True
+                return self._accept_tracked(tracked, stamp, state, kind, reset=False)
             return self._accept_tracked(tracked, stamp, state, kind)
         self._counts['tracking_failures'] += 1
         state.poses.clear()  # the motion broke off: no velocity across it
@@ -217,13 +238,14 @@ class Tracker:
             refusal = (overlap_refusal(result, cfg)
                        or tracking_refusal(*difference(prediction, result.transform),
                                            result.fitness, last_fitness, cfg))
-        # The global path's covariance (the whole overlap, point-to-plane): a stream's poses
-        # keep one meaning whichever path made them.
+        # The global path's covariance (the whole overlap, point-to-plane) and its usable
+        # bound: a stream's poses keep one meaning whichever path made them.
         result.covariance = overlap_covariance(
             points, ft.points, ft.normals, ft.tree, result.transform,
             cfg.refine.max_correspondence_distance_factor * v, v, gravity,
             (align.source_index, align.target_index))
-        return result.finish(start, refusal)
+        return result.finish(start, refusal or uncertainty_refusal(
+            loosest_sigma(result.covariance), cfg))
 
     def _target_features(self, target: np.ndarray | PreparedMap, cfg: PipelineConfig,
                          state: _PairState, timings: dict[str, float]) -> CloudFeatures:
@@ -238,10 +260,30 @@ class Tracker:
                                                      None, DEFAULT_WORKERS)
         return state.features
 
+    def apply_check(self, stamp: float, transform: np.ndarray | None) -> None:
+        """
+        Take the verdict of a periodic check run beside the stream (``defer_checks``).
+
+        :param stamp: the checked scan's stamp (one this Tracker asked to check).
+        :param transform: the global result (4x4), or None when the global search refused.
+        A valid result that disagrees with the pose tracked for that scan resets the motion:
+        the next scan is searched globally. A verdict on a scan of an earlier target or
+        configuration is ignored.
+        """
+        state = self._state
+        tracked = None if state is None else state.checked.pop(stamp, None)
+        if tracked is None:
+            return
+        self._counts['periodic_checks'] += 1
+        cfg = state.config
+        if transform is not None and not agree(tracked, transform, cfg):
+            self._counts['check_disagreements'] += 1
+            state.poses.clear()
+
     def _accept_tracked(self, result: PipelineResult, stamp: float, state: _PairState,
-                        kind: str) -> PipelineResult:
+                        kind: str, reset: bool = True) -> PipelineResult:
         self._counts['tracked'] += 1
-        state.tracked_since_global += 1
+        state.tracked_since_global += reset
         result.stats['prediction'] = kind
         _remember(state, stamp, result)
         return result
@@ -249,7 +291,7 @@ class Tracker:
     def _global(self, source: np.ndarray, target: np.ndarray | PreparedMap, stamp: float,
                 cfg: PipelineConfig, state: _PairState, why: str) -> PipelineResult:
         """Run the global search; a valid result starts the pair's motion afresh."""
-        result = register_clouds(source, target, config=cfg)
+        result = self.global_registration(source, target, config=cfg)
         self._count_global(result, stamp, state)
         result.stats['global_because'] = why
         if result.valid:
@@ -275,7 +317,7 @@ class Tracker:
         refined and gated as on any other scan.
         """
         self._counts['periodic_checks'] += 1
-        result = register_clouds(source, target, config=cfg)
+        result = self.global_registration(source, target, config=cfg)
         if not result.valid:
             # checked: the next check waits its interval again, even though this one refused
             state.tracked_since_global, state.last_global_stamp = 0, stamp

@@ -1,13 +1,15 @@
 """
 The node's accounting: every cloud it receives ends in exactly one counted bucket.
 
-Sources: published, rejected (per cause: the cloud could not be decoded, or its pair failed
-or was invalid), dropped (per pairing reason) or pending (waiting for a target, queued, or
-being registered). Targets: used, rejected, dropped or held. The counters change under one
-lock, together with the pairer's, so every snapshot balances exactly; /diagnostics carries
-the buckets and ``accounting.ok``. Sources that never arrived are outside that balance:
-``sources.lost_upstream`` counts the gaps in the received source stamps
-(:class:`~cgags_ros.pipeline.upstream.UpstreamLoss`).
+Sources: published, rejected (per refusal code: the cloud could not be decoded, or its pair
+failed or was refused; the code is the one classification, on /diagnostics
+``rejected.<code>`` and on ~/result), dropped (per pairing reason) or pending (waiting for a
+target, queued, or being registered). Targets: used, rejected (``rejected_targets.<code>``),
+dropped or held. The counters, the pairer, the upstream losses and the tracked stream's
+backlog change under one lock (the pairer uses it as its own), so every snapshot balances
+exactly; /diagnostics carries the buckets and ``accounting.ok``. Sources that never arrived
+are outside that balance: ``sources.lost_upstream`` counts the gaps in the received source
+stamps (:class:`~.upstream.UpstreamLoss`).
 """
 
 from __future__ import annotations
@@ -17,41 +19,53 @@ import threading
 import time
 from typing import Any, Callable
 
+from .backlog import Backlog, SKIPPED
+from .pairing import is_source_drop, Pair, Pairer, Stamped
 from .transport import user_line
-from ..pipeline.backlog import SKIPPED
-from ..pipeline.pairing import is_source_drop, Pair, Pairer, Stamped
-from ..pipeline.upstream import UpstreamLoss
+from .upstream import UpstreamLoss
+from ..config.node import PairingConfig
+from ..refusal import Refusal
 
-LOG_REPEAT_S = 30.0  # a cause already logged is logged again at most this often
+LOG_REPEAT_S = 30.0  # a code already logged is logged again at most this often
+# Given the ready pairs' source stamps (ns, oldest first) and the backlog, how many of the
+# oldest to drop before the next is taken.
+Skip = Callable[[list[int], Backlog], int]
 
 
-class NodeHealth:
-    """Counters, the last registration and the latencies of one node."""
+class Accounting:
+    """The counters, the pairer, the upstream losses and the backlog of one node."""
 
-    def __init__(self, pairer: Pairer):
-        self._lock = threading.Lock()  # held around every change of these and the pairer
-        self._pairer = pairer
+    def __init__(self, pairing: PairingConfig, queue_depth: int):
+        self._lock = threading.Condition()  # re-entrant; the pairer's lock too
+        self._pairer = Pairer.from_config(pairing, queue_depth, lock=self._lock)
+        self._pairer.on_drop = self._on_drop
         self._upstream = UpstreamLoss()
+        self.backlog = Backlog()  # a tracked stream's last scan (read under the lock)
         self._counts: collections.Counter[str] = collections.Counter()
-        self._rejected: collections.Counter[str] = collections.Counter()
+        self._rejected: dict[str, collections.Counter[str]] = {
+            'source': collections.Counter(), 'target': collections.Counter()}
         self._last: dict[str, Any] = {}
         self._latencies: collections.deque[float] = collections.deque(maxlen=200)
         self._in_progress = 0
         self._failing = ''  # why the worker failed, until a registration succeeds again
         self._logged: dict[str, float] = {}
         self._dropped: list[tuple[str, Stamped]] = []  # sources pairing dropped, not yet told
-        pairer.on_drop = self._on_drop
 
-    def failed(self, cause: str) -> None:
-        """Mark the registration worker failing (``cause``) until a registration succeeds."""
+    def failed(self, code: str) -> None:
+        """Mark the registration worker failing (``code``) until a registration succeeds."""
         with self._lock:
-            self._failing = cause
+            self._failing = code
 
-    def registered(self, last: dict[str, Any]) -> None:
-        """Record the last registration's summary (``last_*`` keys); the worker works."""
+    def registered(self, last: dict[str, Any], path: str, valid: bool, stamp_ns: int) -> None:
+        """
+        Record the last registration: its summary (``last_*`` keys), path and stamp.
+
+        The backlog keeps whether it was tracked and valid (a velocity exists).
+        """
         with self._lock:
             self._failing = ''
             self._last = dict(last)
+            self.backlog.saw(path == 'tracked' and valid, stamp_ns)
 
     def count(self, key: str) -> None:
         """Count one event outside the balance (e.g. ``published_invalid``)."""
@@ -73,9 +87,9 @@ class NodeHealth:
             self._pairer.set_slop(slop)
 
     def receive(self, role: str, stamp_ns: int, frame_id: str, payload: Any,
-                rejection: str = '') -> int:
+                rejection: Refusal | None = None) -> int:
         """
-        Count a received cloud: pair it, or count its ``rejection`` cause.
+        Count a received cloud: pair it, or count its ``rejection`` by code.
 
         :returns: how many more sources its stamp shows lost upstream (a stamp of 0, when
             the header could not be read, shows nothing).
@@ -83,8 +97,8 @@ class NodeHealth:
         with self._lock:
             self._counts[f'received_{role}'] += 1
             lost = self._upstream.add(stamp_ns) if role == 'source' and stamp_ns > 0 else 0
-            if rejection:
-                self._rejected[rejection] += 1
+            if rejection is not None:
+                self._rejected[role][rejection.code.value] += 1
             elif role == 'source':
                 self._pairer.add_source(stamp_ns, frame_id, payload)
             else:
@@ -92,7 +106,7 @@ class NodeHealth:
             return lost
 
     def _on_drop(self, reason: str, item: Stamped) -> None:
-        if is_source_drop(reason):  # under the lock of receive(): the pairer's caller
+        if is_source_drop(reason):  # under the lock: the pairer's caller holds it
             self._dropped.append((reason, item))
 
     def dropped_sources(self) -> list[tuple[str, Stamped]]:
@@ -101,73 +115,75 @@ class NodeHealth:
             dropped, self._dropped = self._dropped, []
             return dropped
 
-    def take(self, timeout: float, skip: Callable[[list[int]], int] | None = None
-             ) -> Pair | None:
+    def take(self, timeout: float, skip: Skip | None = None) -> Pair | None:
         """
         Return the next ready pair (now in progress), or None after ``timeout`` s.
 
-        ``skip``: given the ready pairs' source stamps (ns, oldest first), how many of the
-        oldest to drop first (counted as ``backlog.SKIPPED``).
+        ``skip``: how many of the oldest ready pairs to drop first (counted as
+        ``backlog.SKIPPED``), decided under the lock from their stamps and the backlog.
         """
         if not self._pairer.wait_ready(timeout):
             return None
         with self._lock:
             if skip is not None:
-                self._pairer.drop_oldest(skip(self._pairer.ready_stamps()), SKIPPED)
+                self._pairer.drop_oldest(skip(self._pairer.ready_stamps(), self.backlog),
+                                         SKIPPED)
             pair = self._pairer.pop()
             self._in_progress += pair is not None
             return pair
 
-    def finish(self, rejection: str = '', latency_s: float | None = None) -> None:
-        """End the pair in progress: published (no ``rejection``) or rejected."""
+    def finish(self, refusal: Refusal | None = None, latency_s: float | None = None) -> None:
+        """End the pair in progress: published (no ``refusal``) or rejected by its code."""
         with self._lock:
             self._in_progress -= 1
-            if rejection:
-                self._rejected[rejection] += 1
+            if refusal is not None:
+                self._rejected['source'][refusal.code.value] += 1
             else:
                 self._counts['published'] += 1
                 if latency_s is not None:
                     self._latencies.append(latency_s)
 
-    def reject_count(self, cause: str) -> tuple[int, bool]:
-        """Return (rejections of ``cause`` so far, whether to log this one)."""
+    def log_due(self, role: str, code: str) -> tuple[int, bool]:
+        """Return (``role`` clouds rejected with ``code`` so far, whether to log this one)."""
         with self._lock:
-            return self._rejected[cause], self._log_due(cause)
+            return self._rejected[role][code], self._log_due(f'{role}.{code}')
 
     def lost_upstream(self) -> tuple[int, bool]:
         """Return (sources lost upstream so far, whether to log it now)."""
         with self._lock:
             return self._upstream.lost, self._log_due('lost_upstream')
 
-    def _log_due(self, cause: str) -> bool:
-        """Tell whether ``cause`` is to be logged now (first time, then every 30 s)."""
+    def _log_due(self, key: str) -> bool:
+        """Tell whether ``key`` is to be logged now (first time, then every 30 s)."""
         now = time.monotonic()
-        last = self._logged.get(cause)
+        last = self._logged.get(key)
         due = last is None or now - last >= LOG_REPEAT_S
         if due:
-            self._logged[cause] = now
+            self._logged[key] = now
         return due
 
     def snapshot(self) -> dict[str, Any]:
         """Return counts, rejections, last result, latencies, pairing and the balance."""
         with self._lock:
-            counts, rejected = dict(self._counts), dict(self._rejected)
+            counts = dict(self._counts)
+            rejected = dict(self._rejected['source'])
+            rejected_targets = dict(self._rejected['target'])
             pairing = self._pairer.counters()
-            snap = {'counts': counts, 'rejected': rejected, 'last': dict(self._last),
+            snap = {'counts': counts, 'rejected': rejected,
+                    'rejected_targets': rejected_targets, 'last': dict(self._last),
                     'latencies': list(self._latencies), 'pairing': pairing,
                     'failing': self._failing}
             in_progress = self._in_progress
             lost_upstream, period_ns = self._upstream.lost, self._upstream.period_ns
-        target_rejects = sum(v for k, v in rejected.items() if k.startswith('target_'))
         sources = {'received': counts.get('received_source', 0),
                    'published': counts.get('published', 0),
-                   'rejected': sum(rejected.values()) - target_rejects,
+                   'rejected': sum(rejected.values()),
                    'dropped': pairing['dropped_sources'],
                    'pending': pairing['waiting_sources'] + pairing['pending'] + in_progress,
                    'lost_upstream': lost_upstream}
         targets = {'received': counts.get('received_target', 0), 'used': pairing['targets_used'],
-                   'rejected': target_rejects, 'dropped': pairing['dropped_targets'],
-                   'pending': pairing['targets_held']}
+                   'rejected': sum(rejected_targets.values()),
+                   'dropped': pairing['dropped_targets'], 'pending': pairing['targets_held']}
         snap['source_period_s'] = period_ns * 1e-9 if period_ns else None
         snap['accounting'] = {
             'sources': sources, 'targets': targets,

@@ -15,7 +15,7 @@ how many come back valid, their best consensus and chance level.
 
 Example::
 
-    .venv/bin/python -m bench.chance_sample --outliers uniform,cube --ratio 0.99 --trials 4
+    .venv/bin/python -m bench.studies.chance_sample --outliers uniform,cube --ratio 0.99 --trials 4
 """
 
 from __future__ import annotations

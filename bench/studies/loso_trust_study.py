@@ -1,9 +1,9 @@
 r"""
-Leave-one-scene-out study of the valid flag's levers over ``bench/loso_trust.py`` records.
+Leave-one-scene-out study of the valid flag's levers over :mod:`.loso_trust`'s records.
 
 Run by hand from the repository root (offline, seconds)::
 
-    .venv/bin/python -m bench.loso_trust_study [out/loso_trust/records.jsonl] \
+    .venv/bin/python -m bench.studies.loso_trust_study [out/loso_trust/records.jsonl] \
         [--output out/loso_trust/study]
 
 For each lever its settings are chosen on three scenes and reported on the fourth, each
@@ -45,11 +45,13 @@ from pathlib import Path
 from types import SimpleNamespace
 
 from bench.common import argument_parser, markdown_table
-from cgags_ros.pipeline import confidence, covariance
+from cgags_ros.config import PipelineConfig
+from cgags_ros.pipeline import confidence, covariance, rivals
 import numpy as np
 
 VOXEL = 0.05
 SIGNIFICANCE = 0.01  # gates.significance, the default the records were measured with
+MIN_ROTATION_DEG = PipelineConfig().candidate_min_rotation_deg  # the records' default too
 CHI2_95 = 12.592  # chi-square, 6 degrees of freedom
 CHI2_999 = 22.458
 GRIDS = ('2', '4', '8', '16')
@@ -205,8 +207,7 @@ def covariance_study(records: list[dict], valid: np.ndarray) -> dict:
         S = floor_matrix(*fit, M['radius'][ti])
         out['floor only'][held] = cov_stats(S, M['e'][ti], right[ti], bench[ti])
         out['settings'].setdefault('floor only', {})[held] = fit
-    idx = np.flatnonzero(use)
-    out['settings']['plane+floor (all scenes)'] = fit_covariance(M, idx, right, bench, True)
+    out['settings']['plane+floor (all scenes)'] = shipped_covariance(records, valid)
     return out
 
 
@@ -304,13 +305,35 @@ def mixture_study(records: list[dict], valid: np.ndarray) -> dict:
     idx = np.flatnonzero(use)
     for name in held_out:  # every scene's held-out poses together
         out[name]['all'] = cov_stats(held_out[name][idx], M['e'][idx], right[idx], bench[idx])
-    # What ships: W chosen on every scene, each scene's p from a model fit on the others.
-    g, k, ft, fr = fit_covariance(M, idx, right, bench, True)
-    S = k * M[g] + floor_matrix(ft, fr, M['radius'])
-    p = inner_probabilities(X, keep, right, scene, names)
-    out['settings']['all scenes'] = fit_mixture(S[idx], p[idx], M['e'][idx], right[idx],
-                                                bench[idx])
+    out['settings']['all scenes'] = shipped_doubt(records, valid)
     return out
+
+
+def shipped_covariance(records: list[dict], valid: np.ndarray) -> tuple:
+    """Return what ships: (g, k, f_t, f_r) of :func:`fit_covariance` on every valid pose."""
+    M = base_matrices(records)
+    right = np.array([r['success'] for r in records], dtype=bool)
+    bench = np.array([r['benchmark'] for r in records])
+    return fit_covariance(M, np.flatnonzero(valid & M['ok']), right, bench)
+
+
+def shipped_doubt(records: list[dict], valid: np.ndarray) -> tuple:
+    """
+    Return what ships: (w_t, w_r, gamma, m) of :func:`fit_mixture` on every scene.
+
+    Over the valid poses with an estimate, each scene's confidence from a model fit on the
+    other scenes, the covariance chosen on those poses.
+    """
+    M = base_matrices(records)
+    right = np.array([r['success'] for r in records], dtype=bool)
+    bench = np.array([r['benchmark'] for r in records])
+    scene = np.array([r['scene'] for r in records])
+    X, keep = design(records)
+    idx = np.flatnonzero(valid & M['ok'] & np.isin(np.arange(len(records)), keep))
+    g, k, ft, fr = fit_covariance(M, idx, right, bench)
+    S = k * M[g] + floor_matrix(ft, fr, M['radius'])
+    p = inner_probabilities(X, keep, right, scene, scenes(records))
+    return fit_mixture(S[idx], p[idx], M['e'][idx], right[idx], bench[idx])
 
 
 # --- structured rivals ---------------------------------------------------------------------
@@ -320,16 +343,18 @@ def rival_refuses(r: dict, limit: float, rho: float, apart: float = 10.0,
     """
     Tell whether a plausible structured rival makes the valid pose ``r`` ambiguous.
 
-    A rival whose start fits less than ``promising`` times the estimate is not refined by
-    the pipeline, so it cannot refuse.
+    The pipeline's verdict (:mod:`cgags_ros.pipeline.rivals`) on the recorded rivals, at the
+    limits given: a rival whose start fits less than ``promising`` times the estimate is
+    not refined by the pipeline, so it cannot refuse.
     """
     for x in r.get('rivals', []):
-        if x['start_fitness'] < promising * r['fitness']:
-            continue
-        distinct = x['from_estimate_deg'] > 10 or x['from_estimate_m'] > apart * VOXEL
         violation = x['free_space_violation']
-        if distinct and (violation is None or violation <= limit) \
-                and x['fitness'] * rho >= r['fitness']:
+        if (rivals.worth_refining(x['start_fitness'], r['fitness'], promising)
+                and rivals.settled_apart(x['from_estimate_deg'], x['from_estimate_m'], VOXEL,
+                                         MIN_ROTATION_DEG, apart)
+                and rivals.fits_as_well(x['fitness'], r['fitness'], rho)
+                and rivals.clear_of_free_space(math.nan if violation is None else violation,
+                                               limit)):
             return True
     return False
 
@@ -614,8 +639,10 @@ def main(argv: list[str] | None = None) -> int:
     parts.append('### Reliability of the held-out confidence\n\n' + markdown_table(
         ('bin', 'estimates', 'mean P', 'right share'), rel_all) + '\n\nvalid only:\n\n'
         + markdown_table(('bin', 'estimates', 'mean P', 'right share'), rel_valid))
-    # What ships from this study: the covariance fit on all scenes. The rivals' settings and
-    # the confidence's weights ship from bench.trust_shift, which chooses them in both splits.
+    # What ships from this study: the covariance fit on all scenes (python -m
+    # bench.studies.fit prints it as the source holds it). The rivals' settings and the
+    # confidence's weights ship from bench.studies.trust_shift, which chooses them in both
+    # splits.
     parts.append('### Fit on all scenes (the shipped covariance)\n\n'
                  f"covariance (g, k, f_t, f_r): {cov['settings']['plane+floor (all scenes)']}")
     text = '\n\n'.join(parts)

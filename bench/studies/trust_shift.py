@@ -3,9 +3,9 @@ Trust under shift: the valid flag chosen on some scenes and reported on harder u
 
 Run by hand from the repository root, after the records (one gates-only run, ~10 min)::
 
-    OMP_NUM_THREADS=1 .venv/bin/python -m bench.loso_trust measure --gates-only \
+    OMP_NUM_THREADS=1 .venv/bin/python -m bench.studies.loso_trust measure --gates-only \
         --output out/loso_trust/gates.jsonl
-    .venv/bin/python -m bench.trust_shift out/loso_trust/gates.jsonl \
+    .venv/bin/python -m bench.studies.trust_shift out/loso_trust/gates.jsonl \
         [--output out/trust_shift/study]
 
 Two splits of the four shared 3DMatch scenes, every setting chosen on the training scenes
@@ -24,9 +24,9 @@ The levers, in the pipeline's order, on top of the gates (the records' ``valid``
 ``rivals``
     The structured rivals (:mod:`cgags_ros.pipeline.rivals`): a valid pose is refused when
     a rival distinct from it fits about as well without stacking surfaces in free space.
-    Chosen as in :mod:`bench.loso_trust_study` (the most wrong poses refused, at most 1 % of
-    the right valid ones lost), once with the half turns and slides alone (``rivals
-    (flips, slides)``) and once with every start (``rivals (all)``: quarter turns about the
+    Chosen as in :mod:`.loso_trust_study` (the most wrong poses refused, at most 1 % of the
+    right valid ones lost), once with the half turns and slides alone (``rivals (flips,
+    slides)``) and once with every start (``rivals (all)``: quarter turns about the
     normals' axes and the correspondences' other candidates too).
 ``sigma``
     Valid means usable: the reported covariance's loosest position sigma (the overlap's
@@ -38,7 +38,8 @@ The levers, in the pipeline's order, on top of the gates (the records' ``valid``
     refit. Its threshold is the smallest meeting the valid-but-wrong targets (1 % / 3 %) on
     the training scenes.
 
-Outputs ``--output`` + ``.md`` / ``.json``.
+Outputs ``--output`` + ``.md`` / ``.json``; the levers chosen on every scene (what ships)
+come last, and ``python -m bench.studies.fit`` prints them as the source holds them.
 """
 
 from __future__ import annotations
@@ -49,10 +50,11 @@ import math
 from pathlib import Path
 
 from bench.common import argument_parser, markdown_table
-from bench.loso_trust_study import (as_result, CHI2_95, CHI2_999, fit_logistic, fit_rivals,
-                                    flag_counts, load, overlap_covariance, predict,
-                                    reliability, rival_refuses, short, SIGNIFICANCE,
-                                    threshold_for, VOXEL)
+from bench.studies.loso_trust_study import (as_result, CHI2_95, CHI2_999, fit_logistic,
+                                            fit_rivals, flag_counts, load, MIN_ROTATION_DEG,
+                                            overlap_covariance, predict, reliability,
+                                            rival_refuses, short, SIGNIFICANCE, threshold_for,
+                                            VOXEL)
 from bench.truth_check import doubtful_fragments, in_doubt
 from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import confidence, covariance, rivals
@@ -91,8 +93,9 @@ def rival_fit(r: dict) -> float:
     fitness = r['fitness'] or 0.0
     fits = [c['fitness'] for c in r['candidates'][1:] if c['fitness'] is not None]
     fits += [x['fitness'] for x in r.get('rivals', [])
-             if x['start_fitness'] >= rivals.PROMISING * fitness
-             and (x['from_estimate_deg'] > 10 or x['from_estimate_m'] > rivals.APART * VOXEL)]
+             if rivals.worth_refining(x['start_fitness'], fitness)
+             and rivals.settled_apart(x['from_estimate_deg'], x['from_estimate_m'], VOXEL,
+                                      MIN_ROTATION_DEG)]
     return max(fits, default=0.0) / max(fitness, 1e-3)
 
 
@@ -296,6 +299,15 @@ def shipped(records: list[dict]) -> dict:
             **chosen}
 
 
+def trusted(records: list[dict], root: Path) -> tuple[list[dict], dict]:
+    """Return the records whose truth is not in doubt, and what was left out."""
+    doubtful = doubtful_fragments(records, root)
+    kept = [r for r in records if not in_doubt(r, doubtful)]
+    return kept, {'pairs': len(records) - len(kept),
+                  'fragments': {short(s): [f.fragment for f in fs]
+                                for s, fs in doubtful.items() if fs}}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argument_parser(__spec__.name, __doc__)
     parser.add_argument('records', type=Path, nargs='?',
@@ -303,12 +315,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--root', type=Path, default=shared_data_dir() / '3dmatch_benchmark')
     parser.add_argument('--output', type=Path, default=Path('out/trust_shift/study'))
     args = parser.parse_args(argv)
-    records = load(args.records)
-    doubtful = doubtful_fragments(records, args.root)
-    kept = [r for r in records if not in_doubt(r, doubtful)]
-    excluded = {'pairs': len(records) - len(kept),
-                'fragments': {short(s): [f.fragment for f in fs]
-                              for s, fs in doubtful.items() if fs}}
+    kept, excluded = trusted(load(args.records), args.root)
     out = study(kept)
     text = report(out, excluded) + '\n\n### Fit on all scenes (ships)\n\n' + json.dumps(
         shipped(kept), indent=1)

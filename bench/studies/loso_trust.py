@@ -3,14 +3,14 @@ Leave-one-scene-out study of the valid flag, the covariance and a confidence (3D
 
 Run by hand from the repository root, one run at a time (it takes a while)::
 
-    OMP_NUM_THREADS=1 .venv/bin/python -m bench.loso_trust measure \
+    OMP_NUM_THREADS=1 .venv/bin/python -m bench.studies.loso_trust measure \
         [--root <shared data>/3dmatch_benchmark] [--scenes S ...] [--pairs K] \
         [--output out/loso_trust/records.jsonl]
 
 ``measure`` registers every pair of both lists (3DMatch, 3DLoMatch) of every scene once,
 with the default pipeline (``--gates-only``: without the structured rivals and the
 confidence threshold, so that every estimate the gates pass has its rivals recorded, the
-base :mod:`bench.trust_shift` chooses those levers on; each fragment featurised once a
+base :mod:`bench.studies.trust_shift` chooses those levers on; each fragment featurised once a
 scene: the estimates are those of a cold run, the whole-pair times are not) and writes one
 JSON line a pair holding every
 measurement the pipeline has: the gates' values (inliers, chance level and its bound,
@@ -31,7 +31,7 @@ with today's code (the starts and the refinement of :mod:`cgags_ros.pipeline.riv
 from the recorded estimates, and writes the records with them (minutes, not the hour a
 full ``measure`` takes)::
 
-    OMP_NUM_THREADS=1 .venv/bin/python -m bench.loso_trust rivals \
+    OMP_NUM_THREADS=1 .venv/bin/python -m bench.studies.loso_trust rivals \
         [out/loso_trust/records.jsonl] [--output out/loso_trust/records_rivals.jsonl]
 
 ``timing`` registers a sample of pairs (``--pairs`` a scene and list) cold with the
@@ -39,7 +39,7 @@ defaults, with the structured rivals and the confidence threshold off, and with
 KISS-Matcher, interleaved pair by pair, and prints the median seconds of each.
 
 The offline study of those records (each lever chosen on three scenes, reported on the
-fourth) is ``bench/loso_trust_study.py``. Results go under the git-ignored ``out/``.
+fourth) is ``bench/studies/loso_trust_study.py``. Results go under the git-ignored ``out/``.
 """
 
 from __future__ import annotations
@@ -132,7 +132,7 @@ def structured_rivals(fs, ft, T: np.ndarray, cfg: PipelineConfig, tau: float,
     for name, start in rivals.rival_starts(fs, ft, T, distance, v, candidates):
         t0 = time.perf_counter()
         first = evaluate_alignment(fs.points[::rivals.STRIDE], ft.tree, start, distance)
-        promising = first.fitness >= PROMISING * fitness
+        promising = rivals.worth_refining(first.fitness, fitness, PROMISING)
         R = rivals.settle(fs, ft, start, tau, cfg) if promising else start
         ahead = evaluate_alignment(fs.points, ft.tree, R, distance)
         out.append({

@@ -1,8 +1,8 @@
 """
-cgags_ros.pipeline.isolated: register_clouds in a supervised child process.
+cgags_ros.runtime.supervisor: typed jobs in a supervised registration process.
 
 No ROS: the real pipeline in a real spawned process, killed, timed out and replaced as the
-node's registrations are.
+node's registrations are; each job kind through it, and its typed answer.
 """
 
 from __future__ import annotations
@@ -13,10 +13,14 @@ import threading
 
 from cgags_ros.config import PipelineConfig
 from cgags_ros.errors import EmptyCloudError
+from cgags_ros.io.clouds import write_cloud
 from cgags_ros.pipeline import register_clouds
-from cgags_ros.pipeline.isolated import (IsolatedRegistration, RegistrationTimeout, rss_mb,
-                                         running, WorkerCrashed)
 from cgags_ros.pipeline.register import terrain_patch
+from cgags_ros.relocalization.sequence import StepAnswer
+from cgags_ros.runtime.jobs import (MapReady, MapRef, PairDone, PrepareMap, RegisterPair,
+                                    SequenceScan, Tracked, TrackScan)
+from cgags_ros.runtime.procfs import rss_mb, running
+from cgags_ros.runtime.supervisor import RegistrationTimeout, Supervisor, WorkerCrashed
 import numpy as np
 import pytest
 from waiting import wait_for
@@ -34,7 +38,13 @@ def pair():
     return target @ R.T + 0.1, target
 
 
-def test_isolated_registration_sends_an_unchanged_target_once(pair):
+def pair_result(supervisor, source, target):
+    answer = supervisor.run(RegisterPair(source, target, CONFIG))
+    assert isinstance(answer, PairDone)
+    return answer.result
+
+
+def test_the_process_is_sent_an_unchanged_target_once(pair):
     """
     Check that the registration process is sent an unchanged target only once.
 
@@ -46,19 +56,19 @@ def test_isolated_registration_sends_an_unchanged_target_once(pair):
     """
     source, target = pair
     other = target[::-1].copy()  # same points, another array: must be sent
-    iso = IsolatedRegistration(60.0)
+    iso = Supervisor(60.0)
     try:
         assert not iso.ready and iso.health()['worker.ready'] is False  # spawning, warming up
-        first = iso(source, target, config=CONFIG)
+        first = pair_result(iso, source, target)
         assert iso.ready and iso.health()['worker.ready'] is True
         assert iso.targets_sent == 1
-        again = iso(source, target, config=CONFIG)
+        again = pair_result(iso, source, target)
         assert iso.targets_sent == 1
-        changed = iso(source, other, config=CONFIG)
+        changed = pair_result(iso, source, other)
         assert iso.targets_sent == 2
         iso.restart()
         assert not iso.ready  # the fresh child warms up again
-        after = iso(source, other, config=CONFIG)
+        after = pair_result(iso, source, other)
         assert iso.targets_sent == 3 and iso.restarts == 1 and iso.crashes == 0
     finally:
         iso.close()
@@ -71,16 +81,16 @@ def test_isolated_registration_sends_an_unchanged_target_once(pair):
 
 def test_a_pair_past_the_time_limit_restarts_the_process_and_the_next_one_runs(pair):
     source, target = pair
-    iso = IsolatedRegistration(0.01)  # no registration ends this fast
+    iso = Supervisor(0.01)  # no registration ends this fast
     try:
         iso.wait_ready()  # the warm-up is not counted against the limit
         pid = iso.pid
         with pytest.raises(RegistrationTimeout, match='worker.registration_timeout = 0.01 s'):
-            iso(source, target, config=CONFIG)
+            pair_result(iso, source, target)
         assert iso.restarts == 1 and iso.crashes == 0 and iso.pid != pid
         wait_for(lambda: not running(pid), 10, 'the timed-out process to end')
         iso.timeout_s = 120.0
-        result = iso(source, target, config=CONFIG)
+        result = pair_result(iso, source, target)
         assert result.valid, result.reason
         assert iso.targets_sent == 2  # the fresh process was sent the target again
     finally:
@@ -89,7 +99,7 @@ def test_a_pair_past_the_time_limit_restarts_the_process_and_the_next_one_runs(p
 
 def test_a_process_killed_busy_fails_its_pair_and_one_killed_idle_costs_nothing(pair):
     source, target = pair
-    iso = IsolatedRegistration(120.0)
+    iso = Supervisor(120.0)
     try:
         iso.wait_ready()
         failed = []
@@ -98,7 +108,7 @@ def test_a_process_killed_busy_fails_its_pair_and_one_killed_idle_costs_nothing(
 
         def register():
             try:
-                iso(noise, target, config=CONFIG)
+                pair_result(iso, noise, target)
             except WorkerCrashed as exc:
                 failed.append(exc)
 
@@ -119,7 +129,7 @@ def test_a_process_killed_busy_fails_its_pair_and_one_killed_idle_costs_nothing(
         os.kill(pid, signal.SIGKILL)  # idle: found dead before the next pair is sent
         wait_for(lambda: not running(pid), 10, 'the idle process to die')
         assert iso.health()['worker.alive'] is False
-        result = iso(source, target, config=CONFIG)
+        result = pair_result(iso, source, target)
         assert result.valid, result.reason
         assert iso.crashes == 2 and iso.pid != pid and iso.health()['worker.alive'] is True
     finally:
@@ -129,7 +139,7 @@ def test_a_process_killed_busy_fails_its_pair_and_one_killed_idle_costs_nothing(
 
 def test_supervise_replaces_a_process_that_died_idle_and_errors_come_back_typed(pair):
     source, target = pair
-    iso = IsolatedRegistration(120.0)
+    iso = Supervisor(120.0)
     try:
         iso.wait_ready()
         assert not iso.supervise()  # alive: nothing to do
@@ -141,8 +151,49 @@ def test_supervise_replaces_a_process_that_died_idle_and_errors_come_back_typed(
         wait_for(lambda: not running(pid), 10, 'the idle process to die')
         assert iso.supervise() and iso.crashes == 1 and iso.pid != pid
         with pytest.raises(EmptyCloudError):  # raised in the child, re-raised here
-            iso(np.zeros((0, 3)), target, config=CONFIG)
+            pair_result(iso, np.zeros((0, 3)), target)
         assert iso.crashes == 1 and iso.restarts == 1  # an error is no crash
-        assert iso(source, target, config=CONFIG).valid
+        assert pair_result(iso, source, target).valid
+    finally:
+        iso.close()
+
+
+def test_every_job_kind_gets_its_typed_answer_and_a_killed_process_forgets_its_state(
+        pair, tmp_path):
+    """
+    Each job kind runs in the process, which holds what they share until it is killed.
+
+    A map is prepared and kept, a stream's scans are tracked after the first, a sequence's
+    scans are judged on the map; after a kill the fresh process holds none of it: the map
+    is loaded again, the stream starts global, the sequence starts over.
+    """
+    source, target = pair
+    path = tmp_path / 'patch.ply'
+    write_cloud(path, target)
+    ref = MapRef(str(path))
+    iso = Supervisor(120.0)
+    try:
+        ready = iso.run(PrepareMap(ref, CONFIG))
+        assert isinstance(ready, MapReady) and ready.info['points'] > 0
+        paths = []
+        for k in range(3):
+            answer = iso.run(TrackScan(source, ref, CONFIG, stamp=0.1 * k))
+            assert isinstance(answer, Tracked) and answer.result.valid, answer.result.reason
+            paths.append(answer.result.path)
+            assert sum(answer.counts.values()) >= 1  # this scan's share of the counts
+        assert paths == ['global', 'tracked', 'tracked']
+        step = iso.run(SequenceScan(source, ref, CONFIG, np.eye(4), 3, restart=True))
+        assert isinstance(step, StepAnswer) and step.scans_used == 1
+        step = iso.run(SequenceScan(source, ref, CONFIG, np.eye(4), 3, restart=False))
+        assert step.scans_used == 2
+        pid = iso.pid
+        os.kill(pid, signal.SIGKILL)
+        wait_for(lambda: not running(pid), 10, 'the killed process to end')
+        answer = iso.run(TrackScan(source, ref, CONFIG, stamp=0.3))
+        assert answer.result.path == 'global'  # no prior in the fresh process
+        assert answer.result.map_info  # the map loaded again
+        step = iso.run(SequenceScan(source, ref, CONFIG, np.eye(4), 3, restart=False))
+        assert step.scans_used == 1  # the sequence started over
+        assert iso.crashes == 1
     finally:
         iso.close()

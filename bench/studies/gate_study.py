@@ -3,7 +3,7 @@ Replay the valid flag over ``bench.threedmatch`` records with extra gates, witho
 
 Run by hand::
 
-    .venv/bin/python -m bench.gate_study out/bench/threedmatch_run/records.jsonl \
+    .venv/bin/python -m bench.studies.gate_study out/bench/threedmatch_run/records.jsonl \
         [--gate 'free_space_violation <= 0.25'] [--gate 'overlap >= 0.1'] [--method cgags]
 
 Each ``--gate FIELD OP VALUE`` (OP one of ``<= < >= >``; FIELD a number the records hold for

@@ -2,30 +2,29 @@
 A tracked stream's backlog: the scans that arrive while a registration runs.
 
 A global registration takes several scan periods. With a queue of one pair, the scan taken
-after it is the newest, too far from the last pose (and with no velocity yet) to be
-tracked, so the stream goes global again and never settles. A tracked stream
-(:func:`~.stream.tracks`) therefore keeps up to ``pairing.backlog`` pairs and registers
-them in stamp order, each from its predecessor's pose: tracking a scan takes less than a
-scan period, so the backlog drains and the stream keeps up. When it does not drain fast
-enough (the oldest waiting scan more than ``pairing.backlog_max_lag`` behind the newest) and the
-last scan was tracked, every other waiting scan is dropped, as long as the next one taken
-is within ``tracking.max_age`` of the last (beyond it the Tracker has no prediction);
-the Tracker scales the constant velocity to the next scan's stamp. When the oldest
-waiting scan is already beyond ``tracking.max_age`` (the full backlog dropped the scans
-between), it would be registered globally anyway: the newest is taken instead. A
+after it is the newest, too far from the last pose (and with no velocity yet) to be tracked,
+so the stream goes global again and never settles. A tracked stream
+(:func:`~cgags_ros.tracking.counts.tracks`) therefore keeps up to ``pairing.backlog`` pairs
+and registers them in stamp order, each from its predecessor's pose: tracking a scan takes
+less than a scan period, so the backlog drains and the stream keeps up. When it does not
+drain fast enough (the oldest waiting scan more than ``pairing.backlog_max_lag`` behind the
+newest) and the last scan was tracked, every other waiting scan is dropped, as long as the
+next one taken is within ``tracking.max_age`` of the last (beyond it the Tracker has no
+prediction); the Tracker scales the constant velocity to the next scan's stamp. When the
+oldest waiting scan is already beyond ``tracking.max_age`` (the full backlog dropped the
+scans between), it would be registered globally anyway: the newest is taken instead. A
 ``~/relocalize`` call is answered from the newest scan, as with a queue of one pair.
-ROS-free; the engine decides with it which pair its worker takes next
-(:meth:`~.pairing.Pairer.drop_oldest`).
+ROS-free; the accounting decides with it, under its lock, which pair the engine's worker
+takes next (:meth:`~.pairing.Pairer.drop_oldest`).
 """
 
 from __future__ import annotations
 
 from typing import Sequence
 
-from .result import PipelineResult
-from .stream import tracks
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
+from ..tracking.counts import tracks
 
 SKIPPED = 'source_skipped_catching_up'  # the pairing drop reason of a skipped scan
 
@@ -43,9 +42,9 @@ class Backlog:
         self.tracked = False  # the last registered scan was tracked (a velocity exists)
         self.stamp_ns = 0  # and its stamp
 
-    def saw(self, result: PipelineResult, stamp_ns: int) -> None:
-        """Remember whether ``result``, the last registered scan (``stamp_ns``), was tracked."""
-        self.tracked = result.path == 'tracked' and bool(result.valid)
+    def saw(self, tracked: bool, stamp_ns: int) -> None:
+        """Remember whether the last registered scan (``stamp_ns``) was tracked and valid."""
+        self.tracked = tracked
         self.stamp_ns = stamp_ns
 
     def to_skip(self, pending_ns: Sequence[int], max_lag: float, max_age: float,

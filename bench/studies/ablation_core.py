@@ -5,7 +5,7 @@ Each variant overrides CoreConfig fields; every variant sees the same problems a
 Reports success (RE < 5 deg, TE < 0.1 on the unit-scaled bunny), median/p90 time and median
 hypotheses per cell. Time is noisy on a shared machine; hypotheses are not.
 
-    .venv/bin/python -m bench.ablation_core --trials 20 --output out/bench/ablation_core.md
+    .venv/bin/python -m bench.studies.ablation_core --trials 20 --output out/bench/ablation_core.md
 """
 
 from __future__ import annotations

@@ -55,12 +55,16 @@ class Pairer:
     :param queue_depth: ready pairs kept (>= 1); the oldest is dropped when full.
     :param max_waiting_sources: sources kept while waiting for a target (>= 1).
     :param max_waiting_targets: synchronized mode only, targets kept while unmatched (>= 1).
+    :param lock: the condition the pairer's state changes under (a new one when None): the
+        node's accounting passes its own, so that its counters and the pairer's change under
+        one lock (a re-entrant one: the default ``threading.Condition`` is).
     :ivar on_drop: None, or called with (reason, the dropped :class:`Stamped`) at every drop,
         under the pairer's lock (a dropped pair hands over its source).
     """
 
     @classmethod
-    def from_config(cls, cfg, queue_depth: int | None = None) -> 'Pairer':
+    def from_config(cls, cfg, queue_depth: int | None = None,
+                    lock: threading.Condition | None = None) -> 'Pairer':
         """
         Return the Pairer a :class:`~cgags_ros.config.node.PairingConfig` describes.
 
@@ -70,11 +74,11 @@ class Pairer:
         return cls(cfg.mode, slop=cfg.sync_slop,
                    queue_depth=queue_depth or cfg.queue_depth,
                    max_waiting_sources=cfg.max_waiting_sources,
-                   max_waiting_targets=cfg.max_waiting_targets)
+                   max_waiting_targets=cfg.max_waiting_targets, lock=lock)
 
     def __init__(self, mode: str = 'latest_target', *, slop: float = 0.05,
                  queue_depth: int = 2, max_waiting_sources: int = 1,
-                 max_waiting_targets: int = 10):
+                 max_waiting_targets: int = 10, lock: threading.Condition | None = None):
         if mode not in MODES:
             raise ValueError(f"pairing mode {mode!r} is not one of {', '.join(MODES)}")
         if slop < 0 or queue_depth < 1 or max_waiting_sources < 1 or max_waiting_targets < 1:
@@ -99,7 +103,7 @@ class Pairer:
         self._newest_source_ns: int | None = None  # newest stamps since the last reset
         self._newest_target_ns: int | None = None
         self._receipts = 0
-        self._cond = threading.Condition()
+        self._cond = lock or threading.Condition()
 
     def set_slop(self, slop: float) -> None:
         """Set the synchronized-mode slop (seconds); applies to the next match."""

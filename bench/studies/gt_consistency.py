@@ -1,8 +1,8 @@
 """
 Distance of a pair's ground truth from the best alignment its own geometry supports.
 
-Issue 3 asks for RE <= 1 deg and TE <= 3 cm after refinement on the 3DMatch redkitchen pairs.
-This script measures whether the reference can confirm that: it refines each pair of
+Can the reference confirm RE <= 1 deg and TE <= 3 cm after refinement on the 3DMatch
+redkitchen pairs? This script measures it: it refines each pair of
 ``../shared/data/indoor_3dmatch/gt_pairs.txt`` starting *at the ground truth* with two
 local refiners of different libraries and costs on the full-resolution fragments (the
 pipeline's own ``features.refine``, at finer voxels and a wider matching distance),
@@ -18,7 +18,7 @@ truth and to each refiner's optimum.
 
 Run by hand (~20 s)::
 
-    .venv/bin/python -m bench.gt_consistency [--voxels 0.01 0.025]
+    .venv/bin/python -m bench.studies.gt_consistency [--voxels 0.01 0.025]
 """
 
 from __future__ import annotations

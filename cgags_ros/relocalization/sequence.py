@@ -1,98 +1,58 @@
 """
 Relocalization over the next few scans with the robot's odometry, as the node runs it.
 
-ROS-free. With a map and odometry (a ``nav_msgs/Odometry`` topic, or TF odom -> base), a
+ROS-free and light (numpy only). With a map and odometry (:mod:`.odometry`), a
 relocalization (a ``~/relocalize`` call, ``reinitialize_global_localization``, or continuous
 mode while an automatic initial pose may still go out) takes scans until the
-:class:`~cgags_ros.pipeline.relocalizer.Relocalizer` confirms a pose or the scans
+:class:`~.relocalizer.Relocalizer` in the registration process confirms a pose or the scans
 (``relocalization.max_scans``) or the time (``relocalization.timeout``) run out:
 
-- :class:`OdometryTrack` holds the odometry (``odom <- base`` by stamp) and gives each scan
-  the base's pose at the scan's stamp: interpolated between the samples either side, or the
-  nearest one, each within :data:`TOLERANCE_S`; the sensor's pose in odom is that times
-  ``base_from_sensor``.
 - A scan with no odometry near its stamp cannot be tied to the others: it is judged alone,
   as a single scan is, and the sequence starts over from the next scan. It still counts
   towards the scans of the relocalization.
-- :class:`SequenceRun` builds each scan's step (:class:`~cgags_ros.pipeline.sequence_step.
-  SequenceStep`, run where the map is) and decides on the answer (:meth:`~SequenceRun.judge`):
-  a pose confirmed over two scans or more is answered (the relocalizer's checks stand in
-  for the single-scan guards); a pose confirmed by one scan alone must also pass the
-  initial-pose quality guards, else another scan is taken; an unconfirmed one takes another
-  scan until the scans run out, then it is refused with the relocalizer's reason.
+- :class:`SequenceRun` gives each scan its pose in odom and whether the sequence restarts
+  (:meth:`~SequenceRun.step`, what a ``SequenceScan`` job carries) and decides on the
+  answer (:meth:`~SequenceRun.judge`): a pose confirmed over two scans or more is answered
+  (the relocalizer's checks stand in for the single-scan guards); a pose confirmed by one
+  scan alone must also pass the initial-pose quality guards, else another scan is taken;
+  an unconfirmed one takes another scan until the scans run out, then it is refused with
+  the relocalizer's reason.
 
-Without any odometry received, none of this runs: one scan at a time, as before.
+Without any odometry received, none of this runs: one scan at a time.
 """
 
 from __future__ import annotations
 
-import bisect
 import dataclasses
-import threading
+from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
-from .relocalize import localized, not_localized
-from ..geometry import make_transform
-from ..pipeline.sequence_step import SequenceStep, StepAnswer
-from ..refusal import Refusal
-
-# Odometry this far (seconds) from a scan's stamp may stand for the robot's pose at the
-# scan: at walking speed a few centimetres, well inside the relocalizer's drift allowance.
-TOLERANCE_S = 0.1
-KEEP_S = 60.0  # odometry kept behind the newest sample: longer than a scan waits to register
+from .odometry import OdometryTrack
+from .requests import localized, not_localized
+from ..refusal import Judged, Refusal
 
 
-class OdometryTrack:
-    """Odometry samples ``odom <- base`` (4x4, metres) by stamp; any thread."""
+@dataclasses.dataclass
+class StepAnswer(Judged):
+    """
+    The relocalizer's answer after one scan, without clouds (what the process sends back).
 
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._stamps: list[int] = []
-        self._poses: list[np.ndarray] = []
-        self.samples = 0  # received, for /diagnostics
+    :ivar refusal: why not confirmed (None: confirmed).
+    :ivar result: the scan's own registration (a ``PipelineResult``).
+    :ivar confirmed, done, transform, map_from_odom, scans_used: as in
+        :class:`~.relocalizer.Answer`.
+    :ivar hypotheses: how many hypotheses the sequence holds.
+    """
 
-    @property
-    def received(self) -> bool:
-        """Tell whether any odometry has been received."""
-        with self._lock:
-            return bool(self._stamps)
-
-    def add(self, stamp_ns: int, odom_from_base: np.ndarray) -> None:
-        """Take one sample (out-of-order stamps are put in place; a repeated stamp replaces)."""
-        T = np.asarray(odom_from_base, dtype=np.float64)
-        with self._lock:
-            self.samples += 1
-            i = bisect.bisect_left(self._stamps, stamp_ns)
-            if i < len(self._stamps) and self._stamps[i] == stamp_ns:
-                self._poses[i] = T
-            else:
-                self._stamps.insert(i, stamp_ns)
-                self._poses.insert(i, T)
-            old = bisect.bisect_left(self._stamps, self._stamps[-1] - int(KEEP_S * 1e9))
-            del self._stamps[:old], self._poses[:old]
-
-    def at(self, stamp_ns: int, tolerance_s: float = TOLERANCE_S) -> np.ndarray | None:
-        """
-        Return ``odom <- base`` at ``stamp_ns``, or None when no sample is near enough.
-
-        Interpolated (translation linearly, rotation by slerp) between the samples either
-        side when both are within ``tolerance_s``; else the nearest within it.
-        """
-        tol = int(tolerance_s * 1e9)
-        with self._lock:
-            i = bisect.bisect_left(self._stamps, stamp_ns)
-            near = [(abs(self._stamps[j] - stamp_ns), j) for j in (i - 1, i)
-                    if 0 <= j < len(self._stamps) and abs(self._stamps[j] - stamp_ns) <= tol]
-            if not near:
-                return None
-            if len(near) == 1 or self._stamps[i] == stamp_ns:
-                return self._poses[min(near)[1]].copy()
-            (t0, t1), (A, B) = self._stamps[i - 1:i + 1], self._poses[i - 1:i + 1]
-        f = (stamp_ns - t0) / (t1 - t0)
-        R = Slerp([0.0, 1.0], Rotation.from_matrix([A[:3, :3], B[:3, :3]]))([f]).as_matrix()[0]
-        return make_transform(R, (1 - f) * A[:3, 3] + f * B[:3, 3])
+    refusal: Refusal | None
+    result: Any
+    confirmed: bool
+    done: bool
+    transform: np.ndarray
+    map_from_odom: np.ndarray
+    scans_used: int
+    hypotheses: int
 
 
 @dataclasses.dataclass
@@ -138,24 +98,27 @@ class SequenceRun:
         """Forget the relocalization in progress (the next scan starts a new one)."""
         self.last, self._why, self._taken, self._restart = None, None, 0, True
 
-    def step(self, map_target: object, stamp_ns: int, base_from_sensor: np.ndarray | None,
-             max_scans: int) -> SequenceStep | None:
+    def step(self, stamp_ns: int, base_from_sensor: np.ndarray | None
+             ) -> tuple[np.ndarray | None, bool] | None:
         """
-        Return the step of a scan stamped ``stamp_ns``, or None without any odometry.
+        Return (the sensor's pose in odom, restart) of a scan stamped ``stamp_ns``.
 
-        :param map_target: what the scans are registered onto (the map's reference).
+        None without any odometry received (the scan is no step of a sequence).
+
         :param base_from_sensor: 4x4 ``T_base_sensor`` (None: unknown, the scan has no
             pose in odom).
+        :returns: the 4x4 ``odom <- sensor`` (None: no odometry near the stamp) and whether
+            the relocalizer forgets the scans so far first.
         """
         if not self.track.received:
             return None
         odom_base = self.track.at(stamp_ns)
         odom = (None if odom_base is None or base_from_sensor is None
                 else odom_base @ base_from_sensor)
-        step = SequenceStep(map_target, odom, max_scans, self._restart)
+        restart = self._restart
         self._with_odom = odom is not None
         self._restart = odom is None  # the next scan cannot continue a scan without odometry
-        return step
+        return odom, restart
 
     def judge(self, answer: StepAnswer, guard: Refusal | None, max_scans: int) -> Verdict:
         """

@@ -1,5 +1,5 @@
 """
-cgags_ros.localizer.health and .statistics: scans lost upstream, beside the balanced buckets.
+cgags_ros.localizer.accounting and .statistics: scans lost upstream, beside the balanced buckets.
 
 No DDS: the node's accounting object fed directly, its /diagnostics message built.
 """
@@ -10,10 +10,11 @@ import pytest
 
 pytest.importorskip('rclpy')
 
-from cgags_ros.localizer import statistics  # noqa: E402, I100
-from cgags_ros.localizer.health import NodeHealth  # noqa: E402
+from cgags_ros.config.node import PairingConfig  # noqa: E402, I100
+from cgags_ros.localizer import statistics  # noqa: E402
+from cgags_ros.localizer.accounting import Accounting  # noqa: E402
 from cgags_ros.localizer.transport import PROFILE_VARIABLE  # noqa: E402
-from cgags_ros.pipeline.pairing import Pairer  # noqa: E402
+from cgags_ros.refusal import Refusal, RefusalCode  # noqa: E402
 from cgags_ros.ros import diagnostics  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
 
@@ -27,11 +28,11 @@ def message(health):
 
 
 def test_gaps_in_source_stamps_are_counted_outside_the_balance_with_a_warning():
-    health = NodeHealth(Pairer('latest_target', queue_depth=100))
+    health = Accounting(PairingConfig(), queue_depth=100)
     assert health.receive('target', 1, 'map', 'T') == 0
     kept = [k for k in range(60) if k % 4 != 3]  # every fourth scan lost upstream
     new = [health.receive('source', 10 * PERIOD + k * PERIOD, 'lidar', k) for k in kept]
-    health.receive('source', 0, '', None, rejection='source_malformed')  # no stamp: no gap
+    health.receive('source', 0, '', None, Refusal(RefusalCode.BAD_INPUT, 'x'))  # no stamp: no gap
     stats, status = message(health)
     assert stats['sources.lost_upstream'] == sum(new) == 14
     assert stats['sources.period_s'] == pytest.approx(0.1)
@@ -46,7 +47,7 @@ def test_gaps_in_source_stamps_are_counted_outside_the_balance_with_a_warning():
 
 
 def test_no_source_yet_names_the_transport_fix():
-    health = NodeHealth(Pairer('latest_target'))
+    health = Accounting(PairingConfig(), queue_depth=2)
     health.receive('target', 1, 'map', 'T')
     stats, status = message(health)
     assert status.level == DiagnosticStatus.STALE and PROFILE_VARIABLE in status.message

@@ -1,0 +1,27 @@
+"""
+One-off studies behind the shipped defaults: the lab notebook, not tools.
+
+Each runs as ``python -m bench.studies.<name>`` from the repository root and writes under
+the git-ignored ``out/``. No test imports them (test/test_bench.py checks that), nor does
+any other bench module: they may import the tools of :mod:`bench`, never the reverse.
+
+- :mod:`.fit`: the one entry that regenerates the constants these studies fit (the
+  confidence's weights, the structured rivals' limits, the covariance's scale, floors and
+  doubt) from their measurement records, printed as the source holds them.
+- :mod:`.loso_trust`: measures every 3DMatch pair once (the gates' values, the covariance's
+  inputs, the structured rivals, the error against the truth): the records the trust
+  studies fit on.
+- :mod:`.loso_trust_study`: over those records, each lever chosen on three scenes and
+  reported on the fourth; fits the covariance's scale and floors and the doubt that opens
+  it (``cgags_ros/pipeline/covariance.py``).
+- :mod:`.trust_shift`: the valid flag chosen on easier scenes and reported on harder ones;
+  fits the confidence's weights (``cgags_ros/pipeline/confidence.py``) and the structured
+  rivals' limits (``cgags_ros/pipeline/rivals.py``).
+- :mod:`.gate_study`: replays extra gates over ``bench.threedmatch`` records, without
+  registering again.
+- :mod:`.chance_sample`: what stage one's minimal subsets explain by chance (the chance
+  level's estimate), per motion model and outlier layout.
+- :mod:`.gt_consistency`: how far a pair's ground truth lies from the best alignment its
+  own geometry supports.
+- :mod:`.ablation_core`: the core's options still open, each variant on the same problems.
+"""

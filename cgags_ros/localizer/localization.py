@@ -1,0 +1,131 @@
+"""
+What a registered scan means for localization: requests, the sequence, the initial pose.
+
+ROS-free. :class:`Localization` holds the pending relocalization requests
+(:mod:`cgags_ros.relocalization.requests`), the relocalization over several scans in
+progress (:mod:`cgags_ros.relocalization.sequence`) and the initial-pose guards
+(:mod:`.initial_pose`). The engine asks it whether a scan is a step of a sequence
+(:meth:`~Localization.step`) and, once the scan is registered, hands it the result
+(:meth:`~Localization.finish`): it publishes the candidates, offers the initial pose,
+answers the requests and keeps the last one-line summary for /diagnostics.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+import numpy as np
+
+from .initial_pose import extrinsic, InitialPoseGuard
+from .interface import BasePose, EngineOutputs
+from .pairing import Pair
+from ..config.node import NodeConfig
+from ..pipeline.result import PipelineResult
+from ..refusal import Refusal, RefusalCode
+from ..relocalization.requests import Answered, RelocalizeCalls, summary_line
+from ..relocalization.sequence import SequenceRun, StepAnswer, Verdict
+from ..validity import quality_refusal
+
+
+class Localization:
+    """Requests, the sequence in progress and the initial pose of one node (any thread)."""
+
+    def __init__(self, cfg: NodeConfig, outputs: EngineOutputs):
+        self._outputs = outputs
+        self.calls = RelocalizeCalls()
+        # With a map and odometry, a relocalization goes on over the next scans.
+        self.sequence = SequenceRun() if cfg.map.file else None
+        self._initial_pose = InitialPoseGuard()
+        self._lock = threading.Lock()  # guards what statistics() reads
+        self._candidates: list[Any] = []
+        self._last_summary = ''
+
+    def request(self, timeout_s: float, on_answer: Answered) -> None:
+        """Queue a request; ``on_answer(success, message)`` once a scan answers it."""
+        self.calls.add(timeout_s, on_answer)
+
+    def tick(self, timeout_s: float) -> None:
+        """Fail the requests past their deadline (why: the sequence in progress, if any)."""
+        seq = self.sequence
+        late = seq.timed_out(timeout_s) if seq else None
+        if self.calls.expire(late) and seq is not None and self.calls.waiting() is None:
+            seq.reset()
+
+    def step(self, pair: Pair, cfg: NodeConfig, on_demand: bool
+             ) -> tuple[np.ndarray | None, bool] | None:
+        """
+        Return (odom <- sensor, restart) when the scan is a step of a sequence, else None.
+
+        A scan is one while a request waits, or in continuous mode while an automatic
+        initial pose may still go out, with a map and odometry received.
+        """
+        seq, called = self.sequence, self.calls.waiting() is not None
+        reloc = cfg.relocalization
+        if seq is None or not (called or (reloc.publish_initial_pose and not on_demand
+                                          and self._initial_pose.may_publish_auto(cfg))):
+            return None
+        base = extrinsic(cfg)
+        if base is None:
+            base = self._outputs.base_from_sensor(reloc.base_frame, pair.source.frame_id)
+        return seq.step(pair.source.stamp_ns, base)
+
+    def finish(self, pair: Pair, result: PipelineResult, T: np.ndarray, cov: np.ndarray,
+               cfg: NodeConfig, frame_id: str, on_demand: bool,
+               answer: StepAnswer | None = None) -> None:
+        """Publish the candidates, offer the initial pose, answer pending requests."""
+        header = pair.source.payload.header
+        candidates = list(result.candidates)
+        self._outputs.publish_candidates(header, frame_id, [
+            c.transform for c in candidates if np.isfinite(c.transform).all()])
+        called = self.calls.waiting() is not None
+        published, why = False, 'relocalization.publish_initial_pose is off'
+        refusal = quality_refusal(result, cfg)  # once: the guard and the answer share it
+        reloc = cfg.relocalization
+        verdict: Verdict | None = None
+        if answer is not None:  # a scan of a relocalization over several scans
+            verdict = self.sequence.judge(answer, refusal, reloc.max_scans)
+            refusal, T = verdict.refusal, verdict.transform
+        if verdict is not None and not verdict.finished:
+            why = 'not confirmed yet'
+        elif reloc.publish_initial_pose and (called or not on_demand):
+            why, T_map_base, cov_base = self._initial_pose.offer(
+                refusal, T, cov, pair.source.frame_id, cfg, not called,
+                self._outputs.base_from_sensor)
+            if T_map_base is not None:
+                published = True
+                self._outputs.publish_initial_pose(BasePose(
+                    T_map_base, cov_base, header, cfg.map.frame,
+                    reloc.odom_frame if reloc.broadcast_map_to_odom else '', reloc.base_frame,
+                    verdict.map_from_odom if verdict else None))
+        line = (verdict.line(published, why) if verdict
+                else summary_line(result, T, refusal, published, why))
+        with self._lock:
+            self._candidates, self._last_summary = candidates, line
+        if called and (verdict is None or verdict.finished):
+            self.calls.answer(line, refusal)
+
+    def settle(self, refusal: Refusal | None, registered: bool) -> None:
+        """Answer requests still pending after a pair that failed before a result."""
+        if (refusal and refusal.code is not RefusalCode.STALE and not registered
+                and self.calls.waiting() is not None):
+            self.calls.fail(refusal)
+            if self.sequence is not None:
+                self.sequence.reset()
+
+    def statistics(self) -> dict[str, Any]:
+        """Return the candidates, the last summary, the guards' and the requests' keys."""
+        with self._lock:
+            candidates, line = list(self._candidates), self._last_summary
+        stats: dict[str, Any] = {'candidates.count': len(candidates)}
+        for i, c in enumerate(candidates):
+            stats[f'candidates.{i}.inliers'] = c.num_inliers
+            stats[f'candidates.{i}.fitness'] = round(c.fitness, 4)
+            stats[f'candidates.{i}.ratio'] = round(c.ratio, 4)
+        if line:
+            stats['last_summary'] = line
+        if self.sequence is not None:
+            stats['odometry.samples'] = self.sequence.track.samples
+        stats.update(self._initial_pose.statistics())
+        stats.update(self.calls.statistics())
+        return stats

@@ -1,0 +1,154 @@
+"""
+The jobs the registration process runs, one type a kind, and the typed answer of each.
+
+The engine chooses the kind once (:meth:`~cgags_ros.localizer.engine.RegistrationEngine`),
+the :class:`~.session.ChildSession` runs it (in the registration process, or in this one),
+and the answer's type says what came back: no answer is unpacked by kind downstream.
+
+- :class:`RegisterPair` -> :class:`PairDone`: one pair through ``register_clouds``.
+- :class:`TrackScan` -> :class:`Tracked`: a stream's next scan through the session's
+  :class:`~cgags_ros.tracking.Tracker`, which may ask for a periodic check beside it.
+- :class:`SequenceScan` -> :class:`~cgags_ros.relocalization.sequence.StepAnswer`: one scan
+  of a relocalization over several scans, on the map.
+- :class:`PrepareMap` -> :class:`MapReady`: load a map's features.
+
+Targets are an array (metres, the target's frame), a :class:`MapRef` (the process loads
+and keeps the map), or :data:`HELD`: the target the session was sent last, so a latched
+target crosses the pipe once. Light to import (numpy only): the node's own process builds
+jobs and reads answers without loading the pipeline.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Union
+
+import numpy as np
+
+from ..config.pipeline import PipelineConfig
+from ..relocalization.sequence import StepAnswer
+
+HELD = 'held'  # a job's target: the one the session holds (sent by an earlier job)
+
+
+@dataclasses.dataclass(frozen=True)
+class MapRef:
+    """
+    A target that is a map file: the process running the job loads (and keeps) its features.
+
+    :ivar path: the map file (PLY, PCD, NPY, XYZ/CSV/TXT), metres, map frame.
+    :ivar cache_dir: feature cache directory ('' disables the cache).
+    """
+
+    path: str
+    cache_dir: str = ''
+
+
+Target = Union[np.ndarray, MapRef, str]  # an array, a map, or HELD
+
+
+@dataclasses.dataclass(frozen=True)
+class RegisterPair:
+    """Register ``source`` (N, 3, metres, its sensor frame) onto ``target`` globally."""
+
+    source: np.ndarray
+    target: Target
+    config: PipelineConfig
+
+
+@dataclasses.dataclass(frozen=True)
+class CheckVerdict:
+    """
+    A periodic global check of a tracked scan, run in the other lane, as it landed.
+
+    :ivar stamp: the checked scan's stamp, seconds.
+    :ivar transform: the global result (4x4, source -> target), or None when it refused.
+    """
+
+    stamp: float
+    transform: np.ndarray | None
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackScan:
+    """
+    Register a stream's next scan with the session's Tracker.
+
+    :ivar stamp: the scan's header stamp, seconds.
+    :ivar checks_beside: periodic checks run in a second lane: a scan whose check is due is
+        tracked, and :class:`Tracked` says the check is due instead of running it here.
+    :ivar verdict: a check that landed since the last scan, applied before this one.
+    """
+
+    source: np.ndarray
+    target: Target
+    config: PipelineConfig
+    stamp: float
+    checks_beside: bool = False
+    verdict: CheckVerdict | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class SequenceScan:
+    """
+    Add a scan to the session's relocalization over several scans on ``target``'s map.
+
+    :ivar odom_from_sensor: 4x4 pose of the sensor in the odometry frame at the scan's
+        stamp (metres); None: no odometry, the scan is judged alone and the sequence starts
+        over.
+    :ivar max_scans: scans after which an unconfirmed answer is refused.
+    :ivar restart: forget the scans so far first.
+    """
+
+    source: np.ndarray
+    target: Target
+    config: PipelineConfig
+    odom_from_sensor: np.ndarray | None
+    max_scans: int
+    restart: bool
+
+
+@dataclasses.dataclass(frozen=True)
+class PrepareMap:
+    """Load the map of ``ref`` (features from the cache or computed) and keep it."""
+
+    ref: MapRef
+    config: PipelineConfig
+
+
+@dataclasses.dataclass
+class PairDone:
+    """The answer to :class:`RegisterPair`: the pipeline's result."""
+
+    result: Any  # a PipelineResult
+
+
+@dataclasses.dataclass
+class Tracked:
+    """
+    The answer to :class:`TrackScan`.
+
+    :ivar result: the scan's result (``path`` 'tracked' or 'global').
+    :ivar counts: what this scan added to the Tracker's counts (and the verdict applied).
+    :ivar check_due: a periodic check of this scan is due: run it in the other lane.
+    """
+
+    result: Any
+    counts: dict[str, int]
+    check_due: bool = False
+
+
+@dataclasses.dataclass
+class MapReady:
+    """The answer to :class:`PrepareMap`: the map's summary (``PreparedMap.info()``)."""
+
+    info: dict[str, Any]
+
+
+Job = Union[RegisterPair, TrackScan, SequenceScan, PrepareMap]
+Answer = Union[PairDone, Tracked, StepAnswer, MapReady]
+
+
+def result_of(answer: Answer) -> Any:
+    """Return the registration result an answer carries (None for a map)."""
+    return None if isinstance(answer, MapReady) else answer.result
