@@ -248,7 +248,17 @@ def summarize(client: StreamClient, stamps: list[int], truth: np.ndarray) -> dic
         rot.append(rotation_error_deg(pose[1], truth[k]))
         trans.append(translation_error(pose[1], truth[k]))
     rot_a, trans_a, lat = np.array(rot), np.array(trans), np.array(latencies)
+    scans = []  # per scan: publish to pose, in the node, registering (ms; None: none)
+    for stamp in stamps:
+        sent_at, k = client.sent[stamp]
+        record, pose = client.results.get(stamp) or {}, client.poses.get(stamp)
+        node_s, total_s = record.get('latency_s'), record.get('timings', {}).get('total')
+        scans.append([k, record.get('path'),
+                      None if pose is None else round(1e3 * (pose[0] - sent_at), 1),
+                      None if node_s is None else round(1e3 * node_s, 1),
+                      None if total_s is None else round(1e3 * total_s, 1)])
     return {
+        'scans': scans,
         'sent': len(stamps), 'published': len(latencies),
         'results': sum(s in client.results for s in stamps),
         'latency_p50_ms': _ms(lat, 50), 'latency_p95_ms': _ms(lat, 95),
@@ -320,7 +330,7 @@ def run_node(client: StreamClient, msgs: list, truth: np.ndarray, voxel: float,
                     'config_file': keys,
                     'load_average': os.getloadavg()[0],
                     **summarize(client, stamps, truth)}
-            print(json.dumps(cell), flush=True)
+            print(json.dumps({k: v for k, v in cell.items() if k != 'scans'}), flush=True)
             cells.append(cell)
     finally:
         stop_process(proc, log)

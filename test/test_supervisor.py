@@ -17,8 +17,8 @@ from cgags_ros.io.clouds import write_cloud
 from cgags_ros.pipeline import register_clouds
 from cgags_ros.pipeline.register import terrain_patch
 from cgags_ros.relocalization.sequence import StepAnswer
-from cgags_ros.runtime.jobs import (MapReady, MapRef, PairDone, PrepareMap, RegisterPair,
-                                    SequenceScan, Tracked, TrackScan)
+from cgags_ros.runtime.jobs import (CheckScan, CheckVerdict, MapReady, MapRef, PairDone,
+                                    PrepareMap, RegisterPair, SequenceScan, Tracked, TrackScan)
 from cgags_ros.runtime.procfs import rss_mb, running
 from cgags_ros.runtime.supervisor import RegistrationTimeout, Supervisor, WorkerCrashed
 import numpy as np
@@ -195,5 +195,24 @@ def test_every_job_kind_gets_its_typed_answer_and_a_killed_process_forgets_its_s
         step = iso.run(SequenceScan(source, ref, CONFIG, np.eye(4), 3, restart=False))
         assert step.scans_used == 1  # the sequence started over
         assert iso.crashes == 1
+    finally:
+        iso.close()
+
+
+def test_a_process_at_low_priority_gets_its_clouds_through_files_and_leaves_none(
+        pair, tmp_path):
+    """The checks' lane: niceness 15, clouds spilled to files, a check answered by its pose."""
+    source, target = pair
+    iso = Supervisor(120.0, niceness=15, spill_dir=str(tmp_path))
+    try:
+        answer = iso.run(CheckScan(source, target, CONFIG, stamp=1.5))
+        assert isinstance(answer, CheckVerdict) and answer.stamp == 1.5 and not answer.code
+        local = register_clouds(source, target, config=CONFIG)
+        np.testing.assert_allclose(answer.transform, local.transform, atol=1e-6)
+        assert not list(tmp_path.iterdir())  # the files went with the job
+        ours = os.getpriority(os.PRIO_PROCESS, 0)
+        assert os.getpriority(os.PRIO_PROCESS, iso.pid) == min(ours + 15, 19)
+        refused = iso.run(CheckScan(np.zeros((5, 3)), target, CONFIG, stamp=2.0))
+        assert refused.transform is None and refused.code  # too few points: no pose
     finally:
         iso.close()

@@ -22,7 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from .jobs import CheckVerdict, MapReady, MapRef, PairDone, PrepareMap, RegisterPair, Target
+from .jobs import CheckScan, CheckVerdict, MapReady, MapRef, PrepareMap, Target
+from .process import spill_folder
 from .supervisor import Supervisor
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError
@@ -34,7 +35,8 @@ class CheckLane:
     """A supervised process for periodic checks: offer one, collect its verdict later."""
 
     def __init__(self, timeout_s: float):
-        self.supervisor = Supervisor(timeout_s, 'cgags-checks', NICENESS)
+        # Its clouds go through files: reading a pipe at this priority would hold the sender.
+        self.supervisor = Supervisor(timeout_s, 'cgags-checks', NICENESS, spill_folder())
         self.counts: collections.Counter[str] = collections.Counter()
         self._stamp: float | None = None  # the scan in flight, None for a map load
 
@@ -47,12 +49,15 @@ class CheckLane:
     def offer(self, source: np.ndarray, target: Target, config: PipelineConfig,
               stamp: float) -> bool:
         """Start checking the scan ``source`` stamped ``stamp`` (s); False: the lane is busy."""
-        if self.supervisor.in_flight or not self.supervisor.ready:
+        lane = self.supervisor
+        # Never wait here: a process still warming up, or dead (supervise() replaces it),
+        # skips the check as a busy one does.
+        if lane.in_flight or not lane.ready or not lane.alive:
             self.counts['skipped_busy'] += 1
             return False
         self.counts['offered'] += 1
         self._stamp = stamp
-        self.supervisor.submit(RegisterPair(source, target, config))
+        self.supervisor.submit(CheckScan(source, target, config, stamp))
         return True
 
     def landed(self) -> CheckVerdict | None:
@@ -67,10 +72,9 @@ class CheckLane:
             return None if stamp is None else CheckVerdict(stamp, None)
         if answer is None or isinstance(answer, MapReady) or stamp is None:
             return None
-        assert isinstance(answer, PairDone)
-        result = answer.result
-        self.counts['valid' if result.valid else 'refused'] += 1
-        return CheckVerdict(stamp, np.asarray(result.transform) if result.valid else None)
+        assert isinstance(answer, CheckVerdict)
+        self.counts['valid' if answer.transform is not None else f'refused.{answer.code}'] += 1
+        return answer
 
     def statistics(self) -> dict[str, Any]:
         """Return ``checks.*`` and the lane's process keys for /diagnostics."""

@@ -8,6 +8,8 @@ and the answer's type says what came back: no answer is unpacked by kind downstr
 - :class:`RegisterPair` -> :class:`PairDone`: one pair through ``register_clouds``.
 - :class:`TrackScan` -> :class:`Tracked`: a stream's next scan through the session's
   :class:`~cgags_ros.tracking.Tracker`, which may ask for a periodic check beside it.
+- :class:`CheckScan` -> :class:`CheckVerdict`: that check, a global registration of a
+  tracked scan, answered with the pose alone (the checks' lane, :mod:`.checks`).
 - :class:`SequenceScan` -> :class:`~cgags_ros.relocalization.sequence.StepAnswer`: one scan
   of a relocalization over several scans, on the map.
 - :class:`PrepareMap` -> :class:`MapReady`: load a map's features.
@@ -63,10 +65,22 @@ class CheckVerdict:
 
     :ivar stamp: the checked scan's stamp, seconds.
     :ivar transform: the global result (4x4, source -> target), or None when it refused.
+    :ivar code: why it refused (a ``RefusalCode`` value), '' when valid.
     """
 
     stamp: float
     transform: np.ndarray | None
+    code: str = ''
+
+
+@dataclasses.dataclass(frozen=True)
+class CheckScan:
+    """Register a tracked scan ``source`` (stamped ``stamp``, s) globally: its check."""
+
+    source: np.ndarray
+    target: Target
+    config: PipelineConfig
+    stamp: float
 
 
 @dataclasses.dataclass(frozen=True)
@@ -145,10 +159,10 @@ class MapReady:
     info: dict[str, Any]
 
 
-Job = Union[RegisterPair, TrackScan, SequenceScan, PrepareMap]
-Answer = Union[PairDone, Tracked, StepAnswer, MapReady]
+Job = Union[RegisterPair, TrackScan, SequenceScan, PrepareMap, CheckScan]
+Answer = Union[PairDone, Tracked, StepAnswer, MapReady, CheckVerdict]
 
 
 def result_of(answer: Answer) -> Any:
-    """Return the registration result an answer carries (None for a map)."""
-    return None if isinstance(answer, MapReady) else answer.result
+    """Return the registration result an answer carries (None for a map or a check)."""
+    return None if isinstance(answer, (MapReady, CheckVerdict)) else answer.result

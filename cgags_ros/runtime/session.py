@@ -22,8 +22,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .jobs import (Answer, HELD, Job, MapReady, MapRef, PairDone, PrepareMap, RegisterPair,
-                   SequenceScan, Target, Tracked, TrackScan)
+from .jobs import (Answer, CheckScan, CheckVerdict, HELD, Job, MapReady, MapRef, PairDone,
+                   PrepareMap, RegisterPair, SequenceScan, Target, Tracked, TrackScan)
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError
 from ..relocalization.sequence import StepAnswer
@@ -62,6 +62,10 @@ class ChildSession:
             return self._track(job, target)
         if isinstance(job, SequenceScan):
             return self._sequence_scan(job, target)
+        if isinstance(job, CheckScan):
+            result = self._registration()(job.source, target, config=job.config)
+            return CheckVerdict(job.stamp, np.asarray(result.transform) if result.valid else None,
+                                '' if result.valid else result.refusal.code.value)
         raise TypeError(f'not a job: {job!r}')
 
     def _registration(self) -> RegisterFn:

@@ -13,24 +13,25 @@ Built on public API only: one ``multiprocessing`` spawn-context
 runs a :class:`~.session.ChildSession`. One job is in flight at a time, so the caller's own
 thread sends it, polls the pipe until the answer or the time limit, and receives: no
 thread reads answers. A pipe that ends (the process died) fails the job in flight.
+
+A pipe holds 64 kB: sending a scan (megabytes) waits until the process has read it. For a
+process at a lower priority, which reads only when the CPU is idle, that wait would fall on
+the caller; with ``spill_dir`` its jobs' clouds are written to files there (``/dev/shm``:
+memory) and only their names cross the pipe, so sending never waits.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import multiprocessing
-import os
-import pickle
-import signal
 import threading
 import time
-from typing import Any, Callable
+from typing import Any
 
 from .jobs import Answer, HELD, Job, PrepareMap
-from .procfs import rss_mb, running
-from .session import ChildSession, TargetNotHeld, warm_up
+from .process import Child, ChildDied, remove_files, spill
+from .procfs import rss_mb
+from .session import TargetNotHeld
 from ..errors import CgagsError
-from ..parallel import quiet_idle_threads
 from ..refusal import RefusalCode
 
 WARM_UP_LIMIT_S = 300.0  # with a cold numba cache the warm-up compiles the numba code first
@@ -48,103 +49,12 @@ class WorkerCrashed(CgagsError):
     code = RefusalCode.WORKER_CRASHED
 
 
-class _ChildDied(Exception):
-    """The process's pipe ended: it is gone."""
-
-
-def _serve(conn: Any, niceness: int) -> None:
-    """
-    Run in the process: warm up and answer, then run each job of the pipe and answer it.
-
-    Every answer is ``(ok, value)``: the job's answer or the exception it raised. The parent
-    decides when the process ends (it kills it, or closes the pipe), so a Ctrl-C meant for
-    the parent's terminal does not end a registration here.
-    """
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    if niceness:
-        os.nice(niceness)
-    session = ChildSession()
-    # Warm-up: the pipeline imported (Open3D) and every stage run once on a small synthetic
-    # pair, so that no start-up cost is counted against a real job's limit.
-    ok, value = _run(warm_up)
-    answer = _pickled(ok, None if ok else value)
-    while True:
-        try:
-            conn.send_bytes(answer)
-            job = conn.recv()
-        except (EOFError, OSError):
-            return  # the parent is gone or closed the pipe
-        answer = _pickled(*_run(lambda: session.run(job)))
-
-
-def _run(fn: Callable[[], Any]) -> tuple[bool, Any]:
-    try:
-        return True, fn()
-    except Exception as exc:  # noqa: BLE001 - sent back, raised in the parent
-        return False, exc
-
-
-def _pickled(ok: bool, value: Any) -> bytes:
-    """Return the answer ``(ok, value)`` as bytes for the pipe, or an error that pickles."""
-    try:
-        return pickle.dumps((ok, value), protocol=pickle.HIGHEST_PROTOCOL)
-    except Exception as exc:  # noqa: BLE001 - an answer that does not pickle
-        return pickle.dumps((False, CgagsError(
-            f'the registration process cannot send back {value!r}: {exc!r}')))
-
-
-class _Child:
-    """One spawned process and its pipe; ``warm`` once its warm-up answered."""
-
-    def __init__(self, name: str, niceness: int) -> None:
-        # Spawn, not fork: forking a process that runs DDS threads is unsafe. The process
-        # inherits this environment and loads numpy before any code of ours runs in it.
-        quiet_idle_threads()
-        context = multiprocessing.get_context('spawn')
-        self.conn, child_end = context.Pipe()
-        self.process = context.Process(target=_serve, args=(child_end, niceness), name=name,
-                                       daemon=True)
-        self.process.start()
-        child_end.close()  # the process's copy alone keeps it open: its death ends the pipe
-        self.warm = False
-        self.warm_error: BaseException | None = None
-
-    @property
-    def alive(self) -> bool:
-        """Tell whether the process still runs (by pid: a zombie counts as dead)."""
-        return running(self.process.pid)
-
-    def receive(self, timeout_s: float | None) -> tuple[bool, Any] | None:
-        """Return the next answer ``(ok, value)``, None past ``timeout_s`` (or _ChildDied)."""
-        try:
-            if not self.conn.poll(timeout_s):
-                return None
-            return self.conn.recv()
-        except (EOFError, OSError):
-            raise _ChildDied() from None
-        except Exception as exc:  # noqa: BLE001 - an answer that does not unpickle
-            return False, CgagsError(f'unreadable answer of the registration process: {exc!r}')
-
-    def wait_warm(self, timeout_s: float | None) -> bool:
-        """Take the warm-up's answer if it came within ``timeout_s``; tell whether warm."""
-        if not self.warm:
-            answer = self.receive(timeout_s)
-            if answer is not None:
-                self.warm, self.warm_error = True, None if answer[0] else answer[1]
-        return self.warm
-
-    def kill(self) -> None:
-        """End the process now and release the pipe."""
-        self.process.kill()
-        self.process.join(5.0)
-        self.conn.close()
-
-
 @dataclasses.dataclass
 class _InFlight:
     job: Job
     deadline: float  # monotonic seconds
     too_long: str  # what the timeout says
+    spilled: list[str]  # the files of its clouds, removed when it ends
 
 
 class Supervisor:
@@ -154,6 +64,7 @@ class Supervisor:
     :param timeout_s: the time limit of a job (``worker.registration_timeout``).
     :param name: the process's name. :param niceness: added to its OS niceness (a lower
         priority: global work that must not take the CPU from a stream).
+    :param spill_dir: send the jobs' clouds through files in this folder, not the pipe.
 
     The process keeps the last target: a job whose target is the same array object as the
     last completed job's is sent with :data:`~.jobs.HELD` instead (the node never writes to
@@ -167,15 +78,16 @@ class Supervisor:
     :meth:`supervise` and :attr:`ready` may be called from any thread.
     """
 
-    def __init__(self, timeout_s: float, name: str = 'cgags-registration', niceness: int = 0):
+    def __init__(self, timeout_s: float, name: str = 'cgags-registration', niceness: int = 0,
+                 spill_dir: str | None = None):
         self.timeout_s = timeout_s
-        self.name, self.niceness = name, niceness
+        self.name, self.niceness, self.spill_dir = name, niceness, spill_dir
         self.crashes = 0
         self.restarts = 0
         self.targets_sent = 0
         self.busy = threading.Event()
         self._lock = threading.Lock()  # held while the process is used (a job, a replacement)
-        self._child: _Child | None = None
+        self._child: Child | None = None
         self._closed = False
         self._held: Any = None  # the target the process holds (by identity)
         self._flight: _InFlight | None = None
@@ -198,11 +110,17 @@ class Supervisor:
         if not child.warm and self._lock.acquire(blocking=False):
             try:
                 child.wait_warm(0.0)
-            except _ChildDied:
+            except ChildDied:
                 pass  # supervise() or the next job replaces it
             finally:
                 self._lock.release()
         return child.warm
+
+    @property
+    def alive(self) -> bool:
+        """Tell whether the process runs (False after close, or once it died)."""
+        child = self._child
+        return child is not None and child.alive
 
     @property
     def in_flight(self) -> bool:
@@ -212,9 +130,7 @@ class Supervisor:
     def health(self, prefix: str = 'worker') -> dict[str, Any]:
         """Return the process's counters and resident memory, for /diagnostics."""
         pid = self.pid
-        child = self._child
-        return {f'{prefix}.pid': pid or 0,
-                f'{prefix}.alive': child is not None and child.alive,
+        return {f'{prefix}.pid': pid or 0, f'{prefix}.alive': self.alive,
                 f'{prefix}.ready': self.ready,
                 f'{prefix}.crashes': self.crashes, f'{prefix}.restarts': self.restarts,
                 f'memory.{prefix}_rss_mb': round(rss_mb(pid) or 0.0, 1) if pid else 0.0}
@@ -227,7 +143,7 @@ class Supervisor:
                 return
             try:
                 warm = child.wait_warm(WARM_UP_LIMIT_S)
-            except _ChildDied:
+            except ChildDied:
                 raise WorkerCrashed('the registration process failed to start (it died)') \
                     from None
         if not warm:
@@ -269,16 +185,19 @@ class Supervisor:
                 raise RuntimeError('a job is already in flight')
             for attempt in (0, 1):
                 child = self._warm_child()
-                sent = self._with_held_target(job)
+                sent, spilled = self._with_held_target(job), []
+                if self.spill_dir is not None:
+                    sent, spilled = spill(sent, self.spill_dir)
                 try:
                     child.conn.send(sent)
                     break
                 except (EOFError, OSError):  # it died idle since the check: a fresh one
+                    remove_files(spilled)
                     if attempt:
                         raise WorkerCrashed('the registration process died before the job '
                                             'was sent; restarted') from None
                     self._crashed()
-            self._flight = _InFlight(job, time.monotonic() + limit, too_long)
+            self._flight = _InFlight(job, time.monotonic() + limit, too_long, spilled)
             self.busy.set()
 
     def collect(self, wait_s: float | None = 0.0) -> Answer | None:
@@ -296,7 +215,7 @@ class Supervisor:
             wait = max(left, 0.0) if wait_s is None else min(max(left, 0.0), wait_s)
             try:
                 answer = child.receive(wait)
-            except _ChildDied:
+            except ChildDied:
                 self._end_flight()
                 if not self._closed:
                     self._crashed()
@@ -320,6 +239,8 @@ class Supervisor:
             return value
 
     def _end_flight(self) -> None:
+        if self._flight is not None:
+            remove_files(self._flight.spilled)
         self._flight = None
         self.busy.clear()
 
@@ -347,7 +268,7 @@ class Supervisor:
         finally:
             self._lock.release()
 
-    def _warm_child(self) -> _Child:
+    def _warm_child(self) -> Child:
         """Return the process once warm; one found dead (it died idle) is replaced first."""
         child = self._child
         if child is None:
@@ -357,7 +278,7 @@ class Supervisor:
             child = self._child
         try:
             child.wait_warm(WARM_UP_LIMIT_S)
-        except _ChildDied:  # died warming up: the job goes to a fresh one
+        except ChildDied:  # died warming up: the job goes to a fresh one
             self._crashed()
             child = self._child
             child.wait_warm(WARM_UP_LIMIT_S)
@@ -381,7 +302,7 @@ class Supervisor:
 
     def _start(self) -> None:
         self._held = None
-        self._child = _Child(self.name, self.niceness)
+        self._child = Child(self.name, self.niceness)
 
     def close(self) -> None:
         """Stop the process for good (a job in flight ends at once)."""
