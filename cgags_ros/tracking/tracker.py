@@ -25,28 +25,19 @@ from __future__ import annotations
 from collections import Counter
 import dataclasses
 import hashlib
-import time
 
 import numpy as np
 
-from .prediction import agree, difference, scaled_motion
+from .prediction import agree, scaled_motion
+from .refined import refine_prediction, target_features
 from ..config import fields
 from ..config.pipeline import PipelineConfig
-from ..errors import EmptyCloudError
-from ..frontend.features import CloudFeatures, downsample, finite_points
-from ..frontend.refine import refine_transform
-from ..geometry import cross_spread
-from ..parallel import DEFAULT_WORKERS
-from ..pipeline.cache import cached_features
-from ..pipeline.covariance import loosest_sigma, overlap_covariance
-from ..pipeline.gates import measure_overlap
+from ..frontend.features import CloudFeatures, finite_points
+from ..pipeline.covariance import with_confidence
 from ..pipeline.map import PreparedMap
 from ..pipeline.register import register_clouds
 from ..pipeline.result import PipelineResult
 from ..registration import single_blas_thread
-from ..timing import timed
-from ..validity import (line_cloud_refusal, overlap_refusal, tracking_refusal,
-                        uncertainty_refusal)
 
 MAX_AWAITED = 4  # tracked poses kept for checks beside the stream that have not landed
 COUNTS = ('tracked', 'global', 'invalid', 'tracking_failures', 'periodic_checks',
@@ -73,6 +64,7 @@ class _PairState:
     tracked_since_global: int = 0
     last_global_stamp: float = float('-inf')
     checked: dict[float, np.ndarray] = dataclasses.field(default_factory=dict)  # awaiting checks
+    tracked: bool = False  # a scan of this pair was tracked: a stream, not scattered views
 
 
 class Tracker:
@@ -204,61 +196,16 @@ class Tracker:
         return by_count or by_time
 
     def _track(self, source: np.ndarray, target: np.ndarray | PreparedMap,
-               prediction: np.ndarray, cfg: PipelineConfig, state: _PairState
-               ) -> PipelineResult:
-        """Refine ``prediction`` and gate it; the result is invalid, with why, when it fails."""
-        start = time.perf_counter()
-        v = cfg.voxel_size
-        result = PipelineResult(voxel_size=v, path='tracked')
-        result.coarse_transform = prediction.copy()
-        try:
-            ft = self._target_features(target, cfg, state, result.timings)
-            with timed(result.timings, 'downsample'):
-                points = downsample(source, v, cfg.frontend.min_points, 'source')
-        except EmptyCloudError as exc:
-            return result.finish(start, exc.refusal)
-        result.num_source_points, result.num_target_points = len(points), len(ft.points)
-        result.resolution = ft.resolution
-        refusal = line_cloud_refusal(cross_spread(points), 'source', v)
-        if refusal:
-            return result.finish(start, refusal)
-        gravity = cfg.core.gravity_axis if cfg.core.motion_model == '4dof' else None
-        with timed(result.timings, 'refinement'):
-            result.transform = refine_transform(
-                points, ft.points, prediction, voxel_size=v, config=cfg.refine,
-                target_normals=ft.normals,
-                coarse_distance=cfg.tracking.coarse_distance_factor * v, gravity=gravity,
-                workers=DEFAULT_WORKERS, tolerance=cfg.tracking.refine_tolerance)
-            result.refined = True
-        with timed(result.timings, 'validation'):
-            # no source tree: the target side of the overlap is for rival verification only
-            align = measure_overlap(points, None, ft, result, cfg,
-                                    isinstance(target, PreparedMap))
+               prediction: np.ndarray, cfg: PipelineConfig, state: _PairState,
+               last_fitness: float | None = None) -> PipelineResult:
+        """Refine ``prediction`` and gate it (:func:`~.refined.refine_prediction`)."""
+        if state.features is None:  # the target's features, once per pair
+            timings: dict[str, float] = {}
+            state.features = target_features(target, cfg, timings)
+        if last_fitness is None:
             last_fitness = state.poses[-1].fitness if state.poses else 0.0
-            refusal = (overlap_refusal(result, cfg)
-                       or tracking_refusal(*difference(prediction, result.transform),
-                                           result.fitness, last_fitness, cfg))
-        # The global path's covariance (the whole overlap, point-to-plane) and its usable
-        # bound: a stream's poses keep one meaning whichever path made them.
-        result.covariance = overlap_covariance(
-            points, ft.points, ft.normals, ft.tree, result.transform,
-            cfg.refine.max_correspondence_distance_factor * v, v, gravity,
-            (align.source_index, align.target_index))
-        return result.finish(start, refusal or uncertainty_refusal(
-            loosest_sigma(result.covariance), cfg))
-
-    def _target_features(self, target: np.ndarray | PreparedMap, cfg: PipelineConfig,
-                         state: _PairState, timings: dict[str, float]) -> CloudFeatures:
-        """Return the target's features, computed once per pair (a map's as they are)."""
-        if state.features is None:
-            if isinstance(target, PreparedMap):
-                state.features = target.features
-            else:
-                with timed(timings, 'target_features'):  # a cache hit when it went global
-                    state.features = cached_features(finite_points(target, 'target'),
-                                                     cfg.voxel_size, cfg.frontend, 'target',
-                                                     None, DEFAULT_WORKERS)
-        return state.features
+        return refine_prediction(source, state.features, prediction, cfg, last_fitness,
+                                 isinstance(target, PreparedMap))
 
     def apply_check(self, stamp: float, transform: np.ndarray | None) -> None:
         """
@@ -283,6 +230,7 @@ class Tracker:
     def _accept_tracked(self, result: PipelineResult, stamp: float, state: _PairState,
                         kind: str, reset: bool = True) -> PipelineResult:
         self._counts['tracked'] += 1
+        state.tracked = True
         state.tracked_since_global += reset
         result.stats['prediction'] = kind
         _remember(state, stamp, result)
@@ -291,13 +239,52 @@ class Tracker:
     def _global(self, source: np.ndarray, target: np.ndarray | PreparedMap, stamp: float,
                 cfg: PipelineConfig, state: _PairState, why: str) -> PipelineResult:
         """Run the global search; a valid result starts the pair's motion afresh."""
-        result = self.global_registration(source, target, config=cfg)
+        result = (self._recovered(source, target, cfg, state)
+                  or self.global_registration(source, target, config=cfg))
         self._count_global(result, stamp, state)
         result.stats['global_because'] = why
         if result.valid:
             state.poses.clear()
             _remember(state, stamp, result)
         return result
+
+    def _recovered(self, source: np.ndarray, target: np.ndarray | PreparedMap,
+                   cfg: PipelineConfig, state: _PairState) -> PipelineResult | None:
+        """
+        Search at ``tracking.recovery_voxel_factor`` voxels, refine at the voxel; or None.
+
+        A stream that was tracked and lost it (a jump, a gap) is searched globally where a
+        coarser voxel costs a fraction of the time, then refined at the stream's voxel from
+        that pose and judged as a tracked pose is: the result keeps the coarse search's
+        evidence (inliers against chance, candidates, confidence) and takes the refined
+        pose, its overlap measures and covariance. None (the full global search follows)
+        when the factor is 1, no scan of the pair was tracked yet (its first scan, or views
+        too far apart to track: the full search's detail), the target is a map (prepared at
+        one voxel size), or either step refuses.
+        """
+        factor = cfg.tracking.recovery_voxel_factor
+        if factor <= 1.0 or not state.tracked or isinstance(target, PreparedMap):
+            return None
+        coarse_cfg = dataclasses.replace(cfg, voxel_size=cfg.voxel_size * factor)
+        coarse = self.global_registration(source, target, config=coarse_cfg)
+        if not coarse.valid:
+            return None
+        with single_blas_thread():
+            fine = self._track(source, target, coarse.transform, cfg, state, last_fitness=0.0)
+        if not fine.valid:
+            return None
+        four_dof = cfg.core.motion_model == '4dof'  # as the global path: no doubt in 4-DoF
+        recovered = dataclasses.replace(
+            coarse, transform=fine.transform, fitness=fine.fitness,
+            inlier_rmse=fine.inlier_rmse, overlap=fine.overlap,
+            observability=fine.observability, free_space_violation=fine.free_space_violation,
+            tilt_deg=fine.tilt_deg, num_source_points=fine.num_source_points,
+            num_target_points=fine.num_target_points, resolution=fine.resolution,
+            voxel_size=fine.voxel_size, covariance=fine.covariance if four_dof
+            else with_confidence(fine.covariance, coarse.confidence))
+        recovered.timings.update({f'recovery_{k}': v for k, v in fine.timings.items()})
+        recovered.stats['recovered_at_voxel'] = coarse_cfg.voxel_size
+        return recovered
 
     def _count_global(self, result: PipelineResult, stamp: float, state: _PairState) -> None:
         self._counts['global'] += 1

@@ -1,0 +1,90 @@
+"""
+A scan refined from a predicted pose and judged: the tracked path, without the stream's state.
+
+:func:`refine_prediction` downsamples the scan, refines the prediction against the target's
+features (no FPFH, no matching, no core) and judges the pose by the gates a global result
+passes on its overlap (:func:`~cgags_ros.validity.overlap_refusal`), the tracked pose's own
+(:func:`~cgags_ros.validity.tracking_refusal`) and the usable-covariance bound. The
+:class:`~.tracker.Tracker` calls it for each scan it tracks, and for a scan it recovers at a
+coarser voxel. Transforms are 4x4 source->target, metres.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .prediction import difference
+from ..config.pipeline import PipelineConfig
+from ..errors import EmptyCloudError
+from ..frontend.features import CloudFeatures, downsample, finite_points
+from ..frontend.refine import refine_transform
+from ..geometry import cross_spread
+from ..parallel import DEFAULT_WORKERS
+from ..pipeline.cache import cached_features
+from ..pipeline.covariance import loosest_sigma, overlap_covariance
+from ..pipeline.gates import measure_overlap
+from ..pipeline.map import PreparedMap
+from ..pipeline.result import PipelineResult
+from ..timing import timed
+from ..validity import (line_cloud_refusal, overlap_refusal, tracking_refusal,
+                        uncertainty_refusal)
+
+
+def target_features(target: np.ndarray | PreparedMap, cfg: PipelineConfig,
+                    timings: dict[str, float]) -> CloudFeatures:
+    """Return the target's features at ``cfg.voxel_size`` (a map's as they are)."""
+    if isinstance(target, PreparedMap):
+        return target.features
+    with timed(timings, 'target_features'):  # a cache hit when the scan went global
+        return cached_features(finite_points(target, 'target'), cfg.voxel_size, cfg.frontend,
+                               'target', None, DEFAULT_WORKERS)
+
+
+def refine_prediction(source: np.ndarray, ft: CloudFeatures, prediction: np.ndarray,
+                      cfg: PipelineConfig, last_fitness: float, map_target: bool
+                      ) -> PipelineResult:
+    """
+    Refine ``prediction`` of ``source`` (sensor frame) onto ``ft``; gate it (see the module doc).
+
+    :param last_fitness: the fitness of the stream's last accepted pose (0: none), which
+        the refined pose's must not fall far below.
+    :returns: a result with ``path`` 'tracked', invalid with why when a gate refuses.
+    """
+    start = time.perf_counter()
+    v = cfg.voxel_size
+    result = PipelineResult(voxel_size=v, path='tracked')
+    result.coarse_transform = prediction.copy()
+    try:
+        with timed(result.timings, 'downsample'):
+            points = downsample(source, v, cfg.frontend.min_points, 'source')
+    except EmptyCloudError as exc:
+        return result.finish(start, exc.refusal)
+    result.num_source_points, result.num_target_points = len(points), len(ft.points)
+    result.resolution = ft.resolution
+    refusal = line_cloud_refusal(cross_spread(points), 'source', v)
+    if refusal:
+        return result.finish(start, refusal)
+    gravity = cfg.core.gravity_axis if cfg.core.motion_model == '4dof' else None
+    with timed(result.timings, 'refinement'):
+        result.transform = refine_transform(
+            points, ft.points, prediction, voxel_size=v, config=cfg.refine,
+            target_normals=ft.normals,
+            coarse_distance=cfg.tracking.coarse_distance_factor * v, gravity=gravity,
+            workers=DEFAULT_WORKERS, tolerance=cfg.tracking.refine_tolerance)
+        result.refined = True
+    with timed(result.timings, 'validation'):
+        # no source tree: the target side of the overlap is for rival verification only
+        align = measure_overlap(points, None, ft, result, cfg, map_target)
+        refusal = (overlap_refusal(result, cfg)
+                   or tracking_refusal(*difference(prediction, result.transform),
+                                       result.fitness, last_fitness, cfg))
+    # The global path's covariance (the whole overlap, point-to-plane) and its usable
+    # bound: a stream's poses keep one meaning whichever path made them.
+    result.covariance = overlap_covariance(
+        points, ft.points, ft.normals, ft.tree, result.transform,
+        cfg.refine.max_correspondence_distance_factor * v, v, gravity,
+        (align.source_index, align.target_index))
+    return result.finish(start, refusal or uncertainty_refusal(
+        loosest_sigma(result.covariance), cfg))
