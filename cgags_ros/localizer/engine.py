@@ -135,11 +135,12 @@ class RegistrationEngine:
         self.deactivate()
         self._stop.set()
         self._accounting.wake()
-        for process in (self.registration, self.checks):
-            if process is not None:
-                process.close()  # ends a job in flight at once
+        if self.registration is not None:
+            self.registration.close()  # ends a job in flight at once
         if self._worker is not None:
             self._worker.join(timeout=5.0)
+        if self.checks is not None:  # after the worker, which may have just started it
+            self.checks.close()
 
     # ------------------------------------------------------------------ configuration
 
@@ -328,6 +329,8 @@ class RegistrationEngine:
 
     def _offer_check(self, job: Job) -> None:
         """Run the periodic check of a tracked scan in the checks' lane (started once)."""
+        if self._stop.is_set():
+            return
         if self.checks is None:
             self.checks = CheckLane(self.node_config.worker.registration_timeout)
             if self._map is not None:
