@@ -63,3 +63,47 @@ def test_a_stream_at_10hz_is_tracked_and_a_jump_searched_again(tmp_path: Path):
             values['tracking.tracking_failures'], values['tracking.periodic_checks']) == (
                 '10', '2', '1', '0'), values
     assert values['accounting.ok'] == 'True', values
+
+
+def test_a_periodic_check_runs_beside_the_stream_in_its_own_process(tmp_path: Path):
+    """
+    A stream through the node while its checks' lane runs: the check's verdict is applied.
+
+    A check is due every fourth tracked scan (``config_file``); the first one starts the
+    checks' process, the stream waits for it to warm up, then goes on: the checks run in
+    that process, their verdicts (they agree) reach the stream, and every pose stays right.
+    """
+    msgs, truth = bench.kitti_messages(), bench.pseudo_ground_truth()
+    checks = {'tracking.global_check_interval': 4, 'tracking.global_check_period': 0.0}
+    with spun_context(DOMAIN_ID, reliable_client) as (_, _, client):
+        proc, log = bench.start_node(ros_args(**NODE_PARAMS, **checks),
+                                     bench.dds_environment(DOMAIN_ID), tmp_path / 'node.log')
+        try:
+            wait_for(lambda: client.value('worker.ready') == 'True', 300,
+                     'the node and its registration process', lambda: client.diagnostics)
+            client.target_pub.publish(msgs[0])
+            wait_for(lambda: client.value('targets.received') == '1', 60, 'the map')
+            stamps = client.play(msgs, list(range(6)), RATE_HZ)  # a check due: the lane starts
+            client.settle(stamps, quiet_s=60.0, limit_s=300.0)
+            wait_for(lambda: client.value('checks.ready') == 'True', 300,
+                     'the checks process warm', lambda: client.diagnostics)
+            more = client.play(msgs, list(range(6, 16)) + list(range(14, 8, -1)), RATE_HZ)
+            client.settle(more, quiet_s=60.0, limit_s=300.0)
+            wait_for(lambda: int(client.value('checks.valid') or 0) >= 1, 120,
+                     'a check landed', lambda: client.diagnostics)
+            last = client.play(msgs, [8, 7], RATE_HZ)  # the next scan takes the verdict
+            client.settle(last, quiet_s=60.0, limit_s=300.0)
+            stamps += more + last
+            wait_for(lambda: int(client.value('tracking.periodic_checks') or 0) >= 1, 30,
+                     'the verdict applied', lambda: client.diagnostics)
+            values = dict(client.diagnostics)
+            cell = bench.summarize(client, stamps, truth)
+        finally:
+            out = stop_process(proc, log)
+    assert proc.returncode == 0, out
+    assert cell['results'] == cell['published'] == len(stamps), (cell, out)
+    assert cell['within_1deg_20cm'] == len(stamps) and cell['beyond_5deg_60cm'] == 0, cell
+    assert int(values['checks.offered']) >= 1 and int(values['checks.valid']) >= 1, values
+    assert 'tracking.check_disagreements' not in values, values  # right poses: they agree
+    assert int(values['checks.pid']) > 0 and float(values['memory.checks_rss_mb']) > 0
+    assert values['accounting.ok'] == 'True', values
