@@ -216,3 +216,32 @@ def test_a_process_at_low_priority_gets_its_clouds_through_files_and_leaves_none
         assert refused.transform is None and refused.code  # too few points: no pose
     finally:
         iso.close()
+
+
+def test_the_checks_lane_loads_its_map_and_checks_without_ever_waiting(pair, tmp_path):
+    """Offers return at once: skipped while warming up, then the map first, then the check."""
+    from cgags_ros.runtime.checks import CheckLane
+
+    source, target = pair
+    path = tmp_path / 'patch.ply'
+    write_cloud(path, target)
+    ref = MapRef(str(path))
+    lane = CheckLane(120.0)
+    try:
+        lane.prepare_map(ref, CONFIG, 120.0)
+        assert not lane.offer(source, ref, CONFIG, 1.0)
+        assert not lane.supervisor.ready  # it returned without waiting for the warm-up
+        wait_for(lambda: lane.supervisor.ready, 300, 'the lane warm')
+        assert not lane.offer(source, ref, CONFIG, 2.0)  # the map goes first
+        wait_for(lambda: lane.landed() is None and not lane.supervisor.in_flight, 300,
+                 'the map loaded')
+        assert lane.offer(source, ref, CONFIG, 3.0)
+        verdict = wait_for(lambda: lane.landed(), 300, 'the check')
+        local = register_clouds(source, target, config=CONFIG)
+        assert verdict.stamp == 3.0 and not verdict.code
+        np.testing.assert_allclose(verdict.transform, local.transform, atol=1e-6)
+        stats = lane.statistics()
+        assert (stats['checks.offered'], stats['checks.skipped_busy'], stats['checks.valid']) == (
+            1, 2, 1)
+    finally:
+        lane.close()

@@ -333,10 +333,9 @@ class RegistrationEngine:
             return
         if self.checks is None:
             self.checks = CheckLane(self.node_config.worker.registration_timeout)
-            if self._map is not None:
+            if self._map is not None:  # loaded there once the lane is warm, before a check
                 self.checks.prepare_map(self._map.ref, job.config,
                                         self.node_config.map.load_timeout)
-                return  # the map loads there first: the next check runs on it
         self.checks.offer(job.source, job.target, job.config, job.stamp)
 
     def _collect_check(self) -> None:

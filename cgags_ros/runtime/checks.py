@@ -39,12 +39,11 @@ class CheckLane:
         self.supervisor = Supervisor(timeout_s, 'cgags-checks', NICENESS, spill_folder())
         self.counts: collections.Counter[str] = collections.Counter()
         self._stamp: float | None = None  # the scan in flight, None for a map load
+        self._map: tuple[PrepareMap, float] | None = None  # a map to load before any check
 
     def prepare_map(self, ref: MapRef, config: PipelineConfig, timeout_s: float) -> None:
-        """Start loading a map here too (its answer is collected like a check's)."""
-        if not self.supervisor.in_flight:
-            self._stamp = None
-            self.supervisor.submit(PrepareMap(ref, config), timeout_s)
+        """Load a map here first, within ``timeout_s``, once the process is warm."""
+        self._map = (PrepareMap(ref, config), timeout_s)
 
     def offer(self, source: np.ndarray, target: Target, config: PipelineConfig,
               stamp: float) -> bool:
@@ -53,6 +52,12 @@ class CheckLane:
         # Never wait here: a process still warming up, or dead (supervise() replaces it),
         # skips the check as a busy one does.
         if lane.in_flight or not lane.ready or not lane.alive:
+            self.counts['skipped_busy'] += 1
+            return False
+        if self._map is not None:  # the map loads first; this check is skipped for it
+            (job, timeout_s), self._map = self._map, None
+            self._stamp = None
+            lane.submit(job, timeout_s)
             self.counts['skipped_busy'] += 1
             return False
         self.counts['offered'] += 1
