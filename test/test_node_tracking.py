@@ -33,16 +33,26 @@ def reliable_client(context):
     return bench.StreamClient(context, reliable=True)
 
 
+def start_with_map(client, msgs, tmp_path: Path, **params):
+    """Start the node (its process warm) and latch scan 0 as its map; return (proc, log)."""
+    proc, log = bench.start_node(ros_args(**NODE_PARAMS, **params),
+                                 bench.dds_environment(DOMAIN_ID), tmp_path / 'node.log')
+    try:
+        wait_for(lambda: client.value('worker.ready') == 'True', 300,
+                 'the node and its registration process', lambda: client.diagnostics)
+        client.target_pub.publish(msgs[0])
+        wait_for(lambda: client.value('targets.received') == '1', 60, 'the map')
+    except BaseException:
+        stop_process(proc, log)
+        raise
+    return proc, log
+
+
 def test_a_stream_at_10hz_is_tracked_and_a_jump_searched_again(tmp_path: Path):
     msgs, truth = bench.kitti_messages(), bench.pseudo_ground_truth()
     with spun_context(DOMAIN_ID, reliable_client) as (_, _, client):
-        proc, log = bench.start_node(ros_args(**NODE_PARAMS),
-                                     bench.dds_environment(DOMAIN_ID), tmp_path / 'node.log')
+        proc, log = start_with_map(client, msgs, tmp_path)
         try:
-            wait_for(lambda: client.value('worker.ready') == 'True', 300,
-                     'the node and its registration process', lambda: client.diagnostics)
-            client.target_pub.publish(msgs[0])
-            wait_for(lambda: client.value('targets.received') == '1', 60, 'the map')
             stamps = client.play(msgs, ORDER, RATE_HZ)
             client.settle(stamps, quiet_s=60.0, limit_s=300.0)
             cell = bench.summarize(client, stamps, truth)
@@ -76,13 +86,8 @@ def test_a_periodic_check_runs_beside_the_stream_in_its_own_process(tmp_path: Pa
     msgs, truth = bench.kitti_messages(), bench.pseudo_ground_truth()
     checks = {'tracking.global_check_interval': 4, 'tracking.global_check_period': 0.0}
     with spun_context(DOMAIN_ID, reliable_client) as (_, _, client):
-        proc, log = bench.start_node(ros_args(**NODE_PARAMS, **checks),
-                                     bench.dds_environment(DOMAIN_ID), tmp_path / 'node.log')
+        proc, log = start_with_map(client, msgs, tmp_path, **checks)
         try:
-            wait_for(lambda: client.value('worker.ready') == 'True', 300,
-                     'the node and its registration process', lambda: client.diagnostics)
-            client.target_pub.publish(msgs[0])
-            wait_for(lambda: client.value('targets.received') == '1', 60, 'the map')
             stamps = client.play(msgs, list(range(6)), RATE_HZ)  # a check due: the lane starts
             client.settle(stamps, quiet_s=60.0, limit_s=300.0)
             wait_for(lambda: client.value('checks.ready') == 'True', 300,

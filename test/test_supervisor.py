@@ -38,6 +38,14 @@ def pair():
     return target @ R.T + 0.1, target
 
 
+@pytest.fixture()
+def map_ref(pair, tmp_path):
+    """Return a MapRef to a map file of the pair's target."""
+    path = tmp_path / 'patch.ply'
+    write_cloud(path, pair[1])
+    return MapRef(str(path))
+
+
 def pair_result(supervisor, source, target):
     answer = supervisor.run(RegisterPair(source, target, CONFIG))
     assert isinstance(answer, PairDone)
@@ -159,7 +167,7 @@ def test_supervise_replaces_a_process_that_died_idle_and_errors_come_back_typed(
 
 
 def test_every_job_kind_gets_its_typed_answer_and_a_killed_process_forgets_its_state(
-        pair, tmp_path):
+        pair, map_ref):
     """
     Each job kind runs in the process, which holds what they share until it is killed.
 
@@ -168,9 +176,7 @@ def test_every_job_kind_gets_its_typed_answer_and_a_killed_process_forgets_its_s
     is loaded again, the stream starts global, the sequence starts over.
     """
     source, target = pair
-    path = tmp_path / 'patch.ply'
-    write_cloud(path, target)
-    ref = MapRef(str(path))
+    ref = map_ref
     iso = Supervisor(120.0)
     try:
         ready = iso.run(PrepareMap(ref, CONFIG))
@@ -218,14 +224,12 @@ def test_a_process_at_low_priority_gets_its_clouds_through_files_and_leaves_none
         iso.close()
 
 
-def test_the_checks_lane_loads_its_map_and_checks_without_ever_waiting(pair, tmp_path):
+def test_the_checks_lane_loads_its_map_and_checks_without_ever_waiting(pair, map_ref):
     """Offers return at once: skipped while warming up, then the map first, then the check."""
     from cgags_ros.runtime.checks import CheckLane
 
     source, target = pair
-    path = tmp_path / 'patch.ply'
-    write_cloud(path, target)
-    ref = MapRef(str(path))
+    ref = map_ref
     lane = CheckLane(120.0)
     try:
         lane.prepare_map(ref, CONFIG, 120.0)

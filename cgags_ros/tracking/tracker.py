@@ -199,13 +199,15 @@ class Tracker:
                prediction: np.ndarray, cfg: PipelineConfig, state: _PairState,
                last_fitness: float | None = None) -> PipelineResult:
         """Refine ``prediction`` and gate it (:func:`~.refined.refine_prediction`)."""
+        timings: dict[str, float] = {}
         if state.features is None:  # the target's features, once per pair
-            timings: dict[str, float] = {}
             state.features = target_features(target, cfg, timings)
         if last_fitness is None:
             last_fitness = state.poses[-1].fitness if state.poses else 0.0
-        return refine_prediction(source, state.features, prediction, cfg, last_fitness,
-                                 isinstance(target, PreparedMap))
+        result = refine_prediction(source, state.features, prediction, cfg, last_fitness,
+                                   isinstance(target, PreparedMap))
+        result.timings.update(timings)  # the scan that featurised the target says so
+        return result
 
     def apply_check(self, stamp: float, transform: np.ndarray | None) -> None:
         """
