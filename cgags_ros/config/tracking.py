@@ -59,7 +59,7 @@ class TrackingConfig:
         "refinement's cost; 0 runs the final stage only, and a prediction off by more than "
         'it goes global.', low=0.0, high=100.0, advanced=True)
     recovery_voxel_factor: float = option(
-        3.0, 'A tracked stream that lost its track (a jump, a gap) is searched globally at '
+        1.0, 'A tracked stream that lost its track (a jump, a gap) is searched globally at '
         'this many times voxel_size (faster), refined at voxel_size from that pose and '
         'judged as a tracked pose; if either refuses, the full search follows. 1: voxel_size '
         'only. Not before a scan of the pair was tracked, nor onto a map.', low=1.0,
