@@ -7,6 +7,7 @@ from pathlib import Path
 
 from cgags_ros.config import PipelineConfig
 from cgags_ros.config.node import configs_from_file, configs_from_parameters
+from cgags_ros.errors import InvalidConfigError
 from cgags_ros.tools import tune, tuning
 from cgags_ros.tools.replay import build_parser as replay_parser
 from cgags_ros.tools.replay import options_from_args, run
@@ -53,6 +54,21 @@ def test_the_holdout_is_seeded_disjoint_and_its_share():
     assert [p.index for p in again[1]] == [p.index for p in held]
     assert tuning.holdout_split(pairs, 0.0, seed=4)[1] == []
     assert len(tuning.holdout_split(pairs[:1], 0.5, seed=0)[0]) == 1  # one pair: tune on it
+    # One held-out pair could never warn (a miss is within noise): a bag of four is tuned whole.
+    assert tuning.holdout_split(pairs[:4], 0.3, seed=4) == (pairs[:4], [])
+    assert len(tuning.holdout_split(pairs[:7], 0.3, seed=4)[1]) == tuning.MIN_HELD_OUT
+
+
+def test_one_or_two_held_out_pairs_missed_never_warn_and_more_do():
+    from cgags_ros.tools.tune_report import holdout_warning
+
+    def score(right, pairs):
+        return tuning.Score(pairs=pairs, right=right, wrong=0, median_s=0.1, refusals={})
+
+    assert holdout_warning(score(3, 3), score(0, 1)) == ''
+    assert holdout_warning(score(6, 6), score(1, 2)) == ''
+    assert 'fare worse' in holdout_warning(score(6, 6), score(0, 2))
+    assert 'fare worse' in holdout_warning(score(20, 20), score(2, 5))
 
 
 def test_the_voxel_grid_spans_the_reference_and_the_start_on_a_log_scale():
@@ -108,6 +124,30 @@ def _error(capsys, *argv) -> str:
     return err[0]
 
 
+def test_the_study_replays_settings_tried_before_from_its_storage_not_again():
+    """A repeated proposal (common on a grid) costs nothing: its score is read back."""
+    import optuna
+
+    from cgags_ros.tools import tune_study
+
+    class Counting:
+        calls = []
+
+        def score(self, settings, splits):
+            self.calls.append(dict(settings))
+            right = int(1000 * settings['voxel_size']) % 5
+            return {'tuned on': tuning.Score(5, right, 0, 0.1, {})}
+
+    study = optuna.create_study(direction='maximize')
+    setup = tune_study.Setup(study, {}, None, [0.001, 0.002, 0.003], {}, 0.002, Counting(), [])
+    for v in (0.002, 0.003, 0.002):
+        study.enqueue_trial({'voxel_size': v})
+    study.optimize(tune_study.objective_of(setup, tune.Options(bags=[])), n_trials=3)
+    assert Counting.calls == [{'voxel_size': 0.002}, {'voxel_size': 0.003}]
+    again = study.trials[2]
+    assert again.user_attrs['repeat_of'] == 0 and again.value == study.trials[0].value == 2
+
+
 def test_bad_bags_and_options_are_one_line_errors(bunny, tmp_path, capsys):
     assert "'/nope' is not in" in _error(capsys, bunny, '--source-topic', '/nope')
     assert '/gt' in _error(capsys, bunny, '--ground-truth-topic', '/gt')
@@ -118,6 +158,11 @@ def test_bad_bags_and_options_are_one_line_errors(bunny, tmp_path, capsys):
     assert '--holdout' in _error(capsys, bunny, '--holdout', '1.5')
     assert '--trials' in _error(capsys, bunny, '--trials', '0')
     assert 'cannot open the study storage' in _error(capsys, bunny, '--storage', 'nosuch://x')
+    assert '--jobs' in _error(capsys, bunny, '--jobs', '0')
+    with pytest.raises(InvalidConfigError, match='one at a time'):  # one node, one trial
+        tune.Options(bags=[bunny], live=True, jobs=2).check()
+    with pytest.raises(InvalidConfigError, match='--timeout'):
+        tune.Options(bags=[bunny], timeout=0.0).check()
 
 
 def _tune(bag: Path, tmp_path: Path, trials: int, **extra) -> tune.Outcome:
@@ -201,3 +246,58 @@ def test_clouds_out_of_their_sensor_frame_are_tuned_to_the_fix_free_space_names(
     assert outcome.best['frontend.normal_orientation'] == 'centroid'
     best = outcome.scores['best', 'tuned on']
     assert best.right == 4 and best.wrong == 0
+
+
+def bunny_without_truth(data_dir: Path, path: Path) -> Path:
+    """Write the turntable scans' four pairs as a bag without a ground-truth topic."""
+    from bench.datasets.gt_pairs import read_gt_pairs
+    from cgags_ros.io.bag import write_bag
+    from cgags_ros.io.clouds import read_cloud
+
+    messages = []
+    pairs = read_gt_pairs(data_dir / 'objects' / 'stanford_bunny_scans' / 'gt_pairs.txt')
+    for k, (source, target, _) in enumerate(pairs):
+        stamp = (k + 1) * 10**9
+        messages += [('/target_cloud', stamp, 'turntable', read_cloud(target)),
+                     ('/source_cloud', stamp + 10**7, 'scanner', read_cloud(source))]
+    write_bag(path, messages)
+    return path
+
+
+@pytest.mark.slow
+def test_without_ground_truth_pairs_are_judged_by_their_reverse_registration(
+        bunny, data_dir, tmp_path):
+    """Right poses are confirmed by the reverse registration; a wrong one is contradicted."""
+    pairs = tuning.load_pairs([bunny], '/source_cloud', '/target_cloud', None)
+    criteria = tuning.criteria_for(0.0024, 5.0, 0.01)
+    settings = {'voxel_size': 0.0024}
+    truth_score, rows = tuning.replay(pairs, settings, criteria)
+    assert truth_score.judged_by == 'ground truth' and truth_score.right == 4
+    blind = [tuning.TunePair(**{**vars(p), 'truth': None}) for p in pairs]
+    confirmed = tuning.score(blind, rows, settings, criteria)
+    assert (confirmed.judged_by, confirmed.right, confirmed.wrong) == ('consistency', 4, 0)
+    from scipy.spatial.transform import Rotation
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler('z', 30, degrees=True).as_matrix()
+    rows[1].transform = rows[1].transform @ turn  # a valid pose 30 degrees off
+    contradicted = tuning.score(blind, rows, settings, criteria)
+    assert (contradicted.right, contradicted.wrong) == (3, 1)
+    assert rows[1].re_deg == pytest.approx(30, abs=3)
+    # A bag without the topic is judged so; bags with and without it do not mix.
+    bare = bunny_without_truth(data_dir, tmp_path / 'bare')
+    assert all(p.truth is None for p in
+               tuning.load_pairs([bare], '/source_cloud', '/target_cloud', None))
+    with pytest.raises(ReplayError, match='tune them apart'):
+        tuning.load_pairs([bunny, bare], '/source_cloud', '/target_cloud', None)
+    with pytest.raises(Exception, match='/ground_truth'):  # a topic named is a topic required
+        tuning.load_pairs([bare], '/source_cloud', '/target_cloud', '/ground_truth')
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+def test_several_processes_share_one_study(bunny, tmp_path):
+    outcome = _tune(bunny, tmp_path, trials=5, jobs=2, voxel_size=0.024)
+    assert len(outcome.trials) in (5, 6)  # a second process may start one as the first stops
+    assert {t['number'] for t in outcome.trials} == set(range(len(outcome.trials)))
+    assert all('right' in t for t in outcome.trials)
+    assert outcome.scores['best', 'tuned on'].right == 4

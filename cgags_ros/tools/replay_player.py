@@ -4,6 +4,8 @@ The player of live replay: a client of register_node over DDS, not part of the n
 An rclpy context that publishes a bag's clouds into a register_node and records what the
 node answers: its poses (``~/pose_with_covariance``) and, for every source it is done with,
 its result (``~/result``, the JSON of :class:`~cgags_ros.localizer.interface.PairResult`).
+It also reads and sets the node's parameters through its parameter services, as
+rqt_reconfigure and ``ros2 param`` do (``cgags-tune --live``).
 """
 
 from __future__ import annotations
@@ -15,9 +17,11 @@ from typing import Any
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
 import numpy as np
+from rcl_interfaces.srv import GetParameters, SetParameters
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
@@ -69,6 +73,7 @@ class LiveSession:
             100)
         self.result_sub = self.node.create_subscription(
             String, f'{self.node_id}/result', self._on_result, reliable)
+        self._clients: dict[str, Any] = {}  # the node's parameter services, once used
 
     def _on_pose(self, msg: Any) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
@@ -100,6 +105,52 @@ class LiveSession:
                 and self.target_pub.get_subscription_count() > 0
                 and self.pose_sub.get_publisher_count() > 0
                 and self.result_sub.get_publisher_count() > 0)
+
+    def get_parameters(self, names: list[str], timeout_s: float) -> dict[str, Any]:
+        """
+        Return the node's values of ``names`` (through its ``get_parameters`` service).
+
+        :raises TimeoutError: the service did not answer within ``timeout_s``.
+        """
+        request = GetParameters.Request(names=list(names))
+        response = self._call(GetParameters, 'get_parameters', request, timeout_s)
+        return {name: parameter_value_to_python(value)
+                for name, value in zip(names, response.values)}
+
+    def set_parameters(self, values: dict[str, Any], timeout_s: float) -> list[str]:
+        """
+        Set the node's parameters (its ``set_parameters`` service); return why any was refused.
+
+        Each parameter is set on its own, as rqt_reconfigure does: the list holds the reason
+        of each one the node refused (out of range, read-only, a wrong type), empty when all
+        were set.
+
+        :raises TimeoutError: the service did not answer within ``timeout_s``.
+        """
+        request = SetParameters.Request(
+            parameters=[Parameter(k, value=v).to_parameter_msg() for k, v in values.items()])
+        response = self._call(SetParameters, 'set_parameters', request, timeout_s)
+        return [f'{name}: {result.reason or "refused"}'
+                for name, result in zip(values, response.results) if not result.successful]
+
+    def _call(self, kind: Any, service: str, request: Any, timeout_s: float) -> Any:
+        client = self._clients.get(service)
+        if client is None:
+            client = self._clients[service] = self.node.create_client(
+                kind, f'{self.node_id}/{service}')
+        end = time.monotonic() + timeout_s
+        while not client.service_is_ready():
+            if time.monotonic() > end:
+                raise TimeoutError(f'no {self.node_id}/{service} service within '
+                                   f'{timeout_s:g} s')
+            self.spin_for(0.05)
+        future = client.call_async(request)
+        while not future.done():
+            if time.monotonic() > end:
+                raise TimeoutError(f'{self.node_id}/{service} did not answer within '
+                                   f'{timeout_s:g} s')
+            self.spin_for(0.02)
+        return future.result()
 
     def close(self) -> None:
         """Shut the player's executor, node and context down."""

@@ -4,15 +4,16 @@
 ::
 
     cgags-tune BAG [BAG ...] [--voxel-size V0] [--trials N] [--seed S] [--holdout 0.3]
-               [--max-wrong 0] [--output DIR] [--storage URL] [--resume]
+               [--max-wrong 0] [--output DIR] [--storage URL] [--resume] [--jobs N]
                [--ground-truth FILE] [--source-topic T] [--target-topic T]
-               [--ground-truth-topic T]
+               [--ground-truth-topic T] [--live [--node /register_node]]
 
 Replays every pair of the bags (paired as the node pairs them, the topics as in
 ``cgags-replay``) once a trial with Optuna's seeded TPE sampler choosing the settings
 (:mod:`.tuning` says which and why), scores them against the bags' ground truth
 (``/ground_truth`` PoseStamped, or ``--ground-truth`` lines ``STAMP_NS x y z qx qy qz
-qw``) and writes to DIR (default ``out/tune/<first bag>``):
+qw``), or by their consistency when the bags have none, and writes to DIR (default
+``out/tune/<first bag>``):
 
 - ``params.yaml``: the best settings as a ROS 2 parameters file (``register_node:
   ros__parameters:``), for ``--ros-args --params-file``, ``ros2 param load`` and
@@ -26,7 +27,12 @@ qw``) and writes to DIR (default ``out/tune/<first bag>``):
 The study is stored in ``out/tune/<first bag>.db`` (SQLite) unless ``--storage`` names
 another Optuna storage URL (a shared database lets several machines work on one study);
 ``--resume`` continues a stopped study up to ``--trials`` trials, without repeating one.
-Without ground truth it stops with an error: an objective that needs none is not built yet.
+``--jobs N`` runs the trials in N processes on that storage (then the trials' order, and so
+the proposals, depend on timing: a seed no longer replays them).
+
+``--live`` tunes a running ``register_node`` instead (:mod:`.tune_live`): each trial sets
+the node's parameters through its parameter services and replays the bags through it; the
+node is left on the best settings.
 """
 
 from __future__ import annotations
@@ -34,17 +40,16 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 from pathlib import Path
 import sys
 from typing import Any, Sequence
 
 from .cli import Parser, run_cli
 from .replay_common import DEFAULT_GT_TOPIC, ReplayError
+from .tune_study import prepare, search, SQLITE
 from ..errors import InvalidConfigError
 
 PROG = 'cgags-tune'
-SQLITE = 'sqlite:///'
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -67,18 +72,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--storage', default=None, help='Optuna storage URL (default: SQLite in '
                    'out/tune/<first bag>.db)')
     p.add_argument('--resume', action='store_true', help='continue a stopped study')
+    p.add_argument('--jobs', type=int, default=1,
+                   help='processes running trials at once (default: 1)')
     p.add_argument('--ground-truth', type=Path, default=None, metavar='FILE',
                    help='STAMP_NS x y z qx qy qz qw lines (source -> target) instead of the '
                    "bag's ground-truth topic")
     p.add_argument('--source-topic', default='/source_cloud')
     p.add_argument('--target-topic', default='/target_cloud')
-    p.add_argument('--ground-truth-topic', default=DEFAULT_GT_TOPIC)
+    p.add_argument('--ground-truth-topic', default=None,
+                   help=f'PoseStamped source -> target (default: {DEFAULT_GT_TOPIC} when the '
+                   'bags have it; without ground truth the pairs are judged by consistency)')
+    p.add_argument('--ignore-ground-truth', action='store_true',
+                   help='judge by consistency even where the bags have ground truth (to see '
+                   'what tuning without it would choose)')
     p.add_argument('--max-re-deg', type=float, default=None,
                    help='success: rotation error at most this (degrees; default as '
                    'cgags-replay)')
     p.add_argument('--max-te', type=float, default=None, help='success: translation error '
                    'at most this (metres; default 3 reference voxel sizes)')
     p.add_argument('--quiet', action='store_true', help='no progress bar, no tables')
+    live = p.add_argument_group('tuning a running register_node through its parameters')
+    live.add_argument('--live', action='store_true',
+                      help="set a running node's parameters each trial and replay the bags "
+                      'through it (over DDS)')
+    live.add_argument('--node', default='/register_node', help='the node (default: '
+                      '/register_node)')
+    live.add_argument('--timeout', type=float, default=60.0,
+                      help='seconds without an answer from the node before a pair counts '
+                      'as lost (default: 60)')
     return p
 
 
@@ -98,10 +119,15 @@ class Options:
     ground_truth: Path | None = None
     source_topic: str = '/source_cloud'
     target_topic: str = '/target_cloud'
-    ground_truth_topic: str = DEFAULT_GT_TOPIC
+    ground_truth_topic: str | None = None
+    ignore_ground_truth: bool = False
     max_re_deg: float | None = None
     max_te: float | None = None
     quiet: bool = False
+    jobs: int = 1
+    live: bool = False
+    node: str = '/register_node'
+    timeout: float = 60.0
 
     def check(self) -> None:
         """Raise InvalidConfigError for options out of range."""
@@ -113,6 +139,13 @@ class Options:
             raise InvalidConfigError(f'--voxel-size must be > 0, got {self.voxel_size}')
         if self.max_wrong < 0:
             raise InvalidConfigError(f'--max-wrong must be >= 0, got {self.max_wrong}')
+        if self.jobs < 1:
+            raise InvalidConfigError(f'--jobs must be >= 1, got {self.jobs}')
+        if self.live and self.jobs > 1:
+            raise InvalidConfigError('--live tunes one node: its trials run one at a time '
+                                     '(--jobs 1)')
+        if not self.timeout > 0:
+            raise InvalidConfigError(f'--timeout must be > 0, got {self.timeout}')
 
     @property
     def name(self) -> str:
@@ -144,161 +177,75 @@ class Outcome:
     trials: list[dict[str, Any]]
     warning: str
     paths: dict[str, Path]
+    notes: list[str] = dataclasses.field(default_factory=list)
 
 
 def tune(opts: Options) -> Outcome:
     """Run (or resume) the study of ``opts`` and write its outputs; return the outcome."""
-    import optuna
-
-    from . import tuning
-
-    opts.check()
-    pairs = tuning.load_pairs(opts.bags, opts.source_topic, opts.target_topic,
-                              opts.ground_truth_topic, opts.ground_truth)
-    tuned_on, held_out = tuning.holdout_split(pairs, opts.holdout, opts.seed)
-    reference = tuning.reference_voxel(pairs)
-    start = opts.voxel_size or reference
-    criteria = tuning.criteria_for(reference, opts.max_re_deg, opts.max_te)
-    grid = tuning.voxel_grid(reference, start)
-    start, automatic = (min(grid, key=lambda v: abs(math.log(v / x))) for x in (start, reference))
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    setup = prepare(opts)
     try:
-        study = optuna.create_study(study_name=opts.name, storage=opts.storage_url,
-                                    direction='maximize', load_if_exists=True,
-                                    sampler=optuna.samplers.TPESampler(seed=opts.seed))
-    except Exception as exc:  # an unreachable database or a bad URL: what the user can fix
-        raise InvalidConfigError(f'cannot open the study storage {opts.storage_url}: '
-                                 f'{exc}') from exc
-    done = [t for t in study.trials if t.state == optuna.trial.TrialState.COMPLETE]
-    if study.trials and not opts.resume:
-        raise InvalidConfigError(
-            f'a study {opts.name!r} exists in {opts.storage_url} ({len(done)} trials): '
-            '--resume to continue it, or --storage for a new one')
-    if 'space' in study.user_attrs:
-        space = {k: tuple(v) for k, v in study.user_attrs['space'].items()}
-    else:
-        baseline, _ = tuning.replay(tuned_on, {'voxel_size': start}, criteria)
-        space = tuning.search_space(baseline.refusals)
-        study.set_user_attr('space', {k: list(v) for k, v in space.items()})
-        study.enqueue_trial({'voxel_size': start})
-        if automatic != start:
-            study.enqueue_trial({'voxel_size': automatic})
-
-    def objective(trial: Any) -> float:
-        settings = {'voxel_size': trial.suggest_categorical('voxel_size', grid)}
-        for name, choices in space.items():
-            settings[name] = trial.suggest_categorical(name, list(choices))
-        score, _ = tuning.replay(tuned_on, settings, criteria)
-        for key, value in dataclasses.asdict(score).items():
-            trial.set_user_attr(key, value)
-        return score.value(opts.max_wrong)
-
-    remaining = opts.trials - len(done)
-    if remaining > 0:
-        from tqdm import tqdm
-
-        bar = tqdm(total=remaining, disable=opts.quiet or None, unit='trial', leave=False)
-        study.optimize(objective, n_trials=remaining, callbacks=[lambda *_: bar.update()])
-        bar.close()
-    return _finish(study, opts, tuned_on, held_out, criteria, reference)
+        search(setup, opts)
+        return _finish(setup, opts)
+    finally:
+        setup.trials.close()
 
 
-def _finish(study: Any, opts: Options, tuned_on: list, held_out: list, criteria: Any,
-            reference: float) -> Outcome:
+def _finish(setup: Any, opts: Options) -> Outcome:
     """Pick the best trial, replay it and the defaults on both splits, write the outputs."""
     import optuna
 
     from . import tuning
+    from .tune_report import holdout_warning, plot_trials, report_markdown
 
-    trials = [t for t in study.trials if t.state == optuna.trial.TrialState.COMPLETE]
-    if not trials:
-        raise ReplayError('no trial completed')
-    best = max(trials, key=lambda t: (t.value, -t.user_attrs['median_s'])).params
-    defaults = {'voxel_size': reference}
+    trials = sorted(setup.study.trials, key=lambda t: t.number)
+    complete = [t for t in trials if t.state == optuna.trial.TrialState.COMPLETE]
+    if not complete:
+        raise ReplayError('no trial completed' + ''.join(
+            f'; trial {t.number}: {t.user_attrs["refused"]}' for t in trials
+            if t.user_attrs.get('refused')))
+    best = max(complete, key=lambda t: (t.value, -t.user_attrs['median_s'])).params
+    defaults = setup.trials.defaults()
     scores = {}
     for name, settings in (('best', best), ('defaults', defaults)):
-        for split, pairs in (('tuned on', tuned_on), ('held out', held_out)):
-            if pairs:
-                scores[name, split] = tuning.replay(pairs, settings, criteria)[0]
-    warning = _holdout_warning(scores.get(('best', 'tuned on')), scores.get(('best', 'held out')))
-    rows = [{'number': t.number, **t.params, **{k: t.user_attrs[k] for k in
-                                                ('right', 'wrong', 'pairs', 'median_s')}}
-            for t in trials]
+        for split, score in setup.trials.score(settings, ('tuned on', 'held out')).items():
+            scores[name, split] = score
+    setup.trials.leave_on(best)
+    warning = holdout_warning(scores.get(('best', 'tuned on')), scores.get(('best', 'held out')))
+    rows = [_trial_row(t) for t in trials
+            if t.state == optuna.trial.TrialState.COMPLETE or t.user_attrs.get('refused')]
+    notes = setup.notes + ([f'warning: {warning}'] if warning else [])
     out = opts.out_dir
     out.mkdir(parents=True, exist_ok=True)
-    comment = (f'cgags-tune {" ".join(map(str, opts.bags))}: {len(trials)} trials, seed '
+    comment = (f'cgags-tune {" ".join(map(str, opts.bags))}: {len(complete)} trials, seed '
                f'{opts.seed}; report.md beside this file')
     paths = {'params': out / 'params.yaml', 'report': out / 'report.md',
              'plot': out / 'trials.png', 'summary': out / 'summary.json'}
     paths['params'].write_text(tuning.params_yaml(best, comment), encoding='utf-8')
-    outcome = Outcome(best, defaults, scores, rows, warning, paths)
-    paths['report'].write_text(report_markdown(outcome, opts), encoding='utf-8')
+    outcome = Outcome(best, defaults, scores, rows, warning, paths, notes)
+    report = report_markdown(opts.bags, best, defaults, scores, rows, notes)
+    paths['report'].write_text(report, encoding='utf-8')
     paths['summary'].write_text(json.dumps({
-        'best': best, 'defaults': defaults, 'warning': warning, 'trials': rows,
+        'best': best, 'defaults': defaults, 'warning': warning, 'notes': notes,
+        'trials': rows,
         'scores': [{'settings': name, 'split': split, **dataclasses.asdict(score)}
                    for (name, split), score in scores.items()]}, indent=1), encoding='utf-8')
     plot_trials(rows, paths['plot'])
     if not opts.quiet:
-        print(report_markdown(outcome, opts))
+        print(report)
     return outcome
 
 
-def _holdout_warning(tuned: Any, held: Any) -> str:
-    """Return a warning when the held-out recall is below the tuned one by more than noise."""
-    if tuned is None or held is None or not held.pairs:
-        return ''
-    p = tuned.recall
-    noise = 2.0 * math.sqrt(max(p * (1 - p), 0.25 / held.pairs) / held.pairs)
-    if held.recall + noise < p:
-        return (f'the held-out pairs fare worse ({100 * held.recall:.0f} % right and valid '
-                f'against {100 * p:.0f} %) than noise allows: the settings may fit only the '
-                'pairs they were chosen on; record more varied pairs')
-    return ''
+def _trial_row(trial: Any) -> dict[str, Any]:
+    """Return a trial's settings and score (or why the node refused its settings)."""
+    from .tune_report import TRIAL_SCORE_KEYS
 
-
-def report_markdown(outcome: Outcome, opts: Options) -> str:
-    """Return the report: the best settings against the defaults on both splits, every trial."""
-    lines = [f'# cgags-tune: {", ".join(map(str, opts.bags))}', '',
-             f'best: `{outcome.best}`; defaults: `{outcome.defaults}`', '',
-             '| settings | pairs | right and valid | valid but wrong | median s a pair |',
-             '|---|---|---|---|---|']
-    for (name, split), s in outcome.scores.items():
-        lines.append(f'| {name}, {split} | {s.pairs} | {s.right} ({100 * s.recall:.0f} %) | '
-                     f'{s.wrong} | {s.median_s:.3f} |')
-    if outcome.warning:
-        lines += ['', f'**Warning**: {outcome.warning}.']
-    lines += ['', '| trial | settings | right | wrong | median s |', '|---|---|---|---|---|']
-    for row in outcome.trials:
-        settings = {k: v for k, v in row.items()
-                    if k not in ('number', 'right', 'wrong', 'pairs', 'median_s')}
-        lines.append(f"| {row['number']} | `{settings}` | {row['right']} of {row['pairs']} | "
-                     f"{row['wrong']} | {row['median_s']:.3f} |")
-    return '\n'.join(lines) + '\n'
-
-
-def plot_trials(rows: list[dict[str, Any]], path: Path) -> None:
-    """Draw every trial's recall against its median time, the Pareto front marked."""
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
-    recall = [r['right'] / max(r['pairs'], 1) for r in rows]
-    times = [r['median_s'] for r in rows]
-    front = [i for i in range(len(rows))
-             if not any(recall[j] >= recall[i] and times[j] <= times[i]
-                        and (recall[j], times[j]) != (recall[i], times[i])
-                        for j in range(len(rows)))]
-    fig, ax = plt.subplots(figsize=(5, 4))
-    ax.scatter(times, recall, color='grey', s=18, label='trials')
-    ax.scatter([times[i] for i in front], [recall[i] for i in front], color='C3', s=30,
-               label='Pareto front')
-    ax.set_xlabel('median seconds a pair')
-    ax.set_ylabel('share right and valid')
-    ax.set_ylim(-0.02, 1.02)
-    ax.legend(loc='lower right', fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    row = {'number': trial.number, **trial.params}
+    if trial.user_attrs.get('refused'):
+        return {**row, 'refused': trial.user_attrs['refused']}
+    row.update({k: trial.user_attrs[k] for k in TRIAL_SCORE_KEYS if k in trial.user_attrs})
+    if 'repeat_of' in trial.user_attrs:
+        row['repeat_of'] = trial.user_attrs['repeat_of']
+    return row
 
 
 def main(argv: Sequence[str] | None = None) -> int:
