@@ -214,6 +214,10 @@ def _finish(setup: Any, opts: Options) -> Outcome:
     rows = [_trial_row(t) for t in trials
             if t.state == optuna.trial.TrialState.COMPLETE or t.user_attrs.get('refused')]
     notes = setup.notes + ([f'warning: {warning}'] if warning else [])
+    if setup.trials.lost:
+        notes.append(f'{setup.trials.lost} pair(s) got no result from the node (lost by DDS '
+                     'or later than --timeout) and counted as not right: while tuning, start '
+                     'the node with pairing.source_qos:=reliable (docs/tuning.md)')
     out = opts.out_dir
     out.mkdir(parents=True, exist_ok=True)
     comment = (f'cgags-tune {" ".join(map(str, opts.bags))}: {len(complete)} trials, seed '

@@ -9,9 +9,11 @@ read-only, of another type) fails the trial with the node's reason, and the same
 are not tried on the node again.
 
 The clouds are played in lockstep, not at the bag's pace: after a source whose target
-went out before it, the player waits for the node's result before the next cloud, so a
-slow trial loses no scan and a node on any QoS sees every pair (a source that gets no
-result within ``--timeout`` counts as not right, and the replay goes on). Every pair of the
+went out before it, the player waits for the node's result before the next cloud, so no
+scan queues behind a slow trial. A source that gets no result within ``--timeout`` (lost
+by DDS, which a best-effort source subscription may do with a large cloud, or slower than
+that) counts as not right, the replay goes on, and the report counts them (:attr:`lost`).
+Every pair of the
 bags goes through the node each trial, held-out ones included (the stream is the bag's);
 only the tuned-on pairs' scores reach the sampler.
 
@@ -63,6 +65,7 @@ class LiveTrials:
             self.session.close()
             raise
         self._closed = False
+        self.lost = 0  # pairs of all trials that got no result from the node
 
     def _connect(self, opts: Any) -> None:
         deadline = time.monotonic() + CONNECT_TIMEOUT_S
@@ -95,7 +98,9 @@ class LiveTrials:
         for split in splits:
             pairs = self.splits[split]
             if pairs:
-                rows = [_row(p, results.get((p.bag, p.stamp_ns))) for p in pairs]
+                answers = [results.get((p.bag, p.stamp_ns)) for p in pairs]
+                self.lost += sum(answer is None for answer in answers)
+                rows = [_row(p, answer) for p, answer in zip(pairs, answers)]
                 out[split] = tuning.score(pairs, rows, settings, self.criteria)
         return out
 
