@@ -191,7 +191,7 @@ def voted_turns(T: np.ndarray, axes: np.ndarray, source: np.ndarray, target: np.
             chosen: list[np.ndarray] = []
             for c in np.argsort(-counts, kind='stable')[:4 * VOTED_PEAKS]:
                 if 2 * counts[c] < min_votes or len(chosen) == VOTED_PEAKS:
-                    break  # a cube holds at least half of a peak's votes, by its side
+                    break  # a bound on the work: a peak spread thinner than this is missed
                 centre = votes[cube == c].mean(axis=0)
                 if any(np.linalg.norm(centre - t) < 2 * tau for t in chosen):
                     continue

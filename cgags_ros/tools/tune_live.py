@@ -60,7 +60,8 @@ class LiveTrials:
         try:
             self._connect(opts)
             names = ['voxel_size'] + [name for name, _ in tuning.FIXES.values()]
-            self.initial = self.session.get_parameters(names, SERVICE_TIMEOUT_S)
+            values = self.session.get_parameters(names, SERVICE_TIMEOUT_S)
+            self.initial = {k: v for k, v in values.items() if v is not None}  # None: unset
         except BaseException:
             self.session.close()
             raise
