@@ -281,7 +281,8 @@ def structured_rival(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences
     # The starts are independent: judged side by side, the first plausible one in their
     # order is the rival, as if they were judged one after the other.
     others = [c.transform for c in result.candidates[1:]]
-    matches = (fs.points[corr.source_index], ft.points[corr.target_index])
+    matches = ((fs.points[corr.source_index], ft.points[corr.target_index]) if VOTED_PEAKS
+               else None)  # only the voted turns read them
     min_votes = max(3, int(np.ceil(VOTED_SHARE * result.num_inliers)))
     starts = [start for _, start in rival_starts(fs, ft, T, distance, v, others, matches,
                                                  float(result.inlier_threshold), min_votes)]

@@ -27,6 +27,7 @@ from ..geometry import voxel_size_for
 from ..io.bag import BagReader, BagRecord, write_poses_mcap
 from ..io.pointcloud2 import pointcloud2_to_xyz, pose_to_transform
 from ..localizer.pairing import Pair, Pairer
+from ..refusal import Refusal, RefusalCode
 
 DEFAULT_POSE_TOPIC = '/cgags/pose'
 DEFAULT_GT_TOPIC = '/ground_truth'
@@ -266,6 +267,20 @@ def make_row(index: int, src: CloudMessage, tgt: CloudMessage | None,
                    target_stamp_ns=None if tgt is None else int(tgt.stamp_ns),
                    source_frame=src.frame_id, target_frame='' if tgt is None else tgt.frame_id,
                    valid=False, ground_truth=contents.ground_truth.get(int(src.stamp_ns)))
+
+
+def fill_from_result(row: PairRow, result: dict[str, Any]) -> Refusal | None:
+    """
+    Copy what a node's ``~/result`` says of a pair into ``row``; return the refusal it gives.
+
+    Inliers, fitness, path and pipeline seconds; the refusal is None when the result has none
+    (or ``result`` is empty: no result came).
+    """
+    row.inliers, row.fitness = result.get('num_inliers'), result.get('fitness')
+    row.path = result.get('path')
+    row.time_s = result.get('timings', {}).get('total')
+    said = result.get('refusal')
+    return Refusal(RefusalCode(said['code']), said['message']) if said else None
 
 
 def note_pairing_drops(report: BagReport, pairer: Pairer) -> None:

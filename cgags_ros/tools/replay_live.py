@@ -33,6 +33,7 @@ from typing import Any
 from .replay_common import (
     BagContents,
     CloudMessage,
+    fill_from_result,
     finish_report,
     iter_pairs,
     LiveOptions,
@@ -220,11 +221,7 @@ def build_rows(contents: BagContents, expected: dict[int, Any], poses: dict[int,
             continue
         row = make_row(len(rows), src, pair.target.payload if pair else None, contents)
         result = results.get(stamp, {})
-        row.inliers, row.fitness = result.get('num_inliers'), result.get('fitness')
-        row.path = result.get('path')
-        row.time_s = result.get('timings', {}).get('total')
-        said = result.get('refusal')
-        refusal = Refusal(RefusalCode(said['code']), said['message']) if said else None
+        refusal = fill_from_result(row, result)
         got = poses.get(stamp)
         if got is not None:
             row.valid = result.get('valid', True)  # a pose without its result: a valid one

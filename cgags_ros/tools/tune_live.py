@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from . import tuning
-from .replay_common import iter_pairs, read_bag_contents, ReplayError
+from .replay_common import fill_from_result, iter_pairs, read_bag_contents, ReplayError
 from .replay_player import LiveSession, MAX_QUEUE
 from ..config.node import configs_from_parameters
 from ..localizer.pairing import Pairer
@@ -160,11 +160,8 @@ def _row(pair: tuning.TunePair, result: dict[str, Any] | None) -> Any:
         row.refusal = Refusal(RefusalCode.NO_POSE, 'no result from the node (lost, or later '
                               'than --timeout)')
         return row
-    said = result.get('refusal')
-    row.refusal = Refusal(RefusalCode(said['code']), said['message']) if said else None
+    row.refusal = fill_from_result(row, result)
     row.valid = bool(result.get('valid'))
     if result.get('transform') is not None:
         row.transform = np.asarray(result['transform'], dtype=np.float64)
-    row.time_s = result.get('timings', {}).get('total')
-    row.path = result.get('path')
     return row
