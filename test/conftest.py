@@ -50,26 +50,34 @@ def data_dir() -> Path:
 
 
 @pytest.fixture(scope='session')
-def redkitchen_pair(data_dir):
+def benchmark_pair(data_dir):
     """
-    Return ``pair(target, source)`` -> (source points, target points, 4x4 truth).
+    Return ``pair(scene, target, source)`` -> (source points, target points, 4x4 truth).
 
-    A pair of the 3DMatch or 3DLoMatch list of the benchmark's redkitchen scene (fragments
+    A pair of the 3DMatch or 3DLoMatch list of one of the benchmark's scenes (fragments
     ``source`` into ``target``, the truth projected onto a rotation).
     """
     from bench.datasets import threedmatch as tdm
 
     root = require_shared(data_dir / '3dmatch_benchmark', '3dmatch_benchmark',
                           marker='benchmarks')
-    scene = '7-scenes-redkitchen'
-    pairs = {(p.target, p.source): p for benchmark in tdm.BENCHMARKS
-             for p in tdm.registration_pairs(root, benchmark, scene)}
-    fragments = tdm.Fragments(root, scene)
+    scenes: dict[str, tuple[dict, tdm.Fragments]] = {}
 
-    def pair(target: int, source: int):
+    def pair(scene: str, target: int, source: int):
+        if scene not in scenes:
+            scenes[scene] = ({(p.target, p.source): p for benchmark in tdm.BENCHMARKS
+                              for p in tdm.registration_pairs(root, benchmark, scene)},
+                             tdm.Fragments(root, scene))
+        pairs, fragments = scenes[scene]
         p = pairs[(target, source)]
         return fragments[source], fragments[target], tdm.nearest_rigid(p.transform)
     return pair
+
+
+@pytest.fixture(scope='session')
+def redkitchen_pair(benchmark_pair):
+    """Return ``pair(target, source)``: :func:`benchmark_pair` of the redkitchen scene."""
+    return lambda target, source: benchmark_pair('7-scenes-redkitchen', target, source)
 
 
 @pytest.fixture(scope='module')

@@ -5,7 +5,7 @@ Run by hand from the repository root, one run at a time (it takes a while)::
 
     OMP_NUM_THREADS=1 .venv/bin/python -m bench.studies.loso_trust measure \
         [--root <shared data>/3dmatch_benchmark] [--scenes S ...] [--pairs K] \
-        [--output out/loso_trust/records.jsonl]
+        [--set KEY=VALUE ...] [--output out/loso_trust/records.jsonl]
 
 ``measure`` registers every pair of both lists (3DMatch, 3DLoMatch) of every scene once,
 with the default pipeline (``--gates-only``: without the structured rivals and the
@@ -49,9 +49,10 @@ import math
 from pathlib import Path
 import time
 
-from bench.common import argument_parser
+from bench.common import add_set_option, argument_parser, parse_overrides
 from bench.datasets import threedmatch as tdm
 from cgags_ros.config import GatesConfig, PipelineConfig
+from cgags_ros.config.fields import update_from_flat
 from cgags_ros.frontend.refine import evaluate_alignment
 from cgags_ros.geometry import rotation_error_deg, spread, translation_error
 from cgags_ros.io.shared_data import shared_data_dir
@@ -218,6 +219,7 @@ def measure(args) -> None:
     if args.gates_only:
         cfg = PipelineConfig(voxel_size=args.voxel, gates=GatesConfig(
             structured_rivals=False, min_confidence=0.0))
+    cfg = update_from_flat(cfg, parse_overrides(args.set))
     args.output.parent.mkdir(parents=True, exist_ok=True)
     done = set()
     if args.resume and args.output.exists():
@@ -327,6 +329,7 @@ def main(argv: list[str] | None = None) -> int:
                    help='without the structured rivals and the confidence threshold, so that '
                    "every estimate the gates pass has its rivals measured (a study's base)")
     m.add_argument('--output', type=Path, default=Path('out/loso_trust/records.jsonl'))
+    add_set_option(m)
     t = sub.add_parser('timing', help='time the defaults, the levers off and KISS-Matcher')
     t.add_argument('--root', type=Path, default=shared_data_dir() / '3dmatch_benchmark')
     t.add_argument('--scenes', nargs='+', default=None)

@@ -17,6 +17,7 @@ from .core import CoreConfig
 from .fields import option, section
 from .frontend import FrontEndConfig, RefineConfig
 from .gates import GatesConfig
+from .regenerate import RegenerateConfig
 from .tracking import TrackingConfig
 from ..errors import InvalidConfigError
 
@@ -31,6 +32,7 @@ class PipelineConfig:
     frontend: FrontEndConfig = section(FrontEndConfig)
     core: CoreConfig = section(CoreConfig)
     refine: RefineConfig = section(RefineConfig)
+    regenerate: RegenerateConfig = section(RegenerateConfig)
     gates: GatesConfig = section(GatesConfig)
     tracking: TrackingConfig = section(TrackingConfig)
     seed: int = option(0, 'Random seed of the sampler (results are deterministic per seed).',

@@ -3,11 +3,12 @@ Clouds in, result out: the one registration path of the node, the CLIs and bench
 
 ``register_clouds(source, target)`` runs: input checks -> voxel downsampling -> normals ->
 FPFH -> mutual-nearest-neighbour correspondences -> the CGAGS core (global, no initial
-guess) -> optional ICP/GICP refinement -> validity gating. Numpy in, numpy out; transforms
-are 4x4 source->target (``p_target = R p_source + t``), metres. With
-``core.motion_model='4dof'`` the core, the refinement and the gates solve yaw + translation
-only (roll and pitch stay zero about the gravity axis) and a tilt between the clouds is
-reported.
+guess) -> where the core refuses its estimate, poses proposed by re-matching the
+descriptors locally (:mod:`.regenerate`) -> optional ICP/GICP refinement -> validity
+gating. Numpy in, numpy out; transforms are 4x4 source->target (``p_target = R p_source +
+t``), metres. With ``core.motion_model='4dof'`` the core, the refinement and the gates solve
+yaw + translation only (roll and pitch stay zero about the gravity axis) and a tilt between
+the clouds is reported.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from .confidence import features, probability
 from .covariance import loosest_sigma, result_covariance, with_confidence
 from .gates import measure
 from .map import matches_config, PreparedMap
+from .regenerate import regenerated_estimate
 from .result import PipelineResult
 from .rivals import mark_ambiguous, structured_rival
 from ..config import fields
@@ -147,6 +149,10 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
     except DegenerateCorrespondencesError as exc:
         result.num_correspondences = len(corr)
         return result.finish(start, exc.refusal)
+    if _regenerates(core, cfg, map_target):
+        with timed(result.timings, 'regeneration'):
+            replaced = regenerated_estimate(fs, ft, corr, core, cfg, workers)
+        core = replaced or core
     _copy_core(core, result)
     result.inlier_source_points = fs.points[corr.source_index[core.inliers]]
     result.inlier_target_points = ft.points[corr.target_index[core.inliers]]
@@ -284,6 +290,20 @@ def _global_estimate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences
     except DegenerateCorrespondencesError as exc:
         raise DegenerateCorrespondencesError(f'degenerate correspondences: {exc}',
                                              code=exc.code) from exc
+
+
+def _regenerates(core: RegistrationResult, cfg: PipelineConfig, map_target: bool) -> bool:
+    """
+    Tell whether the regenerated correspondences run (:mod:`.regenerate`).
+
+    6-DoF pairs of clouds, when enabled; by default (``when: refused``) only for an estimate
+    the core refuses, a collinear consensus included: the stage's proposals put right more
+    of those than the gates settle.
+    """
+    if not (cfg.regenerate.enabled and not map_target and cfg.core.motion_model == '6dof'
+            and cfg.refine.method != 'none'):
+        return False
+    return cfg.regenerate.when == 'always' or core.refusal is not None
 
 
 def _copy_core(core: RegistrationResult, result: PipelineResult) -> None:
