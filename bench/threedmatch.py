@@ -6,6 +6,7 @@ Run by hand (under ``flock /tmp/cgags-bench.lock``)::
     .venv/bin/python -m bench.threedmatch [--root <shared data>/3dmatch_benchmark] \
         [--scenes S ...] [--benchmarks 3DMatch 3DLoMatch] [--pairs K] \
         [--methods cgags kiss_matcher open3d_fpfh_ransac] [--set KEY=VALUE] \
+        [--variant NAME:KEY=VALUE[,KEY=VALUE ...]] \
         [--output out/bench/threedmatch] [--records out/bench/threedmatch_run]
 
 Every registration pair (``j - i > 1``) of every scene folder under ``--root`` (any scene
@@ -19,6 +20,10 @@ to the 4x4 transform, one pair at a time, the methods interleaved pair by pair:
     cache cleared before each pair, as the baselines featurise both clouds every pair)
     unless ``--warm-features`` (each fragment featurised once a scene: for quick gate
     studies; its times are then not comparable and the output says so).
+``cgags[NAME]``
+    ours again with ``--variant NAME:KEY=VALUE,...`` (repeatable; on top of ``--set``):
+    settings compared in one run, interleaved pair by pair with the rest, so their times
+    are ratios under the same machine load (a recall/time curve).
 ``kiss_matcher``
     ``KISSMatcher(KISSMatcherConfig(voxel)).estimate(src, tgt)`` (kiss-matcher 1.0.2,
     float32, its own front end, no refinement); its ``valid`` is its flag.
@@ -202,7 +207,7 @@ def run(args, methods: dict) -> list[dict]:
                         try:
                             gt = tdm.nearest_rigid(pair.transform)
                             T, valid, info = fn(src, tgt, args.voxel, gt) \
-                                if name == 'cgags' else fn(src, tgt, args.voxel)
+                                if _ours(name) else fn(src, tgt, args.voxel)
                             error = ''
                         except Exception as exc:  # noqa: BLE001 - a failing method is data
                             T, valid, info = np.eye(4), False, {'time_s': float('nan')}
@@ -238,7 +243,22 @@ def warm_up(args, methods: dict) -> None:
     fragments = tdm.Fragments(args.root, scene)
     src, tgt = fragments[pair.source], fragments[pair.target]
     for name, fn in methods.items():
-        fn(src, tgt, args.voxel, pair.transform) if name == 'cgags' else fn(src, tgt, args.voxel)
+        fn(src, tgt, args.voxel, pair.transform) if _ours(name) else fn(src, tgt, args.voxel)
+
+
+def _ours(method: str) -> bool:
+    return method == 'cgags' or method.startswith('cgags[')
+
+
+def variants(specs: list[str], config: PipelineConfig) -> dict[str, PipelineConfig]:
+    """Return {'cgags[NAME]': config} for each ``--variant NAME:KEY=VALUE,...``."""
+    out = {}
+    for spec in specs:
+        name, sep, sets = spec.partition(':')
+        if not sep or not name or f'cgags[{name}]' in out:
+            raise SystemExit(f'--variant {spec!r}: expected a new NAME:KEY=VALUE[,KEY=VALUE]')
+        out[f'cgags[{name}]'] = update_from_flat(config, parse_overrides(sets.split(',')))
+    return out
 
 
 def _reset_cache(warm: bool) -> None:
@@ -361,6 +381,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--seed', type=int, default=0, help='seed of the --pairs sample')
     p.add_argument('--voxel', type=float, default=0.05, help='voxel size, metres')
     add_set_option(p)
+    p.add_argument('--variant', action='append', default=[], metavar='NAME:KEY=VALUE,...',
+                   help='also run ours with these changes, as method cgags[NAME] (repeatable)')
     p.add_argument('--warm-features', action='store_true',
                    help='featurise each fragment once (ours only; its times not comparable)')
     p.add_argument('--output', type=Path, default=output_path('threedmatch'),
@@ -373,6 +395,8 @@ def main(argv: list[str] | None = None) -> int:
     table = {'cgags': functools.partial(run_cgags, config=config, warm=args.warm_features),
              'kiss_matcher': run_kiss, 'open3d_fpfh_ransac': run_open3d}
     methods = {m: table[m] for m in args.methods}
+    for name, changed in variants(args.variant, config).items():
+        methods[name] = functools.partial(run_cgags, config=changed, warm=args.warm_features)
     t0 = time.time()
     warm_up(args, methods)
     records = run(args, methods)
@@ -389,6 +413,8 @@ def main(argv: list[str] | None = None) -> int:
                           f'(seed {args.seed})')]
     if args.set:
         notes.append('ours with --set ' + ' '.join(args.set))
+    notes += [f'cgags[{v.partition(":")[0]}]: ours with {v.partition(":")[2]}'
+              for v in args.variant]
     if args.warm_features:
         notes.append('ours with --warm-features: its times are NOT comparable')
     print('\n' + text + '\n\n' + '\n'.join(notes))

@@ -182,3 +182,20 @@ def test_no_test_imports_a_study():
                 names = [node.args[0].value]
             assert not [n for n in names if _is_study(n)], \
                 f'{path.relative_to(REPO)}:{node.lineno} imports a study'
+
+
+def test_a_threedmatch_variant_is_ours_with_its_changes_on_top_of_set():
+    from bench import threedmatch
+    from cgags_ros.config import PipelineConfig
+
+    base = PipelineConfig(voxel_size=0.05)
+    found = threedmatch.variants(['fast:regenerate.enabled=false,core.time_budget=0.01'], base)
+    assert list(found) == ['cgags[fast]'] and threedmatch._ours('cgags[fast]')
+    fast = found['cgags[fast]']
+    assert not fast.regenerate.enabled and fast.core.time_budget == 0.01
+    assert fast.voxel_size == 0.05 and base.regenerate.enabled  # the base is not changed
+    for bad in (['fast'], [':core.time_budget=1'], ['a:core.p1=0.5', 'a:core.p1=0.6']):
+        with pytest.raises(SystemExit):
+            threedmatch.variants(bad, base)
+    with pytest.raises(Exception, match='no_such'):
+        threedmatch.variants(['x:core.no_such=1'], base)

@@ -307,3 +307,30 @@ def test_bad_voxel_size_raises_config_error():
     cfg = dataclasses.replace(PipelineConfig(), voxel_size=float('nan'))
     with pytest.raises(InvalidConfigError):
         register_clouds(good, good, config=cfg)
+
+
+@pytest.mark.slow
+def test_a_refusal_certain_before_the_refinement_keeps_its_verdict_refined_or_not(
+        benchmark_pair):
+    """
+    The core's consensus does not stand out: refined or not, the estimate stays refused.
+
+    The refinement is skipped unless ``refine.refused``; with it the reported pose is the
+    refined one (here right, where the core's was not), and the verdict the same.
+    """
+    src, tgt, truth = benchmark_pair('sun3d-home_at-home_at_scan1_2013_jan_1', 42, 48)
+    results = {}
+    for refused in (False, True):
+        clear_feature_cache()
+        cfg = pipeline_config_from({'refine.refused': refused})
+        results[refused] = register_clouds(src, tgt, config=cfg)
+    skipped, refined = results[False], results[True]
+    assert not skipped.valid and not refined.valid
+    assert skipped.refusal.code is refined.refusal.code is Code.AMBIGUOUS
+    assert 'refinement' not in skipped.timings and 'refinement' in refined.timings
+    np.testing.assert_allclose(refined.coarse_transform, skipped.coarse_transform)
+
+    def right(T):
+        return rotation_error_deg(T, truth) < 15 and translation_error(T, truth) < 0.3
+    assert not right(skipped.transform) and right(refined.transform)
+    assert refined.refined and not skipped.refined

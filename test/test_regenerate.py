@@ -140,3 +140,17 @@ def test_a_sphere_pose_needs_consistent_matches():
     assert rotation_error_deg(fitted, T) < 1e-6 and translation_error(fitted, T) < 1e-9
     # Nothing consistent to fit: no pose.
     assert regenerate.local_pose(a[:4], rng.uniform(-5, 5, (4, 3)), 0.01) is None
+
+
+def test_the_judged_proposals_are_those_the_most_correspondences_support():
+    rng = np.random.default_rng(1)
+    src = rng.uniform(-2, 2, (60, 3))
+    poses = [np.eye(4) for _ in range(4)]
+    for k, T in enumerate(poses):
+        T[:3, 3] = [0.5 * k, 0.0, 0.0]
+    # Correspondences that agree with pose 2 (30), pose 0 (20) and pose 3 (10).
+    dst = np.vstack([src[:30] + poses[2][:3, 3], src[30:50], src[50:] + poses[3][:3, 3]])
+    kept = regenerate.best_supported(poses, src, dst, 0.1, 2)
+    assert [T[0, 3] for T in kept] == [1.0, 0.0]
+    assert regenerate.best_supported(poses, src, dst, 0.1, 0) == poses  # 0 keeps every pose
+    assert regenerate.best_supported(poses, src, dst, 0.1, 9) == poses

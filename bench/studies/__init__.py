@@ -28,4 +28,9 @@ any other bench module: they may import the tools of :mod:`bench`, never the rev
   with and without, on every pair: what they refuse and what they cost.
 - :mod:`.regenerate`: the regenerated correspondences' right matches, and which way of
   choosing among the poses they propose is right (``cgags_ros/pipeline/regenerate.py``).
+- :mod:`.certain_refusals`: the refusals decided before the refinement, refined and gated
+  anyway: what skipping that work gives up.
+- :mod:`.recall_time`: recall against median time of settings run side by side with
+  KISS-Matcher (``bench.threedmatch --variant``), and settings chosen on the easiest scenes,
+  reported on the hardest.
 """

@@ -61,3 +61,7 @@ class RefineConfig:
         'change by less than this (relative): it only has to bring the estimate within the '
         "final distance. The final stage keeps Open3D's 1e-6.", low=0.0, high=1.0,
         advanced=True)
+    refused: bool = option(
+        True, 'Refine an estimate the core refuses as well. It stays refused (no refinement '
+        'lifts a consensus that does not stand out), but the pose it reports, the best '
+        'guess, is the refined one (docs/benchmarks_3dmatch.md).', advanced=True)

@@ -40,6 +40,9 @@ class RegenerateConfig:
     candidates: int = option(
         1000, 'Correspondences (highest compatibility degree) among which seeds are ranked.',
         low=10, high=100000, advanced=True)
+    judged: int = option(
+        0, 'Proposed poses refined and judged: those that the most original correspondences '
+        'support before the refinement. 0 judges every one.', low=0, high=1000, advanced=True)
     iterations: int = option(
         5, "Point-to-plane iterations of each proposed pose's short refinement (a stage).",
         low=1, high=1000, advanced=True)

@@ -19,8 +19,9 @@ This stage:
    the three nearest to it: a relaxed mutual check), keeps the matches whose distance to
    the seed agrees in both clouds (within the compatibility threshold), and fits a pose to
    them (a least-squares fit repeated on the matches within tau);
-3. refines every distinct proposed pose, and the core's estimate, by the same short
-   point-to-plane ICP, and counts the **original** correspondences within tau of each.
+3. refines every distinct proposed pose (or the ``regenerate.judged`` that the most
+   original correspondences support as proposed), and the core's estimate, by the same
+   short point-to-plane ICP, and counts the **original** correspondences within tau of each.
 
 A wrong pose supported by a chance cluster of correspondences loses them as ICP settles
 it on the surfaces; a right pose keeps them. The proposal with the largest support that
@@ -145,6 +146,15 @@ def proposed_poses(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
     return poses
 
 
+def best_supported(poses: list[np.ndarray], src: np.ndarray, dst: np.ndarray, tau: float,
+                   keep: int) -> list[np.ndarray]:
+    """Return the ``keep`` poses that most correspondences support within ``tau`` (0: all)."""
+    if keep == 0 or len(poses) <= keep:
+        return poses
+    counts = [np.count_nonzero(support(src, dst, T, tau)) for T in poses]
+    return [poses[k] for k in np.argsort(-np.asarray(counts), kind='stable')[:keep]]
+
+
 def settled_support(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
                     starts: list[np.ndarray], tau: float, cfg: PipelineConfig,
                     workers: int = 1) -> list[tuple[np.ndarray, int]]:
@@ -181,6 +191,8 @@ def regenerated_estimate(fs: CloudFeatures, ft: CloudFeatures, corr: Corresponde
     if not poses:
         return None
     tau = core.inlier_threshold
+    poses = best_supported(poses, fs.points[corr.source_index], ft.points[corr.target_index],
+                           tau, cfg.regenerate.judged)
     (estimate, held), *proposals = settled_support(fs, ft, corr, [core.transform, *poses],
                                                    tau, cfg, workers)
     rivals = [(T, n) for T, n in proposals if distinct(T, estimate, cfg)]

@@ -5,10 +5,11 @@ Clouds in, result out: the one registration path of the node, the CLIs and bench
 FPFH -> mutual-nearest-neighbour correspondences -> the CGAGS core (global, no initial
 guess) -> where the core refuses its estimate, poses proposed by re-matching the
 descriptors locally (:mod:`.regenerate`) -> optional ICP/GICP refinement -> validity
-gating. Numpy in, numpy out; transforms are 4x4 source->target (``p_target = R p_source +
-t``), metres. With ``core.motion_model='4dof'`` the core, the refinement and the gates solve
-yaw + translation only (roll and pitch stay zero about the gravity axis) and a tilt between
-the clouds is reported.
+gating. An estimate the core still refuses is refined (``refine.refused``) but not gated:
+nothing after the core lifts its refusal. Numpy in, numpy out; transforms are 4x4
+source->target (``p_target = R p_source + t``), metres. With ``core.motion_model='4dof'``
+the core, the refinement and the gates solve yaw + translation only (roll and pitch stay
+zero about the gravity axis) and a tilt between the clouds is reported.
 """
 
 from __future__ import annotations
@@ -158,16 +159,12 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
     result.inlier_target_points = ft.points[corr.target_index[core.inliers]]
     left_to_gates = unsettled(core, cfg)  # a collinear consensus: the overlap may settle it
     if core.refusal and not left_to_gates:
-        # nothing worth refining or gating further
+        # The verdict is certain, but the refined pose is the better guess to report.
+        if cfg.refine.refused:
+            _refine(fs, ft, core, result, cfg, workers)
         refusal = _candidates(fs, ft, corr, result, cfg) or core.refusal
         return _judged(result, fs, ft, cfg, start, refusal, map_target)
-    gravity = cfg.core.gravity_axis if cfg.core.motion_model == '4dof' else None
-    with timed(result.timings, 'refinement'):
-        result.transform = refine_transform(
-            fs.points, ft.points, core.transform, voxel_size=v, config=cfg.refine,
-            target_normals=ft.normals, coarse_distance=core.inlier_threshold, gravity=gravity,
-            workers=workers)
-        result.refined = cfg.refine.method != 'none'
+    _refine(fs, ft, core, result, cfg, workers)
     # The rival search reads only the core's estimate and the final transform, never what
     # the gates set: it runs beside them (both spend most of their time outside the GIL,
     # in compiled numba functions and k-d tree queries).
@@ -192,6 +189,18 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
             mark_ambiguous(result, rival)
             refusal = ambiguity_refusal(result, cfg)
     return _judged(result, fs, ft, cfg, start, refusal, map_target, overlap)
+
+
+def _refine(fs: CloudFeatures, ft: CloudFeatures, core: RegistrationResult,
+            result: PipelineResult, cfg: PipelineConfig, workers: int) -> None:
+    """Refine the core's estimate into ``result.transform`` (``refine.method``)."""
+    gravity = cfg.core.gravity_axis if cfg.core.motion_model == '4dof' else None
+    with timed(result.timings, 'refinement'):
+        result.transform = refine_transform(
+            fs.points, ft.points, core.transform, voxel_size=cfg.voxel_size,
+            config=cfg.refine, target_normals=ft.normals, coarse_distance=core.inlier_threshold,
+            gravity=gravity, workers=workers)
+        result.refined = cfg.refine.method != 'none'
 
 
 def _target_features(target: np.ndarray | PreparedMap, points: np.ndarray | None,
