@@ -87,11 +87,15 @@ def start_node(ros_args: list[str], env: dict[str, str], log_path: Path,
     proc = subprocess.Popen([sys.executable, '-m', 'cgags_ros.register_node', '--ros-args']
                             + ros_args, cwd=repo, env=dict(env, PYTHONPATH=str(repo)),
                             stdout=log, stderr=subprocess.STDOUT, text=True,
-                            preexec_fn=_as_started)
+                            preexec_fn=None if _niceness() == _STARTED_NICENESS else _as_started)
     return proc, log
 
 
-_STARTED_NICENESS = os.getpriority(os.PRIO_PROCESS, 0)
+def _niceness() -> int:
+    return os.getpriority(os.PRIO_PROCESS, 0)
+
+
+_STARTED_NICENESS = _niceness()
 
 
 def _as_started() -> None:
@@ -339,7 +343,7 @@ def run_node(client: StreamClient, msgs: list, truth: np.ndarray, voxel: float,
                     'duration_s': duration, 'rate_hz': rate, 'queue_depth': queue_depth,
                     'config_file': keys,
                     'load_average': os.getloadavg()[0],
-                    'publisher_niceness': os.getpriority(os.PRIO_PROCESS, 0),
+                    'publisher_niceness': _niceness(),
                     **summarize(client, stamps, truth)}
             print(json.dumps({k: v for k, v in cell.items() if k != 'scans'}), flush=True)
             cells.append(cell)
