@@ -191,8 +191,8 @@ def regenerated_estimate(fs: CloudFeatures, ft: CloudFeatures, corr: Corresponde
     if not poses:
         return None
     tau = core.inlier_threshold
-    poses = best_supported(poses, fs.points[corr.source_index], ft.points[corr.target_index],
-                           tau, cfg.regenerate.judged)
+    src, dst = fs.points[corr.source_index], ft.points[corr.target_index]
+    poses = best_supported(poses, src, dst, tau, cfg.regenerate.judged)
     (estimate, held), *proposals = settled_support(fs, ft, corr, [core.transform, *poses],
                                                    tau, cfg, workers)
     rivals = [(T, n) for T, n in proposals if distinct(T, estimate, cfg)]
@@ -207,7 +207,6 @@ def regenerated_estimate(fs: CloudFeatures, ft: CloudFeatures, corr: Corresponde
             break
     if best is None:
         return None
-    src, dst = fs.points[corr.source_index], ft.points[corr.target_index]
     T, inliers, _ = refit(src, dst, best[0], tau, cfg.core.refit_iterations)
     others = [n for R, n in [(estimate, held), *rivals] if distinct(R, best[0], cfg)]
     replaced = dataclasses.replace(
