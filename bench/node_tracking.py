@@ -293,6 +293,7 @@ def summarize(client: StreamClient, stamps: list[int], truth: np.ndarray) -> dic
         'periodic_checks': client.value('tracking.periodic_checks'),
         'checks_rss_mb': client.value('memory.checks_rss_mb'),
         'worker_rss_mb': client.value('memory.worker_rss_mb'),
+        'node_rss_mb': client.value('memory.node_rss_mb'),  # its DDS histories included
         'stage_median_ms': {p: {s: _ms(np.array(v), 50) for s, v in by.items()}
                             for p, by in stages.items()},
     }

@@ -5,11 +5,11 @@ The node runs as users run it (its own process, registration in its child proces
 shipped Fast DDS profile loaded by itself), scan 0 latched as the map; a short stream of real
 scans (~4 MB PointCloud2 each) goes out at 10 Hz with a 7 m jump back in it. Transport: the
 test's publisher is reliable on Fast DDS's defaults, and the node's subscription reliable
-with a history of 30 scans (``pairing.source_depth``): a reliable reader still drops the
-oldest unread scans beyond its history, and the node's executor may not take one for over
-half a second on a loaded machine, when the default history of 5 loses scans. Its queue
-is as deep, so that every scan is registered in order and the count of tracked and
-global poses does not depend on the machine's speed.
+with its default history (``pairing.source_depth``, 30 scans): a reliable reader still
+drops the oldest unread scans beyond its history, and the node's executor may not take one
+for over half a second on a loaded machine (docs/transport.md). Its queue is as deep, so
+that every scan is registered in order and the count of tracked and global poses does not
+depend on the machine's speed.
 """
 
 from __future__ import annotations
@@ -28,8 +28,7 @@ DOMAIN_ID = 93  # distinct from the other DDS test modules
 RATE_HZ = 10.0
 ORDER = list(range(10)) + [0, 1]  # scan 9 -> scan 0: a 7 m jump back
 NODE_PARAMS = {'voxel_size': 0.5, 'pairing.target_durability': 'transient_local',
-               'pairing.source_qos': 'reliable', 'pairing.source_depth': 30,
-               'pairing.queue_depth': 30,
+               'pairing.source_qos': 'reliable', 'pairing.queue_depth': 30,
                'output.diagnostics_period': 0.2,
                'pairing.backlog_max_lag': 0.0}  # every scan, in order: none skipped
 

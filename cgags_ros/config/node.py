@@ -64,11 +64,16 @@ class PairingConfig:
         10, 'synchronized mode: unmatched targets kept; the oldest is dropped beyond this.',
         low=1, high=1000, read_only=True)
     source_qos: str = option(
-        'sensor_data', "QoS of source_cloud: 'sensor_data' (best effort, keep last 5) or "
-        "'reliable' (keep last source_depth).", choices=('sensor_data', 'reliable'),
+        'sensor_data', "QoS of source_cloud: 'sensor_data' (best effort) or 'reliable', "
+        'each keeping the last source_depth scans.', choices=('sensor_data', 'reliable'),
         ros=True, read_only=True)
-    source_depth: int = option(5, 'History depth of the source_cloud subscription.',
-                               low=1, high=1000, read_only=True)
+    source_depth: int = option(
+        30, 'History depth of the source_cloud subscription: the scans DDS holds until the '
+        "node's executor takes them. Scans beyond it are lost before the node sees them "
+        '(counted only as sources.lost_upstream), so it covers the longest a loaded machine '
+        'keeps the executor from taking one (30: 3 s of a 10-Hz LiDAR); which scans are '
+        'registered is for pairing and the queue to decide, and they count what they drop.',
+        low=1, high=1000, read_only=True)
     target_durability: str = option(
         'volatile', "Durability of target_cloud: 'transient_local' also receives a "
         'latched map published before the node started, but connects only to '

@@ -198,4 +198,5 @@ def lost_upstream_message(lost: Any) -> str:
     """Return the warning for source scans lost before the node, naming the fix."""
     return (f'{lost} source scans lost before reaching the node (gaps in their stamps); '
             f'large clouds need the Fast DDS profile in the publishing process too: '
-            f'{user_line()} in its shell (docs/transport.md)')
+            f'{user_line()} in its shell; on a loaded machine a deeper '
+            f'pairing.source_depth keeps those the node is late to take (docs/transport.md)')
