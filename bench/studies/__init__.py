@@ -17,6 +17,8 @@ any other bench module: they may import the tools of :mod:`bench`, never the rev
 - :mod:`.trust_shift`: the valid flag chosen on easier scenes and reported on harder ones;
   fits the confidence's weights (``cgags_ros/pipeline/confidence.py``) and the structured
   rivals' limits (``cgags_ros/pipeline/rivals.py``).
+- :mod:`.trust_limits`: where the valid flag's held-out misses come from: the wrong poses
+  it lets through, stricter operating points, and the right poses refused as ambiguous.
 - :mod:`.gate_study`: replays extra gates over ``bench.threedmatch`` records, without
   registering again.
 - :mod:`.chance_sample`: what stage one's minimal subsets explain by chance (the chance
