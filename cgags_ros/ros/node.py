@@ -370,14 +370,17 @@ def main(args: list[str] | None = None) -> None:
     Spin the node until Ctrl-C or SIGTERM, then shut down cleanly.
 
     The ``register_node`` entry point (``ros2 run``, ``python -m cgags_ros.register_node``).
-    A multi-threaded executor, so that clouds are decoded while the diagnostics and the
-    services run.
+    A single-threaded executor: every callback is short (a cloud decoded and counted, a
+    parameter checked, the diagnostics), the registration runs in the engine's worker
+    thread and its process, and ``~/relocalize`` awaits its answer without holding the
+    executor. rclpy's multi-threaded executor took received scans to their callback
+    later, its own loop busy while they waited (docs/tracking.md, item 11).
     """
-    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     use_large_data_profile()
     rclpy.init(args=args)
     node = None
-    executor = MultiThreadedExecutor(num_threads=4)
+    executor = SingleThreadedExecutor()
     try:
         node = RegisterNode()
         executor.add_node(node)
