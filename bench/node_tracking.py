@@ -428,7 +428,7 @@ def main(argv: list[str] | None = None) -> int:
         os.environ[key] = value
     import rclpy
     from rclpy.context import Context
-    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.executors import SingleThreadedExecutor
 
     from cgags_ros.config.fields import parse_key_values
     from cgags_ros.config.node import configs_from_parameters, NodeConfig
@@ -440,7 +440,9 @@ def main(argv: list[str] | None = None) -> int:
     context = Context()
     rclpy.init(context=context, domain_id=DOMAIN_ID)
     client = StreamClient(context)
-    executor = MultiThreadedExecutor(num_threads=2, context=context)
+    # Single-threaded: a multi-threaded executor's own loop kept this process's publishing
+    # thread from waking on time, and the scans went out late and in bursts (tracking.md).
+    executor = SingleThreadedExecutor(context=context)
     executor.add_node(client.node)
     threading.Thread(target=executor.spin, daemon=True).start()
     out = Path(args.output) if args.output else output_path('node_tracking.json')
