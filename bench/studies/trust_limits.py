@@ -31,12 +31,14 @@ from pathlib import Path
 from bench.common import argument_parser, markdown_table
 from bench.studies.loso_trust_study import load, predict
 from bench.studies.trust_shift import choose, Design, sigmas, splits, trusted
+from cgags_ros.config.gates import GatesConfig
 from cgags_ros.io.shared_data import shared_data_dir
 import numpy as np
 
 SIGMA_BOUNDS = (8.0, 10.0, 12.0, 15.0, 20.0)  # voxels, below the folds' 23-34
 THRESHOLDS = (0.7, 0.8, 0.85, 0.9, 0.95)  # above the folds' 0.5
 OVERLAP_RATIOS = (1.0, 1.1, 1.2, 1.3)
+RATIO = GatesConfig().ambiguity_ratio  # the rivals the gate refines (verify_rivals)
 
 
 def fold_flags(records: list[dict], d: Design, train: np.ndarray) -> dict:
@@ -113,7 +115,7 @@ def ambiguity(records: list[dict]) -> str:
             continue
         best, *others = r.get('candidates') or [None]
         rivals = [c for c in others if best and c.get('fitness')
-                  and c['num_inliers'] * 1.5 > best['num_inliers']]
+                  and c['num_inliers'] * RATIO > best['num_inliers']]
         if rivals:
             top = max(c['fitness'] for c in rivals)
             ratios[bool(r['success'])].append(r['overlap'] / top)
