@@ -26,27 +26,15 @@ left out. It prints:
 
 from __future__ import annotations
 
-from pathlib import Path
-
-from bench.common import argument_parser, markdown_table
-from bench.studies.loso_trust_study import load, predict
-from bench.studies.trust_shift import choose, Design, sigmas, splits, trusted
+from bench.common import markdown_table
+from bench.studies.trust_shift import Design, fold_flags, read_records, splits
 from cgags_ros.config.gates import GatesConfig
-from cgags_ros.io.shared_data import shared_data_dir
 import numpy as np
 
 SIGMA_BOUNDS = (8.0, 10.0, 12.0, 15.0, 20.0)  # voxels, below the folds' 23-34
 THRESHOLDS = (0.7, 0.8, 0.85, 0.9, 0.95)  # above the folds' 0.5
 OVERLAP_RATIOS = (1.0, 1.1, 1.2, 1.3)
 RATIO = GatesConfig().ambiguity_ratio  # the rivals the gate refines (verify_rivals)
-
-
-def fold_flags(records: list[dict], d: Design, train: np.ndarray) -> dict:
-    """Return the fold's confidence, sigma and flag before its sigma bound and threshold."""
-    chosen = choose(records, d, train)
-    p = np.where(d.has, predict(chosen['model'], d.X), 0.0)
-    return {'p': p, 'sigma': sigmas(records, p, d.has), 'chosen': chosen,
-            'before': d.gates & ~chosen['refused']}
 
 
 def counts(d: Design, mask: np.ndarray, flag: np.ndarray) -> str:
@@ -75,16 +63,12 @@ def operating_points(records: list[dict], d: Design) -> str:
                 cells.append(counts(d, mask, flag))
             return (split, name, *cells)
 
-        def chosen(f: dict) -> np.ndarray:
-            return (f['before'] & (f['sigma'] <= f['chosen']['sigma_voxels'])
-                    & (f['p'] >= f['chosen']['threshold']))
-
-        rows.append(row('as chosen', chosen))
+        rows.append(row('as chosen', lambda f: f['valid']))
         for bound in SIGMA_BOUNDS:
             rows.append(row(f'sigma <= {bound:g} voxels',
-                            lambda f, b=bound: chosen(f) & (f['sigma'] <= b)))
+                            lambda f, b=bound: f['valid'] & (f['sigma'] <= b)))
         for t in THRESHOLDS:
-            rows.append(row(f'confidence >= {t:g}', lambda f, t=t: chosen(f) & (f['p'] >= t)))
+            rows.append(row(f'confidence >= {t:g}', lambda f, t=t: f['valid'] & (f['p'] >= t)))
     return markdown_table(('split', 'flag', '3DMatch keeps / VW', '3DLoMatch keeps / VW'), rows)
 
 
@@ -95,9 +79,7 @@ def wrong_valid(records: list[dict], d: Design) -> str:
         if split != 'hard':
             continue
         f = fold_flags(records, d, train)
-        flag = (f['before'] & (f['sigma'] <= f['chosen']['sigma_voxels'])
-                & (f['p'] >= f['chosen']['threshold']))
-        for i in np.flatnonzero(test & flag & ~d.right & (d.bench == '3DLoMatch')):
+        for i in np.flatnonzero(test & f['valid'] & ~d.right & (d.bench == '3DLoMatch')):
             r = records[i]
             rows.append((r['scene'].split('-')[1], f"{r['target']}-{r['source']}",
                          f"{r['re_deg']:.1f}", f"{r['te_m']:.2f}", f"{f['p'][i]:.3f}",
@@ -127,13 +109,8 @@ def ambiguity(records: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argument_parser(__spec__.name, __doc__)
-    parser.add_argument('records', type=Path, nargs='?',
-                        default=Path('out/loso_trust/gates.jsonl'))
-    parser.add_argument('--root', type=Path, default=shared_data_dir() / '3dmatch_benchmark')
-    parser.add_argument('--output', type=Path, default=Path('out/trust_shift/limits'))
-    args = parser.parse_args(argv)
-    records, excluded = trusted(load(args.records), args.root)
+    args, records, excluded = read_records(__spec__.name, __doc__, 'out/trust_shift/limits',
+                                           argv)
     d = Design.of(records)
     text = '\n\n'.join([
         f"Pairs in doubt, left out: {excluded['pairs']}",

@@ -48,6 +48,7 @@ import dataclasses
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 from bench.common import argument_parser, markdown_table
 from bench.studies.loso_trust_study import (as_result, CHI2_95, CHI2_999, fit_logistic,
@@ -208,6 +209,23 @@ def choose(records: list[dict], d: Design, train: np.ndarray) -> dict:
             'threshold': max(threshold, FLOOR)}
 
 
+def fold_flags(records: list[dict], d: Design, train: np.ndarray) -> dict:
+    """
+    Return the levers chosen on ``train`` and every record's flag after each of them.
+
+    ``p`` the fold's confidence, ``sigma`` the reported loosest sigma in voxels at it;
+    ``after_rivals``, ``usable`` (within the sigma bound too) and ``valid`` (the threshold
+    too: the flag as the fold chose it).
+    """
+    chosen = choose(records, d, train)
+    p = np.where(d.has, predict(chosen['model'], d.X), 0.0)
+    sigma = sigmas(records, p, d.has)
+    after_rivals = d.gates & ~chosen['refused']
+    usable = after_rivals & (sigma <= chosen['sigma_voxels'])
+    return {'chosen': chosen, 'p': p, 'sigma': sigma, 'after_rivals': after_rivals,
+            'usable': usable, 'valid': usable & (p >= chosen['threshold'])}
+
+
 def study(records: list[dict]) -> dict:
     """Choose every lever on each fold's training scenes; return the test figures."""
     d = Design.of(records)
@@ -220,17 +238,15 @@ def study(records: list[dict]) -> dict:
     out = {}
     for split, name, train, test in splits(records):
         fold = out.setdefault(split, {}).setdefault(name, {})
-        chosen = choose(records, d, train)
+        f = fold_flags(records, d, train)
+        chosen, p = f['chosen'], f['p']
         riv_flips = fit_rivals([r for r, t in zip(flips, train) if t], d.gates[train])
         refuse_flips = np.array([g and rival_refuses(r, *riv_flips)
                                  for r, g in zip(flips, d.gates)], dtype=bool)
-        p = np.where(d.has, predict(chosen['model'], d.X), 0.0)
-        after_rivals = d.gates & ~chosen['refused']
-        usable = after_rivals & (sigmas(records, p, d.has) <= chosen['sigma_voxels'])
         flags = {'today (shipped before)': today, 'gates': d.gates,
                  'rivals (flips, slides)': d.gates & ~refuse_flips,
-                 'rivals (all)': after_rivals, '+ sigma': usable,
-                 '+ confidence': usable & (p >= chosen['threshold'])}
+                 'rivals (all)': f['after_rivals'], '+ sigma': f['usable'],
+                 '+ confidence': f['valid']}
         fold['settings'] = {**{k: v for k, v in chosen.items() if k != 'refused'},
                             'rivals_flips': riv_flips}
         for b in ('3DMatch', '3DLoMatch'):
@@ -308,14 +324,20 @@ def trusted(records: list[dict], root: Path) -> tuple[list[dict], dict]:
                                 for s, fs in doubtful.items() if fs}}
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argument_parser(__spec__.name, __doc__)
+def read_records(name: str, doc: str | None, output: str,
+                 argv: list[str] | None) -> tuple[Any, list[dict], dict]:
+    """Parse a study's command line (records, --root, --output); return its trusted records."""
+    parser = argument_parser(name, doc)
     parser.add_argument('records', type=Path, nargs='?',
                         default=Path('out/loso_trust/gates.jsonl'))
     parser.add_argument('--root', type=Path, default=shared_data_dir() / '3dmatch_benchmark')
-    parser.add_argument('--output', type=Path, default=Path('out/trust_shift/study'))
+    parser.add_argument('--output', type=Path, default=Path(output))
     args = parser.parse_args(argv)
-    kept, excluded = trusted(load(args.records), args.root)
+    return (args, *trusted(load(args.records), args.root))
+
+
+def main(argv: list[str] | None = None) -> int:
+    args, kept, excluded = read_records(__spec__.name, __doc__, 'out/trust_shift/study', argv)
     out = study(kept)
     text = report(out, excluded) + '\n\n### Fit on all scenes (ships)\n\n' + json.dumps(
         shipped(kept), indent=1)
