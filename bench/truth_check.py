@@ -29,7 +29,13 @@ out with :func:`doubtful_fragments` and :func:`in_doubt`.
 Run by hand from the repository root (no registration: seconds)::
 
     .venv/bin/python -m bench.truth_check [out/loso_trust/records.jsonl ...] \
-        [--root <shared data>/3dmatch_benchmark] [--output out/truth_check/doubtful]
+        [--evidence out/truth_check/settled.jsonl] [--root <shared data>/3dmatch_benchmark] \
+        [--output out/truth_check/doubtful]
+
+``--evidence``: records checked on their own as well, here the truths settled by
+:mod:`bench.truth_settle` (ICP on each pair started from its benchmark pose: evidence that
+does not depend on our estimator, for fragments with too few trusted estimates); a fragment
+either check doubts is doubtful.
 
 It writes ``<output>.md`` (the table of doubtful fragments, also printed) and
 ``<output>.json`` (every fragment's check, the doubtful ones per scene with their consensus
@@ -72,6 +78,8 @@ class FragmentCheck:
     :ivar offset_deg, offset_m: the benchmark pose ``P_k`` from the consensus.
     :ivar consensus: 4x4 world pose (``p_world = C p_fragment``, metres).
     :ivar doubtful: the group is large enough and the offset above DOUBT_DEG or DOUBT_M.
+    :ivar evidence: ``estimates`` (the trusted estimates) or ``settled`` (the truths settled
+        by :mod:`bench.truth_settle`).
     """
 
     scene: str
@@ -84,6 +92,7 @@ class FragmentCheck:
     offset_m: float
     consensus: np.ndarray
     doubtful: bool
+    evidence: str = 'estimates'
 
     def as_dict(self) -> dict:
         """Return the check as JSON-ready values."""
@@ -186,17 +195,27 @@ def check_fragments(records: Iterable[Mapping], poses: Poses,
     return out
 
 
-def doubtful_fragments(records: Iterable[Mapping],
-                       poses: Poses | str | Path) -> dict[str, list[FragmentCheck]]:
+def doubtful_fragments(records: Iterable[Mapping], poses: Poses | str | Path,
+                       evidence: Iterable[Mapping] = ()) -> dict[str, list[FragmentCheck]]:
     """
     Return the doubtful fragments by scene (scenes without one left out).
 
     ``poses``: ``{scene: {k: P_k}}``, or the benchmark's root to read them from.
+    ``evidence``: more records checked on their own (the settled truths of
+    :mod:`bench.truth_settle`); a fragment either check doubts is doubtful, with the
+    consensus of the check whose agreeing group is the larger.
     """
-    records = list(records)
+    records, evidence = list(records), list(evidence)
     if isinstance(poses, (str, Path)):
-        poses = load_poses(poses, {r['scene'] for r in records})
-    return _doubtful(check_fragments(records, poses))
+        poses = load_poses(poses, {r['scene'] for r in records + evidence})
+    found = _doubtful(check_fragments(records, poses))
+    for scene, checks in _doubtful(check_fragments(evidence, poses)).items():
+        mine = {c.fragment: c for c in found.get(scene, ())}
+        for c in (dataclasses.replace(c, evidence='settled') for c in checks):
+            if c.fragment not in mine or c.group > mine[c.fragment].group:
+                mine[c.fragment] = c
+        found[scene] = sorted(mine.values(), key=lambda c: c.fragment)
+    return found
 
 
 def _doubtful(checks: Mapping[str, list[FragmentCheck]]) -> dict[str, list[FragmentCheck]]:
@@ -233,15 +252,15 @@ def pairs_in_doubt(records: Iterable[Mapping], poses: Poses,
 
 def report(doubtful: Mapping[str, list[FragmentCheck]], pairs: list[dict]) -> str:
     """Return the Markdown table of doubtful fragments with their evidence and pairs."""
-    headers = ['scene', 'fragment', 'partners', 'group', 'spread deg', 'spread m',
-               'offset deg', 'offset m']
+    headers = ['scene', 'fragment', 'evidence', 'partners', 'group', 'spread deg',
+               'spread m', 'offset deg', 'offset m']
     for benchmark in tdm.BENCHMARKS:
         headers += [f'{benchmark} pairs', f'{benchmark} wrong, right if corrected']
     rows = []
     for scene, checks in doubtful.items():
         for c in checks:
-            row = [scene, c.fragment, c.partners, c.group, c.spread_deg, c.spread_m,
-                   c.offset_deg, c.offset_m]
+            row = [scene, c.fragment, c.evidence, c.partners, c.group, c.spread_deg,
+                   c.spread_m, c.offset_deg, c.offset_m]
             for benchmark in tdm.BENCHMARKS:
                 held = [p for p in pairs if p['benchmark'] == benchmark and p['scene'] == scene
                         and c.fragment in (p['target'], p['source'])]
@@ -258,11 +277,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--root', type=Path, default=shared_data_dir() / '3dmatch_benchmark')
     parser.add_argument('--output', type=Path, default=Path('out/truth_check/doubtful'),
                         help='writes <output>.md and <output>.json')
+    parser.add_argument('--evidence', type=Path, nargs='*', default=[],
+                        help="records checked on their own as well (bench.truth_settle's)")
     args = parser.parse_args(argv)
-    records = read_records(args.records)
-    poses = load_poses(args.root, {r['scene'] for r in records})
+    records, evidence = read_records(args.records), read_records(args.evidence)
+    poses = load_poses(args.root, {r['scene'] for r in records + evidence})
     checks = check_fragments(records, poses)
-    doubtful = _doubtful(checks)
+    doubtful = doubtful_fragments(records, poses, evidence)
     pairs = pairs_in_doubt(records, poses, doubtful)
     table = report(doubtful, pairs)
     counts = {b: sum(p['benchmark'] == b for p in pairs) for b in tdm.BENCHMARKS}

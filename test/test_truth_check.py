@@ -137,6 +137,21 @@ def test_disagreeing_partners_are_no_evidence(error):
     assert tc.doubtful_fragments(records, {SCENE: bench}) == {}
 
 
+def test_settled_evidence_checks_a_fragment_without_trusted_estimates():
+    """A fragment whose estimates are all refused is checked on the settled truths alone."""
+    true = _scene()
+    bench = _perturbed(true, {5: 8.0}, about=(0.0, 0.0, 3.0))
+    records = _records(true, bench, valid=lambda i, j: 5 not in (i, j))
+    assert tc.doubtful_fragments(records, {SCENE: bench}) == {}
+    evidence = [{**r, 'valid': True} for r in _records(true, bench, seed=7)]
+    doubtful = tc.doubtful_fragments(records, {SCENE: bench}, evidence)
+    assert [(c.fragment, c.evidence) for c in doubtful[SCENE]] == [(5, 'settled')]
+    assert rotation_error_deg(doubtful[SCENE][0].consensus, true[5]) < 1.0
+    # Evidence that agrees with the benchmark adds no doubt.
+    assert tc.doubtful_fragments(records, {SCENE: bench},
+                                 [{**r, 'valid': True} for r in _records(bench, bench)]) == {}
+
+
 def test_the_command_reads_poses_and_records_and_writes_both_reports(tmp_path, capsys):
     true = _scene()
     bench = _perturbed(true, {5: 8.0})
@@ -172,3 +187,22 @@ def test_fragment_poses_give_the_gt_log_truth(data_dir, require_shared):
         assert rotation_error_deg(T, truth) < 0.05 and translation_error(T, truth) < 1e-3
         reverse = np.linalg.inv(poses[j]) @ poses[i]
         assert rotation_error_deg(reverse, truth) > 1.0 or translation_error(reverse, truth) > 0.05
+
+
+def test_icp_settles_a_perturbed_truth_where_the_truth_settles(redkitchen_pair):
+    """bench.truth_settle's evidence is the pair's own minimum, not where the ICP started."""
+    from bench import truth_settle
+
+    src, tgt, truth = redkitchen_pair(0, 2)
+    source, target = truth_settle.surface(src), truth_settle.surface(tgt)
+    settled = np.asarray(truth_settle.settle(source, target, truth)['transform'])
+    # The benchmark's truth lies within a right estimate's error of the surfaces' minimum.
+    assert rotation_error_deg(settled, truth) < tc.AGREE_DEG
+    assert translation_error(settled, truth) < tc.AGREE_M
+    start = _turn(3.0, np.random.default_rng(0), about=src.mean(axis=0)) @ truth
+    start[:3, 3] += [0.08, 0.0, 0.0]
+    row = truth_settle.settle(source, target, start)
+    T = np.asarray(row['transform'])
+    assert rotation_error_deg(T, settled) < 0.1 and translation_error(T, settled) < 0.005
+    assert row['fitness_after'] > row['fitness_before']
+    assert row['moved_deg'] > 2.0 and row['moved_m'] > 0.05

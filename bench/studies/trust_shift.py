@@ -56,7 +56,7 @@ from bench.studies.loso_trust_study import (as_result, CHI2_95, CHI2_999, fit_lo
                                             overlap_covariance, predict, reliability,
                                             rival_refuses, short, SIGNIFICANCE, threshold_for,
                                             VOXEL)
-from bench.truth_check import doubtful_fragments, in_doubt
+from bench.truth_check import doubtful_fragments, in_doubt, read_records as truth_records
 from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import confidence, covariance, rivals
 import numpy as np
@@ -315,9 +315,14 @@ def shipped(records: list[dict]) -> dict:
             **chosen}
 
 
-def trusted(records: list[dict], root: Path) -> tuple[list[dict], dict]:
-    """Return the records whose truth is not in doubt, and what was left out."""
-    doubtful = doubtful_fragments(records, root)
+def trusted(records: list[dict], root: Path,
+            evidence: list[dict] | None = None) -> tuple[list[dict], dict]:
+    """
+    Return the records whose truth is not in doubt, and what was left out.
+
+    ``evidence``: more records for the truth check (:mod:`bench.truth_settle`'s).
+    """
+    doubtful = doubtful_fragments(records, root, evidence or ())
     kept = [r for r in records if not in_doubt(r, doubtful)]
     return kept, {'pairs': len(records) - len(kept),
                   'fragments': {short(s): [f.fragment for f in fs]
@@ -332,8 +337,10 @@ def read_records(name: str, doc: str | None, output: str,
                         default=Path('out/loso_trust/gates.jsonl'))
     parser.add_argument('--root', type=Path, default=shared_data_dir() / '3dmatch_benchmark')
     parser.add_argument('--output', type=Path, default=Path(output))
+    parser.add_argument('--evidence', type=Path, nargs='*', default=[],
+                        help="more evidence for the truth check (bench.truth_settle's records)")
     args = parser.parse_args(argv)
-    return (args, *trusted(load(args.records), args.root))
+    return (args, *trusted(load(args.records), args.root, truth_records(args.evidence)))
 
 
 def main(argv: list[str] | None = None) -> int:
