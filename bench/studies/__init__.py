@@ -32,6 +32,8 @@ any other bench module: they may import the tools of :mod:`bench`, never the rev
   choosing among the poses they propose is right (``cgags_ros/pipeline/regenerate.py``).
 - :mod:`.certain_refusals`: the refusals decided before the refinement, refined and gated
   anyway: what skipping that work gives up.
+- :mod:`.core_stall`: when the core's best consensus is found, and what a cap or a stop on
+  a stalled search would cut (replayed on every pair's recorded improvements).
 - :mod:`.recall_time`: recall against median time of settings run side by side with
   KISS-Matcher (``bench.threedmatch --variant``), and settings chosen on the easiest scenes,
   reported on the hardest.
