@@ -282,14 +282,17 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     records, evidence = read_records(args.records), read_records(args.evidence)
     poses = load_poses(args.root, {r['scene'] for r in records + evidence})
-    checks = check_fragments(records, poses)
+    checks = [c for cs in check_fragments(records, poses).values() for c in cs]
+    checks += [dataclasses.replace(c, evidence='settled')
+               for cs in check_fragments(evidence, poses).values() for c in cs]
     doubtful = doubtful_fragments(records, poses, evidence)
     pairs = pairs_in_doubt(records, poses, doubtful)
     table = report(doubtful, pairs)
     counts = {b: sum(p['benchmark'] == b for p in pairs) for b in tdm.BENCHMARKS}
-    summary = (f'{sum(map(len, doubtful.values()))} doubtful fragment(s) of '
-               f'{sum(map(len, checks.values()))} checked; pairs in doubt: '
-               + ', '.join(f'{b} {n}' for b, n in counts.items()))
+    checked = ', '.join(f'{n} by the {e}' for e in ('estimates', 'settled')
+                        if (n := sum(c.evidence == e for c in checks)))
+    summary = (f'{sum(map(len, doubtful.values()))} doubtful fragment(s), checked {checked}; '
+               'pairs in doubt: ' + ', '.join(f'{b} {n}' for b, n in counts.items()))
     write_text(Path(f'{args.output}.md'), f'{table}\n\n{summary}\n')
     write_json(Path(f'{args.output}.json'), {
         'thresholds': {'agree_deg': AGREE_DEG, 'agree_m': AGREE_M, 'doubt_deg': DOUBT_DEG,
@@ -297,7 +300,7 @@ def main(argv: list[str] | None = None) -> int:
         'doubtful': {s: [c.as_dict() for c in cs] for s, cs in doubtful.items()},
         'pairs_in_doubt': pairs,
         'fragments': [{k: v for k, v in c.as_dict().items() if k != 'consensus'}
-                      for cs in checks.values() for c in cs]})
+                      for c in checks]})
     print(f'{table}\n\n{summary}\nwrote {args.output}.md and {args.output}.json')
     return 0
 

@@ -46,46 +46,41 @@ def _right(T: np.ndarray, truth: np.ndarray) -> bool:
 
 
 class _Recorder:
-    """Patch :meth:`search.Search.evaluate` to note each improvement of the first search."""
+    """Patch :class:`search.Search` to note each improvement of a call's first search."""
 
     def __init__(self):
-        self.history: list[tuple[int, int, np.ndarray]] | None = None
-        self._evaluate = search.Search.evaluate
+        self.history: list[tuple[int, int, np.ndarray]] = []
+        self.searches = 0
+        self._init, self._evaluate = search.Search.__init__, search.Search.evaluate
 
     def __enter__(self):
-        recorder, evaluate = self, self._evaluate
+        recorder, init, evaluate = self, self._init, self._evaluate
+
+        def counted(s, *args, **kwargs):
+            init(s, *args, **kwargs)
+            recorder.searches += 1
+            s.noted = recorder.searches == 1  # the estimate's search, not the candidates'
 
         def noted(s, subsets, support=None):
             improved = evaluate(s, subsets, support)
-            if improved and recorder.history is not None and getattr(s, '_first', False):
+            if improved and s.noted:
                 recorder.history.append((s.num_drawn, len(s.best_inliers), s.best_T.copy()))
             return improved
 
-        init = search.Search.__init__
-
-        def first(s, *args, **kwargs):
-            init(s, *args, **kwargs)
-            s._first = recorder.history == []  # the estimate's search, not the candidates'
-            if s._first:
-                recorder.history = []  # claimed: later searches record nothing
-                recorder.history.append((0, 0, np.eye(4)))
-
-        self._init = init
-        search.Search.evaluate, search.Search.__init__ = noted, first
+        search.Search.__init__, search.Search.evaluate = counted, noted
         return self
 
     def __exit__(self, *exc):
-        search.Search.evaluate, search.Search.__init__ = self._evaluate, self._init
+        search.Search.__init__, search.Search.evaluate = self._init, self._evaluate
 
 
 def measure_pair(src: np.ndarray, tgt: np.ndarray, truth: np.ndarray,
                  cfg: PipelineConfig) -> dict:
     """Return one pair's outcome and its core's improvements (draw, inliers, right)."""
     with _Recorder() as rec:
-        rec.history = []
         clear_feature_cache()
         result = register_clouds(src, tgt, config=cfg)
-    steps = rec.history[1:]
+    steps = rec.history
     return {'valid': result.valid, 'right': _right(result.transform, truth),
             'draws': int(result.stats.get('compatible_samples', 0)
                          + result.stats.get('guided_samples', 0)),
