@@ -34,6 +34,8 @@ any other bench module: they may import the tools of :mod:`bench`, never the rev
   anyway: what skipping that work gives up.
 - :mod:`.core_stall`: when the core's best consensus is found, and what a cap or a stop on
   a stalled search would cut (replayed on every pair's recorded improvements).
+- :mod:`.revoted_translations`: a refused estimate's translation voted again under its
+  rotation (a slide's right translation): how often one is right, and which rule finds it.
 - :mod:`.recall_time`: recall against median time of settings run side by side with
   KISS-Matcher (``bench.threedmatch --variant``), and settings chosen on the easiest scenes,
   reported on the hardest.
