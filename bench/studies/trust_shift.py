@@ -17,7 +17,8 @@ only and every figure reported on the test scenes:
   building.
 
 Pairs with a fragment whose benchmark pose is in doubt (:mod:`bench.truth_check`) are left
-out of every choice and every figure, and counted.
+out of every choice and every figure, and counted (``--evidence``: the truths settled by
+:mod:`bench.truth_settle` checked too; ``--keep-doubtful``: none left out).
 
 The levers, in the pipeline's order, on top of the gates (the records' ``valid``):
 
@@ -339,8 +340,13 @@ def read_records(name: str, doc: str | None, output: str,
     parser.add_argument('--output', type=Path, default=Path(output))
     parser.add_argument('--evidence', type=Path, nargs='*', default=[],
                         help="more evidence for the truth check (bench.truth_settle's records)")
+    parser.add_argument('--keep-doubtful', action='store_true',
+                        help='leave no pair out: every figure with the pairs in doubt too')
     args = parser.parse_args(argv)
-    return (args, *trusted(load(args.records), args.root, truth_records(args.evidence)))
+    records = load(args.records)
+    if args.keep_doubtful:
+        return args, records, {'pairs': 0, 'fragments': {}}
+    return (args, *trusted(records, args.root, truth_records(args.evidence)))
 
 
 def main(argv: list[str] | None = None) -> int:
