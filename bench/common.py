@@ -127,3 +127,23 @@ def save_figure(fig, path: Path, dpi: int = 100) -> Path:
     fig.savefig(path, dpi=dpi)
     pyplot().close(fig)
     return path
+
+
+# --- a pair as the pipeline sees it -----------------------------------------------------------
+
+def pair_features(source: np.ndarray, target: np.ndarray, config: PipelineConfig) -> tuple:
+    """
+    Return ``(source features, target features, correspondences)`` as the pipeline has them.
+
+    The feature cache's entries at ``config.voxel_size`` (computed when absent), matched
+    once on one thread: what ``register_clouds`` hands the core, for a study to look at.
+    """
+    from cgags_ros.frontend.keypoints import match_keypoints
+    from cgags_ros.pipeline.cache import cached_features
+
+    v = config.voxel_size
+    fs = cached_features(source, v, config.frontend, 'source')
+    ft = cached_features(target, v, config.frontend, 'target')
+    corr = match_keypoints(fs.points, fs.descriptors, ft.descriptors, v, config.frontend, 1,
+                           ft.descriptor_index(1))
+    return fs, ft, corr

@@ -70,8 +70,7 @@ from cgags_ros.geometry import rotation_error_deg, spread, translation_error
 from cgags_ros.io.shared_data import shared_data_dir
 import numpy as np
 
-MAX_RE_DEG = 15.0
-MAX_TE_M = 0.3
+MAX_RE_DEG, MAX_TE_M = tdm.MAX_RE_DEG, tdm.MAX_TE_M
 METHODS = ('cgags', 'kiss_matcher', 'open3d_fpfh_ransac')
 
 

@@ -49,7 +49,7 @@ import json
 from pathlib import Path
 from typing import Iterable, Mapping
 
-from bench.common import argument_parser, LIMITS, markdown_table, write_json, write_text
+from bench.common import argument_parser, markdown_table, write_json, write_text
 from bench.datasets import threedmatch as tdm
 from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.io.shared_data import shared_data_dir
@@ -61,7 +61,7 @@ DOUBT_DEG = 5.0
 DOUBT_M = 0.15
 MIN_PARTNERS = 4
 MAX_ROUNDS = 4
-MAX_RE_DEG, MAX_TE_M = LIMITS['redkitchen']  # 3DMatch's registration recall
+MAX_RE_DEG, MAX_TE_M = tdm.MAX_RE_DEG, tdm.MAX_TE_M  # 3DMatch's registration recall
 
 Poses = Mapping[str, Mapping[int, np.ndarray]]
 

@@ -21,12 +21,13 @@ import dataclasses
 from pathlib import Path
 
 from cgags_ros.errors import InvalidInputError
-from cgags_ros.geometry import apply_transform
+from cgags_ros.geometry import apply_transform, rotation_error_deg, translation_error
 import numpy as np
 
 
 BENCHMARKS = ('3DMatch', '3DLoMatch')
 RMSE_THRESHOLD = 0.2  # metres: the official RMSE recall counts pairs below it
+MAX_RE_DEG, MAX_TE_M = 15.0, 0.3  # registration recall: an estimate right within both
 
 
 @dataclasses.dataclass
@@ -132,6 +133,14 @@ def registration_pairs(root: str | Path, benchmark: str, scene: str,
             for (i, j), T in log.items() if j - i >= min_gap]
 
 
+def benchmark_scenes(root: str | Path, benchmarks: tuple[str, ...] | list[str] = BENCHMARKS):
+    """Yield ``(benchmark, scene, Fragments, registration pairs)`` of each list's scenes."""
+    for benchmark in benchmarks:
+        for scene in scenes(root, benchmark):
+            yield (benchmark, scene, Fragments(root, scene),
+                   registration_pairs(root, benchmark, scene))
+
+
 def fragment_poses(root: str | Path, scene: str) -> dict[int, np.ndarray]:
     """Return ``{k: P_k}`` for every ``fragment_poses/<scene>/cloud_bin_<k>.info.txt``."""
     folder = Path(root) / 'fragment_poses' / scene
@@ -188,6 +197,12 @@ def nearest_rigid(transform: np.ndarray) -> np.ndarray:
     out = np.array(transform, dtype=np.float64)
     out[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
     return out
+
+
+def registered(estimate: np.ndarray, truth: np.ndarray) -> bool:
+    """Return whether ``estimate`` is right: within MAX_RE_DEG and MAX_TE_M of ``truth``."""
+    return bool(rotation_error_deg(estimate, truth) < MAX_RE_DEG
+                and translation_error(estimate, truth) < MAX_TE_M)
 
 
 def rmse_error(estimate: np.ndarray, gt: np.ndarray, info: np.ndarray) -> float:

@@ -23,32 +23,22 @@ import json
 from pathlib import Path
 import time
 
-from bench.common import argument_parser
+from bench.common import argument_parser, pair_features
 from bench.datasets import threedmatch as tdm
 from cgags_ros.config import PipelineConfig
 from cgags_ros.config.fields import update_from_flat
-from cgags_ros.frontend.keypoints import match_keypoints
 from cgags_ros.frontend.refine import refine_transform
-from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import clear_feature_cache, register_clouds
-from cgags_ros.pipeline.cache import cached_features
 from cgags_ros.pipeline.gates import measure
 from cgags_ros.validity import gate_refusal
 import numpy as np
 
 
-def _right(T: np.ndarray, truth: np.ndarray) -> bool:
-    return bool(rotation_error_deg(T, truth) < 15 and translation_error(T, truth) < 0.3)
-
-
 def forced(src: np.ndarray, tgt: np.ndarray, cfg: PipelineConfig, result) -> dict:
     """Refine and gate a refused estimate as the pipeline would have; return what it gives."""
     v = cfg.voxel_size
-    fs = cached_features(src, v, cfg.frontend, 'source')
-    ft = cached_features(tgt, v, cfg.frontend, 'target')
-    corr = match_keypoints(fs.points, fs.descriptors, ft.descriptors, v, cfg.frontend, 1,
-                           ft.descriptor_index(1))
+    fs, ft, corr = pair_features(src, tgt, cfg)
     t0 = time.perf_counter()
     result.transform = refine_transform(
         fs.points, ft.points, result.coarse_transform, voxel_size=v, config=cfg.refine,
@@ -74,27 +64,25 @@ def main(argv: list[str] | None = None) -> int:
     args.output.parent.mkdir(parents=True, exist_ok=True)
     rows = []
     with open(args.output, 'w', encoding='utf-8') as out:
-        for benchmark in args.benchmarks:
-            for scene in tdm.scenes(args.root, benchmark):
-                fragments = tdm.Fragments(args.root, scene)
-                pairs = tdm.registration_pairs(args.root, benchmark, scene)
-                for k in rng.choice(len(pairs), min(args.pairs, len(pairs)), replace=False):
-                    p = pairs[k]
-                    src, tgt = fragments[p.source], fragments[p.target]
-                    truth = tdm.nearest_rigid(p.transform)
-                    clear_feature_cache()
-                    result = register_clouds(src, tgt, config=cfg)
-                    row = {'benchmark': benchmark, 'scene': scene, 'key': p.key,
-                           'valid': result.valid, 'right': _right(result.transform, truth),
-                           'skipped': 'refinement' not in result.timings,
-                           'code': result.refusal.code.value if result.refusal else '',
-                           'seconds': result.timings['total']}
-                    if row['skipped'] and result.refusal is not None:
-                        f = forced(src, tgt, cfg, result)
-                        row.update(forced_s=f['forced_s'], gates=f['gates'],
-                                   forced_right=_right(f['forced_T'], truth))
-                    out.write(json.dumps(row) + '\n')
-                    rows.append(row)
+        for benchmark, scene, fragments, pairs in tdm.benchmark_scenes(args.root,
+                                                                       args.benchmarks):
+            for k in rng.choice(len(pairs), min(args.pairs, len(pairs)), replace=False):
+                p = pairs[k]
+                src, tgt = fragments[p.source], fragments[p.target]
+                truth = tdm.nearest_rigid(p.transform)
+                clear_feature_cache()
+                result = register_clouds(src, tgt, config=cfg)
+                row = {'benchmark': benchmark, 'scene': scene, 'key': p.key,
+                       'valid': result.valid, 'right': tdm.registered(result.transform, truth),
+                       'skipped': 'refinement' not in result.timings,
+                       'code': result.refusal.code.value if result.refusal else '',
+                       'seconds': result.timings['total']}
+                if row['skipped'] and result.refusal is not None:
+                    f = forced(src, tgt, cfg, result)
+                    row.update(forced_s=f['forced_s'], gates=f['gates'],
+                               forced_right=tdm.registered(f['forced_T'], truth))
+                out.write(json.dumps(row) + '\n')
+                rows.append(row)
     print(summary(rows))
     return 0
 

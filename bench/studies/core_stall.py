@@ -31,7 +31,6 @@ from bench.common import argument_parser, markdown_table
 from bench.datasets import threedmatch as tdm
 from bench.threedmatch import select_pairs
 from cgags_ros.config import PipelineConfig
-from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import clear_feature_cache, register_clouds
 from cgags_ros.registration import search
@@ -39,10 +38,6 @@ import numpy as np
 
 CAPS = (10_000, 20_000, 40_000)
 STALLS = (5_000, 10_000, 20_000, 40_000)
-
-
-def _right(T: np.ndarray, truth: np.ndarray) -> bool:
-    return bool(rotation_error_deg(T, truth) < 15 and translation_error(T, truth) < 0.3)
 
 
 class _Recorder:
@@ -80,13 +75,12 @@ def measure_pair(src: np.ndarray, tgt: np.ndarray, truth: np.ndarray,
     with _Recorder() as rec:
         clear_feature_cache()
         result = register_clouds(src, tgt, config=cfg)
-    steps = rec.history
-    return {'valid': result.valid, 'right': _right(result.transform, truth),
+    return {'valid': result.valid, 'right': tdm.registered(result.transform, truth),
             'draws': int(result.stats.get('compatible_samples', 0)
                          + result.stats.get('guided_samples', 0)),
             'core_s': result.timings.get('core_total', 0.0),
             'seconds': result.timings['total'],
-            'improvements': [(d, n, _right(T, truth)) for d, n, T in steps]}
+            'improvements': [(d, n, tdm.registered(T, truth)) for d, n, T in rec.history]}
 
 
 def stop_at(row: dict, cap: int | None = None, stall: int | None = None) -> int:
@@ -150,17 +144,14 @@ def main(argv: list[str] | None = None) -> int:
     args.output.parent.mkdir(parents=True, exist_ok=True)
     rows = []
     with open(args.output, 'w', encoding='utf-8') as out:
-        for benchmark in tdm.BENCHMARKS:
-            for scene in tdm.scenes(args.root, benchmark):
-                fragments = tdm.Fragments(args.root, scene)
-                pairs = tdm.registration_pairs(args.root, benchmark, scene)
-                for p in select_pairs(pairs, args.pairs, args.seed):
-                    row = measure_pair(fragments[p.source], fragments[p.target],
-                                       tdm.nearest_rigid(p.transform), cfg)
-                    row.update(benchmark=benchmark, scene=scene, key=p.key)
-                    out.write(json.dumps(row) + '\n')
-                    out.flush()
-                    rows.append(row)
+        for benchmark, scene, fragments, pairs in tdm.benchmark_scenes(args.root):
+            for p in select_pairs(pairs, args.pairs, args.seed):
+                row = measure_pair(fragments[p.source], fragments[p.target],
+                                   tdm.nearest_rigid(p.transform), cfg)
+                row.update(benchmark=benchmark, scene=scene, key=p.key)
+                out.write(json.dumps(row) + '\n')
+                out.flush()
+                rows.append(row)
     print(summary(rows))
     return 0
 

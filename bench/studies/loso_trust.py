@@ -62,8 +62,7 @@ from cgags_ros.pipeline.gates import measured_free_space
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-MAX_RE_DEG = 15.0
-MAX_TE_M = 0.3
+MAX_RE_DEG, MAX_TE_M = tdm.MAX_RE_DEG, tdm.MAX_TE_M
 GRID_FACTORS = (2, 4, 8, 16)  # coarse grids (voxel sizes) over which overlap cells are counted
 PROMISING = 0.25  # the smallest share of T's fitness at which the study may refine a rival
 

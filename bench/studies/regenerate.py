@@ -28,15 +28,13 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from bench.common import argument_parser
+from bench.common import argument_parser, pair_features
 from bench.datasets import threedmatch as tdm
 from cgags_ros.config import PipelineConfig
-from cgags_ros.frontend.keypoints import match_keypoints
 from cgags_ros.frontend.refine import refine_transform
-from cgags_ros.geometry import apply_transform, rotation_error_deg, translation_error
+from cgags_ros.geometry import apply_transform
 from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import regenerate
-from cgags_ros.pipeline.cache import cached_features
 from cgags_ros.pipeline.candidates import distinct, support
 from cgags_ros.pipeline.gates import measured_free_space
 from cgags_ros.registration import register_correspondences
@@ -71,17 +69,10 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _right(T: np.ndarray, truth: np.ndarray) -> bool:
-    return bool(rotation_error_deg(T, truth) < 15 and translation_error(T, truth) < 0.3)
-
-
 def measure(src: np.ndarray, tgt: np.ndarray, truth: np.ndarray, cfg: PipelineConfig) -> dict:
     """Return one pair's measurements (see the module doc)."""
     v = cfg.voxel_size
-    fs = cached_features(src, v, cfg.frontend, 'source')
-    ft = cached_features(tgt, v, cfg.frontend, 'target')
-    corr = match_keypoints(fs.points, fs.descriptors, ft.descriptors, v, cfg.frontend, 1,
-                           ft.descriptor_index(1))
+    fs, ft, corr = pair_features(src, tgt, cfg)
     ps, pt = fs.points[corr.source_index], ft.points[corr.target_index]
     resolution = 0.5 * (fs.resolution + ft.resolution)
     core = register_correspondences(ps, pt, resolution=resolution, config=cfg.core)
@@ -105,17 +96,17 @@ def measure(src: np.ndarray, tgt: np.ndarray, truth: np.ndarray, cfg: PipelineCo
         return refine_transform(fs.points, ft.points, T, voxel_size=v, config=cfg.refine,
                                 target_normals=ft.normals, coarse_distance=tau)
 
-    row['core_right'] = _right(refined(core.transform), truth)
+    row['core_right'] = tdm.registered(refined(core.transform), truth)
     both = np.unique(np.vstack([np.c_[corr.source_index, corr.target_index], *matches]),
                      axis=0)
     enlarged = register_correspondences(fs.points[both[:, 0]], ft.points[both[:, 1]],
                                         resolution=resolution, config=cfg.core)
-    row['enlarged_right'] = _right(refined(enlarged.transform), truth)
+    row['enlarged_right'] = tdm.registered(refined(enlarged.transform), truth)
     row['enlarged_valid'] = enlarged.valid
     poses = regenerate.proposed_poses(fs, ft, corr, core, cfg)
     settled = regenerate.settled_support(fs, ft, corr, [core.transform, *poses], tau, cfg)
     row['poses'] = [{
-        'estimate': n == 0, 'right': _right(T, truth), 'support': count,
+        'estimate': n == 0, 'right': tdm.registered(T, truth), 'support': count,
         'support_before': int(np.count_nonzero(support(ps, pt, start, tau))),
         'violation': measured_free_space(fs, ft, T, cfg),
         'distinct': n == 0 or distinct(T, settled[0][0], cfg)}

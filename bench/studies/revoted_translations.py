@@ -23,23 +23,17 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from bench.common import argument_parser
+from bench.common import argument_parser, pair_features
 from bench.datasets import threedmatch as tdm
 from cgags_ros.config import PipelineConfig
-from cgags_ros.frontend.keypoints import match_keypoints
-from cgags_ros.geometry import make_transform, rotation_error_deg, translation_error
+from cgags_ros.geometry import make_transform
 from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import clear_feature_cache
-from cgags_ros.pipeline.cache import cached_features
 from cgags_ros.pipeline.gates import measured_free_space
 from cgags_ros.pipeline.rivals import settle
 import numpy as np
 
 PEAKS = 8
-
-
-def _right(T: np.ndarray, truth: np.ndarray) -> bool:
-    return bool(rotation_error_deg(T, truth) < 15 and translation_error(T, truth) < 0.3)
 
 
 def peaks(votes: np.ndarray, tau: float) -> list[np.ndarray]:
@@ -61,10 +55,7 @@ def revoted(src: np.ndarray, tgt: np.ndarray, record: dict, truth: np.ndarray,
     """Return each voted translation's settled pose: fitness, free space, right (estimate last)."""
     v = cfg.voxel_size
     clear_feature_cache()
-    fs = cached_features(src, v, cfg.frontend, 'source')
-    ft = cached_features(tgt, v, cfg.frontend, 'target')
-    corr = match_keypoints(fs.points, fs.descriptors, ft.descriptors, v, cfg.frontend, 1,
-                           ft.descriptor_index(1))
+    fs, ft, corr = pair_features(src, tgt, cfg)
     T = np.asarray(record['transform'])
     R, tau = T[:3, :3], record['inlier_threshold']
     votes = ft.points[corr.target_index] - fs.points[corr.source_index] @ R.T
@@ -74,7 +65,8 @@ def revoted(src: np.ndarray, tgt: np.ndarray, record: dict, truth: np.ndarray,
         d, _ = ft.tree.query(fs.points @ S[:3, :3].T + S[:3, 3], k=1,
                              distance_upper_bound=1.5 * v)
         out.append({'fitness': float(np.isfinite(d).mean()),
-                    'free_space': measured_free_space(fs, ft, S, cfg), 'right': _right(S, truth)})
+                    'free_space': measured_free_space(fs, ft, S, cfg),
+                    'right': tdm.registered(S, truth)})
     return out
 
 
