@@ -34,6 +34,7 @@ class RefusalCode(enum.Enum):
     DEGENERATE_AXIS = 'degenerate_axis'  # the overlap leaves some motion unconstrained
     LOW_FITNESS = 'low_fitness'  # too few points meet the other cloud after alignment
     FREE_SPACE = 'free_space'  # the pose puts surfaces where a sensor saw free space
+    NO_SHARED_SURFACE = 'no_shared_surface'  # the pose's clouds share too little surface
     TILT = 'tilt'  # 4-DoF: the clouds are not levelled
     FRAMES_DISAGREE = 'frames_disagree'  # calibration: the frames support different poses
     # The relocalizer over a few scans with odometry

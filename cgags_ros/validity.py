@@ -10,10 +10,11 @@ be traced to numbers the result reports.
 
 Order, as a pair goes through the pipeline: a cloud that is a line; the core's outcome (no
 estimate, too few inliers, a collinear consensus, chance level or a distinct alternative, a
-tilt in 4-DoF mode); then, on the refined estimate, chance-level inliers, a degenerate
-axis, low fitness, a free-space violation, a tilt; an ambiguity among the ranked candidates
-overrides them all. The node's initial pose adds its own stricter guards
-(:func:`quality_refusal`).
+tilt in 4-DoF mode); then, on the refined estimate, too little shared surface,
+chance-level inliers, a degenerate axis, low fitness, a free-space violation, a tilt; an
+ambiguity among the ranked candidates overrides them all but the shared surface (said
+too for an estimate the core refused as ambiguous or at chance level). The node's initial
+pose adds its own stricter guards (:func:`quality_refusal`).
 """
 
 from __future__ import annotations
@@ -42,6 +43,14 @@ class Consensus(Protocol):
     reason: str
 
 
+class Shared(Protocol):
+    """What the gates measured of the surface an estimate makes the clouds share (or NaN)."""
+
+    shared_area: float  # square metres
+    descriptor_ratio: float  # its pairs' descriptor distance over a random pairing's
+    voxel_size: float
+
+
 class Overlap(Protocol):
     """What the gates measured of an estimate's overlap alone (a ``PipelineResult``'s fields)."""
 
@@ -57,7 +66,7 @@ class Trusted(Protocol):
     confidence: float
 
 
-class Estimate(Consensus, Overlap, Protocol):
+class Estimate(Consensus, Overlap, Shared, Protocol):
     """What the gates measured of a refined estimate (a ``PipelineResult``'s fields)."""
 
     num_correspondences: int
@@ -194,6 +203,8 @@ def free_space_limit(cfg: PipelineConfig, unsettled: bool = False) -> float:
 
 def gate_refusal(e: Estimate, cfg: PipelineConfig, unsettled: bool = False) -> Refusal | None:
     """Return why the refined estimate must not be trusted, or None when every gate passes."""
+    if surface := shared_surface_refusal(e, cfg):
+        return surface
     if cfg.gates.significance > 0 and not e.num_inliers > e.chance_bound:
         return Refusal(Code.CHANCE_LEVEL, (
             f'{e.num_inliers} inliers of {e.num_correspondences} correspondences is no better '
@@ -201,6 +212,36 @@ def gate_refusal(e: Estimate, cfg: PipelineConfig, unsettled: bool = False) -> R
             f'of {max(e.num_hypotheses, 1)} hypotheses reaches {e.chance_bound:.0f}): the '
             'clouds probably do not overlap'))
     return overlap_refusal(e, cfg, unsettled)
+
+
+def shared_surface_refusal(e: Shared, cfg: PipelineConfig) -> Refusal | None:
+    """
+    Return why the clouds share no surface under the estimate, or None (NaN passes).
+
+    Clouds of different places still meet under some pose (a floor on a floor, a corner):
+    too small a shared surface, or one whose descriptors differ as random pairs do.
+    """
+    gates, v2 = cfg.gates, e.voxel_size ** 2
+    if gates.min_shared_area > 0 and (cells := e.shared_area / v2) < gates.min_shared_area:
+        shown = (f'the best pose makes the clouds share {e.shared_area:.3g} m^2 ({cells:.0f} '
+                 f'voxels; < gates.min_shared_area {gates.min_shared_area:g} voxels, '
+                 f'{gates.min_shared_area * v2:.3g} m^2): too little to tell one place')
+    elif gates.max_descriptor_ratio > 0 and e.descriptor_ratio > gates.max_descriptor_ratio:
+        shown = (f'the {e.shared_area:.3g} m^2 the best pose makes the clouds share do not '
+                 'look alike: their descriptors differ as much as random pairs do (ratio '
+                 f'{e.descriptor_ratio:.2f} > gates.max_descriptor_ratio '
+                 f'{gates.max_descriptor_ratio:g}): different surfaces that only meet')
+    else:
+        return None
+    return Refusal(Code.NO_SHARED_SURFACE, (
+        f'no shared surface: {shown}; the clouds probably show different places (a wrong '
+        'map, a scan outside it)'))
+
+
+def said_over_ambiguity(refusal: Refusal | None, ambiguity: Refusal | None) -> Refusal | None:
+    """Return ``ambiguity`` over the gates' ``refusal``, unless that says no shared surface."""
+    shared = refusal is not None and refusal.code is Code.NO_SHARED_SURFACE
+    return refusal if shared else ambiguity or refusal
 
 
 def overlap_refusal(e: Overlap, cfg: PipelineConfig, unsettled: bool = False) -> Refusal | None:

@@ -144,6 +144,7 @@ def test_a_scan_taken_outside_the_map_is_left_out_not_held_against_the_rest(easy
     first, second, third = [reloc.add(scan, O) for scan, O in zip(
         [elsewhere, fragments[EASY[1]], fragments[EASY[2]]], odom)]
     assert not first.confirmed and not first.results[0].valid  # it fits nowhere
+    assert first.refusal.code is Code.NO_SHARED_SURFACE, first.refusal  # and says so
     # Left out, the second scan is judged as it would be alone...
     assert second.confirmed == second.results[1].valid
     if not second.confirmed:  # its own refusal, "send another scan" added

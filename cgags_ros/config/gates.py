@@ -56,6 +56,17 @@ class GatesConfig:
         '`significance` if every correspondence were an outlier (Poisson model of the '
         'correspondences that fall within tau of the estimate by chance). 0 disables.',
         low=0.0, high=1.0)
+    min_shared_area: float = option(
+        480.0, 'Shared-surface gate: the estimate is invalid when the surface the clouds share '
+        "under it (the smaller side's downsampled points within the refinement distance of "
+        'the other cloud) is below this many square voxel sizes: clouds of different places '
+        'meet over a floor or a wall corner, not over a room. 0 disables.',
+        low=0.0, high=1e9)
+    max_descriptor_ratio: float = option(
+        0.85, 'Shared-surface gate: the estimate is invalid when the descriptors (FPFH) of the '
+        'point pairs of its overlap differ, in median, by more than this times those of the '
+        'same points paired at random: near 1, different surfaces only meet under it. '
+        '0 disables.', low=0.0, high=10.0)
     min_observability: float = option(
         0.02, 'Degeneracy gate: smallest / largest eigenvalue of the point-to-plane '
         'information matrix over the overlapping points (rotation scaled by the overlap '

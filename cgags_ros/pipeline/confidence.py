@@ -33,6 +33,11 @@ INTERCEPT = 5.614
 
 SIGMA_FLOOR = 1e-3  # voxels: log of a sigma that no overlap reaches
 
+# The most an estimate refused as ``no_shared_surface`` is given: the share of such
+# estimates that are right (docs/no_overlap.md); the model above never saw clouds of
+# different places, and rates a floor on a floor as it rates a room on itself.
+NO_SHARED_SURFACE = 0.11
+
 
 def features(result: Any, significance: float, members: int = 3) -> dict[str, float] | None:
     """

@@ -28,7 +28,8 @@ def measure(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
     Set the measurements the gates judge on ``result`` (its ``transform`` is the estimate).
 
     The chance-level inliers of the correspondences and their bound, then
-    :func:`measure_overlap`, whose overlap is returned. ``map_target``: the target is a map
+    :func:`measure_overlap`, whose overlap is returned, and the descriptors' agreement
+    over it (:func:`descriptor_ratio`). ``map_target``: the target is a map
     fused from many viewpoints, so it has no sensor at its origin (the free-space violation
     is then measured against the scan's view only).
     """
@@ -40,7 +41,9 @@ def measure(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
     if cfg.gates.significance > 0:
         result.chance_bound = chance_bound(result.chance_inliers, result.num_hypotheses,
                                            cfg.gates.significance, members)
-    return measure_overlap(fs.points, fs.tree, ft, result, cfg, map_target)
+    align = measure_overlap(fs.points, fs.tree, ft, result, cfg, map_target)
+    result.descriptor_ratio = descriptor_ratio(fs.descriptors, ft.descriptors, align)
+    return align
 
 
 def measure_overlap(source: np.ndarray, source_tree: cKDTree | None, ft: CloudFeatures,
@@ -56,18 +59,19 @@ def measure_overlap(source: np.ndarray, source_tree: cKDTree | None, ft: CloudFe
     ``source_tree`` a k-d tree over it, for the target side of ``overlap``; None leaves
     ``overlap`` NaN (no gate reads it: only the rival verification after a global search
     does). Sets ``fitness``, ``inlier_rmse``, ``overlap``, ``observability``,
-    ``free_space_violation`` (and ``tilt_deg``) on ``result``. The
+    ``shared_area``, ``free_space_violation`` (and ``tilt_deg``) on ``result``. The
     :class:`~cgags_ros.frontend.refine.Alignment` returned pairs the overlapping source
     points with their nearest target points.
     """
     distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
     align = evaluate_alignment(source, ft.tree, result.transform, distance)
     result.fitness, result.inlier_rmse = align.fitness, align.inlier_rmse
-    result.overlap = float('nan')
+    result.overlap = result.shared_area = float('nan')
     if source_tree is not None:
         back = evaluate_alignment(ft.points, source_tree, np.linalg.inv(result.transform),
                                   distance)
         result.overlap = min(align.fitness, back.fitness)
+        result.shared_area = shared_area(align, back, cfg.voxel_size)
     if cfg.core.motion_model == '4dof':  # yaw + translation only: no roll/pitch motion
         frame = GravityFrame(cfg.core.gravity_axis)
         result.observability = observability(source, ft.normals, align, frame)
@@ -77,6 +81,55 @@ def measure_overlap(source: np.ndarray, source_tree: cKDTree | None, ft: CloudFe
     result.free_space_violation = free_space_of(source, ft.points, result.transform, cfg,
                                                 map_target)
     return align
+
+
+def shared_area(align: Alignment, back: Alignment, voxel_size: float) -> float:
+    """
+    Return the surface (square metres) two clouds share under an alignment.
+
+    ``align`` pairs the source's downsampled points with the target, ``back`` the target's
+    with the source: the smaller count of points that found a neighbour, each a surface
+    cell of ``voxel_size`` squared. Clouds that share no surface still meet somewhere under
+    any pose (a floor on a floor, a wall corner); what they share is then small.
+    """
+    return min(len(align.source_index), len(back.source_index)) * voxel_size ** 2
+
+
+def descriptor_ratio(source_descriptors: np.ndarray, target_descriptors: np.ndarray,
+                     align: Alignment) -> float:
+    """
+    Return how much more alike the descriptors of an overlap's point pairs are than chance.
+
+    The median L2 distance between the unit-normalised descriptors (FPFH) of ``align``'s
+    pairs (each overlapping source point and its nearest target point), over the median of
+    the same points paired at random (seeded): well below 1 where the shared surface is one
+    surface seen twice, near 1 where different surfaces only meet. NaN under 10 pairs.
+    """
+    if len(align.source_index) < 10:
+        return float('nan')
+    ds = _unit_rows(source_descriptors[align.source_index])
+    dt = _unit_rows(target_descriptors[align.target_index])
+    paired = np.median(np.linalg.norm(ds - dt, axis=1))
+    shuffled = dt[np.random.default_rng(0).permutation(len(dt))]
+    chance = np.median(np.linalg.norm(ds - shuffled, axis=1))
+    return float(paired / chance) if chance > 0 else float('nan')
+
+
+def _unit_rows(x: np.ndarray) -> np.ndarray:
+    x = np.asarray(x, dtype=np.float64)
+    return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
+
+
+def measure_shared_surface(fs: CloudFeatures, ft: CloudFeatures, result: PipelineResult,
+                           cfg: PipelineConfig) -> None:
+    """Set ``result.shared_area`` and ``descriptor_ratio`` of ``result.transform`` alone."""
+    distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
+    T = result.transform
+    align = evaluate_alignment(fs.points, ft.tree, T, distance)
+    result.shared_area = shared_area(
+        align, evaluate_alignment(ft.points, fs.tree, np.linalg.inv(T), distance),
+        cfg.voxel_size)
+    result.descriptor_ratio = descriptor_ratio(fs.descriptors, ft.descriptors, align)
 
 
 def measured_free_space(fs: CloudFeatures, ft: CloudFeatures, transform: np.ndarray,

@@ -22,9 +22,9 @@ import numpy as np
 
 from .cache import cached_features
 from .candidates import find_candidates, rank_candidates, search_rivals, verify_rivals
-from .confidence import features, probability
+from .confidence import features, NO_SHARED_SURFACE, probability
 from .covariance import loosest_sigma, result_covariance, with_confidence
-from .gates import measure
+from .gates import measure, measure_shared_surface
 from .map import matches_config, PreparedMap
 from .regenerate import regenerated_estimate
 from .result import PipelineResult
@@ -38,11 +38,12 @@ from ..frontend.matching import Correspondences
 from ..frontend.refine import Alignment, refine_transform
 from ..geometry import cross_spread
 from ..parallel import DEFAULT_WORKERS, in_background
-from ..refusal import Refusal
+from ..refusal import Refusal, RefusalCode as Code
 from ..registration import register_correspondences, RegistrationResult, single_blas_thread
 from ..timing import timed
 from ..validity import (ambiguity_refusal, confidence_refusal, gate_refusal,
-                        line_cloud_refusal, uncertainty_refusal, unsettled)
+                        line_cloud_refusal, said_over_ambiguity, shared_surface_refusal,
+                        uncertainty_refusal, unsettled)
 
 
 def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
@@ -97,6 +98,8 @@ def _judged(result: PipelineResult, fs: CloudFeatures, ft: CloudFeatures,
         None if overlap is None else (overlap.source_index, overlap.target_index))
     result.confidence = probability(features(result, cfg.gates.significance,
                                              2 if four_dof else 3))
+    if refusal is not None and refusal.code is Code.NO_SHARED_SURFACE:
+        result.confidence = min(result.confidence, NO_SHARED_SURFACE)
     if map_target or four_dof:
         return result.finish(start, refusal)
     result.covariance = with_confidence(result.covariance, result.confidence)
@@ -163,6 +166,9 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
         if cfg.refine.refused:
             _refine(fs, ft, core, result, cfg, workers)
         refusal = _candidates(fs, ft, corr, result, cfg) or core.refusal
+        if refusal.code in (Code.AMBIGUOUS, Code.CHANCE_LEVEL):  # or no shared surface?
+            measure_shared_surface(fs, ft, result, cfg)
+            refusal = shared_surface_refusal(result, cfg) or refusal
         return _judged(result, fs, ft, cfg, start, refusal, map_target)
     _refine(fs, ft, core, result, cfg, workers)
     # The rival search reads only the core's estimate and the final transform, never what
@@ -181,7 +187,7 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
             overlap = measure(fs, ft, corr, result, cfg, map_target)
             refusal = gate_refusal(result, cfg, left_to_gates)
             chosen.fitness = result.fitness
-    refusal = ambiguity_refusal(result, cfg) or refusal
+    refusal = said_over_ambiguity(refusal, ambiguity_refusal(result, cfg))
     if not refusal and cfg.gates.structured_rivals:
         with timed(result.timings, 'structured_rivals'):
             rival = structured_rival(fs, ft, corr, result, cfg, map_target, workers)

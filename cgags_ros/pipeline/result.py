@@ -52,6 +52,13 @@ class PipelineResult(RegistrationResult):
     :ivar overlap: min of the source-side and target-side shares of points with a neighbour
         in the other cloud within the refinement distance (a symmetric overlap ratio); NaN on
         the tracked path, which measures the source side (``fitness``) only.
+    :ivar shared_area: the surface (square metres) the clouds share under ``transform``:
+        the smaller side's count of downsampled points with a neighbour in the other cloud
+        within the refinement distance, times the voxel size squared (one point a surface
+        cell); NaN where ``overlap`` is.
+    :ivar descriptor_ratio: over that overlap, the median descriptor (FPFH) distance of its
+        point pairs over that of a random pairing (:func:`~.gates.descriptor_ratio`): near
+        1 where different surfaces only meet; NaN when not measured.
     :ivar observability: smallest/largest eigenvalue of the point-to-plane information
         matrix of the overlap (0: some motion is unconstrained, e.g. plane on plane).
     :ivar chance_inliers: inliers the estimate would collect if every correspondence were
@@ -102,6 +109,8 @@ class PipelineResult(RegistrationResult):
     fitness: float = 0.0
     inlier_rmse: float = float('nan')
     overlap: float = 0.0
+    shared_area: float = float('nan')
+    descriptor_ratio: float = float('nan')
     observability: float = float('nan')
     chance_inliers: float = float('nan')
     chance_bound: float = float('nan')
@@ -126,6 +135,7 @@ class PipelineResult(RegistrationResult):
             coarse_transform=np.asarray(self.coarse_transform, dtype=float).tolist(),
             refined=bool(self.refined), fitness=float(self.fitness),
             inlier_rmse=float(self.inlier_rmse), overlap=float(self.overlap),
+            shared_area=float(self.shared_area), descriptor_ratio=float(self.descriptor_ratio),
             observability=float(self.observability),
             chance_inliers=float(self.chance_inliers), chance_bound=float(self.chance_bound),
             num_source_points=int(self.num_source_points),
