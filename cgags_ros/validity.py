@@ -12,9 +12,8 @@ Order, as a pair goes through the pipeline: a cloud that is a line; the core's o
 estimate, too few inliers, a collinear consensus, chance level or a distinct alternative, a
 tilt in 4-DoF mode); then, on the refined estimate, too little shared surface,
 chance-level inliers, a degenerate axis, low fitness, a free-space violation, a tilt; an
-ambiguity among the ranked candidates overrides them all but the shared surface (said
-too for an estimate the core refused as ambiguous or at chance level). The node's initial
-pose adds its own stricter guards (:func:`quality_refusal`).
+ambiguity among the candidates overrides all but the shared surface (also said of the
+core's ambiguity or chance level). The node adds stricter guards (:func:`quality_refusal`).
 """
 
 from __future__ import annotations
@@ -48,6 +47,7 @@ class Shared(Protocol):
 
     shared_area: float  # square metres
     descriptor_ratio: float  # its pairs' descriptor distance over a random pairing's
+    observability: float
     voxel_size: float
 
 
@@ -219,23 +219,23 @@ def shared_surface_refusal(e: Shared, cfg: PipelineConfig) -> Refusal | None:
     Return why the clouds share no surface under the estimate, or None (NaN passes).
 
     Clouds of different places still meet under some pose (a floor on a floor, a corner):
-    too small a shared surface, or one whose descriptors differ as random pairs do.
+    too small a shared surface, or one whose descriptors differ as random pairs do (unless
+    the overlap is degenerate: there all descriptors look alike, or none do).
     """
     gates, v2 = cfg.gates, e.voxel_size ** 2
     if gates.min_shared_area > 0 and (cells := e.shared_area / v2) < gates.min_shared_area:
         shown = (f'the best pose makes the clouds share {e.shared_area:.3g} m^2 ({cells:.0f} '
                  f'voxels; < gates.min_shared_area {gates.min_shared_area:g} voxels, '
                  f'{gates.min_shared_area * v2:.3g} m^2): too little to tell one place')
-    elif gates.max_descriptor_ratio > 0 and e.descriptor_ratio > gates.max_descriptor_ratio:
-        shown = (f'the {e.shared_area:.3g} m^2 the best pose makes the clouds share do not '
-                 'look alike: their descriptors differ as much as random pairs do (ratio '
-                 f'{e.descriptor_ratio:.2f} > gates.max_descriptor_ratio '
-                 f'{gates.max_descriptor_ratio:g}): different surfaces that only meet')
+    elif (0 < gates.max_descriptor_ratio < e.descriptor_ratio
+          and e.observability >= gates.min_observability):
+        shown = (f'the {e.shared_area:.3g} m^2 the best pose makes the clouds share look '
+                 f'unalike (descriptor ratio {e.descriptor_ratio:.2f} > gates.max_descriptor'
+                 f'_ratio {gates.max_descriptor_ratio:g}): different surfaces that only meet')
     else:
         return None
-    return Refusal(Code.NO_SHARED_SURFACE, (
-        f'no shared surface: {shown}; the clouds probably show different places (a wrong '
-        'map, a scan outside it)'))
+    return Refusal(Code.NO_SHARED_SURFACE, f'no shared surface: {shown}; no pose found shows '
+                   'one place: different places (a wrong map, a scan outside it)?')
 
 
 def said_over_ambiguity(refusal: Refusal | None, ambiguity: Refusal | None) -> Refusal | None:

@@ -214,7 +214,7 @@ def test_after_warm_up_a_real_pair_compiles_nothing_in_the_front_end(data_dir):
 # --- degenerate and non-overlapping input: valid=False with a refusal code --------------------
 # The refusals that say "no pose of these clouds is supported", as opposed to bad input.
 NOT_SUPPORTED = {Code.CHANCE_LEVEL, Code.AMBIGUOUS, Code.NO_ESTIMATE, Code.FEW_INLIERS,
-                 Code.FREE_SPACE, Code.LOW_FITNESS}
+                 Code.FREE_SPACE, Code.LOW_FITNESS, Code.NO_SHARED_SURFACE}
 
 
 def _plane(rng, n=20000):

@@ -199,7 +199,7 @@ def test_an_unrelated_scene_gives_no_confident_pose(kitchen, data_dir):
     result = register_clouds(bunny, merged[::4], config=pipeline_config_from(MOVED))
     assert not result.valid and result.refusal.code in {
         Code.CHANCE_LEVEL, Code.AMBIGUOUS, Code.NO_ESTIMATE, Code.FEW_INLIERS, Code.FREE_SPACE,
-        Code.LOW_FITNESS}, result.refusal
+        Code.LOW_FITNESS, Code.NO_SHARED_SURFACE}, result.refusal
 
 
 def test_cli_prints_the_candidates(kitchen, data_dir, tmp_path, capsys):

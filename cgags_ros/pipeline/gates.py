@@ -122,7 +122,7 @@ def _unit_rows(x: np.ndarray) -> np.ndarray:
 
 def measure_shared_surface(fs: CloudFeatures, ft: CloudFeatures, result: PipelineResult,
                            cfg: PipelineConfig) -> None:
-    """Set ``result.shared_area`` and ``descriptor_ratio`` of ``result.transform`` alone."""
+    """Set ``result.shared_area``, ``descriptor_ratio`` (and ``observability``) alone."""
     distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
     T = result.transform
     align = evaluate_alignment(fs.points, ft.tree, T, distance)
@@ -130,6 +130,7 @@ def measure_shared_surface(fs: CloudFeatures, ft: CloudFeatures, result: Pipelin
         align, evaluate_alignment(ft.points, fs.tree, np.linalg.inv(T), distance),
         cfg.voxel_size)
     result.descriptor_ratio = descriptor_ratio(fs.descriptors, ft.descriptors, align)
+    result.observability = observability(fs.points, ft.normals, align)
 
 
 def measured_free_space(fs: CloudFeatures, ft: CloudFeatures, transform: np.ndarray,
