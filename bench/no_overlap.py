@@ -8,6 +8,7 @@ Run by hand from the repository root, one run at a time::
         [--output out/no_overlap/cross.jsonl]
     OMP_NUM_THREADS=1 .venv/bin/python -m bench.no_overlap benchmark [--pairs K] \
         [--output out/no_overlap/benchmark.jsonl]
+    OMP_NUM_THREADS=1 .venv/bin/python -m bench.no_overlap lidar --output out/no_overlap/lidar.jsonl
     .venv/bin/python -m bench.no_overlap summary out/no_overlap/cross.jsonl \
         [out/no_overlap/benchmark.jsonl]
     OMP_NUM_THREADS=1 .venv/bin/python -m bench.no_overlap remeasure RECORDS.jsonl \
@@ -19,7 +20,8 @@ the fragments of the *other* scenes (different buildings: none of them can be ri
 registers each at 5 cm with the defaults (:func:`cgags_ros.pipeline.register_clouds`).
 ``benchmark`` registers the 3DMatch and 3DLoMatch pairs (every pair, or ``--pairs K`` a
 scene and list, seeded) the same way, with the truth, for the right poses of low overlap
-the same measures must keep. Each fragment is featurised once (the estimates are those of a
+the same measures must keep. ``lidar`` registers four KITTI scans against the two
+small_gicp scans (two streets), both ways, at 0.3 and 0.5 m. Each fragment is featurised once (the estimates are those of a
 cold run, the times are not).
 
 One JSON line a pair: the scenes and fragments, ``valid``, ``confidence``, the refusal code,
@@ -213,6 +215,28 @@ def run_benchmark(args, cfg: PipelineConfig) -> None:
             print(f'{benchmark} {scene}: {len(pairs)} pairs', flush=True)
 
 
+def run_lidar(args, cfg: PipelineConfig) -> None:
+    """KITTI scans 0, 5, 10, 15 against each small_gicp scan (two streets), both ways."""
+    from cgags_ros.io.clouds import read_cloud
+
+    data = args.root.parent
+    gicp = [read_cloud(data / 'lidar' / 'small_gicp' / f'{n}.ply') for n in ('source', 'target')]
+    kitti = sorted((data / 'kitti' / 'seq00_16scans' / 'pcd').glob('*.pcd'))
+    with _sink(args.output) as out:
+        for voxel in (0.3, 0.5):
+            c = update_from_flat(cfg, {'voxel_size': voxel})
+            for k in (0, 5, 10, 15):
+                scan = read_cloud(kitti[k])
+                for g, other in enumerate(gicp):
+                    for name, (src, tgt) in (('kitti_on_gicp', (scan, other)),
+                                             ('gicp_on_kitti', (other, scan))):
+                        rec = {'kind': 'lidar_cross', 'source_scene': name, 'source': k,
+                               'target_scene': f'small_gicp_{g}', 'target': g,
+                               'voxel': voxel, 'success': False}
+                        rec.update(measure(src, tgt, c))
+                        out.write(json.dumps(rec) + '\n')
+
+
 def _sink(path: Path):
     path.parent.mkdir(parents=True, exist_ok=True)
     return open(path, 'w', encoding='utf-8')
@@ -250,7 +274,8 @@ def summary(records: list[dict]) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argument_parser('bench.no_overlap', __doc__)
-    parser.add_argument('mode', choices=('cross', 'benchmark', 'summary', 'remeasure'))
+    parser.add_argument('mode', choices=('cross', 'benchmark', 'lidar', 'summary',
+                                         'remeasure'))
     parser.add_argument('records', nargs='*', type=Path, help='summary: the JSONL files')
     parser.add_argument('--root', type=Path, default=shared_data_dir() / '3dmatch_benchmark')
     parser.add_argument('--pairs', type=int, default=None,
@@ -270,6 +295,10 @@ def main(argv: list[str] | None = None) -> None:
         with _sink(args.output) as out:
             for rec in remeasure(read_records(args.records), args.root, cfg):
                 out.write(json.dumps(rec) + '\n')
+        return
+    if args.mode == 'lidar':
+        args.output = args.output or Path('out/no_overlap/lidar.jsonl')
+        run_lidar(args, cfg)
         return
     if args.mode == 'cross':
         args.pairs = args.pairs or 1000
