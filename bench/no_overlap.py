@@ -8,7 +8,8 @@ Run by hand from the repository root, one run at a time::
         [--output out/no_overlap/cross.jsonl]
     OMP_NUM_THREADS=1 .venv/bin/python -m bench.no_overlap benchmark [--pairs K] \
         [--output out/no_overlap/benchmark.jsonl]
-    OMP_NUM_THREADS=1 .venv/bin/python -m bench.no_overlap lidar --output out/no_overlap/lidar.jsonl
+    OMP_NUM_THREADS=1 .venv/bin/python -m bench.no_overlap lidar \
+        [--output out/no_overlap/lidar.jsonl]
     .venv/bin/python -m bench.no_overlap summary out/no_overlap/cross.jsonl \
         [out/no_overlap/benchmark.jsonl]
     OMP_NUM_THREADS=1 .venv/bin/python -m bench.no_overlap remeasure RECORDS.jsonl \
@@ -21,8 +22,8 @@ registers each at 5 cm with the defaults (:func:`cgags_ros.pipeline.register_clo
 ``benchmark`` registers the 3DMatch and 3DLoMatch pairs (every pair, or ``--pairs K`` a
 scene and list, seeded) the same way, with the truth, for the right poses of low overlap
 the same measures must keep. ``lidar`` registers four KITTI scans against the two
-small_gicp scans (two streets), both ways, at 0.3 and 0.5 m. Each fragment is featurised once (the estimates are those of a
-cold run, the times are not).
+small_gicp scans (two streets), both ways, at 0.3 and 0.5 m. Each fragment is featurised
+once (the estimates are those of a cold run, the times are not).
 
 One JSON line a pair: the scenes and fragments, ``valid``, ``confidence``, the refusal code,
 what each gate reads (inliers, chance bound, runner-up ratio, fitness, overlap,
