@@ -36,6 +36,9 @@ class CloudFeatures:
     :ivar descriptors: (M, 33) FPFH histograms.
     :ivar resolution: pr, the mean nearest-neighbour distance of ``points``, metres.
     :ivar tree: k-d tree over ``points`` (built for ``resolution``, reused by the gates).
+    :ivar sensor_at_origin: whether the frame's origin may be the sensor that saw the points
+        (False for a map, or a cloud moved from far coordinates,
+        :mod:`cgags_ros.coordinates`): free space is judged from such a view only.
     """
 
     points: np.ndarray
@@ -43,7 +46,14 @@ class CloudFeatures:
     descriptors: np.ndarray
     resolution: float
     tree: cKDTree
+    sensor_at_origin: bool = True
     _index: list = dataclasses.field(default_factory=list, repr=False, compare=False)
+
+    def with_sensor(self, at_origin: bool) -> CloudFeatures:
+        """Return these features with ``sensor_at_origin`` set (a copy: cached ones are shared)."""
+        if self.sensor_at_origin == at_origin:
+            return self
+        return dataclasses.replace(self, sensor_at_origin=at_origin)
 
     def descriptor_index(self, workers: int = 1) -> DescriptorIndex | None:
         """

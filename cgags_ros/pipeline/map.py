@@ -25,11 +25,14 @@ import dataclasses
 from pathlib import Path
 import time
 from typing import Any
+import warnings
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ..config.pipeline import PipelineConfig
+from ..coordinates import (CoarseCoordinatesWarning, coarse_coordinates, local_origin, moved,
+                           translation)
 from ..errors import EmptyCloudError, InvalidInputError
 from ..frontend.features import CloudFeatures, extract_features
 from ..io import map_cache
@@ -58,7 +61,11 @@ class PreparedMap:
     :ivar oriented_by: what signed the map's normals: 'file normals' or the configured
         ``normal_orientation``.
     :ivar symmetries: the turns that map the map onto itself (4x4 each,
-        :func:`~.rivals.map_symmetries`), found when first asked for; None until then.
+        :func:`~.rivals.map_symmetries`, between local frames), found when first asked for;
+        None until then.
+    :ivar origin: (3,) where the map's local frame sits in the map frame (metres): the
+        features' points are the map's less it (:func:`~cgags_ros.coordinates.local_origin`:
+        zeros unless the map is georeferenced, far from its frame's origin).
     """
 
     features: CloudFeatures
@@ -72,6 +79,15 @@ class PreparedMap:
     load_s: float
     oriented_by: str = ''
     symmetries: list[np.ndarray] | None = None
+    origin: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+
+    def to_local(self, T: np.ndarray) -> np.ndarray:
+        """Return a pose in the map frame (4x4, target side) in the features' local frame."""
+        return translation(-self.origin) @ np.asarray(T, dtype=np.float64)
+
+    def to_map(self, T: np.ndarray) -> np.ndarray:
+        """Return a pose in the features' local frame in the map frame (:meth:`to_local`'s inverse)."""
+        return translation(self.origin) @ np.asarray(T, dtype=np.float64)
 
     def info(self) -> dict[str, Any]:
         """Return a small, picklable summary (what the node reports; no arrays)."""
@@ -79,7 +95,8 @@ class PreparedMap:
                 'cache_path': self.cache_path, 'raw_points': self.num_raw_points,
                 'nonfinite_points': self.num_nonfinite,
                 'points': len(self.features.points), 'voxel_size': self.settings['voxel_size'],
-                'normals': self.oriented_by, 'load_s': round(self.load_s, 3)}
+                'normals': self.oriented_by, 'load_s': round(self.load_s, 3),
+                'origin': [float(x) for x in self.origin]}
 
 
 def feature_settings(config: PipelineConfig) -> dict[str, Any]:
@@ -87,7 +104,8 @@ def feature_settings(config: PipelineConfig) -> dict[str, Any]:
     import open3d
 
     out = {name: getattr(config.frontend, name) for name in FEATURE_SETTINGS}
-    out.update(voxel_size=float(config.voxel_size), open3d=open3d.__version__)
+    # 'frame': features stored about a local origin, unlike those cached before it.
+    out.update(voxel_size=float(config.voxel_size), open3d=open3d.__version__, frame='local')
     return out
 
 
@@ -117,7 +135,8 @@ def load_map(path: str | Path, config: PipelineConfig,
         raw, nonfinite = int(stored['raw_points']), int(stored['nonfinite_points'])
         return PreparedMap(features, settings, str(path), digest, 'hit',
                            str(map_cache.entry_path(cache_dir, key)), raw, nonfinite,
-                           time.perf_counter() - start, str(stored.get('oriented_by', '')))
+                           time.perf_counter() - start, str(stored.get('oriented_by', '')),
+                           origin=np.asarray(stored['origin'], dtype=np.float64))
     points, sides = read_cloud_and_normals(path)
     if config.frontend.normal_orientation != 'origin':
         sides = None  # the file's normals sign the map's only where a scan's face its sensor
@@ -127,8 +146,13 @@ def load_map(path: str | Path, config: PipelineConfig,
         raise EmptyCloudError(f'map.file {str(path)!r}: no finite points ({raw} rows, all '
                               'empty or NaN/inf)')
     oriented_by = config.frontend.normal_orientation if sides is None else 'file normals'
-    features = extract_features(points[finite], config.voxel_size, config.frontend, 'map',
-                                sides=None if sides is None else sides[finite])
+    points = points[finite]
+    warning = coarse_coordinates(points, config.voxel_size, f'map.file {str(path)!r}')
+    if warning:
+        warnings.warn(warning, CoarseCoordinatesWarning, stacklevel=2)
+    origin = local_origin(points)
+    features = extract_features(moved(points, origin), config.voxel_size, config.frontend,
+                                'map', sides=None if sides is None else sides[finite])
     del points, finite, sides
     status, entry = 'off', ''
     if cache_dir:
@@ -136,11 +160,11 @@ def load_map(path: str | Path, config: PipelineConfig,
                   'descriptors': features.descriptors,
                   'resolution': np.float64(features.resolution),
                   'raw_points': np.int64(raw), 'nonfinite_points': np.int64(nonfinite),
-                  'oriented_by': np.str_(oriented_by)}
+                  'oriented_by': np.str_(oriented_by), 'origin': origin}
         status, entry = 'miss', str(map_cache.save_entry(cache_dir, key, arrays))
     features.descriptor_index()
     return PreparedMap(features, settings, str(path), digest, status, entry, raw, nonfinite,
-                       time.perf_counter() - start, oriented_by)
+                       time.perf_counter() - start, oriented_by, origin=origin)
 
 
 def matches_config(prepared: PreparedMap, config: PipelineConfig) -> bool:

@@ -33,6 +33,7 @@ from .search import Search
 from .yaw import GravityFrame, measure_tilt, vertical_offsets
 from ..config import fields
 from ..config.core import CoreConfig
+from ..coordinates import local_origin, moved, to_caller
 from ..errors import DegenerateCorrespondencesError, InvalidInputError
 from ..geometry import cross_spread, spread
 from ..parallel import DEFAULT_WORKERS
@@ -74,6 +75,9 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
     motion = motion_model(cfg.motion_model)
     yaw_only = cfg.motion_model == '4dof'
     src, dst = _check_correspondences(src, dst, motion.size)
+    # Far coordinates (UTM, ECEF) are worked on near zero, and the transform given back.
+    source_origin, target_origin = local_origin(src), local_origin(dst)
+    src, dst = moved(src, source_origin), moved(dst, target_origin)
     tau, delta = _thresholds(cfg, inlier_threshold, resolution)
     result = RegistrationResult(num_correspondences=len(src), inlier_threshold=tau,
                                 compatibility_threshold=delta)
@@ -132,6 +136,7 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
         # 4-DoF: levelled input? The best 6-DoF fit of the inliers measures the tilt.
         result.tilt_deg = measure_tilt(src, dst, inliers, tau, cfg.refit_iterations)
         result.transform, result.inliers = frame.from_gravity(T), np.sort(order[inliers])
+    result.transform = to_caller(result.transform, source_origin, target_origin)
     return result.finish(start, consensus_refusal(result, cfg))
 
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from .prediction import difference
 from ..config.pipeline import PipelineConfig
+from ..coordinates import local_origin, moved, sensor_at_origin, to_local
 from ..errors import EmptyCloudError
 from ..frontend.features import CloudFeatures, downsample, finite_points
 from ..frontend.refine import refine_transform
@@ -33,25 +34,47 @@ from ..validity import (line_cloud_refusal, overlap_refusal, tracking_refusal,
 
 
 def target_features(target: np.ndarray | PreparedMap, cfg: PipelineConfig,
-                    timings: dict[str, float]) -> CloudFeatures:
-    """Return the target's features at ``cfg.voxel_size`` (a map's as they are)."""
+                    timings: dict[str, float]) -> tuple[CloudFeatures, np.ndarray]:
+    """
+    Return the target's features at ``cfg.voxel_size`` and the local origin they are about.
+
+    A map's are returned as they are; a cloud's are those :func:`register_clouds` computes
+    (:mod:`cgags_ros.coordinates`), so a scan that went global makes this a cache hit.
+    """
     if isinstance(target, PreparedMap):
-        return target.features
-    with timed(timings, 'target_features'):  # a cache hit when the scan went global
-        return cached_features(finite_points(target, 'target'), cfg.voxel_size, cfg.frontend,
-                               'target', None, DEFAULT_WORKERS)
+        return target.features, target.origin
+    points = finite_points(target, 'target')
+    origin = local_origin(points)
+    with timed(timings, 'target_features'):
+        features = cached_features(moved(points, origin), cfg.voxel_size, cfg.frontend,
+                                   'target', None, DEFAULT_WORKERS)
+    return features.with_sensor(sensor_at_origin(origin)), origin
 
 
 def refine_prediction(source: np.ndarray, ft: CloudFeatures, prediction: np.ndarray,
-                      cfg: PipelineConfig, last_fitness: float, map_target: bool
-                      ) -> PipelineResult:
+                      cfg: PipelineConfig, last_fitness: float, map_target: bool,
+                      target_origin: np.ndarray | None = None) -> PipelineResult:
     """
     Refine ``prediction`` of ``source`` (sensor frame) onto ``ft``; gate it (see the module doc).
 
+    :param ft: the target's features about ``target_origin`` (:func:`target_features`).
     :param last_fitness: the fitness of the stream's last accepted pose (0: none), which
         the refined pose's must not fall far below.
-    :returns: a result with ``path`` 'tracked', invalid with why when a gate refuses.
+    :returns: a result with ``path`` 'tracked', invalid with why when a gate refuses; its
+        transforms in the caller's frames, as ``prediction``.
     """
+    target_origin = np.zeros(3) if target_origin is None else target_origin
+    source_origin = local_origin(source)
+    result = _refined(moved(source, source_origin), ft,
+                      to_local(prediction, source_origin, target_origin), cfg, last_fitness,
+                      map_target, sensor_at_origin(source_origin))
+    return result.in_caller_frames(source_origin, target_origin)
+
+
+def _refined(source: np.ndarray, ft: CloudFeatures, prediction: np.ndarray,
+             cfg: PipelineConfig, last_fitness: float, map_target: bool,
+             source_sensor: bool) -> PipelineResult:
+    """Return :func:`refine_prediction` of a source and prediction near their local origins."""
     start = time.perf_counter()
     v = cfg.voxel_size
     result = PipelineResult(voxel_size=v, path='tracked')
@@ -76,7 +99,7 @@ def refine_prediction(source: np.ndarray, ft: CloudFeatures, prediction: np.ndar
         result.refined = True
     with timed(result.timings, 'validation'):
         # no source tree: the target side of the overlap is for rival verification only
-        align = measure_overlap(points, None, ft, result, cfg, map_target)
+        align = measure_overlap(points, None, ft, result, cfg, map_target, source_sensor)
         refusal = (overlap_refusal(result, cfg)
                    or tracking_refusal(*difference(prediction, result.transform),
                                        result.fitness, last_fitness, cfg))

@@ -60,6 +60,7 @@ class _PairState:
     target_key: tuple
     config: PipelineConfig
     features: CloudFeatures | None = None
+    origin: np.ndarray | None = None  # the features' local origin in the target's frame
     poses: list[_Pose] = dataclasses.field(default_factory=list)
     tracked_since_global: int = 0
     last_global_stamp: float = float('-inf')
@@ -201,11 +202,11 @@ class Tracker:
         """Refine ``prediction`` and gate it (:func:`~.refined.refine_prediction`)."""
         timings: dict[str, float] = {}
         if state.features is None:  # the target's features, once per pair
-            state.features = target_features(target, cfg, timings)
+            state.features, state.origin = target_features(target, cfg, timings)
         if last_fitness is None:
             last_fitness = state.poses[-1].fitness if state.poses else 0.0
         result = refine_prediction(source, state.features, prediction, cfg, last_fitness,
-                                   isinstance(target, PreparedMap))
+                                   isinstance(target, PreparedMap), state.origin)
         result.timings.update(timings)  # the scan that featurised the target says so
         return result
 
