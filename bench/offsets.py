@@ -63,10 +63,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--output', type=Path, default=Path('out/bench/offsets.json'))
     args = parser.parse_args(argv)
     cases = [(m, moved) for m in args.magnitudes for moved in ('both', 'target')]
-    counts = {f'{m:g} {moved}': dict(pairs=0, same_flag=0, both_valid=0, max_dt=0.0,
-                                     max_dr=0.0, right=0, wrong_valid=0)
+    counts = {f'{m:g} {moved}': {'pairs': 0, 'same_flag': 0, 'both_valid': 0, 'max_dt': 0.0,
+                                 'max_dr': 0.0, 'right': 0, 'wrong_valid': 0}
               for m, moved in cases}
-    origin = dict(pairs=0, right=0, wrong_valid=0)
+    origin = {'pairs': 0, 'right': 0, 'wrong_valid': 0}
     records = []
     for k, (name, source, target, truth, voxel, (max_re, max_te)) in enumerate(
             pairs(shared_data_dir(), args.pairs, args.seed)):
@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
         origin['pairs'] += 1
         origin['right'] += at_origin.valid and right(at_origin.transform)
         origin['wrong_valid'] += at_origin.valid and not right(at_origin.transform)
-        record = dict(pair=name, origin=dict(valid=at_origin.valid, refusal=at_origin.reason))
+        record = {'pair': name, 'origin': {'valid': at_origin.valid, 'refusal': at_origin.reason}}
         for m, moved in cases:
             d = m * direction(args.seed + k)
             s = source + d if moved == 'both' else source
@@ -93,12 +93,12 @@ def main(argv: list[str] | None = None) -> int:
                 c['both_valid'] += 1
                 c['max_dt'] = max(c['max_dt'], translation_error(back, at_origin.transform))
                 c['max_dr'] = max(c['max_dr'], rotation_error_deg(back, at_origin.transform))
-            record[f'{m:g} {moved}'] = dict(valid=result.valid, refusal=result.reason)
+            record[f'{m:g} {moved}'] = {'valid': result.valid, 'refusal': result.reason}
         records.append(record)
         print(name, at_origin.valid, *(r['valid'] for r in list(record.values())[2:]),
               flush=True)
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(dict(origin=origin, cases=counts, records=records),
+    args.output.write_text(json.dumps({'origin': origin, 'cases': counts, 'records': records},
                                       indent=1), encoding='utf-8')
     print(f"\norigin: {origin['pairs']} pairs, {origin['right']} right and valid, "
           f"{origin['wrong_valid']} valid but wrong")

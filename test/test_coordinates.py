@@ -14,7 +14,7 @@ import warnings
 
 from cgags_ros.calibration.frames import Frame, gather
 from cgags_ros.config import pipeline_config_from
-from cgags_ros.coordinates import (CoarseCoordinatesWarning, coarse_coordinates, local_origin,
+from cgags_ros.coordinates import (coarse_coordinates, CoarseCoordinatesWarning, local_origin,
                                    SENSOR_REACH, to_local, translation)
 from cgags_ros.errors import InvalidInputError
 from cgags_ros.geometry import apply_transform, make_transform, rotation_error_deg

@@ -57,8 +57,8 @@ def measure_overlap(source: np.ndarray, source_tree: cKDTree | None, ft: CloudFe
     ``source_tree`` a k-d tree over it, for the target side of ``overlap``; None leaves
     ``overlap`` NaN (no gate reads it: only the rival verification after a global search
     does). ``source_view``: the source's origin may be its sensor (else free space is judged
-    from the target's view alone). Sets ``fitness``, ``inlier_rmse``, ``overlap``, ``observability``,
-    ``free_space_violation`` (and ``tilt_deg``) on ``result``. The
+    from the target's view alone). Sets ``fitness``, ``inlier_rmse``, ``overlap``,
+    ``observability``, ``free_space_violation`` (and ``tilt_deg``) on ``result``. The
     :class:`~cgags_ros.frontend.refine.Alignment` returned pairs the overlapping source
     points with their nearest target points.
     """
@@ -121,9 +121,9 @@ def free_space_violation(source: np.ndarray, target: np.ndarray, transform: np.n
     the sensor by more than ``margin`` metres: a surface where the sensor saw through),
     *on* the surface (within ``margin``) or behind it (occluded: says nothing). Returns,
     for the source seen from the target's sensor (when ``target_view``) and the target
-    seen from the source's (when ``source_view``), the larger share in front / (in front + on); 0 with nothing
-    to compare. A right pose leaves only the misfits at occlusion edges and from the
-    fusion of several views; a wrong one stacks surfaces in front of each other.
+    seen from the source's (when ``source_view``), the larger share in front / (in front +
+    on); 0 with nothing to compare. A right pose leaves only the misfits at occlusion edges
+    and from the fusion of several views; a wrong one stacks surfaces in front of each other.
     """
     T = np.asarray(transform, dtype=np.float64)
     worst = 0.0

@@ -1,14 +1,16 @@
 """
 A prior map from a file: its features computed once, cached on disk, reused by every scan.
 
-:func:`load_map` reads the map file (PLY, PCD, NPY, XYZ/CSV/TXT; metres, map frame), drops
-non-finite points (counted), and returns the map's :class:`PreparedMap`: the downsampled
-points, normals, FPFH descriptors and k-d tree :func:`register_clouds` needs, and nothing
-of the raw cloud (memory is that of the downsampled map). With a cache directory the
-features are stored under a key of the file's content hash and every setting that changes
-them (:data:`FEATURE_SETTINGS`, the voxel size, the Open3D version); a later load with the
-same file and settings reads them back (``cache == 'hit'``), a changed setting or file is a
-``'miss'`` and recomputes. A hit returns exactly the arrays a miss computed.
+:func:`load_map` reads the map file (PLY, PCD, NPY, XYZ/CSV/TXT; metres, map frame, any
+coordinates: :mod:`cgags_ros.coordinates`), drops non-finite points (counted), and returns the
+map's :class:`PreparedMap`: the downsampled points, normals, FPFH descriptors, their
+descriptor index and k-d tree :func:`register_clouds` needs, and nothing of the raw cloud.
+With a cache directory they are stored (:mod:`cgags_ros.io.map_cache`) under a key of the
+file's content hash and every setting that changes them (:data:`FEATURE_SETTINGS`, the voxel
+size, the Open3D version), and every load, the first included, returns them memory-mapped from
+there: the processes that load one map share one copy, and a later load (``cache == 'hit'``)
+costs the k-d tree alone. A changed setting or file is a ``'miss'`` and recomputes.
+``cgags-map`` prepares and inspects a map's cache ahead of time.
 
 Normal orientation: a scan's normals face its sensor (``normal_orientation`` 'origin'); a
 map fused from many views has no one sensor, so with 'origin' a map file that carries
@@ -31,9 +33,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..config.pipeline import PipelineConfig
-from ..coordinates import (CoarseCoordinatesWarning, coarse_coordinates, local_origin, moved,
+from ..coordinates import (coarse_coordinates, CoarseCoordinatesWarning, local_origin, moved,
                            translation)
 from ..errors import EmptyCloudError, InvalidInputError
+from ..frontend.descriptor_index import DescriptorIndex
 from ..frontend.features import CloudFeatures, extract_features
 from ..io import map_cache
 from ..io.clouds import read_cloud_and_normals
@@ -86,7 +89,7 @@ class PreparedMap:
         return translation(-self.origin) @ np.asarray(T, dtype=np.float64)
 
     def to_map(self, T: np.ndarray) -> np.ndarray:
-        """Return a pose in the features' local frame in the map frame (:meth:`to_local`'s inverse)."""
+        """Return a pose in the features' local frame in the map frame (undoing to_local)."""
         return translation(self.origin) @ np.asarray(T, dtype=np.float64)
 
     def info(self) -> dict[str, Any]:
@@ -104,8 +107,7 @@ def feature_settings(config: PipelineConfig) -> dict[str, Any]:
     import open3d
 
     out = {name: getattr(config.frontend, name) for name in FEATURE_SETTINGS}
-    # 'frame': features stored about a local origin, unlike those cached before it.
-    out.update(voxel_size=float(config.voxel_size), open3d=open3d.__version__, frame='local')
+    out.update(voxel_size=float(config.voxel_size), open3d=open3d.__version__)
     return out
 
 
@@ -129,14 +131,26 @@ def load_map(path: str | Path, config: PipelineConfig,
     digest = map_cache.file_digest(path)
     key = map_cache.cache_key(digest, settings)
     stored = map_cache.load_entry(cache_dir, key) if cache_dir else None
-    if stored is not None:
-        features = _features_from(stored)
-        features.descriptor_index()  # built with the map, not on the first scan
-        raw, nonfinite = int(stored['raw_points']), int(stored['nonfinite_points'])
-        return PreparedMap(features, settings, str(path), digest, 'hit',
-                           str(map_cache.entry_path(cache_dir, key)), raw, nonfinite,
-                           time.perf_counter() - start, str(stored.get('oriented_by', '')),
-                           origin=np.asarray(stored['origin'], dtype=np.float64))
+    status = 'hit'
+    if stored is None:
+        features, meta = _prepare(path, config)
+        if not cache_dir:
+            return _prepared(features, meta, settings, path, digest, 'off', '', start)
+        map_cache.save_entry(cache_dir, key, _arrays(features), {
+            **meta, 'map': str(path.resolve()), 'digest': digest, 'settings': settings})
+        # Read back: the memory-mapped copy is the one every process that loads this map
+        # shares; the one just computed is freed.
+        stored, status = map_cache.load_entry(cache_dir, key), 'miss'
+        if stored is None:
+            return _prepared(features, meta, settings, path, digest, status,
+                             str(map_cache.entry_path(cache_dir, key)), start)
+    arrays, meta = stored
+    return _prepared(_features_from(arrays), meta, settings, path, digest, status,
+                     str(map_cache.entry_path(cache_dir, key)), start)
+
+
+def _prepare(path: Path, config: PipelineConfig) -> tuple[CloudFeatures, dict[str, Any]]:
+    """Read the map file and compute its features, descriptor index included; and their meta."""
     points, sides = read_cloud_and_normals(path)
     if config.frontend.normal_orientation != 'origin':
         sides = None  # the file's normals sign the map's only where a scan's face its sensor
@@ -149,22 +163,35 @@ def load_map(path: str | Path, config: PipelineConfig,
     points = points[finite]
     warning = coarse_coordinates(points, config.voxel_size, f'map.file {str(path)!r}')
     if warning:
-        warnings.warn(warning, CoarseCoordinatesWarning, stacklevel=2)
+        warnings.warn(warning, CoarseCoordinatesWarning, stacklevel=3)
     origin = local_origin(points)
     features = extract_features(moved(points, origin), config.voxel_size, config.frontend,
                                 'map', sides=None if sides is None else sides[finite])
-    del points, finite, sides
-    status, entry = 'off', ''
-    if cache_dir:
-        arrays = {'points': features.points, 'normals': features.normals,
-                  'descriptors': features.descriptors,
-                  'resolution': np.float64(features.resolution),
-                  'raw_points': np.int64(raw), 'nonfinite_points': np.int64(nonfinite),
-                  'oriented_by': np.str_(oriented_by), 'origin': origin}
-        status, entry = 'miss', str(map_cache.save_entry(cache_dir, key, arrays))
-    features.descriptor_index()
-    return PreparedMap(features, settings, str(path), digest, status, entry, raw, nonfinite,
-                       time.perf_counter() - start, oriented_by, origin=origin)
+    features.descriptor_index()  # built with the map, not on the first scan
+    low, high = features.points.min(axis=0) + origin, features.points.max(axis=0) + origin
+    return features, {'raw_points': raw, 'nonfinite_points': nonfinite,
+                      'oriented_by': oriented_by, 'origin': origin.tolist(),
+                      'resolution': features.resolution, 'points': len(features.points),
+                      'extent': [low.tolist(), high.tolist()]}
+
+
+def _prepared(features: CloudFeatures, meta: dict[str, Any], settings: dict[str, Any],
+              path: Path, digest: str, status: str, entry: str, start: float) -> PreparedMap:
+    return PreparedMap(features, settings, str(path), digest, status, entry,
+                       int(meta['raw_points']), int(meta['nonfinite_points']),
+                       time.perf_counter() - start, str(meta['oriented_by']),
+                       origin=np.asarray(meta['origin'], dtype=np.float64))
+
+
+def _arrays(features: CloudFeatures) -> dict[str, np.ndarray]:
+    """Return what the cache stores of ``features``: the arrays, and the index's."""
+    arrays = {'points': features.points, 'normals': features.normals,
+              'descriptors': features.descriptors,
+              'resolution': np.array([features.resolution])}
+    index = features.descriptor_index()
+    if index is not None:
+        arrays.update({f'index.{k}': v for k, v in index.to_arrays().items()})
+    return arrays
 
 
 def matches_config(prepared: PreparedMap, config: PipelineConfig) -> bool:
@@ -172,10 +199,15 @@ def matches_config(prepared: PreparedMap, config: PipelineConfig) -> bool:
     return prepared.settings == feature_settings(config)
 
 
-def _features_from(stored: dict[str, np.ndarray]) -> CloudFeatures:
-    points = np.ascontiguousarray(stored['points'], dtype=np.float64)
-    return CloudFeatures(points, stored['normals'], stored['descriptors'],
-                         float(stored['resolution']), cKDTree(points))
+def _features_from(arrays: dict[str, np.ndarray]) -> CloudFeatures:
+    """Return the features of a cache entry's arrays, as they are (memory-mapped)."""
+    points = arrays['points']
+    # The tree indexes the mapped points in place (its own arrays are a few bytes a point).
+    features = CloudFeatures(points, arrays['normals'], arrays['descriptors'],
+                             float(arrays['resolution'][0]), cKDTree(points))
+    index = {k[len('index.'):]: v for k, v in arrays.items() if k.startswith('index.')}
+    features._index.append(DescriptorIndex.from_arrays(index) if index else None)
+    return features
 
 
 class MapHolder:

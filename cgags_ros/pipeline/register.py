@@ -32,7 +32,7 @@ from .result import PipelineResult
 from .rivals import mark_ambiguous, structured_rival
 from ..config import fields
 from ..config.pipeline import PipelineConfig
-from ..coordinates import (CoarseCoordinatesWarning, coarse_coordinates, local_origin, moved,
+from ..coordinates import (coarse_coordinates, CoarseCoordinatesWarning, local_origin, moved,
                            sensor_at_origin)
 from ..errors import DegenerateCorrespondencesError, EmptyCloudError, InvalidConfigError
 from ..frontend.features import CloudFeatures, finite_points
