@@ -8,11 +8,13 @@ Run by hand::
 
 Each pair (every source with ground truth in the bundled bags, paired as ``cgags-replay``
 pairs them; a seeded sample of the 3DMatch and 3DLoMatch pairs at 5 cm) is registered with
-the defaults at the origin, then with both clouds moved by one offset of each magnitude (a
-seeded direction: two clouds in one UTM or ECEF frame), and with the target alone moved (a
-map in UTM, the scan in its sensor frame). Per case: how often the valid flag is the
-origin's, the largest pose difference (moved back) among pairs valid in both, and right /
-valid-but-wrong counts against the truth. docs/frames.md reports the numbers.
+the defaults at the origin, then moved by one offset of each magnitude (a seeded direction)
+three ways: both clouds, their sensors' positions given (``source_sensor``,
+``target_sensor``: two scans in one UTM frame with their GNSS positions); both clouds, the
+sensors unknown; the target alone, its sensor unknown (a cloud in UTM as a map is, the scan in
+its sensor frame). Per case: how often the valid flag is the origin's, the largest pose
+difference (moved back) among pairs valid in both, and right / valid-but-wrong counts against
+the truth. docs/frames.md reports the numbers.
 """
 
 from __future__ import annotations
@@ -62,7 +64,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--output', type=Path, default=Path('out/bench/offsets.json'))
     args = parser.parse_args(argv)
-    cases = [(m, moved) for m in args.magnitudes for moved in ('both', 'target')]
+    cases = [(m, moved) for m in args.magnitudes
+             for moved in ('both, sensors given', 'both, sensors unknown', 'target')]
     counts = {f'{m:g} {moved}': {'pairs': 0, 'same_flag': 0, 'both_valid': 0, 'max_dt': 0.0,
                                  'max_dr': 0.0, 'right': 0, 'wrong_valid': 0}
               for m, moved in cases}
@@ -80,10 +83,11 @@ def main(argv: list[str] | None = None) -> int:
         record = {'pair': name, 'origin': {'valid': at_origin.valid, 'refusal': at_origin.reason}}
         for m, moved in cases:
             d = m * direction(args.seed + k)
-            s = source + d if moved == 'both' else source
-            result = register_clouds(s, target + d, voxel_size=voxel)
-            back = (to_local(result.transform, d, d) if moved == 'both'
-                    else translation(-d) @ result.transform)
+            sensors = {'source_sensor': d, 'target_sensor': d} if 'given' in moved else {}
+            s = source if moved == 'target' else source + d
+            result = register_clouds(s, target + d, voxel_size=voxel, **sensors)
+            back = (translation(-d) @ result.transform if moved == 'target'
+                    else to_local(result.transform, d, d))
             c = counts[f'{m:g} {moved}']
             c['pairs'] += 1
             c['same_flag'] += result.valid == at_origin.valid

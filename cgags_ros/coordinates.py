@@ -8,16 +8,20 @@ So every entry point subtracts a cloud's :func:`local_origin` (in float64, befor
 else reads the points), works near zero, and gives its transforms back in the caller's frames
 (:func:`to_caller`, :func:`result_to_caller`).
 
-A cloud within :data:`SENSOR_REACH` of its frame's origin is left where it is: its origin may
-be its sensor, which the normals' sign (``frontend.normal_orientation`` 'origin') and the
-free-space gate read. A farther origin is no sensor (no sensor sees that far): such a cloud
-is moved to the centre of its bounding box, where its normals then face, and no free space
-is judged from its view (:func:`sensor_at_origin`).
+The sensor's position matters: the normals' sign (``frontend.normal_orientation`` 'origin')
+and the free-space gate read each cloud as seen from its origin. A cloud whose sensor's
+position the caller gives (a georeferenced scan and its GNSS position) is worked on about that
+position. Otherwise a cloud within :data:`SENSOR_REACH` of its frame's origin is left where it
+is (its origin may be its sensor), and a farther one, whose origin is no sensor (none sees
+that far), is moved to the centre of its bounding box, where its normals then face, and no
+free space is judged from its view (:func:`sensor_at_origin`).
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+from .errors import InvalidInputError
 
 # Metres from a cloud's centre beyond which its frame's origin cannot be the sensor that saw
 # it: past any LiDAR's or depth camera's range, far below georeferenced magnitudes.
@@ -31,22 +35,31 @@ class CoarseCoordinatesWarning(UserWarning):
     """A cloud stored as float32 at a magnitude where its step is coarse for the voxel."""
 
 
-def local_origin(points: np.ndarray) -> np.ndarray:
+def local_origin(points: np.ndarray, sensor: np.ndarray | None = None) -> np.ndarray:
     """
     Return the origin (3,) a cloud is worked on around, in its own frame (metres).
 
-    Zeros when the cloud's bounding-box centre is within :data:`SENSOR_REACH` of its frame's
-    origin (nothing moves), else that centre. ``points`` is an (N, 3) finite float64 array.
+    ``sensor`` (the sensor's position in the cloud's frame) when given; else zeros when the
+    cloud's bounding-box centre is within :data:`SENSOR_REACH` of its frame's origin
+    (nothing moves), else that centre. ``points`` is an (N, 3) finite float64 array.
+
+    :raises InvalidInputError: when ``sensor`` is not three finite numbers.
     """
+    if sensor is not None:
+        position = np.asarray(sensor, dtype=np.float64).reshape(-1)
+        if position.shape != (3,) or not np.isfinite(position).all():
+            raise InvalidInputError(f'a sensor position is three finite numbers (x, y, z in '
+                                    f'metres), got {sensor!r}')
+        return position
     if len(points) == 0:
         return np.zeros(3)
     centre = 0.5 * (points.min(axis=0) + points.max(axis=0))
     return centre if np.linalg.norm(centre) > SENSOR_REACH else np.zeros(3)
 
 
-def sensor_at_origin(origin: np.ndarray) -> bool:
+def sensor_at_origin(origin: np.ndarray, sensor_given: bool = False) -> bool:
     """Tell whether a cloud worked on around ``origin`` may have its sensor there."""
-    return not np.any(origin)
+    return sensor_given or not np.any(origin)
 
 
 def moved(points: np.ndarray, origin: np.ndarray) -> np.ndarray:

@@ -80,6 +80,26 @@ def test_both_clouds_moved_together_register_as_at_the_origin(pair, magnitude):
 
 
 @pytest.mark.parametrize('magnitude', MAGNITUDES)
+def test_scans_in_utm_with_their_sensors_positions_keep_the_free_space_view(pair, magnitude):
+    source, target, _, at_origin = pair
+    d = offset(magnitude, seed=7)
+    result = register_clouds(source + d, target + d, voxel_size=VOXEL, source_sensor=d,
+                             target_sensor=d)
+    assert result.valid, result.reason
+    assert same(to_local(result.transform, d, d), at_origin.transform)
+    assert abs(result.free_space_violation - at_origin.free_space_violation) < 1e-6
+    unknown = register_clouds(source + d, target + d, voxel_size=VOXEL)
+    assert np.isnan(unknown.free_space_violation)  # no sensor, no view to judge from
+
+
+def test_a_sensor_position_must_be_three_finite_numbers(pair):
+    source, target, _, _ = pair
+    for bad in ([1.0, 2.0], [np.nan, 0.0, 0.0]):
+        with pytest.raises(InvalidInputError, match='sensor position'):
+            register_clouds(source, target, voxel_size=VOXEL, source_sensor=bad)
+
+
+@pytest.mark.parametrize('magnitude', MAGNITUDES)
 def test_a_scan_onto_a_georeferenced_target(pair, magnitude):
     source, target, _, at_origin = pair
     d = offset(magnitude, seed=1)

@@ -50,7 +50,9 @@ from ..validity import (ambiguity_refusal, confidence_refusal, gate_refusal,
 
 def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
                     voxel_size: float | None = None,
-                    config: PipelineConfig | None = None) -> PipelineResult:
+                    config: PipelineConfig | None = None,
+                    source_sensor: np.ndarray | None = None,
+                    target_sensor: np.ndarray | None = None) -> PipelineResult:
     """
     Register ``source`` onto ``target`` with no initial guess.
 
@@ -60,6 +62,12 @@ def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
     :param voxel_size: metres; overrides ``config.voxel_size`` (every radius derives from
         it).
     :param config: :class:`PipelineConfig`; defaults when None.
+    :param source_sensor, target_sensor: (3,) the position of the sensor that saw a cloud,
+        in that cloud's frame (metres), for a cloud not in its sensor frame (a scan in UTM
+        and its GNSS position). None (the default): the frame's origin when the cloud is
+        within 1 km of it, else unknown (:mod:`cgags_ros.coordinates`). Clouds anywhere up
+        to 10^7 m from their origins register as near it; the result is in the caller's
+        frames.
     :returns: a :class:`PipelineResult`. Its ``refusal`` (a code and a message; ``valid``
         False) says why not to trust it when the clouds are too small after downsampling,
         yield too few or degenerate correspondences, when the estimate fails a validity
@@ -78,17 +86,18 @@ def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
         dst, target_origin = target, target.origin
     else:
         dst = finite_points(target, 'target')
-        target_origin = local_origin(dst)
+        target_origin = local_origin(dst, target_sensor)
         _warn_coarse(dst, cfg.voxel_size, 'target')
     _warn_coarse(src, cfg.voxel_size, 'source')
-    source_origin = local_origin(src)
+    source_origin = local_origin(src, source_sensor)
     local_target = dst if isinstance(dst, PreparedMap) else moved(dst, target_origin)
     # BLAS held to one thread: idle OpenBLAS workers would spin into Open3D's time; the
     # compiled FPFH, descriptor index and graph run on the package's own threads.
     with single_blas_thread():
-        result = _register_clouds(moved(src, source_origin), local_target, cfg,
-                                  DEFAULT_WORKERS, sensor_at_origin(source_origin),
-                                  sensor_at_origin(target_origin))
+        result = _register_clouds(
+            moved(src, source_origin), local_target, cfg, DEFAULT_WORKERS,
+            sensor_at_origin(source_origin, source_sensor is not None),
+            sensor_at_origin(target_origin, target_sensor is not None))
     return result.in_caller_frames(source_origin, target_origin)
 
 
