@@ -221,16 +221,12 @@ def test_a_check_beside_the_stream_resets_the_motion_only_when_it_disagrees(kitt
     assert result.path == 'global' and result.valid and _within(result, truth[8])
 
 
-def test_a_jump_is_recovered_at_a_coarser_voxel_and_refined_at_the_streams(kitti):
+def test_a_jump_is_found_by_the_global_search_and_tracked_after(kitti):
     scans, truth = kitti
-    for factor, recovered in ((3.0, 3 * VOXEL), (1.0, None)):
-        tracker = Tracker()
-        config = _config(recovery_voxel_factor=factor)
-        first = _run(tracker, scans, [1, 2, 3], scans[0], config)
-        assert [r.path for r in first] == ['global', 'tracked', 'tracked']
-        assert 'recovered_at_voxel' not in first[0].stats  # a first scan: the full search
-        jump = tracker.register(scans[12], scans[0], 3 * PERIOD, config=config)  # 9 m ahead
-        assert jump.path == 'global' and jump.valid and _within(jump, truth[12]), factor
-        assert jump.stats.get('recovered_at_voxel') == recovered
-        assert jump.voxel_size == VOXEL and jump.num_inliers > 0  # the search's evidence kept
-        assert tracker.register(scans[13], scans[0], 4 * PERIOD, config=config).path == 'tracked'
+    tracker, config = Tracker(), _config()
+    first = _run(tracker, scans, [1, 2, 3], scans[0], config)
+    assert [r.path for r in first] == ['global', 'tracked', 'tracked']
+    jump = tracker.register(scans[12], scans[0], 3 * PERIOD, config=config)  # 9 m ahead
+    assert jump.path == 'global' and jump.valid and _within(jump, truth[12])
+    assert jump.voxel_size == VOXEL and jump.num_inliers > 0
+    assert tracker.register(scans[13], scans[0], 4 * PERIOD, config=config).path == 'tracked'

@@ -58,12 +58,6 @@ class TrackingConfig:
         'prediction (no odometry, hard acceleration) still converges, at several times the '
         "refinement's cost; 0 runs the final stage only, and a prediction off by more than "
         'it goes global.', low=0.0, high=100.0, advanced=True)
-    recovery_voxel_factor: float = option(
-        1.0, 'A tracked stream that lost its track (a jump, a gap) is searched globally at '
-        'this many times voxel_size (faster), refined at voxel_size from that pose and '
-        'judged as a tracked pose; if either refuses, the full search follows. 1: voxel_size '
-        'only. Not before a scan of the pair was tracked, nor onto a map.', low=1.0,
-        high=10.0, advanced=True)
     refine_tolerance: float = option(
         1e-3, 'The tracked refinement stops once fitness and inlier RMSE change by less than '
         'this (relative): from a close start, further iterations move the pose far less than '

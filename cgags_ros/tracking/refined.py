@@ -5,8 +5,8 @@ A scan refined from a predicted pose and judged: the tracked path, without the s
 features (no FPFH, no matching, no core) and judges the pose by the gates a global result
 passes on its overlap (:func:`~cgags_ros.validity.overlap_refusal`), the tracked pose's own
 (:func:`~cgags_ros.validity.tracking_refusal`) and the usable-covariance bound. The
-:class:`~.tracker.Tracker` calls it for each scan it tracks, and for a scan it recovers at a
-coarser voxel. Transforms are 4x4 source->target, metres.
+:class:`~.tracker.Tracker` calls it for each scan it tracks. Transforms are 4x4
+source->target, metres.
 """
 
 from __future__ import annotations
