@@ -84,7 +84,7 @@ def test_a_slide_along_a_wall_is_refused_and_a_right_pose_kept(redkitchen_pair):
     result = register_clouds(src, tgt, voxel_size=0.05)
     assert translation_error(result.transform, gt) > 0.3  # the estimate is wrong ...
     assert result.ambiguous and not result.valid  # ... and no longer called valid
-    assert result.reason.startswith('ambiguous')
+    assert result.refusal.code.value == 'ambiguous'
     assert translation_error(result.candidates[1].transform, gt) < 0.3  # the rival is right
     off = register_clouds(src, tgt, voxel_size=0.05,
                           config=PipelineConfig(gates=GatesConfig(

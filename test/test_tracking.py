@@ -75,8 +75,7 @@ def test_jump_falls_back_to_global(kitti):
     _run(tracker, scans, [13, 14, 15], scans[0], config)
     result = tracker.register(scans[0], scans[0], 3 * PERIOD, config=config)  # 12 m back
     assert result.path == 'global', 'a jump must not be tracked'
-    failure = result.stats['tracking_failure']  # which gate caught it depends on the settings
-    assert failure.startswith(('tracking:', 'free-space violation', 'degenerate', 'fitness'))
+    assert result.stats['tracking_failure']  # which gate caught it depends on the settings
     assert result.stats['tracking_failure_code'] in {
         Code.TRACKING_LOST.value, Code.FREE_SPACE.value, Code.DEGENERATE_AXIS.value,
         Code.LOW_FITNESS.value}
@@ -127,7 +126,6 @@ def test_degenerate_corridor_is_not_tracked(kitti):
     corridor = scan[(np.abs(scan[:, 1]) < 1.5) & (scan[:, 2] < -1.2)]
     result = tracker.register(corridor, scans[0], 3 * PERIOD, config=config)
     assert result.path == 'global', 'a degenerate view must not be tracked'
-    assert 'degenerate' in result.stats['tracking_failure']
     assert result.stats['tracking_failure_code'] == Code.DEGENERATE_AXIS.value
     assert not result.valid or _within(result, truth[6])
 
