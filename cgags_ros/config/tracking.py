@@ -32,14 +32,6 @@ class TrackingConfig:
     global_check_period: float = option(
         5.0, 'Seconds (header stamps) after which the global search runs again on a tracked '
         'stream, as global_check_interval; 0 never by time.', low=0.0, high=3600.0)
-    agreement_rotation_deg: float = option(
-        2.0, 'A periodic global result and the prediction agree when their rotations differ '
-        'by at most this (degrees) and their translations by at most '
-        'agreement_translation_factor voxel sizes; otherwise the velocity is reset.',
-        low=0.0, high=180.0, advanced=True)
-    agreement_translation_factor: float = option(
-        2.0, 'Translation bound (voxel sizes) of agreement_rotation_deg.', low=0.0,
-        high=1e6, advanced=True)
     min_fitness_ratio: float = option(
         0.85, "A tracked pose's fitness must be at least this times the fitness of the pair's "
         'last accepted pose: a jump or a kidnap leaves the refinement in a minimum that '
@@ -52,14 +44,3 @@ class TrackingConfig:
     max_correction_deg: float = option(
         10.0, 'Rotation bound (degrees) of max_correction_factor.', low=0.0, high=180.0,
         advanced=True)
-    coarse_distance_factor: float = option(
-        0.0, 'When above the final refinement distance: a first refinement stage from the '
-        'prediction matching points within this many voxel sizes, so that a poorer '
-        'prediction (no odometry, hard acceleration) still converges, at several times the '
-        "refinement's cost; 0 runs the final stage only, and a prediction off by more than "
-        'it goes global.', low=0.0, high=100.0, advanced=True)
-    refine_tolerance: float = option(
-        1e-3, 'The tracked refinement stops once fitness and inlier RMSE change by less than '
-        'this (relative): from a close start, further iterations move the pose far less than '
-        "the gates or the sensor can tell apart. The global path's final stage keeps 1e-6.",
-        low=0.0, high=1.0, advanced=True)

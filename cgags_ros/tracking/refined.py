@@ -31,6 +31,11 @@ from ..timing import timed
 from ..validity import (line_cloud_refusal, overlap_refusal, tracking_refusal,
                         uncertainty_refusal)
 
+# The tracked refinement stops once fitness and inlier RMSE change by less than this
+# (relative): from a close start, further iterations move the pose far less than the gates
+# or the sensor can tell apart (the global path's final stage keeps 1e-6).
+REFINE_TOLERANCE = 1e-3
+
 
 def target_features(target: np.ndarray | PreparedMap, cfg: PipelineConfig,
                     timings: dict[str, float]) -> CloudFeatures:
@@ -71,8 +76,7 @@ def refine_prediction(source: np.ndarray, ft: CloudFeatures, prediction: np.ndar
         result.transform = refine_transform(
             points, ft.points, prediction, voxel_size=v, config=cfg.refine,
             target_normals=ft.normals,
-            coarse_distance=cfg.tracking.coarse_distance_factor * v, gravity=gravity,
-            workers=DEFAULT_WORKERS, tolerance=cfg.tracking.refine_tolerance)
+            gravity=gravity, workers=DEFAULT_WORKERS, tolerance=REFINE_TOLERANCE)
         result.refined = True
     with timed(result.timings, 'validation'):
         # no source tree: the target side of the overlap is for rival verification only
