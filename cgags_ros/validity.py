@@ -88,7 +88,7 @@ def no_model_refusal(collinear_subsets: int, yaw_only: bool) -> Refusal:
     if collinear_subsets:
         return Refusal(Code.COLLINEAR, (
             'every compatible edge of correspondences is nearly vertical (shorter across the '
-            'gravity axis than min_edge_length_factor * tau): the yaw is undetermined'
+            'gravity axis than tau): the yaw is undetermined'
             if yaw_only else
             'every compatible triangle of correspondences is nearly collinear: the scene (or '
             'its matched keypoints) is a line, and the rotation about it is undetermined'))

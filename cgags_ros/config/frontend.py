@@ -55,12 +55,6 @@ class RefineConfig:
     max_correspondence_distance_factor: float = option(
         1.5, 'Refinement correspondence distance in voxel sizes.', low=0.01, high=100.0)
     max_iterations: int = option(50, 'Refinement iterations.', low=1, high=10000)
-    coarse_stage_tolerance: float = option(
-        1e-4, "When the core's inlier threshold exceeds the refinement distance, a first "
-        'refinement stage runs at that threshold; it stops once fitness and inlier RMSE '
-        'change by less than this (relative): it only has to bring the estimate within the '
-        "final distance. The final stage keeps Open3D's 1e-6.", low=0.0, high=1.0,
-        advanced=True)
     refused: bool = option(
         True, 'Refine an estimate the core refuses as well. It stays refused (no refinement '
         'lifts a consensus that does not stand out), but the pose it reports, the best '

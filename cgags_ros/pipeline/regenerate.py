@@ -177,7 +177,7 @@ def settled_support(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
 
     def settled(start: np.ndarray) -> tuple[np.ndarray, int]:
         T = staged_point_to_plane(sample, ft.points, ft.normals, ft.tree, start, tau, final,
-                                  ITERATIONS, cfg.refine.coarse_stage_tolerance)
+                                  ITERATIONS)
         return T, int(np.count_nonzero(support(src, dst, T, tau)))
 
     return map_ordered(settled, starts, workers)

@@ -137,8 +137,7 @@ def settle(fs: CloudFeatures, ft: CloudFeatures, start: np.ndarray, coarse_dista
     """
     final = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
     return staged_point_to_plane(fs.points[::STRIDE], ft.points, ft.normals, ft.tree, start,
-                                 coarse_distance, final, ITERATIONS,
-                                 cfg.refine.coarse_stage_tolerance)
+                                 coarse_distance, final, ITERATIONS)
 
 
 def structured_rival(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
@@ -225,8 +224,7 @@ def map_symmetries(prepared: PreparedMap, cfg: PipelineConfig) -> list[np.ndarra
                 if evaluate_alignment(points, ft.tree, start, final).fitness < SYMMETRY_START:
                     continue
                 S = staged_point_to_plane(points, ft.points, ft.normals, ft.tree, start,
-                                          SLIDE * cfg.voxel_size, final, 2 * ITERATIONS,
-                                          cfg.refine.coarse_stage_tolerance)
+                                          SLIDE * cfg.voxel_size, final, 2 * ITERATIONS)
                 if evaluate_alignment(points, ft.tree, S, final).fitness >= SYMMETRY_FIT:
                     found.append(S)
     prepared.symmetries = found

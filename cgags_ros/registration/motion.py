@@ -28,6 +28,10 @@ from .rigid import kabsch
 from .stopping import compatible_sample_inlier_probability, futility_draws
 from .yaw import fit_edges, fit_yaw, horizontal_lengths, vertical_offsets
 
+# INFERRED (4-DoF): an edge shorter than this many tau across the gravity axis in either
+# cloud is no minimal subset, its yaw poorly determined
+MIN_EDGE_LENGTH = 1.0
+
 
 class MotionModel:
     """What a search needs to know of its motion model (see the module docstring)."""
@@ -143,8 +147,8 @@ class Edges(MotionModel):
             search.consensus.add_chance(compiled.residual_matrix(search.corr, R, t))
 
     def usable(self, search, subsets: np.ndarray) -> np.ndarray:
-        """Mask of the edges at least min_edge_length_factor * tau long across gravity."""
-        min_length = search.cfg.min_edge_length_factor * search.tau
+        """Mask of the edges at least :data:`MIN_EDGE_LENGTH` tau long across gravity."""
+        min_length = MIN_EDGE_LENGTH * search.tau
         if min_length <= 0:
             return np.ones(len(subsets), dtype=bool)
         i, j = subsets[:, 0], subsets[:, 1]

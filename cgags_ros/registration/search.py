@@ -38,6 +38,7 @@ _LISTS_BUILD_RATIO = 6000
 _LISTS_MAX_ENTRIES = 1 << 19
 _GIVE_UP_DRAWS = 4096  # draws without a single usable minimal subset: give up
 _CHANCE_PER_BATCH = 2  # hypotheses per batch scored exactly whatever their pre-score
+PREFERENCE_LENGTH = 20  # b: the length of each correspondence's preference list (paper: 20)
 
 
 class Search:
@@ -54,7 +55,7 @@ class Search:
         self.best_score, self.best_T = -np.inf, np.eye(4)
         self.best_inliers: np.ndarray | None = None
         self.best_mask = np.zeros(graph.n, dtype=bool)
-        self.preference = PreferenceLists(graph.n, cfg.preference_length)
+        self.preference = PreferenceLists(graph.n, PREFERENCE_LENGTH)
         self.sampled: list[np.ndarray] = []  # stage-one subsets, to estimate w1 empirically
         self.consensus = ConsensusRecord(tau, motion.size)
         self.start = time.perf_counter()
@@ -90,7 +91,7 @@ class Search:
                 w1 = self._stage_one_inlier_probability()
             bound = ransac_bound(cfg.p1, w1)
             self.stats.update(stage_one_bound=bound, stage_one_w=w1)
-            if (cfg.stopping == 'adaptive' and n1 >= max(bound, cfg.min_iterations)
+            if (cfg.stopping == 'adaptive' and n1 >= bound
                     and self.significant()):
                 self.stopped_by = 'p1_bound'
                 break
@@ -242,7 +243,7 @@ class Search:
             bound = ransac_bound(cfg.p2, w2)
             self.stats['stage_two_bound'] = bound
             self.stats['stage_two_w'] = w2
-            if cfg.stopping == 'adaptive' and n2 >= max(bound, cfg.min_iterations):
+            if cfg.stopping == 'adaptive' and n2 >= bound:
                 self.stopped_by = 'p2_bound'
                 break
             batch = min(2 * batch, cfg.batch_size)
