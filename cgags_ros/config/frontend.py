@@ -28,11 +28,6 @@ class FrontEndConfig:
     fpfh_radius_factor: float = option(
         5.0, 'FPFH feature radius in voxel sizes.', low=0.5, high=100.0)
     fpfh_max_nn: int = option(100, 'Maximum neighbours for FPFH.', low=5, high=5000)
-    mutual_filter: bool = option(True, 'Keep only mutual nearest neighbours in FPFH space.',
-                                 advanced=True)
-    ratio_test: float = option(
-        1.0, 'Lowe ratio test on FPFH distances (1.0 disables).', low=0.1, high=1.0,
-        advanced=True)
     max_correspondences: int = option(
         5000, 'Keep at most this many correspondences (best descriptor distance first); '
         '0 keeps all.', low=0)

@@ -35,12 +35,14 @@ class TrackingConfig:
     min_fitness_ratio: float = option(
         0.85, "A tracked pose's fitness must be at least this times the fitness of the pair's "
         'last accepted pose: a jump or a kidnap leaves the refinement in a minimum that '
-        'explains far fewer points, while smooth motion changes fitness little.', low=0.0,
-        high=1.0, advanced=True)
+        'explains far fewer points, while smooth motion changes fitness little. Lower it '
+        'where the scene itself changes between scans (crowds, traffic) and tracked scans '
+        'go global too often.', low=0.0, high=1.0)
     max_correction_factor: float = option(
         6.0, 'A refinement that moves the prediction by more than this many voxel sizes '
-        '(or max_correction_deg) is not a tracked pose: the scan is searched globally.',
-        low=0.0, high=1e6, advanced=True)
+        '(or max_correction_deg) is not a tracked pose: the scan is searched globally. '
+        'Raise it when the motion between scans is jerkier than the prediction (no '
+        'odometry, hard braking) and tracked scans go global too often.', low=0.0, high=1e6)
     max_correction_deg: float = option(
-        10.0, 'Rotation bound (degrees) of max_correction_factor.', low=0.0, high=180.0,
-        advanced=True)
+        10.0, 'Rotation bound (degrees) of max_correction_factor; raise it as that one, for '
+        'a sensor that turns fast between scans.', low=0.0, high=180.0)
