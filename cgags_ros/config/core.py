@@ -64,33 +64,13 @@ class CoreConfig:
         8, 'INFERRED. Graph vertex sampling keeps, of this many uniform k in N(i) ∩ N(j), '
         'the one with the largest |N(i) ∩ N(j) ∩ N(k)|.',
         low=1, high=4096, advanced=True)
-    min_triangle_area_factor: float = option(
-        0.5, 'INFERRED. Reject near-collinear triples whose source triangle area is below '
-        'factor * tau^2. 0 disables.', low=0.0, advanced=True)
 
     # --- hypothesis scoring ----------------------------------------------------------------
-    batch_size: int = option(
-        512, 'Largest number of hypotheses generated and scored per vectorized batch '
-        '(batches start small and double, so easy problems stop early).', low=1,
-        high=100000, advanced=True)
-    exact_per_batch: int = option(
-        16, 'Hypotheses per batch scored on all N (and fed to the preference lists); the '
-        'others are pre-screened on their common neighbourhood only.', low=1, high=100000,
-        advanced=True)
 
     # --- preference-based accelerated guided sampling -------------------------------------
     guided_sampling: bool = option(
         True, 'Use preference-based accelerated guided sampling after stage one.',
         advanced=True)
-    xi: float = option(
-        1e-6, 'xi: floor added to kernel sampling weights (paper: 1e-6).', low=0.0,
-        advanced=True)
-    max_up: int = option(
-        3, 'max_up (paper: 3): the intersection kernel is recomputed at a new best model '
-        'at most this many times during guided sampling.', low=0, high=1000, advanced=True)
-    kernel_subset: int = option(
-        400, 'Correspondences (top by preference-kernel support) kept for guided sampling; '
-        'bounds the N x M kernel. 0 keeps all.', low=0, advanced=True)
 
     # --- stopping ----------------------------------------------------------------------------
     max_iterations: int = option(
