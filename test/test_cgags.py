@@ -87,8 +87,6 @@ def test_result_reports_stages(bunny):
 @pytest.mark.parametrize('config', [
     {'edge_tournament': 1, 'vertex_tournament': 1},
     {'guided_sampling': False},
-    {'max_up': 0, 'kernel_subset': 0, 'xi': 0.0},
-    {'exact_per_batch': 512, 'batch_size': 64, 'min_triangle_area_factor': 0.0},
     {'refit_iterations': 1, 'min_pair_distance_factor': 1.0, 'futility_stop': True},
     {'stopping': 'fixed', 'max_iterations': 3000},
 ])

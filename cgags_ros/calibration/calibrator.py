@@ -190,7 +190,7 @@ def _agreement_refusal(result: CalibrationResult, cfg: CalibrationConfig) -> Ref
             f'{cfg.min_agreeing_frames}) and the pipeline alone did not accept the pose '
             f'({alone[0].single_frame_reason or "another pose"}); take more frames'))
     return Refusal(RefusalCode.FRAMES_DISAGREE, (
-        f'frames disagree: {n} of {total} agree on the pose (min_agreement '
+        f'{n} of {total} frames agree on the pose (min_agreement '
         f'{cfg.min_agreement:g}); '
         + '; '.join(f'{f.name}: {f.reason}' for f in result.frames if not f.agrees)))
 
@@ -202,7 +202,7 @@ def _rival_refusal(found: list, usable: list[Evidence],
         return None
     best = found[0]
     return Refusal(RefusalCode.AMBIGUOUS, (
-        f'ambiguous: every frame also agrees with a pose '
+        f'every frame also agrees with a pose '
         f'{rotation_error_deg(other.transform, best.transform):.1f} deg / '
         f'{translation_error(other.transform, best.transform):.2f} m away (joint overlap '
         f'{other.score:.3f} against {best.score:.3f}, within ambiguity_ratio '

@@ -38,10 +38,6 @@ class CoreConfig:
         '(and, in the pipeline, a 6-DoF point-to-plane step on the overlap); a larger tilt '
         'means the clouds are not levelled and the result is reported valid=False, never '
         'forced flat.', low=0.0, high=90.0)
-    min_edge_length_factor: float = option(
-        1.0, 'INFERRED (4dof). Reject a minimal subset (an edge) whose horizontal length, '
-        'across the gravity axis, is below this many tau in either cloud (its yaw is poorly '
-        'determined). 0 disables.', low=0.0, advanced=True)
 
     # --- thresholds (paper: tau = 6 pr, delta = 10 pr) -----------------------------------
     inlier_threshold: float = option(
@@ -52,9 +48,6 @@ class CoreConfig:
         6.0, 'Inlier threshold tau in units of the point resolution pr (paper: 6).', low=1e-6)
     compatibility_threshold_factor: float = option(
         10.0, 'Compatibility threshold delta in units of pr (paper: 10).', low=1e-6)
-    compatibility_to_inlier_ratio: float = option(
-        10.0 / 6.0, 'delta / tau when only an inlier threshold (no resolution) is given '
-        "(the paper's 10/6).", low=1e-3, advanced=True)
 
     # --- compatibility graph (INFERRED) --------------------------------------------------
     min_pair_distance_factor: float = option(
@@ -71,36 +64,13 @@ class CoreConfig:
         8, 'INFERRED. Graph vertex sampling keeps, of this many uniform k in N(i) ∩ N(j), '
         'the one with the largest |N(i) ∩ N(j) ∩ N(k)|.',
         low=1, high=4096, advanced=True)
-    min_triangle_area_factor: float = option(
-        0.5, 'INFERRED. Reject near-collinear triples whose source triangle area is below '
-        'factor * tau^2. 0 disables.', low=0.0, advanced=True)
 
     # --- hypothesis scoring ----------------------------------------------------------------
-    batch_size: int = option(
-        512, 'Largest number of hypotheses generated and scored per vectorized batch '
-        '(batches start small and double, so easy problems stop early).', low=1,
-        high=100000, advanced=True)
-    exact_per_batch: int = option(
-        16, 'Hypotheses per batch scored on all N (and fed to the preference lists); the '
-        'others are pre-screened on their common neighbourhood only.', low=1, high=100000,
-        advanced=True)
 
     # --- preference-based accelerated guided sampling -------------------------------------
     guided_sampling: bool = option(
         True, 'Use preference-based accelerated guided sampling after stage one.',
         advanced=True)
-    preference_length: int = option(
-        20, "b: length of each correspondence's preference list (paper: 20).",
-        low=1, high=1000, advanced=True)
-    xi: float = option(
-        1e-6, 'xi: floor added to kernel sampling weights (paper: 1e-6).', low=0.0,
-        advanced=True)
-    max_up: int = option(
-        3, 'max_up (paper: 3): the intersection kernel is recomputed at a new best model '
-        'at most this many times during guided sampling.', low=0, high=1000, advanced=True)
-    kernel_subset: int = option(
-        400, 'Correspondences (top by preference-kernel support) kept for guided sampling; '
-        'bounds the N x M kernel. 0 keeps all.', low=0, advanced=True)
 
     # --- stopping ----------------------------------------------------------------------------
     max_iterations: int = option(
@@ -109,8 +79,6 @@ class CoreConfig:
         0.0, 'Seconds after which sampling stops and the best model so far is used (the '
         "result then says stopped_by='time_budget'). 0: no limit, only max_iterations.",
         low=0.0, ros=True)
-    min_iterations: int = option(
-        0, 'Hypotheses generated before any adaptive stop.', low=0, advanced=True)
     p1: float = option(0.99, 'Confidence P1 of the compatible-sampling stage (paper: 0.99).',
                        low=0.0, high=0.999999)
     p2: float = option(0.99, 'Confidence P2 of the guided stage (paper: 0.99).',
@@ -140,8 +108,6 @@ class CoreConfig:
 
     def check(self) -> None:
         """Check constraints between fields (called by ``fields.validate``)."""
-        if self.guided_sampling and self.preference_length < 1:
-            raise InvalidConfigError('preference_length must be >= 1 with guided sampling')
         norm = math.sqrt(sum(c * c for c in self.gravity))
         if not norm > 1e-9:
             raise InvalidConfigError(

@@ -4,12 +4,12 @@ Ranked, distinct candidate poses and the ambiguity flag.
 The core returns one estimate. Further candidates are found in the pipeline, without
 touching the core: the correspondences the estimate explains (within tau of its coarse
 transform) are set aside and the core searches again among the rest, up to
-``num_candidates - 1`` times (each search at most ``candidate_max_iterations``
-hypotheses), and no further once a search finds only a chance-level consensus (the core
-reports it invalid: it is the last candidate, the rest of the correspondences support no
-motion). A new estimate is a candidate only when it is distinct from every earlier one:
-its rotation differs by more than ``candidate_min_rotation_deg`` or its translation by more
-than ``candidate_min_translation_factor`` voxel sizes. Every candidate's support is counted
+``num_candidates - 1`` times (each search at most :data:`MAX_ITERATIONS` hypotheses), and
+no further once a search finds only a chance-level consensus (the core reports it invalid:
+it is the last candidate, the rest of the correspondences support no motion). A new
+estimate is a candidate only when it is distinct from every earlier one: its rotation
+differs by more than ``candidate_min_rotation_deg`` or its translation by more than
+``candidate_min_translation_factor`` voxel sizes. Every candidate's support is counted
 the same way, on all correspondences: those within tau of its coarse transform. The first
 candidate is the final (refined) estimate; the others are the core's estimates (re-fit on
 their inliers, good to about tau), not refined: ICP from a wrong pose would cost more than
@@ -41,6 +41,8 @@ from ..geometry import apply_transform, rotation_error_deg, translation_error
 from ..parallel import map_ordered
 from ..registration import register_correspondences
 from ..validity import free_space_limit
+
+MAX_ITERATIONS = 1000  # hypotheses of each search for a further candidate (at most the core's)
 
 
 def support(src: np.ndarray, dst: np.ndarray, transform: np.ndarray, tau: float) -> np.ndarray:
@@ -82,7 +84,7 @@ def search_rivals(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
     explained[result.inliers] = True
     found = [best]
     core_cfg = dataclasses.replace(
-        cfg.core, max_iterations=min(cfg.core.max_iterations, cfg.candidate_max_iterations))
+        cfg.core, max_iterations=min(cfg.core.max_iterations, MAX_ITERATIONS))
     distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
     need = 2 if cfg.core.motion_model == '4dof' else 3
     for attempt in range(1, 2 * cfg.num_candidates):

@@ -41,6 +41,9 @@ from ..refusal import RefusalCode
 from ..timing import timed
 from ..validity import consensus_refusal, no_graph_refusal, no_model_refusal
 
+# delta / tau when only an inlier threshold (no resolution) is given: the paper's 10 / 6
+COMPATIBILITY_TO_INLIER = 10.0 / 6.0
+
 
 @with_single_blas_thread
 def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
@@ -198,7 +201,7 @@ def _thresholds(cfg: CoreConfig, tau: float | None, pr: float | None) -> tuple[f
     if pr is not None:
         delta = cfg.compatibility_threshold_factor * pr
     else:
-        delta = cfg.compatibility_to_inlier_ratio * tau
+        delta = COMPATIBILITY_TO_INLIER * tau
     return float(tau), float(delta)
 
 

@@ -237,8 +237,7 @@ class Relocalizer:
         # The map's own k-d tree and normals, built once with its features: a check costs
         # its few Gauss-Newton steps, not a tree of the map near the scan.
         T = staged_point_to_plane(points[::CHECK_STRIDE], ft.points, ft.normals, ft.tree,
-                                  predicted, reach + final, final, self._check_iterations,
-                                  cfg.refine.coarse_stage_tolerance)
+                                  predicted, reach + final, final, self._check_iterations)
         fitness = evaluate_alignment(points, ft.tree, T, final).fitness
         return Check(self.prepared.to_map(T), rotation_error_deg(T, predicted),
                      translation_error(T, predicted), steps, travelled, fitness,

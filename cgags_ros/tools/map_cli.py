@@ -30,9 +30,10 @@ EPILOG = f"""\
 examples:
   {PROG} prepare campus.ply --voxel-size 0.3        # then: -p map.file:=campus.ply
   {PROG} inspect campus.ply --json
-The cache directory defaults to the node's map.cache_dir ({DEFAULT_CACHE}); give the same
---voxel-size (and --config/--set of the front end) the node will use, or the node computes
-the features again under its own settings.
+The cache directory defaults to the node's map.cache_dir ({DEFAULT_CACHE}), which
+cgags-relocalize and cgags-replay read with --map-cache-dir; give the same --voxel-size (and
+--config/--set of the front end) they will use, or they compute the features again under
+their own settings.
 """
 
 

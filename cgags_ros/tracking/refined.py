@@ -5,8 +5,8 @@ A scan refined from a predicted pose and judged: the tracked path, without the s
 features (no FPFH, no matching, no core) and judges the pose by the gates a global result
 passes on its overlap (:func:`~cgags_ros.validity.overlap_refusal`), the tracked pose's own
 (:func:`~cgags_ros.validity.tracking_refusal`) and the usable-covariance bound. The
-:class:`~.tracker.Tracker` calls it for each scan it tracks, and for a scan it recovers at a
-coarser voxel. Transforms are 4x4 source->target, metres.
+:class:`~.tracker.Tracker` calls it for each scan it tracks. Transforms are 4x4
+source->target, metres.
 """
 
 from __future__ import annotations
@@ -31,6 +31,11 @@ from ..pipeline.result import PipelineResult
 from ..timing import timed
 from ..validity import (line_cloud_refusal, overlap_refusal, tracking_refusal,
                         uncertainty_refusal)
+
+# The tracked refinement stops once fitness and inlier RMSE change by less than this
+# (relative): from a close start, further iterations move the pose far less than the gates
+# or the sensor can tell apart (the global path's final stage keeps 1e-6).
+REFINE_TOLERANCE = 1e-3
 
 
 def target_features(target: np.ndarray | PreparedMap, cfg: PipelineConfig,
@@ -94,8 +99,7 @@ def _refined(source: np.ndarray, ft: CloudFeatures, prediction: np.ndarray,
         result.transform = refine_transform(
             points, ft.points, prediction, voxel_size=v, config=cfg.refine,
             target_normals=ft.normals,
-            coarse_distance=cfg.tracking.coarse_distance_factor * v, gravity=gravity,
-            workers=DEFAULT_WORKERS, tolerance=cfg.tracking.refine_tolerance)
+            gravity=gravity, workers=DEFAULT_WORKERS, tolerance=REFINE_TOLERANCE)
         result.refined = True
     with timed(result.timings, 'validation'):
         # no source tree: the target side of the overlap is for rival verification only
