@@ -27,7 +27,10 @@ on the same scan and raw map (its ``estimate``; no flag, every estimate counts).
 from __future__ import annotations
 
 import json
+import multiprocessing
+import os
 from pathlib import Path
+import queue
 import resource
 import tempfile
 import time
@@ -49,6 +52,7 @@ from scipy.spatial.transform import Rotation
 
 UTM = np.array([512345.678, 5412345.678, 265.4])
 ROOM_SPACING = 30.0  # metres between the floor's rooms
+KISS_TIMEOUT = 600.0  # seconds a KISS-Matcher estimate may take
 
 
 def street(data: Path) -> dict:
@@ -110,10 +114,9 @@ def run(name: str, built: dict, kiss: int, out_dir: Path) -> list[dict]:
                       f'{result.reason[:70]}', flush=True)
                 if i < kiss:
                     t0 = time.perf_counter()
-                    T = kiss_matcher_estimate(scan, built['points'] + offset,
-                                              built['voxel']).transform
-                    kiss_out.append((_right(T, move @ truth, built['right']),
-                                     time.perf_counter() - t0))
+                    T = _kiss(scan, built['points'] + offset, built['voxel'])
+                    kiss_out.append((T is not None and _right(T, move @ truth, built['right']),
+                                     time.perf_counter() - t0, T is None))
         rows.append({
             'map': name, 'frame': frame, 'queries': len(outcomes),
             'found': outcomes.count('found'), 'wrong': outcomes.count('WRONG'),
@@ -121,8 +124,36 @@ def run(name: str, built: dict, kiss: int, out_dir: Path) -> list[dict]:
             'p90_s': float(np.percentile(seconds, 90)), 'raw_points': len(built['points']),
             'map_points': len(prepared.features.points), 'load_cold_s': cold.load_s,
             'load_cached_s': prepared.load_s, 'cache_mb': cache_mb, 'max_rss_mb': rss_mb,
-            'kiss': [{'right': bool(r), 's': s} for r, s in kiss_out]})
+            'kiss': [{'right': bool(r), 's': s, 'crashed': c} for r, s, c in kiss_out]})
     return rows
+
+
+def _kiss(scan: np.ndarray, target: np.ndarray, voxel: float) -> np.ndarray | None:
+    """
+    Return KISS-Matcher's estimate, run in a forked process; None when that process died.
+
+    It segfaults on some maps in UTM coordinates (after printing 'voxel coord is out of
+    range' for every point, silenced here), which would end the benchmark.
+    """
+    ctx = multiprocessing.get_context('fork')
+    out = ctx.Queue()
+    child = ctx.Process(target=_kiss_child, args=(scan, target, voxel, out))
+    child.start()
+    try:
+        T = out.get(timeout=KISS_TIMEOUT)
+    except queue.Empty:
+        T = None
+    child.join(10)
+    if child.is_alive():
+        child.kill()
+    return T
+
+
+def _kiss_child(scan, target, voxel, out) -> None:
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 1)
+    os.dup2(devnull, 2)
+    out.put(kiss_matcher_estimate(scan, target, voxel).transform)
 
 
 def _right(T: np.ndarray, truth: np.ndarray, limits: tuple[float, float]) -> bool:
@@ -135,8 +166,10 @@ def table(rows: list[dict]) -> str:
              '|---|---|---|---|---|---|---|---|---|']
     for r in rows:
         k = r['kiss']
+        crashed = sum(x['crashed'] for x in k)
         kiss = (f"{sum(x['right'] for x in k)} of {len(k)}, "
-                f"{np.median([x['s'] for x in k]):.1f}" if k else '')
+                f"{np.median([x['s'] for x in k]):.1f}"
+                + (f' ({crashed} crashed)' if crashed else '') if k else '')
         lines.append(f"| {r['map']} | {r['frame']} | {r['raw_points']:,} / {r['map_points']:,} "
                      f"| {r['found']} / {r['wrong']} / {r['refused']} of {r['queries']} "
                      f"| {r['median_s']:.2f} / {r['p90_s']:.2f} "
