@@ -44,6 +44,10 @@ KERNEL_SUBSET = 400  # correspondences (best preference lists) guided sampling d
 # Hypotheses a vectorized batch holds at most: batches start small and double, so easy
 # problems stop early.
 BATCH_SIZE = 512
+# INFERRED stopping rule. 'adaptive': the RANSAC bound log(1-P)/log(1-w) per stage, w
+# estimated from the best model's inliers inside the compatibility graph; 'fixed': always
+# max_iterations (only tests set it).
+STOPPING = 'adaptive'
 
 
 class Search:
@@ -55,6 +59,7 @@ class Search:
         self.src, self.dst = self.corr
         self.graph, self.motion = graph, motion
         self.cfg, self.tau, self.delta, self.rng = cfg, tau, delta, rng
+        self.fixed = STOPPING == 'fixed'  # no adaptive bound: draw up to max_iterations
         self.num_hypotheses = 0  # minimal subsets fitted (the pre-screen fits the best)
         self.num_drawn = 0  # sampled, including subsets rejected before fitting (the cap)
         self.best_score, self.best_T = -np.inf, np.eye(4)
@@ -96,16 +101,16 @@ class Search:
                 w1 = self._stage_one_inlier_probability()
             bound = ransac_bound(cfg.p1, w1)
             self.stats.update(stage_one_bound=bound, stage_one_w=w1)
-            if (cfg.stopping == 'adaptive' and n1 >= bound
+            if (not self.fixed and n1 >= bound
                     and self.significant()):
                 self.stopped_by = 'p1_bound'
                 break
-            if (cfg.stopping == 'adaptive' and cfg.futility_stop and not self.significant()
+            if (not self.fixed and cfg.futility_stop and not self.significant()
                     and self.stats['compatible_samples'] >= self.motion.futility_draws(
                         self.graph, max(cfg.min_inliers, self.chance_level()), cfg.p1)):
                 self.stopped_by, self.futile = 'no_significant_model', True
                 break
-            if cfg.stopping == 'fixed' and cfg.guided_sampling and n1 >= bound:
+            if self.fixed and cfg.guided_sampling and n1 >= bound:
                 break
             batch = min(2 * batch, BATCH_SIZE)
         self.w1 = w1
@@ -248,7 +253,7 @@ class Search:
             bound = ransac_bound(cfg.p2, w2)
             self.stats['stage_two_bound'] = bound
             self.stats['stage_two_w'] = w2
-            if cfg.stopping == 'adaptive' and n2 >= bound:
+            if not self.fixed and n2 >= bound:
                 self.stopped_by = 'p2_bound'
                 break
             batch = min(2 * batch, BATCH_SIZE)
