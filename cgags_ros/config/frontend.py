@@ -18,8 +18,6 @@ class FrontEndConfig:
 
     normal_radius_factor: float = option(
         2.0, 'Normal estimation radius in voxel sizes.', low=0.1, high=100.0)
-    normal_max_nn: int = option(30, 'Maximum neighbours for normal estimation.', low=3,
-                                high=1000)
     normal_orientation: str = option(
         'origin', "Normal sign (FPFH depends on it): 'centroid' points normals towards the "
         "cloud's centroid (frame-independent), 'origin' towards the frame origin (the sensor "
@@ -27,7 +25,6 @@ class FrontEndConfig:
         'sign.', choices=('centroid', 'origin', 'none'), ros=True)
     fpfh_radius_factor: float = option(
         5.0, 'FPFH feature radius in voxel sizes.', low=0.5, high=100.0)
-    fpfh_max_nn: int = option(100, 'Maximum neighbours for FPFH.', low=5, high=5000)
     max_correspondences: int = option(
         5000, 'Keep at most this many correspondences (best descriptor distance first); '
         '0 keeps all.', low=0)

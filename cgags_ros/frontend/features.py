@@ -23,6 +23,9 @@ from ..errors import EmptyCloudError, InvalidInputError
 from ..geometry import point_resolution
 from ..timing import timed
 
+# A normal is the PCA of at most this many nearest neighbours within its radius.
+NORMAL_MAX_NN = 30
+
 _INDEX_LOCK = threading.Lock()
 
 
@@ -138,7 +141,7 @@ def estimate_normals(points: np.ndarray, voxel_size: float, config: FrontEndConf
     face the sensors that saw each surface as a scan's face its own sensor.
     """
     cloud = _tensor_cloud(points)
-    cloud.estimate_normals(max_nn=config.normal_max_nn,
+    cloud.estimate_normals(max_nn=NORMAL_MAX_NN,
                            radius=config.normal_radius_factor * voxel_size)
     normals = cloud.point.normals.numpy().copy()
     if config.normal_orientation == 'none':
