@@ -39,15 +39,13 @@ class CoreConfig:
         'means the clouds are not levelled and the result is reported valid=False, never '
         'forced flat.', low=0.0, high=90.0)
 
-    # --- thresholds (paper: tau = 6 pr, delta = 10 pr) -----------------------------------
+    # --- thresholds (paper: tau = 6 pr; delta = 10 pr is COMPATIBILITY_FACTOR) ------------
     inlier_threshold: float = option(
         0.0, 'Inlier threshold tau in metres; 0 derives it from the point resolution pr (mean '
         'nearest-neighbour distance of the downsampled clouds) as inlier_threshold_factor * '
         'pr.', low=0.0)
     inlier_threshold_factor: float = option(
         6.0, 'Inlier threshold tau in units of the point resolution pr (paper: 6).', low=1e-6)
-    compatibility_threshold_factor: float = option(
-        10.0, 'Compatibility threshold delta in units of pr (paper: 10).', low=1e-6)
 
     # --- minimal compatible subsets (INFERRED) -------------------------------------------
     edge_tournament: int = option(
@@ -73,8 +71,6 @@ class CoreConfig:
         "result then says stopped_by='time_budget'). 0: no limit, only max_iterations.",
         low=0.0, ros=True)
     p1: float = option(0.99, 'Confidence P1 of the compatible-sampling stage (paper: 0.99).',
-                       low=0.0, high=0.999999)
-    p2: float = option(0.99, 'Confidence P2 of the guided stage (paper: 0.99).',
                        low=0.0, high=0.999999)
     futility_stop: bool = option(
         False, '4-DoF only. End the search without a valid model once a motion with the '

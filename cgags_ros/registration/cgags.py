@@ -41,7 +41,9 @@ from ..refusal import RefusalCode
 from ..timing import timed
 from ..validity import consensus_refusal, no_graph_refusal, no_model_refusal
 
-# delta / tau when only an inlier threshold (no resolution) is given: the paper's 10 / 6
+# The compatibility threshold delta in units of the point resolution pr (paper: 10), and
+# delta / tau when only an inlier threshold (no resolution) is given: the paper's 10 / 6.
+COMPATIBILITY_FACTOR = 10.0
 COMPATIBILITY_TO_INLIER = 10.0 / 6.0
 # INFERRED: graph edges whose source pair is closer than this many tau are dropped (short
 # edges constrain rotation poorly); 0 keeps all.
@@ -204,7 +206,7 @@ def _thresholds(cfg: CoreConfig, tau: float | None, pr: float | None) -> tuple[f
     if tau is None:
         tau = cfg.inlier_threshold_factor * pr
     if pr is not None:
-        delta = cfg.compatibility_threshold_factor * pr
+        delta = COMPATIBILITY_FACTOR * pr
     else:
         delta = COMPATIBILITY_TO_INLIER * tau
     return float(tau), float(delta)

@@ -39,6 +39,7 @@ _LISTS_MAX_ENTRIES = 1 << 19
 _GIVE_UP_DRAWS = 4096  # draws without a single usable minimal subset: give up
 _CHANCE_PER_BATCH = 2  # hypotheses per batch scored exactly whatever their pre-score
 PREFERENCE_LENGTH = 20  # b: the length of each correspondence's preference list (paper: 20)
+P2 = 0.99  # confidence of the guided stage's bound (paper: 0.99; P1 is core.p1)
 MAX_UP = 3  # max_up (paper: 3): the kernel is recomputed at a new best at most this often
 KERNEL_SUBSET = 400  # correspondences (best preference lists) guided sampling draws from
 # Hypotheses a vectorized batch holds at most: batches start small and double, so easy
@@ -250,7 +251,7 @@ class Search:
                 hits += int(self.best_mask[subsets].all(axis=1).sum())
             self.stats['guided_hits'], self.stats['guided_n'] = hits, n2
             w2 = max(hits / n2 if n2 else 0.0, self.w1)
-            bound = ransac_bound(cfg.p2, w2)
+            bound = ransac_bound(P2, w2)
             self.stats['stage_two_bound'] = bound
             self.stats['stage_two_w'] = w2
             if not self.fixed and n2 >= bound:
