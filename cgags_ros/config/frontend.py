@@ -33,8 +33,6 @@ class FrontEndConfig:
         'downsampled source, one point a cell) against every target point: fewer searches '
         "in the target's descriptor index, but fewer correspondences; 0 matches every point.",
         low=0)
-    min_points: int = option(
-        10, 'Fewer points than this after downsampling is rejected as an empty cloud.', low=3)
 
 
 @dataclasses.dataclass
@@ -46,7 +44,6 @@ class RefineConfig:
         "(Open3D ICP) or 'gicp' (small_gicp).", choices=('none', 'point_to_plane', 'gicp'))
     max_correspondence_distance_factor: float = option(
         1.5, 'Refinement correspondence distance in voxel sizes.', low=0.01, high=100.0)
-    max_iterations: int = option(50, 'Refinement iterations.', low=1, high=10000)
     refused: bool = option(
         True, 'Refine an estimate the core refuses as well. It stays refused (no refinement '
         'lifts a consensus that does not stand out), but the pose it reports, the best '
