@@ -3,6 +3,7 @@
 from bench.datasets.gt_pairs import find_pair
 from cgags_ros.config.frontend import FrontEndConfig, RefineConfig
 from cgags_ros.errors import EmptyCloudError, InvalidInputError
+from cgags_ros.frontend import features
 from cgags_ros.frontend.features import downsample, extract_features, finite_points
 from cgags_ros.frontend.matching import match_features
 from cgags_ros.frontend.refine import evaluate_alignment, point_to_plane_6dof, refine_transform
@@ -44,7 +45,7 @@ def test_finite_points_checks():
 
 
 def test_downsample_rejects_too_few_points():
-    with pytest.raises(EmptyCloudError, match='min_points'):
+    with pytest.raises(EmptyCloudError, match='MIN_POINTS = 10 needed'):
         downsample(np.tile([1.0, 2.0, 3.0], (500, 1)), 0.05, min_points=10)
 
 
@@ -150,7 +151,7 @@ def test_zero_descriptors_never_match():
     assert len(match_features(desc, desc, FrontEndConfig())) == 0
 
 
-def test_normals_are_frame_independent_with_origin_orientation(bunny):
+def test_normals_are_frame_independent_with_origin_orientation(bunny, monkeypatch):
     """
     Check that rotating the cloud about the origin rotates the FPFH inputs consistently.
 
@@ -159,7 +160,8 @@ def test_normals_are_frame_independent_with_origin_orientation(bunny):
     """
     fs, _, _ = bunny
     R = Rotation.from_euler('xyz', [40, -70, 120], degrees=True).as_matrix()
-    rotated = extract_features(fs.points @ R.T, VOXEL, FrontEndConfig(min_points=3))
+    monkeypatch.setattr(features, 'MIN_POINTS', 3)
+    rotated = extract_features(fs.points @ R.T, VOXEL, FrontEndConfig())
     # Downsampling again moves centroids slightly; compare descriptors of matched points.
     corr = match_features(fs.descriptors, rotated.descriptors, FrontEndConfig())
     moved = fs.points[corr.source_index] @ R.T

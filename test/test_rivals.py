@@ -7,6 +7,7 @@ from cgags_ros.frontend.matching import Correspondences
 from cgags_ros.frontend.refine import evaluate_alignment
 from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.pipeline import cached_features, rivals
+from cgags_ros.pipeline.candidates import MIN_ROTATION_DEG
 from cgags_ros.pipeline.gates import measured_free_space
 from cgags_ros.pipeline.result import Candidate, PipelineResult
 from cgags_ros.pipeline.rivals import mark_ambiguous, structured_rival
@@ -120,7 +121,7 @@ def test_the_verdict_on_measured_rivals_is_the_pipelines():
             R = rivals.settle(fs, ft, start, result.inlier_threshold, cfg)
             refused |= (rivals.settled_apart(rotation_error_deg(R, np.eye(4)),
                                              translation_error(R, np.eye(4)), VOXEL,
-                                             cfg.candidate_min_rotation_deg)
+                                             MIN_ROTATION_DEG)
                         and rivals.fits_as_well(
                             evaluate_alignment(fs.points, ft.tree, R, distance).fitness,
                             result.fitness)

@@ -141,7 +141,7 @@ def test_empty_nan_and_malformed_input():
     assert info.value.code is Code.BAD_INPUT
     # finite but too small for the voxel size: a result, refused, not an error
     result = register_clouds(cloud[:5], cloud, voxel_size=0.1)
-    assert result.refusal.code is Code.TOO_FEW_POINTS and 'min_points' in result.reason
+    assert result.refusal.code is Code.TOO_FEW_POINTS and 'MIN_POINTS' in result.reason
 
 
 # --- the correspondences and the core ---------------------------------------------------------

@@ -39,20 +39,13 @@ class CoreConfig:
         'means the clouds are not levelled and the result is reported valid=False, never '
         'forced flat.', low=0.0, high=90.0)
 
-    # --- thresholds (paper: tau = 6 pr, delta = 10 pr) -----------------------------------
+    # --- thresholds (paper: tau = 6 pr; delta = 10 pr is COMPATIBILITY_FACTOR) ------------
     inlier_threshold: float = option(
         0.0, 'Inlier threshold tau in metres; 0 derives it from the point resolution pr (mean '
         'nearest-neighbour distance of the downsampled clouds) as inlier_threshold_factor * '
         'pr.', low=0.0)
     inlier_threshold_factor: float = option(
         6.0, 'Inlier threshold tau in units of the point resolution pr (paper: 6).', low=1e-6)
-    compatibility_threshold_factor: float = option(
-        10.0, 'Compatibility threshold delta in units of pr (paper: 10).', low=1e-6)
-
-    # --- compatibility graph (INFERRED) --------------------------------------------------
-    min_pair_distance_factor: float = option(
-        0.0, 'INFERRED. Drop graph edges whose source pair is closer than this many tau '
-        '(short edges constrain rotation poorly). 0 keeps all.', low=0.0, advanced=True)
 
     # --- minimal compatible subsets (INFERRED) -------------------------------------------
     edge_tournament: int = option(
@@ -64,8 +57,6 @@ class CoreConfig:
         8, 'INFERRED. Graph vertex sampling keeps, of this many uniform k in N(i) ∩ N(j), '
         'the one with the largest |N(i) ∩ N(j) ∩ N(k)|.',
         low=1, high=4096, advanced=True)
-
-    # --- hypothesis scoring ----------------------------------------------------------------
 
     # --- preference-based accelerated guided sampling -------------------------------------
     guided_sampling: bool = option(
@@ -81,24 +72,14 @@ class CoreConfig:
         low=0.0, ros=True)
     p1: float = option(0.99, 'Confidence P1 of the compatible-sampling stage (paper: 0.99).',
                        low=0.0, high=0.999999)
-    p2: float = option(0.99, 'Confidence P2 of the guided stage (paper: 0.99).',
-                       low=0.0, high=0.999999)
-    stopping: str = option(
-        'adaptive', "INFERRED. 'adaptive': RANSAC bound log(1-P)/log(1-w) per stage with w "
-        "estimated from the best model's inliers inside the compatibility graph; 'fixed': "
-        'always max_iterations.', choices=('adaptive', 'fixed'), advanced=True)
     futility_stop: bool = option(
-        False, 'INFERRED (4-DoF). End the search without a valid model once enough edges '
-        'were drawn that a motion with the smallest significant consensus (L = '
-        'max(min_inliers, chance level) inliers, C(L, 2) of the graph edges) would have '
-        'been drawn with confidence P1: fast rejections, but it misses more '
-        'sub-significant true motions (docs/method.md). No effect in 6-DoF.',
-        advanced=True)
+        False, '4-DoF only. End the search without a valid model once a motion with the '
+        'smallest significant consensus would have been drawn with confidence P1. Set it on '
+        'a live system that rejects a non-significant answer anyway and needs it fast (no '
+        'match ends in milliseconds, not at max_iterations); it misses more barely '
+        'significant true motions (docs/bench_core_4dof.md).')
 
-    # --- final re-fit and validity ------------------------------------------------------------
-    refit_iterations: int = option(
-        10, 'Maximum iterations of the final re-fit (repeated while the inlier set changes).',
-        low=1, high=1000, advanced=True)
+    # --- validity ------------------------------------------------------------------------------
     distinct_ratio: float = option(
         1.3, 'A result is significant (search may stop, result may be valid) only if its '
         'inlier count is at least this times that of the best distinct alternative '

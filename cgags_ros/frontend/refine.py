@@ -20,6 +20,7 @@ from ..geometry import apply_transform, GravityFrame
 # (relative): it only has to bring the estimate within the final distance, whose stage
 # keeps Open3D's 1e-6.
 COARSE_STAGE_TOLERANCE = 1e-4
+MAX_ITERATIONS = 50  # iterations of each refinement stage, at most
 
 
 @dataclasses.dataclass
@@ -110,7 +111,7 @@ def _point_to_plane(source: np.ndarray, target: np.ndarray, target_normals: np.n
     result = reg.registration_icp(
         src, dst, distance, initial, reg.TransformationEstimationPointToPlane(),
         reg.ICPConvergenceCriteria(relative_fitness=tolerance, relative_rmse=tolerance,
-                                   max_iteration=config.max_iterations))
+                                   max_iteration=MAX_ITERATIONS))
     return np.asarray(result.transformation).copy()
 
 
@@ -123,7 +124,7 @@ def _gicp(source: np.ndarray, target: np.ndarray, initial: np.ndarray, distance:
     result = small_gicp.align(target, source, initial, registration_type='GICP',
                               downsampling_resolution=voxel_size,
                               max_correspondence_distance=distance,
-                              max_iterations=config.max_iterations, num_threads=1)
+                              max_iterations=MAX_ITERATIONS, num_threads=1)
     return np.asarray(result.T_target_source).copy()
 
 
@@ -149,7 +150,7 @@ def _refine_4dof(source, target, initial, voxel_size, config, target_normals, co
     tree = cKDTree(dst)
     for distance in distances:
         tolerance = COARSE_STAGE_TOLERANCE if distance > final else final_tolerance
-        T = point_to_plane_4dof(src, dst, normals, T, distance, config.max_iterations,
+        T = point_to_plane_4dof(src, dst, normals, T, distance, MAX_ITERATIONS,
                                 tolerance, tree, workers)
     return frame.from_gravity(T)
 

@@ -37,13 +37,14 @@ from ..coordinates import (coarse_coordinates, CoarseCoordinatesWarning, local_o
                            translation)
 from ..errors import EmptyCloudError, InvalidInputError
 from ..frontend.descriptor_index import DescriptorIndex
-from ..frontend.features import CloudFeatures, extract_features
+from ..frontend.features import CloudFeatures, extract_features, MIN_POINTS, NORMAL_MAX_NN
+from ..frontend.fpfh import FPFH_MAX_NN
 from ..io import map_cache
 from ..io.clouds import read_cloud_and_normals
 
-# FrontEndConfig fields that change a cloud's features (the matching options do not).
-FEATURE_SETTINGS = ('normal_radius_factor', 'normal_max_nn', 'normal_orientation',
-                    'fpfh_radius_factor', 'fpfh_max_nn', 'min_points')
+# FrontEndConfig fields that change a cloud's features (the matching options do not); the
+# front end's constants that change them are in the settings too.
+FEATURE_SETTINGS = ('normal_radius_factor', 'normal_orientation', 'fpfh_radius_factor')
 
 
 @dataclasses.dataclass
@@ -107,6 +108,7 @@ def feature_settings(config: PipelineConfig) -> dict[str, Any]:
     import open3d
 
     out = {name: getattr(config.frontend, name) for name in FEATURE_SETTINGS}
+    out.update(normal_max_nn=NORMAL_MAX_NN, fpfh_max_nn=FPFH_MAX_NN, min_points=MIN_POINTS)
     out.update(voxel_size=float(config.voxel_size), open3d=open3d.__version__)
     return out
 

@@ -52,6 +52,7 @@ from ..frontend.refine import staged_point_to_plane
 from ..geometry import cross_spread
 from ..parallel import map_ordered
 from ..registration import RegistrationResult
+from ..registration.cgags import MIN_PAIR_DISTANCE_FACTOR, REFIT_ITERATIONS
 from ..registration.compatibility import build_compatibility_graph
 from ..registration.hypotheses import refit
 from ..registration.rigid import kabsch, residuals
@@ -140,7 +141,7 @@ def proposed_poses(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
     """Return the distinct poses the seeds' spheres propose (steps 1 and 2), in seed order."""
     src, dst = fs.points[corr.source_index], ft.points[corr.target_index]
     tau, delta = core.inlier_threshold, core.compatibility_threshold
-    seeds = seed_rows(src, dst, delta, cfg.core.min_pair_distance_factor * tau, cfg, workers)
+    seeds = seed_rows(src, dst, delta, MIN_PAIR_DISTANCE_FACTOR * tau, cfg, workers)
     radius = RADIUS * cfg.voxel_size
     poses: list[np.ndarray] = []
     for s in seeds:
@@ -213,7 +214,7 @@ def regenerated_estimate(fs: CloudFeatures, ft: CloudFeatures, corr: Corresponde
             break
     if best is None:
         return None
-    T, inliers, _ = refit(src, dst, best[0], tau, cfg.core.refit_iterations)
+    T, inliers, _ = refit(src, dst, best[0], tau, REFIT_ITERATIONS)
     others = [n for R, n in [(estimate, held), *rivals] if distinct(R, best[0], cfg)]
     replaced = dataclasses.replace(
         core, transform=T, inliers=inliers, runner_up=max(others, default=0),

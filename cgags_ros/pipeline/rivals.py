@@ -17,7 +17,7 @@ start worse never settle anywhere plausible) is refined in the estimate's stages
 (``ITERATIONS`` a stage of point-to-plane against the target's k-d tree, built once with
 its features: a rival only has to show where it settles) and judged like the estimate. A
 rival is plausible when it settles away from the estimate (more than
-``candidate_min_rotation_deg`` or ``APART`` voxels), does not stack surfaces where a sensor
+``candidates.MIN_ROTATION_DEG`` or ``APART`` voxels), does not stack surfaces where a sensor
 saw free space (violation at most ``MAX_VIOLATION``) and fits at least ``1 /
 OVERLAP_RATIO`` as well as the estimate (fitness, the share of source points on the
 target: a large target's share would say nothing): the result is then ambiguous, with the
@@ -34,7 +34,7 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .candidates import support
+from .candidates import MIN_ROTATION_DEG, support
 from .gates import measured_free_space
 from .map import PreparedMap
 from .result import Candidate, PipelineResult
@@ -168,7 +168,7 @@ def structured_rival(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences
             return None
         R = settle(fs, ft, start, float(result.inlier_threshold), cfg)
         if not settled_apart(rotation_error_deg(R, T), translation_error(R, T), v,
-                             cfg.candidate_min_rotation_deg):
+                             MIN_ROTATION_DEG):
             return None  # settled back onto the estimate: it is constrained there
         fitness = evaluate_alignment(fs.points, ft.tree, R, distance).fitness
         if not fits_as_well(fitness, result.fitness):

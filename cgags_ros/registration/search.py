@@ -39,11 +39,16 @@ _LISTS_MAX_ENTRIES = 1 << 19
 _GIVE_UP_DRAWS = 4096  # draws without a single usable minimal subset: give up
 _CHANCE_PER_BATCH = 2  # hypotheses per batch scored exactly whatever their pre-score
 PREFERENCE_LENGTH = 20  # b: the length of each correspondence's preference list (paper: 20)
+P2 = 0.99  # confidence of the guided stage's bound (paper: 0.99; P1 is core.p1)
 MAX_UP = 3  # max_up (paper: 3): the kernel is recomputed at a new best at most this often
 KERNEL_SUBSET = 400  # correspondences (best preference lists) guided sampling draws from
 # Hypotheses a vectorized batch holds at most: batches start small and double, so easy
 # problems stop early.
 BATCH_SIZE = 512
+# INFERRED stopping rule. 'adaptive': the RANSAC bound log(1-P)/log(1-w) per stage, w
+# estimated from the best model's inliers inside the compatibility graph; 'fixed': always
+# max_iterations (only tests set it).
+STOPPING = 'adaptive'
 
 
 class Search:
@@ -55,6 +60,7 @@ class Search:
         self.src, self.dst = self.corr
         self.graph, self.motion = graph, motion
         self.cfg, self.tau, self.delta, self.rng = cfg, tau, delta, rng
+        self.fixed = STOPPING == 'fixed'  # no adaptive bound: draw up to max_iterations
         self.num_hypotheses = 0  # minimal subsets fitted (the pre-screen fits the best)
         self.num_drawn = 0  # sampled, including subsets rejected before fitting (the cap)
         self.best_score, self.best_T = -np.inf, np.eye(4)
@@ -96,16 +102,16 @@ class Search:
                 w1 = self._stage_one_inlier_probability()
             bound = ransac_bound(cfg.p1, w1)
             self.stats.update(stage_one_bound=bound, stage_one_w=w1)
-            if (cfg.stopping == 'adaptive' and n1 >= bound
+            if (not self.fixed and n1 >= bound
                     and self.significant()):
                 self.stopped_by = 'p1_bound'
                 break
-            if (cfg.stopping == 'adaptive' and cfg.futility_stop and not self.significant()
+            if (not self.fixed and cfg.futility_stop and not self.significant()
                     and self.stats['compatible_samples'] >= self.motion.futility_draws(
                         self.graph, max(cfg.min_inliers, self.chance_level()), cfg.p1)):
                 self.stopped_by, self.futile = 'no_significant_model', True
                 break
-            if cfg.stopping == 'fixed' and cfg.guided_sampling and n1 >= bound:
+            if self.fixed and cfg.guided_sampling and n1 >= bound:
                 break
             batch = min(2 * batch, BATCH_SIZE)
         self.w1 = w1
@@ -245,10 +251,10 @@ class Search:
                 hits += int(self.best_mask[subsets].all(axis=1).sum())
             self.stats['guided_hits'], self.stats['guided_n'] = hits, n2
             w2 = max(hits / n2 if n2 else 0.0, self.w1)
-            bound = ransac_bound(cfg.p2, w2)
+            bound = ransac_bound(P2, w2)
             self.stats['stage_two_bound'] = bound
             self.stats['stage_two_w'] = w2
-            if cfg.stopping == 'adaptive' and n2 >= bound:
+            if not self.fixed and n2 >= bound:
                 self.stopped_by = 'p2_bound'
                 break
             batch = min(2 * batch, BATCH_SIZE)

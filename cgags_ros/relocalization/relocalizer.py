@@ -39,7 +39,7 @@ from .hypotheses import Answer, Check, Hypothesis, judge, SequenceConfig, settle
 from ..config.pipeline import PipelineConfig
 from ..errors import InvalidInputError
 from ..frontend.features import CloudFeatures, finite_points
-from ..frontend.refine import evaluate_alignment, staged_point_to_plane
+from ..frontend.refine import evaluate_alignment, MAX_ITERATIONS, staged_point_to_plane
 from ..geometry import apply_transform, rotation_error_deg, translation_error
 from ..pipeline.cache import cached_features
 from ..pipeline.candidates import distinct
@@ -81,7 +81,7 @@ class Relocalizer:
         self.hypotheses: list[Hypothesis] = []
         self.submaps: dict[int, PipelineResult] = {}  # scan index -> its submap's result
         # A check starts within the drift of the truth: a few iterations a stage suffice.
-        self._check_iterations = min(config.refine.max_iterations, CHECK_ITERATIONS)
+        self._check_iterations = min(MAX_ITERATIONS, CHECK_ITERATIONS)
 
     def reset(self) -> None:
         """Forget every scan and hypothesis."""

@@ -19,7 +19,7 @@ from .prediction import difference
 from ..config.pipeline import PipelineConfig
 from ..coordinates import local_origin, moved, sensor_at_origin, to_local
 from ..errors import EmptyCloudError
-from ..frontend.features import CloudFeatures, downsample, finite_points
+from ..frontend.features import CloudFeatures, downsample, finite_points, MIN_POINTS
 from ..frontend.refine import refine_transform
 from ..geometry import cross_spread
 from ..parallel import DEFAULT_WORKERS
@@ -86,7 +86,7 @@ def _refined(source: np.ndarray, ft: CloudFeatures, prediction: np.ndarray,
     result.coarse_transform = prediction.copy()
     try:
         with timed(result.timings, 'downsample'):
-            points = downsample(source, v, cfg.frontend.min_points, 'source')
+            points = downsample(source, v, MIN_POINTS, 'source')
     except EmptyCloudError as exc:
         return result.finish(start, exc.refusal)
     result.num_source_points, result.num_target_points = len(points), len(ft.points)
