@@ -34,6 +34,7 @@ setup(
             'cgags-calibrate = cgags_ros.tools.calibrate_cli:main',
             'cgags-relocalize = cgags_ros.tools.relocalize_cli:main',
             'cgags-tune = cgags_ros.tools.tune:main',
+            'cgags-map = cgags_ros.tools.map_cli:main',
         ],
     },
 )

@@ -102,7 +102,8 @@ def diagnostics(result, src: np.ndarray, tgt: np.ndarray, gt: np.ndarray,
     from cgags_ros.pipeline.gates import observability
 
     out = {
-        'reason': result.reason, 'ambiguous': bool(result.ambiguous),
+        'reason': result.reason, 'refusal': result.refusal and result.refusal.code.value,
+        'ambiguous': bool(result.ambiguous),
         'num_inliers': int(result.num_inliers) if hasattr(result, 'num_inliers') else None,
         'num_correspondences': int(result.num_correspondences),
         'num_hypotheses': int(result.num_hypotheses),

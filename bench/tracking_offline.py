@@ -35,7 +35,7 @@ from bench.common import (add_set_option, argument_parser, machine, output_path,
 from bench.datasets.rigs import KITTI_SCANS, kitti_scans
 from cgags_ros.config.pipeline import pipeline_config_from, PipelineConfig
 from cgags_ros.config.tracking import TrackingConfig
-from cgags_ros.frontend.features import downsample, estimate_normals
+from cgags_ros.frontend.features import downsample, estimate_normals, MIN_POINTS
 from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import cached_features, register_clouds, warm_up
@@ -118,7 +118,7 @@ def reuse_study(scans: list[np.ndarray], voxel: float, repeats: int = 5) -> dict
     times: dict[str, list[float]] = {'map_kdtree_build': [], 'source_normals': [],
                                      'target_key': []}
     for k in range(1, repeats + 1):
-        points = downsample(scans[k], voxel, config.frontend.min_points)
+        points = downsample(scans[k], voxel, MIN_POINTS)
         start = time.perf_counter()
         o3d.geometry.KDTreeFlann(cloud)
         times['map_kdtree_build'].append(time.perf_counter() - start)

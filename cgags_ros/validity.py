@@ -97,7 +97,7 @@ def no_model_refusal(collinear_subsets: int, yaw_only: bool) -> Refusal:
     if collinear_subsets:
         return Refusal(Code.COLLINEAR, (
             'every compatible edge of correspondences is nearly vertical (shorter across the '
-            'gravity axis than min_edge_length_factor * tau): the yaw is undetermined'
+            'gravity axis than tau): the yaw is undetermined'
             if yaw_only else
             'every compatible triangle of correspondences is nearly collinear: the scene (or '
             'its matched keypoints) is a line, and the rotation about it is undetermined'))
@@ -256,7 +256,7 @@ def overlap_refusal(e: Overlap, cfg: PipelineConfig, unsettled: bool = False) ->
     limit = free_space_limit(cfg, unsettled)
     if gates.min_observability > 0 and not e.observability >= gates.min_observability:
         return Refusal(Code.DEGENERATE_AXIS, (
-            'degenerate geometry: the overlap constrains some motion only weakly '
+            'the overlap constrains some motion only weakly '
             f'(observability {e.observability:.2g} < {gates.min_observability:g}; e.g. '
             'plane, line, sphere or cylinder); the pose along it is arbitrary'))
     if gates.min_fitness > 0 and not e.fitness >= gates.min_fitness:
@@ -265,7 +265,7 @@ def overlap_refusal(e: Overlap, cfg: PipelineConfig, unsettled: bool = False) ->
             f'source points lie within {distance:.3g} m of the target after alignment'))
     if e.free_space_violation > limit:  # NaN: not measured
         return Refusal(Code.FREE_SPACE, (
-            f'free-space violation: {100 * e.free_space_violation:.0f} % of the aligned '
+            f'{100 * e.free_space_violation:.0f} % of the aligned '
             "points that meet the other cloud's view lie in front of its observed surface "
             f'(> {limit:g}, gates.max_free_space_violation, times '
             'gates.free_space_settle_factor for an unsettled estimate): the pose stacks '
@@ -289,13 +289,13 @@ def tracking_refusal(correction_deg: float, correction_m: float, fitness: float,
     limit = track.max_correction_factor * cfg.voxel_size
     if not (correction_deg <= track.max_correction_deg and correction_m <= limit):
         return Refusal(Code.TRACKING_LOST, (
-            f'tracking: the refinement moved the predicted pose by {correction_m:.3g} m and '
+            f'the refinement moved the predicted pose by {correction_m:.3g} m and '
             f'{correction_deg:.3g} deg (> tracking.max_correction_factor {limit:.3g} m or '
             f'tracking.max_correction_deg {track.max_correction_deg:g} deg): a jump, not a '
             'tracked motion'))
     if not fitness >= track.min_fitness_ratio * last_fitness:
         return Refusal(Code.TRACKING_LOST, (
-            f'tracking: fitness {fitness:.3f} < tracking.min_fitness_ratio times the last '
+            f'fitness {fitness:.3f} < tracking.min_fitness_ratio times the last '
             f"pose's {last_fitness:.3f}: the prediction converged where far fewer points "
             'fit (a jump or a changed scene)'))
     return None
@@ -306,7 +306,7 @@ def confidence_refusal(e: Trusted, min_confidence: float) -> Refusal | None:
     if min_confidence <= 0 or e.confidence >= min_confidence:
         return None
     return Refusal(Code.LOW_CONFIDENCE, (
-        f'low confidence: P(right) {e.confidence:.2f} < min_confidence '
+        f'P(right) {e.confidence:.2f} < min_confidence '
         f'{min_confidence:g}: estimates measured like this one (inliers against chance, '
         'overlap, free space, rivals) are too often wrong'))
 
@@ -339,7 +339,7 @@ def ambiguity_refusal(e: Estimate, cfg: PipelineConfig) -> Refusal | None:
     geometry = (' and, refined, overlaps about as well' if cfg.gates.verify_rivals
                 and cfg.refine.method != 'none' else '')
     return Refusal(Code.AMBIGUOUS, (
-        f'ambiguous: a distinct pose ({turned:.0f} deg, {moved:.2f} m away) has '
+        f'a distinct pose ({turned:.0f} deg, {moved:.2f} m away) has '
         f'{runner.num_inliers} inliers against {best.num_inliers} of the best (within '
         f'gates.ambiguity_ratio {cfg.gates.ambiguity_ratio:g}){geometry}; the scene looks '
         'alike in both poses'))
@@ -358,8 +358,8 @@ def unexplained_refusal(misses: Sequence[int]) -> Refusal:
 def sequence_ambiguity_refusal(scans: int, turned_deg: float, moved_m: float) -> Refusal:
     """Return the refusal of a distinct pose that explains every scan about as well."""
     return Refusal(Code.AMBIGUOUS, (
-        f'ambiguous over {scans} scans: a distinct pose ({turned_deg:.0f} deg, '
-        f'{moved_m:.2f} m away) explains every scan about as well'))
+        f'a distinct pose ({turned_deg:.0f} deg, {moved_m:.2f} m away) explains every '
+        f'one of {scans} scans about as well'))
 
 
 def more_scans_refusal(scans: int, min_scans: int) -> Refusal | None:

@@ -186,7 +186,7 @@ def test_disagreeing_frames_are_a_fail_not_an_average(shared):
     frames[2] = _bumped(frames[2], 3.0, np.array([0.3, 0.0, 0.0]), 'knocked')
     result = calibrate(frames, _config(OPENCALIB_VOXEL))
     assert not result.valid and result.refusal.code is Code.FRAMES_DISAGREE
-    assert result.reason.startswith('frames disagree')
+    assert result.reason.startswith('2 of 3 frames agree')
     assert [f.agrees for f in result.frames] == [True, True, False]
     assert 'knocked' in result.reason
 

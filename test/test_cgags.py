@@ -84,15 +84,20 @@ def test_result_reports_stages(bunny):
     assert summary['valid'] and len(summary['transform']) == 4
 
 
-@pytest.mark.parametrize('config', [
-    {'edge_tournament': 1, 'vertex_tournament': 1},
-    {'guided_sampling': False},
-    {'max_up': 0, 'kernel_subset': 0, 'xi': 0.0},
-    {'exact_per_batch': 512, 'batch_size': 64, 'min_triangle_area_factor': 0.0},
-    {'refit_iterations': 1, 'min_pair_distance_factor': 1.0, 'futility_stop': True},
-    {'stopping': 'fixed', 'max_iterations': 3000},
+@pytest.mark.parametrize('config,constants', [
+    ({'edge_tournament': 1, 'vertex_tournament': 1}, {}),
+    ({'guided_sampling': False}, {}),
+    ({'futility_stop': True},
+     {'cgags.REFIT_ITERATIONS': 1, 'cgags.MIN_PAIR_DISTANCE_FACTOR': 1.0}),
+    ({'max_iterations': 3000}, {'search.STOPPING': 'fixed'}),
 ])
-def test_every_advanced_option_still_registers(bunny, config):
+def test_every_variant_still_registers(bunny, monkeypatch, config, constants):
+    from cgags_ros.registration import cgags, search
+
+    modules = {'cgags': cgags, 'search': search}
+    for name, value in constants.items():
+        module, constant = name.split('.')
+        monkeypatch.setattr(modules[module], constant, value)
     prob = make_correspondences(bunny, 1000, 0.95, rng=21)
     res = register_correspondences(prob.src, prob.dst, inlier_threshold=TAU,
                                    config=CoreConfig(**config), seed=1)
@@ -153,9 +158,9 @@ def test_invalid_config_is_rejected(bunny):
     with pytest.raises(InvalidConfigError, match='p1'):
         register_correspondences(prob.src, prob.dst, inlier_threshold=TAU,
                                  config=CoreConfig(p1=1.5))
-    with pytest.raises(InvalidConfigError, match='stopping'):
+    with pytest.raises(InvalidConfigError, match='motion_model'):
         register_correspondences(prob.src, prob.dst, inlier_threshold=TAU,
-                                 config=CoreConfig(stopping='magic'))
+                                 config=CoreConfig(motion_model='magic'))
 
 
 def test_twenty_thousand_correspondences_stay_under_1gb(bunny):

@@ -93,7 +93,7 @@ def test_the_front_end_calls_only_the_declared_signatures():
     target = _box_cloud(5)
     features = [extract_features(c, 0.05, cfg, workers=2) for c in (source, target)]
     descriptors = [_read_only(f.descriptors) for f in features]
-    matches = match_features(*descriptors, FrontEndConfig(ratio_test=0.9), workers=2)
+    matches = match_features(*descriptors, FrontEndConfig(), workers=2, ratio=0.9)
     assert len(matches) > 0
     index = DescriptorIndex(descriptors[1])
     queries = _read_only(np.asfortranarray(descriptors[0][:50]))

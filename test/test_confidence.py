@@ -75,7 +75,7 @@ def test_real_pairs_right_is_confident_and_the_threshold_refuses_below_it(redkit
     refused = register_clouds(src, tgt, voxel_size=0.05,
                               config=PipelineConfig(gates=GatesConfig(min_confidence=strict)))
     np.testing.assert_allclose(refused.transform, result.transform)
-    assert not refused.valid and refused.reason.startswith('low confidence')
+    assert not refused.valid and refused.refusal.code.value == 'low_confidence'
 
 
 def test_a_pose_too_loose_to_use_is_refused_with_its_covariance_kept(redkitchen_pair):

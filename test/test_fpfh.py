@@ -31,9 +31,9 @@ def cloud(request, data_dir):
     return points, estimate_normals(points, voxel, FrontEndConfig()), voxel
 
 
-def _fpfh(points, normals, voxel, cfg, workers=1):
+def _fpfh(points, normals, voxel, cfg, workers=1, max_nn=fpfh.FPFH_MAX_NN):
     """Return the front end's FPFH descriptors, without the spacing."""
-    return fpfh_with_spacing(points, normals, voxel, cfg, workers)[0]
+    return fpfh_with_spacing(points, normals, voxel, cfg, workers, max_nn)[0]
 
 
 def _neighbours_by_row(points, radius, max_nn, workers=1):
@@ -46,25 +46,25 @@ def _neighbours_by_row(points, radius, max_nn, workers=1):
     return rows, counts, nearest
 
 
-def _open3d_fpfh(points, normals, voxel, cfg):
+def _open3d_fpfh(points, normals, voxel, cfg, max_nn=fpfh.FPFH_MAX_NN):
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     pcd.normals = o3d.utility.Vector3dVector(normals)
     param = o3d.geometry.KDTreeSearchParamHybrid(radius=cfg.fpfh_radius_factor * voxel,
-                                                 max_nn=cfg.fpfh_max_nn)
+                                                 max_nn=max_nn)
     return np.asarray(o3d.pipelines.registration.compute_fpfh_feature(pcd, param).data).T
 
 
-@pytest.mark.parametrize('max_nn', [100, 20])
+@pytest.mark.parametrize('max_nn', [fpfh.FPFH_MAX_NN, 20])
 def test_fpfh_equals_open3d(cloud, max_nn):
     points, normals, voxel = cloud
-    cfg = FrontEndConfig(fpfh_max_nn=max_nn)
-    ours = _fpfh(points, normals, voxel, cfg, workers=2)
-    ref = _open3d_fpfh(points, normals, voxel, cfg)
+    cfg = FrontEndConfig()
+    ours = _fpfh(points, normals, voxel, cfg, workers=2, max_nn=max_nn)
+    ref = _open3d_fpfh(points, normals, voxel, cfg, max_nn)
     # Rows whose max_nn-th neighbour ties with the next may pick another neighbour than
     # Open3D (ties go to the lower row here): a handful at most on real scans.
     close = np.abs(ours - ref).max(axis=1) < 1e-9
     assert close.mean() > 0.99
-    assert np.array_equal(ours, _fpfh(points, normals, voxel, cfg, workers=1))
+    assert np.array_equal(ours, _fpfh(points, normals, voxel, cfg, workers=1, max_nn=max_nn))
 
 
 def test_radius_neighbours_are_the_nearest_within_the_radius(cloud):
@@ -117,7 +117,7 @@ def test_fpfh_in_blocks_equals_one_pass(cloud, monkeypatch):
     points, normals, voxel = cloud
     cfg = FrontEndConfig()
     whole = _fpfh(points, normals, voxel, cfg, workers=2)
-    monkeypatch.setattr(fpfh, '_NEIGHBOUR_BYTES', 4 * cfg.fpfh_max_nn * 700)  # 700 rows a block
+    monkeypatch.setattr(fpfh, '_NEIGHBOUR_BYTES', 4 * fpfh.FPFH_MAX_NN * 700)  # 700 rows a block
     assert len(points) > 1400
     np.testing.assert_array_equal(_fpfh(points, normals, voxel, cfg, workers=2), whole)
 

@@ -3,6 +3,7 @@
 from bench.datasets.gt_pairs import find_pair
 from cgags_ros.config.frontend import FrontEndConfig, RefineConfig
 from cgags_ros.errors import EmptyCloudError, InvalidInputError
+from cgags_ros.frontend import features
 from cgags_ros.frontend.features import downsample, extract_features, finite_points
 from cgags_ros.frontend.matching import match_features
 from cgags_ros.frontend.refine import evaluate_alignment, point_to_plane_6dof, refine_transform
@@ -44,7 +45,7 @@ def test_finite_points_checks():
 
 
 def test_downsample_rejects_too_few_points():
-    with pytest.raises(EmptyCloudError, match='min_points'):
+    with pytest.raises(EmptyCloudError, match='MIN_POINTS = 10 needed'):
         downsample(np.tile([1.0, 2.0, 3.0], (500, 1)), 0.05, min_points=10)
 
 
@@ -76,7 +77,7 @@ def test_ratio_test_and_cap_keep_the_best(bunny):
     capped = match_features(fs.descriptors, ft.descriptors,
                             FrontEndConfig(max_correspondences=100))
     np.testing.assert_array_equal(capped.source_index, all_corr.source_index[:100])
-    strict = match_features(fs.descriptors, ft.descriptors, FrontEndConfig(ratio_test=0.8))
+    strict = match_features(fs.descriptors, ft.descriptors, FrontEndConfig(), ratio=0.8)
     assert 0 < len(strict) < len(all_corr)
     inlier_share = lambda c: np.mean(_residuals(fs, ft, c, T) < 6 * fs.resolution)  # noqa: E731
     assert inlier_share(strict) > inlier_share(all_corr)
@@ -118,8 +119,8 @@ def test_matches_equal_exact_brute_force(mutual, ratio):
     b[650:] = b[600:650]  # exact duplicate targets
     a[:40] = b[600:640]  # sources that tie between two targets at distance 0
     a[40:60] = b[:20]  # sources with one target at distance 0
-    cfg = FrontEndConfig(mutual_filter=mutual, ratio_test=ratio, max_correspondences=0)
-    got = match_features(a, b, cfg)
+    cfg = FrontEndConfig(max_correspondences=0)
+    got = match_features(a, b, cfg, mutual=mutual, ratio=ratio)
     pairs = set(zip(got.source_index.tolist(), got.target_index.tolist()))
     expected, tied = _reference_matches(a, b, mutual, ratio)
     assert set(range(40)) <= tied
@@ -137,9 +138,10 @@ def test_matches_equal_exact_brute_force(mutual, ratio):
 @pytest.mark.parametrize('mutual, ratio', [(True, 1.0), (True, 0.8)])
 def test_threaded_matching_is_identical(bunny, mutual, ratio):
     fs, ft, _ = bunny
-    cfg = FrontEndConfig(mutual_filter=mutual, ratio_test=ratio)
-    one = match_features(fs.descriptors, ft.descriptors, cfg)
-    two = match_features(fs.descriptors, ft.descriptors, cfg, workers=2)
+    cfg = FrontEndConfig()
+    one = match_features(fs.descriptors, ft.descriptors, cfg, mutual=mutual, ratio=ratio)
+    two = match_features(fs.descriptors, ft.descriptors, cfg, workers=2, mutual=mutual,
+                         ratio=ratio)
     for name in ('source_index', 'target_index', 'distance'):
         np.testing.assert_array_equal(getattr(one, name), getattr(two, name))
 
@@ -149,7 +151,7 @@ def test_zero_descriptors_never_match():
     assert len(match_features(desc, desc, FrontEndConfig())) == 0
 
 
-def test_normals_are_frame_independent_with_origin_orientation(bunny):
+def test_normals_are_frame_independent_with_origin_orientation(bunny, monkeypatch):
     """
     Check that rotating the cloud about the origin rotates the FPFH inputs consistently.
 
@@ -158,7 +160,8 @@ def test_normals_are_frame_independent_with_origin_orientation(bunny):
     """
     fs, _, _ = bunny
     R = Rotation.from_euler('xyz', [40, -70, 120], degrees=True).as_matrix()
-    rotated = extract_features(fs.points @ R.T, VOXEL, FrontEndConfig(min_points=3))
+    monkeypatch.setattr(features, 'MIN_POINTS', 3)
+    rotated = extract_features(fs.points @ R.T, VOXEL, FrontEndConfig())
     # Downsampling again moves centroids slightly; compare descriptors of matched points.
     corr = match_features(fs.descriptors, rotated.descriptors, FrontEndConfig())
     moved = fs.points[corr.source_index] @ R.T

@@ -205,7 +205,7 @@ def test_after_warm_up_a_real_pair_compiles_nothing_in_the_front_end(data_dir):
     source = np.asfortranarray(read_cloud(folder / 'source.ply'))  # any input layout
     target = read_cloud(folder / 'target.ply').astype(np.float32)
     clear_feature_cache()
-    for cfg in ({}, {'frontend.ratio_test': 0.9, 'frontend.max_keypoints': 1000}):
+    for cfg in ({}, {'frontend.max_keypoints': 1000}):
         result = register_clouds(source, target, voxel_size=0.4, config=pipeline_config_from(cfg))
         assert result.valid, result.reason
     assert {d: len(d.signatures) for d in dispatchers} == before

@@ -17,7 +17,7 @@ import shlex
 
 from cgags_ros.config.node import configs_from_parameters, ros_parameter_descriptions
 from cgags_ros.geometry import rotation_error_deg, translation_error
-from cgags_ros.tools import calibrate_cli, register_cli, relocalize_cli, replay
+from cgags_ros.tools import calibrate_cli, map_cli, register_cli, relocalize_cli, replay
 import numpy as np
 import pytest
 import yaml
@@ -27,7 +27,7 @@ README = REPO / 'README.md'
 FIXTURE = REPO / 'test' / 'fixtures' / 'small_gicp'
 PARSERS = {'cgags-register': register_cli.build_parser, 'cgags-replay': replay.build_parser,
            'cgags-calibrate': calibrate_cli.build_parser,
-           'cgags-relocalize': relocalize_cli.build_parser}
+           'cgags-relocalize': relocalize_cli.build_parser, 'cgags-map': map_cli.build_parser}
 # Two consecutive scans of the fixture: a right answer is within a degree and decimetres.
 MAX_RE_DEG, MAX_TE_M = 2.0, 0.2
 

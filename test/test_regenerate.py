@@ -50,8 +50,8 @@ def test_local_re_matching_finds_more_right_matches_than_the_single_pass(benchma
     ps, pt = fs.points[corr.source_index], ft.points[corr.target_index]
     right = np.linalg.norm(apply_transform(truth, ps) - pt, axis=1) < tau
     seeds = regenerate.seed_rows(ps, pt, delta, 0.0, cfg)
-    assert 0 < len(seeds) <= cfg.regenerate.seeds
-    radius = cfg.regenerate.radius_factor * cfg.voxel_size
+    assert 0 < len(seeds) <= regenerate.SEEDS
+    radius = regenerate.RADIUS * cfg.voxel_size
     found = set()
     for s in seeds[right[seeds]]:
         i, j = regenerate.local_matches(fs, ft, ps[s], pt[s], radius, delta)
@@ -95,7 +95,7 @@ def test_the_replacement_is_judged_on_the_original_correspondences(benchmark_pai
     assert replaced.runner_up > 0
     # A stricter free-space limit than any pose meets: nothing replaces the estimate.
     strict = dataclasses.replace(
-        cfg, regenerate=dataclasses.replace(cfg.regenerate, free_space_factor=0.0))
+        cfg, gates=dataclasses.replace(cfg.gates, max_free_space_violation=0.0))
     assert regenerate.regenerated_estimate(fs, ft, corr, core, strict) is None
 
 

@@ -201,19 +201,23 @@ def test_on_demand_relocalization_in_a_merged_kitchen_map(wire, kitchen, data_di
         stop(wire, node)
 
 
-def test_lidar_initial_pose_is_the_base_pose(wire, data_dir, tmp_path):
+@pytest.mark.parametrize('utm', [None, (512345.678, 5412345.678, 265.4)],
+                         ids=['local', 'utm'])
+def test_lidar_initial_pose_is_the_base_pose(wire, data_dir, tmp_path, utm):
     """
     Check the LiDAR pair's initial pose is the base's: ground truth and the extrinsic.
 
     Continuous mode with relocalization.base_from_sensor; the second scan is refused by
-    relocalization.max_auto (counted), while ~/pose keeps the sensor pose.
+    relocalization.max_auto (counted), while ~/pose keeps the sensor pose. With ``utm`` the
+    map file (PLY doubles) is georeferenced: the initial pose is in its UTM frame.
     """
     _, _, io = wire
     folder = data_dir / 'lidar' / 'small_gicp'
-    gt = np.loadtxt(folder / 'T_target_source.txt')
+    offset = make_transform(np.eye(3), utm or (0.0, 0.0, 0.0))
+    gt = offset @ np.loadtxt(folder / 'T_target_source.txt')
     source = read_cloud(folder / 'source.ply')
     map_path = tmp_path / 'map.ply'
-    write_cloud(map_path, read_cloud(folder / 'target.ply'))
+    write_cloud(map_path, apply_transform(offset, read_cloud(folder / 'target.ply')))
     rng = np.random.default_rng(5)
     A = random_motion(rng)
     t, q = (0.3, -0.1, 0.8), (0.0, 0.0, 0.3826834, 0.9238795)  # 45 deg yaw, raised

@@ -167,7 +167,7 @@ def test_a_symmetric_scene_is_ambiguous_and_the_same_scene_once_is_not(kitchen):
     scan, once, twin = twin_scene(kitchen)
     cfg = pipeline_config_from(MOVED)
     result = register_clouds(scan, twin, config=cfg)
-    assert result.ambiguous and not result.valid and result.reason.startswith('ambiguous')
+    assert result.ambiguous and not result.valid and result.refusal.code is Code.AMBIGUOUS
     second = result.candidates[1].transform
     assert rotation_error_deg(result.candidates[0].transform, second) > 150  # the twin pose
     single = register_clouds(scan, once, config=cfg)

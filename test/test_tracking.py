@@ -75,8 +75,7 @@ def test_jump_falls_back_to_global(kitti):
     _run(tracker, scans, [13, 14, 15], scans[0], config)
     result = tracker.register(scans[0], scans[0], 3 * PERIOD, config=config)  # 12 m back
     assert result.path == 'global', 'a jump must not be tracked'
-    failure = result.stats['tracking_failure']  # which gate caught it depends on the settings
-    assert failure.startswith(('tracking:', 'free-space violation', 'degenerate', 'fitness'))
+    assert result.stats['tracking_failure']  # which gate caught it depends on the settings
     assert result.stats['tracking_failure_code'] in {
         Code.TRACKING_LOST.value, Code.FREE_SPACE.value, Code.DEGENERATE_AXIS.value,
         Code.LOW_FITNESS.value}
@@ -127,7 +126,6 @@ def test_degenerate_corridor_is_not_tracked(kitti):
     corridor = scan[(np.abs(scan[:, 1]) < 1.5) & (scan[:, 2] < -1.2)]
     result = tracker.register(corridor, scans[0], 3 * PERIOD, config=config)
     assert result.path == 'global', 'a degenerate view must not be tracked'
-    assert 'degenerate' in result.stats['tracking_failure']
     assert result.stats['tracking_failure_code'] == Code.DEGENERATE_AXIS.value
     assert not result.valid or _within(result, truth[6])
 
@@ -221,16 +219,12 @@ def test_a_check_beside_the_stream_resets_the_motion_only_when_it_disagrees(kitt
     assert result.path == 'global' and result.valid and _within(result, truth[8])
 
 
-def test_a_jump_is_recovered_at_a_coarser_voxel_and_refined_at_the_streams(kitti):
+def test_a_jump_is_found_by_the_global_search_and_tracked_after(kitti):
     scans, truth = kitti
-    for factor, recovered in ((3.0, 3 * VOXEL), (1.0, None)):
-        tracker = Tracker()
-        config = _config(recovery_voxel_factor=factor)
-        first = _run(tracker, scans, [1, 2, 3], scans[0], config)
-        assert [r.path for r in first] == ['global', 'tracked', 'tracked']
-        assert 'recovered_at_voxel' not in first[0].stats  # a first scan: the full search
-        jump = tracker.register(scans[12], scans[0], 3 * PERIOD, config=config)  # 9 m ahead
-        assert jump.path == 'global' and jump.valid and _within(jump, truth[12]), factor
-        assert jump.stats.get('recovered_at_voxel') == recovered
-        assert jump.voxel_size == VOXEL and jump.num_inliers > 0  # the search's evidence kept
-        assert tracker.register(scans[13], scans[0], 4 * PERIOD, config=config).path == 'tracked'
+    tracker, config = Tracker(), _config()
+    first = _run(tracker, scans, [1, 2, 3], scans[0], config)
+    assert [r.path for r in first] == ['global', 'tracked', 'tracked']
+    jump = tracker.register(scans[12], scans[0], 3 * PERIOD, config=config)  # 9 m ahead
+    assert jump.path == 'global' and jump.valid and _within(jump, truth[12])
+    assert jump.voxel_size == VOXEL and jump.num_inliers > 0
+    assert tracker.register(scans[13], scans[0], 4 * PERIOD, config=config).path == 'tracked'

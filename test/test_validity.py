@@ -30,6 +30,7 @@ from cgags_ros.pipeline.result import Candidate, PipelineResult
 from cgags_ros.pipeline.rivals import mark_ambiguous
 from cgags_ros.refusal import Refusal, RefusalCode as Code, summary
 from cgags_ros.registration import register_correspondences, RegistrationResult
+from cgags_ros.relocalization.requests import not_localized
 from cgags_ros.runtime.supervisor import RegistrationTimeout, WorkerCrashed
 from cgags_ros.tracking.prediction import difference
 import numpy as np
@@ -84,6 +85,31 @@ def test_a_refusal_reads_as_code_and_message_in_every_form():
         result.summary()['refusal'] is None)
 
 
+def test_a_refusal_says_its_code_once():
+    """The code leads ``str()`` and a failed request's answer; the message never repeats it."""
+    best = Candidate(np.eye(4), 40, 0.8)
+    twin = passing(candidates=[best, Candidate(_yaw(np.pi, (1.0, 0.0, 0.0)), 35, 0.8, 35 / 40)],
+                   ambiguous=True)
+    twin.refusal = validity.ambiguity_refusal(twin, CFG)
+    turned = difference(np.eye(4), _yaw(np.radians(CFG.tracking.max_correction_deg + 1.0)))
+    node = configs_from_parameters({})[1]
+    refusals = [
+        twin.refusal, validity.quality_refusal(twin, node),
+        validity.sequence_ambiguity_refusal(3, 180.0, 1.0),
+        validity.confidence_refusal(passing(confidence=0.1), CFG.gates.min_confidence),
+        validity.overlap_refusal(passing(observability=0.0), CFG),
+        validity.overlap_refusal(passing(free_space_violation=0.9), CFG),
+        validity.tracking_refusal(*turned, 0.8, 0.8, CFG),
+        validity.tracking_refusal(0.0, 0.0, 0.1, 1.0, CFG)]
+    for refusal in refusals:
+        words = refusal.code.value.split('_')
+        lead = re.split(r'[^a-z]+', refusal.message.lower())[:len(words)]
+        assert lead != words and lead[:1] != words[:1], refusal  # 'tracking', 'degenerate', ...
+    answer = not_localized(validity.quality_refusal(twin, node))
+    assert answer.startswith('ambiguous: not localized: a distinct pose') and (
+        answer.count('ambiguous') == 1), answer
+
+
 @pytest.mark.parametrize('error, code', [
     (InvalidInputError, Code.BAD_INPUT), (MalformedCloudError, Code.BAD_INPUT),
     (BagError, Code.BAD_INPUT), (EmptyCloudError, Code.TOO_FEW_POINTS),
@@ -115,7 +141,7 @@ def test_empty_nan_and_malformed_input():
     assert info.value.code is Code.BAD_INPUT
     # finite but too small for the voxel size: a result, refused, not an error
     result = register_clouds(cloud[:5], cloud, voxel_size=0.1)
-    assert result.refusal.code is Code.TOO_FEW_POINTS and 'min_points' in result.reason
+    assert result.refusal.code is Code.TOO_FEW_POINTS and 'MIN_POINTS' in result.reason
 
 
 # --- the correspondences and the core ---------------------------------------------------------

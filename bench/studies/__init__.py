@@ -26,8 +26,6 @@ any other bench module: they may import the tools of :mod:`bench`, never the rev
 - :mod:`.gt_consistency`: how far a pair's ground truth lies from the best alignment its
   own geometry supports.
 - :mod:`.ablation_core`: the core's options still open, each variant on the same problems.
-- :mod:`.voted_turns`: the structured rivals' turns about a room's own centre (built, off),
-  with and without, on every pair: what they refuse and what they cost.
 - :mod:`.regenerate`: the regenerated correspondences' right matches, and which way of
   choosing among the poses they propose is right (``cgags_ros/pipeline/regenerate.py``).
 - :mod:`.certain_refusals`: the refusals decided before the refinement, refined and gated

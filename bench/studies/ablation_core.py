@@ -1,7 +1,9 @@
 """
 Ablation of the core's INFERRED choices (docs/method.md) on bunny-derived correspondences.
 
-Each variant overrides CoreConfig fields; every variant sees the same problems and seeds.
+Each variant overrides CoreConfig fields, or (upper case) constants of
+cgags_ros.registration.cgags that this study sets for its own runs; every variant sees the
+same problems and seeds.
 Reports success (RE < 5 deg, TE < 0.1 on the unit-scaled bunny), median/p90 time and median
 hypotheses per cell. Time is noisy on a shared machine; hypotheses are not.
 
@@ -11,13 +13,16 @@ hypotheses per cell. Time is noisy on a shared machine; hypotheses are not.
 from __future__ import annotations
 
 import argparse
+import contextlib
 from pathlib import Path
 import time
+from unittest import mock
 
 from bench.common import argument_parser, output_path, write_text
 from bench.datasets.synthetic import load_bunny, make_correspondences
 from cgags_ros.config import fields
 from cgags_ros.registration import (
+    cgags,
     CoreConfig,
     register_correspondences,
     rotation_error_deg,
@@ -33,10 +38,22 @@ VARIANTS: dict[str, dict] = {
     'default, uniform edge + uniform vertex (tournaments of 1)': {
         'edge_tournament': 1, 'vertex_tournament': 1},
     'default, no guided sampling': {'guided_sampling': False},
-    'default, single re-fit': {'refit_iterations': 1},
+    'default, single re-fit': {'REFIT_ITERATIONS': 1},
     'default, edge tournament 64': {'edge_tournament': 64},
     'default, vertex tournament 32': {'vertex_tournament': 32},
 }
+
+
+def variant(name: str) -> tuple[CoreConfig, contextlib.ExitStack]:
+    """Return a variant's CoreConfig and a context holding its core constants set."""
+    values = VARIANTS[name]
+    cfg = fields.update_from_flat(CoreConfig(), {k: v for k, v in values.items()
+                                                 if not k.isupper()})
+    stack = contextlib.ExitStack()
+    for constant, value in values.items():
+        if constant.isupper():
+            stack.enter_context(mock.patch.object(cgags, constant, value))
+    return cfg, stack
 
 
 def run_cell(model, n, ratio, cfg, trials, tau, noise, outliers):
@@ -78,12 +95,13 @@ def main(argv=None) -> None:
              '|' + '---|' * (len(cells) + 1)]
     print('\n'.join(lines), flush=True)
     for name in names:
-        cfg = fields.update_from_flat(CoreConfig(), VARIANTS[name])
+        cfg, constants = variant(name)
         cols = []
-        for n, r in cells:
-            s, med, _, h = run_cell(model, n, r, cfg, args.trials, args.tau, args.noise,
-                                    args.outliers)
-            cols.append(f'{100 * s:.0f} / {1000 * med:.0f} / {h:.0f}')
+        with constants:
+            for n, r in cells:
+                s, med, _, h = run_cell(model, n, r, cfg, args.trials, args.tau, args.noise,
+                                        args.outliers)
+                cols.append(f'{100 * s:.0f} / {1000 * med:.0f} / {h:.0f}')
         line = f'| {name} | ' + ' | '.join(cols) + ' |'
         lines.append(line)
         print(line, flush=True)

@@ -45,13 +45,12 @@ from pathlib import Path
 from types import SimpleNamespace
 
 from bench.common import argument_parser, markdown_table
-from cgags_ros.config import PipelineConfig
 from cgags_ros.pipeline import confidence, covariance, rivals
+from cgags_ros.pipeline.candidates import MIN_ROTATION_DEG  # the records' default too
 import numpy as np
 
 VOXEL = 0.05
 SIGNIFICANCE = 0.01  # gates.significance, the default the records were measured with
-MIN_ROTATION_DEG = PipelineConfig().candidate_min_rotation_deg  # the records' default too
 CHI2_95 = 12.592  # chi-square, 6 degrees of freedom
 CHI2_999 = 22.458
 GRIDS = ('2', '4', '8', '16')

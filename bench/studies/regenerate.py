@@ -79,7 +79,7 @@ def measure(src: np.ndarray, tgt: np.ndarray, truth: np.ndarray, cfg: PipelineCo
     tau, delta = core.inlier_threshold, core.compatibility_threshold
     right = np.linalg.norm(apply_transform(truth, ps) - pt, axis=1) < tau
     seeds = regenerate.seed_rows(ps, pt, delta, 0.0, cfg)
-    radius = cfg.regenerate.radius_factor * v
+    radius = regenerate.RADIUS * v
     matches, right_found = [], set()
     for s in seeds:
         i, j = regenerate.local_matches(fs, ft, ps[s], pt[s], radius, delta)

@@ -5,11 +5,11 @@ Run by hand from the repository root, after a ``bench.threedmatch`` run whose re
 reads (a few minutes)::
 
     .venv/bin/python -m bench.studies.revoted_translations out/refused/full/records.jsonl \
-        [--method 'cgags[refined]'] [--reasons free-space ambiguous ...]
+        [--method 'cgags[refined]'] [--refusals free_space ambiguous ...]
 
 Many wrong estimates have the right rotation and a translation off along what the overlap
-constrains least (a slide). For every refused estimate of the records (``--reasons``: only
-those refused for these reasons), each correspondence votes for a translation under the
+constrains least (a slide). For every refused estimate of the records (``--refusals``: only
+those refused with these codes), each correspondence votes for a translation under the
 estimate's rotation (``q - R p``); the PEAKS fullest cubes of side tau (each at least
 2 tau from those before) and the estimate's own translation are settled as the structured
 rivals are, then measured (fitness within 1.5 voxels, free-space violation). It counts,
@@ -74,15 +74,15 @@ def main(argv: list[str] | None = None) -> int:
     parser = argument_parser(__spec__.name, __doc__)
     parser.add_argument('records', type=Path)
     parser.add_argument('--method', default='cgags[refined]')
-    parser.add_argument('--reasons', nargs='*', default=[],
-                        help="refusal reasons' first words (default: every refusal)")
+    parser.add_argument('--refusals', nargs='*', default=[],
+                        help='refusal codes (default: every refusal)')
     parser.add_argument('--root', type=Path, default=shared_data_dir() / '3dmatch_benchmark')
     args = parser.parse_args(argv)
     cfg = PipelineConfig()
     limit = cfg.gates.max_free_space_violation
     records = [json.loads(line) for line in args.records.read_text(encoding='utf-8').splitlines()]
     refused = [r for r in records if r['method'] == args.method and not r['valid']
-               and (not args.reasons or r['reason'].startswith(tuple(args.reasons)))]
+               and (not args.refusals or r.get('refusal') in args.refusals)]
     counts = {k: dict.fromkeys(('pairs', 'any right', 'best fitness right',
                                 'best clear of free space right'), 0)
               for k in ('wrong, rotation right', 'wrong, rotation wrong', 'right')}

@@ -93,7 +93,7 @@ def ambiguity(records: list[dict]) -> str:
     """Return the 3DLoMatch estimates refused as ambiguous, by their rival's overlap."""
     ratios: dict[bool, list[float]] = {True: [], False: []}
     for r in records:
-        if r['benchmark'] != '3DLoMatch' or not (r['reason'] or '').startswith('ambiguous'):
+        if r['benchmark'] != '3DLoMatch' or r.get('refusal') != 'ambiguous':
             continue
         best, *others = r.get('candidates') or [None]
         rivals = [c for c in others if best and c.get('fitness')

@@ -116,7 +116,7 @@ def solve(evidence: list[Evidence], cfg: CalibrationConfig) -> CalibrationResult
     clouds = [e.clouds for e in (agreeing or usable)]
     d = consensus.distance(cfg)
     if agreeing and len(agreeing) < len(evidence):  # the others never enter the estimate
-        T = joint.refine(clouds, T, [d], cfg.iterations)
+        T = joint.refine(clouds, T, [d], joint.ITERATIONS)
     result.transform = T
     _uncertainty(result, clouds, agreeing, cfg)
     result.refusal = (_observability_refusal(result, cfg) or _agreement_refusal(result, cfg)
@@ -136,7 +136,7 @@ def _uncertainty(result: CalibrationResult, clouds: list, agreeing: list[Evidenc
     radius = float(np.sqrt(np.mean(np.sum((arms - centre) ** 2, axis=1)))) \
         if len(arms) else 0.0
     result.observability, result.unobservable = uncertainty.unobservable(
-        H, centre, radius, cfg.min_observability)
+        H, centre, radius, uncertainty.MIN_OBSERVABILITY)
     deviations, covariances = [], []
     for e, f in zip(agreeing, [f for f in result.frames if f.agrees]):
         deviations.append(joint.difference(f.transform, T))
@@ -162,7 +162,7 @@ def _scene_observability(scans: list, cfg: CalibrationConfig) -> tuple[float, li
     centre = points.mean(axis=0)
     J = np.hstack([normals, np.cross(points, normals)])  # about the parent origin
     radius = float(np.sqrt(np.mean(np.sum((points - centre) ** 2, axis=1))))
-    return uncertainty.unobservable(J.T @ J, centre, radius, cfg.min_observability)
+    return uncertainty.unobservable(J.T @ J, centre, radius, uncertainty.MIN_OBSERVABILITY)
 
 
 def _observability_refusal(result: CalibrationResult,
@@ -171,10 +171,10 @@ def _observability_refusal(result: CalibrationResult,
         return None
     return Refusal(RefusalCode.DEGENERATE_AXIS, (
         f"not observable: {'; '.join(result.unobservable)} (parent frame): the scenes do "
-        f'not constrain it (observability {result.observability:.2g} < min_observability '
-        f'{cfg.min_observability:g}; a plane leaves the translations in it and the rotation '
-        'about its normal free, a corridor the translation along it); add frames of a '
-        'richer scene'))
+        f'not constrain it (observability {result.observability:.2g} < '
+        f'{uncertainty.MIN_OBSERVABILITY:g}; a plane leaves the translations in it and the '
+        'rotation about its normal free, a corridor the translation along it); add frames '
+        'of a richer scene'))
 
 
 def _agreement_refusal(result: CalibrationResult, cfg: CalibrationConfig) -> Refusal | None:
@@ -190,7 +190,7 @@ def _agreement_refusal(result: CalibrationResult, cfg: CalibrationConfig) -> Ref
             f'{cfg.min_agreeing_frames}) and the pipeline alone did not accept the pose '
             f'({alone[0].single_frame_reason or "another pose"}); take more frames'))
     return Refusal(RefusalCode.FRAMES_DISAGREE, (
-        f'frames disagree: {n} of {total} agree on the pose (min_agreement '
+        f'{n} of {total} frames agree on the pose (min_agreement '
         f'{cfg.min_agreement:g}); '
         + '; '.join(f'{f.name}: {f.reason}' for f in result.frames if not f.agrees)))
 
@@ -202,11 +202,11 @@ def _rival_refusal(found: list, usable: list[Evidence],
         return None
     best = found[0]
     return Refusal(RefusalCode.AMBIGUOUS, (
-        f'ambiguous: every frame also agrees with a pose '
+        f'every frame also agrees with a pose '
         f'{rotation_error_deg(other.transform, best.transform):.1f} deg / '
         f'{translation_error(other.transform, best.transform):.2f} m away (joint overlap '
-        f'{other.score:.3f} against {best.score:.3f}, within ambiguity_ratio '
-        f'{cfg.ambiguity_ratio:g}); the scenes look alike in both poses'))
+        f'{other.score:.3f} against {best.score:.3f}, within '
+        f'{consensus.AMBIGUITY_RATIO:g} times); the scenes look alike in both poses'))
 
 
 def _last_frame_within_std(evidence: list[Evidence], result: CalibrationResult,
@@ -221,6 +221,6 @@ def _last_frame_within_std(evidence: list[Evidence], result: CalibrationResult,
     if not agreeing or not result.frames[-1].agrees:
         return False
     before = joint.refine(agreeing, result.transform, [consensus.distance(cfg)],
-                          cfg.iterations)
+                          joint.ITERATIONS)
     delta = np.abs(joint.difference(result.transform, before))
     return bool(np.all(delta <= np.sqrt(np.diag(result.covariance))))

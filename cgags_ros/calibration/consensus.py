@@ -10,10 +10,10 @@ refinement distance. The best scoring one is the estimate.
 
 A frame agrees with a pose when (1) refining the pose on that frame alone moves the
 frame's overlapping child points, along the parent's normals, by at most
-``agreement_shift_factor`` voxel sizes RMS (motion along directions the frame does not
+``AGREEMENT_SHIFT`` voxel sizes RMS (motion along directions the frame does not
 constrain is free), and (2) none of the frame's own candidates, refined on it, overlaps
-``ambiguity_ratio`` times better. A rival is a distinct pose scoring above
-1/``ambiguity_ratio`` of the best that every frame agrees with too: the set is then
+``AMBIGUITY_RATIO`` times better. A rival is a distinct pose scoring above
+1/``AMBIGUITY_RATIO`` of the best that every frame agrees with too: the set is then
 ambiguous.
 """
 
@@ -34,6 +34,8 @@ from ..pipeline.candidates import distinct
 
 
 SCREEN_POINTS = 1500  # child points per frame while hypotheses are compared
+AGREEMENT_SHIFT = 0.15  # a frame agrees when the pose moves on it by at most this (voxels RMS)
+AMBIGUITY_RATIO = 1.5  # a pose this many times better is a rival (see the module doc)
 
 
 @dataclasses.dataclass
@@ -87,7 +89,7 @@ def hypotheses(evidence: list[Evidence], cfg: CalibrationConfig) -> list[Hypothe
     found: list[Hypothesis] = []
     for T0, origins, tau in seeds:
         stages = [tau, d] if tau > d else [d]
-        T = joint.refine(light, T0, stages, cfg.iterations)
+        T = joint.refine(light, T0, stages, joint.ITERATIONS)
         same = next((h for h in found if not distinct(T, h.transform, cfg.pipeline)), None)
         if same is not None:
             same.origins += origins
@@ -98,7 +100,7 @@ def hypotheses(evidence: list[Evidence], cfg: CalibrationConfig) -> list[Hypothe
     found.sort(key=lambda h: -h.score)
     if found:  # the winner on every point
         best = found[0]
-        best.transform = joint.refine(clouds, best.transform, [d], cfg.iterations)
+        best.transform = joint.refine(clouds, best.transform, [d], joint.ITERATIONS)
     return found
 
 
@@ -131,10 +133,10 @@ def verdict(index: int, e: Evidence, T: np.ndarray, cfg: CalibrationConfig) -> F
         report.reason = f'unusable: {e.result.reason}'
         return report
     d, v = distance(cfg), cfg.pipeline.voxel_size
-    report.shift_m, report.transform = shift(e.clouds, T, d, cfg.iterations)
+    report.shift_m, report.transform = shift(e.clouds, T, d, joint.ITERATIONS)
     ahead, back = joint.overlap(e.clouds, report.transform, d)
     report.fitness, report.overlap = ahead, min(ahead, back)
-    limit = cfg.agreement_shift_factor * v
+    limit = AGREEMENT_SHIFT * v
     if not report.shift_m <= limit:
         report.reason = (
             f'refined on this frame alone, the joint pose moves by '
@@ -144,12 +146,12 @@ def verdict(index: int, e: Evidence, T: np.ndarray, cfg: CalibrationConfig) -> F
         return report
     own = _best_own(e, cfg)
     if own is not None and distinct(own[0], report.transform, cfg.pipeline) \
-            and own[1] > cfg.ambiguity_ratio * report.overlap:
+            and own[1] > AMBIGUITY_RATIO * report.overlap:
         report.reason = (
             f'its own pose ({rotation_error_deg(own[0], T):.1f} deg / '
             f'{translation_error(own[0], T):.2f} m from the joint one) overlaps '
-            f'{own[1]:.3f} against {report.overlap:.3f} (more than ambiguity_ratio '
-            f'{cfg.ambiguity_ratio:g} times better)')
+            f'{own[1]:.3f} against {report.overlap:.3f} (more than '
+            f'{AMBIGUITY_RATIO:g} times better)')
         report.transform = own[0]
         return report
     report.agrees = True
@@ -162,7 +164,7 @@ def _best_own(e: Evidence, cfg: CalibrationConfig) -> tuple[np.ndarray, float] |
     tau = float(e.result.inlier_threshold)
     best = None
     for T0 in e.candidates:
-        T = joint.refine([e.clouds], T0, [tau, d] if tau > d else [d], cfg.iterations)
+        T = joint.refine([e.clouds], T0, [tau, d] if tau > d else [d], joint.ITERATIONS)
         ahead, back = joint.overlap(e.clouds, T, d)
         if best is None or min(ahead, back) > best[1]:
             best = (T, min(ahead, back))
@@ -173,11 +175,11 @@ def rival(found: list[Hypothesis], evidence: list[Evidence],
           cfg: CalibrationConfig) -> Hypothesis | None:
     """Return a distinct hypothesis the frames agree on about as well as the best, or None."""
     best, d = found[0], distance(cfg)
-    limit = cfg.agreement_shift_factor * cfg.pipeline.voxel_size
+    limit = AGREEMENT_SHIFT * cfg.pipeline.voxel_size
     for h in found[1:]:
-        if h.score * cfg.ambiguity_ratio <= best.score:
+        if h.score * AMBIGUITY_RATIO <= best.score:
             break  # sorted: the rest score lower still
-        if all(e.clouds is not None and shift(e.clouds, h.transform, d, cfg.iterations)[0]
+        if all(e.clouds is not None and shift(e.clouds, h.transform, d, joint.ITERATIONS)[0]
                <= limit for e in evidence):
             return h
     return None
@@ -193,14 +195,14 @@ def largest_agreeing(evidence: list[Evidence], T: np.ndarray,
     frames agree with (by the shift test) wins, and only those frames refine it: frames
     that disagree are left out, never averaged in.
     """
-    d, limit = distance(cfg), cfg.agreement_shift_factor * cfg.pipeline.voxel_size
-    anchors = [shift(e.clouds, T, d, cfg.iterations)[1] for e in evidence]
+    d, limit = distance(cfg), AGREEMENT_SHIFT * cfg.pipeline.voxel_size
+    anchors = [shift(e.clouds, T, d, joint.ITERATIONS)[1] for e in evidence]
     best: tuple[int, list[FrameClouds], np.ndarray] | None = None
     for anchor in anchors:
         members = [e.clouds for e in evidence
-                   if shift(e.clouds, anchor, d, cfg.iterations)[0] <= limit]
+                   if shift(e.clouds, anchor, d, joint.ITERATIONS)[0] <= limit]
         if best is None or len(members) > best[0]:
             best = (len(members), members, anchor)
     if not best[1]:
         return T
-    return joint.refine(best[1], best[2], [d], cfg.iterations)
+    return joint.refine(best[1], best[2], [d], joint.ITERATIONS)

@@ -15,7 +15,8 @@ import numpy as np
 
 from .joint import FrameClouds, surface_normals
 from ..config.pipeline import PipelineConfig
-from ..errors import EmptyCloudError
+from ..coordinates import local_origin, sensor_at_origin, SENSOR_REACH
+from ..errors import EmptyCloudError, InvalidInputError
 from ..frontend.features import finite_points
 from ..frontend.keypoints import match_keypoints
 from ..parallel import DEFAULT_WORKERS
@@ -76,6 +77,14 @@ def gather(frame: Frame, config: PipelineConfig) -> Evidence:
         child, parent = finite_points(frame.child, 'child'), finite_points(frame.parent, 'parent')
     except EmptyCloudError as exc:
         return Evidence(frame, PipelineResult(refusal=exc.refusal), None, [])
+    for name, points in (('child', child), ('parent', parent)):
+        if not sensor_at_origin(local_origin(points)):
+            # The joint problem pairs every frame's clouds in their sensor frames; a cloud
+            # in a world frame (UTM, a map's) has no extrinsic to the other sensor.
+            raise InvalidInputError(
+                f'{name} cloud: its centre is more than {SENSOR_REACH:g} m from its frame '
+                "origin, so it is not in its sensor's frame; calibration takes each "
+                "sensor's cloud as that sensor gave it")
     result = register_clouds(child, parent, config=config)
     candidates = [np.asarray(c.transform, dtype=np.float64) for c in result.candidates]
     try:

@@ -25,6 +25,8 @@ from scipy.spatial.transform import Rotation
 
 from ..geometry import apply_transform
 
+ITERATIONS = 30  # Gauss-Newton iterations of each joint refinement stage
+
 
 @dataclasses.dataclass
 class FrameClouds:
@@ -157,7 +159,7 @@ def difference(T: np.ndarray, reference: np.ndarray) -> np.ndarray:
 
 
 def refine(frames: list[FrameClouds], initial: np.ndarray, distances: list[float],
-           iterations: int = 30) -> np.ndarray:
+           iterations: int = ITERATIONS) -> np.ndarray:
     """
     Gauss-Newton on the pooled point-to-plane residuals of ``frames``, from ``initial``.
 

@@ -17,7 +17,7 @@ import numpy as np
 from .frames import Evidence
 from ..config.pipeline import PipelineConfig
 from ..errors import DegenerateCorrespondencesError
-from ..pipeline.candidates import support
+from ..pipeline.candidates import MAX_ITERATIONS, support
 from ..registration import register_correspondences
 
 
@@ -42,7 +42,7 @@ def pooled_candidates(evidence: list[Evidence], cfg: PipelineConfig
         if len(rest) < 3:
             break
         core_cfg = cfg.core if attempt == 0 else dataclasses.replace(
-            cfg.core, max_iterations=min(cfg.core.max_iterations, cfg.candidate_max_iterations))
+            cfg.core, max_iterations=min(cfg.core.max_iterations, MAX_ITERATIONS))
         try:
             core = register_correspondences(src[rest], dst[rest], inlier_threshold=tau,
                                             resolution=resolution, config=core_cfg,

@@ -22,6 +22,9 @@ from __future__ import annotations
 import numpy as np
 
 AXES = ('x', 'y', 'z')
+# Smallest / largest eigenvalue of the joint point-to-plane information (rotation scaled by
+# the overlap radius) below which a direction is unobservable and the calibration a FAIL.
+MIN_OBSERVABILITY = 0.02
 
 
 def covariance(H: np.ndarray, ssr: float, count: int) -> np.ndarray:

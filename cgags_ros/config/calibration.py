@@ -32,16 +32,3 @@ class CalibrationConfig:
         2, 'Frames that must agree for a valid result: agreement is the evidence that a '
         'pose is no coincidence of one scene. A single frame is accepted only when the '
         'pipeline alone accepted it with the same pose.', low=1, high=1000)
-    agreement_shift_factor: float = option(
-        0.15, 'A frame agrees when refining the joint pose on that frame alone moves its '
-        'overlapping points along their normals by at most this many voxel sizes (RMS), '
-        'and no pose of its own fits it ambiguity_ratio times better.', low=0.0, high=10.0)
-    min_observability: float = option(
-        0.02, 'Smallest / largest eigenvalue of the joint point-to-plane information (rotation '
-        'scaled by the overlap radius); a direction below it is unobservable and the result '
-        'a FAIL naming it.', low=0.0, high=1.0)
-    ambiguity_ratio: float = option(
-        1.5, 'The estimate is refused as ambiguous when another pose every frame agrees on '
-        'has more than 1/ambiguity_ratio of its joint overlap.', low=1.0, high=100.0)
-    iterations: int = option(30, 'Gauss-Newton iterations of each joint refinement stage.',
-                             low=1, high=1000)

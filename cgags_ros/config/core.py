@@ -38,28 +38,14 @@ class CoreConfig:
         '(and, in the pipeline, a 6-DoF point-to-plane step on the overlap); a larger tilt '
         'means the clouds are not levelled and the result is reported valid=False, never '
         'forced flat.', low=0.0, high=90.0)
-    min_edge_length_factor: float = option(
-        1.0, 'INFERRED (4dof). Reject a minimal subset (an edge) whose horizontal length, '
-        'across the gravity axis, is below this many tau in either cloud (its yaw is poorly '
-        'determined). 0 disables.', low=0.0, advanced=True)
 
-    # --- thresholds (paper: tau = 6 pr, delta = 10 pr) -----------------------------------
+    # --- thresholds (paper: tau = 6 pr; delta = 10 pr is COMPATIBILITY_FACTOR) ------------
     inlier_threshold: float = option(
         0.0, 'Inlier threshold tau in metres; 0 derives it from the point resolution pr (mean '
         'nearest-neighbour distance of the downsampled clouds) as inlier_threshold_factor * '
         'pr.', low=0.0)
     inlier_threshold_factor: float = option(
         6.0, 'Inlier threshold tau in units of the point resolution pr (paper: 6).', low=1e-6)
-    compatibility_threshold_factor: float = option(
-        10.0, 'Compatibility threshold delta in units of pr (paper: 10).', low=1e-6)
-    compatibility_to_inlier_ratio: float = option(
-        10.0 / 6.0, 'delta / tau when only an inlier threshold (no resolution) is given '
-        "(the paper's 10/6).", low=1e-3, advanced=True)
-
-    # --- compatibility graph (INFERRED) --------------------------------------------------
-    min_pair_distance_factor: float = option(
-        0.0, 'INFERRED. Drop graph edges whose source pair is closer than this many tau '
-        '(short edges constrain rotation poorly). 0 keeps all.', low=0.0, advanced=True)
 
     # --- minimal compatible subsets (INFERRED) -------------------------------------------
     edge_tournament: int = option(
@@ -71,36 +57,11 @@ class CoreConfig:
         8, 'INFERRED. Graph vertex sampling keeps, of this many uniform k in N(i) ∩ N(j), '
         'the one with the largest |N(i) ∩ N(j) ∩ N(k)|.',
         low=1, high=4096, advanced=True)
-    min_triangle_area_factor: float = option(
-        0.5, 'INFERRED. Reject near-collinear triples whose source triangle area is below '
-        'factor * tau^2. 0 disables.', low=0.0, advanced=True)
-
-    # --- hypothesis scoring ----------------------------------------------------------------
-    batch_size: int = option(
-        512, 'Largest number of hypotheses generated and scored per vectorized batch '
-        '(batches start small and double, so easy problems stop early).', low=1,
-        high=100000, advanced=True)
-    exact_per_batch: int = option(
-        16, 'Hypotheses per batch scored on all N (and fed to the preference lists); the '
-        'others are pre-screened on their common neighbourhood only.', low=1, high=100000,
-        advanced=True)
 
     # --- preference-based accelerated guided sampling -------------------------------------
     guided_sampling: bool = option(
         True, 'Use preference-based accelerated guided sampling after stage one.',
         advanced=True)
-    preference_length: int = option(
-        20, "b: length of each correspondence's preference list (paper: 20).",
-        low=1, high=1000, advanced=True)
-    xi: float = option(
-        1e-6, 'xi: floor added to kernel sampling weights (paper: 1e-6).', low=0.0,
-        advanced=True)
-    max_up: int = option(
-        3, 'max_up (paper: 3): the intersection kernel is recomputed at a new best model '
-        'at most this many times during guided sampling.', low=0, high=1000, advanced=True)
-    kernel_subset: int = option(
-        400, 'Correspondences (top by preference-kernel support) kept for guided sampling; '
-        'bounds the N x M kernel. 0 keeps all.', low=0, advanced=True)
 
     # --- stopping ----------------------------------------------------------------------------
     max_iterations: int = option(
@@ -109,28 +70,16 @@ class CoreConfig:
         0.0, 'Seconds after which sampling stops and the best model so far is used (the '
         "result then says stopped_by='time_budget'). 0: no limit, only max_iterations.",
         low=0.0, ros=True)
-    min_iterations: int = option(
-        0, 'Hypotheses generated before any adaptive stop.', low=0, advanced=True)
     p1: float = option(0.99, 'Confidence P1 of the compatible-sampling stage (paper: 0.99).',
                        low=0.0, high=0.999999)
-    p2: float = option(0.99, 'Confidence P2 of the guided stage (paper: 0.99).',
-                       low=0.0, high=0.999999)
-    stopping: str = option(
-        'adaptive', "INFERRED. 'adaptive': RANSAC bound log(1-P)/log(1-w) per stage with w "
-        "estimated from the best model's inliers inside the compatibility graph; 'fixed': "
-        'always max_iterations.', choices=('adaptive', 'fixed'), advanced=True)
     futility_stop: bool = option(
-        False, 'INFERRED (4-DoF). End the search without a valid model once enough edges '
-        'were drawn that a motion with the smallest significant consensus (L = '
-        'max(min_inliers, chance level) inliers, C(L, 2) of the graph edges) would have '
-        'been drawn with confidence P1: fast rejections, but it misses more '
-        'sub-significant true motions (docs/method.md). No effect in 6-DoF.',
-        advanced=True)
+        False, '4-DoF only. End the search without a valid model once a motion with the '
+        'smallest significant consensus would have been drawn with confidence P1. Set it on '
+        'a live system that rejects a non-significant answer anyway and needs it fast (no '
+        'match ends in milliseconds, not at max_iterations); it misses more barely '
+        'significant true motions (docs/bench_core_4dof.md).')
 
-    # --- final re-fit and validity ------------------------------------------------------------
-    refit_iterations: int = option(
-        10, 'Maximum iterations of the final re-fit (repeated while the inlier set changes).',
-        low=1, high=1000, advanced=True)
+    # --- validity ------------------------------------------------------------------------------
     distinct_ratio: float = option(
         1.3, 'A result is significant (search may stop, result may be valid) only if its '
         'inlier count is at least this times that of the best distinct alternative '
@@ -140,8 +89,6 @@ class CoreConfig:
 
     def check(self) -> None:
         """Check constraints between fields (called by ``fields.validate``)."""
-        if self.guided_sampling and self.preference_length < 1:
-            raise InvalidConfigError('preference_length must be >= 1 with guided sampling')
         norm = math.sqrt(sum(c * c for c in self.gravity))
         if not norm > 1e-9:
             raise InvalidConfigError(

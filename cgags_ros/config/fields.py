@@ -110,7 +110,7 @@ def validate(cfg: Any, _prefix: str = '') -> Any:
 
 
 def flatten(cfg: Any, _prefix: str = '') -> dict[str, Any]:
-    """``{'core.preference_length': 20, 'voxel_size': 0.05, ...}`` for YAML and ROS params."""
+    """``{'core.p1': 0.99, 'voxel_size': 0.05, ...}`` for YAML and ROS params."""
     out: dict[str, Any] = {}
     for f in dataclasses.fields(cfg):
         value = getattr(cfg, f.name)

@@ -18,8 +18,6 @@ class FrontEndConfig:
 
     normal_radius_factor: float = option(
         2.0, 'Normal estimation radius in voxel sizes.', low=0.1, high=100.0)
-    normal_max_nn: int = option(30, 'Maximum neighbours for normal estimation.', low=3,
-                                high=1000)
     normal_orientation: str = option(
         'origin', "Normal sign (FPFH depends on it): 'centroid' points normals towards the "
         "cloud's centroid (frame-independent), 'origin' towards the frame origin (the sensor "
@@ -27,12 +25,6 @@ class FrontEndConfig:
         'sign.', choices=('centroid', 'origin', 'none'), ros=True)
     fpfh_radius_factor: float = option(
         5.0, 'FPFH feature radius in voxel sizes.', low=0.5, high=100.0)
-    fpfh_max_nn: int = option(100, 'Maximum neighbours for FPFH.', low=5, high=5000)
-    mutual_filter: bool = option(True, 'Keep only mutual nearest neighbours in FPFH space.',
-                                 advanced=True)
-    ratio_test: float = option(
-        1.0, 'Lowe ratio test on FPFH distances (1.0 disables).', low=0.1, high=1.0,
-        advanced=True)
     max_correspondences: int = option(
         5000, 'Keep at most this many correspondences (best descriptor distance first); '
         '0 keeps all.', low=0)
@@ -41,8 +33,6 @@ class FrontEndConfig:
         'downsampled source, one point a cell) against every target point: fewer searches '
         "in the target's descriptor index, but fewer correspondences; 0 matches every point.",
         low=0)
-    min_points: int = option(
-        10, 'Fewer points than this after downsampling is rejected as an empty cloud.', low=3)
 
 
 @dataclasses.dataclass
@@ -54,13 +44,6 @@ class RefineConfig:
         "(Open3D ICP) or 'gicp' (small_gicp).", choices=('none', 'point_to_plane', 'gicp'))
     max_correspondence_distance_factor: float = option(
         1.5, 'Refinement correspondence distance in voxel sizes.', low=0.01, high=100.0)
-    max_iterations: int = option(50, 'Refinement iterations.', low=1, high=10000)
-    coarse_stage_tolerance: float = option(
-        1e-4, "When the core's inlier threshold exceeds the refinement distance, a first "
-        'refinement stage runs at that threshold; it stops once fitness and inlier RMSE '
-        'change by less than this (relative): it only has to bring the estimate within the '
-        "final distance. The final stage keeps Open3D's 1e-6.", low=0.0, high=1.0,
-        advanced=True)
     refused: bool = option(
         True, 'Refine an estimate the core refuses as well. It stays refused (no refinement '
         'lifts a consensus that does not stand out), but the pose it reports, the best '

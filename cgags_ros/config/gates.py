@@ -79,16 +79,10 @@ class GatesConfig:
     max_free_space_violation: float = option(
         0.3, "Free-space gate (sensor-frame clouds: frontend.normal_orientation 'origin'): "
         "the share of aligned points in front of the other cloud's observed surface (by "
-        'over free_space_margin_factor voxels), among those in front or on it, the larger '
+        'over two voxels), among those in front or on it, the larger '
         'direction; above this the pose puts surfaces where a sensor saw free space and is '
         'invalid. 1 disables.', low=0.0, high=1.0)
     free_space_settle_factor: float = option(
         0.5, 'An estimate the correspondences alone did not settle (a collinear consensus, '
         'or a rival within ambiguity_ratio) is trusted only below this times '
         'max_free_space_violation.', low=0.0, high=1.0, advanced=True)
-    free_space_margin_factor: float = option(
-        2.0, 'Depth margin of the free-space gate in voxel sizes.', low=0.0, high=100.0,
-        advanced=True)
-    free_space_bin_deg: float = option(
-        2.0, "Angular bin (degrees) of the free-space gate's depth maps seen from each "
-        "cloud's origin.", low=0.05, high=30.0, advanced=True)

@@ -60,9 +60,6 @@ class PairingConfig:
         1, 'Sources kept while no target (latest_target) or no matching target '
         '(synchronized) has arrived; the oldest is dropped beyond this.', low=1, high=1000,
         read_only=True)
-    max_waiting_targets: int = option(
-        10, 'synchronized mode: unmatched targets kept; the oldest is dropped beyond this.',
-        low=1, high=1000, read_only=True)
     source_qos: str = option(
         'sensor_data', "QoS of source_cloud: 'sensor_data' (best effort) or 'reliable', "
         'each keeping the last source_depth scans.', choices=('sensor_data', 'reliable'),

@@ -42,16 +42,6 @@ class PipelineConfig:
         'the others are found by searching again among the correspondences no earlier '
         'candidate explains. 1 reports the estimate only and skips the ambiguity check.',
         low=1, high=50)
-    candidate_min_rotation_deg: float = option(
-        10.0, 'Two candidates are distinct when their rotations differ by more than this '
-        '(degrees) or their translations by more than candidate_min_translation_factor '
-        'voxel sizes.', low=0.0, high=180.0)
-    candidate_min_translation_factor: float = option(
-        10.0, 'Translation (in voxel sizes) by which two candidates must differ to be '
-        'distinct (or see candidate_min_rotation_deg).', low=0.0, high=1e6)
-    candidate_max_iterations: int = option(
-        1000, 'Hypotheses generated in each search for a further candidate (the search for '
-        'the estimate itself uses core.max_iterations).', low=1, high=10**8, advanced=True)
 
 
 def load_yaml(path: str | Path) -> dict[str, Any]:

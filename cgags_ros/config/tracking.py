@@ -32,40 +32,17 @@ class TrackingConfig:
     global_check_period: float = option(
         5.0, 'Seconds (header stamps) after which the global search runs again on a tracked '
         'stream, as global_check_interval; 0 never by time.', low=0.0, high=3600.0)
-    agreement_rotation_deg: float = option(
-        2.0, 'A periodic global result and the prediction agree when their rotations differ '
-        'by at most this (degrees) and their translations by at most '
-        'agreement_translation_factor voxel sizes; otherwise the velocity is reset.',
-        low=0.0, high=180.0, advanced=True)
-    agreement_translation_factor: float = option(
-        2.0, 'Translation bound (voxel sizes) of agreement_rotation_deg.', low=0.0,
-        high=1e6, advanced=True)
     min_fitness_ratio: float = option(
         0.85, "A tracked pose's fitness must be at least this times the fitness of the pair's "
         'last accepted pose: a jump or a kidnap leaves the refinement in a minimum that '
-        'explains far fewer points, while smooth motion changes fitness little.', low=0.0,
-        high=1.0, advanced=True)
+        'explains far fewer points, while smooth motion changes fitness little. Lower it '
+        'where the scene itself changes between scans (crowds, traffic) and tracked scans '
+        'go global too often.', low=0.0, high=1.0)
     max_correction_factor: float = option(
         6.0, 'A refinement that moves the prediction by more than this many voxel sizes '
-        '(or max_correction_deg) is not a tracked pose: the scan is searched globally.',
-        low=0.0, high=1e6, advanced=True)
+        '(or max_correction_deg) is not a tracked pose: the scan is searched globally. '
+        'Raise it when the motion between scans is jerkier than the prediction (no '
+        'odometry, hard braking) and tracked scans go global too often.', low=0.0, high=1e6)
     max_correction_deg: float = option(
-        10.0, 'Rotation bound (degrees) of max_correction_factor.', low=0.0, high=180.0,
-        advanced=True)
-    coarse_distance_factor: float = option(
-        0.0, 'When above the final refinement distance: a first refinement stage from the '
-        'prediction matching points within this many voxel sizes, so that a poorer '
-        'prediction (no odometry, hard acceleration) still converges, at several times the '
-        "refinement's cost; 0 runs the final stage only, and a prediction off by more than "
-        'it goes global.', low=0.0, high=100.0, advanced=True)
-    recovery_voxel_factor: float = option(
-        1.0, 'A tracked stream that lost its track (a jump, a gap) is searched globally at '
-        'this many times voxel_size (faster), refined at voxel_size from that pose and '
-        'judged as a tracked pose; if either refuses, the full search follows. 1: voxel_size '
-        'only. Not before a scan of the pair was tracked, nor onto a map.', low=1.0,
-        high=10.0, advanced=True)
-    refine_tolerance: float = option(
-        1e-3, 'The tracked refinement stops once fitness and inlier RMSE change by less than '
-        'this (relative): from a close start, further iterations move the pose far less than '
-        "the gates or the sensor can tell apart. The global path's final stage keeps 1e-6.",
-        low=0.0, high=1.0, advanced=True)
+        10.0, 'Rotation bound (degrees) of max_correction_factor; raise it as that one, for '
+        'a sensor that turns fast between scans.', low=0.0, high=180.0)

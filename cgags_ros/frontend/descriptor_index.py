@@ -10,6 +10,8 @@ computing a small share of those distances; a latched target or a map builds it 
 
 from __future__ import annotations
 
+from typing import Mapping
+
 import numpy as np
 
 from . import compiled
@@ -79,6 +81,28 @@ class DescriptorIndex:
             np.ascontiguousarray(ring[order]), points, basis,
             np.ascontiguousarray(basis @ points.T, dtype=np.float32),
             float(np.sqrt(np.einsum('ij,ij->i', ref, ref).max())), order, slot_of)
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Return the index as named arrays (:meth:`from_arrays` builds it back, as it was)."""
+        out = {name: np.asarray(value) for name, value in self.arrays._asdict().items()}
+        out['max_norm'] = np.array([self.arrays.max_norm])
+        return out
+
+    @classmethod
+    def from_arrays(cls, arrays: Mapping[str, np.ndarray]) -> DescriptorIndex:
+        """
+        Return the index :meth:`to_arrays` gave, on ``arrays`` as they are (no copy).
+
+        Arrays memory-mapped from a map's cache stay so: processes that load one map share
+        its index.
+        """
+        index = cls.__new__(cls)
+        fields = {name: arrays[name] for name in compiled.IndexArrays._fields}
+        fields['max_norm'] = float(np.reshape(fields['max_norm'], -1)[0])
+        index.arrays = compiled.IndexArrays(**fields)
+        index.size, index.dim = index.arrays.points.shape
+        index.centres, index.basis = index.arrays.centres, index.arrays.basis
+        return index
 
     def _partition(self, ref: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
         """Return k-means cell centres of ``ref`` and its leading principal directions."""

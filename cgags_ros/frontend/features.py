@@ -23,6 +23,11 @@ from ..errors import EmptyCloudError, InvalidInputError
 from ..geometry import point_resolution
 from ..timing import timed
 
+# A normal is the PCA of at most this many nearest neighbours within its radius.
+NORMAL_MAX_NN = 30
+# A cloud with fewer points after downsampling is refused as too small (too_few_points).
+MIN_POINTS = 10
+
 _INDEX_LOCK = threading.Lock()
 
 
@@ -36,6 +41,9 @@ class CloudFeatures:
     :ivar descriptors: (M, 33) FPFH histograms.
     :ivar resolution: pr, the mean nearest-neighbour distance of ``points``, metres.
     :ivar tree: k-d tree over ``points`` (built for ``resolution``, reused by the gates).
+    :ivar sensor_at_origin: whether the frame's origin may be the sensor that saw the points
+        (False for a map, or a cloud moved from far coordinates,
+        :mod:`cgags_ros.coordinates`): free space is judged from such a view only.
     """
 
     points: np.ndarray
@@ -43,7 +51,14 @@ class CloudFeatures:
     descriptors: np.ndarray
     resolution: float
     tree: cKDTree
+    sensor_at_origin: bool = True
     _index: list = dataclasses.field(default_factory=list, repr=False, compare=False)
+
+    def with_sensor(self, at_origin: bool) -> CloudFeatures:
+        """Return these features with ``sensor_at_origin`` set (a copy: cached ones are shared)."""
+        if self.sensor_at_origin == at_origin:
+            return self
+        return dataclasses.replace(self, sensor_at_origin=at_origin)
 
     def descriptor_index(self, workers: int = 1) -> DescriptorIndex | None:
         """
@@ -112,7 +127,7 @@ def _voxel_means(cloud: o3d.geometry.PointCloud, voxel_size: float, min_points: 
     if len(down) < min_points:
         raise EmptyCloudError(
             f'{name}: only {len(down)} point(s) left after {voxel_size:g} m voxel downsampling '
-            f'(need frontend.min_points = {min_points}); lower the voxel size or check that '
+            f'(MIN_POINTS = {min_points} needed); lower the voxel size or check that '
             'the cloud is not a single repeated point')
     return down, np.asarray(cloud.normals)
 
@@ -128,7 +143,7 @@ def estimate_normals(points: np.ndarray, voxel_size: float, config: FrontEndConf
     face the sensors that saw each surface as a scan's face its own sensor.
     """
     cloud = _tensor_cloud(points)
-    cloud.estimate_normals(max_nn=config.normal_max_nn,
+    cloud.estimate_normals(max_nn=NORMAL_MAX_NN,
                            radius=config.normal_radius_factor * voxel_size)
     normals = cloud.point.normals.numpy().copy()
     if config.normal_orientation == 'none':
@@ -157,12 +172,12 @@ def extract_features(points: np.ndarray, voxel_size: float, config: FrontEndConf
     down_sides = None
     with timed(timings, 'downsample'):
         if sides is None:
-            down = downsample(finite_points(points, name), voxel_size, config.min_points, name)
+            down = downsample(finite_points(points, name), voxel_size, MIN_POINTS, name)
         else:
             keep = np.isfinite(points).all(axis=1)
             down, down_sides = downsample_with_sides(finite_points(points[keep], name),
                                                      sides[keep], voxel_size,
-                                                     config.min_points, name)
+                                                     MIN_POINTS, name)
     with timed(timings, 'normals'):
         normals = estimate_normals(down, voxel_size, config, down_sides)
     with timed(timings, 'fpfh'):

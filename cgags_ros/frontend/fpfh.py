@@ -20,15 +20,18 @@ from ..parallel import run_chunks
 # big map: 100 neighbours of 640k points) is done in blocks whose lists are searched again
 # for the second pass, so memory stays bounded.
 _NEIGHBOUR_BYTES = 256 << 20
+# A point's FPFH is made of at most this many nearest neighbours within the radius.
+FPFH_MAX_NN = 100
 
 
 def fpfh_with_spacing(points: np.ndarray, normals: np.ndarray, voxel_size: float,
                       config: FrontEndConfig,
-                      workers: int = 1) -> tuple[np.ndarray, np.ndarray | None]:
+                      workers: int = 1, max_nn: int = FPFH_MAX_NN
+                      ) -> tuple[np.ndarray, np.ndarray | None]:
     """
     Return the (M, 33) FPFH descriptors and each point's distance to its nearest other point.
 
-    FPFH with radius ``fpfh_radius_factor * v``, Open3D's definition (the ``fpfh_max_nn``
+    FPFH with radius ``fpfh_radius_factor * v``, Open3D's definition (the ``max_nn``
     nearest within the radius), computed by :mod:`.compiled.fpfh` with one neighbour search
     (:class:`.NeighbourGrid`) for both passes, on ``workers`` threads; values equal
     Open3D's to rounding (docs/design.md). A cloud spread so far that its neighbour grid's
@@ -43,8 +46,8 @@ def fpfh_with_spacing(points: np.ndarray, normals: np.ndarray, voxel_size: float
     radius = config.fpfh_radius_factor * voxel_size
     grid = NeighbourGrid.build(pts, radius)
     if grid is None:
-        return _open3d_fpfh(pts, nrm, radius, config.fpfh_max_nn), None
-    max_nn = max(1, min(config.fpfh_max_nn, len(pts)))
+        return _open3d_fpfh(pts, nrm, radius, max_nn), None
+    max_nn = max(1, min(max_nn, len(pts)))
     block = max(1, _NEIGHBOUR_BYTES // (4 * max_nn))
     blocks = [(a, min(a + block, len(pts))) for a in range(0, len(pts), block)]
     spf = np.zeros((len(pts), 33))

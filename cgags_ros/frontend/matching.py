@@ -36,13 +36,15 @@ class Correspondences:
 
 
 def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfig,
-                   workers: int = 1,
-                   target_index: DescriptorIndex | None = None) -> Correspondences:
+                   workers: int = 1, target_index: DescriptorIndex | None = None, *,
+                   mutual: bool = True, ratio: float = 1.0) -> Correspondences:
     """
     Match descriptors by nearest neighbour, source -> target, best first.
 
-    Keeps only mutual nearest neighbours (``mutual_filter``), then Lowe's ratio test
-    (``ratio_test`` < 1), then at most ``max_correspondences`` by descriptor distance.
+    Keeps only mutual nearest neighbours (``mutual``: the pipeline's matching), then, with
+    ``ratio`` < 1, Lowe's ratio test (the pipeline runs none: the core needs no distinctive
+    matches, only some right ones), then at most ``max_correspondences`` by descriptor
+    distance.
     Descriptors that are all zero (no neighbours within the FPFH radius) never match:
     they would all be identical and pair up at random. Neighbours are exact (Euclidean,
     float64); among exactly equidistant descriptors the lowest index wins. ``workers``
@@ -60,13 +62,13 @@ def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfi
     elif target_index.size != len(dst_ok):
         raise ValueError(f'target_index holds {target_index.size} rows, the target '
                          f'{len(dst_ok)} informative ones: not an index of this target')
-    k = 2 if config.ratio_test < 1.0 and len(dst_ok) > 1 else 1
+    k = 2 if ratio < 1.0 and len(dst_ok) > 1 else 1
     nn = target_index.query(src, k, workers)[0]
     # The index's own distances can differ in the last bit (another summation order); these
     # keep the best-first order of equal-looking matches what it always was.
     dist = np.linalg.norm(src[:, None, :] - dst[nn], axis=2)
     keep = np.ones(len(src_ok), dtype=bool)
-    if config.mutual_filter:
+    if mutual:
         # Of the sources whose nearest is a target, only the nearest of them (ties to the
         # lower row) can be that target's nearest source: ask, for it alone, whether any
         # other source is nearer the target.
@@ -81,7 +83,7 @@ def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfi
         keep[first] = source_index.is_nearest(dst[nn[first, 0]], first, workers)
     if k == 2:
         # Lowe: a match is distinctive when its best distance is clearly below the second.
-        keep &= dist[:, 0] < config.ratio_test * dist[:, 1]
+        keep &= dist[:, 0] < ratio * dist[:, 1]
     return _best(src_ok[keep], dst_ok[nn[keep, 0]], dist[keep, 0], config.max_correspondences)
 
 

@@ -16,6 +16,12 @@ from scipy.spatial import cKDTree
 from ..config.frontend import RefineConfig
 from ..geometry import apply_transform, GravityFrame
 
+# A first, coarser stage stops once fitness and inlier RMSE change by less than this
+# (relative): it only has to bring the estimate within the final distance, whose stage
+# keeps Open3D's 1e-6.
+COARSE_STAGE_TOLERANCE = 1e-4
+MAX_ITERATIONS = 50  # iterations of each refinement stage, at most
+
 
 @dataclasses.dataclass
 class Alignment:
@@ -65,7 +71,7 @@ def refine_transform(source: np.ndarray, target: np.ndarray, initial: np.ndarray
     ``coarse_distance`` (metres, typically the core's inlier threshold tau: the coarse
     estimate is only good to about tau) is larger, a first stage runs with it, so that an
     estimate off by more than the final distance still converges; point-to-plane's first
-    stage stops at ``config.coarse_stage_tolerance`` (GICP runs both stages in full).
+    stage stops at :data:`COARSE_STAGE_TOLERANCE` (GICP runs both stages in full).
     ``config.method == 'none'`` returns ``initial`` unchanged. The final stage stops once
     fitness and inlier RMSE change by less than ``tolerance`` (relative; a tracked scan,
     whose start is already close, needs no more than its gates can tell apart).
@@ -82,7 +88,7 @@ def refine_transform(source: np.ndarray, target: np.ndarray, initial: np.ndarray
     final = config.max_correspondence_distance_factor * voxel_size
     T = np.asarray(initial, dtype=np.float64)
     for distance in stages(coarse_distance, final):
-        stop = config.coarse_stage_tolerance if distance > final else tolerance
+        stop = COARSE_STAGE_TOLERANCE if distance > final else tolerance
         if config.method == 'point_to_plane':
             T = _point_to_plane(source, target, target_normals, T, distance, voxel_size, config,
                                 stop)
@@ -105,7 +111,7 @@ def _point_to_plane(source: np.ndarray, target: np.ndarray, target_normals: np.n
     result = reg.registration_icp(
         src, dst, distance, initial, reg.TransformationEstimationPointToPlane(),
         reg.ICPConvergenceCriteria(relative_fitness=tolerance, relative_rmse=tolerance,
-                                   max_iteration=config.max_iterations))
+                                   max_iteration=MAX_ITERATIONS))
     return np.asarray(result.transformation).copy()
 
 
@@ -118,7 +124,7 @@ def _gicp(source: np.ndarray, target: np.ndarray, initial: np.ndarray, distance:
     result = small_gicp.align(target, source, initial, registration_type='GICP',
                               downsampling_resolution=voxel_size,
                               max_correspondence_distance=distance,
-                              max_iterations=config.max_iterations, num_threads=1)
+                              max_iterations=MAX_ITERATIONS, num_threads=1)
     return np.asarray(result.T_target_source).copy()
 
 
@@ -143,8 +149,8 @@ def _refine_4dof(source, target, initial, voxel_size, config, target_normals, co
         T = nearest_yaw_motion(T6)
     tree = cKDTree(dst)
     for distance in distances:
-        tolerance = config.coarse_stage_tolerance if distance > final else final_tolerance
-        T = point_to_plane_4dof(src, dst, normals, T, distance, config.max_iterations,
+        tolerance = COARSE_STAGE_TOLERANCE if distance > final else final_tolerance
+        T = point_to_plane_4dof(src, dst, normals, T, distance, MAX_ITERATIONS,
                                 tolerance, tree, workers)
     return frame.from_gravity(T)
 
@@ -185,18 +191,17 @@ def stages(coarse_distance: float | None, final: float) -> list[float]:
 
 def staged_point_to_plane(source: np.ndarray, target: np.ndarray, normals: np.ndarray,
                           tree: cKDTree, initial: np.ndarray, coarse_distance: float,
-                          final: float, iterations: int, coarse_tolerance: float,
-                          workers: int = 1) -> np.ndarray:
+                          final: float, iterations: int, workers: int = 1) -> np.ndarray:
     """
     Run :func:`point_to_plane_6dof` in a refinement's stages, against a prebuilt ``tree``.
 
     The ``coarse_distance`` stage first when it is the larger (stopping at
-    ``coarse_tolerance``), then the ``final`` one (1e-6), ``iterations`` each: for the many
-    short refinements against one target (rivals, relocalization checks).
+    :data:`COARSE_STAGE_TOLERANCE`), then the ``final`` one (1e-6), ``iterations`` each: for
+    the many short refinements against one target (rivals, relocalization checks).
     """
     T = np.asarray(initial, dtype=np.float64)
     for distance in stages(coarse_distance, final):
-        tolerance = coarse_tolerance if distance > final else 1e-6
+        tolerance = COARSE_STAGE_TOLERANCE if distance > final else 1e-6
         T = point_to_plane_6dof(source, target, normals, T, distance, iterations, tolerance,
                                 tree, workers)
     return T

@@ -23,6 +23,7 @@ import threading
 from typing import Any, Callable, Iterable
 
 MODES = ('latest_target', 'synchronized')
+MAX_WAITING_TARGETS = 10  # synchronized mode: unmatched targets kept, the oldest dropped beyond
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,12 +74,12 @@ class Pairer:
         """
         return cls(cfg.mode, slop=cfg.sync_slop,
                    queue_depth=queue_depth or cfg.queue_depth,
-                   max_waiting_sources=cfg.max_waiting_sources,
-                   max_waiting_targets=cfg.max_waiting_targets, lock=lock)
+                   max_waiting_sources=cfg.max_waiting_sources, lock=lock)
 
     def __init__(self, mode: str = 'latest_target', *, slop: float = 0.05,
                  queue_depth: int = 2, max_waiting_sources: int = 1,
-                 max_waiting_targets: int = 10, lock: threading.Condition | None = None):
+                 max_waiting_targets: int = MAX_WAITING_TARGETS,
+                 lock: threading.Condition | None = None):
         if mode not in MODES:
             raise ValueError(f"pairing mode {mode!r} is not one of {', '.join(MODES)}")
         if slop < 0 or queue_depth < 1 or max_waiting_sources < 1 or max_waiting_targets < 1:

@@ -4,12 +4,12 @@ Ranked, distinct candidate poses and the ambiguity flag.
 The core returns one estimate. Further candidates are found in the pipeline, without
 touching the core: the correspondences the estimate explains (within tau of its coarse
 transform) are set aside and the core searches again among the rest, up to
-``num_candidates - 1`` times (each search at most ``candidate_max_iterations``
-hypotheses), and no further once a search finds only a chance-level consensus (the core
-reports it invalid: it is the last candidate, the rest of the correspondences support no
-motion). A new estimate is a candidate only when it is distinct from every earlier one:
-its rotation differs by more than ``candidate_min_rotation_deg`` or its translation by more
-than ``candidate_min_translation_factor`` voxel sizes. Every candidate's support is counted
+``num_candidates - 1`` times (each search at most :data:`MAX_ITERATIONS` hypotheses), and
+no further once a search finds only a chance-level consensus (the core reports it invalid:
+it is the last candidate, the rest of the correspondences support no motion). A new
+estimate is a candidate only when it is distinct from every earlier one: its rotation
+differs by more than :data:`MIN_ROTATION_DEG` or its translation by more than
+:data:`MIN_TRANSLATION_FACTOR` voxel sizes. Every candidate's support is counted
 the same way, on all correspondences: those within tau of its coarse transform. The first
 candidate is the final (refined) estimate; the others are the core's estimates (re-fit on
 their inliers, good to about tau), not refined: ICP from a wrong pose would cost more than
@@ -42,6 +42,10 @@ from ..parallel import map_ordered
 from ..registration import register_correspondences
 from ..validity import free_space_limit
 
+MAX_ITERATIONS = 1000  # hypotheses of each search for a further candidate (at most the core's)
+MIN_ROTATION_DEG = 10.0  # two candidates are distinct beyond this rotation (degrees)
+MIN_TRANSLATION_FACTOR = 10.0  # or beyond this translation (voxel sizes)
+
 
 def support(src: np.ndarray, dst: np.ndarray, transform: np.ndarray, tau: float) -> np.ndarray:
     """Return the mask of correspondences ``src[i] -> dst[i]`` within ``tau`` of ``transform``."""
@@ -50,8 +54,8 @@ def support(src: np.ndarray, dst: np.ndarray, transform: np.ndarray, tau: float)
 
 def distinct(a: np.ndarray, b: np.ndarray, cfg: PipelineConfig) -> bool:
     """Tell whether transforms ``a`` and ``b`` are distinct candidates (see the module doc)."""
-    return (rotation_error_deg(a, b) > cfg.candidate_min_rotation_deg
-            or translation_error(a, b) > cfg.candidate_min_translation_factor * cfg.voxel_size)
+    return (rotation_error_deg(a, b) > MIN_ROTATION_DEG
+            or translation_error(a, b) > MIN_TRANSLATION_FACTOR * cfg.voxel_size)
 
 
 def find_candidates(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
@@ -82,7 +86,7 @@ def search_rivals(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
     explained[result.inliers] = True
     found = [best]
     core_cfg = dataclasses.replace(
-        cfg.core, max_iterations=min(cfg.core.max_iterations, cfg.candidate_max_iterations))
+        cfg.core, max_iterations=min(cfg.core.max_iterations, MAX_ITERATIONS))
     distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
     need = 2 if cfg.core.motion_model == '4dof' else 3
     for attempt in range(1, 2 * cfg.num_candidates):

@@ -20,6 +20,12 @@ from ..frontend.refine import Alignment, evaluate_alignment
 from ..geometry import apply_transform, GravityFrame
 from ..registration import poisson_isf
 
+# The free-space gate's depth margin (voxel sizes) and the angular bin (degrees) of the depth
+# maps seen from each cloud's sensor: a point is in front of a surface only when it is nearer
+# the sensor by more than the margin, which absorbs the voxel grid's and the sensor's noise.
+FREE_SPACE_MARGIN_FACTOR = 2.0
+FREE_SPACE_BIN_DEG = 2.0
+
 
 def measure(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
             result: PipelineResult, cfg: PipelineConfig, map_target: bool = False
@@ -41,14 +47,15 @@ def measure(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
     if cfg.gates.significance > 0:
         result.chance_bound = chance_bound(result.chance_inliers, result.num_hypotheses,
                                            cfg.gates.significance, members)
-    align = measure_overlap(fs.points, fs.tree, ft, result, cfg, map_target)
+    align = measure_overlap(fs.points, fs.tree, ft, result, cfg, map_target,
+                            fs.sensor_at_origin)
     result.descriptor_ratio = descriptor_ratio(fs.descriptors, ft.descriptors, align)
     return align
 
 
 def measure_overlap(source: np.ndarray, source_tree: cKDTree | None, ft: CloudFeatures,
                     result: PipelineResult, cfg: PipelineConfig,
-                    map_target: bool = False) -> Alignment:
+                    map_target: bool = False, source_view: bool = True) -> Alignment:
     """
     Set the measurements of ``result.transform``'s overlap alone; return the overlap.
 
@@ -58,8 +65,10 @@ def measure_overlap(source: np.ndarray, source_tree: cKDTree | None, ft: CloudFe
     4-DoF mode the tilt. ``source`` is the downsampled source (metres, its own frame) and
     ``source_tree`` a k-d tree over it, for the target side of ``overlap``; None leaves
     ``overlap`` NaN (no gate reads it: only the rival verification after a global search
-    does). Sets ``fitness``, ``inlier_rmse``, ``overlap``, ``observability``,
-    ``shared_area``, ``free_space_violation`` (and ``tilt_deg``) on ``result``. The
+    does). ``source_view``: the source's origin may be its sensor (else free space is judged
+    from the target's view alone). Sets ``fitness``, ``inlier_rmse``, ``overlap``,
+    ``observability``, ``shared_area``, ``free_space_violation`` (and ``tilt_deg``) on
+    ``result``. The
     :class:`~cgags_ros.frontend.refine.Alignment` returned pairs the overlapping source
     points with their nearest target points.
     """
@@ -78,8 +87,9 @@ def measure_overlap(source: np.ndarray, source_tree: cKDTree | None, ft: CloudFe
         result.tilt_deg = residual_tilt(source, ft.points, ft.normals, align, frame)
     else:
         result.observability = observability(source, ft.normals, align)
-    result.free_space_violation = free_space_of(source, ft.points, result.transform, cfg,
-                                                map_target)
+    result.free_space_violation = free_space_of(
+        source, ft.points, result.transform, cfg, source_view,
+        not map_target and ft.sensor_at_origin)
     return align
 
 
@@ -139,23 +149,29 @@ def measured_free_space(fs: CloudFeatures, ft: CloudFeatures, transform: np.ndar
     Return :func:`free_space_violation` of ``transform`` as the config asks for it.
 
     NaN when the gate does not apply: clouds not in their sensor frames (normals not
-    oriented to the origin) or the gate disabled (``gates.max_free_space_violation`` 1).
+    oriented to the origin, or neither cloud's origin its sensor:
+    :attr:`~cgags_ros.frontend.features.CloudFeatures.sensor_at_origin`) or the gate
+    disabled (``gates.max_free_space_violation`` 1).
     """
-    return free_space_of(fs.points, ft.points, transform, cfg, map_target)
+    return free_space_of(fs.points, ft.points, transform, cfg, fs.sensor_at_origin,
+                         not map_target and ft.sensor_at_origin)
 
 
 def free_space_of(source: np.ndarray, target: np.ndarray, transform: np.ndarray,
-                  cfg: PipelineConfig, map_target: bool = False) -> float:
+                  cfg: PipelineConfig, source_view: bool = True,
+                  target_view: bool = True) -> float:
     """Return :func:`measured_free_space` of the downsampled clouds' points (metres)."""
-    if cfg.frontend.normal_orientation != 'origin' or cfg.gates.max_free_space_violation >= 1:
+    if (cfg.frontend.normal_orientation != 'origin' or cfg.gates.max_free_space_violation >= 1
+            or not (source_view or target_view)):
         return float('nan')
     return free_space_violation(source, target, transform,
-                                cfg.gates.free_space_margin_factor * cfg.voxel_size,
-                                cfg.gates.free_space_bin_deg, target_view=not map_target)
+                                FREE_SPACE_MARGIN_FACTOR * cfg.voxel_size,
+                                FREE_SPACE_BIN_DEG, target_view, source_view)
 
 
 def free_space_violation(source: np.ndarray, target: np.ndarray, transform: np.ndarray,
-                         margin: float, bin_deg: float, target_view: bool = True) -> float:
+                         margin: float, bin_deg: float, target_view: bool = True,
+                         source_view: bool = True) -> float:
     """
     Return the share of points an alignment puts where the other cloud's sensor saw nothing.
 
@@ -166,13 +182,15 @@ def free_space_violation(source: np.ndarray, target: np.ndarray, transform: np.n
     the sensor by more than ``margin`` metres: a surface where the sensor saw through),
     *on* the surface (within ``margin``) or behind it (occluded: says nothing). Returns,
     for the source seen from the target's sensor (when ``target_view``) and the target
-    seen from the source's, the larger share in front / (in front + on); 0 with nothing
-    to compare. A right pose leaves only the misfits at occlusion edges and from the
-    fusion of several views; a wrong one stacks surfaces in front of each other.
+    seen from the source's (when ``source_view``), the larger share in front / (in front +
+    on); 0 with nothing to compare. A right pose leaves only the misfits at occlusion edges
+    and from the fusion of several views; a wrong one stacks surfaces in front of each other.
     """
     T = np.asarray(transform, dtype=np.float64)
-    worst = _in_front_share(apply_transform(np.linalg.inv(T), target), source, margin,
-                            bin_deg)
+    worst = 0.0
+    if source_view:
+        worst = _in_front_share(apply_transform(np.linalg.inv(T), target), source, margin,
+                                bin_deg)
     if target_view:
         worst = max(worst, _in_front_share(apply_transform(T, source), target, margin,
                                            bin_deg))

@@ -1,14 +1,16 @@
 """
 A prior map from a file: its features computed once, cached on disk, reused by every scan.
 
-:func:`load_map` reads the map file (PLY, PCD, NPY, XYZ/CSV/TXT; metres, map frame), drops
-non-finite points (counted), and returns the map's :class:`PreparedMap`: the downsampled
-points, normals, FPFH descriptors and k-d tree :func:`register_clouds` needs, and nothing
-of the raw cloud (memory is that of the downsampled map). With a cache directory the
-features are stored under a key of the file's content hash and every setting that changes
-them (:data:`FEATURE_SETTINGS`, the voxel size, the Open3D version); a later load with the
-same file and settings reads them back (``cache == 'hit'``), a changed setting or file is a
-``'miss'`` and recomputes. A hit returns exactly the arrays a miss computed.
+:func:`load_map` reads the map file (PLY, PCD, NPY, XYZ/CSV/TXT; metres, map frame, any
+coordinates: :mod:`cgags_ros.coordinates`), drops non-finite points (counted), and returns the
+map's :class:`PreparedMap`: the downsampled points, normals, FPFH descriptors, their
+descriptor index and k-d tree :func:`register_clouds` needs, and nothing of the raw cloud.
+With a cache directory they are stored (:mod:`cgags_ros.io.map_cache`) under a key of the
+file's content hash and every setting that changes them (:data:`FEATURE_SETTINGS`, the voxel
+size, the Open3D version), and every load, the first included, returns them memory-mapped from
+there: the processes that load one map share one copy, and a later load (``cache == 'hit'``)
+costs the k-d tree alone. A changed setting or file is a ``'miss'`` and recomputes.
+``cgags-map`` prepares and inspects a map's cache ahead of time.
 
 Normal orientation: a scan's normals face its sensor (``normal_orientation`` 'origin'); a
 map fused from many views has no one sensor, so with 'origin' a map file that carries
@@ -25,19 +27,24 @@ import dataclasses
 from pathlib import Path
 import time
 from typing import Any
+import warnings
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ..config.pipeline import PipelineConfig
+from ..coordinates import (coarse_coordinates, CoarseCoordinatesWarning, local_origin, moved,
+                           translation)
 from ..errors import EmptyCloudError, InvalidInputError
-from ..frontend.features import CloudFeatures, extract_features
+from ..frontend.descriptor_index import DescriptorIndex
+from ..frontend.features import CloudFeatures, extract_features, MIN_POINTS, NORMAL_MAX_NN
+from ..frontend.fpfh import FPFH_MAX_NN
 from ..io import map_cache
 from ..io.clouds import read_cloud_and_normals
 
-# FrontEndConfig fields that change a cloud's features (the matching options do not).
-FEATURE_SETTINGS = ('normal_radius_factor', 'normal_max_nn', 'normal_orientation',
-                    'fpfh_radius_factor', 'fpfh_max_nn', 'min_points')
+# FrontEndConfig fields that change a cloud's features (the matching options do not); the
+# front end's constants that change them are in the settings too.
+FEATURE_SETTINGS = ('normal_radius_factor', 'normal_orientation', 'fpfh_radius_factor')
 
 
 @dataclasses.dataclass
@@ -58,7 +65,11 @@ class PreparedMap:
     :ivar oriented_by: what signed the map's normals: 'file normals' or the configured
         ``normal_orientation``.
     :ivar symmetries: the turns that map the map onto itself (4x4 each,
-        :func:`~.rivals.map_symmetries`), found when first asked for; None until then.
+        :func:`~.rivals.map_symmetries`, between local frames), found when first asked for;
+        None until then.
+    :ivar origin: (3,) where the map's local frame sits in the map frame (metres): the
+        features' points are the map's less it (:func:`~cgags_ros.coordinates.local_origin`:
+        zeros unless the map is georeferenced, far from its frame's origin).
     """
 
     features: CloudFeatures
@@ -72,6 +83,15 @@ class PreparedMap:
     load_s: float
     oriented_by: str = ''
     symmetries: list[np.ndarray] | None = None
+    origin: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+
+    def to_local(self, T: np.ndarray) -> np.ndarray:
+        """Return a pose in the map frame (4x4, target side) in the features' local frame."""
+        return translation(-self.origin) @ np.asarray(T, dtype=np.float64)
+
+    def to_map(self, T: np.ndarray) -> np.ndarray:
+        """Return a pose in the features' local frame in the map frame (undoing to_local)."""
+        return translation(self.origin) @ np.asarray(T, dtype=np.float64)
 
     def info(self) -> dict[str, Any]:
         """Return a small, picklable summary (what the node reports; no arrays)."""
@@ -79,7 +99,8 @@ class PreparedMap:
                 'cache_path': self.cache_path, 'raw_points': self.num_raw_points,
                 'nonfinite_points': self.num_nonfinite,
                 'points': len(self.features.points), 'voxel_size': self.settings['voxel_size'],
-                'normals': self.oriented_by, 'load_s': round(self.load_s, 3)}
+                'normals': self.oriented_by, 'load_s': round(self.load_s, 3),
+                'origin': [float(x) for x in self.origin]}
 
 
 def feature_settings(config: PipelineConfig) -> dict[str, Any]:
@@ -87,6 +108,7 @@ def feature_settings(config: PipelineConfig) -> dict[str, Any]:
     import open3d
 
     out = {name: getattr(config.frontend, name) for name in FEATURE_SETTINGS}
+    out.update(normal_max_nn=NORMAL_MAX_NN, fpfh_max_nn=FPFH_MAX_NN, min_points=MIN_POINTS)
     out.update(voxel_size=float(config.voxel_size), open3d=open3d.__version__)
     return out
 
@@ -111,13 +133,26 @@ def load_map(path: str | Path, config: PipelineConfig,
     digest = map_cache.file_digest(path)
     key = map_cache.cache_key(digest, settings)
     stored = map_cache.load_entry(cache_dir, key) if cache_dir else None
-    if stored is not None:
-        features = _features_from(stored)
-        features.descriptor_index()  # built with the map, not on the first scan
-        raw, nonfinite = int(stored['raw_points']), int(stored['nonfinite_points'])
-        return PreparedMap(features, settings, str(path), digest, 'hit',
-                           str(map_cache.entry_path(cache_dir, key)), raw, nonfinite,
-                           time.perf_counter() - start, str(stored.get('oriented_by', '')))
+    status = 'hit'
+    if stored is None:
+        features, meta = _prepare(path, config)
+        if not cache_dir:
+            return _prepared(features, meta, settings, path, digest, 'off', '', start)
+        map_cache.save_entry(cache_dir, key, _arrays(features), {
+            **meta, 'map': str(path.resolve()), 'digest': digest, 'settings': settings})
+        # Read back: the memory-mapped copy is the one every process that loads this map
+        # shares; the one just computed is freed.
+        stored, status = map_cache.load_entry(cache_dir, key), 'miss'
+        if stored is None:
+            return _prepared(features, meta, settings, path, digest, status,
+                             str(map_cache.entry_path(cache_dir, key)), start)
+    arrays, meta = stored
+    return _prepared(_features_from(arrays), meta, settings, path, digest, status,
+                     str(map_cache.entry_path(cache_dir, key)), start)
+
+
+def _prepare(path: Path, config: PipelineConfig) -> tuple[CloudFeatures, dict[str, Any]]:
+    """Read the map file and compute its features, descriptor index included; and their meta."""
     points, sides = read_cloud_and_normals(path)
     if config.frontend.normal_orientation != 'origin':
         sides = None  # the file's normals sign the map's only where a scan's face its sensor
@@ -127,20 +162,38 @@ def load_map(path: str | Path, config: PipelineConfig,
         raise EmptyCloudError(f'map.file {str(path)!r}: no finite points ({raw} rows, all '
                               'empty or NaN/inf)')
     oriented_by = config.frontend.normal_orientation if sides is None else 'file normals'
-    features = extract_features(points[finite], config.voxel_size, config.frontend, 'map',
-                                sides=None if sides is None else sides[finite])
-    del points, finite, sides
-    status, entry = 'off', ''
-    if cache_dir:
-        arrays = {'points': features.points, 'normals': features.normals,
-                  'descriptors': features.descriptors,
-                  'resolution': np.float64(features.resolution),
-                  'raw_points': np.int64(raw), 'nonfinite_points': np.int64(nonfinite),
-                  'oriented_by': np.str_(oriented_by)}
-        status, entry = 'miss', str(map_cache.save_entry(cache_dir, key, arrays))
-    features.descriptor_index()
-    return PreparedMap(features, settings, str(path), digest, status, entry, raw, nonfinite,
-                       time.perf_counter() - start, oriented_by)
+    points = points[finite]
+    warning = coarse_coordinates(points, config.voxel_size, f'map.file {str(path)!r}')
+    if warning:
+        warnings.warn(warning, CoarseCoordinatesWarning, stacklevel=3)
+    origin = local_origin(points)
+    features = extract_features(moved(points, origin), config.voxel_size, config.frontend,
+                                'map', sides=None if sides is None else sides[finite])
+    features.descriptor_index()  # built with the map, not on the first scan
+    low, high = features.points.min(axis=0) + origin, features.points.max(axis=0) + origin
+    return features, {'raw_points': raw, 'nonfinite_points': nonfinite,
+                      'oriented_by': oriented_by, 'origin': origin.tolist(),
+                      'resolution': features.resolution, 'points': len(features.points),
+                      'extent': [low.tolist(), high.tolist()]}
+
+
+def _prepared(features: CloudFeatures, meta: dict[str, Any], settings: dict[str, Any],
+              path: Path, digest: str, status: str, entry: str, start: float) -> PreparedMap:
+    return PreparedMap(features, settings, str(path), digest, status, entry,
+                       int(meta['raw_points']), int(meta['nonfinite_points']),
+                       time.perf_counter() - start, str(meta['oriented_by']),
+                       origin=np.asarray(meta['origin'], dtype=np.float64))
+
+
+def _arrays(features: CloudFeatures) -> dict[str, np.ndarray]:
+    """Return what the cache stores of ``features``: the arrays, and the index's."""
+    arrays = {'points': features.points, 'normals': features.normals,
+              'descriptors': features.descriptors,
+              'resolution': np.array([features.resolution])}
+    index = features.descriptor_index()
+    if index is not None:
+        arrays.update({f'index.{k}': v for k, v in index.to_arrays().items()})
+    return arrays
 
 
 def matches_config(prepared: PreparedMap, config: PipelineConfig) -> bool:
@@ -148,10 +201,15 @@ def matches_config(prepared: PreparedMap, config: PipelineConfig) -> bool:
     return prepared.settings == feature_settings(config)
 
 
-def _features_from(stored: dict[str, np.ndarray]) -> CloudFeatures:
-    points = np.ascontiguousarray(stored['points'], dtype=np.float64)
-    return CloudFeatures(points, stored['normals'], stored['descriptors'],
-                         float(stored['resolution']), cKDTree(points))
+def _features_from(arrays: dict[str, np.ndarray]) -> CloudFeatures:
+    """Return the features of a cache entry's arrays, as they are (memory-mapped)."""
+    points = arrays['points']
+    # The tree indexes the mapped points in place (its own arrays are a few bytes a point).
+    features = CloudFeatures(points, arrays['normals'], arrays['descriptors'],
+                             float(arrays['resolution'][0]), cKDTree(points))
+    index = {k[len('index.'):]: v for k, v in arrays.items() if k.startswith('index.')}
+    features._index.append(DescriptorIndex.from_arrays(index) if index else None)
+    return features
 
 
 class MapHolder:

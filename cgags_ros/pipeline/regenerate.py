@@ -12,16 +12,18 @@ This stage:
 
 1. ranks the correspondences by second-order compatibility (for each, the compatible
    triangles it closes among the best-connected ones: SC² of SC²-PCR) and keeps up to
-   ``regenerate.seeds`` of the best, spread apart;
+   :data:`SEEDS` of the best (among the :data:`RANKED` of highest compatibility degree),
+   at least :data:`SEED_SPACING` voxels apart;
 2. for each seed, re-matches the descriptors of the source points within
-   ``radius_factor`` voxels of its source point against those of the target points within
+   :data:`RADIUS` voxels of its source point against those of the target points within
    the same radius of its target point (the nearest, kept when the source point is among
    the three nearest to it: a relaxed mutual check), keeps the matches whose distance to
    the seed agrees in both clouds (within the compatibility threshold), and fits a pose to
    them (a least-squares fit repeated on the matches within tau);
 3. refines every distinct proposed pose (or the ``regenerate.judged`` that the most
    original correspondences support as proposed), and the core's estimate, by the same
-   short point-to-plane ICP, and counts the **original** correspondences within tau of each.
+   short point-to-plane ICP (:data:`ITERATIONS` a stage, on every :data:`STRIDE`-th source
+   point), and counts the **original** correspondences within tau of each.
 
 A wrong pose supported by a chance cluster of correspondences loses them as ICP settles
 it on the surfaces; a right pose keeps them. The proposal with the largest support that
@@ -50,6 +52,7 @@ from ..frontend.refine import staged_point_to_plane
 from ..geometry import cross_spread
 from ..parallel import map_ordered
 from ..registration import RegistrationResult
+from ..registration.cgags import MIN_PAIR_DISTANCE_FACTOR, REFIT_ITERATIONS
 from ..registration.compatibility import build_compatibility_graph
 from ..registration.hypotheses import refit
 from ..registration.rigid import kabsch, residuals
@@ -58,6 +61,12 @@ from ..validity import consensus_refusal
 RELAXED_RANK = 3  # a local match is kept when its source point ranks below this for its target
 MIN_MATCHES = 4  # a sphere proposes a pose from at least this many consistent matches
 FIT_ROUNDS = 5  # least-squares fits of a sphere's pose, each on the matches within tau
+SEEDS = 60  # seed correspondences (highest second-order compatibility, spread apart)
+SEED_SPACING = 2.0  # seeds are at least this many voxel sizes apart in the source
+RANKED = 1000  # correspondences (highest compatibility degree) among which seeds are ranked
+RADIUS = 6.0  # the local spheres' radius, in voxel sizes
+ITERATIONS = 5  # point-to-plane iterations of a proposed pose's short refinement (a stage)
+STRIDE = 8  # every this many source points take part in the short refinement
 
 
 def seed_rows(src: np.ndarray, dst: np.ndarray, delta: float, min_pair_distance: float,
@@ -68,19 +77,18 @@ def seed_rows(src: np.ndarray, dst: np.ndarray, delta: float, min_pair_distance:
     :param src, dst: (N, 3) corresponding points; ``delta`` the core's compatibility
         threshold and ``min_pair_distance`` its shortest pair, metres.
     """
-    rc = cfg.regenerate
     graph = build_compatibility_graph(src, dst, delta, min_pair_distance, workers)
-    top = np.argsort(-graph.degree, kind='stable')[:rc.candidates]
+    top = np.argsort(-graph.degree, kind='stable')[:RANKED]
     top = np.sort(top[graph.degree[top] > 0])
     if len(top) == 0:
         return np.zeros(0, np.int64)
     A = graph.adjacency(top).astype(np.float32)
     closed = np.einsum('ij,ij->i', A @ A, A)  # compatible triangles through each row
     ranked = top[np.argsort(-closed, kind='stable')]
-    spacing = rc.seed_spacing_factor * cfg.voxel_size
+    spacing = SEED_SPACING * cfg.voxel_size
     chosen: list[int] = []
     for row in ranked:
-        if len(chosen) >= rc.seeds:
+        if len(chosen) >= SEEDS:
             break
         if not chosen or np.min(np.linalg.norm(src[chosen] - src[row], axis=1)) > spacing:
             chosen.append(int(row))
@@ -133,8 +141,8 @@ def proposed_poses(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
     """Return the distinct poses the seeds' spheres propose (steps 1 and 2), in seed order."""
     src, dst = fs.points[corr.source_index], ft.points[corr.target_index]
     tau, delta = core.inlier_threshold, core.compatibility_threshold
-    seeds = seed_rows(src, dst, delta, cfg.core.min_pair_distance_factor * tau, cfg, workers)
-    radius = cfg.regenerate.radius_factor * cfg.voxel_size
+    seeds = seed_rows(src, dst, delta, MIN_PAIR_DISTANCE_FACTOR * tau, cfg, workers)
+    radius = RADIUS * cfg.voxel_size
     poses: list[np.ndarray] = []
     for s in seeds:
         i, j = local_matches(fs, ft, src[s], dst[s], radius, delta)
@@ -165,13 +173,12 @@ def settled_support(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
     pose; the starts are refined side by side (their ICP runs outside the GIL).
     """
     src, dst = fs.points[corr.source_index], ft.points[corr.target_index]
-    rc = cfg.regenerate
     final = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
-    sample = fs.points[::rc.stride]
+    sample = fs.points[::STRIDE]
 
     def settled(start: np.ndarray) -> tuple[np.ndarray, int]:
         T = staged_point_to_plane(sample, ft.points, ft.normals, ft.tree, start, tau, final,
-                                  rc.iterations, cfg.refine.coarse_stage_tolerance)
+                                  ITERATIONS)
         return T, int(np.count_nonzero(support(src, dst, T, tau)))
 
     return map_ordered(settled, starts, workers)
@@ -197,7 +204,7 @@ def regenerated_estimate(fs: CloudFeatures, ft: CloudFeatures, corr: Corresponde
                                                    tau, cfg, workers)
     rivals = [(T, n) for T, n in proposals if distinct(T, estimate, cfg)]
     # The best supported rival that passes the free-space gate (NaN: no test), best first.
-    limit = cfg.regenerate.free_space_factor * cfg.gates.max_free_space_violation
+    limit = cfg.gates.max_free_space_violation
     best = None
     for T, n in sorted(rivals, key=lambda r: -r[1]):
         if n <= held:
@@ -207,7 +214,7 @@ def regenerated_estimate(fs: CloudFeatures, ft: CloudFeatures, corr: Corresponde
             break
     if best is None:
         return None
-    T, inliers, _ = refit(src, dst, best[0], tau, cfg.core.refit_iterations)
+    T, inliers, _ = refit(src, dst, best[0], tau, REFIT_ITERATIONS)
     others = [n for R, n in [(estimate, held), *rivals] if distinct(R, best[0], cfg)]
     replaced = dataclasses.replace(
         core, transform=T, inliers=inliers, runner_up=max(others, default=0),

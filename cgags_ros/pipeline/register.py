@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from typing import Callable
+import warnings
 
 import numpy as np
 
@@ -31,6 +32,8 @@ from .result import PipelineResult
 from .rivals import mark_ambiguous, structured_rival
 from ..config import fields
 from ..config.pipeline import PipelineConfig
+from ..coordinates import (coarse_coordinates, CoarseCoordinatesWarning, local_origin, moved,
+                           sensor_at_origin)
 from ..errors import DegenerateCorrespondencesError, EmptyCloudError, InvalidConfigError
 from ..frontend.features import CloudFeatures, finite_points
 from ..frontend.keypoints import match_keypoints
@@ -48,7 +51,9 @@ from ..validity import (ambiguity_refusal, confidence_refusal, gate_refusal,
 
 def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
                     voxel_size: float | None = None,
-                    config: PipelineConfig | None = None) -> PipelineResult:
+                    config: PipelineConfig | None = None,
+                    source_sensor: np.ndarray | None = None,
+                    target_sensor: np.ndarray | None = None) -> PipelineResult:
     """
     Register ``source`` onto ``target`` with no initial guess.
 
@@ -58,6 +63,12 @@ def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
     :param voxel_size: metres; overrides ``config.voxel_size`` (every radius derives from
         it).
     :param config: :class:`PipelineConfig`; defaults when None.
+    :param source_sensor, target_sensor: (3,) the position of the sensor that saw a cloud,
+        in that cloud's frame (metres), for a cloud not in its sensor frame (a scan in UTM
+        and its GNSS position). None (the default): the frame's origin when the cloud is
+        within 1 km of it, else unknown (:mod:`cgags_ros.coordinates`). Clouds anywhere up
+        to 10^7 m from their origins register as near it; the result is in the caller's
+        frames.
     :returns: a :class:`PipelineResult`. Its ``refusal`` (a code and a message; ``valid``
         False) says why not to trust it when the clouds are too small after downsampling,
         yield too few or degenerate correspondences, when the estimate fails a validity
@@ -70,10 +81,31 @@ def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
     :raises InvalidConfigError: when a configuration value is out of range, or a prepared
         map was computed with other feature settings than ``config``'s.
     """
+    cfg = _effective_config(config, voxel_size)
+    src = finite_points(source, 'source')
+    if isinstance(target, PreparedMap):
+        dst, target_origin = target, target.origin
+    else:
+        dst = finite_points(target, 'target')
+        target_origin = local_origin(dst, target_sensor)
+        _warn_coarse(dst, cfg.voxel_size, 'target')
+    _warn_coarse(src, cfg.voxel_size, 'source')
+    source_origin = local_origin(src, source_sensor)
+    local_target = dst if isinstance(dst, PreparedMap) else moved(dst, target_origin)
     # BLAS held to one thread: idle OpenBLAS workers would spin into Open3D's time; the
     # compiled FPFH, descriptor index and graph run on the package's own threads.
     with single_blas_thread():
-        return _register_clouds(source, target, voxel_size, config, DEFAULT_WORKERS)
+        result = _register_clouds(
+            moved(src, source_origin), local_target, cfg, DEFAULT_WORKERS,
+            sensor_at_origin(source_origin, source_sensor is not None),
+            sensor_at_origin(target_origin, target_sensor is not None))
+    return result.in_caller_frames(source_origin, target_origin)
+
+
+def _warn_coarse(points: np.ndarray, voxel_size: float, name: str) -> None:
+    message = coarse_coordinates(points, voxel_size, name)
+    if message:
+        warnings.warn(message, CoarseCoordinatesWarning, stacklevel=3)
 
 
 def _judged(result: PipelineResult, fs: CloudFeatures, ft: CloudFeatures,
@@ -108,18 +140,23 @@ def _judged(result: PipelineResult, fs: CloudFeatures, ft: CloudFeatures,
                          or uncertainty_refusal(loosest_sigma(result.covariance), cfg))
 
 
-def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float | None,
-                     config: PipelineConfig | None, workers: int) -> PipelineResult:
+def _register_clouds(src: np.ndarray, target: np.ndarray | PreparedMap, cfg: PipelineConfig,
+                     workers: int, source_sensor: bool, target_sensor: bool) -> PipelineResult:
+    """
+    Register finite clouds near their local origins (a map's features are so already).
+
+    ``source_sensor``, ``target_sensor``: whether a cloud's origin may be its sensor
+    (:func:`~cgags_ros.coordinates.sensor_at_origin`); free space is judged from those views
+    only.
+    """
     start = time.perf_counter()
-    cfg = _effective_config(config, voxel_size)
     v = cfg.voxel_size
-    src = finite_points(source, 'source')
     if isinstance(target, PreparedMap) and not matches_config(target, cfg):
         raise InvalidConfigError(
             f'the map {target.path} was prepared with other feature settings '
             f'({target.settings}) than this registration; load it again with this config')
     map_target = isinstance(target, PreparedMap)
-    dst = None if map_target else finite_points(target, 'target')
+    dst = None if map_target else target
     result = PipelineResult(voxel_size=v, map_info=target.info() if map_target else None)
     # The target's features (and its descriptor index) beside the source's: much of the
     # front end runs on one thread (downsampling, normals, the grids), so two clouds at
@@ -128,7 +165,8 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
     target_features = in_background(
         lambda: _target_features(target, dst, cfg, target_timings, workers), workers > 1)
     try:
-        fs = cached_features(src, v, cfg.frontend, 'source', result.timings, workers)
+        fs = cached_features(src, v, cfg.frontend, 'source', result.timings,
+                             workers).with_sensor(source_sensor)
     except EmptyCloudError as exc:  # data too small for this voxel size: not a crash
         _target_or_error(target_features)
         return result.finish(start, exc.refusal)
@@ -137,6 +175,7 @@ def _register_clouds(source: np.ndarray, target: np.ndarray, voxel_size: float |
         result.timings[stage] = result.timings.get(stage, 0.0) + seconds
     if isinstance(ft, EmptyCloudError):
         return result.finish(start, ft.refusal)
+    ft = ft.with_sensor(target_sensor)
     result.num_source_points, result.num_target_points = len(fs.points), len(ft.points)
     result.resolution = 0.5 * (fs.resolution + ft.resolution)
     refusal = (line_cloud_refusal(cross_spread(fs.points), 'source', v)

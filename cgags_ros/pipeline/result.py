@@ -7,6 +7,8 @@ from typing import Any
 
 import numpy as np
 
+from .covariance import moved_covariance
+from ..coordinates import moved, to_caller, translation
 from ..registration import RegistrationResult
 
 
@@ -128,6 +130,29 @@ class PipelineResult(RegistrationResult):
     confidence: float = 0.0
     path: str = 'global'
     map_info: dict[str, Any] | None = None
+
+    def in_caller_frames(self, source_origin: np.ndarray,
+                         target_origin: np.ndarray) -> PipelineResult:
+        """
+        Move what this result says of clouds worked on around local origins to their frames.
+
+        The origins (:func:`~cgags_ros.coordinates.local_origin`, metres, each in its cloud's
+        frame) were subtracted before registration: the transforms, the inlier points and the
+        covariance (whose rotation turns about the source origin) are given back as the
+        caller's clouds have them. Returns ``self``, changed in place (nothing moves when both
+        origins are zero).
+        """
+        if not (np.any(source_origin) or np.any(target_origin)):
+            return self
+        local = self.transform
+        self.transform = to_caller(local, source_origin, target_origin)
+        self.coarse_transform = to_caller(self.coarse_transform, source_origin, target_origin)
+        for c in self.candidates:
+            c.transform = to_caller(c.transform, source_origin, target_origin)
+        self.inlier_source_points = moved(self.inlier_source_points, -source_origin)
+        self.inlier_target_points = moved(self.inlier_target_points, -target_origin)
+        self.covariance = moved_covariance(self.covariance, local, translation(-source_origin))
+        return self
 
     def summary(self) -> dict[str, Any]:
         out = super().summary()

@@ -10,21 +10,14 @@ centroid); slid both ways along the translation the overlap constrains least (``
 voxels); turned a quarter of the way both ways about each principal axis of the overlap's
 normals (a room's walls and floor face along those axes, and a near-square room turns
 about its vertical one); and the other distinct poses the correspondences support (the
-candidates within the ambiguity ratio were refined already; the others were not). Built but
-off (``VOTED_PEAKS`` 0; docs/ablation.md has the measurements): the turns about the room's
-own centre, wherever it is. The estimate's rotation is turned a quarter and a half of the
-way about each dominant direction of the overlap's normals (the walls' and the floor's,
-found as the densest bundles of normals), each with the translations the correspondences
-vote for most under that rotation. A turn about any centre is that rotation with some
-translation, so the correspondences that are right under the twin pose cluster on its
-translation however far the centre is. Each
+candidates within the ambiguity ratio were refined already; the others were not). Each
 start that already fits reasonably (at least ``PROMISING`` times the estimate's fitness,
 on every ``STRIDE``-th source point: a share needs no more to be told apart; most that
 start worse never settle anywhere plausible) is refined in the estimate's stages
 (``ITERATIONS`` a stage of point-to-plane against the target's k-d tree, built once with
 its features: a rival only has to show where it settles) and judged like the estimate. A
 rival is plausible when it settles away from the estimate (more than
-``candidate_min_rotation_deg`` or ``APART`` voxels), does not stack surfaces where a sensor
+``candidates.MIN_ROTATION_DEG`` or ``APART`` voxels), does not stack surfaces where a sensor
 saw free space (violation at most ``MAX_VIOLATION``) and fits at least ``1 /
 OVERLAP_RATIO`` as well as the estimate (fitness, the share of source points on the
 target: a large target's share would say nothing): the result is then ambiguous, with the
@@ -41,7 +34,7 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .candidates import support
+from .candidates import MIN_ROTATION_DEG, support
 from .gates import measured_free_space
 from .map import PreparedMap
 from .result import Candidate, PipelineResult
@@ -53,14 +46,6 @@ from ..geometry import rotation_error_deg, translation_error
 from ..parallel import map_ordered
 
 SLIDE = 10.0
-# Voted turns, off: on real low-overlap pairs their twins fit nearly as well and refused
-# right poses, for none of the wrong ones (docs/ablation.md).
-VOTED_PEAKS = 0  # translations tried a voted turn (0: no voted turns; 3 was measured)
-VOTED_SHARE = 0.25  # ...each voted for by at least this share of the estimate's inliers
-VOTED_ANGLES = {'+': np.pi / 2, '-': -np.pi / 2, 'h': np.pi}  # the turns voted on, by label
-AXIS_BUNDLE_DEG = 10.0  # normals this close (either sign) make one direction's bundle
-SECOND_AXIS_DEG = 20.0  # a second direction is at least 90 less this from the first
-AXIS_NORMALS = 400  # about this many of the overlap's normals find the directions
 SYMMETRY_FIT = 0.5  # a turn is a symmetry of a map when it puts half of the map on itself
 SYMMETRY_START = 1 / 3  # ...and it is refined only when it starts with a third there
 SYMMETRY_POINTS = 2000  # about this many of the map's points judge a turn
@@ -97,17 +82,14 @@ def clear_of_free_space(violation: float, limit: float = MAX_VIOLATION) -> bool:
 
 
 def rival_starts(fs: CloudFeatures, ft: CloudFeatures, T: np.ndarray, distance: float,
-                 voxel_size: float, candidates: Sequence[np.ndarray] = (),
-                 matches: tuple[np.ndarray, np.ndarray] | None = None, tau: float = 0.0,
-                 min_votes: int = 3) -> list[tuple[str, np.ndarray]]:
+                 voxel_size: float, candidates: Sequence[np.ndarray] = ()
+                 ) -> list[tuple[str, np.ndarray]]:
     """
     Return the structured rivals' starting poses of ``T``, each with its name.
 
-    In this order: ``flip0..2``, ``slide1``/``slide-1``, ``turn0..2`` with ``+``/``-``,
-    ``candidate1..`` (``candidates``: the other distinct poses the correspondences support),
-    and with ``matches`` (the correspondences' source and target points) the voted turns
-    ``voted<axis><+|-|h><peak>`` (votes within ``tau`` of each other agree; at least
-    ``min_votes`` of them). See the module doc.
+    In this order: ``flip0..2``, ``slide1``/``slide-1``, ``turn0..2`` with ``+``/``-``, and
+    ``candidate1..`` (``candidates``: the other distinct poses the correspondences support).
+    See the module doc.
     """
     align = evaluate_alignment(fs.points, ft.tree, T, distance)
     if len(align.source_index) < 6:
@@ -130,87 +112,7 @@ def rival_starts(fs: CloudFeatures, ft: CloudFeatures, T: np.ndarray, distance: 
             starts.append((f'turn{i}{label}', _turned(T, axis, sign * np.pi / 2, centroid)))
     starts.extend((f'candidate{k}', np.asarray(C, dtype=np.float64))
                   for k, C in enumerate(candidates, start=1))
-    if matches is not None and VOTED_PEAKS > 0 and tau > 0:
-        starts.extend(voted_turns(T, dominant_axes(normals), *matches, tau, min_votes))
     return starts
-
-
-def dominant_axes(normals: np.ndarray) -> np.ndarray:
-    """
-    Return three orthonormal directions (columns) along which most normals face.
-
-    The first is the densest bundle of normals (within ``AXIS_BUNDLE_DEG``, either sign),
-    the second the densest of those across it (within ``SECOND_AXIS_DEG`` of a right angle
-    to the first), the third their cross product: a room's floor and two walls. The
-    eigenvectors of the normals' scatter are those directions only when one surface
-    dominates; a corner that shows floor and two walls alike scatters its normals evenly.
-    """
-    n = normals[::max(1, len(normals) // AXIS_NORMALS)]
-    n = n / np.linalg.norm(n, axis=1, keepdims=True)
-    near = np.abs(n @ n.T) > np.cos(np.deg2rad(AXIS_BUNDLE_DEG))
-    first = _bundle_axis(n, near, np.arange(len(n)))
-    across = np.flatnonzero(np.abs(n @ first) < np.sin(np.deg2rad(SECOND_AXIS_DEG)))
-    if len(across) < 3:
-        across = np.flatnonzero(np.abs(n @ first) < 0.9)  # no second surface: any across
-    if len(across) == 0:  # one plane: its normal, and any two directions across it
-        return np.linalg.svd(first[None, :])[2].T
-    second = _bundle_axis(n, near, across)
-    second = second - (second @ first) * first
-    second /= np.linalg.norm(second)
-    return np.stack([first, second, np.cross(first, second)], axis=1)
-
-
-def _bundle_axis(n: np.ndarray, near: np.ndarray, among: np.ndarray) -> np.ndarray:
-    """Return the mean direction of the densest bundle of ``n[among]`` (signs aligned)."""
-    centre = among[int(np.argmax(near[among][:, among].sum(axis=1)))]
-    members = n[near[centre]]
-    signs = np.where(members @ n[centre] < 0, -1.0, 1.0)
-    axis = (members * signs[:, None]).mean(axis=0)
-    return axis / np.linalg.norm(axis)
-
-
-def voted_turns(T: np.ndarray, axes: np.ndarray, source: np.ndarray, target: np.ndarray,
-                tau: float, min_votes: int = 3) -> list[tuple[str, np.ndarray]]:
-    """
-    Return ``T``'s rotation turned about each of ``axes``, with the translations voted for.
-
-    Each correspondence (``source[i]``, ``target[i]``) votes ``target - R source`` for the
-    turned rotation ``R``. The votes are counted in cubes of side ``tau``; the
-    ``VOTED_PEAKS`` fullest cubes, each at least ``2 tau`` from those before it, give the
-    translations: the mean of the votes within ``tau`` of their cube's mean, when at least
-    ``min_votes`` votes are that close (a twin pose that few correspondences support is
-    left to the other starts: refining every weak peak costs more than it finds).
-    """
-    starts = []
-    for i, axis in enumerate(axes.T):
-        for label, angle in VOTED_ANGLES.items():
-            R = Rotation.from_rotvec(angle * axis).as_matrix() @ T[:3, :3]
-            votes = target - source @ R.T
-            _, cube, counts = np.unique(_cube_keys(votes, tau), return_inverse=True,
-                                        return_counts=True)
-            chosen: list[np.ndarray] = []
-            for c in np.argsort(-counts, kind='stable')[:4 * VOTED_PEAKS]:
-                if 2 * counts[c] < min_votes or len(chosen) == VOTED_PEAKS:
-                    break  # a bound on the work: a peak spread thinner than this is missed
-                centre = votes[cube == c].mean(axis=0)
-                if any(np.linalg.norm(centre - t) < 2 * tau for t in chosen):
-                    continue
-                near = np.linalg.norm(votes - centre, axis=1) <= tau
-                if np.count_nonzero(near) < min_votes:
-                    continue
-                chosen.append(votes[near].mean(axis=0))
-                start = np.eye(4)
-                start[:3, :3], start[:3, 3] = R, chosen[-1]
-                starts.append((f'voted{i}{label}{len(chosen) - 1}', start))
-    return starts
-
-
-def _cube_keys(points: np.ndarray, side: float) -> np.ndarray:
-    """Return one integer a cube of ``side`` for each point (equal keys: the same cube)."""
-    cells = np.floor(points / side).astype(np.int64)
-    cells -= cells.min(axis=0)
-    span = cells.max(axis=0) + 1
-    return (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
 
 
 def _turned(T: np.ndarray, axis: np.ndarray, angle: float, centre: np.ndarray) -> np.ndarray:
@@ -235,8 +137,7 @@ def settle(fs: CloudFeatures, ft: CloudFeatures, start: np.ndarray, coarse_dista
     """
     final = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
     return staged_point_to_plane(fs.points[::STRIDE], ft.points, ft.normals, ft.tree, start,
-                                 coarse_distance, final, ITERATIONS,
-                                 cfg.refine.coarse_stage_tolerance)
+                                 coarse_distance, final, ITERATIONS)
 
 
 def structured_rival(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
@@ -267,7 +168,7 @@ def structured_rival(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences
             return None
         R = settle(fs, ft, start, float(result.inlier_threshold), cfg)
         if not settled_apart(rotation_error_deg(R, T), translation_error(R, T), v,
-                             cfg.candidate_min_rotation_deg):
+                             MIN_ROTATION_DEG):
             return None  # settled back onto the estimate: it is constrained there
         fitness = evaluate_alignment(fs.points, ft.tree, R, distance).fitness
         if not fits_as_well(fitness, result.fitness):
@@ -281,11 +182,7 @@ def structured_rival(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences
     # The starts are independent: judged side by side, the first plausible one in their
     # order is the rival, as if they were judged one after the other.
     others = [c.transform for c in result.candidates[1:]]
-    matches = ((fs.points[corr.source_index], ft.points[corr.target_index]) if VOTED_PEAKS
-               else None)  # only the voted turns read them
-    min_votes = max(3, int(np.ceil(VOTED_SHARE * result.num_inliers)))
-    starts = [start for _, start in rival_starts(fs, ft, T, distance, v, others, matches,
-                                                 float(result.inlier_threshold), min_votes)]
+    starts = [start for _, start in rival_starts(fs, ft, T, distance, v, others)]
     rivals = map_ordered(judge, starts, workers)
     return next((rival for rival in rivals if rival is not None), None)
 
@@ -327,8 +224,7 @@ def map_symmetries(prepared: PreparedMap, cfg: PipelineConfig) -> list[np.ndarra
                 if evaluate_alignment(points, ft.tree, start, final).fitness < SYMMETRY_START:
                     continue
                 S = staged_point_to_plane(points, ft.points, ft.normals, ft.tree, start,
-                                          SLIDE * cfg.voxel_size, final, 2 * ITERATIONS,
-                                          cfg.refine.coarse_stage_tolerance)
+                                          SLIDE * cfg.voxel_size, final, 2 * ITERATIONS)
                 if evaluate_alignment(points, ft.tree, S, final).fitness >= SYMMETRY_FIT:
                     found.append(S)
     prepared.symmetries = found

@@ -33,12 +33,23 @@ from .search import Search
 from .yaw import GravityFrame, measure_tilt, vertical_offsets
 from ..config import fields
 from ..config.core import CoreConfig
+from ..coordinates import local_origin, moved, to_caller
 from ..errors import DegenerateCorrespondencesError, InvalidInputError
 from ..geometry import cross_spread, spread
 from ..parallel import DEFAULT_WORKERS
 from ..refusal import RefusalCode
 from ..timing import timed
 from ..validity import consensus_refusal, no_graph_refusal, no_model_refusal
+
+# The compatibility threshold delta in units of the point resolution pr (paper: 10), and
+# delta / tau when only an inlier threshold (no resolution) is given: the paper's 10 / 6.
+COMPATIBILITY_FACTOR = 10.0
+COMPATIBILITY_TO_INLIER = 10.0 / 6.0
+# INFERRED: graph edges whose source pair is closer than this many tau are dropped (short
+# edges constrain rotation poorly); 0 keeps all.
+MIN_PAIR_DISTANCE_FACTOR = 0.0
+# Step 8: the final re-fit is repeated while its inlier set changes, at most this often.
+REFIT_ITERATIONS = 10
 
 
 @with_single_blas_thread
@@ -74,6 +85,9 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
     motion = motion_model(cfg.motion_model)
     yaw_only = cfg.motion_model == '4dof'
     src, dst = _check_correspondences(src, dst, motion.size)
+    # Far coordinates (UTM, ECEF) are worked on near zero, and the transform given back.
+    source_origin, target_origin = local_origin(src), local_origin(dst)
+    src, dst = moved(src, source_origin), moved(dst, target_origin)
     tau, delta = _thresholds(cfg, inlier_threshold, resolution)
     result = RegistrationResult(num_correspondences=len(src), inlier_threshold=tau,
                                 compatibility_threshold=delta)
@@ -89,7 +103,7 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
     # Step 1. Compatibility graph: length consistency within delta (4-DoF: and the
     # vertical offsets).
     with timed(result.timings, 'compatibility_graph'):
-        graph = motion.compatibility_graph(src, dst, delta, cfg.min_pair_distance_factor * tau,
+        graph = motion.compatibility_graph(src, dst, delta, MIN_PAIR_DISTANCE_FACTOR * tau,
                                            workers)
     result.stats.update(graph_edges=graph.num_edges, graph_density=graph.density)
     if graph.num_edges == 0:
@@ -109,7 +123,7 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
                 search.guided_stage()
         # Step 7. Stop on a model that stands out from chance; otherwise explore again with
         # compatible sampling (until the caps).
-        if search.significant() or search.exhausted() or cfg.stopping == 'fixed':
+        if search.significant() or search.exhausted() or search.fixed:
             break
         search.restarts += 1
     result.num_hypotheses = search.num_hypotheses
@@ -120,7 +134,7 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
 
     # Step 8. Final least-squares re-fit on the inliers of the best hypothesis.
     with timed(result.timings, 'refit'):
-        T, inliers, done = refit(src, dst, search.best_T, tau, cfg.refit_iterations,
+        T, inliers, done = refit(src, dst, search.best_T, tau, REFIT_ITERATIONS,
                                  *motion.refit_solver)
         result.stats['refits'] = done
     result.transform, result.inliers = T, inliers
@@ -130,8 +144,9 @@ def register_correspondences(src, dst, *, inlier_threshold: float | None = None,
     result.inlier_spread = _inlier_spread(src[inliers], yaw_only)
     if frame:
         # 4-DoF: levelled input? The best 6-DoF fit of the inliers measures the tilt.
-        result.tilt_deg = measure_tilt(src, dst, inliers, tau, cfg.refit_iterations)
+        result.tilt_deg = measure_tilt(src, dst, inliers, tau, REFIT_ITERATIONS)
         result.transform, result.inliers = frame.from_gravity(T), np.sort(order[inliers])
+    result.transform = to_caller(result.transform, source_origin, target_origin)
     return result.finish(start, consensus_refusal(result, cfg))
 
 
@@ -191,9 +206,9 @@ def _thresholds(cfg: CoreConfig, tau: float | None, pr: float | None) -> tuple[f
     if tau is None:
         tau = cfg.inlier_threshold_factor * pr
     if pr is not None:
-        delta = cfg.compatibility_threshold_factor * pr
+        delta = COMPATIBILITY_FACTOR * pr
     else:
-        delta = cfg.compatibility_to_inlier_ratio * tau
+        delta = COMPATIBILITY_TO_INLIER * tau
     return float(tau), float(delta)
 
 

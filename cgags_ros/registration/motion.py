@@ -28,6 +28,18 @@ from .rigid import kabsch
 from .stopping import compatible_sample_inlier_probability, futility_draws
 from .yaw import fit_edges, fit_yaw, horizontal_lengths, vertical_offsets
 
+# INFERRED (4-DoF): an edge shorter than this many tau across the gravity axis in either
+# cloud is no minimal subset, its yaw poorly determined
+MIN_EDGE_LENGTH = 1.0
+# INFERRED (6-DoF): a triangle spanning less than this many tau^2 in the source is
+# near-collinear, no minimal subset
+MIN_TRIANGLE_AREA = 0.5
+XI = 1e-6  # xi (paper: 1e-6): the floor added to the kernel's sampling weights
+# Hypotheses of a batch scored on all N and fed to the preference lists (the others are
+# pre-screened on their common neighbourhood only); 4-DoF: also the uniform edges a batch
+# measures the chance level on.
+EXACT_PER_BATCH = 16
+
 
 class MotionModel:
     """What a search needs to know of its motion model (see the module docstring)."""
@@ -62,7 +74,7 @@ class Triangles(MotionModel):
         i, j, k, support, status = compiled.draw_triples(
             search.rng, search.graph_arrays(), search.corr, search.delta, count,
             cfg.edge_tournament, cfg.vertex_tournament, compiled.VERTEX_PROPOSALS,
-            cfg.min_triangle_area_factor * search.tau ** 2)
+            MIN_TRIANGLE_AREA * search.tau ** 2)
         search.stats['empty_common_neighbourhood'] += int((status == compiled.EMPTY).sum())
         search.stats['rejected_collinear'] += int((status == compiled.COLLINEAR).sum())
         triples = np.stack([i, j, k], axis=1)
@@ -71,8 +83,8 @@ class Triangles(MotionModel):
         return triples[keep], support[keep]
 
     def usable(self, search, subsets: np.ndarray) -> np.ndarray:
-        """Mask of the triangles spanning min_triangle_area_factor * tau^2 in both clouds."""
-        min_area = search.cfg.min_triangle_area_factor * search.tau ** 2
+        """Mask of the triangles spanning :data:`MIN_TRIANGLE_AREA` tau^2 in both clouds."""
+        min_area = MIN_TRIANGLE_AREA * search.tau ** 2
         if min_area <= 0 or len(subsets) == 0:
             return np.ones(len(subsets), dtype=bool)
         return compiled.usable_triangles(search.corr, subsets, min_area)
@@ -89,7 +101,7 @@ class Triangles(MotionModel):
     def guided(self, search, rows, seed_weights, count: int) -> tuple[np.ndarray, np.ndarray]:
         """Step 5: guided triangles (local indices of the members, (B, 3)) and an ok mask."""
         i, j, k, ok = compiled.draw_guided(search.rng, rows, seed_weights, count,
-                                           search.cfg.xi, False)
+                                           XI, False)
         return np.stack([i, j, k], axis=1), ok
 
 
@@ -118,7 +130,7 @@ class Edges(MotionModel):
 
         Edges too short across the gravity axis to fix the yaw are dropped.
         """
-        self._record_chance(search, search.cfg.exact_per_batch)
+        self._record_chance(search, EXACT_PER_BATCH)
         i, j = compiled.draw_edges(search.rng, search.graph_arrays(), search.corr, search.delta,
                                    count, search.cfg.edge_tournament)
         edges = np.stack([i, j], axis=1)
@@ -143,8 +155,8 @@ class Edges(MotionModel):
             search.consensus.add_chance(compiled.residual_matrix(search.corr, R, t))
 
     def usable(self, search, subsets: np.ndarray) -> np.ndarray:
-        """Mask of the edges at least min_edge_length_factor * tau long across gravity."""
-        min_length = search.cfg.min_edge_length_factor * search.tau
+        """Mask of the edges at least :data:`MIN_EDGE_LENGTH` tau long across gravity."""
+        min_length = MIN_EDGE_LENGTH * search.tau
         if min_length <= 0:
             return np.ones(len(subsets), dtype=bool)
         i, j = subsets[:, 0], subsets[:, 1]
@@ -164,7 +176,7 @@ class Edges(MotionModel):
     def guided(self, search, rows, seed_weights, count: int) -> tuple[np.ndarray, np.ndarray]:
         """Step 5: guided edges, j in N(i) with p ∝ K(i, j) + xi (no vertex step)."""
         i, j, _, ok = compiled.draw_guided(search.rng, rows, seed_weights, count,
-                                           search.cfg.xi, True)
+                                           XI, True)
         return np.stack([i, j], axis=1), ok
 
 

@@ -17,7 +17,7 @@ import numpy as np
 from . import compiled
 from .compatibility import CompatibilityGraph
 from .hypotheses import score_values
-from .motion import MotionModel
+from .motion import EXACT_PER_BATCH, MotionModel
 from .preference import PreferenceLists
 from .significance import ConsensusRecord
 from .stopping import empirical_inlier_probability, ransac_bound
@@ -38,6 +38,17 @@ _LISTS_BUILD_RATIO = 6000
 _LISTS_MAX_ENTRIES = 1 << 19
 _GIVE_UP_DRAWS = 4096  # draws without a single usable minimal subset: give up
 _CHANCE_PER_BATCH = 2  # hypotheses per batch scored exactly whatever their pre-score
+PREFERENCE_LENGTH = 20  # b: the length of each correspondence's preference list (paper: 20)
+P2 = 0.99  # confidence of the guided stage's bound (paper: 0.99; P1 is core.p1)
+MAX_UP = 3  # max_up (paper: 3): the kernel is recomputed at a new best at most this often
+KERNEL_SUBSET = 400  # correspondences (best preference lists) guided sampling draws from
+# Hypotheses a vectorized batch holds at most: batches start small and double, so easy
+# problems stop early.
+BATCH_SIZE = 512
+# INFERRED stopping rule. 'adaptive': the RANSAC bound log(1-P)/log(1-w) per stage, w
+# estimated from the best model's inliers inside the compatibility graph; 'fixed': always
+# max_iterations (only tests set it).
+STOPPING = 'adaptive'
 
 
 class Search:
@@ -49,12 +60,13 @@ class Search:
         self.src, self.dst = self.corr
         self.graph, self.motion = graph, motion
         self.cfg, self.tau, self.delta, self.rng = cfg, tau, delta, rng
+        self.fixed = STOPPING == 'fixed'  # no adaptive bound: draw up to max_iterations
         self.num_hypotheses = 0  # minimal subsets fitted (the pre-screen fits the best)
         self.num_drawn = 0  # sampled, including subsets rejected before fitting (the cap)
         self.best_score, self.best_T = -np.inf, np.eye(4)
         self.best_inliers: np.ndarray | None = None
         self.best_mask = np.zeros(graph.n, dtype=bool)
-        self.preference = PreferenceLists(graph.n, cfg.preference_length)
+        self.preference = PreferenceLists(graph.n, PREFERENCE_LENGTH)
         self.sampled: list[np.ndarray] = []  # stage-one subsets, to estimate w1 empirically
         self.consensus = ConsensusRecord(tau, motion.size)
         self.start = time.perf_counter()
@@ -90,18 +102,18 @@ class Search:
                 w1 = self._stage_one_inlier_probability()
             bound = ransac_bound(cfg.p1, w1)
             self.stats.update(stage_one_bound=bound, stage_one_w=w1)
-            if (cfg.stopping == 'adaptive' and n1 >= max(bound, cfg.min_iterations)
+            if (not self.fixed and n1 >= bound
                     and self.significant()):
                 self.stopped_by = 'p1_bound'
                 break
-            if (cfg.stopping == 'adaptive' and cfg.futility_stop and not self.significant()
+            if (not self.fixed and cfg.futility_stop and not self.significant()
                     and self.stats['compatible_samples'] >= self.motion.futility_draws(
                         self.graph, max(cfg.min_inliers, self.chance_level()), cfg.p1)):
                 self.stopped_by, self.futile = 'no_significant_model', True
                 break
-            if cfg.stopping == 'fixed' and cfg.guided_sampling and n1 >= bound:
+            if self.fixed and cfg.guided_sampling and n1 >= bound:
                 break
-            batch = min(2 * batch, cfg.batch_size)
+            batch = min(2 * batch, BATCH_SIZE)
         self.w1 = w1
 
     def _stage_one_inlier_probability(self) -> float:
@@ -136,7 +148,7 @@ class Search:
             return False
         cfg, motion, chance = self.cfg, self.motion, self.motion.chance_rows
         self.num_hypotheses += len(subsets)
-        if len(subsets) > cfg.exact_per_batch:
+        if len(subsets) > EXACT_PER_BATCH:
             # Two cheap filters before exact scoring: the subset's common-neighbour count
             # (an upper bound on its restricted score), then the restricted score itself.
             # Only the subsets that pass the first filter are fitted (the others' transforms
@@ -145,8 +157,8 @@ class Search:
             cand = np.arange(len(subsets))
             if support is None:
                 support = compiled.common_support(self.graph.words, subsets)
-            if len(subsets) > 4 * cfg.exact_per_batch:
-                kept = 4 * cfg.exact_per_batch
+            if len(subsets) > 4 * EXACT_PER_BATCH:
+                kept = 4 * EXACT_PER_BATCH
                 cand = np.argpartition(-support, kept - 1)[:kept]
             fitted = np.concatenate([np.arange(_CHANCE_PER_BATCH), cand])
             R, t = motion.fit(self.corr, subsets[fitted])
@@ -155,7 +167,7 @@ class Search:
             dense = support[cand].mean() >= _DENSE_PRESCREEN * self.graph.n
             pre = compiled.prescreen_scores(self.graph.words, self.corr, Rc, tc, subsets[cand],
                                             self.tau, motion.score == 'truncated', dense)
-            top = np.argpartition(-pre, cfg.exact_per_batch - 1)[: cfg.exact_per_batch]
+            top = np.argpartition(-pre, EXACT_PER_BATCH - 1)[: EXACT_PER_BATCH]
             top = np.concatenate([np.arange(_CHANCE_PER_BATCH), _CHANCE_PER_BATCH + top])
             R, t = R[top], t[top]
         else:
@@ -211,7 +223,7 @@ class Search:
 
         As adaptive RANSAC, w2 is re-estimated over all the stage's draws against each new
         best model (never below w1); the kernel K is refreshed at a new best model at most
-        ``max_up`` times (step 6).
+        :data:`MAX_UP` times (step 6).
         """
         cfg, motion = self.cfg, self.motion
         members, rows, seed_w = self._guided_rows()
@@ -232,20 +244,20 @@ class Search:
             n2 += batch
             if self.evaluate(subsets):
                 hits = sum(int(self.best_mask[d].all(axis=1).sum()) for d in drawn if len(d))
-                if refreshes <= cfg.max_up:
+                if refreshes <= MAX_UP:
                     members, rows, seed_w = self._guided_rows()
                     refreshes += 1
             elif len(subsets):
                 hits += int(self.best_mask[subsets].all(axis=1).sum())
             self.stats['guided_hits'], self.stats['guided_n'] = hits, n2
             w2 = max(hits / n2 if n2 else 0.0, self.w1)
-            bound = ransac_bound(cfg.p2, w2)
+            bound = ransac_bound(P2, w2)
             self.stats['stage_two_bound'] = bound
             self.stats['stage_two_w'] = w2
-            if cfg.stopping == 'adaptive' and n2 >= max(bound, cfg.min_iterations):
+            if not self.fixed and n2 >= bound:
                 self.stopped_by = 'p2_bound'
                 break
-            batch = min(2 * batch, cfg.batch_size)
+            batch = min(2 * batch, BATCH_SIZE)
         self.stats['kernel_refreshes'] = refreshes
 
     def _guided_rows(self):
@@ -253,17 +265,17 @@ class Search:
         Return the members, their kernel and adjacency rows, and seed weights (step 5).
 
         The members are the correspondences guided sampling draws from: at most
-        ``kernel_subset`` of them by their preference lists' quality, and the best
+        :data:`KERNEL_SUBSET` of them by their preference lists' quality, and the best
         model's inliers; their rows (:func:`.compiled.guided_rows`) hold the intersection
         kernel K (step 4) and their compatibility, each row computed when a draw first
         reads it. Seeds are drawn uniformly from the best model's inliers.
         """
-        cfg, n = self.cfg, self.graph.n
-        if cfg.kernel_subset == 0 or n <= cfg.kernel_subset:
+        n = self.graph.n
+        if n <= KERNEL_SUBSET:
             members = np.arange(n)
         else:
             order = np.argsort(self.preference.quality(), kind='stable')
-            members = np.union1d(order[: cfg.kernel_subset], self.best_inliers)
+            members = np.union1d(order[:KERNEL_SUBSET], self.best_inliers)
         rows = compiled.guided_rows(self.preference.kernel_bits(members), self.preference.b,
                                     self.graph.words, members)
         seed_w = np.isin(members, self.best_inliers).astype(np.float64)

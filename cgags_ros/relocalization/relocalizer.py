@@ -39,7 +39,7 @@ from .hypotheses import Answer, Check, Hypothesis, judge, SequenceConfig, settle
 from ..config.pipeline import PipelineConfig
 from ..errors import InvalidInputError
 from ..frontend.features import CloudFeatures, finite_points
-from ..frontend.refine import evaluate_alignment, staged_point_to_plane
+from ..frontend.refine import evaluate_alignment, MAX_ITERATIONS, staged_point_to_plane
 from ..geometry import apply_transform, rotation_error_deg, translation_error
 from ..pipeline.cache import cached_features
 from ..pipeline.candidates import distinct
@@ -81,7 +81,7 @@ class Relocalizer:
         self.hypotheses: list[Hypothesis] = []
         self.submaps: dict[int, PipelineResult] = {}  # scan index -> its submap's result
         # A check starts within the drift of the truth: a few iterations a stage suffice.
-        self._check_iterations = min(config.refine.max_iterations, CHECK_ITERATIONS)
+        self._check_iterations = min(MAX_ITERATIONS, CHECK_ITERATIONS)
 
     def reset(self) -> None:
         """Forget every scan and hypothesis."""
@@ -147,8 +147,10 @@ class Relocalizer:
         if not answer.confirmed:
             return answer
         scan, ft, cfg = self.scans[-1], self.prepared.features, self.config
+        # The map's local frame is the map frame moved: the covariance (about the scan's
+        # origin) is the same in both.
         cov = overlap_covariance(scan.features.points, ft.points, ft.normals, ft.tree,
-                                 answer.transform,
+                                 self.prepared.to_local(answer.transform),
                                  cfg.refine.max_correspondence_distance_factor
                                  * cfg.voxel_size, cfg.voxel_size)
         refusal = uncertainty_refusal(loosest_sigma(cov), cfg)
@@ -160,8 +162,9 @@ class Relocalizer:
     def _add_twins(self, best: Hypothesis) -> bool:
         """Add ``best`` turned by each symmetry of the map; tell whether any is new."""
         added = False
+        local = self.prepared.to_local(best.map_from_odom)
         for S in map_symmetries(self.prepared, self.config):
-            twin = S @ best.map_from_odom
+            twin = self.prepared.to_map(S @ local)
             if all(distinct(h.map_from_odom, twin, self.config) for h in self.hypotheses):
                 self.hypotheses.append(Hypothesis(twin, best.scan, best.rank, 0, 'symmetry'))
                 added = True
@@ -221,7 +224,7 @@ class Relocalizer:
         ft = self.prepared.features
         steps = abs(index - h.scan)
         travelled = abs(scan.travelled_m - self.scans[h.scan].travelled_m)
-        predicted = h.map_from_odom @ scan.odom
+        predicted = self.prepared.to_local(h.map_from_odom @ scan.odom)
         points = scan.features.points
         final = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
         reach = seq.drift_m * max(steps, 1) + seq.drift_fraction * travelled
@@ -229,15 +232,15 @@ class Relocalizer:
         # allowance, no refinement can make the scan explain it: skip the refinement.
         loose = evaluate_alignment(points, ft.tree, predicted, reach + final).fitness
         if loose < seq.min_fitness:
-            return Check(predicted, 0.0, 0.0, steps, travelled, loose, float('nan'))
+            return Check(self.prepared.to_map(predicted), 0.0, 0.0, steps, travelled, loose,
+                         float('nan'))
         # The map's own k-d tree and normals, built once with its features: a check costs
         # its few Gauss-Newton steps, not a tree of the map near the scan.
         T = staged_point_to_plane(points[::CHECK_STRIDE], ft.points, ft.normals, ft.tree,
-                                  predicted, reach + final, final, self._check_iterations,
-                                  cfg.refine.coarse_stage_tolerance)
+                                  predicted, reach + final, final, self._check_iterations)
         fitness = evaluate_alignment(points, ft.tree, T, final).fitness
-        return Check(T, rotation_error_deg(T, predicted), translation_error(T, predicted),
-                     steps, travelled, fitness,
+        return Check(self.prepared.to_map(T), rotation_error_deg(T, predicted),
+                     translation_error(T, predicted), steps, travelled, fitness,
                      measured_free_space(scan.features, ft, T, cfg, map_target=True))
 
 

@@ -1,7 +1,8 @@
 """
 The command-line tools.
 
-cgags-register, cgags-replay, cgags-relocalize, cgags-calibrate, cgags-tune, cgags-demo.
+cgags-register, cgags-replay, cgags-relocalize, cgags-calibrate, cgags-tune, cgags-map,
+cgags-demo.
 
 Each runs the pipeline in its own process, so this package, imported before any of them
 loads numpy or Open3D, makes their idle threads sleep instead of spin

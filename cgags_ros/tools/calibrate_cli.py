@@ -79,7 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
                         dest='overrides',
                         help='override one key, e.g. calibration.min_agreement=1 or '
-                             'refine.max_iterations=80 (repeatable)')
+                             'refine.method=gicp (repeatable)')
     parser.add_argument('--json', action='store_true',
                         help='print everything as JSON (covariance, per-frame agreement)')
     return parser

@@ -16,6 +16,9 @@ from scipy.spatial.transform import Rotation
 from ..config.pipeline import PipelineConfig
 from ..geometry import rotation_error_deg, translation_error
 
+AGREEMENT_DEG = 2.0  # a periodic check agrees with the prediction within this rotation...
+AGREEMENT_VOXELS = 2.0  # ...and this translation, in voxel sizes
+
 
 def scaled_motion(motion: np.ndarray, scale: float) -> np.ndarray:
     """Return ``motion`` (4x4) scaled in time: rotation angle and translation times ``scale``."""
@@ -32,8 +35,11 @@ def difference(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 
 
 def agree(prediction: np.ndarray, transform: np.ndarray, cfg: PipelineConfig) -> bool:
-    """Tell whether a global result is within ``tracking.agreement_*`` of the prediction."""
-    track = cfg.tracking
+    """
+    Tell whether a global result agrees with the prediction (else the velocity is reset).
+
+    Within :data:`AGREEMENT_DEG` of rotation and :data:`AGREEMENT_VOXELS` voxel sizes of
+    translation.
+    """
     angle, shift = difference(prediction, transform)
-    return (angle <= track.agreement_rotation_deg
-            and shift <= track.agreement_translation_factor * cfg.voxel_size)
+    return angle <= AGREEMENT_DEG and shift <= AGREEMENT_VOXELS * cfg.voxel_size

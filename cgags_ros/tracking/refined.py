@@ -5,8 +5,8 @@ A scan refined from a predicted pose and judged: the tracked path, without the s
 features (no FPFH, no matching, no core) and judges the pose by the gates a global result
 passes on its overlap (:func:`~cgags_ros.validity.overlap_refusal`), the tracked pose's own
 (:func:`~cgags_ros.validity.tracking_refusal`) and the usable-covariance bound. The
-:class:`~.tracker.Tracker` calls it for each scan it tracks, and for a scan it recovers at a
-coarser voxel. Transforms are 4x4 source->target, metres.
+:class:`~.tracker.Tracker` calls it for each scan it tracks. Transforms are 4x4
+source->target, metres.
 """
 
 from __future__ import annotations
@@ -17,8 +17,9 @@ import numpy as np
 
 from .prediction import difference
 from ..config.pipeline import PipelineConfig
+from ..coordinates import local_origin, moved, sensor_at_origin, to_local
 from ..errors import EmptyCloudError
-from ..frontend.features import CloudFeatures, downsample, finite_points
+from ..frontend.features import CloudFeatures, downsample, finite_points, MIN_POINTS
 from ..frontend.refine import refine_transform
 from ..geometry import cross_spread
 from ..parallel import DEFAULT_WORKERS
@@ -31,34 +32,61 @@ from ..timing import timed
 from ..validity import (line_cloud_refusal, overlap_refusal, tracking_refusal,
                         uncertainty_refusal)
 
+# The tracked refinement stops once fitness and inlier RMSE change by less than this
+# (relative): from a close start, further iterations move the pose far less than the gates
+# or the sensor can tell apart (the global path's final stage keeps 1e-6).
+REFINE_TOLERANCE = 1e-3
+
 
 def target_features(target: np.ndarray | PreparedMap, cfg: PipelineConfig,
-                    timings: dict[str, float]) -> CloudFeatures:
-    """Return the target's features at ``cfg.voxel_size`` (a map's as they are)."""
+                    timings: dict[str, float]) -> tuple[CloudFeatures, np.ndarray]:
+    """
+    Return the target's features at ``cfg.voxel_size`` and the local origin they are about.
+
+    A map's are returned as they are; a cloud's are those :func:`register_clouds` computes
+    (:mod:`cgags_ros.coordinates`), so a scan that went global makes this a cache hit.
+    """
     if isinstance(target, PreparedMap):
-        return target.features
-    with timed(timings, 'target_features'):  # a cache hit when the scan went global
-        return cached_features(finite_points(target, 'target'), cfg.voxel_size, cfg.frontend,
-                               'target', None, DEFAULT_WORKERS)
+        return target.features, target.origin
+    points = finite_points(target, 'target')
+    origin = local_origin(points)
+    with timed(timings, 'target_features'):
+        features = cached_features(moved(points, origin), cfg.voxel_size, cfg.frontend,
+                                   'target', None, DEFAULT_WORKERS)
+    return features.with_sensor(sensor_at_origin(origin)), origin
 
 
 def refine_prediction(source: np.ndarray, ft: CloudFeatures, prediction: np.ndarray,
-                      cfg: PipelineConfig, last_fitness: float, map_target: bool
-                      ) -> PipelineResult:
+                      cfg: PipelineConfig, last_fitness: float, map_target: bool,
+                      target_origin: np.ndarray | None = None) -> PipelineResult:
     """
     Refine ``prediction`` of ``source`` (sensor frame) onto ``ft``; gate it (see the module doc).
 
+    :param ft: the target's features about ``target_origin`` (:func:`target_features`).
     :param last_fitness: the fitness of the stream's last accepted pose (0: none), which
         the refined pose's must not fall far below.
-    :returns: a result with ``path`` 'tracked', invalid with why when a gate refuses.
+    :returns: a result with ``path`` 'tracked', invalid with why when a gate refuses; its
+        transforms in the caller's frames, as ``prediction``.
     """
+    target_origin = np.zeros(3) if target_origin is None else target_origin
+    source_origin = local_origin(source)
+    result = _refined(moved(source, source_origin), ft,
+                      to_local(prediction, source_origin, target_origin), cfg, last_fitness,
+                      map_target, sensor_at_origin(source_origin))
+    return result.in_caller_frames(source_origin, target_origin)
+
+
+def _refined(source: np.ndarray, ft: CloudFeatures, prediction: np.ndarray,
+             cfg: PipelineConfig, last_fitness: float, map_target: bool,
+             source_sensor: bool) -> PipelineResult:
+    """Return :func:`refine_prediction` of a source and prediction near their local origins."""
     start = time.perf_counter()
     v = cfg.voxel_size
     result = PipelineResult(voxel_size=v, path='tracked')
     result.coarse_transform = prediction.copy()
     try:
         with timed(result.timings, 'downsample'):
-            points = downsample(source, v, cfg.frontend.min_points, 'source')
+            points = downsample(source, v, MIN_POINTS, 'source')
     except EmptyCloudError as exc:
         return result.finish(start, exc.refusal)
     result.num_source_points, result.num_target_points = len(points), len(ft.points)
@@ -71,12 +99,11 @@ def refine_prediction(source: np.ndarray, ft: CloudFeatures, prediction: np.ndar
         result.transform = refine_transform(
             points, ft.points, prediction, voxel_size=v, config=cfg.refine,
             target_normals=ft.normals,
-            coarse_distance=cfg.tracking.coarse_distance_factor * v, gravity=gravity,
-            workers=DEFAULT_WORKERS, tolerance=cfg.tracking.refine_tolerance)
+            gravity=gravity, workers=DEFAULT_WORKERS, tolerance=REFINE_TOLERANCE)
         result.refined = True
     with timed(result.timings, 'validation'):
         # no source tree: the target side of the overlap is for rival verification only
-        align = measure_overlap(points, None, ft, result, cfg, map_target)
+        align = measure_overlap(points, None, ft, result, cfg, map_target, source_sensor)
         refusal = (overlap_refusal(result, cfg)
                    or tracking_refusal(*difference(prediction, result.transform),
                                        result.fitness, last_fitness, cfg))

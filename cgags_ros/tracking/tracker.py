@@ -33,7 +33,6 @@ from .refined import refine_prediction, target_features
 from ..config import fields
 from ..config.pipeline import PipelineConfig
 from ..frontend.features import CloudFeatures, finite_points
-from ..pipeline.covariance import with_confidence
 from ..pipeline.map import PreparedMap
 from ..pipeline.register import register_clouds
 from ..pipeline.result import PipelineResult
@@ -60,11 +59,11 @@ class _PairState:
     target_key: tuple
     config: PipelineConfig
     features: CloudFeatures | None = None
+    origin: np.ndarray | None = None  # the features' local origin in the target's frame
     poses: list[_Pose] = dataclasses.field(default_factory=list)
     tracked_since_global: int = 0
     last_global_stamp: float = float('-inf')
     checked: dict[float, np.ndarray] = dataclasses.field(default_factory=dict)  # awaiting checks
-    tracked: bool = False  # a scan of this pair was tracked: a stream, not scattered views
 
 
 class Tracker:
@@ -201,11 +200,11 @@ class Tracker:
         """Refine ``prediction`` and gate it (:func:`~.refined.refine_prediction`)."""
         timings: dict[str, float] = {}
         if state.features is None:  # the target's features, once per pair
-            state.features = target_features(target, cfg, timings)
+            state.features, state.origin = target_features(target, cfg, timings)
         if last_fitness is None:
             last_fitness = state.poses[-1].fitness if state.poses else 0.0
         result = refine_prediction(source, state.features, prediction, cfg, last_fitness,
-                                   isinstance(target, PreparedMap))
+                                   isinstance(target, PreparedMap), state.origin)
         result.timings.update(timings)  # the scan that featurised the target says so
         return result
 
@@ -232,7 +231,6 @@ class Tracker:
     def _accept_tracked(self, result: PipelineResult, stamp: float, state: _PairState,
                         kind: str, reset: bool = True) -> PipelineResult:
         self._counts['tracked'] += 1
-        state.tracked = True
         state.tracked_since_global += reset
         result.stats['prediction'] = kind
         _remember(state, stamp, result)
@@ -241,52 +239,13 @@ class Tracker:
     def _global(self, source: np.ndarray, target: np.ndarray | PreparedMap, stamp: float,
                 cfg: PipelineConfig, state: _PairState, why: str) -> PipelineResult:
         """Run the global search; a valid result starts the pair's motion afresh."""
-        result = (self._recovered(source, target, cfg, state)
-                  or self.global_registration(source, target, config=cfg))
+        result = self.global_registration(source, target, config=cfg)
         self._count_global(result, stamp, state)
         result.stats['global_because'] = why
         if result.valid:
             state.poses.clear()
             _remember(state, stamp, result)
         return result
-
-    def _recovered(self, source: np.ndarray, target: np.ndarray | PreparedMap,
-                   cfg: PipelineConfig, state: _PairState) -> PipelineResult | None:
-        """
-        Search at ``tracking.recovery_voxel_factor`` voxels, refine at the voxel; or None.
-
-        A stream that was tracked and lost it (a jump, a gap) is searched globally where a
-        coarser voxel costs a fraction of the time, then refined at the stream's voxel from
-        that pose and judged as a tracked pose is: the result keeps the coarse search's
-        evidence (inliers against chance, candidates, confidence) and takes the refined
-        pose, its overlap measures and covariance. None (the full global search follows)
-        when the factor is 1, no scan of the pair was tracked yet (its first scan, or views
-        too far apart to track: the full search's detail), the target is a map (prepared at
-        one voxel size), or either step refuses.
-        """
-        factor = cfg.tracking.recovery_voxel_factor
-        if factor <= 1.0 or not state.tracked or isinstance(target, PreparedMap):
-            return None
-        coarse_cfg = dataclasses.replace(cfg, voxel_size=cfg.voxel_size * factor)
-        coarse = self.global_registration(source, target, config=coarse_cfg)
-        if not coarse.valid:
-            return None
-        with single_blas_thread():
-            fine = self._track(source, target, coarse.transform, cfg, state, last_fitness=0.0)
-        if not fine.valid:
-            return None
-        four_dof = cfg.core.motion_model == '4dof'  # as the global path: no doubt in 4-DoF
-        recovered = dataclasses.replace(
-            coarse, transform=fine.transform, fitness=fine.fitness,
-            inlier_rmse=fine.inlier_rmse, overlap=fine.overlap,
-            observability=fine.observability, free_space_violation=fine.free_space_violation,
-            tilt_deg=fine.tilt_deg, num_source_points=fine.num_source_points,
-            num_target_points=fine.num_target_points, resolution=fine.resolution,
-            voxel_size=fine.voxel_size, covariance=fine.covariance if four_dof
-            else with_confidence(fine.covariance, coarse.confidence))
-        recovered.timings.update({f'recovery_{k}': v for k, v in fine.timings.items()})
-        recovered.stats['recovered_at_voxel'] = coarse_cfg.voxel_size
-        return recovered
 
     def _count_global(self, result: PipelineResult, stamp: float, state: _PairState) -> None:
         self._counts['global'] += 1
