@@ -37,4 +37,7 @@ any other bench module: they may import the tools of :mod:`bench`, never the rev
 - :mod:`.recall_time`: recall against median time of settings run side by side with
   KISS-Matcher (``bench.threedmatch --variant``), and settings chosen on the easiest scenes,
   reported on the hardest.
+- :mod:`.no_overlap_bound`: the shared-surface gate's bounds (``gates.min_shared_area``,
+  ``gates.max_descriptor_ratio``) chosen on the right low-overlap poses of the training
+  scenes, leave one scene out and easiest to hardest (docs/no_overlap.md).
 """
