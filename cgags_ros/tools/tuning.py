@@ -124,8 +124,19 @@ class Score:
 def load_pairs(bags: Sequence[Path], source_topic: str, target_topic: str,
                ground_truth_topic: str | None, ground_truth_file: Path | None = None
                ) -> list[TunePair]:
+    """Return every pair of ``bags`` with its truth if known (:func:`load_bags`' pairs)."""
+    return load_bags(bags, source_topic, target_topic, ground_truth_topic,
+                     ground_truth_file)[0]
+
+
+def load_bags(bags: Sequence[Path], source_topic: str, target_topic: str,
+              ground_truth_topic: str | None, ground_truth_file: Path | None = None
+              ) -> tuple[list[TunePair], list[tuple[str, Any]]]:
     """
-    Return every pair of ``bags``, as the node pairs them (defaults), with its truth if known.
+    Return every pair of ``bags`` (as the node pairs them, defaults) and each bag's contents.
+
+    The contents (``(name, BagContents)``, every cloud with its message) are what a live
+    study plays to the node, so that each bag is read once.
 
     The truth comes from ``ground_truth_file`` or ``ground_truth_topic``; ``None`` for the
     topic means ``/ground_truth`` when the bags have it. Without ground truth in any bag,
@@ -136,6 +147,7 @@ def load_pairs(bags: Sequence[Path], source_topic: str, target_topic: str,
         truth and some without (tune them apart).
     """
     pairs = []
+    read = []
     with_truth = set()
     for bag in bags:
         topic = ground_truth_topic or DEFAULT_GT_TOPIC
@@ -147,6 +159,7 @@ def load_pairs(bags: Sequence[Path], source_topic: str, target_topic: str,
             contents.ground_truth = read_ground_truth(ground_truth_file)
         has_truth = ground_truth_file is not None or contents.ground_truth_topic is not None
         name = bag.stem if bag.suffix == '.mcap' else bag.resolve().name
+        read.append((name, contents))
         _, node = configs_from_parameters({})
         found = matched = 0
         for pair in iter_pairs(contents, Pairer.from_config(node.pairing)):
@@ -168,7 +181,7 @@ def load_pairs(bags: Sequence[Path], source_topic: str, target_topic: str,
     if with_truth and len(with_truth) < len(bags):
         raise ReplayError('some bags have ground truth and some do not: tune them apart (the '
                           'two objectives do not add up)')
-    return pairs
+    return pairs, read
 
 
 def judged_by(pairs: Sequence[TunePair]) -> str:
