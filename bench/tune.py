@@ -113,8 +113,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.live:
         os.environ.update(ROS_DOMAIN_ID='43', ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
     bags = [shared_data_dir() / 'bags' / bag for bag in args.bags]
-    if args.moved:
-        bags += [moved_bag(bag, args.output / 'bags' / f'{bag}_moved') for bag in args.bags]
+    if args.moved:  # first: they need the fix the defaults lack
+        bags = [moved_bag(bag, args.output / 'bags' / f'{bag}_moved')
+                for bag in args.bags] + bags
     rows = []
     for bag in bags:
         voxel = DOCUMENTED[_kind(bag)]

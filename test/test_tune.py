@@ -77,6 +77,11 @@ def test_the_voxel_grid_spans_the_reference_and_the_start_on_a_log_scale():
     assert any(abs(v - 0.3) < 1e-9 for v in grid) and any(abs(v - 3.0) < 0.01 for v in grid)
     steps = np.diff(np.log10(grid))
     assert np.allclose(steps, 1 / tuning.GRID_STEPS, atol=0.01)
+    # A LiDAR start ten times too large: the grid stops at the largest voxel the node takes.
+    coarse = tuning.voxel_grid(0.32, 3.2)
+    assert max(coarse) <= 100.0 and min(coarse) < 0.3 / 10
+    for voxel in coarse:
+        configs_from_parameters({'voxel_size': voxel})  # every one valid
 
 
 def test_the_parameters_file_is_read_back_by_the_node(tmp_path):

@@ -51,9 +51,18 @@ class OfflineTrials:
         return {'voxel_size': self.reference}
 
     def score(self, settings: dict[str, Any], splits: Sequence[str]) -> dict[str, Any]:
-        """Replay the pairs of ``splits`` with ``settings``; return each split's score."""
-        return {name: tuning.replay(self.splits[name], settings, self.criteria)[0]
-                for name in splits if self.splits[name]}
+        """
+        Replay the pairs of ``splits`` with ``settings``; return each split's score.
+
+        :raises SettingRefused: a setting out of its range, as the node would refuse it.
+        """
+        try:
+            return {name: tuning.replay(self.splits[name], settings, self.criteria)[0]
+                    for name in splits if self.splits[name]}
+        except SettingRefused:
+            raise
+        except InvalidConfigError as exc:
+            raise SettingRefused(str(exc)) from exc
 
     def leave_on(self, best: dict[str, Any]) -> None:
         """Nothing runs on after an offline study."""

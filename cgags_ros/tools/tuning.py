@@ -26,7 +26,8 @@ choice, and the user's start); and a
 setting only where the bags' own refusals name it as the fix (docs/refusals.md):
 ``frontend.normal_orientation`` for free-space refusals (clouds not in their sensor frame),
 ``core.motion_model`` for tilt refusals (levelled clouds expected), ``core.time_budget``
-for pairs that ran into a timeout. No research switch is searched.
+for pairs that ran into a timeout, each opened when the best trials so far are refused so
+(:mod:`.tune_search`). No research switch is searched.
 
 Part of the pairs (``holdout``) is held out, chosen by a seeded shuffle: the search sees
 only the rest, and the best trial is then replayed on both, so that a setting that only
@@ -244,11 +245,15 @@ def criteria_for(voxel: float, max_re_deg: float | None, max_te_m: float | None
 
 def voxel_grid(reference: float, start: float | None) -> list[float]:
     """Return the voxel sizes searched: a log grid covering the reference and the start."""
+    from ..config import PipelineConfig
+
     lo = min(reference, start or reference) / 10 ** GRID_SPAN
     hi = max(reference, start or reference) * 10 ** GRID_SPAN
     k_lo = math.floor(GRID_STEPS * math.log10(lo / reference))
     k_hi = math.ceil(GRID_STEPS * math.log10(hi / reference))
-    return [float(f'{reference * 10 ** (k / GRID_STEPS):.3g}') for k in range(k_lo, k_hi + 1)]
+    grid = [float(f'{reference * 10 ** (k / GRID_STEPS):.3g}') for k in range(k_lo, k_hi + 1)]
+    bounds = next(f.metadata for f in dataclasses.fields(PipelineConfig) if f.name == 'voxel_size')
+    return [v for v in grid if bounds['low'] <= v <= bounds['high']]  # what the node accepts
 
 
 def search_space(refusals: Iterable[str]) -> dict[str, tuple]:
