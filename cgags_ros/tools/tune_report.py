@@ -2,8 +2,8 @@
 What ``cgags-tune`` writes beside ``params.yaml``: the report, the plot, the hold-out warning.
 
 The report names the settings written (:mod:`.tune_choice`), compares the best trial with
-the defaults on the pairs tuned on and on the held-out ones, and lists every trial; the plot shows every trial's recall against its median
-time, the Pareto front marked.
+the defaults on the pairs tuned on and on the held-out ones, and lists every trial; the
+plot shows every trial's recall against its median time, the Pareto front marked.
 """
 
 from __future__ import annotations
