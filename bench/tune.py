@@ -4,7 +4,7 @@ r"""
 Run by hand from the repository root, nothing else running (minutes a start)::
 
     .venv/bin/python -m bench.tune [--bags bunny lidar redkitchen] [--trials 30] \
-        [--factors 10 0.1] [--consistency] [--live] [--output out/bench/tune]
+        [--factors 10 0.1] [--moved] [--consistency] [--live] [--output out/bench/tune]
 
 For every bag and start (the documented voxel size of the bag, the one ``cgags-demo``
 chooses, times each factor) it runs ``cgags-tune`` in a fresh study (seed 0, hold-out 0.3,
@@ -12,6 +12,12 @@ at most ``--trials`` trials; success as ``cgags-demo`` counts it), then replays 
 with the written ``params.yaml`` (``cgags-replay --config``) and prints the best settings,
 the pairs right and valid and valid but wrong on the whole bag, and the trial that first
 reached the best tuned-on score.
+
+``--moved`` tunes, beside each bag, a copy whose clouds are moved out of their sensor frame
+(:func:`moved_bag`, written to ``<output>/bags``): the free-space gate then refuses right
+poses on the defaults, and the tuning must find the documented fix. For every bag the
+defaults (the documented voxel, nothing else) are replayed too, with their free-space
+refusals counted.
 
 ``--consistency`` tunes without the ground truth (``--ignore-ground-truth``: pairs judged
 by consistency), the replay still judging against it. ``--live`` also replays the bag
@@ -29,34 +35,66 @@ import sys
 
 from bench.common import argument_parser, LIMITS, markdown_table
 from cgags_ros.io.shared_data import shared_data_dir
+import numpy as np
 
 DOCUMENTED = {'bunny': 0.0024, 'redkitchen': 0.05, 'lidar': 0.3}  # metres, README's table
 
 
-def run_start(bag: str, voxel: float, trials: int, out: Path, consistency: bool) -> dict:
+def moved_bag(bag: str, path: Path) -> Path:
+    """
+    Write ``bag`` with every cloud moved by one rigid motion (its ground truth moved with it).
+
+    As a tool that re-centres clouds would: the sensor is no longer at the clouds' origin.
+    The translation is a hundred documented voxels, so that it is far on every bag's scale.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from cgags_ros.geometry import apply_transform, make_transform
+    from cgags_ros.io.bag import write_bag
+    from cgags_ros.tools.replay_common import read_bag_contents
+
+    if path.exists():
+        return path
+    moved = make_transform(Rotation.from_euler('xyz', [70, -40, 120], degrees=True).as_matrix(),
+                           100 * DOCUMENTED[bag] * np.array([1.6, -1.2, 1.0]))
+    contents = read_bag_contents(shared_data_dir() / 'bags' / bag, '/source_cloud',
+                                 '/target_cloud', '/ground_truth')
+    messages = [(f'/{c.role}_cloud', c.stamp_ns, c.frame_id, apply_transform(moved, c.xyz))
+                for c in contents.clouds if c.xyz is not None]
+    messages += [('/ground_truth', stamp, 'moved', moved @ truth @ np.linalg.inv(moved))
+                 for stamp, truth in contents.ground_truth.items()]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_bag(path, messages)
+    return path
+
+
+def run_start(bag: Path, voxel: float, trials: int, out: Path, consistency: bool) -> dict:
     """Run ``cgags-tune`` on ``bag`` from ``voxel`` in a fresh study; return its summary."""
-    max_re, max_te = LIMITS[bag]
-    out.mkdir(parents=True, exist_ok=True)
-    (out.parent / f'{out.name}.db').unlink(missing_ok=True)
-    subprocess.run([sys.executable, '-m', 'cgags_ros.tools.tune',
-                    str(shared_data_dir() / 'bags' / bag), '--voxel-size', f'{voxel:g}',
-                    '--trials', str(trials), '--output', str(out), '--quiet',
-                    '--storage', f"sqlite:///{out.parent / f'{out.name}.db'}",
-                    '--max-re-deg', str(max_re), '--max-te', str(max_te)]
+    max_re, max_te = LIMITS[_kind(bag)]
+    (out / 'study.db').unlink(missing_ok=True)
+    subprocess.run([sys.executable, '-m', 'cgags_ros.tools.tune', str(bag),
+                    '--voxel-size', f'{voxel:g}', '--trials', str(trials), '--output', str(out),
+                    '--quiet', '--max-re-deg', str(max_re), '--max-te', str(max_te)]
                    + (['--ignore-ground-truth'] if consistency else []), check=True)
     return json.loads((out / 'summary.json').read_text(encoding='utf-8'))
 
 
-def replay_params(bag: str, params: Path, out: Path, live: bool) -> tuple[int, int, int]:
-    """Replay ``bag`` with ``params`` (offline or live); return (right, valid wrong, pairs)."""
-    max_re, max_te = LIMITS[bag]
-    subprocess.run([sys.executable, '-m', 'cgags_ros.tools.replay',
-                    str(shared_data_dir() / 'bags' / bag), '--config', str(params),
+def _kind(bag: Path) -> str:
+    """Return the bundled bag a bag is (or is moved from)."""
+    return bag.name.removesuffix('_moved')
+
+
+def replay_params(bag: Path, settings: list[str], out: Path, live: bool
+                  ) -> tuple[int, int, int, int]:
+    """Replay ``bag`` with ``settings`` (offline or live): right, wrong, pairs, free space."""
+    max_re, max_te = LIMITS[_kind(bag)]
+    subprocess.run([sys.executable, '-m', 'cgags_ros.tools.replay', str(bag), *settings,
                     '--output', str(out), '--quiet', '--max-re-deg', str(max_re),
                     '--max-te', str(max_te)] + ['--live'] * live, check=True)
     rows = json.loads((out / 'results.json').read_text(encoding='utf-8'))['pairs']
     return (sum(bool(r['success']) for r in rows),
-            sum(bool(r['valid'] and not r['success']) for r in rows), len(rows))
+            sum(bool(r['valid'] and not r['success']) for r in rows), len(rows),
+            sum((r.get('refusal') or {}).get('code') == 'free_space' for r in rows))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -64,6 +102,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--bags', nargs='+', default=sorted(DOCUMENTED))
     parser.add_argument('--trials', type=int, default=30)
     parser.add_argument('--factors', type=float, nargs='+', default=[10.0, 0.1])
+    parser.add_argument('--moved', action='store_true',
+                        help="also each bag's clouds moved out of their sensor frame")
     parser.add_argument('--consistency', action='store_true',
                         help='tune without the ground truth (judged by consistency)')
     parser.add_argument('--live', action='store_true',
@@ -72,30 +112,41 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.live:
         os.environ.update(ROS_DOMAIN_ID='43', ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    bags = [shared_data_dir() / 'bags' / bag for bag in args.bags]
+    if args.moved:  # first: they need the fix the defaults lack
+        bags = [moved_bag(bag, args.output / 'bags' / f'{bag}_moved')
+                for bag in args.bags] + bags
     rows = []
-    for bag in args.bags:
-        voxel = DOCUMENTED[bag]
+    for bag in bags:
+        voxel = DOCUMENTED[_kind(bag)]
+        right, wrong, pairs, free = replay_params(bag, ['--voxel-size', f'{voxel:g}'],
+                                                  args.output / f'{bag.name}_defaults', False)
+        defaults = f'{right}/{pairs}, {wrong} wrong, {free} free space'
         for factor in args.factors:
-            out = args.output / f"{bag}_x{factor:g}{'_consistency' * args.consistency}"
+            out = args.output / f"{bag.name}_x{factor:g}{'_consistency' * args.consistency}"
             summary = run_start(bag, voxel * factor, args.trials, out, args.consistency)
-            params = out / 'params.yaml'
-            right, wrong, pairs = replay_params(bag, params, out / 'replay', live=False)
+            params = ['--config', str(out / 'params.yaml')]
+            right, wrong, pairs, free = replay_params(bag, params, out / 'replay', live=False)
             live = (replay_params(bag, params, out / 'replay_live', live=True)
                     if args.live else None)
-            scored = [t for t in summary['trials'] if 'right' in t]
+            scored = [t for t in summary['trials'] if 'right' in t and 'repeat_of' not in t]
             top = max(t['right'] - 1000 * t['wrong'] for t in scored)
-            rows.append((bag, f'{voxel * factor:g}', f'{voxel:g}',
-                         ', '.join(f'{k}={v}' for k, v in summary['best'].items()),
-                         f'{right}/{pairs}', wrong,
+            rows.append((bag.name, f'{voxel * factor:g}', f'{voxel:g}', defaults,
+                         ', '.join(f'{k}={v}' for k, v in summary['written'].items()),
+                         f'{right}/{pairs}', wrong, free,
                          f'{live[0]}/{live[2]}, {live[1]} wrong' if live else '-',
                          next(t['number'] for t in scored
                               if t['right'] - 1000 * t['wrong'] == top),
-                         len(summary['trials']), summary['warning'] or '-'))
+                         f"{len(scored)} (+{len(summary['trials']) - len(scored)} repeats)",
+                         '; '.join(f"{s['trial']}: {', '.join(s['opened'])}"
+                                   for s in summary['stages']) or '-',
+                         summary['warning'] or summary['guard'] or '-'))
             print(rows[-1], flush=True)
-    print(markdown_table(('bag', 'start voxel', 'documented voxel', 'best settings',
-                          'right and valid (whole bag)', 'valid but wrong', 'live over DDS',
-                          'first trial at the best tuned-on score', 'trials', 'warning'),
-                         rows))
+    print(markdown_table(('bag', 'start voxel', 'documented voxel', 'defaults (whole bag)',
+                          'written settings', 'right and valid (whole bag)', 'valid but wrong',
+                          'free space refusals', 'live over DDS',
+                          'first trial at the best tuned-on score', 'trials',
+                          'stages (trial: opened)', 'warning'), rows))
     return 0
 
 

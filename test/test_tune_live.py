@@ -56,13 +56,15 @@ def _options(data_dir: Path, tmp_path: Path, **extra) -> tune.Options:
                         max_re_deg=5.0, max_te=0.01, timeout=120.0, **extra)
 
 
-def test_live_trials_change_the_node_and_leave_it_on_the_best(node, data_dir, tmp_path):
+def test_live_trials_change_the_node_and_leave_it_on_the_best(node, data_dir, tmp_path,
+                                                              monkeypatch):
+    from cgags_ros.tools import replay_common
     from cgags_ros.tools.tune_live import LiveTrials
 
     opts = _options(data_dir, tmp_path, voxel_size=0.024, trials=3)
-    pairs = tuning.load_pairs(opts.bags, opts.source_topic, opts.target_topic, None)
+    pairs, contents = tuning.load_bags(opts.bags, opts.source_topic, opts.target_topic, None)
     criteria = tuning.criteria_for(0.0024, 5.0, 0.01)
-    trials = LiveTrials(opts, {'tuned on': pairs, 'held out': []}, criteria)
+    trials = LiveTrials(opts, {'tuned on': pairs, 'held out': []}, criteria, contents)
     try:
         assert trials.defaults()['voxel_size'] == pytest.approx(0.05)  # the node's default
         coarse = trials.score({'voxel_size': 0.024}, ('tuned on',))['tuned on']
@@ -76,14 +78,23 @@ def test_live_trials_change_the_node_and_leave_it_on_the_best(node, data_dir, tm
     finally:
         trials.close()
 
+    opened = []
+
+    class CountingReader(replay_common.BagReader):
+        def __init__(self, path, *args, **kwargs):
+            opened.append(str(path))
+            super().__init__(path, *args, **kwargs)
+
+    monkeypatch.setattr(replay_common, 'BagReader', CountingReader)
     outcome = tune.tune(opts)  # the whole study, through the node
+    assert opened == [str(opts.bags[0])]  # each bag read once a run, live too
     assert [t['voxel_size'] for t in outcome.trials[:2]] == pytest.approx([0.024, 0.0024])
     best = outcome.scores['best', 'tuned on']
     assert (best.right, best.wrong) == (4, 0)
     assert outcome.defaults['voxel_size'] == pytest.approx(0.0024)  # left there by the test
     assert 'register_node:' in outcome.paths['params'].read_text()
-    check = LiveTrials(opts, {'tuned on': pairs, 'held out': []}, criteria)
+    check = LiveTrials(opts, {'tuned on': pairs, 'held out': []}, criteria, contents)
     try:
-        assert check.defaults()['voxel_size'] == pytest.approx(outcome.best['voxel_size'])
+        assert check.defaults()['voxel_size'] == pytest.approx(outcome.written['voxel_size'])
     finally:
         check.close()

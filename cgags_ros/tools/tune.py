@@ -10,22 +10,26 @@
 
 Replays every pair of the bags (paired as the node pairs them, the topics as in
 ``cgags-replay``) once a trial with Optuna's seeded TPE sampler choosing the settings
-(:mod:`.tuning` says which and why), scores them against the bags' ground truth
+(:mod:`.tuning` says which and why, :mod:`.tune_search` how the space follows the
+refusals), scores them against the bags' ground truth
 (``/ground_truth`` PoseStamped, or ``--ground-truth`` lines ``STAMP_NS x y z qx qy qz
 qw``), or by their consistency when the bags have none, and writes to DIR (default
 ``out/tune/<first bag>``):
 
-- ``params.yaml``: the best settings as a ROS 2 parameters file (``register_node:
+- ``params.yaml``: the chosen settings as a ROS 2 parameters file (``register_node:
   ros__parameters:``), for ``--ros-args --params-file``, ``ros2 param load`` and
-  ``cgags-replay --config``; every searched setting is a ROS parameter of the node;
+  ``cgags-replay --config``; every searched setting is a ROS parameter of the node. Ties
+  are broken on every pair, and settings worse than the defaults on the held-out pairs are
+  not written without a warning (:mod:`.tune_choice`);
 - ``report.md``: the best trial against the defaults on the pairs tuned on and on the
   held-out ones (pairs right and valid, valid but wrong, median seconds a pair), a warning
   when the held-out pairs fare worse than noise allows, and every trial;
 - ``trials.png``: every trial's recall against its median time, the Pareto front marked;
 - ``summary.json``: the same for programs (best settings, each split's score, every trial).
 
-The study is stored in ``out/tune/<first bag>.db`` (SQLite) unless ``--storage`` names
-another Optuna storage URL (a shared database lets several machines work on one study);
+The study is stored in DIR's ``study.db`` (SQLite) unless ``--storage`` names another
+Optuna storage URL (a shared database lets several machines work on one study), named
+after the arguments that define it, so a run with other arguments starts its own;
 ``--resume`` continues a stopped study up to ``--trials`` trials, without repeating one.
 ``--jobs N`` runs the trials in N processes on that storage (then the trials' order, and so
 the proposals, depend on timing: a seed no longer replays them).
@@ -39,6 +43,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 from pathlib import Path
 import sys
@@ -62,7 +67,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--voxel-size', type=float, default=None,
                    help='metres: where the search starts (default: chosen from the first '
                    'target cloud, as cgags-replay chooses it)')
-    p.add_argument('--trials', type=int, default=30, help='trials in all (default: 30)')
+    p.add_argument('--trials', type=int, default=30, help='distinct settings scored, the '
+                   'start included (default: 30)')
     p.add_argument('--seed', type=int, default=0, help='sampler and hold-out seed')
     p.add_argument('--holdout', type=float, default=0.3,
                    help='share of the pairs held out of the search (default: 0.3)')
@@ -70,7 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='valid but wrong pairs a setting may have (default: 0)')
     p.add_argument('--output', type=Path, default=None, help='default: out/tune/<first bag>')
     p.add_argument('--storage', default=None, help='Optuna storage URL (default: SQLite in '
-                   'out/tune/<first bag>.db)')
+                   'the output, study.db)')
     p.add_argument('--resume', action='store_true', help='continue a stopped study')
     p.add_argument('--jobs', type=int, default=1,
                    help='processes running trials at once (default: 1)')
@@ -149,9 +155,21 @@ class Options:
 
     @property
     def name(self) -> str:
-        """Return the study's name: the first bag's."""
+        """Return the first bag's name."""
         bag = self.bags[0]
         return bag.stem if bag.suffix == '.mcap' else bag.resolve().name
+
+    @property
+    def study_name(self) -> str:
+        """Return the study's name: the first bag's, and a digest of what defines the study."""
+        defining = [[str(Path(b).resolve()) for b in self.bags], self.voxel_size, self.seed,
+                    self.holdout, self.max_wrong,
+                    str(self.ground_truth.resolve()) if self.ground_truth else None,
+                    self.source_topic, self.target_topic, self.ground_truth_topic,
+                    self.ignore_ground_truth, self.max_re_deg, self.max_te, self.live,
+                    self.node if self.live else None]
+        digest = hashlib.sha1(json.dumps(defining).encode()).hexdigest()[:10]
+        return f'{self.name}-{digest}'
 
     @property
     def out_dir(self) -> Path:
@@ -160,8 +178,8 @@ class Options:
 
     @property
     def storage_url(self) -> str:
-        """Return the Optuna storage URL (a local SQLite file unless given), its folder made."""
-        url = self.storage or f"sqlite:///{Path('out') / 'tune' / f'{self.name}.db'}"
+        """Return the Optuna storage URL (``study.db`` in the output unless given)."""
+        url = self.storage or f"{SQLITE}{self.out_dir / 'study.db'}"
         if url.startswith(SQLITE):
             Path(url[len(SQLITE):]).parent.mkdir(parents=True, exist_ok=True)
         return url
@@ -169,15 +187,18 @@ class Options:
 
 @dataclasses.dataclass
 class Outcome:
-    """A finished tuning: the best settings, and the comparison on both splits."""
+    """A finished tuning: the best and written settings, and the comparison on both splits."""
 
     best: dict[str, Any]
     defaults: dict[str, Any]
-    scores: dict[str, Any]  # (settings name, split) -> tuning.Score
+    scores: dict[Any, Any]  # (settings name, split) -> tuning.Score
     trials: list[dict[str, Any]]
     warning: str
     paths: dict[str, Path]
     notes: list[str] = dataclasses.field(default_factory=list)
+    written: dict[str, Any] = dataclasses.field(default_factory=dict)
+    guard: str = ''  # why the written settings are not the best trial's, or ''
+    stages: list[dict[str, Any]] = dataclasses.field(default_factory=list)
 
 
 def tune(opts: Options) -> Outcome:
@@ -191,52 +212,65 @@ def tune(opts: Options) -> Outcome:
 
 
 def _finish(setup: Any, opts: Options) -> Outcome:
-    """Pick the best trial, replay it and the defaults on both splits, write the outputs."""
+    """Choose the settings to write (:mod:`.tune_choice`) and write the outputs."""
     import optuna
 
     from . import tuning
+    from .tune_choice import choose, score_of
     from .tune_report import holdout_warning, plot_trials, report_markdown
 
     trials = sorted(setup.study.trials, key=lambda t: t.number)
-    complete = [t for t in trials if t.state == optuna.trial.TrialState.COMPLETE]
-    if not complete:
+    scored = [t for t in trials if t.state == optuna.trial.TrialState.COMPLETE
+              and 'repeat_of' not in t.user_attrs]
+    if not scored:
         raise ReplayError('no trial completed' + ''.join(
             f'; trial {t.number}: {t.user_attrs["refused"]}' for t in trials
             if t.user_attrs.get('refused')))
-    best = max(complete, key=lambda t: (t.value, -t.user_attrs['median_s'])).params
-    defaults = setup.trials.defaults()
-    scores = {}
-    for name, settings in (('best', best), ('defaults', defaults)):
-        for split, score in setup.trials.score(settings, ('tuned on', 'held out')).items():
-            scores[name, split] = score
-    setup.trials.leave_on(best)
+    choice = choose(setup.trials, [(t.params, score_of(t.user_attrs)) for t in scored],
+                    bool(setup.splits['held out']), opts.max_wrong)
+    setup.trials.leave_on(choice.written)
+    scores = choice.scores
     warning = holdout_warning(scores.get(('best', 'tuned on')), scores.get(('best', 'held out')))
     rows = [_trial_row(t) for t in trials
             if t.state == optuna.trial.TrialState.COMPLETE or t.user_attrs.get('refused')]
-    notes = setup.notes + ([f'warning: {warning}'] if warning else [])
+    stages = list(setup.study.user_attrs.get('stages', []))
+    notes = setup.notes + [_stage_note(stage) for stage in stages]
+    notes += [f'warning: {text}' for text in (warning, choice.guard) if text]
     if setup.trials.lost:
         notes.append(f'{setup.trials.lost} pair(s) got no result from the node (lost by DDS '
                      'or later than --timeout) and counted as not right: while tuning, start '
                      'the node with pairing.source_qos:=reliable (docs/tuning.md)')
     out = opts.out_dir
     out.mkdir(parents=True, exist_ok=True)
-    comment = (f'cgags-tune {" ".join(map(str, opts.bags))}: {len(complete)} trials, seed '
+    comment = (f'cgags-tune {" ".join(map(str, opts.bags))}: {len(scored)} trials, seed '
                f'{opts.seed}; report.md beside this file')
+    if choice.guard:
+        comment += f'\nWARNING: {choice.guard}'
     paths = {'params': out / 'params.yaml', 'report': out / 'report.md',
              'plot': out / 'trials.png', 'summary': out / 'summary.json'}
-    paths['params'].write_text(tuning.params_yaml(best, comment), encoding='utf-8')
-    outcome = Outcome(best, defaults, scores, rows, warning, paths, notes)
-    report = report_markdown(opts.bags, best, defaults, scores, rows, notes)
+    paths['params'].write_text(tuning.params_yaml(choice.written, comment), encoding='utf-8')
+    outcome = Outcome(choice.best, choice.defaults, scores, rows, warning, paths, notes,
+                      choice.written, choice.guard, stages)
+    report = report_markdown(opts.bags, choice, scores, rows, notes)
     paths['report'].write_text(report, encoding='utf-8')
     paths['summary'].write_text(json.dumps({
-        'best': best, 'defaults': defaults, 'warning': warning, 'notes': notes,
+        'best': choice.best, 'written': choice.written, 'defaults': choice.defaults,
+        'warning': warning, 'guard': choice.guard, 'notes': notes, 'stages': stages,
         'trials': rows,
         'scores': [{'settings': name, 'split': split, **dataclasses.asdict(score)}
                    for (name, split), score in scores.items()]}, indent=1), encoding='utf-8')
     plot_trials(rows, paths['plot'])
     if not opts.quiet:
         print(report)
+    if choice.guard:  # even --quiet: the file written is not the best trial's
+        print(f'{PROG}: warning: {choice.guard}')
     return outcome
+
+
+def _stage_note(stage: dict[str, Any]) -> str:
+    """Return a stage of the space as a line of the report."""
+    return (f"stage {stage['stage']}: trial {stage['trial']}'s refusals {stage['refusals']} "
+            f"opened {', '.join(stage['opened'])}")
 
 
 def _trial_row(trial: Any) -> dict[str, Any]:

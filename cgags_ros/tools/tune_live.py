@@ -15,10 +15,13 @@ by DDS, which a best-effort source subscription may do with a large cloud, or sl
 that) counts as not right, the replay goes on, and the report counts them (:attr:`lost`).
 Every pair of the
 bags goes through the node each trial, held-out ones included (the stream is the bag's);
-only the tuned-on pairs' scores reach the sampler.
+only the tuned-on pairs' scores reach the sampler. The clouds played are those the study
+read for its pairs: each bag is read once a run.
 
 What "defaults" means here: the node's values of the searched settings before the first
-trial. When the study ends, the node is left on the best settings.
+trial. A setting a trial does not search (the space grows as the study goes,
+:mod:`.tune_search`) is set back to that value, so no trial inherits the one before's.
+When the study ends, the node is left on the settings written.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from . import tuning
-from .replay_common import fill_from_result, iter_pairs, read_bag_contents, ReplayError
+from .replay_common import fill_from_result, iter_pairs, ReplayError
 from .replay_player import LiveSession, MAX_QUEUE
 from ..config.node import configs_from_parameters
 from ..localizer.pairing import Pairer
@@ -43,15 +46,15 @@ SETTLE_S = 0.3  # after connecting: let the reliable and transient-local handsha
 class LiveTrials:
     """The study's trials, run by a running register_node (``opts.node``) over DDS."""
 
-    def __init__(self, opts: Any, splits: dict[str, list], criteria: Any):
+    def __init__(self, opts: Any, splits: dict[str, list], criteria: Any,
+                 contents: list[tuple[str, Any]]):
+        """Connect to ``opts.node``; ``contents`` are the bags as read for the pairs."""
         self.splits, self.criteria, self.timeout = splits, criteria, opts.timeout
         self.bags = []  # (name, playable clouds, source stamps to wait for after their target)
-        for bag in opts.bags:
-            contents = read_bag_contents(bag, opts.source_topic, opts.target_topic, None)
+        for name, bag in contents:
             _, node = configs_from_parameters({})
-            pairs = list(iter_pairs(contents, Pairer.from_config(node.pairing)))
-            name = bag.stem if bag.suffix == '.mcap' else bag.resolve().name
-            self.bags.append((name, [c for c in contents.clouds if c.msg is not None],
+            pairs = list(iter_pairs(bag, Pairer.from_config(node.pairing)))
+            self.bags.append((name, [c for c in bag.clouds if c.msg is not None],
                               {int(p.source.payload.stamp_ns): int(p.target.payload.stamp_ns)
                                for p in pairs}))
         n_sources = sum(len(paired) for _, _, paired in self.bags)
@@ -90,7 +93,7 @@ class LiveTrials:
 
         :raises SettingRefused: the node refused a setting (its reasons).
         """
-        self._set(settings)
+        self._set({**self.initial, **settings})  # a setting not searched yet: the node's own
         results = {}
         for name, clouds, paired in self.bags:
             for stamp, result in self._play(clouds, paired).items():
@@ -107,7 +110,7 @@ class LiveTrials:
 
     def leave_on(self, best: dict[str, Any]) -> None:
         """Leave the node on the best settings."""
-        self._set(best)
+        self._set({**self.initial, **best})
 
     def close(self) -> None:
         """Leave the node (running, on whatever was set last) and close the player."""

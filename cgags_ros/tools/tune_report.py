@@ -1,9 +1,9 @@
 """
 What ``cgags-tune`` writes beside ``params.yaml``: the report, the plot, the hold-out warning.
 
-The report compares the best settings with the defaults on the pairs tuned on and on the
-held-out ones and lists every trial; the plot shows every trial's recall against its median
-time, the Pareto front marked.
+The report names the settings written (:mod:`.tune_choice`), compares the best trial with
+the defaults on the pairs tuned on and on the held-out ones, and lists every trial; the
+plot shows every trial's recall against its median time, the Pareto front marked.
 """
 
 from __future__ import annotations
@@ -34,15 +34,15 @@ def holdout_warning(tuned: Any, held: Any) -> str:
     return ''
 
 
-def report_markdown(bags: Sequence[Any], best: dict[str, Any], defaults: dict[str, Any],
-                    scores: dict[tuple[str, str], Any], trials: list[dict[str, Any]],
-                    notes: Sequence[str]) -> str:
-    """Return the report: the best settings against the defaults on both splits, every trial."""
+def report_markdown(bags: Sequence[Any], choice: Any, scores: dict[tuple[str, str], Any],
+                    trials: list[dict[str, Any]], notes: Sequence[str]) -> str:
+    """Return the report: what was written, the best against the defaults, every trial."""
     judged = next(iter(scores.values())).judged_by if scores else 'ground truth'
     right = 'right and valid' if judged == 'ground truth' else 'valid and confirmed'
     wrong = 'valid but wrong' if judged == 'ground truth' else 'valid and contradicted'
     lines = [f'# cgags-tune: {", ".join(map(str, bags))}', '',
-             f'best: `{best}`; defaults: `{defaults}`; judged by {judged}', '']
+             f'written: `{choice.written}`; best trial: `{choice.best}`; defaults: '
+             f'`{choice.defaults}`; judged by {judged}', '']
     lines += [f'- {note}' for note in notes] + ([''] if notes else [])
     lines += [f'| settings | pairs | {right} | {wrong} | median s a pair |',
               '|---|---|---|---|---|']

@@ -1,23 +1,24 @@
 """
-A ``cgags-tune`` study: its pairs and space, the objective, and the processes that run it.
+A ``cgags-tune`` study: its pairs, its storage, and its first trial.
 
-:func:`prepare` loads the bags' pairs, splits off the held-out ones and opens the study in
-its storage (choosing and storing the search space when the study is new); every process of
-a study calls it. :func:`objective_of` is one trial: the sampler's settings replayed by the
-study's trials (:class:`OfflineTrials` in this process, or
-:class:`~.tune_live.LiveTrials` through a running node) and scored; settings tried before
-are read back, not replayed. :func:`search` runs the trials still due, in ``--jobs``
-processes on the study's storage.
+:func:`prepare` loads the bags' pairs (each bag read once, live too), splits off the
+held-out ones and opens the study in its storage; every process of a study calls it. The
+first process of a new study replays the start once, records it as trial 0, queues the
+automatic choice, and opens the space the start's refusals call for. :func:`search` runs
+the rest (:mod:`.tune_search`), in ``--jobs`` processes on the study's storage. Trials run
+in this process (:class:`OfflineTrials`) or through a running node
+(:class:`~.tune_live.LiveTrials`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 from . import tuning
 from .replay_common import ReplayError
+from .tune_search import counted, distributions, open_stages, run_trials, stored_space
 from .tuning import SettingRefused
 from ..errors import InvalidConfigError
 
@@ -50,9 +51,18 @@ class OfflineTrials:
         return {'voxel_size': self.reference}
 
     def score(self, settings: dict[str, Any], splits: Sequence[str]) -> dict[str, Any]:
-        """Replay the pairs of ``splits`` with ``settings``; return each split's score."""
-        return {name: tuning.replay(self.splits[name], settings, self.criteria)[0]
-                for name in splits if self.splits[name]}
+        """
+        Replay the pairs of ``splits`` with ``settings``; return each split's score.
+
+        :raises SettingRefused: a setting out of its range, as the node would refuse it.
+        """
+        try:
+            return {name: tuning.replay(self.splits[name], settings, self.criteria)[0]
+                    for name in splits if self.splits[name]}
+        except SettingRefused:
+            raise
+        except InvalidConfigError as exc:
+            raise SettingRefused(str(exc)) from exc
 
     def leave_on(self, best: dict[str, Any]) -> None:
         """Nothing runs on after an offline study."""
@@ -73,23 +83,23 @@ def _open_study(opts: Any) -> Any:
         storage = optuna.storages.RDBStorage(
             url, engine_kwargs={'connect_args': {'timeout': SQLITE_LOCK_WAIT_S}})
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    return optuna.create_study(study_name=opts.name, storage=storage, direction='maximize',
+    return optuna.create_study(study_name=opts.study_name, storage=storage, direction='maximize',
                                load_if_exists=True,
                                sampler=optuna.samplers.TPESampler(seed=opts.seed))
 
 
 def prepare(opts: Any, first: bool = True) -> Setup:
     """
-    Load the pairs and open the study (``first``: check it, choose and store its space).
+    Load the pairs and open the study (``first``: check it, and start it when new).
 
-    Every process of a study calls it; only the first (``first``) may create the study's
-    space and enqueue its starting trials.
+    Every process of a study calls it; only the first (``first``) may replay the start as
+    trial 0, open the first stage and enqueue the automatic choice.
     """
     import optuna
 
     opts.check()
-    pairs = tuning.load_pairs(opts.bags, opts.source_topic, opts.target_topic,
-                              opts.ground_truth_topic, opts.ground_truth)
+    pairs, contents = tuning.load_bags(opts.bags, opts.source_topic, opts.target_topic,
+                                       opts.ground_truth_topic, opts.ground_truth)
     if opts.ignore_ground_truth:
         pairs = [dataclasses.replace(p, truth=None) for p in pairs]
     tuned_on, held_out = tuning.holdout_split(pairs, opts.holdout, opts.seed)
@@ -115,112 +125,60 @@ def prepare(opts: Any, first: bool = True) -> Setup:
     if opts.live:
         from .tune_live import LiveTrials  # imports rclpy
 
-        trials: Any = LiveTrials(opts, splits, criteria)
+        trials: Any = LiveTrials(opts, splits, criteria, contents)
     else:
         trials = OfflineTrials(splits, criteria, reference)
     setup = Setup(study, splits, criteria, grid, {}, reference, trials, notes)
     if not first:
-        setup.space = _stored_space(study)
+        setup.space = stored_space(study)
         return setup
     done = [t for t in study.trials if t.state == optuna.trial.TrialState.COMPLETE]
     if study.trials and not opts.resume:
         trials.close()
         raise InvalidConfigError(
-            f'a study {opts.name!r} exists in {opts.storage_url} ({len(done)} trials): '
-            '--resume to continue it, or --storage for a new one')
-    if 'space' in study.user_attrs:
-        setup.space = _stored_space(study)
-    else:
-        baseline = trials.score({'voxel_size': start}, ('tuned on',))['tuned on']
-        setup.space = tuning.search_space(baseline.refusals)
-        study.set_user_attr('space', {k: list(v) for k, v in setup.space.items()})
-        study.enqueue_trial({'voxel_size': start})
-        if automatic != start:
-            study.enqueue_trial({'voxel_size': automatic})
+            f'a study of these arguments ({opts.study_name}) exists in {opts.storage_url} '
+            f'({len(done)} trials): --resume to continue it, or another --output')
+    if not study.trials:
+        _start(setup, opts, start, automatic)
+    setup.space = stored_space(study)
     return setup
 
 
-def _stored_space(study: Any) -> dict[str, tuple]:
-    return {k: tuple(v) for k, v in study.user_attrs.get('space', {}).items()}
-
-
-CATCH = (SettingRefused,)  # a trial that fails so is recorded, and the study goes on
-
-
-def objective_of(setup: Setup, opts: Any) -> Callable[[Any], float]:
-    """Return the study's objective: one trial's settings replayed and scored."""
-
-    def objective(trial: Any) -> float:
-        settings = {'voxel_size': trial.suggest_categorical('voxel_size', setup.grid)}
-        for name, choices in setup.space.items():
-            settings[name] = trial.suggest_categorical(name, list(choices))
-        earlier = _earlier(setup.study, trial)
-        if earlier is not None:  # the same settings: read back, not replayed (nor refused again)
-            trial.set_user_attr('repeat_of', earlier.number)
-            for key, value in earlier.user_attrs.items():
-                if key != 'repeat_of':
-                    trial.set_user_attr(key, value)
-            if earlier.user_attrs.get('refused'):
-                raise SettingRefused(earlier.user_attrs['refused'])
-            return earlier.value
-        try:
-            score = setup.trials.score(settings, ('tuned on',))['tuned on']
-        except SettingRefused as exc:
-            trial.set_user_attr('refused', str(exc))
-            raise
-        for key, value in dataclasses.asdict(score).items():
-            trial.set_user_attr(key, value)
-        return score.value(opts.max_wrong)
-
-    return objective
-
-
-def _earlier(study: Any, trial: Any) -> Any:
-    """Return a finished trial of ``study`` with the same settings as ``trial``, if any."""
+def _start(setup: Setup, opts: Any, start: float, automatic: float) -> None:
+    """Replay the start once as trial 0, queue the automatic choice, open stage 0."""
     import optuna
 
-    finished = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.FAIL)
-    for other in study.get_trials(deepcopy=False, states=finished):
-        scored = 'right' in other.user_attrs or other.user_attrs.get('refused')
-        if scored and other.params == trial.params:
-            return other
-    return None
+    study = setup.study
+    params = {'voxel_size': start}
+    try:
+        score = setup.trials.score(params, ('tuned on',))['tuned on']
+    except SettingRefused as exc:
+        result: dict[str, Any] = {'state': optuna.trial.TrialState.FAIL,
+                                  'user_attrs': {'refused': str(exc)}}
+    else:
+        result = {'value': score.value(opts.max_wrong), 'user_attrs': dataclasses.asdict(score)}
+    study.set_user_attr('space', {})
+    study.set_user_attr('stages', [])
+    trial = optuna.trial.create_trial(params=params, distributions=distributions(setup.grid, {}),
+                                      **result)
+    study.add_trial(trial)
+    if automatic != start:
+        study.enqueue_trial({'voxel_size': automatic})
+    open_stages(setup, study)
 
 
-def _started(study: Any) -> int:
-    """Return the trials of ``study`` that ran or run (not those enqueued, still waiting)."""
-    import optuna
-
-    return sum(t.state != optuna.trial.TrialState.WAITING for t in study.trials)
-
-
-def _max_trials(n: int) -> Any:
-    """Return the callback that stops a process once the study has ``n`` trials started."""
-    import optuna
-
-    state = optuna.trial.TrialState
-    return optuna.study.MaxTrialsCallback(
-        n, states=(state.COMPLETE, state.FAIL, state.PRUNED, state.RUNNING))
-
-
-def search(setup: Setup, opts: Any) -> None:
+def search(setup: Any, opts: Any) -> None:
     """Run the trials still to run, in ``opts.jobs`` processes."""
     from tqdm import tqdm
 
     study = setup.study
-    remaining = opts.trials - _started(study)
-    if remaining <= 0:
+    if counted(study) >= opts.trials:
         return
-    bar = tqdm(total=opts.trials, initial=_started(study), disable=opts.quiet or None,
+    bar = tqdm(total=opts.trials, initial=counted(study), disable=opts.quiet or None,
                unit='trial', leave=False)
-
-    def progress(study: Any, _trial: Any) -> None:
-        bar.update(_started(study) - bar.n)
-
-    workers = _start_workers(opts, opts.jobs - 1, remaining)
+    workers = _start_workers(opts, opts.jobs - 1)
     try:
-        study.optimize(objective_of(setup, opts), n_trials=remaining,
-                       callbacks=[_max_trials(opts.trials), progress], catch=CATCH)
+        run_trials(setup, opts, lambda s: bar.update(counted(s) - bar.n))
     finally:
         for worker in workers:
             worker.join()
@@ -230,20 +188,22 @@ def search(setup: Setup, opts: Any) -> None:
         raise ReplayError(f'{len(failed)} of the --jobs processes failed (exit codes {failed})')
 
 
-def _start_workers(opts: Any, n: int, remaining: int) -> list[Any]:
+def _start_workers(opts: Any, n: int) -> list[Any]:
     """Start ``n`` processes that run trials of the same study beside this one."""
     import multiprocessing
 
     context = multiprocessing.get_context('spawn')  # no fork of a process with threads
-    workers = [context.Process(target=_work, args=(opts, remaining), daemon=True)
+    workers = [context.Process(target=_work, args=(opts,), daemon=True)
                for _ in range(max(0, n))]
     for worker in workers:
         worker.start()
     return workers
 
 
-def _work(opts: Any, remaining: int) -> None:
+def _work(opts: Any) -> None:
     """Run trials of ``opts``' study until it has ``opts.trials`` (a ``--jobs`` process)."""
     setup = prepare(dataclasses.replace(opts, quiet=True), first=False)
-    setup.study.optimize(objective_of(setup, opts), n_trials=remaining,
-                         callbacks=[_max_trials(opts.trials)], catch=CATCH)
+    try:
+        run_trials(setup, opts)
+    finally:
+        setup.trials.close()

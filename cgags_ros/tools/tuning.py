@@ -26,7 +26,8 @@ choice, and the user's start); and a
 setting only where the bags' own refusals name it as the fix (docs/refusals.md):
 ``frontend.normal_orientation`` for free-space refusals (clouds not in their sensor frame),
 ``core.motion_model`` for tilt refusals (levelled clouds expected), ``core.time_budget``
-for pairs that ran into a timeout. No research switch is searched.
+for pairs that ran into a timeout, each opened when the best trials so far are refused so
+(:mod:`.tune_search`). No research switch is searched.
 
 Part of the pairs (``holdout``) is held out, chosen by a seeded shuffle: the search sees
 only the rest, and the best trial is then replayed on both, so that a setting that only
@@ -124,8 +125,19 @@ class Score:
 def load_pairs(bags: Sequence[Path], source_topic: str, target_topic: str,
                ground_truth_topic: str | None, ground_truth_file: Path | None = None
                ) -> list[TunePair]:
+    """Return every pair of ``bags`` with its truth if known (:func:`load_bags`' pairs)."""
+    return load_bags(bags, source_topic, target_topic, ground_truth_topic,
+                     ground_truth_file)[0]
+
+
+def load_bags(bags: Sequence[Path], source_topic: str, target_topic: str,
+              ground_truth_topic: str | None, ground_truth_file: Path | None = None
+              ) -> tuple[list[TunePair], list[tuple[str, Any]]]:
     """
-    Return every pair of ``bags``, as the node pairs them (defaults), with its truth if known.
+    Return every pair of ``bags`` (as the node pairs them, defaults) and each bag's contents.
+
+    The contents (``(name, BagContents)``, every cloud with its message) are what a live
+    study plays to the node, so that each bag is read once.
 
     The truth comes from ``ground_truth_file`` or ``ground_truth_topic``; ``None`` for the
     topic means ``/ground_truth`` when the bags have it. Without ground truth in any bag,
@@ -136,6 +148,7 @@ def load_pairs(bags: Sequence[Path], source_topic: str, target_topic: str,
         truth and some without (tune them apart).
     """
     pairs = []
+    read = []
     with_truth = set()
     for bag in bags:
         topic = ground_truth_topic or DEFAULT_GT_TOPIC
@@ -147,6 +160,7 @@ def load_pairs(bags: Sequence[Path], source_topic: str, target_topic: str,
             contents.ground_truth = read_ground_truth(ground_truth_file)
         has_truth = ground_truth_file is not None or contents.ground_truth_topic is not None
         name = bag.stem if bag.suffix == '.mcap' else bag.resolve().name
+        read.append((name, contents))
         _, node = configs_from_parameters({})
         found = matched = 0
         for pair in iter_pairs(contents, Pairer.from_config(node.pairing)):
@@ -168,7 +182,7 @@ def load_pairs(bags: Sequence[Path], source_topic: str, target_topic: str,
     if with_truth and len(with_truth) < len(bags):
         raise ReplayError('some bags have ground truth and some do not: tune them apart (the '
                           'two objectives do not add up)')
-    return pairs
+    return pairs, read
 
 
 def judged_by(pairs: Sequence[TunePair]) -> str:
@@ -231,11 +245,15 @@ def criteria_for(voxel: float, max_re_deg: float | None, max_te_m: float | None
 
 def voxel_grid(reference: float, start: float | None) -> list[float]:
     """Return the voxel sizes searched: a log grid covering the reference and the start."""
+    from ..config import PipelineConfig
+
     lo = min(reference, start or reference) / 10 ** GRID_SPAN
     hi = max(reference, start or reference) * 10 ** GRID_SPAN
     k_lo = math.floor(GRID_STEPS * math.log10(lo / reference))
     k_hi = math.ceil(GRID_STEPS * math.log10(hi / reference))
-    return [float(f'{reference * 10 ** (k / GRID_STEPS):.3g}') for k in range(k_lo, k_hi + 1)]
+    grid = [float(f'{reference * 10 ** (k / GRID_STEPS):.3g}') for k in range(k_lo, k_hi + 1)]
+    bounds = next(f.metadata for f in dataclasses.fields(PipelineConfig) if f.name == 'voxel_size')
+    return [v for v in grid if bounds['low'] <= v <= bounds['high']]  # what the node accepts
 
 
 def search_space(refusals: Iterable[str]) -> dict[str, tuple]:
