@@ -50,19 +50,25 @@ def moved_bag(bag: str, path: Path) -> Path:
     from scipy.spatial.transform import Rotation
 
     from cgags_ros.geometry import apply_transform, make_transform
-    from cgags_ros.io.bag import write_bag
-    from cgags_ros.tools.replay_common import read_bag_contents
+    from cgags_ros.io.bag import read_messages, write_bag
+    from cgags_ros.io.pointcloud2 import pointcloud2_to_xyz, pose_to_transform
 
     if path.exists():
         return path
     moved = make_transform(Rotation.from_euler('xyz', [70, -40, 120], degrees=True).as_matrix(),
                            100 * DOCUMENTED[bag] * np.array([1.6, -1.2, 1.0]))
-    contents = read_bag_contents(shared_data_dir() / 'bags' / bag, '/source_cloud',
-                                 '/target_cloud', '/ground_truth')
-    messages = [(f'/{c.role}_cloud', c.stamp_ns, c.frame_id, apply_transform(moved, c.xyz))
-                for c in contents.clouds if c.xyz is not None]
-    messages += [('/ground_truth', stamp, 'moved', moved @ truth @ np.linalg.inv(moved))
-                 for stamp, truth in contents.ground_truth.items()]
+    messages = []
+    for rec in read_messages(shared_data_dir() / 'bags' / bag,
+                             ['/source_cloud', '/target_cloud', '/ground_truth']):
+        if rec.error:
+            continue
+        if rec.topic == '/ground_truth':
+            truth = pose_to_transform(rec.msg)
+            messages.append((rec.topic, rec.stamp_ns, 'moved',
+                             moved @ truth @ np.linalg.inv(moved)))
+        else:
+            messages.append((rec.topic, rec.stamp_ns, rec.frame_id,
+                             apply_transform(moved, pointcloud2_to_xyz(rec.msg))))
     path.parent.mkdir(parents=True, exist_ok=True)
     write_bag(path, messages)
     return path
