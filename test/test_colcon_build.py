@@ -12,6 +12,7 @@ bag's ``/ground_truth``.
 import json
 import os
 from pathlib import Path
+import re
 import shutil
 import signal
 import subprocess
@@ -346,17 +347,18 @@ def test_colcon_build_installs_a_runnable_node(tmp_path, data_dir, monkeypatch):
     assert pose.header.frame_id == target.header.frame_id
     p, q = pose.pose.position, pose.pose.orientation
     T = pose_matrix([p.x, p.y, p.z], [q.x, q.y, q.z, q.w])
-    re = rotation_error_deg(T[:3, :3], T_gt[:3, :3])
+    rot = rotation_error_deg(T[:3, :3], T_gt[:3, :3])
     te = float(np.linalg.norm(T[:3, 3] - T_gt[:3, 3]))
-    assert re <= MAX_RE_DEG and te <= MAX_TE_M, f'lidar: RE {re:.2f} deg, TE {te:.3f} m'
+    assert rot <= MAX_RE_DEG and te <= MAX_TE_M, f'lidar: RE {rot:.2f} deg, TE {te:.3f} m'
 
     assert returncode == 0, f'exit code {returncode} after SIGINT\n{shown}'
     assert 'Traceback' not in err, shown
     # Every cgags_ros module the node (and its registration worker) loaded came from the
     # install, none from the source tree or the venv's editable install of it.
-    loaded = sorted({line.split('code object from ', 1)[1].strip("'")
-                     for line in err.splitlines()
-                     if line.startswith('# code object from ') and f'/{PACKAGE}/' in line})
+    # Found anywhere in a line: the node and its registration process write to one stderr,
+    # and one's trace can land inside a line of the other's.
+    loaded = sorted({path.strip() for path in re.findall(r"# code object from '?([^'#\n]+)", err)
+                     if f'/{PACKAGE}/' in path})
     assert loaded, f'no {PACKAGE} module in the import trace\n{shown}'
     outside = [path for path in loaded if not Path(path).is_relative_to(prefix)]
     assert not outside, f'modules loaded from outside {prefix}: {outside}'
