@@ -22,6 +22,7 @@ from cgags_ros.pipeline.result import PipelineResult
 from cgags_ros.refusal import Refusal, RefusalCode as Code
 import numpy as np
 import pytest
+from test_validity import passing as passing_gates
 
 CFG = PipelineConfig()
 SCENES = {'kitchen': '7-scenes-redkitchen', 'home': 'sun3d-home_at-home_at_scan1_2013_jan_1',
@@ -41,15 +42,9 @@ def fragment(data_dir):
 
 
 def passing(**values) -> PipelineResult:
-    """Return a result whose measurements pass every gate of the default config."""
-    fields = {'inliers': np.arange(50), 'num_correspondences': 400, 'num_hypotheses': 100,
-              'inlier_threshold': 0.05, 'inlier_spread': 1.0, 'chance_level': 8,
-              'runner_up': 5, 'chance_inliers': 1.0, 'chance_bound': 9.0,
-              'observability': 0.3, 'fitness': 0.8, 'free_space_violation': 0.05,
-              'shared_area': 5.0, 'descriptor_ratio': 0.5, 'voxel_size': 0.05,
-              'refusal': None}
-    fields.update(values)
-    return PipelineResult(**fields)
+    """Return :func:`test_validity.passing` with a shared surface that passes the gate too."""
+    return passing_gates(**{'shared_area': 5.0, 'descriptor_ratio': 0.5, 'voxel_size': 0.05,
+                            **values})
 
 
 def test_the_gate_reads_the_area_then_the_descriptors_and_outranks_an_ambiguity():
