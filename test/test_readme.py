@@ -20,6 +20,7 @@ from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.tools import calibrate_cli, map_cli, register_cli, relocalize_cli, replay
 import numpy as np
 import pytest
+from test_docs import broken_links
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
@@ -124,31 +125,5 @@ def test_register_command_runs_on_the_fixture(monkeypatch, capsys):
     assert translation_error(T, _ground_truth()) < MAX_TE_M
 
 
-def _anchor(heading: str) -> str:
-    return re.sub(r'[^\w\- ]', '', heading.strip().lower()).replace(' ', '-')
-
-
-def _broken_links(page: Path) -> list[str]:
-    broken = []
-    text = re.sub(r'^```.*?^```', '', page.read_text(encoding='utf-8'), flags=re.M | re.S)
-    for target in re.findall(r'\]\(([^)\s]+)\)', text):
-        if re.match(r'[a-z]+://', target):
-            continue
-        path, _, anchor = target.partition('#')
-        linked = (page.parent / path).resolve() if path else page
-        if not linked.exists():
-            broken.append(target)
-        elif anchor and linked.suffix == '.md':
-            headings = re.findall(r'^#+\s+(.*)$', linked.read_text(encoding='utf-8'), flags=re.M)
-            if anchor not in {_anchor(h) for h in headings}:
-                broken.append(target)
-    return broken
-
-
 def test_readme_links_resolve():
-    assert _broken_links(README) == []
-
-
-@pytest.mark.parametrize('page', sorted((REPO / 'docs').glob('*.md')), ids=lambda p: p.name)
-def test_docs_links_resolve(page):
-    assert _broken_links(page) == []
+    assert broken_links(README) == []
