@@ -6,8 +6,8 @@ validity gates (``gates.py``), settles the correspondences' other candidates
 (``candidates.py``) and the estimate's twins (``twins.py``) with one primitive
 (``settle.py``) and rates the estimate (``confidence.py``); features of recent clouds are
 cached (``cache.py``); ``covariance.py`` turns a result into a pose covariance; ``map.py``
-prepares a map file's features once. A stream's scans (:mod:`cgags_ros.tracking`) and a relocalization over
-several scans (:mod:`cgags_ros.relocalization`) build on this one pair.
+prepares a map file's features once. A stream's scans (:mod:`cgags_ros.tracking`) and a
+relocalization over several scans (:mod:`cgags_ros.relocalization`) build on this one pair.
 
 ``register_clouds``, ``warm_up`` and the cache functions are imported on first use: they
 bring in Open3D, which the node's own process (covariance, unpickling results from its
