@@ -5,13 +5,12 @@ Clouds in, result out: the one registration path of the node, the CLIs and bench
 FPFH -> mutual-nearest-neighbour correspondences -> the CGAGS core (global, no initial
 guess) -> where the core refuses its estimate, poses proposed by re-matching the
 descriptors locally (:mod:`.regenerate`) -> optional ICP/GICP refinement -> validity
-gating, the correspondences' other candidates (:mod:`.candidates`) and the estimate's twins
-(:mod:`.twins`) settled and measured, :mod:`cgags_ros.validity` deciding on all of it. An
-estimate the core still refuses is refined (``refine.refused``) but not gated: nothing
-after the core lifts its refusal. Numpy in, numpy out; transforms are 4x4
-source->target (``p_target = R p_source + t``), metres. With ``core.motion_model='4dof'``
-the core, the refinement and the gates solve yaw + translation only (roll and pitch stay
-zero about the gravity axis) and a tilt between the clouds is reported.
+gating with the candidates and twins settled (:mod:`.settle`). An estimate the core still
+refuses is refined (``refine.refused``) but not gated: nothing after the core lifts its
+refusal. Numpy in, numpy out; transforms are 4x4 source->target
+(``p_target = R p_source + t``), metres. With ``core.motion_model='4dof'`` the core, the
+refinement and the gates solve yaw + translation only (roll and pitch stay zero about the
+gravity axis) and a tilt between the clouds is reported.
 """
 
 from __future__ import annotations
@@ -215,8 +214,7 @@ def _register_clouds(src: np.ndarray, target: np.ndarray | PreparedMap, cfg: Pip
     # The candidate search reads only the core's estimate and the final transform, never
     # what the gates set: it runs beside them (both spend most of their time outside the
     # GIL, in compiled numba functions and k-d tree queries).
-    searched = in_background(lambda: _search_candidates(fs, ft, corr, result, cfg),
-                             workers > 1)
+    searched = in_background(lambda: _search_candidates(fs, ft, corr, result, cfg), workers > 1)
     with timed(result.timings, 'validation'):
         overlap = measure(fs, ft, corr, result, cfg, map_target)
         refusal = gate_refusal(result, cfg, left_to_gates)
@@ -227,8 +225,7 @@ def _register_clouds(src: np.ndarray, target: np.ndarray | PreparedMap, cfg: Pip
         settlement = settle_candidates(fs, ft, result, cfg, map_target, workers)
         if settlement is not None:
             result.ambiguous = still_ambiguous(settlement, cfg)
-        if settlement is not None and settlement.replaces:
-            # The geometry prefers a candidate: it is the estimate now.
+        if settlement is not None and settlement.replaces:  # the geometry prefers it now
             result.transform = settlement.chosen.transform
             overlap = measure(fs, ft, corr, result, cfg, map_target)
             refusal = gate_refusal(result, cfg, left_to_gates)
