@@ -180,11 +180,11 @@ def summarize(rec: dict) -> dict:
 
 def _floor(trial: dict) -> float:
     """
-    Return a pair's wall seconds less the core and the gates beside the rival search.
+    Return a pair's wall seconds less the core and the gates beside the candidate search.
 
     What is left is downsampling, normals, FPFH, mutual matching, refinement and the glue
     between stages (with default parameters, the stages whose results are kept exact): a
-    floor that no change to the core, the gates or the rival search can go below
+    floor that no change to the core, the gates or the candidate search can go below
     (docs/design.md, "What bounds the speed").
     """
     st = trial['stages']
@@ -240,7 +240,7 @@ def write_report(records: list[dict], markdown: Path | None, plot: Path | None,
     floors = _floor_rows(records)
     if floors:
         text += ('\n## Floor against KISS-Matcher\n\nFloor: our time a pair less the core '
-                 'and the gates beside the rival search (median over the trials): '
+                 'and the gates beside the candidate search (median over the trials): '
                  'downsampling, normals, FPFH, mutual matching, refinement and the glue '
                  'between them (with default parameters, the stages whose results are kept '
                  'exact).\n\n' + markdown_table(

@@ -47,7 +47,7 @@ import open3d as o3d
 PERIOD = 0.1  # seconds between scans: a 10 Hz LiDAR
 TRACKED_STAGES = ('target_key', 'downsample', 'refinement', 'validation')
 GLOBAL_STAGES = ('downsample', 'normals', 'fpfh', 'matching', 'registration', 'refinement',
-                 'validation', 'candidates', 'rivals_verified')
+                 'validation', 'candidates', 'candidates_settled')
 
 
 def orders(count: int) -> dict[str, list[int]]:

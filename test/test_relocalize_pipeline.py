@@ -174,8 +174,8 @@ def test_a_symmetric_scene_is_ambiguous_and_the_same_scene_once_is_not(kitchen):
     assert single.valid and not single.ambiguous, single.reason
 
 
-def test_rivals_searched_beside_the_gates_equal_those_searched_after(kitchen, monkeypatch):
-    """The rival search runs in a thread beside the gates; on one thread it runs after them."""
+def test_candidates_searched_beside_the_gates_equal_those_searched_after(kitchen, monkeypatch):
+    """The candidate search runs in a thread beside the gates; on one thread after them."""
     import cgags_ros.pipeline.register as register
 
     scan, _, twin = twin_scene(kitchen)

@@ -18,7 +18,7 @@ from cgags_ros.geometry import make_transform, rotation_error_deg
 from cgags_ros.geometry import translation_error
 from cgags_ros.io.clouds import read_cloud_and_normals, write_cloud
 from cgags_ros.pipeline.map import load_map
-from cgags_ros.pipeline.rivals import map_symmetries
+from cgags_ros.pipeline.twins import map_symmetries
 from cgags_ros.refusal import RefusalCode as Code
 from cgags_ros.relocalization.relocalizer import Relocalizer, SequenceConfig
 from cgags_ros.tools import relocalize_cli
@@ -28,7 +28,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 SCENE = '7-scenes-redkitchen'
-HARD = [13, 14, 15]  # one scan of it is ambiguous (a turned rival); three settle it
+HARD = [13, 14, 15]  # one scan of it is ambiguous (a turned candidate); three settle it
 EASY = [7, 8, 9]  # each scan of it alone is valid
 RIGHT = (10.0, 0.3)  # RE (deg), TE (m)
 
@@ -92,7 +92,7 @@ def test_a_sequence_one_scan_cannot_settle_is_confirmed_by_three(scene):
     first, last = answers[0], answers[-1]
     assert not first.confirmed and not first.done and 'another scan' in first.reason
     assert first.refusal.code is first.results[0].refusal.code  # the scan's own refusal
-    assert not right(first.transform, poses[HARD[0]])  # one scan alone picks a rival
+    assert not right(first.transform, poses[HARD[0]])  # one scan alone picks a wrong one
     assert last.confirmed and last.done and last.reason == '', last.reason
     assert last.refusal is None and last.valid
     assert last.scans_used == 3 and right(last.transform, poses[HARD[-1]])

@@ -176,11 +176,11 @@ def test_fragments_relocalize_in_maps_of_their_neighbours(tmp_path: Path):
 
 @pytest.mark.slow
 @needs_data
-def test_a_pose_whose_rivals_all_converge_onto_it_is_judged_not_crashed_on(tmp_path: Path):
+def test_a_pose_whose_candidates_all_converge_onto_it_is_judged_not_crashed_on(tmp_path: Path):
     """
     Redkitchen fragment 48 in the map of the scene's other fragments (with normals).
 
-    Every rival the geometry check refined converged onto the estimate, leaving no
+    Every candidate the geometry check settled converged onto the estimate, leaving no
     runner-up; the ambiguity reason once indexed one and raised. The estimate (0.56 m off)
     must come back refused by the free-space gate.
     """
@@ -211,11 +211,11 @@ def test_a_pose_whose_rivals_all_converge_onto_it_is_judged_not_crashed_on(tmp_p
     right = (rotation_error_deg(result.transform, gt) < 15.0
              and translation_error(result.transform, gt) < 0.3)
     assert right or not result.valid
-    if not result.valid:  # refused as a wrong pose is: free space (or a rival it leaves),
+    if not result.valid:  # refused as a wrong pose is: free space (or a candidate it leaves),
         # or the surfaces it lays on each other do not look alike
         assert result.refusal.code in {Code.FREE_SPACE, Code.AMBIGUOUS,
                                        Code.NO_SHARED_SURFACE}, result.refusal
-    assert not result.ambiguous or len(result.candidates) > 1  # an ambiguity names its rival
+    assert not result.ambiguous or len(result.candidates) > 1  # an ambiguity names the other
 
 
 def test_free_space_violation_tells_a_right_pose_from_a_turned_one():

@@ -27,12 +27,13 @@ from cgags_ros.localizer.interface import PairResult, StartFailed
 from cgags_ros.pipeline import register_clouds
 from cgags_ros.pipeline.gates import free_space_violation, observability
 from cgags_ros.pipeline.result import Candidate, PipelineResult
-from cgags_ros.pipeline.rivals import mark_ambiguous
+from cgags_ros.pipeline.twins import add_twin
 from cgags_ros.refusal import Refusal, RefusalCode as Code, summary
 from cgags_ros.registration import register_correspondences, RegistrationResult
 from cgags_ros.relocalization.requests import not_localized
 from cgags_ros.runtime.supervisor import RegistrationTimeout, WorkerCrashed
 from cgags_ros.tracking.prediction import difference
+from cgags_ros.validity import consensus
 import numpy as np
 import pytest
 from waiting import box_room
@@ -174,10 +175,10 @@ def test_no_estimate_without_length_consistent_pairs_or_subsets():
     res = register_correspondences(rng.uniform(0, 1, (50, 3)), rng.uniform(0, 1000, (50, 3)),
                                    inlier_threshold=1e-4)
     assert res.refusal.code is Code.NO_ESTIMATE and 'length-consistent' in res.reason
-    assert validity.no_model_refusal(0, yaw_only=False).code is Code.NO_ESTIMATE
-    assert validity.no_model_refusal(0, yaw_only=True).code is Code.NO_ESTIMATE
-    assert validity.no_model_refusal(4, yaw_only=False).code is Code.COLLINEAR
-    assert 'vertical' in validity.no_model_refusal(4, yaw_only=True).message
+    assert consensus.no_model_refusal(0, yaw_only=False).code is Code.NO_ESTIMATE
+    assert consensus.no_model_refusal(0, yaw_only=True).code is Code.NO_ESTIMATE
+    assert consensus.no_model_refusal(4, yaw_only=False).code is Code.COLLINEAR
+    assert 'vertical' in consensus.no_model_refusal(4, yaw_only=True).message
 
 
 def test_random_correspondences_are_refused_as_no_overlap():
@@ -193,25 +194,25 @@ def test_the_consensus_verdict_in_order():
     cfg = CoreConfig()
     good = RegistrationResult(inliers=np.arange(30), inlier_threshold=0.05, inlier_spread=0.4,
                               chance_level=10, runner_up=6)
-    assert validity.consensus_refusal(good, cfg) is None
+    assert consensus.consensus_refusal(good, cfg) is None
     few = dataclasses.replace(good, inliers=np.arange(cfg.min_inliers - 1), inlier_spread=0.0)
-    assert validity.consensus_refusal(few, cfg).code is Code.FEW_INLIERS  # before its shape
+    assert consensus.consensus_refusal(few, cfg).code is Code.FEW_INLIERS  # before its shape
     line = dataclasses.replace(good, inlier_spread=0.01)
-    assert validity.consensus_refusal(line, cfg).code is Code.COLLINEAR
-    vertical = validity.consensus_refusal(line, CoreConfig(motion_model='4dof'))
+    assert consensus.consensus_refusal(line, cfg).code is Code.COLLINEAR
+    vertical = consensus.consensus_refusal(line, CoreConfig(motion_model='4dof'))
     assert vertical.code is Code.COLLINEAR and 'vertical line' in vertical.message
     chance = dataclasses.replace(good, chance_level=31)
-    assert validity.consensus_refusal(chance, cfg).code is Code.CHANCE_LEVEL
+    assert consensus.consensus_refusal(chance, cfg).code is Code.CHANCE_LEVEL
     rival = dataclasses.replace(good, runner_up=int(np.ceil(30 / cfg.distinct_ratio)) + 1)
-    assert validity.consensus_refusal(rival, cfg).code is Code.AMBIGUOUS
+    assert consensus.consensus_refusal(rival, cfg).code is Code.AMBIGUOUS
     # 4-DoF: a tilt is what the user acts on, said beside the other reason
     four = CoreConfig(motion_model='4dof')
     tilted = dataclasses.replace(good, tilt_deg=four.max_tilt_deg + 1)
-    assert validity.consensus_refusal(tilted, four).code is Code.TILT
-    both = validity.consensus_refusal(dataclasses.replace(tilted, chance_level=31), four)
+    assert consensus.consensus_refusal(tilted, four).code is Code.TILT
+    both = consensus.consensus_refusal(dataclasses.replace(tilted, chance_level=31), four)
     assert both.code is Code.TILT and 'does not stand out' in both.message
     assert 'not levelled' in both.message
-    assert validity.consensus_refusal(dataclasses.replace(good, tilt_deg=np.nan), four) is None
+    assert consensus.consensus_refusal(dataclasses.replace(good, tilt_deg=np.nan), four) is None
 
 
 # --- the gates on the refined estimate --------------------------------------------------------
@@ -287,12 +288,72 @@ def test_only_a_collinear_core_refusal_is_left_to_the_gates():
         assert not validity.unsettled(core, pipeline_config_from(other)), other
 
 
-def test_a_structured_rival_is_ambiguous():
+class _Twin:
+    """A twin's measures, counted as they are read (validity reads them lazily)."""
+
+    def __init__(self, fitness: float, free_space: float):
+        self._fitness, self._free_space, self.read = fitness, free_space, []
+
+    @property
+    def fitness(self) -> float:
+        self.read.append('fitness')
+        return self._fitness
+
+    @property
+    def free_space(self) -> float:
+        self.read.append('free_space')
+        return self._free_space
+
+
+def test_a_plausible_twin_makes_the_estimate_ambiguous():
+    """Apart, as good a fit and clear of free space: each test read only when the last passed."""
+    voxel, fitness = 0.05, 0.8
+    good = _Twin(0.79, 0.05)
+    assert validity.plausible_twin(90.0, 0.0, good, fitness, voxel, 10.0)
+    assert good.read == ['fitness', 'free_space']
+    back = _Twin(0.79, 0.05)  # settled back onto the estimate: nothing else is measured
+    assert not validity.plausible_twin(2.0, 0.1, back, fitness, voxel, 10.0) and not back.read
+    worse = _Twin(0.5, 0.05)
+    assert not validity.plausible_twin(0.0, 0.5, worse, fitness, voxel, 10.0)
+    assert worse.read == ['fitness']
+    assert not validity.plausible_twin(90.0, 0.0, _Twin(0.79, 0.2), fitness, voxel, 10.0)
     best = Candidate(np.eye(4), 40, 0.8)
     result = passing(candidates=[best])
     assert validity.ambiguity_refusal(result, CFG) is None
-    mark_ambiguous(result, Candidate(_yaw(np.pi / 2), 38, 0.79))
+    add_twin(result, Candidate(_yaw(np.pi / 2), 38, 0.79))
+    result.ambiguous = True
     assert validity.ambiguity_refusal(result, CFG).code is Code.AMBIGUOUS
+
+
+def test_each_test_of_the_twins_verdict_at_its_limit():
+    """The shipped limits by default, a study's by argument; an unmeasured violation is clear."""
+    voxel = 0.1
+    assert validity.settled_apart(10.5, 0.0, voxel, 10.0)
+    assert validity.settled_apart(0.0, (validity.TWIN_APART + 0.1) * voxel, voxel, 10.0)
+    assert not validity.settled_apart(10.0, validity.TWIN_APART * voxel, voxel, 10.0)
+    assert not validity.settled_apart(0.0, 3 * voxel, voxel, 10.0, apart=6.0)
+    assert validity.fits_as_well(1.01 / validity.TWIN_OVERLAP_RATIO, 1.0)
+    assert not validity.fits_as_well(0.5, 1.0, ratio=1.5)
+    assert validity.clear_of_free_space(validity.TWIN_MAX_VIOLATION)
+    assert not validity.clear_of_free_space(0.2, limit=0.15)
+    assert validity.clear_of_free_space(float('nan'))
+
+
+def test_candidates_are_ambiguous_on_inliers_and_after_settling():
+    ratio = CFG.gates.ambiguity_ratio
+    assert validity.outnumbered(ratio * 0.99, CFG) and not validity.outnumbered(ratio, CFG)
+    assert not validity.outnumbered(float('inf'), CFG)  # no runner-up
+    limit = validity.free_space_limit(CFG, unsettled=True)
+    settled = dataclasses.make_dataclass(
+        'Settled', ['overlap', 'free_space', 'others', 'alone'])
+    assert not validity.still_ambiguous(settled(0.6, 0.0, [0.6 / ratio - 0.01], False), CFG)
+    assert validity.still_ambiguous(settled(0.6, 0.0, [0.6 / ratio + 0.01], False), CFG)
+    assert validity.still_ambiguous(settled(0.6, limit + 0.01, [], False), CFG)
+    assert not validity.still_ambiguous(settled(0.6, float('nan'), [], False), CFG)
+    assert not validity.still_ambiguous(settled(0.6, limit + 0.01, [0.9], True), CFG)
+    assert validity.passes_free_space(CFG.gates.max_free_space_violation, CFG)
+    assert not validity.passes_free_space(CFG.gates.max_free_space_violation + 0.01, CFG)
+    assert validity.passes_free_space(float('nan'), CFG)
 
 
 def test_a_low_calibrated_confidence_is_refused():

@@ -1,5 +1,5 @@
 """
-A near-square room scanned by a depth sensor: the case that a half-turn rival cannot catch.
+A near-square room scanned by a depth sensor: the case that a half-turn twin cannot catch.
 
 A room whose floor plan is (nearly) square looks alike turned a quarter of the way about the
 vertical; furniture placed around it four-fold (shelves against each wall, boxes in the

@@ -6,17 +6,17 @@ the git-ignored ``out/``. No test imports them (test/test_bench.py checks that),
 any other bench module: they may import the tools of :mod:`bench`, never the reverse.
 
 - :mod:`.fit`: the one entry that regenerates the constants these studies fit (the
-  confidence's weights, the structured rivals' limits, the covariance's scale, floors and
+  confidence's weights, the twins' limits, the covariance's scale, floors and
   doubt) from their measurement records, printed as the source holds them.
 - :mod:`.loso_trust`: measures every 3DMatch pair once (the gates' values, the covariance's
-  inputs, the structured rivals, the error against the truth): the records the trust
+  inputs, the twins, the error against the truth): the records the trust
   studies fit on.
 - :mod:`.loso_trust_study`: over those records, each lever chosen on three scenes and
   reported on the fourth; fits the covariance's scale and floors and the doubt that opens
   it (``cgags_ros/pipeline/covariance.py``).
 - :mod:`.trust_shift`: the valid flag chosen on easier scenes and reported on harder ones;
-  fits the confidence's weights (``cgags_ros/pipeline/confidence.py``) and the structured
-  rivals' limits (``cgags_ros/pipeline/rivals.py``).
+  fits the confidence's weights (``cgags_ros/pipeline/confidence.py``) and the twins'
+  limits (``cgags_ros/pipeline/twins.py``, ``cgags_ros/validity/__init__.py``).
 - :mod:`.trust_limits`: where the valid flag's held-out misses come from: the wrong poses
   it lets through, stricter operating points, and the right poses refused as ambiguous.
 - :mod:`.gate_study`: replays extra gates over ``bench.threedmatch`` records, without

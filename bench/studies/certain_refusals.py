@@ -6,10 +6,10 @@ Run by hand from the repository root (a few minutes for ``--pairs 40``)::
     .venv/bin/python -m bench.studies.certain_refusals [--benchmarks 3DLoMatch 3DMatch] \
         [--pairs 40] [--seed 0] [--output out/bench/certain_refusals.jsonl]
 
-``register_clouds`` refines, gates and searches rivals only for an estimate the core (or the
-regenerated correspondences after it) did not refuse, or whose only fault is a collinear
+``register_clouds`` refines, gates and searches candidates only for an estimate the core (or
+the regenerated correspondences after it) did not refuse, or whose only fault is a collinear
 consensus. Every other refusal (no consensus above chance, a runner-up as large, too few
-inliers) returns right after the core: the refinement, the gates and the rivals are
+inliers) returns right after the core: the refinement, the gates and the candidates are
 skipped. For each such pair of a seeded sample this study does the skipped work anyway
 (the refinement from the refused estimate, the gates' measurements and verdict) and
 counts how often it would have given a right pose, and a pose the gates pass: what the

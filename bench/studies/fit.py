@@ -8,11 +8,12 @@ Run from the repository root (offline: it registers nothing)::
 
 It prints each block of constants as the source holds it, fit by the studies' own code:
 
-- ``cgags_ros/pipeline/confidence.py`` (``WEIGHTS``, ``INTERCEPT``) and
-  ``cgags_ros/pipeline/rivals.py`` (``PROMISING``, ``APART``, ``MAX_VIOLATION``,
-  ``OVERLAP_RATIO``): :func:`.trust_shift.shipped` on ``--gates``, the gates-only records,
-  the pairs whose truth is in doubt left out (:func:`.trust_shift.trusted`, which reads the
-  benchmark's poses under ``--root``);
+- ``cgags_ros/pipeline/confidence.py`` (``WEIGHTS``, ``INTERCEPT``),
+  ``cgags_ros/pipeline/twins.py`` (``PROMISING``) and ``cgags_ros/validity/__init__.py``
+  (``TWIN_APART``, ``TWIN_MAX_VIOLATION``, ``TWIN_OVERLAP_RATIO``):
+  :func:`.trust_shift.shipped` on ``--gates``, the gates-only records, the pairs whose
+  truth is in doubt left out (:func:`.trust_shift.trusted`, which reads the benchmark's
+  poses under ``--root``);
 - ``cgags_ros/pipeline/covariance.py`` (``CELL_FACTOR``, ``SCALE``, ``FLOOR_POSITION``,
   ``FLOOR_ROTATION``, ``WRONG_POSITION``, ``WRONG_ROTATION``, ``DOUBT_EXPONENT``):
   :func:`.loso_trust_study.shipped_covariance` and :func:`.loso_trust_study.shipped_doubt`
@@ -36,9 +37,10 @@ from pathlib import Path
 
 from bench.common import argument_parser
 from bench.studies import loso_trust_study, trust_shift
+from cgags_ros import validity
 from cgags_ros.config import GatesConfig
 from cgags_ros.io.shared_data import shared_data_dir
-from cgags_ros.pipeline import confidence, covariance, rivals
+from cgags_ros.pipeline import confidence, covariance, twins
 import numpy as np
 
 MEASURE = {
@@ -72,7 +74,7 @@ def same(fit, shipped) -> bool:
 def constants(gates: list[dict], records: list[dict], root: Path) -> dict:
     """Return ``{source file: [(name, fit, shipped)]}`` of every constant the studies fit."""
     chosen = trust_shift.shipped(trust_shift.trusted(gates, root)[0])
-    limit, rho, apart, promising = chosen['rivals']
+    limit, rho, apart, promising = chosen['twins']
     valid = np.array([r['valid'] for r in records], dtype=bool)
     g, k, ft, fr = loso_trust_study.shipped_covariance(records, valid)
     wt, wr, gamma, _ = loso_trust_study.shipped_doubt(records, valid)
@@ -84,10 +86,11 @@ def constants(gates: list[dict], records: list[dict], root: Path) -> dict:
             ('WEIGHTS', {n: weights[n] for n in confidence.FEATURES}, confidence.WEIGHTS),
             ('INTERCEPT', chosen['intercept'], confidence.INTERCEPT),
             *[(f'# weight of {n}, not an input of the model', w, 0) for n, w in unused.items()]],
-        'cgags_ros/pipeline/rivals.py': [
-            ('PROMISING', promising, rivals.PROMISING), ('APART', apart, rivals.APART),
-            ('MAX_VIOLATION', limit, rivals.MAX_VIOLATION),
-            ('OVERLAP_RATIO', rho, rivals.OVERLAP_RATIO)],
+        'cgags_ros/pipeline/twins.py': [('PROMISING', promising, twins.PROMISING)],
+        'cgags_ros/validity/__init__.py': [
+            ('TWIN_APART', apart, validity.TWIN_APART),
+            ('TWIN_MAX_VIOLATION', limit, validity.TWIN_MAX_VIOLATION),
+            ('TWIN_OVERLAP_RATIO', rho, validity.TWIN_OVERLAP_RATIO)],
         'cgags_ros/pipeline/covariance.py': [
             ('CELL_FACTOR', int(g), covariance.CELL_FACTOR), ('SCALE', k, covariance.SCALE),
             ('FLOOR_POSITION', ft, covariance.FLOOR_POSITION),
@@ -104,7 +107,7 @@ def constants(gates: list[dict], records: list[dict], root: Path) -> dict:
 def main(argv: list[str] | None = None) -> int:
     p = argument_parser(__spec__.name, __doc__)
     p.add_argument('--gates', type=Path, default=Path('out/loso_trust/gates.jsonl'),
-                   help='gates-only records: the confidence and the rivals (default: %(default)s)')
+                   help='gates-only records: the confidence and the twins (default: %(default)s)')
     p.add_argument('--records', type=Path, default=None,
                    help='records for the covariance (default: the --gates records)')
     p.add_argument('--root', type=Path, default=shared_data_dir() / '3dmatch_benchmark',

@@ -8,8 +8,8 @@ Run by hand from the repository root, one run at a time (it takes a while)::
         [--set KEY=VALUE ...] [--output out/loso_trust/records.jsonl]
 
 ``measure`` registers every pair of both lists (3DMatch, 3DLoMatch) of every scene once,
-with the default pipeline (``--gates-only``: without the structured rivals and the
-confidence threshold, so that every estimate the gates pass has its rivals recorded, the
+with the default pipeline (``--gates-only``: without the twins and the
+confidence threshold, so that every estimate the gates pass has its twins recorded, the
 base :mod:`bench.studies.trust_shift` chooses those levers on; each fragment featurised once a
 scene: the estimates are those of a cold run, the whole-pair times are not) and writes one
 JSON line a pair holding every
@@ -20,22 +20,22 @@ truth's RE/TE and the error vector ``e = (t_gt - t, log(R_gt R^T))`` in the cova
 convention (geometry_msgs order x, y, z, rx, ry, rz); what alternative covariances need
 (the point-to-plane and point-to-point information matrices over the refined overlap with
 their residual sums, the overlap's cells at coarser grids, its principal axes); and the
-structured rivals: the estimate turned 180 degrees about each principal axis of the overlap
+twins: the estimate turned 180 degrees about each principal axis of the overlap
 (through its centroid) and slid both ways along its least constrained direction, each
 refined as the pipeline refines it and judged like the estimate (fitness, free-space
 violation, distance from the estimate, error against the truth), for the estimates the
-pipeline calls valid (a rival can only refuse).
+pipeline calls valid (a twin can only refuse).
 
-``rivals`` measures the structured rivals of the valid estimates of such records again
-with today's code (the starts and the refinement of :mod:`cgags_ros.pipeline.rivals`),
+``twins`` measures the twins of the valid estimates of such records again
+with today's code (the starts and the settling of :mod:`cgags_ros.pipeline.twins`),
 from the recorded estimates, and writes the records with them (minutes, not the hour a
 full ``measure`` takes)::
 
-    OMP_NUM_THREADS=1 .venv/bin/python -m bench.studies.loso_trust rivals \
-        [out/loso_trust/records.jsonl] [--output out/loso_trust/records_rivals.jsonl]
+    OMP_NUM_THREADS=1 .venv/bin/python -m bench.studies.loso_trust twins \
+        [out/loso_trust/records.jsonl] [--output out/loso_trust/records_twins.jsonl]
 
 ``timing`` registers a sample of pairs (``--pairs`` a scene and list) cold with the
-defaults, with the structured rivals and the confidence threshold off, and with
+defaults, with the twins and the confidence threshold off, and with
 KISS-Matcher, interleaved pair by pair, and prints the median seconds of each.
 
 The offline study of those records (each lever chosen on three scenes, reported on the
@@ -57,14 +57,15 @@ from cgags_ros.frontend.refine import evaluate_alignment
 from cgags_ros.geometry import rotation_error_deg, spread, translation_error
 from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import cached_features, clear_feature_cache, register_clouds
-from cgags_ros.pipeline import rivals, set_feature_cache_size
+from cgags_ros.pipeline import set_feature_cache_size, twins
 from cgags_ros.pipeline.gates import measured_free_space
+from cgags_ros.pipeline.settle import Pair, settle, TWIN
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 MAX_RE_DEG, MAX_TE_M = tdm.MAX_RE_DEG, tdm.MAX_TE_M
 GRID_FACTORS = (2, 4, 8, 16)  # coarse grids (voxel sizes) over which overlap cells are counted
-PROMISING = 0.25  # the smallest share of T's fitness at which the study may refine a rival
+PROMISING = 0.25  # the smallest share of T's fitness at which the study may settle a twin
 
 
 def pose_error(T: np.ndarray, gt: np.ndarray) -> np.ndarray:
@@ -117,23 +118,24 @@ def overlap_information(fs, ft, T: np.ndarray, distance: float, voxel: float) ->
     return out
 
 
-def structured_rivals(fs, ft, T: np.ndarray, cfg: PipelineConfig, tau: float,
-                      gt: np.ndarray, fitness: float, candidates=()) -> list[dict]:
+def measured_twins(fs, ft, T: np.ndarray, cfg: PipelineConfig, tau: float,
+                   gt: np.ndarray, fitness: float, candidates=()) -> list[dict]:
     """
-    Return the structured rivals of ``T`` (see the module doc), refined and measured.
+    Return the twins of ``T`` (see the module doc), settled and measured.
 
-    The pipeline's own starts and refinement (:mod:`cgags_ros.pipeline.rivals`). A rival
+    The pipeline's own starts and settling (:mod:`cgags_ros.pipeline.twins`). A twin
     whose start already fits far worse than ``T`` (below ``PROMISING`` times its
-    ``fitness``) is measured where it starts, not refined: the pipeline never refines it.
+    ``fitness``) is measured where it starts, not settled: the pipeline never settles it.
     """
     v = cfg.voxel_size
     distance = cfg.refine.max_correspondence_distance_factor * v
     out = []
-    for name, start in rivals.rival_starts(fs, ft, T, distance, v, candidates):
+    pair = Pair(fs, ft, cfg)
+    for name, start in twins.twin_starts(fs, ft, T, distance, v, candidates):
         t0 = time.perf_counter()
-        first = evaluate_alignment(fs.points[::rivals.STRIDE], ft.tree, start, distance)
-        promising = rivals.worth_refining(first.fitness, fitness, PROMISING)
-        R = rivals.settle(fs, ft, start, tau, cfg) if promising else start
+        first = evaluate_alignment(fs.points[::TWIN.stride], ft.tree, start, distance)
+        promising = twins.worth_refining(first.fitness, fitness, PROMISING)
+        R = settle(pair, start, tau, TWIN).transform if promising else start
         ahead = evaluate_alignment(fs.points, ft.tree, R, distance)
         out.append({
             'name': name, 'transform': R.tolist(), 'fitness': ahead.fitness,
@@ -201,10 +203,10 @@ def measure_pair(src: np.ndarray, tgt: np.ndarray, pair: tdm.GtPair,
     distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
     info = overlap_information(fs, ft, T, distance, cfg.voxel_size)
     rec['overlap_info'] = info
-    if result.valid:  # rivals can only refuse: measured where there is something to refuse
-        rec['rivals'] = structured_rivals(fs, ft, T, cfg, float(result.inlier_threshold), gt,
-                                          float(result.fitness),
-                                          [c.transform for c in result.candidates[1:]])
+    if result.valid:  # twins can only refuse: measured where there is something to refuse
+        rec['twins'] = measured_twins(fs, ft, T, cfg, float(result.inlier_threshold), gt,
+                                      float(result.fitness),
+                                      [c.transform for c in result.candidates[1:]])
     return rec
 
 
@@ -217,7 +219,7 @@ def measure(args) -> None:
     cfg = PipelineConfig(voxel_size=args.voxel)
     if args.gates_only:
         cfg = PipelineConfig(voxel_size=args.voxel, gates=GatesConfig(
-            structured_rivals=False, min_confidence=0.0))
+            check_twins=False, min_confidence=0.0))
     cfg = update_from_flat(cfg, parse_overrides(args.set))
     args.output.parent.mkdir(parents=True, exist_ok=True)
     done = set()
@@ -249,8 +251,8 @@ def measure(args) -> None:
     print(f'wrote {args.output} in {time.time() - t_start:.0f} s')
 
 
-def remeasure_rivals(args) -> None:
-    """Measure the structured rivals of recorded valid estimates again, with today's code."""
+def remeasure_twins(args) -> None:
+    """Measure the twins of recorded valid estimates again, with today's code."""
     cfg = PipelineConfig(voxel_size=args.voxel)
     records = [json.loads(line) for line in args.records.read_text(encoding='utf-8').splitlines()]
     t_start = time.time()
@@ -264,12 +266,13 @@ def remeasure_rivals(args) -> None:
             for r in records:
                 if r['scene'] != scene:
                     continue
-                if r['valid'] and 'rivals' in r:
+                if r['valid'] and ('twins' in r or 'rivals' in r):
                     fs = cached_features(fragments[r['source']], cfg.voxel_size, cfg.frontend,
                                          'source')
                     ft = cached_features(fragments[r['target']], cfg.voxel_size, cfg.frontend,
                                          'target')
-                    r['rivals'] = structured_rivals(
+                    r.pop('rivals', None)  # older records' name for them
+                    r['twins'] = measured_twins(
                         fs, ft, np.asarray(r['transform']), cfg, r['inlier_threshold'],
                         np.asarray(r['gt']), r['fitness'],
                         [np.asarray(c['transform']) for c in r['candidates'][1:]])
@@ -285,7 +288,7 @@ def timing(args) -> None:
 
     configs = {'defaults': PipelineConfig(voxel_size=args.voxel),
                'levers off': PipelineConfig(voxel_size=args.voxel, gates=GatesConfig(
-                   structured_rivals=False, min_confidence=0.0))}
+                   check_twins=False, min_confidence=0.0))}
     times: dict = {}
     rng = np.random.default_rng(args.seed)
     for scene in args.scenes or tdm.scenes(args.root, '3DMatch'):
@@ -325,8 +328,8 @@ def main(argv: list[str] | None = None) -> int:
     m.add_argument('--voxel', type=float, default=0.05)
     m.add_argument('--resume', action='store_true', help='skip pairs already recorded')
     m.add_argument('--gates-only', action='store_true',
-                   help='without the structured rivals and the confidence threshold, so that '
-                   "every estimate the gates pass has its rivals measured (a study's base)")
+                   help='without the twins and the confidence threshold, so that '
+                   "every estimate the gates pass has its twins measured (a study's base)")
     m.add_argument('--output', type=Path, default=Path('out/loso_trust/records.jsonl'))
     add_set_option(m)
     t = sub.add_parser('timing', help='time the defaults, the levers off and KISS-Matcher')
@@ -335,14 +338,14 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument('--pairs', type=int, default=10, help='pairs a scene and list')
     t.add_argument('--seed', type=int, default=0)
     t.add_argument('--voxel', type=float, default=0.05)
-    r = sub.add_parser('rivals', help="measure the recorded valid estimates' rivals again")
+    r = sub.add_parser('twins', help="measure the recorded valid estimates' twins again")
     r.add_argument('records', type=Path, nargs='?',
                    default=Path('out/loso_trust/records.jsonl'))
     r.add_argument('--root', type=Path, default=shared_data_dir() / '3dmatch_benchmark')
     r.add_argument('--voxel', type=float, default=0.05)
-    r.add_argument('--output', type=Path, default=Path('out/loso_trust/records_rivals.jsonl'))
+    r.add_argument('--output', type=Path, default=Path('out/loso_trust/records_twins.jsonl'))
     args = p.parse_args(argv)
-    {'measure': measure, 'timing': timing, 'rivals': remeasure_rivals}[args.command](args)
+    {'measure': measure, 'timing': timing, 'twins': remeasure_twins}[args.command](args)
     return 0
 
 

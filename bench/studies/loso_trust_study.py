@@ -19,11 +19,11 @@ scene left out in turn; only the held-out figures count. Levers:
     angle that moves a point at the overlap's RMS radius by ``f_r`` voxels). Chosen on the
     training scenes: the sharpest (smallest median position sigma of valid 3DMatch poses)
     with >= 90 % of the valid right poses of each list inside their 95 % ellipsoid.
-``rivals``
-    The structured rivals: a valid pose is refused when a rival distinct from it (more
+``twins``
+    The twins: a valid pose is refused when a twin distinct from it (more
     than 10 degrees or ``apart`` voxels away) has a free-space violation at most ``L`` and
     a fitness at least the estimate's / ``rho`` (judging by the overlap, the smaller share
-    of both clouds, gives the same held-out figures). A rival whose start fits less than
+    of both clouds, gives the same held-out figures). A twin whose start fits less than
     ``promising`` times the estimate is not refined, so it cannot refuse. (L, rho, apart,
     promising) chosen on the training scenes: the most wrong poses refused while refusing
     at most 1 % of the right valid ones, then the fewest refinements.
@@ -45,7 +45,8 @@ from pathlib import Path
 from types import SimpleNamespace
 
 from bench.common import argument_parser, markdown_table
-from cgags_ros.pipeline import confidence, covariance, rivals
+from cgags_ros import validity
+from cgags_ros.pipeline import confidence, covariance, twins
 from cgags_ros.pipeline.candidates import MIN_ROTATION_DEG  # the records' default too
 import numpy as np
 
@@ -335,52 +336,58 @@ def shipped_doubt(records: list[dict], valid: np.ndarray) -> tuple:
     return fit_mixture(S[idx], p[idx], M['e'][idx], right[idx], bench[idx])
 
 
-# --- structured rivals ---------------------------------------------------------------------
+# --- twins --------------------------------------------------------------------------------
 
-def rival_refuses(r: dict, limit: float, rho: float, apart: float = 10.0,
-                  promising: float = 0.0) -> bool:
-    """
-    Tell whether a plausible structured rival makes the valid pose ``r`` ambiguous.
+def measured_twins(r: dict) -> list[dict]:
+    """Return the twins measured with a record (older records call them 'rivals')."""
+    return r.get('twins', r.get('rivals', []))
 
-    The pipeline's verdict (:mod:`cgags_ros.pipeline.rivals`) on the recorded rivals, at the
-    limits given: a rival whose start fits less than ``promising`` times the estimate is
-    not refined by the pipeline, so it cannot refuse.
+
+def twin_refuses(r: dict, limit: float, rho: float, apart: float = 10.0,
+                 promising: float = 0.0) -> bool:
     """
-    for x in r.get('rivals', []):
+    Tell whether a plausible twin makes the valid pose ``r`` ambiguous.
+
+    The pipeline's verdict (:func:`cgags_ros.validity.plausible_twin`'s tests, after the
+    screen of :mod:`cgags_ros.pipeline.twins`) on the recorded twins, at the limits given:
+    a twin whose start fits less than ``promising`` times the estimate is not refined by the
+    pipeline, so it cannot refuse.
+    """
+    for x in measured_twins(r):
         violation = x['free_space_violation']
-        if (rivals.worth_refining(x['start_fitness'], r['fitness'], promising)
-                and rivals.settled_apart(x['from_estimate_deg'], x['from_estimate_m'], VOXEL,
-                                         MIN_ROTATION_DEG, apart)
-                and rivals.fits_as_well(x['fitness'], r['fitness'], rho)
-                and rivals.clear_of_free_space(math.nan if violation is None else violation,
-                                               limit)):
+        if (twins.worth_refining(x['start_fitness'], r['fitness'], promising)
+                and validity.settled_apart(x['from_estimate_deg'], x['from_estimate_m'],
+                                           VOXEL, MIN_ROTATION_DEG, apart)
+                and validity.fits_as_well(x['fitness'], r['fitness'], rho)
+                and validity.clear_of_free_space(
+                    math.nan if violation is None else violation, limit)):
             return True
     return False
 
 
-RIVAL_GRID = {'limit': (0.05, 0.1, 0.15, 0.2, 0.25, 0.3), 'rho': (1.0, 1.25, 1.5, 2.0, 3.0),
-              'apart': (2.0, 3.0, 4.0, 6.0, 10.0),
-              'promising': (0.25, 0.3, 0.35, 0.4, 0.45, 0.5, 0.55, 0.6)}
+TWIN_GRID = {'limit': (0.05, 0.1, 0.15, 0.2, 0.25, 0.3), 'rho': (1.0, 1.25, 1.5, 2.0, 3.0),
+             'apart': (2.0, 3.0, 4.0, 6.0, 10.0),
+             'promising': (0.25, 0.3, 0.35, 0.4, 0.45, 0.5, 0.55, 0.6)}
 
 
 def refinements(records: list[dict], valid: np.ndarray, promising: float) -> int:
-    """Return how many rivals of the valid poses the pipeline refines at ``promising``."""
+    """Return how many twins of the valid poses the pipeline refines at ``promising``."""
     return sum(x['start_fitness'] >= promising * r['fitness']
-               for r, v in zip(records, valid) if v for x in r.get('rivals', []))
+               for r, v in zip(records, valid) if v for x in measured_twins(r))
 
 
-def fit_rivals(records: list[dict], valid: np.ndarray) -> tuple[float, float, float, float]:
+def fit_twins(records: list[dict], valid: np.ndarray) -> tuple[float, float, float, float]:
     """
-    Return the rivals' (limit, rho, apart, promising) chosen on ``records``.
+    Return the twins' (limit, rho, apart, promising) chosen on ``records``.
 
     The most wrong poses refused, then the fewest right ones, then the fewest refinements
     (time), refusing at most 1 % of the right valid ones.
     """
     right = np.array([r['success'] for r in records], dtype=bool)
-    cost = {p: refinements(records, valid, p) for p in RIVAL_GRID['promising']}
+    cost = {p: refinements(records, valid, p) for p in TWIN_GRID['promising']}
     best, best_key = (0.0, 1.0, 10.0, 0.25), (-1, 0, 0)
-    for limit, rho, apart, promising in itertools.product(*RIVAL_GRID.values()):
-        refuse = np.array([v and rival_refuses(r, limit, rho, apart, promising)
+    for limit, rho, apart, promising in itertools.product(*TWIN_GRID.values()):
+        refuse = np.array([v and twin_refuses(r, limit, rho, apart, promising)
                            for r, v in zip(records, valid)])
         lost = (refuse & right).sum() / max((valid & right).sum(), 1)
         key = ((refuse & ~right).sum(), -lost, -cost[promising])
@@ -389,18 +396,18 @@ def fit_rivals(records: list[dict], valid: np.ndarray) -> tuple[float, float, fl
     return best
 
 
-def rivals_study(records: list[dict], valid: np.ndarray) -> dict:
+def twins_study(records: list[dict], valid: np.ndarray) -> dict:
     out = {'before': {}, 'after': {}, 'settings': {}}
     scene = np.array([r['scene'] for r in records])
     for held in scenes(records):
         train = scene != held
         tr = [r for r, t in zip(records, train) if t]
-        settings = fit_rivals(tr, valid[train])
+        settings = fit_twins(tr, valid[train])
         out['settings'][held] = settings
         for b in ('3DMatch', '3DLoMatch'):
             m = (scene == held) & np.array([r['benchmark'] == b for r in records])
             test = [r for r, t in zip(records, m) if t]
-            after = np.array([v and not rival_refuses(r, *settings)
+            after = np.array([v and not twin_refuses(r, *settings)
                               for r, v in zip(test, valid[m])], dtype=bool)
             out['before'].setdefault(held, {})[b] = flag_counts(test, valid[m])
             out['after'].setdefault(held, {})[b] = flag_counts(test, after)
@@ -618,20 +625,20 @@ def main(argv: list[str] | None = None) -> int:
     parts.append('mixture (w_t m, w_r rad, gamma, m) per held-out scene and on all scenes: '
                  + json.dumps(mix['settings']))
 
-    riv = rivals_study(records, valid)
-    refuse = np.array([v and rival_refuses(r, *riv['settings'][r['scene']])
+    riv = twins_study(records, valid)
+    refuse = np.array([v and twin_refuses(r, *riv['settings'][r['scene']])
                        for r, v in zip(records, valid)], dtype=bool)
     conf = confidence_study(records, valid, np.zeros(len(records), bool))
     both = confidence_study(records, valid, refuse)
-    rows = (flag_table(riv['before'], 'gates (today)') + flag_table(riv['after'], '+ rivals')
+    rows = (flag_table(riv['before'], 'gates (today)') + flag_table(riv['after'], '+ twins')
             + flag_table(conf['after'], '+ confidence') +
-            flag_table(both['after'], '+ rivals + confidence'))
+            flag_table(both['after'], '+ twins + confidence'))
     parts.append('### Valid flag: keeps [%] / valid but wrong\n\n' + markdown_table(
         ('flag', 'list', *heads, 'all'), rows))
-    parts.append('rivals (L, rho, apart voxels, promising) per held-out scene: '
+    parts.append('twins (L, rho, apart voxels, promising) per held-out scene: '
                  + json.dumps(riv['settings']))
     parts.append('confidence threshold per held-out scene: ' + json.dumps(conf['settings'])
-                 + '; with rivals: ' + json.dumps(both['settings']))
+                 + '; with twins: ' + json.dumps(both['settings']))
     has = conf['has_estimate']
     rel_all = reliability(conf['p'][has], right[has])
     rel_valid = reliability(conf['p'][has & valid], right[has & valid])
@@ -639,7 +646,7 @@ def main(argv: list[str] | None = None) -> int:
         ('bin', 'estimates', 'mean P', 'right share'), rel_all) + '\n\nvalid only:\n\n'
         + markdown_table(('bin', 'estimates', 'mean P', 'right share'), rel_valid))
     # What ships from this study: the covariance fit on all scenes (python -m
-    # bench.studies.fit prints it as the source holds it). The rivals' settings and the
+    # bench.studies.fit prints it as the source holds it). The twins' settings and the
     # confidence's weights ship from bench.studies.trust_shift, which chooses them in both
     # splits.
     parts.append('### Fit on all scenes (the shipped covariance)\n\n'
@@ -651,7 +658,7 @@ def main(argv: list[str] | None = None) -> int:
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.with_suffix('.md').write_text(text + '\n')
     args.output.with_suffix('.json').write_text(json.dumps({
-        'covariance': cov, 'rivals': riv['settings'],
+        'covariance': cov, 'twins': riv['settings'],
         'confidence': {'thresholds': conf['settings'], 'models': conf['models']}},
         indent=1, default=str))
     return 0

@@ -35,8 +35,8 @@ from cgags_ros.frontend.refine import refine_transform
 from cgags_ros.geometry import apply_transform
 from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import regenerate
-from cgags_ros.pipeline.candidates import distinct, support
-from cgags_ros.pipeline.gates import measured_free_space
+from cgags_ros.pipeline.candidates import distinct
+from cgags_ros.pipeline.settle import support
 from cgags_ros.registration import register_correspondences
 import numpy as np
 
@@ -106,11 +106,11 @@ def measure(src: np.ndarray, tgt: np.ndarray, truth: np.ndarray, cfg: PipelineCo
     poses = regenerate.proposed_poses(fs, ft, corr, core, cfg)
     settled = regenerate.settled_support(fs, ft, corr, [core.transform, *poses], tau, cfg)
     row['poses'] = [{
-        'estimate': n == 0, 'right': tdm.registered(T, truth), 'support': count,
+        'estimate': n == 0, 'right': tdm.registered(s.transform, truth), 'support': s.support,
         'support_before': int(np.count_nonzero(support(ps, pt, start, tau))),
-        'violation': measured_free_space(fs, ft, T, cfg),
-        'distinct': n == 0 or distinct(T, settled[0][0], cfg)}
-        for n, (start, (T, count)) in enumerate(zip([core.transform, *poses], settled))]
+        'violation': s.free_space,
+        'distinct': n == 0 or distinct(s.transform, settled[0].transform, cfg)}
+        for n, (start, s) in enumerate(zip([core.transform, *poses], settled))]
     return row
 
 
@@ -119,8 +119,8 @@ def _chosen(row: dict, key: str, limit: float, only_refused: bool) -> bool:
     estimate = row['poses'][0]
     if only_refused and row['core_valid']:
         return row['core_right']
-    rivals = [p for p in row['poses'][1:] if p['distinct'] and not p['violation'] > limit]
-    best = max(rivals, key=lambda p: p[key], default=None)
+    contenders = [p for p in row['poses'][1:] if p['distinct'] and not p['violation'] > limit]
+    best = max(contenders, key=lambda p: p[key], default=None)
     if best is None or best[key] <= estimate[key]:
         return row['core_right']
     return best['right']

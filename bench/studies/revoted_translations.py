@@ -11,8 +11,8 @@ Many wrong estimates have the right rotation and a translation off along what th
 constrains least (a slide). For every refused estimate of the records (``--refusals``: only
 those refused with these codes), each correspondence votes for a translation under the
 estimate's rotation (``q - R p``); the PEAKS fullest cubes of side tau (each at least
-2 tau from those before) and the estimate's own translation are settled as the structured
-rivals are, then measured (fitness within 1.5 voxels, free-space violation). It counts,
+2 tau from those before) and the estimate's own translation are settled as the twins
+are, then measured (fitness within 1.5 voxels, free-space violation). It counts,
 for the refused estimates that are wrong and those that are right, how often one of them is
 right, and how often each rule picks a right one: the best fitness, or the best fitness
 among those clear of free space (``gates.max_free_space_violation``).
@@ -30,7 +30,7 @@ from cgags_ros.geometry import make_transform
 from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import clear_feature_cache
 from cgags_ros.pipeline.gates import measured_free_space
-from cgags_ros.pipeline.rivals import settle
+from cgags_ros.pipeline.settle import Pair, settle, TWIN
 import numpy as np
 
 PEAKS = 8
@@ -61,7 +61,7 @@ def revoted(src: np.ndarray, tgt: np.ndarray, record: dict, truth: np.ndarray,
     votes = ft.points[corr.target_index] - fs.points[corr.source_index] @ R.T
     out = []
     for t in [*peaks(votes, tau), T[:3, 3]]:
-        S = settle(fs, ft, make_transform(R, t), tau, cfg)
+        S = settle(Pair(fs, ft, cfg), make_transform(R, t), tau, TWIN).transform
         d, _ = ft.tree.query(fs.points @ S[:3, :3].T + S[:3, 3], k=1,
                              distance_upper_bound=1.5 * v)
         out.append({'fitness': float(np.isfinite(d).mean()),

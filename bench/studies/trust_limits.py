@@ -18,8 +18,8 @@ left out. It prints:
 - the operating points a stricter flag would take, in both splits: a lower bound on the
   loosest sigma, or a higher confidence threshold, than the fold chose, and what each keeps
   and lets through;
-- the right 3DLoMatch poses refused as ambiguous: how the best plausible rival's overlap
-  (its refined fitness) compares with the estimate's. Where a right pose's rival overlaps
+- the right 3DLoMatch poses refused as ambiguous: how the best plausible candidate's overlap
+  (its refined fitness) compares with the estimate's. Where a right pose's candidate overlaps
   as well or better, no rule on the overlap can keep it without keeping the wrong poses
   refused the same way.
 """
@@ -34,7 +34,7 @@ import numpy as np
 SIGMA_BOUNDS = (8.0, 10.0, 12.0, 15.0, 20.0)  # voxels, below the folds' 23-34
 THRESHOLDS = (0.7, 0.8, 0.85, 0.9, 0.95)  # above the folds' 0.5
 OVERLAP_RATIOS = (1.0, 1.1, 1.2, 1.3)
-RATIO = GatesConfig().ambiguity_ratio  # the rivals the gate refines (verify_rivals)
+RATIO = GatesConfig().ambiguity_ratio  # the candidates the gate settles (settle_candidates)
 
 
 def counts(d: Design, mask: np.ndarray, flag: np.ndarray) -> str:
@@ -90,22 +90,22 @@ def wrong_valid(records: list[dict], d: Design) -> str:
 
 
 def ambiguity(records: list[dict]) -> str:
-    """Return the 3DLoMatch estimates refused as ambiguous, by their rival's overlap."""
+    """Return the 3DLoMatch estimates refused as ambiguous, by their candidate's overlap."""
     ratios: dict[bool, list[float]] = {True: [], False: []}
     for r in records:
         if r['benchmark'] != '3DLoMatch' or r.get('refusal') != 'ambiguous':
             continue
         best, *others = r.get('candidates') or [None]
-        rivals = [c for c in others if best and c.get('fitness')
-                  and c['num_inliers'] * RATIO > best['num_inliers']]
-        if rivals:
-            top = max(c['fitness'] for c in rivals)
+        close = [c for c in others if best and c.get('fitness')
+                 and c['num_inliers'] * RATIO > best['num_inliers']]
+        if close:
+            top = max(c['fitness'] for c in close)
             ratios[bool(r['success'])].append(r['overlap'] / top)
     rows = [(f'>= {q:g}', sum(x >= q for x in ratios[True]), sum(x >= q for x in ratios[False]))
             for q in OVERLAP_RATIOS]
-    return (f'refused as ambiguous with a refined rival: {len(ratios[True])} right, '
+    return (f'refused as ambiguous with a refined candidate: {len(ratios[True])} right, '
             f'{len(ratios[False])} wrong\n\n'
-            + markdown_table(("estimate's overlap / rival's", 'right', 'wrong'), rows))
+            + markdown_table(("estimate's overlap / candidate's", 'right', 'wrong'), rows))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -22,12 +22,12 @@ out of every choice and every figure, and counted (``--evidence``: the truths se
 
 The levers, in the pipeline's order, on top of the gates (the records' ``valid``):
 
-``rivals``
-    The structured rivals (:mod:`cgags_ros.pipeline.rivals`): a valid pose is refused when
-    a rival distinct from it fits about as well without stacking surfaces in free space.
+``twins``
+    The twins (:mod:`cgags_ros.pipeline.twins`): a valid pose is refused when
+    a twin distinct from it fits about as well without stacking surfaces in free space.
     Chosen as in :mod:`.loso_trust_study` (the most wrong poses refused, at most 1 % of the
-    right valid ones lost), once with the half turns and slides alone (``rivals (flips,
-    slides)``) and once with every start (``rivals (all)``: quarter turns about the
+    right valid ones lost), once with the half turns and slides alone (``twins (flips,
+    slides)``) and once with every start (``twins (all)``: quarter turns about the
     normals' axes and the correspondences' other candidates too).
 ``sigma``
     Valid means usable: the reported covariance's loosest position sigma (the overlap's
@@ -53,23 +53,24 @@ from typing import Any
 
 from bench.common import argument_parser, markdown_table
 from bench.studies.loso_trust_study import (as_result, CHI2_95, CHI2_999, fit_logistic,
-                                            fit_rivals, flag_counts, load, MIN_ROTATION_DEG,
-                                            overlap_covariance, predict, reliability,
-                                            rival_refuses, short, SIGNIFICANCE, threshold_for,
-                                            VOXEL)
+                                            fit_twins, flag_counts, load, measured_twins,
+                                            MIN_ROTATION_DEG, overlap_covariance, predict,
+                                            reliability, short, SIGNIFICANCE, threshold_for,
+                                            twin_refuses, VOXEL)
 from bench.truth_check import doubtful_fragments, in_doubt, read_records as truth_records
+from cgags_ros import validity
 from cgags_ros.io.shared_data import shared_data_dir
-from cgags_ros.pipeline import confidence, covariance, rivals
+from cgags_ros.pipeline import confidence, covariance, twins
 import numpy as np
 
 EASY = ('7-scenes-redkitchen', 'sun3d-hotel_uc-scan3')
 HARD_SPLIT = 'hard'
 # Each input with the sign its weight must have: the pipeline's (more margin over chance is
 # more trust, a looser overlap and more free-space violation are less) and a better-fitting
-# rival (less), which the fits leave out when its sign contradicts that.
-MONOTONE = {**confidence.SIGNS, 'rival_fit': -1.0}
+# alternative (less), which the fits leave out when its sign contradicts that.
+MONOTONE = {**confidence.SIGNS, 'alternative_fit': -1.0}
 FLIPS_SLIDES = ('flip', 'slide')
-TODAY_RIVALS = (0.1, 1.5, 4.0, 0.45)  # (L, rho, apart, promising) as shipped before
+TODAY_TWINS = (0.1, 1.5, 4.0, 0.45)  # (L, rho, apart, promising) as shipped before
 FLOOR = 0.5
 SHARP = 0.99  # the share of right valid training poses the sigma bound keeps
 
@@ -84,27 +85,26 @@ def splits(records: list[dict]) -> list[tuple[str, str, np.ndarray, np.ndarray]]
     return out
 
 
-def rival_fit(r: dict) -> float:
+def alternative_fit(r: dict) -> float:
     """
-    Return the best fit of a distinct rival over the estimate's fit (0: none).
+    Return the best fit of a distinct alternative over the estimate's fit (0: none).
 
-    The correspondences' other candidates, and the structured rivals the pipeline refines
-    (a start at least ``rivals.PROMISING`` times the estimate's fit) that settle away from
-    the estimate.
+    The correspondences' other candidates, and the twins the pipeline settles (a start at
+    least ``twins.PROMISING`` times the estimate's fit) that settle away from the estimate.
     """
     fitness = r['fitness'] or 0.0
     fits = [c['fitness'] for c in r['candidates'][1:] if c['fitness'] is not None]
-    fits += [x['fitness'] for x in r.get('rivals', [])
-             if rivals.worth_refining(x['start_fitness'], fitness)
-             and rivals.settled_apart(x['from_estimate_deg'], x['from_estimate_m'], VOXEL,
-                                      MIN_ROTATION_DEG)]
+    fits += [x['fitness'] for x in measured_twins(r)
+             if twins.worth_refining(x['start_fitness'], fitness)
+             and validity.settled_apart(x['from_estimate_deg'], x['from_estimate_m'], VOXEL,
+                                        MIN_ROTATION_DEG)]
     return max(fits, default=0.0) / max(fitness, 1e-3)
 
 
 def inputs(r: dict) -> dict[str, float] | None:
     """Return the candidate confidence inputs of a record (None without an estimate)."""
     values = confidence.features(as_result(r), SIGNIFICANCE)
-    return None if values is None else {**values, 'rival_fit': rival_fit(r)}
+    return None if values is None else {**values, 'alternative_fit': alternative_fit(r)}
 
 
 def fit_monotone(X: np.ndarray, y: np.ndarray, names: list[str]) -> dict:
@@ -196,8 +196,8 @@ class Design:
 
 def choose(records: list[dict], d: Design, train: np.ndarray) -> dict:
     """Return every lever chosen on the ``train`` records, in the pipeline's order."""
-    rivals = fit_rivals([r for r, t in zip(records, train) if t], d.gates[train])
-    refused = np.array([g and rival_refuses(r, *rivals) for r, g in zip(records, d.gates)],
+    limits = fit_twins([r for r, t in zip(records, train) if t], d.gates[train])
+    refused = np.array([g and twin_refuses(r, *limits) for r, g in zip(records, d.gates)],
                        dtype=bool)
     model, p_inner = fit_confidence(d.X, d.has, d.right, d.scene, train, list(MONOTONE))
     inner_sigma = sigmas(records, p_inner, d.has)
@@ -206,7 +206,7 @@ def choose(records: list[dict], d: Design, train: np.ndarray) -> dict:
     bound = float(np.quantile(kept, SHARP)) if len(kept) else math.inf
     threshold = threshold_for(p_inner[train], (after & (inner_sigma <= bound))[train],
                               d.right[train], d.bench[train])
-    return {'rivals': rivals, 'refused': refused, 'model': model, 'sigma_voxels': bound,
+    return {'twins': limits, 'refused': refused, 'model': model, 'sigma_voxels': bound,
             'threshold': max(threshold, FLOOR)}
 
 
@@ -215,41 +215,41 @@ def fold_flags(records: list[dict], d: Design, train: np.ndarray) -> dict:
     Return the levers chosen on ``train`` and every record's flag after each of them.
 
     ``p`` the fold's confidence, ``sigma`` the reported loosest sigma in voxels at it;
-    ``after_rivals``, ``usable`` (within the sigma bound too) and ``valid`` (the threshold
+    ``after_twins``, ``usable`` (within the sigma bound too) and ``valid`` (the threshold
     too: the flag as the fold chose it).
     """
     chosen = choose(records, d, train)
     p = np.where(d.has, predict(chosen['model'], d.X), 0.0)
     sigma = sigmas(records, p, d.has)
-    after_rivals = d.gates & ~chosen['refused']
-    usable = after_rivals & (sigma <= chosen['sigma_voxels'])
-    return {'chosen': chosen, 'p': p, 'sigma': sigma, 'after_rivals': after_rivals,
+    after_twins = d.gates & ~chosen['refused']
+    usable = after_twins & (sigma <= chosen['sigma_voxels'])
+    return {'chosen': chosen, 'p': p, 'sigma': sigma, 'after_twins': after_twins,
             'usable': usable, 'valid': usable & (p >= chosen['threshold'])}
 
 
 def study(records: list[dict]) -> dict:
     """Choose every lever on each fold's training scenes; return the test figures."""
     d = Design.of(records)
-    flips = [{**r, 'rivals': [x for x in r.get('rivals', [])
-                              if x['name'].startswith(FLIPS_SLIDES)]} for r in records]
+    flips = [{**r, 'twins': [x for x in measured_twins(r)
+                             if x['name'].startswith(FLIPS_SLIDES)]} for r in records]
     # Today's flag as it shipped: half turns and slides at their settings, its confidence
     # (fit on all four scenes, the test scenes too) at 0.5, as the records measured it.
-    today = d.gates & np.array([not rival_refuses(r, *TODAY_RIVALS) and r['confidence'] >= 0.5
+    today = d.gates & np.array([not twin_refuses(r, *TODAY_TWINS) and r['confidence'] >= 0.5
                                 for r in flips])
     out = {}
     for split, name, train, test in splits(records):
         fold = out.setdefault(split, {}).setdefault(name, {})
         f = fold_flags(records, d, train)
         chosen, p = f['chosen'], f['p']
-        riv_flips = fit_rivals([r for r, t in zip(flips, train) if t], d.gates[train])
-        refuse_flips = np.array([g and rival_refuses(r, *riv_flips)
+        twin_flips = fit_twins([r for r, t in zip(flips, train) if t], d.gates[train])
+        refuse_flips = np.array([g and twin_refuses(r, *twin_flips)
                                  for r, g in zip(flips, d.gates)], dtype=bool)
         flags = {'today (shipped before)': today, 'gates': d.gates,
-                 'rivals (flips, slides)': d.gates & ~refuse_flips,
-                 'rivals (all)': f['after_rivals'], '+ sigma': f['usable'],
+                 'twins (flips, slides)': d.gates & ~refuse_flips,
+                 'twins (all)': f['after_twins'], '+ sigma': f['usable'],
                  '+ confidence': f['valid']}
         fold['settings'] = {**{k: v for k, v in chosen.items() if k != 'refused'},
-                            'rivals_flips': riv_flips}
+                            'twins_flips': twin_flips}
         for b in ('3DMatch', '3DLoMatch'):
             m = test & (d.bench == b)
             t = [r for r, x in zip(records, m) if x]

@@ -120,7 +120,7 @@ def solve(evidence: list[Evidence], cfg: CalibrationConfig) -> CalibrationResult
     result.transform = T
     _uncertainty(result, clouds, agreeing, cfg)
     result.refusal = (_observability_refusal(result, cfg) or _agreement_refusal(result, cfg)
-                      or _rival_refusal(found, usable, cfg))
+                      or _contender_refusal(found, usable, cfg))
     return result
 
 
@@ -195,9 +195,9 @@ def _agreement_refusal(result: CalibrationResult, cfg: CalibrationConfig) -> Ref
         + '; '.join(f'{f.name}: {f.reason}' for f in result.frames if not f.agrees)))
 
 
-def _rival_refusal(found: list, usable: list[Evidence],
-                   cfg: CalibrationConfig) -> Refusal | None:
-    other = consensus.rival(found, usable, cfg)
+def _contender_refusal(found: list, usable: list[Evidence],
+                       cfg: CalibrationConfig) -> Refusal | None:
+    other = consensus.contender(found, usable, cfg)
     if other is None:
         return None
     best = found[0]

@@ -12,7 +12,7 @@ A frame agrees with a pose when (1) refining the pose on that frame alone moves 
 frame's overlapping child points, along the parent's normals, by at most
 ``AGREEMENT_SHIFT`` voxel sizes RMS (motion along directions the frame does not
 constrain is free), and (2) none of the frame's own candidates, refined on it, overlaps
-``AMBIGUITY_RATIO`` times better. A rival is a distinct pose scoring above
+``AMBIGUITY_RATIO`` times better. A contender is a distinct pose scoring above
 1/``AMBIGUITY_RATIO`` of the best that every frame agrees with too: the set is then
 ambiguous.
 """
@@ -35,7 +35,7 @@ from ..pipeline.candidates import distinct
 
 SCREEN_POINTS = 1500  # child points per frame while hypotheses are compared
 AGREEMENT_SHIFT = 0.15  # a frame agrees when the pose moves on it by at most this (voxels RMS)
-AMBIGUITY_RATIO = 1.5  # a pose this many times better is a rival (see the module doc)
+AMBIGUITY_RATIO = 1.5  # a pose scoring within this factor of the best contends (module doc)
 
 
 @dataclasses.dataclass
@@ -171,8 +171,8 @@ def _best_own(e: Evidence, cfg: CalibrationConfig) -> tuple[np.ndarray, float] |
     return best
 
 
-def rival(found: list[Hypothesis], evidence: list[Evidence],
-          cfg: CalibrationConfig) -> Hypothesis | None:
+def contender(found: list[Hypothesis], evidence: list[Evidence],
+              cfg: CalibrationConfig) -> Hypothesis | None:
     """Return a distinct hypothesis the frames agree on about as well as the best, or None."""
     best, d = found[0], distance(cfg)
     limit = AGREEMENT_SHIFT * cfg.pipeline.voxel_size

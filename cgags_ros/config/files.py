@@ -91,7 +91,7 @@ def parameters_markdown() -> str:
         'Sections by the stage that reads them: `frontend` (downsampling, normals, FPFH,',
         'matching), `core` (the registration core, its threshold tau included), `refine`',
         '(local refinement), `gates` (when a result is valid or ambiguous: what',
-        '`cgags_ros/validity.py` decides with), `tracking` (the temporal prior), the candidate',
+        '`cgags_ros/validity` decides with), `tracking` (the temporal prior), the candidate',
         "search at the top level; the node's `pairing` (input topics, QoS, pairing, the",
         'size limit of an incoming cloud), `worker` (where and how long a registration runs:',
         "the worker's, not the core's, limit), `map`, `relocalization` and `output`.",

@@ -2,8 +2,8 @@
 Configuration of the validity gates: the settings :mod:`cgags_ros.validity` decides with.
 
 Read after the core and the refinement: the overlap (fitness), the chance level, the
-observability, the free-space gate, the ambiguity between candidates and its rivals, and
-the calibrated confidence. The core's own refusals (``core.min_inliers``,
+observability, the free-space gate, the ambiguity between candidates and the estimate's
+twins, and the calibrated confidence. The core's own refusals (``core.min_inliers``,
 ``core.distinct_ratio``, ``core.max_tilt_deg``) stay in :mod:`.core`, since its search stops
 on them too.
 """
@@ -34,16 +34,16 @@ class GatesConfig:
         "confidence leaves; against a map, the overlap's alone) is above this many voxel "
         'sizes; the covariance is still reported. 6-DoF pairs of scans, and the '
         "relocalizer's confirmed poses. 0 disables.", low=0.0, high=1e6)
-    verify_rivals: bool = option(
-        True, 'Refine the rivals that make an estimate ambiguous; one that converges onto '
+    settle_candidates: bool = option(
+        True, 'Refine the candidates that make an estimate ambiguous; one that converges onto '
         "it, whose overlap the estimate's exceeds ambiguity_ratio times, or that fails the "
-        'free-space gate is not plausible; only a plausible rival makes it ambiguous.',
+        'free-space gate is not plausible; only a plausible candidate makes it ambiguous.',
         advanced=True)
-    structured_rivals: bool = option(
-        True, 'Before calling an estimate valid, try the poses a near-symmetric or weakly '
-        'constrained scene would also accept (the estimate turned 180 degrees about the '
-        "overlap's principal axes, slid along its least constrained direction), each refined "
-        'and judged like the estimate; a plausible one makes the result ambiguous. 6-DoF '
+    check_twins: bool = option(
+        True, 'Before calling an estimate valid, try its twins: the poses a near-symmetric or '
+        'weakly constrained scene would also accept (the estimate turned 180 degrees about '
+        "the overlap's principal axes, slid along its least constrained direction), each "
+        'refined briefly and judged; a plausible one makes the result ambiguous. 6-DoF '
         'pairs of sensor-frame clouds only (the free-space gate must apply).',
         advanced=True)
     min_fitness: float = option(
@@ -84,5 +84,5 @@ class GatesConfig:
         'invalid. 1 disables.', low=0.0, high=1.0)
     free_space_settle_factor: float = option(
         0.5, 'An estimate the correspondences alone did not settle (a collinear consensus, '
-        'or a rival within ambiguity_ratio) is trusted only below this times '
+        'or a candidate within ambiguity_ratio) is trusted only below this times '
         'max_free_space_violation.', low=0.0, high=1.0, advanced=True)

@@ -197,7 +197,7 @@ def staged_point_to_plane(source: np.ndarray, target: np.ndarray, normals: np.nd
 
     The ``coarse_distance`` stage first when it is the larger (stopping at
     :data:`COARSE_STAGE_TOLERANCE`), then the ``final`` one (1e-6), ``iterations`` each: for
-    the many short refinements against one target (rivals, relocalization checks).
+    the many short refinements against one target (:mod:`cgags_ros.pipeline.settle`).
     """
     T = np.asarray(initial, dtype=np.float64)
     for distance in stages(coarse_distance, final):

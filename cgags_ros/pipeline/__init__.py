@@ -2,11 +2,12 @@
 Clouds in, result out: the one registration path of the node, the CLIs and benchmarks.
 
 :func:`register_clouds` (``register.py``) runs the front end, the core, refinement and the
-validity gates (``gates.py``), tries the structured rivals (``rivals.py``) and rates the
-estimate (``confidence.py``); features of recent clouds are cached (``cache.py``);
-``covariance.py`` turns a result into a pose covariance; ``map.py`` prepares a map file's
-features once. A stream's scans (:mod:`cgags_ros.tracking`) and a relocalization over
-several scans (:mod:`cgags_ros.relocalization`) build on this one pair.
+validity gates (``gates.py``), settles the correspondences' other candidates
+(``candidates.py``) and the estimate's twins (``twins.py``) with one primitive
+(``settle.py``) and rates the estimate (``confidence.py``); features of recent clouds are
+cached (``cache.py``); ``covariance.py`` turns a result into a pose covariance; ``map.py``
+prepares a map file's features once. A stream's scans (:mod:`cgags_ros.tracking`) and a
+relocalization over several scans (:mod:`cgags_ros.relocalization`) build on this one pair.
 
 ``register_clouds``, ``warm_up`` and the cache functions are imported on first use: they
 bring in Open3D, which the node's own process (covariance, unpickling results from its

@@ -1,5 +1,5 @@
 """
-Ranked, distinct candidate poses and the ambiguity flag.
+Ranked, distinct candidate poses: the other poses the correspondences support.
 
 The core returns one estimate. Further candidates are found in the pipeline, without
 touching the core: the correspondences the estimate explains (within tau of its coarse
@@ -15,13 +15,13 @@ candidate is the final (refined) estimate; the others are the core's estimates (
 their inliers, good to about tau), not refined: ICP from a wrong pose would cost more than
 the search itself.
 
-Ambiguity: with a runner-up, best / runner-up inliers below ``ambiguity_ratio`` means two
-poses are nearly equally supported by the correspondences. With ``verify_rivals`` each such
-rival is then refined like the estimate and judged on the geometry as well
-(:func:`verify_rivals`): one that converges onto the estimate supports it, one whose overlap
-the estimate's exceeds ``ambiguity_ratio`` times, or that stacks surfaces where a sensor saw
-free space, is no plausible alternative. The result is flagged ambiguous and invalid only
-when a plausible, distinct rival remains.
+Whether they make the estimate ambiguous is :mod:`cgags_ros.validity`'s to say: a
+runner-up within ``ambiguity_ratio`` of the best's inliers does
+(:func:`~cgags_ros.validity.outnumbered`). With ``gates.settle_candidates`` each candidate
+within that ratio is then settled (:func:`settle_candidates`: refined as the estimate is,
+:mod:`.settle`) and measured on the geometry: one that converges onto the estimate supports
+it, the others keep their refined pose and fitness; what they measured (a
+:class:`Settlement`) is judged by :func:`~cgags_ros.validity.still_ambiguous`.
 """
 
 from __future__ import annotations
@@ -30,26 +30,21 @@ import dataclasses
 
 import numpy as np
 
-from .gates import measured_free_space
 from .result import Candidate, PipelineResult
+from .settle import CANDIDATE, Pair, settle, Settled, support
 from ..config.pipeline import PipelineConfig
 from ..errors import DegenerateCorrespondencesError
 from ..frontend.features import CloudFeatures
 from ..frontend.matching import Correspondences
-from ..frontend.refine import evaluate_alignment, refine_transform
-from ..geometry import apply_transform, rotation_error_deg, translation_error
+from ..frontend.refine import evaluate_alignment
+from ..geometry import rotation_error_deg, translation_error
 from ..parallel import map_ordered
 from ..registration import register_correspondences
-from ..validity import free_space_limit
+from ..validity import passes_free_space
 
 MAX_ITERATIONS = 1000  # hypotheses of each search for a further candidate (at most the core's)
 MIN_ROTATION_DEG = 10.0  # two candidates are distinct beyond this rotation (degrees)
 MIN_TRANSLATION_FACTOR = 10.0  # or beyond this translation (voxel sizes)
-
-
-def support(src: np.ndarray, dst: np.ndarray, transform: np.ndarray, tau: float) -> np.ndarray:
-    """Return the mask of correspondences ``src[i] -> dst[i]`` within ``tau`` of ``transform``."""
-    return np.linalg.norm(apply_transform(transform, src) - dst, axis=1) <= tau
 
 
 def distinct(a: np.ndarray, b: np.ndarray, cfg: PipelineConfig) -> bool:
@@ -58,21 +53,10 @@ def distinct(a: np.ndarray, b: np.ndarray, cfg: PipelineConfig) -> bool:
             or translation_error(a, b) > MIN_TRANSLATION_FACTOR * cfg.voxel_size)
 
 
-def find_candidates(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
-                    result: PipelineResult, cfg: PipelineConfig) -> None:
+def search_candidates(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
+                      result: PipelineResult, cfg: PipelineConfig) -> list[Candidate]:
     """
-    Fill ``result.candidates``, ``runner_up_ratio`` and ``ambiguous`` (see the module doc).
-
-    ``result`` holds the core's estimate (``coarse_transform``) and the final
-    ``transform`` and ``fitness``; it is the first candidate.
-    """
-    rank_candidates(result, search_rivals(fs, ft, corr, result, cfg), cfg)
-
-
-def search_rivals(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
-                  result: PipelineResult, cfg: PipelineConfig) -> list[Candidate]:
-    """
-    Return the best candidate (without its fitness: NaN) and the rivals found, in order.
+    Return the best candidate (without its fitness: NaN) and the others found, in order.
 
     Reads only the core's estimate (``coarse_transform``, ``inliers``, ``inlier_threshold``,
     ``resolution``) and the final ``transform`` of ``result``, never what the gates set,
@@ -116,9 +100,8 @@ def search_rivals(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
     return found
 
 
-def rank_candidates(result: PipelineResult, found: list[Candidate],
-                    cfg: PipelineConfig) -> None:
-    """Complete :func:`search_rivals`' list with ``result.fitness`` and set the ambiguity."""
+def rank_candidates(result: PipelineResult, found: list[Candidate]) -> None:
+    """Complete :func:`search_candidates`' list with ``result.fitness`` and the runner-up ratio."""
     best = found[0]
     best.fitness = float(result.fitness)
     found[1:] = sorted(found[1:], key=lambda c: -c.num_inliers)
@@ -127,79 +110,88 @@ def rank_candidates(result: PipelineResult, found: list[Candidate],
     result.candidates = found
     if len(found) > 1 and found[1].num_inliers > 0:
         result.runner_up_ratio = best.num_inliers / found[1].num_inliers
-        result.ambiguous = result.runner_up_ratio < cfg.gates.ambiguity_ratio
 
 
-def verify_rivals(fs: CloudFeatures, ft: CloudFeatures, result: PipelineResult,
-                  cfg: PipelineConfig, map_target: bool = False,
-                  workers: int = 1) -> Candidate | None:
+@dataclasses.dataclass
+class Settlement:
     """
-    Judge the rivals that make ``result`` ambiguous on the geometry (see the module doc).
+    What settling an ambiguous estimate's candidates measured (:func:`settle_candidates`).
+
+    :ivar chosen: the estimate's pose now: the best, or a candidate the geometry prefers.
+    :ivar replaces: ``chosen`` is a candidate: it replaces the estimate.
+    :ivar overlap: the chosen pose's overlap (the smaller of its fitness both ways).
+    :ivar free_space: the chosen pose's free-space violation (NaN: not measured).
+    :ivar others: the other plausible candidates' overlaps.
+    :ivar alone: no distinct candidate is left (every one settled onto the chosen pose).
+    """
+
+    chosen: Candidate
+    replaces: bool
+    overlap: float
+    free_space: float
+    others: list[float]
+    alone: bool
+
+
+def settle_candidates(fs: CloudFeatures, ft: CloudFeatures, result: PipelineResult,
+                      cfg: PipelineConfig, map_target: bool = False,
+                      workers: int = 1) -> Settlement | None:
+    """
+    Settle the candidates that make ``result`` ambiguous and measure them (module doc).
 
     Runs after :func:`rank_candidates` and the gates (it reads ``result.overlap`` and
-    ``result.free_space_violation``). Each rival within ``ambiguity_ratio`` of the best's
-    inliers is refined from its core pose; one that converges onto the estimate is dropped
-    (it is the same pose), the others keep their refined transform and fitness. A pose is
-    plausible when it passes the free-space gate (where that applies); its geometric
-    support is its overlap (the smaller share of both clouds' points within the refinement
-    distance). The estimate stays unless it is implausible or a plausible rival's overlap
-    exceeds its own ``ambiguity_ratio`` times: the plausible rival with the largest overlap
-    is then returned, for the caller to make it the estimate. ``ambiguous`` stays True only
-    when another plausible pose's overlap is above the chosen one's / ``ambiguity_ratio``,
-    or when the chosen one's free-space violation is above the tighter bound of an
-    unsettled estimate (``gates.free_space_settle_factor``).
+    ``result.free_space_violation``), when the estimate is ambiguous on its inliers. Each
+    candidate within ``ambiguity_ratio`` of the best's inliers is settled from its core pose
+    (:data:`~.settle.CANDIDATE`); one that converges onto the estimate is dropped (it is the
+    same pose), the others keep their refined transform and fitness. A pose is plausible
+    when it passes the free-space gate (where that applies); its geometric support is its
+    overlap. The estimate stays unless it is implausible or a plausible candidate's overlap
+    exceeds its own ``ambiguity_ratio`` times: the plausible one with the largest overlap is
+    then chosen, first in ``result.candidates``, for the caller to make it the estimate.
+    None when nothing is settled (not ambiguous, ``gates.settle_candidates`` off, or no
+    refinement).
     """
-    if not (cfg.gates.verify_rivals and result.ambiguous) or cfg.refine.method == 'none':
+    if not (cfg.gates.settle_candidates and result.ambiguous) or cfg.refine.method == 'none':
         return None
-    v, ratio = cfg.voxel_size, cfg.gates.ambiguity_ratio
-    distance = cfg.refine.max_correspondence_distance_factor * v
-    gravity = cfg.core.gravity_axis if cfg.core.motion_model == '4dof' else None
-    limit = cfg.gates.max_free_space_violation
+    ratio = cfg.gates.ambiguity_ratio
     best = result.candidates[0]
     # (candidate, overlap) of every plausible pose within the inlier ratio, best first.
-    plausible = [] if result.free_space_violation > limit else [(best, result.overlap)]
+    plausible = ([(best, result.overlap)] if passes_free_space(result.free_space_violation, cfg)
+                 else [])
     violation = {id(best): result.free_space_violation}
     kept = [best]
-    contenders = [c for c in result.candidates[1:] if c.num_inliers * ratio > best.num_inliers]
-    # Each contender refines on its own: side by side (their ICP runs outside the GIL); a
-    # lone one keeps the threads for its refinement's neighbour queries (4-DoF).
-    inner = max(1, workers // max(1, len(contenders)))
+    close = [c for c in result.candidates[1:] if c.num_inliers * ratio > best.num_inliers]
+    # Each close candidate settles on its own: side by side (their ICP runs outside the GIL);
+    # a lone one keeps the threads for its refinement's neighbour queries (4-DoF).
+    inner = max(1, workers // max(1, len(close)))
+    pair = Pair(fs, ft, cfg, map_target)
 
-    def refined(c: Candidate) -> tuple[np.ndarray, float, float, float] | None:
-        """Return the rival refined: its transform, fitness both ways and free-space violation."""
-        T = refine_transform(fs.points, ft.points, c.transform, voxel_size=v,
-                             config=cfg.refine, target_normals=ft.normals,
-                             coarse_distance=result.inlier_threshold, gravity=gravity,
-                             workers=inner)
-        if not distinct(T, best.transform, cfg):
+    def settled(c: Candidate) -> Settled | None:
+        """Return the candidate settled and measured, or None when it joins the estimate."""
+        s = settle(pair, c.transform, result.inlier_threshold, CANDIDATE, inner)
+        if not distinct(s.transform, best.transform, cfg):
             return None  # converged onto the estimate: it supports it
-        ahead = evaluate_alignment(fs.points, ft.tree, T, distance).fitness
-        back = evaluate_alignment(ft.points, fs.tree, np.linalg.inv(T), distance).fitness
-        return T, ahead, back, measured_free_space(fs, ft, T, cfg, map_target)
+        return s.measured('fitness', 'back', 'free_space')
 
-    settled = dict(zip(map(id, contenders), map_ordered(refined, contenders, workers)))
+    settled_by = dict(zip(map(id, close), map_ordered(settled, close, workers)))
     for c in result.candidates[1:]:
-        if id(c) not in settled:
-            kept.append(c)  # clearly less supported: no rival, left as found
+        if id(c) not in settled_by:
+            kept.append(c)  # clearly less supported: not settled, left as found
             continue
-        if settled[id(c)] is None:
+        if (s := settled_by[id(c)]) is None:
             continue
-        c.transform, c.fitness, back, violation[id(c)] = settled[id(c)]
+        c.transform, c.fitness, violation[id(c)] = s.transform, s.fitness, s.free_space
         kept.append(c)
-        if not violation[id(c)] > limit:  # NaN: the gate does not apply
-            plausible.append((c, min(c.fitness, back)))
-    chosen, support = best, result.overlap
+        if passes_free_space(s.free_space, cfg):
+            plausible.append((c, s.overlap))
+    chosen, overlap = best, result.overlap
     if plausible:
-        top, top_support = max(plausible, key=lambda p: p[1])
-        if plausible[0][0] is not best or top_support >= ratio * result.overlap:
-            chosen, support = top, top_support
+        top, top_overlap = max(plausible, key=lambda p: p[1])
+        if plausible[0][0] is not best or top_overlap >= ratio * result.overlap:
+            chosen, overlap = top, top_overlap
     result.candidates = [chosen] + [c for c in kept if c is not chosen]
-    # Settled by the geometry only when the chosen pose clearly passes the free-space test;
-    # when every rival converged onto it, nothing distinct is left to be confused with.
-    result.ambiguous = len(result.candidates) > 1 and (
-        any(c is not chosen and o * ratio > support for c, o in plausible)
-        or violation[id(chosen)] > free_space_limit(cfg, unsettled=True))
-    rivals = [c.num_inliers for c in result.candidates[1:] if c.num_inliers > 0]
-    result.runner_up_ratio = (chosen.num_inliers / max(rivals) if rivals
+    others = [c.num_inliers for c in result.candidates[1:] if c.num_inliers > 0]
+    result.runner_up_ratio = (chosen.num_inliers / max(others) if others
                               else float('inf'))
-    return chosen if chosen is not best else None
+    return Settlement(chosen, chosen is not best, overlap, violation[id(chosen)],
+                      [o for c, o in plausible if c is not chosen], len(result.candidates) == 1)

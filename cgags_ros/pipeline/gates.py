@@ -64,7 +64,7 @@ def measure_overlap(source: np.ndarray, source_tree: cKDTree | None, ft: CloudFe
     (:func:`cgags_ros.validity.overlap_refusal`): fitness, observability, free space, and in
     4-DoF mode the tilt. ``source`` is the downsampled source (metres, its own frame) and
     ``source_tree`` a k-d tree over it, for the target side of ``overlap``; None leaves
-    ``overlap`` NaN (no gate reads it: only the rival verification after a global search
+    ``overlap`` NaN (no gate reads it: only the candidates' settling after a global search
     does). ``source_view``: the source's origin may be its sensor (else free space is judged
     from the target's view alone). Sets ``fitness``, ``inlier_rmse``, ``overlap``,
     ``observability``, ``shared_area``, ``free_space_violation`` (and ``tilt_deg``) on

@@ -65,7 +65,7 @@ class PreparedMap:
     :ivar oriented_by: what signed the map's normals: 'file normals' or the configured
         ``normal_orientation``.
     :ivar symmetries: the turns that map the map onto itself (4x4 each,
-        :func:`~.rivals.map_symmetries`, between local frames), found when first asked for;
+        :func:`~.twins.map_symmetries`, between local frames), found when first asked for;
         None until then.
     :ivar origin: (3,) where the map's local frame sits in the map frame (metres): the
         features' points are the map's less it (:func:`~cgags_ros.coordinates.local_origin`:

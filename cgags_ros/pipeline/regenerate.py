@@ -20,14 +20,15 @@ This stage:
    the three nearest to it: a relaxed mutual check), keeps the matches whose distance to
    the seed agrees in both clouds (within the compatibility threshold), and fits a pose to
    them (a least-squares fit repeated on the matches within tau);
-3. refines every distinct proposed pose (or the ``regenerate.judged`` that the most
-   original correspondences support as proposed), and the core's estimate, by the same
-   short point-to-plane ICP (:data:`ITERATIONS` a stage, on every :data:`STRIDE`-th source
-   point), and counts the **original** correspondences within tau of each.
+3. settles every distinct proposed pose (or the ``regenerate.judged`` that the most
+   original correspondences support as proposed), and the core's estimate, alike
+   (:func:`~.settle.settle`, :data:`~.settle.PROPOSAL`: a short point-to-plane ICP on a
+   sample of the source), and counts the **original** correspondences within tau of each.
 
 A wrong pose supported by a chance cluster of correspondences loses them as ICP settles
-it on the surfaces; a right pose keeps them. The proposal with the largest support that
-passes the free-space gate replaces the estimate when its support exceeds the estimate's.
+it on the surfaces; a right pose keeps them. The proposals distinct from the estimate
+contend for its place: the contender with the largest support that passes the free-space
+gate replaces the estimate when its support exceeds the estimate's.
 The replacement is judged as the core's estimate is: its inliers are the original
 correspondences' (never the regenerated matches, which cluster around their seeds and would
 fool the chance level), its chance level is the core's, and its best distinct alternative
@@ -43,12 +44,11 @@ import dataclasses
 
 import numpy as np
 
-from .candidates import distinct, support
-from .gates import measured_free_space
+from .candidates import distinct
+from .settle import Pair, PROPOSAL, settle, Settled, support
 from ..config.pipeline import PipelineConfig
 from ..frontend.features import CloudFeatures
 from ..frontend.matching import Correspondences
-from ..frontend.refine import staged_point_to_plane
 from ..geometry import cross_spread
 from ..parallel import map_ordered
 from ..registration import RegistrationResult
@@ -56,7 +56,8 @@ from ..registration.cgags import MIN_PAIR_DISTANCE_FACTOR, REFIT_ITERATIONS
 from ..registration.compatibility import build_compatibility_graph
 from ..registration.hypotheses import refit
 from ..registration.rigid import kabsch, residuals
-from ..validity import consensus_refusal
+from ..validity import passes_free_space
+from ..validity.consensus import consensus_refusal
 
 RELAXED_RANK = 3  # a local match is kept when its source point ranks below this for its target
 MIN_MATCHES = 4  # a sphere proposes a pose from at least this many consistent matches
@@ -65,8 +66,6 @@ SEEDS = 60  # seed correspondences (highest second-order compatibility, spread a
 SEED_SPACING = 2.0  # seeds are at least this many voxel sizes apart in the source
 RANKED = 1000  # correspondences (highest compatibility degree) among which seeds are ranked
 RADIUS = 6.0  # the local spheres' radius, in voxel sizes
-ITERATIONS = 5  # point-to-plane iterations of a proposed pose's short refinement (a stage)
-STRIDE = 8  # every this many source points take part in the short refinement
 
 
 def seed_rows(src: np.ndarray, dst: np.ndarray, delta: float, min_pair_distance: float,
@@ -165,23 +164,17 @@ def best_supported(poses: list[np.ndarray], src: np.ndarray, dst: np.ndarray, ta
 
 def settled_support(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
                     starts: list[np.ndarray], tau: float, cfg: PipelineConfig,
-                    workers: int = 1) -> list[tuple[np.ndarray, int]]:
+                    workers: int = 1) -> list[Settled]:
     """
-    Return each start refined by the stage's short ICP, and its support (step 3).
+    Return each start settled (step 3), its support counted.
 
-    The support is the count of the original correspondences within ``tau`` of the refined
-    pose; the starts are refined side by side (their ICP runs outside the GIL).
+    The support is the count of the original correspondences within ``tau`` of the settled
+    pose; the starts settle side by side (their ICP runs outside the GIL).
     """
-    src, dst = fs.points[corr.source_index], ft.points[corr.target_index]
-    final = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
-    sample = fs.points[::STRIDE]
-
-    def settled(start: np.ndarray) -> tuple[np.ndarray, int]:
-        T = staged_point_to_plane(sample, ft.points, ft.normals, ft.tree, start, tau, final,
-                                  ITERATIONS)
-        return T, int(np.count_nonzero(support(src, dst, T, tau)))
-
-    return map_ordered(settled, starts, workers)
+    pair = Pair(fs, ft, cfg, correspondences=(fs.points[corr.source_index],
+                                              ft.points[corr.target_index]), tau=tau)
+    return map_ordered(lambda start: settle(pair, start, tau, PROPOSAL).measured('support'),
+                       starts, workers)
 
 
 def regenerated_estimate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
@@ -200,22 +193,22 @@ def regenerated_estimate(fs: CloudFeatures, ft: CloudFeatures, corr: Corresponde
     tau = core.inlier_threshold
     src, dst = fs.points[corr.source_index], ft.points[corr.target_index]
     poses = best_supported(poses, src, dst, tau, cfg.regenerate.judged)
-    (estimate, held), *proposals = settled_support(fs, ft, corr, [core.transform, *poses],
-                                                   tau, cfg, workers)
-    rivals = [(T, n) for T, n in proposals if distinct(T, estimate, cfg)]
-    # The best supported rival that passes the free-space gate (NaN: no test), best first.
-    limit = cfg.gates.max_free_space_violation
+    estimate, *proposals = settled_support(fs, ft, corr, [core.transform, *poses], tau, cfg,
+                                           workers)
+    contenders = [s for s in proposals if distinct(s.transform, estimate.transform, cfg)]
+    # The best supported contender that passes the free-space gate (NaN: no test), best first.
     best = None
-    for T, n in sorted(rivals, key=lambda r: -r[1]):
-        if n <= held:
+    for s in sorted(contenders, key=lambda s: -s.support):
+        if s.support <= estimate.support:
             return None
-        if not measured_free_space(fs, ft, T, cfg) > limit:
-            best = T, n
+        if passes_free_space(s.free_space, cfg):
+            best = s
             break
     if best is None:
         return None
-    T, inliers, _ = refit(src, dst, best[0], tau, REFIT_ITERATIONS)
-    others = [n for R, n in [(estimate, held), *rivals] if distinct(R, best[0], cfg)]
+    T, inliers, _ = refit(src, dst, best.transform, tau, REFIT_ITERATIONS)
+    others = [s.support for s in [estimate, *contenders]
+              if distinct(s.transform, best.transform, cfg)]
     replaced = dataclasses.replace(
         core, transform=T, inliers=inliers, runner_up=max(others, default=0),
         inlier_spread=cross_spread(src[inliers]) if len(inliers) >= 3 else float('nan'),

@@ -5,11 +5,12 @@ Clouds in, result out: the one registration path of the node, the CLIs and bench
 FPFH -> mutual-nearest-neighbour correspondences -> the CGAGS core (global, no initial
 guess) -> where the core refuses its estimate, poses proposed by re-matching the
 descriptors locally (:mod:`.regenerate`) -> optional ICP/GICP refinement -> validity
-gating. An estimate the core still refuses is refined (``refine.refused``) but not gated:
-nothing after the core lifts its refusal. Numpy in, numpy out; transforms are 4x4
-source->target (``p_target = R p_source + t``), metres. With ``core.motion_model='4dof'``
-the core, the refinement and the gates solve yaw + translation only (roll and pitch stay
-zero about the gravity axis) and a tilt between the clouds is reported.
+gating with the candidates and twins settled (:mod:`.settle`). An estimate the core still
+refuses is refined (``refine.refused``) but not gated: nothing after the core lifts its
+refusal. Numpy in, numpy out; transforms are 4x4 source->target
+(``p_target = R p_source + t``), metres. With ``core.motion_model='4dof'`` the core, the
+refinement and the gates solve yaw + translation only (roll and pitch stay zero about the
+gravity axis) and a tilt between the clouds is reported.
 """
 
 from __future__ import annotations
@@ -22,14 +23,14 @@ import warnings
 import numpy as np
 
 from .cache import cached_features
-from .candidates import find_candidates, rank_candidates, search_rivals, verify_rivals
+from .candidates import rank_candidates, search_candidates, settle_candidates
 from .confidence import features, NO_SHARED_SURFACE, probability
 from .covariance import loosest_sigma, result_covariance, with_confidence
 from .gates import measure, measure_shared_surface
 from .map import matches_config, PreparedMap
 from .regenerate import regenerated_estimate
 from .result import PipelineResult
-from .rivals import mark_ambiguous, structured_rival
+from .twins import add_twin, find_twin
 from ..config import fields
 from ..config.pipeline import PipelineConfig
 from ..coordinates import (coarse_coordinates, CoarseCoordinatesWarning, local_origin, moved,
@@ -45,8 +46,8 @@ from ..refusal import Refusal, RefusalCode as Code
 from ..registration import register_correspondences, RegistrationResult, single_blas_thread
 from ..timing import timed
 from ..validity import (ambiguity_refusal, confidence_refusal, gate_refusal,
-                        line_cloud_refusal, said_over_ambiguity, shared_surface_refusal,
-                        uncertainty_refusal, unsettled)
+                        line_cloud_refusal, outnumbered, said_over_ambiguity,
+                        shared_surface_refusal, still_ambiguous, uncertainty_refusal, unsettled)
 
 
 def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
@@ -119,7 +120,7 @@ def _judged(result: PipelineResult, fs: CloudFeatures, ft: CloudFeatures,
     chance that the pose is wrong (:func:`~.covariance.with_confidence`). Against a map or in
     4-DoF mode the confidence is reported but decides nothing and the covariance is the
     overlap's alone: it was calibrated on 6-DoF pairs of scans, and a map's overlap and
-    rivals, or a yaw-only search, read differently. ``overlap``: the gates' overlap of the
+    candidates, or a yaw-only search, read differently. ``overlap``: the gates' overlap of the
     final transform, when they measured one (the covariance's point pairs).
     """
     four_dof = cfg.core.motion_model == '4dof'
@@ -210,28 +211,32 @@ def _register_clouds(src: np.ndarray, target: np.ndarray | PreparedMap, cfg: Pip
             refusal = shared_surface_refusal(result, cfg) or refusal
         return _judged(result, fs, ft, cfg, start, refusal, map_target)
     _refine(fs, ft, core, result, cfg, workers)
-    # The rival search reads only the core's estimate and the final transform, never what
-    # the gates set: it runs beside them (both spend most of their time outside the GIL,
-    # in compiled numba functions and k-d tree queries).
-    rivals = in_background(lambda: _search_rivals(fs, ft, corr, result, cfg), workers > 1)
+    # The candidate search reads only the core's estimate and the final transform, never
+    # what the gates set: it runs beside them (both spend most of their time outside the
+    # GIL, in compiled numba functions and k-d tree queries).
+    searched = in_background(lambda: _search_candidates(fs, ft, corr, result, cfg), workers > 1)
     with timed(result.timings, 'validation'):
         overlap = measure(fs, ft, corr, result, cfg, map_target)
         refusal = gate_refusal(result, cfg, left_to_gates)
-    found, result.timings['candidates'] = rivals()
-    rank_candidates(result, found, cfg)
-    with timed(result.timings, 'rivals_verified'):
-        chosen = verify_rivals(fs, ft, result, cfg, map_target, workers)
-        if chosen is not None:  # the geometry prefers a rival: it is the estimate now
-            result.transform = chosen.transform
+    found, result.timings['candidates'] = searched()
+    rank_candidates(result, found)
+    result.ambiguous = outnumbered(result.runner_up_ratio, cfg)
+    with timed(result.timings, 'candidates_settled'):
+        settlement = settle_candidates(fs, ft, result, cfg, map_target, workers)
+        if settlement is not None:
+            result.ambiguous = still_ambiguous(settlement, cfg)
+        if settlement is not None and settlement.replaces:  # the geometry prefers it now
+            result.transform = settlement.chosen.transform
             overlap = measure(fs, ft, corr, result, cfg, map_target)
             refusal = gate_refusal(result, cfg, left_to_gates)
-            chosen.fitness = result.fitness
+            settlement.chosen.fitness = result.fitness
     refusal = said_over_ambiguity(refusal, ambiguity_refusal(result, cfg))
-    if not refusal and cfg.gates.structured_rivals:
-        with timed(result.timings, 'structured_rivals'):
-            rival = structured_rival(fs, ft, corr, result, cfg, map_target, workers)
-        if rival is not None:
-            mark_ambiguous(result, rival)
+    if not refusal and cfg.gates.check_twins:
+        with timed(result.timings, 'twins'):
+            twin = find_twin(fs, ft, corr, result, cfg, map_target, workers)
+        if twin is not None:  # plausible (validity.plausible_twin): the estimate is ambiguous
+            add_twin(result, twin)
+            result.ambiguous = True
             refusal = ambiguity_refusal(result, cfg)
     return _judged(result, fs, ft, cfg, start, refusal, map_target, overlap)
 
@@ -269,12 +274,12 @@ def _target_or_error(wait: Callable[[], CloudFeatures]) -> CloudFeatures | Empty
         return exc
 
 
-def _search_rivals(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
-                   result: PipelineResult, cfg: PipelineConfig) -> tuple[list, float]:
-    """Return :func:`~.candidates.search_rivals` and its seconds."""
+def _search_candidates(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
+                       result: PipelineResult, cfg: PipelineConfig) -> tuple[list, float]:
+    """Return :func:`~.candidates.search_candidates` and its seconds."""
     timings: dict[str, float] = {}
     with timed(timings, 'candidates'):
-        found = search_rivals(fs, ft, corr, result, cfg)
+        found = search_candidates(fs, ft, corr, result, cfg)
     return found, timings['candidates']
 
 
@@ -282,7 +287,8 @@ def _candidates(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
                 result: PipelineResult, cfg: PipelineConfig) -> Refusal | None:
     """Search the ranked candidates; return the ambiguity refusal (None when not ambiguous)."""
     with timed(result.timings, 'candidates'):
-        find_candidates(fs, ft, corr, result, cfg)
+        rank_candidates(result, search_candidates(fs, ft, corr, result, cfg))
+    result.ambiguous = outnumbered(result.runner_up_ratio, cfg)
     return ambiguity_refusal(result, cfg)
 
 

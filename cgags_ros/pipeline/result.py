@@ -85,9 +85,9 @@ class PipelineResult(RegistrationResult):
     :ivar candidates: up to ``num_candidates`` distinct :class:`Candidate` poses, best
         first (the first is ``transform``); empty when the core gave no estimate.
     :ivar ambiguous: True when the runner-up candidate is nearly as well supported as the
-        best (best/runner-up inliers below ``ambiguity_ratio``), or when a structured rival
-        (:mod:`.rivals`: the estimate turned or slid) fits about as well; the result is then
-        invalid.
+        best (best/runner-up inliers below ``ambiguity_ratio``), or when a twin of the
+        estimate (:mod:`.twins`: turned or slid) fits about as well, as
+        :mod:`cgags_ros.validity` decides; the result is then invalid.
     :ivar runner_up_ratio: best / runner-up inlier count (inf without a runner-up).
     :ivar covariance: 6x6 covariance of ``transform``, row-major in geometry_msgs/
         PoseWithCovariance order (x, y, z in metres; rotation about the target frame's X, Y,

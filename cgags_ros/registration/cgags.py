@@ -39,7 +39,7 @@ from ..geometry import cross_spread, spread
 from ..parallel import DEFAULT_WORKERS
 from ..refusal import RefusalCode
 from ..timing import timed
-from ..validity import consensus_refusal, no_graph_refusal, no_model_refusal
+from ..validity.consensus import consensus_refusal, no_graph_refusal, no_model_refusal
 
 # The compatibility threshold delta in units of the point resolution pr (paper: 10), and
 # delta / tau when only an inlier threshold (no resolution) is given: the paper's 10 / 6.

@@ -42,7 +42,7 @@ class SequenceConfig:
     :ivar drift_m: translation (metres) it may move it, a step...
     :ivar drift_fraction: ...plus this share of the distance travelled.
     :ivar min_fitness: a scan explains a hypothesis only with at least this fitness.
-    :ivar refute_ratio: a rival is refuted by a scan that the best hypothesis fits this
+    :ivar refute_ratio: a contender is refuted by a scan that the best hypothesis fits this
         many times better.
     """
 
@@ -120,7 +120,7 @@ class Answer(Judged):
     """
     What the relocalizer says after a scan.
 
-    :ivar confirmed: one hypothesis explains every scan used and its rivals are refuted.
+    :ivar confirmed: one hypothesis explains every scan used and its contenders are refuted.
     :ivar done: confirmed, or refused (``max_scans`` used); else it asks for another scan.
     :ivar transform: 4x4 map <- the latest scan's sensor (the best hypothesis's pose).
     :ivar map_from_odom: 4x4 map <- odom of the best hypothesis.
@@ -186,11 +186,11 @@ def judge(hypotheses: list[Hypothesis], results: list[PipelineResult], odom: lis
     last = latest(best)
     misses = [i for i, ok in zip(used, explained(best)) if not ok]
     refusal = unexplained_refusal(misses) if misses else None
-    for rival in ranked[1:] if not refusal else ():
-        if any(not ok or rival.checks[i].fitness * seq.refute_ratio < best.checks[i].fitness
-               for i, ok in zip(used, explained(rival))):
+    for contender in ranked[1:] if not refusal else ():
+        if any(not ok or contender.checks[i].fitness * seq.refute_ratio
+               < best.checks[i].fitness for i, ok in zip(used, explained(contender))):
             continue  # refuted
-        pose = latest(rival)
+        pose = latest(contender)
         if distinct(pose, last, config):
             refusal = sequence_ambiguity_refusal(n, rotation_error_deg(pose, last),
                                                  translation_error(pose, last))

@@ -39,20 +39,17 @@ from .hypotheses import Answer, Check, Hypothesis, judge, SequenceConfig, settle
 from ..config.pipeline import PipelineConfig
 from ..errors import InvalidInputError
 from ..frontend.features import CloudFeatures, finite_points
-from ..frontend.refine import evaluate_alignment, MAX_ITERATIONS, staged_point_to_plane
-from ..geometry import apply_transform, rotation_error_deg, translation_error
+from ..frontend.refine import evaluate_alignment
+from ..geometry import apply_transform, translation_error
 from ..pipeline.cache import cached_features
 from ..pipeline.candidates import distinct
 from ..pipeline.covariance import loosest_sigma, overlap_covariance
-from ..pipeline.gates import measured_free_space
 from ..pipeline.map import PreparedMap
 from ..pipeline.register import register_clouds
 from ..pipeline.result import PipelineResult
-from ..pipeline.rivals import map_symmetries
+from ..pipeline.settle import CHECK, Pair, settle as settle_start
+from ..pipeline.twins import map_symmetries
 from ..validity import uncertainty_refusal
-
-CHECK_ITERATIONS = 6  # Gauss-Newton steps a stage of a check, at most
-CHECK_STRIDE = 2  # a check settles on every second scan point; its fitness counts them all
 
 
 @dataclasses.dataclass
@@ -80,8 +77,6 @@ class Relocalizer:
         self.scans: list[_Scan] = []
         self.hypotheses: list[Hypothesis] = []
         self.submaps: dict[int, PipelineResult] = {}  # scan index -> its submap's result
-        # A check starts within the drift of the truth: a few iterations a stage suffice.
-        self._check_iterations = min(MAX_ITERATIONS, CHECK_ITERATIONS)
 
     def reset(self) -> None:
         """Forget every scan and hypothesis."""
@@ -135,7 +130,7 @@ class Relocalizer:
         Decide; before confirming a pose, also check its twins under the map's symmetries.
 
         Scans that all see a near-square room alike cannot tell a pose from the pose turned
-        about the room: each twin (:func:`~.rivals.map_symmetries`) is checked on every
+        about the room: each twin (:func:`~.twins.map_symmetries`) is checked on every
         scan as a hypothesis, and one that explains them as well leaves the answer
         ambiguous. A confirmed pose must also be usable: its covariance over the latest
         scan's overlap with the map at most ``gates.max_position_sigma`` voxels along its
@@ -234,14 +229,12 @@ class Relocalizer:
         if loose < seq.min_fitness:
             return Check(self.prepared.to_map(predicted), 0.0, 0.0, steps, travelled, loose,
                          float('nan'))
-        # The map's own k-d tree and normals, built once with its features: a check costs
-        # its few Gauss-Newton steps, not a tree of the map near the scan.
-        T = staged_point_to_plane(points[::CHECK_STRIDE], ft.points, ft.normals, ft.tree,
-                                  predicted, reach + final, final, self._check_iterations)
-        fitness = evaluate_alignment(points, ft.tree, T, final).fitness
-        return Check(self.prepared.to_map(T), rotation_error_deg(T, predicted),
-                     translation_error(T, predicted), steps, travelled, fitness,
-                     measured_free_space(scan.features, ft, T, cfg, map_target=True))
+        # Settled on the map's own k-d tree and normals, built once with its features: a
+        # check costs its few Gauss-Newton steps, not a tree of the map near the scan.
+        s = settle_start(Pair(scan.features, ft, cfg, map_target=True), predicted,
+                         reach + final, CHECK)
+        return Check(self.prepared.to_map(s.transform), s.moved_deg, s.moved_m, steps,
+                     travelled, s.fitness, s.free_space)
 
 
 def _checked_pose(T: np.ndarray) -> np.ndarray:

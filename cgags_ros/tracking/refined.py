@@ -102,7 +102,7 @@ def _refined(source: np.ndarray, ft: CloudFeatures, prediction: np.ndarray,
             gravity=gravity, workers=DEFAULT_WORKERS, tolerance=REFINE_TOLERANCE)
         result.refined = True
     with timed(result.timings, 'validation'):
-        # no source tree: the target side of the overlap is for rival verification only
+        # no source tree: the target side of the overlap is for settling candidates only
         align = measure_overlap(points, None, ft, result, cfg, map_target, source_sensor)
         refusal = (overlap_refusal(result, cfg)
                    or tracking_refusal(*difference(prediction, result.transform),

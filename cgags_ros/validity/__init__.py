@@ -10,36 +10,28 @@ be traced to numbers the result reports.
 
 Order, as a pair goes through the pipeline: a cloud that is a line; the core's outcome (no
 estimate, too few inliers, a collinear consensus, chance level or a distinct alternative, a
-tilt in 4-DoF mode); then, on the refined estimate, too little shared surface,
-chance-level inliers, a degenerate axis, low fitness, a free-space violation, a tilt; an
-ambiguity among the candidates overrides all but the shared surface (also said of the
-core's ambiguity or chance level). The node adds stricter guards (:func:`quality_refusal`).
+tilt in 4-DoF mode: :mod:`.consensus`); then, on the refined estimate, too little shared
+surface, chance-level inliers, a degenerate axis, low fitness, a free-space violation, a
+tilt; an ambiguity among the candidates overrides all but the shared surface (also said of
+the core's ambiguity or chance level). The node adds stricter guards
+(:func:`quality_refusal`).
+
+Ambiguity is decided here only: the stages that propose other poses (the correspondences'
+candidates, the estimate's twins: :mod:`cgags_ros.pipeline.settle`) measure them, and the
+functions of the ambiguity section below say what the measures mean.
 """
 
 from __future__ import annotations
 
 from typing import Any, Protocol, Sequence
 
-from .config.core import CoreConfig
-from .config.node import NodeConfig
-from .config.pipeline import PipelineConfig
-from .geometry import rotation_error_deg, translation_error
-from .refusal import Refusal, RefusalCode
+from .consensus import Consensus, tilt_refusal
+from ..config.node import NodeConfig
+from ..config.pipeline import PipelineConfig
+from ..geometry import rotation_error_deg, translation_error
+from ..refusal import Refusal, RefusalCode
 
 Code = RefusalCode
-
-
-class Consensus(Protocol):
-    """What the core measured of its final consensus (a ``RegistrationResult``'s fields)."""
-
-    num_inliers: int
-    inlier_threshold: float  # tau, metres
-    inlier_spread: float  # metres, across the line that would leave a rotation free
-    chance_level: int
-    runner_up: int
-    tilt_deg: float  # 4-DoF only (else NaN)
-    refusal: Refusal | None
-    reason: str
 
 
 class Shared(Protocol):
@@ -76,92 +68,6 @@ class Estimate(Consensus, Overlap, Shared, Protocol):
     ambiguous: bool
     runner_up_ratio: float
     candidates: Sequence[Any]
-
-
-# --- the core ------------------------------------------------------------------------------
-
-def no_graph_refusal(delta: float) -> Refusal:
-    """Return the refusal of a compatibility graph without an edge (no estimate)."""
-    return Refusal(Code.NO_ESTIMATE, (
-        f'no two correspondences are length-consistent within delta={delta:.4g} m: '
-        'they are all outliers, or the thresholds are too small for the noise'))
-
-
-def no_model_refusal(collinear_subsets: int, yaw_only: bool) -> Refusal:
-    """
-    Return the refusal of a search that found no minimal subset to fit (no estimate).
-
-    ``collinear_subsets``: compatible subsets the search drew and set aside as degenerate
-    (nearly collinear triangles; 4-DoF: nearly vertical edges).
-    """
-    if collinear_subsets:
-        return Refusal(Code.COLLINEAR, (
-            'every compatible edge of correspondences is nearly vertical (shorter across the '
-            'gravity axis than tau): the yaw is undetermined'
-            if yaw_only else
-            'every compatible triangle of correspondences is nearly collinear: the scene (or '
-            'its matched keypoints) is a line, and the rotation about it is undetermined'))
-    return Refusal(Code.NO_ESTIMATE, (
-        'no usable compatible edge of correspondences was found (too few inliers or '
-        'thresholds too small)' if yaw_only else
-        'no compatible triangle of correspondences was found: the compatibility graph has '
-        'edges but no 3-cliques (too few inliers or thresholds too small)'))
-
-
-def consensus_refusal(c: Consensus, cfg: CoreConfig) -> Refusal | None:
-    """
-    Return why the core's final consensus is not trusted, or None.
-
-    Enough inliers, not on a line (4-DoF: not on one vertical line), standing out from
-    chance and from every distinct alternative (step 7's test), and in 4-DoF mode levelled
-    clouds. A tilt also splits a yaw-only consensus into rival parts: both are then said,
-    under the tilt's code, the tilt being what the user can act on.
-    """
-    refusal = _consensus_shape(c, cfg) or _stands_out(c, cfg)
-    tilted = tilt_refusal(c.tilt_deg, cfg.max_tilt_deg, 'the best 6-DoF fit of the inliers',
-                          'max_tilt_deg', "motion_model='6dof'")
-    if refusal and tilted:
-        return Refusal(Code.TILT, f'{refusal.message}; {tilted.message}')
-    return refusal or tilted
-
-
-def _consensus_shape(c: Consensus, cfg: CoreConfig) -> Refusal | None:
-    if c.num_inliers < cfg.min_inliers:
-        return Refusal(Code.FEW_INLIERS, (
-            f'only {c.num_inliers} inliers (< min_inliers={cfg.min_inliers}): no rigid motion '
-            'is supported by enough correspondences'))
-    if not c.inlier_spread < c.inlier_threshold:
-        return None
-    if cfg.motion_model == '4dof':  # a line determines the yaw unless it is vertical
-        return Refusal(Code.COLLINEAR, 'the inliers lie (nearly) on one vertical line: the '
-                       'yaw about it is undetermined')
-    return Refusal(Code.COLLINEAR, 'the inliers are nearly collinear: the rotation about '
-                   'their line is undetermined')
-
-
-def _stands_out(c: Consensus, cfg: CoreConfig) -> Refusal | None:
-    """Step 7's significance test on the final consensus (as the search stops on it)."""
-    if c.num_inliers < c.chance_level:
-        code = Code.CHANCE_LEVEL
-    elif c.num_inliers < cfg.distinct_ratio * c.runner_up:
-        code = Code.AMBIGUOUS
-    else:
-        return None
-    return Refusal(code, (
-        f'the best consensus ({c.num_inliers} inliers) does not stand out: chance level '
-        f'{c.chance_level}, best distinct alternative {c.runner_up} (x{cfg.distinct_ratio} '
-        'required); no rigid motion is clearly supported'))
-
-
-def tilt_refusal(tilt_deg: float, max_tilt_deg: float, measured_by: str, setting: str,
-                 six_dof: str) -> Refusal | None:
-    """Return why a yaw-only estimate is not trusted on a measured tilt (NaN passes)."""
-    if not tilt_deg > max_tilt_deg:  # NaN: 6-DoF mode, or not measurable
-        return None
-    return Refusal(Code.TILT, (
-        f'the clouds are not levelled: {measured_by} tilts the gravity axis by '
-        f'{tilt_deg:.2f} deg (> {setting}={max_tilt_deg:g}); the yaw-only estimate is not '
-        f'trusted: level the clouds or use {six_dof}'))
 
 
 # --- the pipeline --------------------------------------------------------------------------
@@ -329,6 +235,85 @@ def uncertainty_refusal(sigma: float, cfg: PipelineConfig) -> Refusal | None:
         'room for a wrong pose; the covariance says which'))
 
 
+# --- ambiguity: a distinct pose about as good ----------------------------------------------
+
+# The twins' limits (:func:`plausible_twin`), chosen on real RGB-D pairs (docs/ablation.md);
+# ``python -m bench.studies.fit`` regenerates them from the study's records.
+TWIN_APART = 4.0
+TWIN_MAX_VIOLATION = 0.1
+TWIN_OVERLAP_RATIO = 1.25
+
+
+class Twin(Protocol):
+    """What a twin measured where it settled (a :class:`~cgags_ros.pipeline.settle.Settled`)."""
+
+    fitness: float
+    free_space: float  # the free-space violation (NaN: not measured)
+
+
+class Settlement(Protocol):
+    """What settling an ambiguous estimate's candidates measured (:mod:`~.pipeline.candidates`)."""
+
+    overlap: float  # the chosen pose's
+    free_space: float  # the chosen pose's violation
+    others: Sequence[float]  # the other plausible candidates' overlaps
+    alone: bool  # no distinct candidate is left: every one settled onto the chosen pose
+
+
+def outnumbered(runner_up_ratio: float, cfg: PipelineConfig) -> bool:
+    """Tell whether the correspondences support a distinct candidate nearly as well (inf: none)."""
+    return runner_up_ratio < cfg.gates.ambiguity_ratio
+
+
+def passes_free_space(violation: float, cfg: PipelineConfig) -> bool:
+    """Tell whether a pose passes the free-space gate (NaN: the gate does not apply)."""
+    return not violation > cfg.gates.max_free_space_violation
+
+
+def still_ambiguous(s: Settlement, cfg: PipelineConfig) -> bool:
+    """
+    Tell whether the candidates, settled on the geometry, leave the estimate ambiguous.
+
+    Settled only when no other plausible candidate's overlap is above the chosen one's /
+    ``ambiguity_ratio`` and the chosen one clearly passes the free-space test (the tighter
+    bound of an unsettled estimate); when every candidate settled onto it, nothing distinct
+    is left to be confused with.
+    """
+    return not s.alone and (any(o * cfg.gates.ambiguity_ratio > s.overlap for o in s.others)
+                            or s.free_space > free_space_limit(cfg, unsettled=True))
+
+
+def settled_apart(rotation_deg: float, translation_m: float, voxel_size: float,
+                  min_rotation_deg: float, apart: float = TWIN_APART) -> bool:
+    """Tell whether a twin settled this far from the estimate is another pose, not it."""
+    return rotation_deg > min_rotation_deg or translation_m > apart * voxel_size
+
+
+def fits_as_well(fitness: float, estimate_fitness: float,
+                 ratio: float = TWIN_OVERLAP_RATIO) -> bool:
+    """Tell whether a twin's fitness is at least ``1 / ratio`` of the estimate's."""
+    return fitness * ratio >= estimate_fitness
+
+
+def clear_of_free_space(violation: float, limit: float = TWIN_MAX_VIOLATION) -> bool:
+    """Tell whether a twin stacks few enough surfaces in free space (NaN: not measured)."""
+    return not violation > limit
+
+
+def plausible_twin(apart_deg: float, apart_m: float, twin: Twin, estimate_fitness: float,
+                   voxel_size: float, min_rotation_deg: float) -> bool:
+    """
+    Tell whether a twin settled ``apart_deg`` / ``apart_m`` from the estimate makes it ambiguous.
+
+    It settled away from the estimate, fits about as well and does not stack surfaces where a
+    sensor saw free space: the tests in that order, each measure read (and so taken) only when
+    the test before passed.
+    """
+    return (settled_apart(apart_deg, apart_m, voxel_size, min_rotation_deg)
+            and fits_as_well(twin.fitness, estimate_fitness)
+            and clear_of_free_space(twin.free_space))
+
+
 def ambiguity_refusal(e: Estimate, cfg: PipelineConfig) -> Refusal | None:
     """Return why the estimate is ambiguous among its candidates, or None when it is not."""
     if not e.ambiguous:
@@ -336,7 +321,7 @@ def ambiguity_refusal(e: Estimate, cfg: PipelineConfig) -> Refusal | None:
     best, runner = e.candidates[0], e.candidates[1]
     moved = translation_error(best.transform, runner.transform)
     turned = rotation_error_deg(best.transform, runner.transform)
-    geometry = (' and, refined, overlaps about as well' if cfg.gates.verify_rivals
+    geometry = (' and, refined, overlaps about as well' if cfg.gates.settle_candidates
                 and cfg.refine.method != 'none' else '')
     return Refusal(Code.AMBIGUOUS, (
         f'a distinct pose ({turned:.0f} deg, {moved:.2f} m away) has '

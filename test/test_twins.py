@@ -1,16 +1,18 @@
-"""cgags_ros.pipeline.rivals: the poses a symmetric or loosely constrained scene also accepts."""
+"""cgags_ros.pipeline.twins: the poses a symmetric or loosely constrained scene also accepts."""
 
 from __future__ import annotations
 
+from cgags_ros import validity
 from cgags_ros.config import GatesConfig, PipelineConfig
 from cgags_ros.frontend.matching import Correspondences
 from cgags_ros.frontend.refine import evaluate_alignment
 from cgags_ros.geometry import rotation_error_deg, translation_error
-from cgags_ros.pipeline import cached_features, rivals
+from cgags_ros.pipeline import cached_features, twins
 from cgags_ros.pipeline.candidates import MIN_ROTATION_DEG
 from cgags_ros.pipeline.gates import measured_free_space
 from cgags_ros.pipeline.result import Candidate, PipelineResult
-from cgags_ros.pipeline.rivals import mark_ambiguous, structured_rival
+from cgags_ros.pipeline.settle import Pair, settle, TWIN
+from cgags_ros.pipeline.twins import add_twin, find_twin
 import numpy as np
 
 VOXEL = 0.1
@@ -60,21 +62,21 @@ def _estimate(points: np.ndarray, cfg: PipelineConfig):
     return fs, ft, corr, result
 
 
-def test_a_symmetric_room_turned_half_way_is_a_plausible_rival():
+def test_a_symmetric_room_turned_half_way_is_a_plausible_twin():
     cfg = PipelineConfig(voxel_size=VOXEL)
     fs, ft, corr, result = _estimate(_room(), cfg)
-    rival = structured_rival(fs, ft, corr, result, cfg)
-    assert rival is not None
-    assert rotation_error_deg(rival.transform, np.eye(4)) > 170  # the half turn about up
-    mark_ambiguous(result, rival)
-    assert result.ambiguous and result.candidates[1] is rival
+    twin = find_twin(fs, ft, corr, result, cfg)
+    assert twin is not None
+    assert rotation_error_deg(twin.transform, np.eye(4)) > 170  # the half turn about up
+    add_twin(result, twin)
+    assert result.candidates[1] is twin and twin.ratio == twin.num_inliers / 50
 
 
-def test_an_asymmetric_corner_has_no_rival():
+def test_an_asymmetric_corner_has_no_twin():
     """Turned or slid, a corner with a box overlaps far less: nothing to confuse it with."""
     cfg = PipelineConfig(voxel_size=VOXEL)
     fs, ft, corr, result = _estimate(_corner(), cfg)
-    assert structured_rival(fs, ft, corr, result, cfg) is None
+    assert find_twin(fs, ft, corr, result, cfg) is None
 
 
 def test_a_slide_along_a_wall_is_refused_and_a_right_pose_kept(redkitchen_pair):
@@ -86,10 +88,10 @@ def test_a_slide_along_a_wall_is_refused_and_a_right_pose_kept(redkitchen_pair):
     assert translation_error(result.transform, gt) > 0.3  # the estimate is wrong ...
     assert result.ambiguous and not result.valid  # ... and no longer called valid
     assert result.refusal.code.value == 'ambiguous'
-    assert translation_error(result.candidates[1].transform, gt) < 0.3  # the rival is right
+    assert translation_error(result.candidates[1].transform, gt) < 0.3  # the twin is right
     off = register_clouds(src, tgt, voxel_size=0.05,
                           config=PipelineConfig(gates=GatesConfig(
-                              structured_rivals=False, min_confidence=0.0,
+                              check_twins=False, min_confidence=0.0,
                               max_position_sigma=0.0)))
     assert off.valid  # the gates alone would have let the slid pose through
     src, tgt, gt = redkitchen_pair(0, 2)
@@ -97,11 +99,11 @@ def test_a_slide_along_a_wall_is_refused_and_a_right_pose_kept(redkitchen_pair):
     assert kept.valid and translation_error(kept.transform, gt) < 0.3
 
 
-def test_the_verdict_on_measured_rivals_is_the_pipelines():
+def test_the_verdict_on_measured_twins_is_the_pipelines():
     """
-    Each start measured and judged by the module's tests refuses as structured_rival does.
+    Each start settled and judged by validity's tests refuses as find_twin does.
 
-    A study judging recorded rivals (their start's fit, where they settle, their fitness and
+    A study judging recorded twins (their start's fit, where they settle, their fitness and
     violation) calls these tests, so it judges them as the pipeline does.
     """
     cfg = PipelineConfig(voxel_size=VOXEL)
@@ -109,50 +111,41 @@ def test_the_verdict_on_measured_rivals_is_the_pipelines():
     verdicts = []
     for points in (_room(), _corner()):
         fs, ft, corr, result = _estimate(points, cfg)
-        starts = rivals.rival_starts(fs, ft, np.eye(4), distance, VOXEL)
+        starts = twins.twin_starts(fs, ft, np.eye(4), distance, VOXEL)
         assert [name for name, _ in starts] == [
             'flip0', 'flip1', 'flip2', 'slide1', 'slide-1',
             'turn0+', 'turn0-', 'turn1+', 'turn1-', 'turn2+', 'turn2-']
         refused = False
         for _, start in starts:
-            first = evaluate_alignment(fs.points[::rivals.STRIDE], ft.tree, start, distance)
-            if not rivals.worth_refining(first.fitness, result.fitness):
+            first = evaluate_alignment(fs.points[::TWIN.stride], ft.tree, start, distance)
+            if not twins.worth_refining(first.fitness, result.fitness):
                 continue
-            R = rivals.settle(fs, ft, start, result.inlier_threshold, cfg)
-            refused |= (rivals.settled_apart(rotation_error_deg(R, np.eye(4)),
-                                             translation_error(R, np.eye(4)), VOXEL,
-                                             MIN_ROTATION_DEG)
-                        and rivals.fits_as_well(
+            R = settle(Pair(fs, ft, cfg), start, result.inlier_threshold, TWIN).transform
+            refused |= (validity.settled_apart(rotation_error_deg(R, np.eye(4)),
+                                               translation_error(R, np.eye(4)), VOXEL,
+                                               MIN_ROTATION_DEG)
+                        and validity.fits_as_well(
                             evaluate_alignment(fs.points, ft.tree, R, distance).fitness,
                             result.fitness)
-                        and rivals.clear_of_free_space(measured_free_space(fs, ft, R, cfg)))
-        assert refused == (structured_rival(fs, ft, corr, result, cfg) is not None)
+                        and validity.clear_of_free_space(measured_free_space(fs, ft, R, cfg)))
+        assert refused == (find_twin(fs, ft, corr, result, cfg) is not None)
         verdicts.append(refused)
     assert verdicts == [True, False]
 
 
-def test_each_test_of_the_verdict_at_its_limit():
-    """The shipped limits by default, a study's by argument; an unmeasured violation is clear."""
-    assert rivals.worth_refining(rivals.PROMISING, 1.0)
-    assert not rivals.worth_refining(0.2, 1.0, promising=0.25)
-    assert rivals.settled_apart(10.5, 0.0, VOXEL, 10.0)
-    assert rivals.settled_apart(0.0, (rivals.APART + 0.1) * VOXEL, VOXEL, 10.0)
-    assert not rivals.settled_apart(10.0, rivals.APART * VOXEL, VOXEL, 10.0)
-    assert not rivals.settled_apart(0.0, 3 * VOXEL, VOXEL, 10.0, apart=6.0)
-    assert rivals.fits_as_well(1.01 / rivals.OVERLAP_RATIO, 1.0)
-    assert not rivals.fits_as_well(0.5, 1.0, ratio=1.5)
-    assert rivals.clear_of_free_space(rivals.MAX_VIOLATION)
-    assert not rivals.clear_of_free_space(0.2, limit=0.15)
-    assert rivals.clear_of_free_space(float('nan'))
+def test_the_screen_at_its_limit():
+    """The shipped screen by default, a study's by argument."""
+    assert twins.worth_refining(twins.PROMISING, 1.0)
+    assert not twins.worth_refining(0.2, 1.0, promising=0.25)
 
 
-def test_the_rivals_judged_side_by_side_are_those_judged_in_turn():
-    """The starts are judged on several threads; the first plausible one is still the rival."""
+def test_the_twins_judged_side_by_side_are_those_judged_in_turn():
+    """The starts are judged on several threads; the first plausible one is still the twin."""
     cfg = PipelineConfig(voxel_size=VOXEL)
     for points in (_room(), _corner()):
         fs, ft, corr, result = _estimate(points, cfg)
-        alone = structured_rival(fs, ft, corr, result, cfg, workers=1)
-        side_by_side = structured_rival(fs, ft, corr, result, cfg, workers=3)
+        alone = find_twin(fs, ft, corr, result, cfg, workers=1)
+        side_by_side = find_twin(fs, ft, corr, result, cfg, workers=3)
         assert (alone is None) == (side_by_side is None)
         if alone is not None:
             np.testing.assert_array_equal(alone.transform, side_by_side.transform)
@@ -173,20 +166,20 @@ def test_a_quarter_turn_in_a_square_room_is_refused():
     A room that looks alike turned a quarter of the way: the half turns do not catch it.
 
     The core settles on the truth turned 90 degrees about the vertical, with more inliers
-    than the truth; without the structured rivals that pose is valid. The correspondences'
-    other candidate, refined as a rival, is the truth and fits better: ambiguous.
+    than the truth; without its twins checked that pose is valid. The correspondences'
+    other candidate, settled as a twin, is the truth and fits better: ambiguous.
     """
     from cgags_ros.pipeline import register_clouds
 
     src, tgt, gt = _square_room_pair((0.28, -0.28, 246.8), (1.19, 1.15, 264.9))
     off = register_clouds(src, tgt, config=PipelineConfig(
-        voxel_size=0.05, gates=GatesConfig(structured_rivals=False, min_confidence=0.0,
+        voxel_size=0.05, gates=GatesConfig(check_twins=False, min_confidence=0.0,
                                            max_position_sigma=0.0)))
     assert off.valid and abs(rotation_error_deg(off.transform, gt) - 90) < 5
     result = register_clouds(src, tgt, voxel_size=0.05)
     assert not result.valid and result.refusal.code.value == 'ambiguous'
-    rival = result.candidates[1].transform
-    assert rotation_error_deg(rival, gt) < 2 and translation_error(rival, gt) < 0.05
+    twin = result.candidates[1].transform
+    assert rotation_error_deg(twin, gt) < 2 and translation_error(twin, gt) < 0.05
 
 
 def test_a_right_pose_in_a_square_room_stays_valid():
