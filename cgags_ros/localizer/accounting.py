@@ -15,6 +15,7 @@ stamps (:class:`~.upstream.UpstreamLoss`).
 from __future__ import annotations
 
 import collections
+import dataclasses
 import threading
 import time
 from typing import Any, Callable
@@ -24,12 +25,43 @@ from .pairing import is_source_drop, Pair, Pairer, Stamped
 from .transport import user_line
 from .upstream import UpstreamLoss
 from ..config.node import PairingConfig
+from ..pipeline.result import PipelineResult
 from ..refusal import Refusal
 
 LOG_REPEAT_S = 30.0  # a code already logged is logged again at most this often
 # Given the ready pairs' source stamps (ns, oldest first) and the backlog, how many of the
 # oldest to drop before the next is taken.
 Skip = Callable[[list[int], Backlog], int]
+
+
+@dataclasses.dataclass(frozen=True)
+class LastRegistration:
+    """
+    The last registration, as /diagnostics shows it (``last_<field>``, ``last_timing.*``).
+
+    :ivar valid: the node took it (valid, finite). :ivar reason, refusal_code: why not ('').
+    :ivar voxel_size: the pipeline's, metres. :ivar path: 'global' or 'tracked'.
+    :ivar timings: its stages' times, seconds. :ivar source_stamp_ns: the scan's stamp.
+    """
+
+    valid: bool
+    reason: str
+    refusal_code: str
+    inliers: int
+    fitness: float
+    voxel_size: float
+    path: str
+    timings: dict[str, float]
+    source_stamp_ns: int
+
+    @classmethod
+    def of(cls, result: PipelineResult, refusal: Refusal | None, voxel_size: float,
+           stamp_ns: int) -> LastRegistration:
+        """Return the record of ``result``, refused by the node for ``refusal`` (None: taken)."""
+        return cls(refusal is None, refusal.message if refusal else '',
+                   refusal.code.value if refusal else '', result.num_inliers,
+                   float(result.fitness), voxel_size, result.path, dict(result.timings),
+                   stamp_ns)
 
 
 class Accounting:
@@ -44,7 +76,7 @@ class Accounting:
         self._counts: collections.Counter[str] = collections.Counter()
         self._rejected: dict[str, collections.Counter[str]] = {
             'source': collections.Counter(), 'target': collections.Counter()}
-        self._last: dict[str, Any] = {}
+        self._last: LastRegistration | None = None
         self._latencies: collections.deque[float] = collections.deque(maxlen=200)
         self._in_progress = 0
         self._failing = ''  # why the worker failed, until a registration succeeds again
@@ -56,16 +88,16 @@ class Accounting:
         with self._lock:
             self._failing = code
 
-    def registered(self, last: dict[str, Any], path: str, valid: bool, stamp_ns: int) -> None:
+    def registered(self, last: LastRegistration) -> None:
         """
-        Record the last registration: its summary (``last_*`` keys), path and stamp.
+        Record the last registration (the worker's failure, if any, is over).
 
         The backlog keeps whether it was tracked and valid (a velocity exists).
         """
         with self._lock:
             self._failing = ''
-            self._last = dict(last)
-            self.backlog.saw(path == 'tracked' and valid, stamp_ns)
+            self._last = last
+            self.backlog.saw(last.path == 'tracked' and last.valid, last.source_stamp_ns)
 
     def count(self, key: str) -> None:
         """Count one event outside the balance (e.g. ``published_invalid``)."""
@@ -170,7 +202,8 @@ class Accounting:
             rejected_targets = dict(self._rejected['target'])
             pairing = self._pairer.counters()
             snap = {'counts': counts, 'rejected': rejected,
-                    'rejected_targets': rejected_targets, 'last': dict(self._last),
+                    'rejected_targets': rejected_targets,
+                    'last': dataclasses.asdict(self._last) if self._last else {},
                     'latencies': list(self._latencies), 'pairing': pairing,
                     'failing': self._failing}
             in_progress = self._in_progress

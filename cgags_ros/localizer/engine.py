@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from . import backlog
-from .accounting import Accounting, LOG_REPEAT_S, lost_upstream_message
+from .accounting import Accounting, LastRegistration, LOG_REPEAT_S, lost_upstream_message
 from .calibration_run import CalibrationConfig, CalibrationRun
 from .interface import Cloud, EngineOutputs, Estimate, PairResult
 from .localization import Localization
@@ -43,14 +43,24 @@ from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError
 from ..geometry import apply_transform
+from ..pipeline.result import PipelineResult
 from ..refusal import Refusal, RefusalCode
 from ..relocalization.requests import Answered, stale_scan
+from ..relocalization.sequence import StepAnswer
 from ..runtime.checks import CheckLane
 from ..runtime.jobs import (CheckVerdict, Job, RegisterPair, result_of, SequenceScan, Tracked,
                             TrackScan)
 from ..runtime.session import RegisterFn
 from ..runtime.supervisor import Supervisor
 from ..tracking.counts import StreamCounts, tracks
+
+
+@dataclasses.dataclass(frozen=True)
+class Outcome:
+    """What became of the worker's pair: why it is rejected (None: published), its result."""
+
+    refusal: Refusal | None
+    result: PipelineResult | None = None
 
 
 class RegistrationEngine:
@@ -225,20 +235,19 @@ class RegistrationEngine:
             if pair is None:
                 continue
             self._tell_dropped()  # the scans a backlog skipped
-            refusal: Refusal | None = Refusal(RefusalCode.INTERNAL_ERROR, 'pair failed')
-            result = None
+            outcome = Outcome(Refusal(RefusalCode.INTERNAL_ERROR, 'pair failed'))
             try:
-                refusal, result = self._process(pair)
+                outcome = self._process(pair)
             except Exception as exc:  # noqa: BLE001 - the worker must outlive any bad pair
-                refusal = Refusal(RefusalCode.INTERNAL_ERROR,
-                                  f'pair failed: {exc!r}\n{traceback.format_exc()}')
+                outcome = Outcome(Refusal(RefusalCode.INTERNAL_ERROR,
+                                          f'pair failed: {exc!r}\n{traceback.format_exc()}'))
             finally:
                 latency = (time.monotonic_ns() - pair.source.payload.receipt_ns) * 1e-9
-                self._publish_result(pair, refusal, result, latency)
-                self._accounting.finish(refusal, latency)
-                self._localization.settle(refusal, result is not None)
-            if refusal is not None and not self._stop.is_set():
-                self._log_rejection(refusal, 'source')
+                self._publish_result(pair, outcome, latency)
+                self._accounting.finish(outcome.refusal, latency)
+                self._localization.settle(outcome.refusal, outcome.result is not None)
+            if outcome.refusal is not None and not self._stop.is_set():
+                self._log_rejection(outcome.refusal, 'source')
 
     def _skip(self, pending_ns: list[int], log: backlog.Backlog) -> int:
         """Return how many of the oldest waiting pairs a tracked stream skips (the backlog)."""
@@ -273,27 +282,27 @@ class RegistrationEngine:
                              checks_beside=self.registration is not None, verdict=verdict)
         return RegisterPair(source, target, pipe_cfg)
 
-    def _process(self, pair: Pair) -> tuple[Refusal | None, Any]:
-        """Register and publish a pair; return (None or why it is rejected, its result)."""
+    def _process(self, pair: Pair) -> Outcome:
+        """Register and publish a pair; return what became of it."""
         if self._calibration is not None:
-            return self._calibration.take(pair), None
+            return Outcome(self._calibration.take(pair))
         source = pair.source.payload
         pipe_cfg, cfg = self.pipeline_config, self.node_config
         stale = stale_scan(self._localization.calls.waiting() if self.on_demand else None,
                            source.receipt_ns, cfg.relocalization.max_scan_age)
         if stale:
-            return stale, None
+            return Outcome(stale)
         job = self._job(pair, cfg, pipe_cfg)
         try:
             answer = self._runner.run(job)
         except CgagsError as exc:
             if exc.code is RefusalCode.WORKER_CRASHED:
                 self._accounting.failed(exc.code.value)
-            return Refusal(exc.code, f'registration failed: {exc}'), None
+            return Outcome(Refusal(exc.code, f'registration failed: {exc}'))
         result = result_of(answer)
         if isinstance(answer, Tracked):
             self._tracking.add(answer.counts)
-            if answer.check_due:
+            if answer.check_due and isinstance(job, TrackScan):
                 self._offer_check(job)
         T = np.asarray(result.transform, dtype=np.float64)
         refusal = result.refusal or (None if np.isfinite(T).all() else Refusal(
@@ -301,21 +310,18 @@ class RegistrationEngine:
         if self._map is not None:
             self._map.update(result)
         frame = cfg.output.pose_frame_id or pair.target.frame_id
-        self._accounting.registered({
-            'valid': refusal is None, 'reason': refusal.message if refusal else '',
-            'refusal_code': refusal.code.value if refusal else '', 'inliers': result.num_inliers,
-            'fitness': float(result.fitness), 'voxel_size': pipe_cfg.voxel_size,
-            'path': result.path, 'timings': dict(result.timings),
-            'source_stamp_ns': pair.source.stamp_ns},
-            result.path, refusal is None, pair.source.stamp_ns)
+        self._accounting.registered(LastRegistration.of(result, refusal, pipe_cfg.voxel_size,
+                                                        pair.source.stamp_ns))
         if not self.active:
-            return Refusal(RefusalCode.INACTIVE, 'deactivated during registration'), result
+            return Outcome(Refusal(RefusalCode.INACTIVE, 'deactivated during registration'),
+                           result)
         cov = np.asarray(result.covariance, dtype=np.float64)
-        step = answer if isinstance(job, SequenceScan) else None
+        step = answer if isinstance(answer, StepAnswer) else None
         if refusal is not None:
             if not cfg.output.publish_invalid or not np.isfinite(T).all():
                 self._localization.finish(pair, result, T, cov, cfg, frame, self.on_demand, step)
-                return Refusal(refusal.code, f'invalid registration: {refusal.message}'), result
+                return Outcome(Refusal(refusal.code, f'invalid registration: {refusal.message}'),
+                               result)
             self._accounting.count('published_invalid')
         out = cfg.output
         self._outputs.publish_estimate(Estimate(
@@ -323,11 +329,11 @@ class RegistrationEngine:
             apply_transform(T, source.xyz) if out.publish_aligned_cloud else None,
             (out.tf_child_frame or pair.source.frame_id) if out.broadcast_tf else ''))
         self._localization.finish(pair, result, T, cov, cfg, frame, self.on_demand, step)
-        return None, result
+        return Outcome(None, result)
 
     # ------------------------------------------------------------------ the second lane
 
-    def _offer_check(self, job: Job) -> None:
+    def _offer_check(self, job: TrackScan) -> None:
         """Run the periodic check of a tracked scan in the checks' lane (started once)."""
         if self._stop.is_set():
             return
@@ -347,17 +353,16 @@ class RegistrationEngine:
 
     # ------------------------------------------------------------------ results and health
 
-    def _publish_result(self, pair: Pair, refusal: Refusal | None, result: Any,
-                        latency_s: float) -> None:
+    def _publish_result(self, pair: Pair, outcome: Outcome, latency_s: float) -> None:
         """Publish what became of the worker's pair (before it is counted as done)."""
-        source, target = pair.source, pair.target
+        source, target, result = pair.source, pair.target, outcome.result
         valid = (result is not None and bool(result.valid)
                  and bool(np.isfinite(result.transform).all()))
         self._outputs.publish_result(PairResult(
-            source.stamp_ns, source.frame_id, 'rejected' if refusal else 'published', '',
-            target.stamp_ns, target.frame_id,
-            self.node_config.output.pose_frame_id or target.frame_id, valid, result, refusal,
-            round(latency_s, 4)))
+            source.stamp_ns, source.frame_id, 'rejected' if outcome.refusal else 'published',
+            '', target.stamp_ns, target.frame_id,
+            self.node_config.output.pose_frame_id or target.frame_id, valid, result,
+            outcome.refusal, round(latency_s, 4)))
 
     def supervise(self) -> None:
         """Replace a registration process that died while idle (call it periodically)."""

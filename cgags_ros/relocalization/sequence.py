@@ -24,12 +24,12 @@ Without any odometry received, none of this runs: one scan at a time.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
 
 import numpy as np
 
 from .odometry import OdometryTrack
 from .requests import localized, not_localized
+from ..pipeline.result import PipelineResult
 from ..refusal import Judged, Refusal
 
 
@@ -39,14 +39,14 @@ class StepAnswer(Judged):
     The relocalizer's answer after one scan, without clouds (what the process sends back).
 
     :ivar refusal: why not confirmed (None: confirmed).
-    :ivar result: the scan's own registration (a ``PipelineResult``).
+    :ivar result: the scan's own registration.
     :ivar confirmed, done, transform, map_from_odom, scans_used: as in
         :class:`~.relocalizer.Answer`.
     :ivar hypotheses: how many hypotheses the sequence holds.
     """
 
     refusal: Refusal | None
-    result: Any
+    result: PipelineResult
     confirmed: bool
     done: bool
     transform: np.ndarray
