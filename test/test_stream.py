@@ -226,7 +226,7 @@ def test_the_registration_process_holds_the_tracker_and_a_restart_forgets_it(kit
         records = stream(engine, out, kitti, [7, 8, 9])
         assert [r['path'] for r in records] == ['global', 'tracked', 'tracked']
         assert all(within(r, truth[k]) for k, r in zip([7, 8, 9], records))
-        engine.registration.restart()  # a fresh process: no prior, the target sent again
+        engine.runner.restart()  # a fresh process: no prior, the target sent again
         records = stream(engine, out, kitti, [10, 11], start_s=100.3)
         assert [r['path'] for r in records] == ['global', 'tracked']
         assert all(within(r, truth[k]) for k, r in zip([10, 11], records))

@@ -2,23 +2,24 @@
 What register_node does, without ROS: pairs in, one job a pair, what to publish out.
 
 ROS-free. :class:`RegistrationEngine` owns the accounting (:mod:`.accounting`: pairing,
-upstream losses, the backlog, the counts, under one lock), the registration process
-(:class:`~cgags_ros.runtime.supervisor.Supervisor`), the lane of a tracked stream's
-periodic checks (:class:`~cgags_ros.runtime.checks.CheckLane`), the map of ``map.file``
-and what a pose means for localization (:mod:`.localization`); in ``mode: calibrate`` the
-pairs are calibration frames (:mod:`.calibration_run`). The node decodes messages into
-:class:`Cloud` for :meth:`~RegistrationEngine.receive` and implements
-:class:`EngineOutputs`, through which the engine publishes, logs and asks for TF; it never
-reaches into the node.
+upstream losses, the backlog, the counts, under one lock), what runs the jobs (a
+:class:`~cgags_ros.runtime.jobs.Runner`: the registration process, or this process), the
+lane of a tracked stream's periodic checks (:class:`~cgags_ros.runtime.checks.CheckLane`),
+the map of ``map.file`` and what a pose means for localization (:mod:`.localization`); in
+``mode: calibrate`` the pairs are calibration frames (:mod:`.calibration_run`). The node
+decodes messages into :class:`Cloud` for :meth:`~RegistrationEngine.receive` and
+implements :class:`EngineOutputs`, through which the engine publishes, logs and asks for
+TF; it never reaches into the node.
 
 One worker thread takes each pair, chooses its job once (:meth:`~RegistrationEngine._job`:
 a scan of a relocalization over several scans, a tracked stream's scan, or a pair), runs it
 in the registration process (in this process when ``worker.registration_timeout`` is 0)
-and publishes what its typed answer says. Configuration alone decides the kind: continuous
-mode with ``tracking.enabled`` is a stream. Reception never waits for it: the accounting's
-bounded queue drops the oldest pair. While inactive (a lifecycle node's inactive state)
-sources are counted as rejected (``inactive``) and nothing is published; targets are still
-held, so a latched map survives a deactivation.
+and publishes what its typed answer says. Configuration alone decides the kind (continuous
+mode with ``tracking.enabled`` is a stream) and where a stream's periodic checks run (in a
+lane of their own when ``worker.registration_timeout`` > 0). Reception never waits for it:
+the accounting's bounded queue drops the oldest pair. While inactive (a lifecycle node's
+inactive state) sources are counted as rejected (``inactive``) and nothing is published;
+targets are still held, so a latched map survives a deactivation.
 """
 
 from __future__ import annotations
@@ -48,10 +49,8 @@ from ..refusal import Refusal, RefusalCode
 from ..relocalization.requests import Answered, stale_scan
 from ..relocalization.sequence import StepAnswer
 from ..runtime.checks import CheckLane
-from ..runtime.jobs import (CheckVerdict, Job, RegisterPair, result_of, SequenceScan, Tracked,
-                            TrackScan)
-from ..runtime.session import RegisterFn
-from ..runtime.supervisor import Supervisor
+from ..runtime.jobs import (CheckVerdict, Job, RegisterPair, result_of, Runner, SequenceScan,
+                            Tracked, TrackScan)
 from ..tracking.counts import StreamCounts, tracks
 
 
@@ -67,22 +66,21 @@ class RegistrationEngine:
     """
     Registers paired clouds and decides what is published (see the module doc).
 
-    ``register_fn`` replaces ``register_clouds`` in every job (tests of the plumbing only;
-    the job kinds are chosen as without it). The engine is built stopped and inactive:
-    :meth:`start` starts the registration process, waits for it and the map, and starts the
-    worker; :meth:`activate` lets sources in and outputs out; :meth:`stop` ends the
-    processes and the worker for good.
+    The engine is built stopped and inactive: :meth:`start` starts the registration process,
+    waits for it and the map, and starts the worker; :meth:`activate` lets sources in and
+    outputs out; :meth:`stop` ends the processes and the worker for good. ``runner`` runs
+    the jobs instead of what :meth:`start` would start (a test's stand-in, for the plumbing:
+    the job kinds are chosen as without it); it stays the caller's, never closed here.
     """
 
     def __init__(self, pipeline_cfg: PipelineConfig, node_cfg: NodeConfig,
-                 outputs: EngineOutputs, register_fn: RegisterFn | None = None,
-                 calibration: CalibrationConfig | None = None):
+                 outputs: EngineOutputs, calibration: CalibrationConfig | None = None,
+                 runner: Runner | None = None):
         self._lock = threading.Lock()  # guards the configs and the active flag
         self._pipeline_cfg, self._node_cfg = pipeline_cfg, node_cfg
         self._outputs = outputs
-        self._register_fn = register_fn
-        self._runner: Any = None  # runs a job: the Supervisor, or a ChildSession in-process
-        self.registration: Supervisor | None = None  # the stream's supervised process
+        self._given = runner
+        self.runner: Runner | None = None  # runs the stream's jobs, once started
         self.checks: CheckLane | None = None  # the periodic checks' lane, while tracked
         self._verdict: CheckVerdict | None = None  # a check landed, for the next scan
         cfg = node_cfg
@@ -112,9 +110,9 @@ class RegistrationEngine:
 
         :raises StartFailed: why it cannot register; nothing it started is left running.
         """
-        self._runner, self.registration, target = start_registration(
-            self.pipeline_config, self.node_config, self._calibration is not None,
-            self._register_fn, self._map, self._outputs.log)
+        self.runner, target = start_registration(
+            self.pipeline_config, self.node_config, self._calibration is not None, self._map,
+            self._outputs.log, self._given)
         if target is not None:
             self._accounting.receive('target', 0, target.frame_id, target)
         self._worker = threading.Thread(target=self._work, name='register_worker', daemon=True)
@@ -145,8 +143,8 @@ class RegistrationEngine:
         self.deactivate()
         self._stop.set()
         self._accounting.wake()
-        if self.registration is not None:
-            self.registration.close()  # ends a job in flight at once
+        if self.runner is not None and self._given is None:
+            self.runner.close()  # ends a job in flight in a process of its own at once
         if self._worker is not None:
             self._worker.join(timeout=5.0)
         if self.checks is not None:  # after the worker, which may have just started it
@@ -279,7 +277,7 @@ class RegistrationEngine:
         if tracks(cfg.mode, pipe_cfg) and self._localization.calls.waiting() is None:
             verdict, self._verdict = self._verdict, None
             return TrackScan(source, target, pipe_cfg, pair.source.stamp_ns * 1e-9,
-                             checks_beside=self.registration is not None, verdict=verdict)
+                             checks_beside=cfg.worker.registration_timeout > 0, verdict=verdict)
         return RegisterPair(source, target, pipe_cfg)
 
     def _process(self, pair: Pair) -> Outcome:
@@ -294,7 +292,7 @@ class RegistrationEngine:
             return Outcome(stale)
         job = self._job(pair, cfg, pipe_cfg)
         try:
-            answer = self._runner.run(job)
+            answer = self.runner.run(job)
         except CgagsError as exc:
             if exc.code is RefusalCode.WORKER_CRASHED:
                 self._accounting.failed(exc.code.value)
@@ -366,7 +364,7 @@ class RegistrationEngine:
 
     def supervise(self) -> None:
         """Replace a registration process that died while idle (call it periodically)."""
-        if self.registration is not None and self.registration.supervise():
+        if self.runner is not None and self.runner.supervise():
             self._accounting.failed(RefusalCode.WORKER_CRASHED.value)
             self._outputs.log('warning', 'the registration process had died while idle; a '
                               'fresh one was started')
@@ -393,8 +391,8 @@ class RegistrationEngine:
             stats.update(self._map.statistics())
         stats.update(self._localization.statistics())
         stats.update(self._calibration.statistics() if self._calibration else {})
-        if self.registration is not None:
-            stats.update(self.registration.health())
+        if self.runner is not None:
+            stats.update(self.runner.health())
         if self.checks is not None:
             stats.update(self.checks.statistics())
         return stats

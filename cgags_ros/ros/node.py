@@ -98,8 +98,8 @@ from ..localizer.engine import RegistrationEngine
 from ..localizer.interface import Cloud
 from ..localizer.transport import PROFILE_VARIABLE, use_large_data_profile
 from ..refusal import Refusal
+from ..runtime.jobs import Runner
 from ..runtime.procfs import rss_mb
-from ..runtime.session import RegisterFn
 
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
 # How the node destroys what configure created (so that it leaves the node's lists too).
@@ -111,19 +111,19 @@ class RegisterNode(LifecycleNode):
     """
     Wires topics, services, parameters and diagnostics around a :class:`RegistrationEngine`.
 
-    ``register_fn`` replaces ``register_clouds`` in every job; for tests of the plumbing only.
-    Invalid parameters at construction raise :class:`InvalidConfigError`.
+    ``runner`` runs the jobs instead of a registration process (a test's stand-in, for the
+    plumbing). Invalid parameters at construction raise :class:`InvalidConfigError`.
     """
 
-    def __init__(self, node_name: str = 'register_node', *,
-                 register_fn: RegisterFn | None = None, **kwargs: Any):
+    def __init__(self, node_name: str = 'register_node', *, runner: Runner | None = None,
+                 **kwargs: Any):
         # Undeclared names reach _on_set_parameters, which refuses them with a reason.
         kwargs.setdefault('allow_undeclared_parameters', True)
         super().__init__(node_name, **kwargs)
         self._descriptions = ros_parameter_descriptions()
         self._declare_parameters()
         _, cfg = self._configs()  # invalid startup values (a choice typo) raise here
-        self._register_fn = register_fn
+        self._runner = runner
         self._engine: RegistrationEngine | None = None
         self.outputs: Outputs | None = None
         self._entities: list[Any] = []
@@ -149,8 +149,8 @@ class RegisterNode(LifecycleNode):
             calibration = (calibration_config(pipe, cfg.config_file)
                            if cfg.mode == 'calibrate' else None)
             self.outputs = Outputs(self, calibrate=calibration is not None)
-            self._engine = RegistrationEngine(pipe, cfg, self.outputs, self._register_fn,
-                                              calibration)
+            self._engine = RegistrationEngine(pipe, cfg, self.outputs, calibration,
+                                              self._runner)
             self._engine.start()  # returns once the process is warm and the map loaded
         except CgagsError as exc:  # a parameter, the registration process or the map
             self.get_logger().error(f'cannot configure: {exc}; the node stays unconfigured')

@@ -2,8 +2,9 @@
 The jobs the registration process runs, one type a kind, and the typed answer of each.
 
 The engine chooses the kind once (:meth:`~cgags_ros.localizer.engine.RegistrationEngine`),
-the :class:`~.session.ChildSession` runs it (in the registration process, or in this one),
-and the answer's type says what came back; every answer to a registration carries its
+a :class:`Runner` runs it (a :class:`~.supervisor.Supervisor`'s registration process, or a
+:class:`~.session.ChildSession` in this process), and the answer's type says what came
+back; every answer to a registration carries its
 :class:`~cgags_ros.pipeline.result.PipelineResult` (:func:`result_of`).
 
 - :class:`RegisterPair` -> :class:`PairDone`: one pair through ``register_clouds``.
@@ -24,7 +25,7 @@ builds jobs and reads answers without loading the pipeline.
 from __future__ import annotations
 
 import dataclasses
-from typing import Union
+from typing import Any, Protocol, Union
 
 import numpy as np
 
@@ -177,3 +178,30 @@ def result_of(answer: Answer) -> PipelineResult:
     if isinstance(answer, (MapReady, CheckVerdict)):
         raise TypeError(f'{type(answer).__name__} carries no registration')
     return answer.result
+
+
+class Runner(Protocol):
+    """
+    What runs jobs, the engine's one seam to the pipeline.
+
+    A :class:`~.supervisor.Supervisor` (a registration process of its own), a
+    :class:`~.session.ChildSession` (this process), or a test's stand-in.
+    """
+
+    def run(self, job: Job, timeout_s: float | None = None) -> Answer:
+        """
+        Run ``job``; return its answer.
+
+        :param timeout_s: its time limit where one can be kept (a process of its own), else
+            ignored; None: the runner's own.
+        :raises CgagsError: what the job raised, or why it did not end (its ``code``).
+        """
+
+    def supervise(self) -> bool:
+        """Replace what died while idle; tell whether something was (call it periodically)."""
+
+    def health(self, prefix: str = 'worker') -> dict[str, Any]:
+        """Return its keys of /diagnostics (none in this process)."""
+
+    def close(self) -> None:
+        """End it for good (a job in flight in a process of its own ends at once)."""
