@@ -36,7 +36,7 @@ from . import backlog
 from .accounting import Accounting, LastRegistration, LOG_REPEAT_S, lost_upstream_message
 from .calibration_run import CalibrationConfig, CalibrationRun
 from .interface import Cloud, EngineOutputs, Estimate, PairResult
-from .localization import Localization
+from .localization import Localization, RegisteredScan
 from .map_target import MapTarget
 from .pairing import Pair
 from .startup import start_registration
@@ -269,7 +269,7 @@ class RegistrationEngine:
     def _job(self, pair: Pair, cfg: NodeConfig, pipe_cfg: PipelineConfig) -> Job:
         """Choose the pair's job, once: a sequence's scan, a tracked stream's scan, or a pair."""
         source, target = pair.source.payload.xyz, pair.target.payload.as_target()
-        step = self._localization.step(pair, cfg, self.on_demand)
+        step = self._localization.step(pair, cfg)
         if step is not None:
             return SequenceScan(source, target, pipe_cfg, step[0],
                                 cfg.relocalization.max_scans, step[1])
@@ -313,20 +313,20 @@ class RegistrationEngine:
         if not self.active:
             return Outcome(Refusal(RefusalCode.INACTIVE, 'deactivated during registration'),
                            result)
-        cov = np.asarray(result.covariance, dtype=np.float64)
-        step = answer if isinstance(answer, StepAnswer) else None
+        scan = RegisteredScan(result, source.header, pair.source.frame_id, frame, cfg,
+                              answer if isinstance(answer, StepAnswer) else None)
         if refusal is not None:
             if not cfg.output.publish_invalid or not np.isfinite(T).all():
-                self._localization.finish(pair, result, T, cov, cfg, frame, self.on_demand, step)
+                self._localization.finish(scan)
                 return Outcome(Refusal(refusal.code, f'invalid registration: {refusal.message}'),
                                result)
             self._accounting.count('published_invalid')
         out = cfg.output
         self._outputs.publish_estimate(Estimate(
-            T, cov, source.header, frame,
+            T, np.asarray(result.covariance, dtype=np.float64), source.header, frame,
             apply_transform(T, source.xyz) if out.publish_aligned_cloud else None,
             (out.tf_child_frame or pair.source.frame_id) if out.broadcast_tf else ''))
-        self._localization.finish(pair, result, T, cov, cfg, frame, self.on_demand, step)
+        self._localization.finish(scan)
         return Outcome(None, result)
 
     # ------------------------------------------------------------------ the second lane

@@ -12,6 +12,7 @@ answers the requests and keeps the last one-line summary for /diagnostics.
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 from typing import Any
 
@@ -28,11 +29,32 @@ from ..relocalization.sequence import SequenceRun, StepAnswer, Verdict
 from ..validity import quality_refusal
 
 
+@dataclasses.dataclass(frozen=True)
+class RegisteredScan:
+    """
+    A scan the engine registered, what :meth:`Localization.finish` reads of it.
+
+    :ivar result: its registration (``transform``: map <- sensor, metres).
+    :ivar header: the scan's message header (its stamp is the outputs').
+    :ivar sensor_frame: the scan's frame. :ivar frame_id: the frame of its pose.
+    :ivar config: the node's configuration it was registered with.
+    :ivar step: the relocalizer's answer when the scan was a step of a sequence, else None.
+    """
+
+    result: PipelineResult
+    header: Any
+    sensor_frame: str
+    frame_id: str
+    config: NodeConfig
+    step: StepAnswer | None = None
+
+
 class Localization:
     """Requests, the sequence in progress and the initial pose of one node (any thread)."""
 
     def __init__(self, cfg: NodeConfig, outputs: EngineOutputs):
         self._outputs = outputs
+        self._on_demand = cfg.mode == 'on_demand'
         self.calls = RelocalizeCalls()
         # With a map and odometry, a relocalization goes on over the next scans.
         self.sequence = SequenceRun() if cfg.map.file else None
@@ -52,8 +74,7 @@ class Localization:
         if self.calls.expire(late) and seq is not None and self.calls.waiting() is None:
             seq.reset()
 
-    def step(self, pair: Pair, cfg: NodeConfig, on_demand: bool
-             ) -> tuple[np.ndarray | None, bool] | None:
+    def step(self, pair: Pair, cfg: NodeConfig) -> tuple[np.ndarray | None, bool] | None:
         """
         Return (odom <- sensor, restart) when the scan is a step of a sequence, else None.
 
@@ -62,7 +83,7 @@ class Localization:
         """
         seq, called = self.sequence, self.calls.waiting() is not None
         reloc = cfg.relocalization
-        if seq is None or not (called or (reloc.publish_initial_pose and not on_demand
+        if seq is None or not (called or (reloc.publish_initial_pose and not self._on_demand
                                           and self._initial_pose.may_publish_auto(cfg))):
             return None
         base = extrinsic(cfg)
@@ -70,13 +91,12 @@ class Localization:
             base = self._outputs.base_from_sensor(reloc.base_frame, pair.source.frame_id)
         return seq.step(pair.source.stamp_ns, base)
 
-    def finish(self, pair: Pair, result: PipelineResult, T: np.ndarray, cov: np.ndarray,
-               cfg: NodeConfig, frame_id: str, on_demand: bool,
-               answer: StepAnswer | None = None) -> None:
+    def finish(self, scan: RegisteredScan) -> None:
         """Publish the candidates, offer the initial pose, answer pending requests."""
-        header = pair.source.payload.header
+        result, cfg, header, answer = scan.result, scan.config, scan.header, scan.step
+        T = np.asarray(result.transform, dtype=np.float64)
         candidates = list(result.candidates)
-        self._outputs.publish_candidates(header, frame_id, [
+        self._outputs.publish_candidates(header, scan.frame_id, [
             c.transform for c in candidates if np.isfinite(c.transform).all()])
         called = self.calls.waiting() is not None
         published, why = False, 'relocalization.publish_initial_pose is off'
@@ -88,10 +108,10 @@ class Localization:
             refusal, T = verdict.refusal, verdict.transform
         if verdict is not None and not verdict.finished:
             why = 'not confirmed yet'
-        elif reloc.publish_initial_pose and (called or not on_demand):
+        elif reloc.publish_initial_pose and (called or not self._on_demand):
             why, T_map_base, cov_base = self._initial_pose.offer(
-                refusal, T, cov, pair.source.frame_id, cfg, not called,
-                self._outputs.base_from_sensor)
+                refusal, T, np.asarray(result.covariance, dtype=np.float64), scan.sensor_frame,
+                cfg, not called, self._outputs.base_from_sensor)
             if T_map_base is not None:
                 published = True
                 self._outputs.publish_initial_pose(BasePose(
