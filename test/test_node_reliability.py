@@ -145,7 +145,7 @@ def test_worker_killed_idle_and_busy_is_replaced_and_the_next_pair_is_correct(wi
                                    Header(frame_id='velodyne'))
         noise.header.stamp.sec = 1_700_000_001
         io.source_pub.publish(noise)
-        assert iso.busy.wait(30), 'the noise pair never reached the registration process'
+        wait_for(lambda: iso.in_flight, 30, 'the noise pair to reach the registration process')
         pid = iso.pid
         os.kill(pid, signal.SIGKILL)
         values = wait_for(lambda: io.values.get('rejected.worker_crashed') == '1'

@@ -6,10 +6,10 @@ failed or was refused; the code is the one classification, on /diagnostics
 ``rejected.<code>`` and on ~/result), dropped (per pairing reason) or pending (waiting for a
 target, queued, or being registered). Targets: used, rejected (``rejected_targets.<code>``),
 dropped or held. The counters, the pairer, the upstream losses and the tracked stream's
-backlog change under one lock (the pairer uses it as its own), so every snapshot balances
-exactly; /diagnostics carries the buckets and ``accounting.ok``. Sources that never arrived
-are outside that balance: ``sources.lost_upstream`` counts the gaps in the received source
-stamps (:class:`~.upstream.UpstreamLoss`).
+backlog change under one lock, so every snapshot balances exactly; /diagnostics carries
+the buckets and ``accounting.ok``. Sources that never arrived are outside that balance:
+``sources.lost_upstream`` counts the gaps in the received source stamps
+(:class:`~.upstream.UpstreamLoss`).
 """
 
 from __future__ import annotations
@@ -65,11 +65,17 @@ class LastRegistration:
 
 
 class Accounting:
-    """The counters, the pairer, the upstream losses and the backlog of one node."""
+    """
+    The counters, the pairer, the upstream losses and the backlog of one node.
+
+    Two threads write: the node's executor (clouds received, the pairing's settings) and the
+    engine's worker (pairs taken and finished); all of it changes under one condition,
+    which the worker also waits on for the next pair.
+    """
 
     def __init__(self, pairing: PairingConfig, queue_depth: int):
-        self._lock = threading.Condition()  # re-entrant; the pairer's lock too
-        self._pairer = Pairer.from_config(pairing, queue_depth, lock=self._lock)
+        self._lock = threading.Condition()  # the worker waits on it for a ready pair
+        self._pairer = Pairer.from_config(pairing, queue_depth)
         self._pairer.on_drop = self._on_drop
         self._upstream = UpstreamLoss()
         self.backlog = Backlog()  # a tracked stream's last scan (read under the lock)
@@ -106,7 +112,8 @@ class Accounting:
 
     def wake(self) -> None:
         """End a :meth:`take` waiting for a pair (shutting down)."""
-        self._pairer.wake()
+        with self._lock:
+            self._lock.notify_all()
 
     def set_queue_depth(self, depth: int) -> None:
         """Keep ``depth`` ready pairs from the next pair on (the oldest dropped beyond)."""
@@ -135,6 +142,8 @@ class Accounting:
                 self._pairer.add_source(stamp_ns, frame_id, payload)
             else:
                 self._pairer.add_target(stamp_ns, frame_id, payload)
+            if self._pairer.pending:
+                self._lock.notify()
             return lost
 
     def _on_drop(self, reason: str, item: Stamped) -> None:
@@ -154,9 +163,11 @@ class Accounting:
         ``skip``: how many of the oldest ready pairs to drop first (counted as
         ``backlog.SKIPPED``), decided under the lock from their stamps and the backlog.
         """
-        if not self._pairer.wait_ready(timeout):
-            return None
         with self._lock:
+            if not self._pairer.pending:
+                self._lock.wait(timeout)
+            if not self._pairer.pending:
+                return None
             if skip is not None:
                 self._pairer.drop_oldest(skip(self._pairer.ready_stamps(), self.backlog),
                                          SKIPPED)

@@ -71,13 +71,18 @@ class RegistrationEngine:
     outputs out; :meth:`stop` ends the processes and the worker for good. ``runner`` runs
     the jobs instead of what :meth:`start` would start (a test's stand-in, for the plumbing:
     the job kinds are chosen as without it); it stays the caller's, never closed here.
+
+    Two threads: the node's executor calls every method but the worker's loop, which runs
+    on the worker thread. The executor alone writes the configurations (replaced whole, one
+    pair) and the active flag, which the worker reads: no lock. The one event between them
+    stops the worker; the accounting, the requests and the registration process, which
+    both threads write, hold a lock each.
     """
 
     def __init__(self, pipeline_cfg: PipelineConfig, node_cfg: NodeConfig,
                  outputs: EngineOutputs, calibration: CalibrationConfig | None = None,
                  runner: Runner | None = None):
-        self._lock = threading.Lock()  # guards the configs and the active flag
-        self._pipeline_cfg, self._node_cfg = pipeline_cfg, node_cfg
+        self._configs = (pipeline_cfg, node_cfg)
         self._outputs = outputs
         self._given = runner
         self.runner: Runner | None = None  # runs the stream's jobs, once started
@@ -96,8 +101,8 @@ class RegistrationEngine:
         self._map = MapTarget(cfg) if cfg.map.file else None
         self._localization = Localization(cfg, outputs)
         self._active = False
-        self._stop = threading.Event()
-        self._worker: threading.Thread | None = None
+        self._stop = threading.Event()  # set by the lifecycle's thread, waited on by the worker
+        self._worker = threading.Thread(target=self._work, name='register_worker', daemon=True)
         self._tracking = StreamCounts()
 
     # ------------------------------------------------------------------ lifecycle
@@ -115,18 +120,15 @@ class RegistrationEngine:
             self._outputs.log, self._given)
         if target is not None:
             self._accounting.receive('target', 0, target.frame_id, target)
-        self._worker = threading.Thread(target=self._work, name='register_worker', daemon=True)
         self._worker.start()
 
     def activate(self) -> None:
         """Consume sources and publish outputs."""
-        with self._lock:
-            self._active = True
+        self._active = True
 
     def deactivate(self) -> None:
         """Ignore sources (counted as rejected), publish nothing, fail pending requests."""
-        with self._lock:
-            self._active = False
+        self._active = False
         calls = self._localization.calls
         calls.wake()  # no scan is registered for a pending request until activated
         calls.fail(Refusal(RefusalCode.INACTIVE, 'the node was deactivated'))
@@ -134,8 +136,7 @@ class RegistrationEngine:
     @property
     def active(self) -> bool:
         """Tell whether sources are consumed and outputs published."""
-        with self._lock:
-            return self._active
+        return self._active
 
     def stop(self) -> None:
         """End the worker and the registration processes; answer pending requests."""
@@ -145,7 +146,7 @@ class RegistrationEngine:
         self._accounting.wake()
         if self.runner is not None and self._given is None:
             self.runner.close()  # ends a job in flight in a process of its own at once
-        if self._worker is not None:
+        if self._worker.ident is not None:  # started
             self._worker.join(timeout=5.0)
         if self.checks is not None:  # after the worker, which may have just started it
             self.checks.close()
@@ -155,19 +156,16 @@ class RegistrationEngine:
     @property
     def pipeline_config(self) -> PipelineConfig:
         """Return the pipeline configuration the next pair uses."""
-        with self._lock:
-            return self._pipeline_cfg
+        return self._configs[0]
 
     @property
     def node_config(self) -> NodeConfig:
         """Return the node configuration the next pair uses."""
-        with self._lock:
-            return self._node_cfg
+        return self._configs[1]
 
     def set_configs(self, pipeline_cfg: PipelineConfig, node_cfg: NodeConfig) -> None:
         """Use new (validated) configurations from the next pair on."""
-        with self._lock:
-            self._pipeline_cfg, self._node_cfg = pipeline_cfg, node_cfg
+        self._configs = (pipeline_cfg, node_cfg)
         self._accounting.set_slop(node_cfg.pairing.sync_slop)
         if not self.on_demand:  # tracking switched on or off: the backlog follows
             self._accounting.set_queue_depth(backlog.queue_depth(node_cfg, pipeline_cfg))
@@ -249,7 +247,7 @@ class RegistrationEngine:
 
     def _skip(self, pending_ns: list[int], log: backlog.Backlog) -> int:
         """Return how many of the oldest waiting pairs a tracked stream skips (the backlog)."""
-        cfg, pipe_cfg = self.node_config, self.pipeline_config
+        pipe_cfg, cfg = self._configs
         if not tracks(cfg.mode, pipe_cfg):
             return 0
         return log.to_skip(pending_ns, cfg.pairing.backlog_max_lag, pipe_cfg.tracking.max_age,
@@ -285,7 +283,7 @@ class RegistrationEngine:
         if self._calibration is not None:
             return Outcome(self._calibration.take(pair))
         source = pair.source.payload
-        pipe_cfg, cfg = self.pipeline_config, self.node_config
+        pipe_cfg, cfg = self._configs  # one pair of configurations for the whole pair
         stale = stale_scan(self._localization.calls.waiting() if self.on_demand else None,
                            source.receipt_ns, cfg.relocalization.max_scan_age)
         if stale:

@@ -13,7 +13,6 @@ answers the requests and keeps the last one-line summary for /diagnostics.
 from __future__ import annotations
 
 import dataclasses
-import threading
 from typing import Any
 
 import numpy as np
@@ -50,7 +49,13 @@ class RegisteredScan:
 
 
 class Localization:
-    """Requests, the sequence in progress and the initial pose of one node (any thread)."""
+    """
+    Requests, the sequence in progress and the initial pose of one node.
+
+    The worker registers and finishes scans; any thread requests (:meth:`request`, the
+    requests hold their own lock) and reads :meth:`statistics`. What that reads the worker
+    alone writes, replacing it whole: no lock here.
+    """
 
     def __init__(self, cfg: NodeConfig, outputs: EngineOutputs):
         self._outputs = outputs
@@ -59,9 +64,7 @@ class Localization:
         # With a map and odometry, a relocalization goes on over the next scans.
         self.sequence = SequenceRun() if cfg.map.file else None
         self._initial_pose = InitialPoseGuard()
-        self._lock = threading.Lock()  # guards what statistics() reads
-        self._candidates: list[Any] = []
-        self._last_summary = ''
+        self._shown: tuple[list[Any], str] = ([], '')  # the last candidates and summary
 
     def request(self, timeout_s: float, on_answer: Answered) -> None:
         """Queue a request; ``on_answer(success, message)`` once a scan answers it."""
@@ -120,8 +123,7 @@ class Localization:
                     verdict.map_from_odom if verdict else None))
         line = (verdict.line(published, why) if verdict
                 else summary_line(result, T, refusal, published, why))
-        with self._lock:
-            self._candidates, self._last_summary = candidates, line
+        self._shown = (candidates, line)
         if called and (verdict is None or verdict.finished):
             self.calls.answer(line, refusal)
 
@@ -135,8 +137,7 @@ class Localization:
 
     def statistics(self) -> dict[str, Any]:
         """Return the candidates, the last summary, the guards' and the requests' keys."""
-        with self._lock:
-            candidates, line = list(self._candidates), self._last_summary
+        candidates, line = self._shown
         stats: dict[str, Any] = {'candidates.count': len(candidates)}
         for i, c in enumerate(candidates):
             stats[f'candidates.{i}.inliers'] = c.num_inliers
