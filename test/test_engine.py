@@ -49,6 +49,7 @@ class Recorder:
     def __init__(self):
         self.estimates, self.candidates, self.initial, self.logs = [], [], [], []
         self.results = []
+        self.odom = {}  # odom <- base by stamp (ns), as the node's odometry has it
 
     def publish_estimate(self, estimate):
         self.estimates.append(estimate)
@@ -64,6 +65,9 @@ class Recorder:
 
     def base_from_sensor(self, base_frame, sensor_frame):
         return np.eye(4)
+
+    def odometry(self, odom_frame, base_frame, stamp_ns):
+        return bool(self.odom), self.odom.get(stamp_ns)
 
     def log(self, level, message):
         self.logs.append((level, message))

@@ -216,12 +216,6 @@ class RegistrationEngine:
             return
         self._localization.request(self.node_config.relocalization.timeout, on_answer)
 
-    def odometry(self, stamp_ns: int, odom_from_base: np.ndarray) -> None:
-        """Take the robot's odometry: ``odom <- base`` (4x4, metres) at ``stamp_ns``."""
-        sequence = self._localization.sequence
-        if sequence is not None:
-            sequence.track.add(stamp_ns, odom_from_base)
-
     # ------------------------------------------------------------------ worker
 
     def _work(self) -> None:
@@ -288,9 +282,10 @@ class RegistrationEngine:
                            source.receipt_ns, cfg.relocalization.max_scan_age)
         if stale:
             return Outcome(stale)
-        job = self._job(pair, cfg, pipe_cfg)
+        job, runner = self._job(pair, cfg, pipe_cfg), self.runner
+        assert runner is not None  # the worker runs once started
         try:
-            answer = self.runner.run(job)
+            answer = runner.run(job)
         except CgagsError as exc:
             if exc.code is RefusalCode.WORKER_CRASHED:
                 self._accounting.failed(exc.code.value)

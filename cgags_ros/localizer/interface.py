@@ -196,7 +196,7 @@ class PairResult:
 
 
 class EngineOutputs(Protocol):
-    """What the engine needs from its node: publishing, logging and TF."""
+    """What the engine needs from its node: publishing, logging, TF and odometry."""
 
     def publish_estimate(self, estimate: Estimate) -> None:
         """Publish a pose (and its covariance, aligned cloud and TF as it says)."""
@@ -216,6 +216,15 @@ class EngineOutputs(Protocol):
 
     def base_from_sensor(self, base_frame: str, sensor_frame: str) -> np.ndarray | None:
         """Return ``T_base_sensor`` from TF (identity without TF), or None when unknown."""
+
+    def odometry(self, odom_frame: str, base_frame: str, stamp_ns: int
+                 ) -> tuple[bool, np.ndarray | None]:
+        """
+        Return the robot's odometry at a scan's stamp (``stamp_ns``).
+
+        :returns: (whether any odometry is known, ``T_odom_base`` (4x4, metres) at the stamp
+            or None when none is near it).
+        """
 
     def log(self, level: str, message: str) -> None:
         """Log ``message`` at ``level`` ('info', 'warning' or 'error')."""

@@ -82,17 +82,21 @@ class Localization:
         Return (odom <- sensor, restart) when the scan is a step of a sequence, else None.
 
         A scan is one while a request waits, or in continuous mode while an automatic
-        initial pose may still go out, with a map and odometry received.
+        initial pose may still go out, with a map and any odometry known (the node's).
         """
         seq, called = self.sequence, self.calls.waiting() is not None
         reloc = cfg.relocalization
         if seq is None or not (called or (reloc.publish_initial_pose and not self._on_demand
                                           and self._initial_pose.may_publish_auto(cfg))):
             return None
+        known, odom_base = self._outputs.odometry(reloc.odom_frame, reloc.base_frame,
+                                                  pair.source.stamp_ns)
+        if not known:
+            return None
         base = extrinsic(cfg)
         if base is None:
             base = self._outputs.base_from_sensor(reloc.base_frame, pair.source.frame_id)
-        return seq.step(pair.source.stamp_ns, base)
+        return seq.step(odom_base, base)
 
     def finish(self, scan: RegisteredScan) -> None:
         """Publish the candidates, offer the initial pose, answer pending requests."""
@@ -145,8 +149,6 @@ class Localization:
             stats[f'candidates.{i}.ratio'] = round(c.ratio, 4)
         if line:
             stats['last_summary'] = line
-        if self.sequence is not None:
-            stats['odometry.samples'] = self.sequence.track.samples
         stats.update(self._initial_pose.statistics())
         stats.update(self.calls.statistics())
         return stats
