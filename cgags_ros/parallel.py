@@ -22,6 +22,7 @@ DEFAULT_WORKERS = max(1, min(4, os.cpu_count() or 1))
 
 _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
+# Any of the pipeline's threads may ask for the pool first: a pair's own, or a task beside it.
 _pool_lock = threading.Lock()
 
 

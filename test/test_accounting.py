@@ -1,27 +1,29 @@
 """
 cgags_ros.localizer.accounting and .statistics: scans lost upstream, beside the balanced buckets.
 
-No DDS: the node's accounting object fed directly, its /diagnostics message built.
+No DDS: the node's accounting object fed directly, its /diagnostics message built (with the
+ROS message packages; the rest without).
 """
 
 from __future__ import annotations
 
+import threading
+
+from cgags_ros.config.node import PairingConfig
+from cgags_ros.localizer import statistics
+from cgags_ros.localizer.accounting import Accounting
+from cgags_ros.localizer.transport import PROFILE_VARIABLE
+from cgags_ros.refusal import Refusal, RefusalCode
 import pytest
-
-pytest.importorskip('rclpy')
-
-from cgags_ros.config.node import PairingConfig  # noqa: E402, I100
-from cgags_ros.localizer import statistics  # noqa: E402
-from cgags_ros.localizer.accounting import Accounting  # noqa: E402
-from cgags_ros.localizer.transport import PROFILE_VARIABLE  # noqa: E402
-from cgags_ros.refusal import Refusal, RefusalCode  # noqa: E402
-from cgags_ros.ros import diagnostics  # noqa: E402
-from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
 
 PERIOD = 100_000_000  # ns, a 10-Hz LiDAR
 
 
 def message(health):
+    """Return the node's statistics of ``health`` and the /diagnostics status built of them."""
+    pytest.importorskip('rclpy')
+    from cgags_ros.ros import diagnostics
+
     stats = statistics.build_statistics(health.snapshot(), 0.5, {})
     status = diagnostics.diagnostic_array(stats, 'n', '/n', None).status[0]
     return stats, status
@@ -40,7 +42,7 @@ def test_gaps_in_source_stamps_are_counted_outside_the_balance_with_a_warning():
     assert stats['sources.received'] == (stats['sources.published'] + stats['sources.rejected']
                                          + stats['sources.dropped'] + stats['sources.pending'])
     assert stats['accounting.ok'] is True
-    assert status.level == DiagnosticStatus.WARN
+    assert status.level == type(status).WARN
     assert '14 source scans lost' in status.message and PROFILE_VARIABLE in status.message
     assert health.lost_upstream() == (14, True)
     assert health.lost_upstream() == (14, False)  # logged again only after 30 s
@@ -50,5 +52,18 @@ def test_no_source_yet_names_the_transport_fix():
     health = Accounting(PairingConfig(), queue_depth=2)
     health.receive('target', 1, 'map', 'T')
     stats, status = message(health)
-    assert status.level == DiagnosticStatus.STALE and PROFILE_VARIABLE in status.message
+    assert status.level == type(status).STALE and PROFILE_VARIABLE in status.message
     assert stats['sources.lost_upstream'] == 0 and 'sources.period_s' not in stats
+
+
+def test_take_wakes_on_a_pair_and_on_wake():
+    """The worker's wait for a pair ends when a source completes one, or when it is woken."""
+    health = Accounting(PairingConfig(), queue_depth=2)
+    health.receive('target', 1, 'map', 'T')
+    threading.Timer(0.05, health.receive, args=('source', 2, 'lidar', 's')).start()
+    pair = health.take(timeout=5.0)
+    assert pair is not None and pair.source.payload == 's'
+    threading.Timer(0.05, health.wake).start()
+    assert health.take(timeout=5.0) is None
+    health.finish()
+    assert health.snapshot()['accounting']['ok']

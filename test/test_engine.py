@@ -31,7 +31,7 @@ from cgags_ros.runtime.session import ChildSession
 from cgags_ros.runtime.supervisor import Supervisor
 import numpy as np
 import pytest
-from waiting import bad_map, wait_for
+from waiting import bad_map, FakeRunner, wait_for
 
 T_TRUE = make_transform(quaternion_to_matrix((0.0, 0.0, 0.2588190, 0.9659258)), (1.0, 2.0, 0.5))
 
@@ -49,6 +49,7 @@ class Recorder:
     def __init__(self):
         self.estimates, self.candidates, self.initial, self.logs = [], [], [], []
         self.results = []
+        self.odom = {}  # odom <- base by stamp (ns), as the node's odometry has it
 
     def publish_estimate(self, estimate):
         self.estimates.append(estimate)
@@ -64,6 +65,9 @@ class Recorder:
 
     def base_from_sensor(self, base_frame, sensor_frame):
         return np.eye(4)
+
+    def odometry(self, odom_frame, base_frame, stamp_ns):
+        return bool(self.odom), self.odom.get(stamp_ns)
 
     def log(self, level, message):
         self.logs.append((level, message))
@@ -89,7 +93,7 @@ PIPE = PipelineConfig(tracking=TrackingConfig(enabled=False))
 
 def make(**node):
     out = Recorder()
-    engine = RegistrationEngine(PIPE, node_config(**node), out, fake_register)
+    engine = RegistrationEngine(PIPE, node_config(**node), out, runner=FakeRunner(fake_register))
     engine.start()
     return engine, out
 
@@ -388,7 +392,7 @@ def test_start_returns_once_the_process_is_warm_and_the_map_loaded(
     engine.start()
     try:
         (process,) = processes
-        assert engine.registration is process and process.ready
+        assert engine.runner is process and process.ready
         pid = process.pid
         assert running(pid)
         stats = engine.statistics()
@@ -408,7 +412,8 @@ def test_a_bad_map_fails_start_with_its_reason(tmp_path, case):
     """A missing, empty, unreadable or all-NaN map: StartFailed naming it, no worker thread."""
     path = bad_map(tmp_path, case)
     cfg = node_config(**{'map.file': str(path), 'map.cache_dir': str(tmp_path / 'cache')})
-    engine = RegistrationEngine(PipelineConfig(), cfg, Recorder(), fake_register)
+    engine = RegistrationEngine(PipelineConfig(), cfg, Recorder(),
+                                runner=FakeRunner(fake_register))
     with pytest.raises(StartFailed, match='map.file cannot be used') as failure:
         engine.start()
     assert path.name in str(failure.value)
@@ -426,7 +431,7 @@ def test_a_bad_map_ends_the_registration_process_it_was_loaded_in(tmp_path, proc
     with pytest.raises(StartFailed, match='map.file cannot be used: .*broken.ply'):
         engine.start()
     (process,) = processes
-    assert engine.registration is None and process.pid is None  # closed
+    assert engine.runner is None and process.pid is None  # closed
     assert not process.ready
 
 
@@ -452,5 +457,5 @@ def test_a_process_that_dies_while_warming_up_fails_start(processes):
     assert [str(f) for f in failures] == [
         'the registration process failed to start (it died)']
     wait_for(lambda: not running(pid), 10, 'the killed process reaped')
-    assert engine.registration is None and processes[0].pid is None
+    assert engine.runner is None and processes[0].pid is None
     assert 'register_worker' not in [t.name for t in threading.enumerate()]

@@ -140,9 +140,9 @@ def test_transitions_through_lifecycle_services(wire, scans):
         assert io.lifecycle.state() == 'unconfigured'
         assert node.engine is None
         assert io.transition(Transition.TRANSITION_CONFIGURE) == 'inactive'
-        pid = node.engine.registration.pid
+        pid = node.engine.runner.pid
         assert pid and running(pid)
-        assert node.engine.registration.ready  # configure waited for its warm-up
+        assert node.engine.runner.ready  # configure waited for its warm-up
         wait_for(lambda: io.source_pub.get_subscription_count()
                  and io.target_pub.get_subscription_count(), 30, 'discovery')
         io.target_pub.publish(target)

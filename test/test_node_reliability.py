@@ -36,7 +36,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
-from waiting import CloudWire, lidar_bag, ros_args, ros_overrides  # noqa: E402
+from waiting import CloudWire, FakeRunner, lidar_bag, ros_args, ros_overrides  # noqa: E402
 from waiting import spun_context, stop_process, wait_for  # noqa: E402
 
 pytestmark = pytest.mark.ros
@@ -68,11 +68,12 @@ def lidar(data_dir):
     return lidar_bag(data_dir)
 
 
-def start(wire, register_fn=None, **params):
-    if register_fn is not None:  # pairs, not a tracked stream, for a stand-in registration
+def start(wire, register=None, **params):
+    """Start the node; ``register`` stands in for the registration process (FakeRunner)."""
+    if register is not None:  # pairs, not a tracked stream, for a stand-in registration
         params.setdefault('tracking.enabled', False)
     context, executor, io = wire
-    node = RegisterNode(register_fn=register_fn, context=context,
+    node = RegisterNode(runner=FakeRunner(register) if register else None, context=context,
                         parameter_overrides=ros_overrides(**params))
     executor.add_node(node)
     try:
@@ -121,7 +122,7 @@ def test_worker_killed_idle_and_busy_is_replaced_and_the_next_pair_is_correct(wi
     targets = [m for t, _, m in records if t == '/target_cloud']
     sources = [(s, m) for t, s, m in records if t == '/source_cloud']
     node = start(wire, **LIDAR)
-    iso = node.engine.registration
+    iso = node.engine.runner
     try:
         io.target_pub.publish(targets[0])
         stamp, msg = sources[0]
@@ -144,7 +145,7 @@ def test_worker_killed_idle_and_busy_is_replaced_and_the_next_pair_is_correct(wi
                                    Header(frame_id='velodyne'))
         noise.header.stamp.sec = 1_700_000_001
         io.source_pub.publish(noise)
-        assert iso.busy.wait(30), 'the noise pair never reached the registration process'
+        wait_for(lambda: iso.in_flight, 30, 'the noise pair to reach the registration process')
         pid = iso.pid
         os.kill(pid, signal.SIGKILL)
         values = wait_for(lambda: io.values.get('rejected.worker_crashed') == '1'

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import collections
-import threading
 
 from cgags_ros.io.bag import read_messages
 from cgags_ros.localizer.pairing import is_source_drop, Pairer
@@ -98,16 +97,6 @@ def test_synchronized_on_lidar_bag_stamps(data_dir):
     pairs = list(iter(p.pop, None))
     assert len(pairs) == 5 and all(pair.dt_ns == 0 for pair in pairs)
     assert p.drops['source_no_target_within_slop'] == 1
-
-
-def test_wait_pop_wakes_on_pair_and_on_wake():
-    p = Pairer('latest_target')
-    p.add_target(0, 'm', 'T')
-    threading.Timer(0.05, p.add_source, args=(1, 'a', 's')).start()
-    pair = p.wait_pop(timeout=5.0)
-    assert pair is not None and pair.source.payload == 's'
-    threading.Timer(0.05, p.wake).start()
-    assert p.wait_pop(timeout=5.0) is None
 
 
 def test_reset_counts_discarded_and_keeps_latched_target():

@@ -38,7 +38,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
-from waiting import ros_args, ros_overrides, spun_context  # noqa: E402
+from waiting import FakeRunner, ros_args, ros_overrides, spun_context  # noqa: E402
 from waiting import stop_process, wait_for  # noqa: E402
 
 pytestmark = pytest.mark.ros
@@ -121,11 +121,12 @@ def ros():
         yield executor, io
 
 
-def start_node(executor, register_fn=None, **params) -> RegisterNode:
-    if register_fn is not None:  # pairs, not a tracked stream, for a stand-in registration
+def start_node(executor, register=None, **params) -> RegisterNode:
+    """Start the node; ``register`` stands in for the registration process (FakeRunner)."""
+    if register is not None:  # pairs, not a tracked stream, for a stand-in registration
         params.setdefault('tracking.enabled', False)
-    node = RegisterNode(register_fn=register_fn, context=executor.context,
-                        parameter_overrides=ros_overrides(**params))
+    node = RegisterNode(runner=FakeRunner(register) if register else None,
+                        context=executor.context, parameter_overrides=ros_overrides(**params))
     executor.add_node(node)
     return node
 
@@ -218,14 +219,14 @@ def test_plumbing_parameters_outputs_and_rejections(ros):
 def test_invalid_startup_parameter_raises(ros):
     executor, _ = ros
     with pytest.raises(InvalidConfigError, match="pairing.mode = 'nearest' is not one of"):
-        RegisterNode(register_fn=fake_register, context=executor.context,
+        RegisterNode(runner=FakeRunner(fake_register), context=executor.context,
                      parameter_overrides=[Parameter('pairing.mode', value='nearest')])
     # a name that is no ROS parameter: refused, saying where it belongs
     with pytest.raises(InvalidConfigError, match='pairing_mode: unknown parameter'):
-        RegisterNode(register_fn=fake_register, context=executor.context,
+        RegisterNode(runner=FakeRunner(fake_register), context=executor.context,
                      parameter_overrides=[Parameter('pairing_mode', value='synchronized')])
     with pytest.raises(InvalidConfigError, match='core.p1: not a ROS parameter; set it in'):
-        RegisterNode(register_fn=fake_register, context=executor.context,
+        RegisterNode(runner=FakeRunner(fake_register), context=executor.context,
                      parameter_overrides=[Parameter('core.p1', value=0.9)])
 
 
@@ -250,7 +251,7 @@ def test_config_file_sits_between_the_defaults_and_the_ros_parameters(tmp_path):
     rclpy.init(context=context, domain_id=DOMAIN_ID, args=[
         '--ros-args', '--params-file', str(params), '-p', 'pairing.sync_slop:=0.4',
         '-p', 'autostart:=false'])
-    node = RegisterNode(register_fn=fake_register, context=context)
+    node = RegisterNode(runner=FakeRunner(fake_register), context=context)
     try:
         value = {name: node.get_parameter(name).value for name in (
             'voxel_size', 'pairing.sync_slop', 'core.gravity', 'output.publish_invalid',
@@ -286,7 +287,7 @@ def test_callbacks_after_context_shutdown_do_not_raise():
 
     ctx = Context()
     rclpy.init(context=ctx, domain_id=DOMAIN_ID)
-    node = RegisterNode(register_fn=fake_register, context=ctx)
+    node = RegisterNode(runner=FakeRunner(fake_register), context=ctx)
     xyz = np.random.default_rng(0).normal(size=(30, 3))
     result = fake_register(xyz, xyz, config=node.engine.pipeline_config)
     estimate = Estimate(result.transform, result.covariance, Header(frame_id='lidar'), 'map',

@@ -33,8 +33,8 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
-from waiting import (bad_map, EXECUTOR_THREADS, Lifecycle, merged_kitchen_map,  # noqa: E402
-                     ros_overrides, spun_context, wait_for)
+from waiting import (bad_map, EXECUTOR_THREADS, FakeRunner, Lifecycle,  # noqa: E402
+                     merged_kitchen_map, ros_overrides, spun_context, wait_for)
 
 pytestmark = pytest.mark.ros
 DOMAIN_ID = 65  # distinct from the other DDS test modules
@@ -85,14 +85,15 @@ def wire():
         yield spun
 
 
-def start(wire, register_fn=None, **params):
-    if register_fn is not None:  # pairs, not a tracked stream, for a stand-in registration
+def start(wire, register=None, **params):
+    """Start the node; ``register`` stands in for the registration process (FakeRunner)."""
+    if register is not None:  # pairs, not a tracked stream, for a stand-in registration
         params.setdefault('tracking.enabled', False)
     context, executor, io = wire
     io.values, io.level = {}, None
     io.initial.clear()
     io.candidates.clear()
-    node = RegisterNode(context=context, register_fn=register_fn,
+    node = RegisterNode(context=context, runner=FakeRunner(register) if register else None,
                         parameter_overrides=ros_overrides(**params))
     executor.add_node(node)
     return node
@@ -336,7 +337,7 @@ def test_a_bad_map_file_fails_configure_and_leaves_nothing_running(
         if case == 'missing':  # the file appears: a configure now succeeds
             write_cloud(path, read_cloud(data_dir / 'lidar' / 'small_gicp' / 'target.ply'))
             assert io.lifecycle.change(Transition.TRANSITION_CONFIGURE) == (True, 'inactive')
-            assert node.engine.registration.ready
+            assert node.engine.runner.ready
             assert node.engine.statistics()['map.cache'] == 'miss'
     finally:
         stop(wire, node)

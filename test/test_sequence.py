@@ -1,9 +1,9 @@
 """
 cgags_ros.relocalization.sequence without ROS: odometry matched to scans, the node's decisions.
 
-The odometry track and the verdicts are checked on synthetic answers; then the engine, with
-the real pipeline in its own process and a map fused from the redkitchen fragments (as in
-test_relocalizer.py), relocalizes over consecutive fragments with odometry fed by stamp:
+The steps and the verdicts are checked on synthetic answers; then the engine, with the real
+pipeline and a map fused from the redkitchen fragments (as in test_relocalizer.py),
+relocalizes over consecutive fragments with the odometry its outputs give by stamp:
 nothing is answered or published before the pose is confirmed, and odometry that
 contradicts the scans is refused.
 """
@@ -18,7 +18,6 @@ from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.localizer.engine import RegistrationEngine
 from cgags_ros.localizer.interface import Cloud
 from cgags_ros.refusal import Refusal, RefusalCode
-from cgags_ros.relocalization.odometry import OdometryTrack, TOLERANCE_S
 from cgags_ros.relocalization.sequence import SequenceRun, StepAnswer
 import numpy as np
 import pytest
@@ -36,26 +35,6 @@ BASE_FROM_SENSOR = (0.2, 0.0, 1.0, 0.0, 0.0, 0.7071068, 0.7071068)
 
 def turn(deg, t=(0.0, 0.0, 0.0)):
     return make_transform(Rotation.from_euler('z', deg, degrees=True).as_matrix(), t)
-
-
-def test_odometry_is_interpolated_between_samples_and_nearest_within_the_tolerance():
-    track = OdometryTrack()
-    assert not track.received and track.at(5 * S) is None
-    track.add(6 * S, turn(20, (2.0, 0.0, 0.0)))
-    track.add(4 * S, turn(-20, (0.0, 0.0, 0.0)))  # out of order: put in place
-    track.add(int(5.05 * S), turn(10, (1.5, 0.0, 0.0)))
-    assert track.received
-    # Between 4.0 (too far) and 5.05 (within the tolerance): the nearest one stands.
-    np.testing.assert_allclose(track.at(int(5.025 * S)), turn(10, (1.5, 0.0, 0.0)))
-    track.add(5 * S, turn(0, (1.0, 0.0, 0.0)))
-    mid = track.at(int(5.025 * S))  # halfway between 5.0 and 5.05
-    np.testing.assert_allclose(mid[:3, 3], [1.25, 0.0, 0.0], atol=1e-12)
-    assert rotation_error_deg(mid, turn(5)) < 1e-6
-    np.testing.assert_allclose(track.at(5 * S), turn(0, (1.0, 0.0, 0.0)))  # exact stamp
-    assert track.samples == 4
-    near = track.at(int((6 + TOLERANCE_S / 2) * S))  # after the last sample, within it
-    np.testing.assert_allclose(near, turn(20, (2.0, 0.0, 0.0)))
-    assert track.at(int((6 + 2 * TOLERANCE_S) * S)) is None
 
 
 def answer(confirmed, used, refusal=None, done=False):
@@ -88,19 +67,40 @@ def test_verdicts_answer_a_confirmed_pose_and_refuse_when_the_scans_run_out():
 
 def test_a_scan_without_odometry_near_its_stamp_is_judged_alone_and_starts_over():
     run = SequenceRun()
-    assert run.step(5 * S, np.eye(4)) is None  # no odometry at all: one scan at a time
-    run.track.add(5 * S, turn(10, (1.0, 0.0, 0.0)))
     base = make_transform(quaternion_to_matrix(BASE_FROM_SENSOR[3:]), BASE_FROM_SENSOR[:3])
-    odom, restart = run.step(5 * S, base)
+    odom, restart = run.step(turn(10, (1.0, 0.0, 0.0)), base)
     assert restart
     np.testing.assert_allclose(odom, turn(10, (1.0, 0.0, 0.0)) @ base)
-    odom, restart = run.step(7 * S, base)  # two seconds from any odometry
+    odom, restart = run.step(None, base)  # no odometry near this scan's stamp
     assert odom is None and not restart
     run.judge(answer(False, 1), None, 3)
     assert run.judge(answer(True, 1), None, 3).map_from_odom is None  # no odometry: no map->odom
-    run.track.add(8 * S, turn(10, (1.0, 0.0, 0.0)))
-    assert run.step(8 * S, base)[1]  # the scan after the gap starts over
-    assert run.step(8 * S, None)[0] is None  # unknown extrinsic
+    assert run.step(turn(10, (1.0, 0.0, 0.0)), base)[1]  # the scan after the gap starts over
+    assert run.step(turn(10, (1.0, 0.0, 0.0)), None)[0] is None  # unknown extrinsic
+
+
+def test_a_scan_is_a_step_of_a_sequence_only_with_odometry_known():
+    from cgags_ros.localizer.localization import Localization
+    from cgags_ros.localizer.pairing import Pair, Stamped
+
+    out = Recorder()
+    cfg = configs_from_parameters({'map.file': 'map.ply', 'mode': 'on_demand',
+                                   'relocalization.base_from_sensor': list(BASE_FROM_SENSOR)})[1]
+    localization = Localization(cfg, out)
+    pair = Pair(Stamped(5 * S, 'sensor', None), Stamped(0, 'map', None))
+    out.odom[5 * S] = turn(10, (1.0, 0.0, 0.0))
+    assert localization.step(pair, cfg) is None  # no request waits: one scan at a time
+    localization.request(60.0, lambda *answer: None)
+    out.odom.clear()
+    assert localization.step(pair, cfg) is None  # no odometry known: one scan at a time
+    out.odom[6 * S] = turn(10, (1.0, 0.0, 0.0))
+    assert localization.step(pair, cfg) == (None, True)  # none near its stamp: judged alone
+    out.odom[5 * S] = turn(10, (1.0, 0.0, 0.0))
+    base = make_transform(quaternion_to_matrix(BASE_FROM_SENSOR[3:]), BASE_FROM_SENSOR[:3])
+    odom, restart = localization.step(pair, cfg)
+    assert restart  # the scan after one without odometry starts over
+    np.testing.assert_allclose(odom, turn(10, (1.0, 0.0, 0.0)) @ base)
+    assert localization.step(pair, cfg)[1] is False  # the next one continues
 
 
 # --- the engine on real fragments -------------------------------------------------------------
@@ -122,8 +122,8 @@ def relocalize(scene_data, ids, odom_sensor, **node):
     """
     Run one on-demand request over the scans ``ids`` through the engine; return what it did.
 
-    The odometry (``odom <- base`` from ``odom_sensor`` and the extrinsic) is fed at each
-    scan's stamp, and half a second before it (too far to count).
+    The odometry (``odom <- base`` from ``odom_sensor`` and the extrinsic) is known at each
+    scan's stamp, and half a second before it (not the scan's).
     """
     _, cfg, poses, fragments, path = scene_data
     base = make_transform(quaternion_to_matrix(BASE_FROM_SENSOR[3:]), BASE_FROM_SENSOR[:3])
@@ -141,8 +141,8 @@ def relocalize(scene_data, ids, odom_sensor, **node):
         for i, (k, O) in enumerate(zip(ids, odom_sensor)):
             stamp = (100 + i) * S
             O_base = O @ np.linalg.inv(base)
-            engine.odometry(stamp - S // 2, O_base @ turn(45, (1.0, 0.0, 0.0)))
-            engine.odometry(stamp, O_base)
+            out.odom[stamp - S // 2] = O_base @ turn(45, (1.0, 0.0, 0.0))
+            out.odom[stamp] = O_base
             engine.receive('source', stamp, 'sensor',
                            Cloud(fragments[k], Header('sensor', stamp), time.monotonic_ns()))
             wait_for(lambda: len(out.results) > i, 600, f'scan {i} to be registered')

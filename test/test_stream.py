@@ -226,7 +226,7 @@ def test_the_registration_process_holds_the_tracker_and_a_restart_forgets_it(kit
         records = stream(engine, out, kitti, [7, 8, 9])
         assert [r['path'] for r in records] == ['global', 'tracked', 'tracked']
         assert all(within(r, truth[k]) for k, r in zip([7, 8, 9], records))
-        engine.registration.restart()  # a fresh process: no prior, the target sent again
+        engine.runner.restart()  # a fresh process: no prior, the target sent again
         records = stream(engine, out, kitti, [10, 11], start_s=100.3)
         assert [r['path'] for r in records] == ['global', 'tracked']
         assert all(within(r, truth[k]) for k, r in zip([10, 11], records))
@@ -268,12 +268,12 @@ def test_a_periodic_check_runs_beside_the_stream_which_never_waits_for_it(kitti)
         assert lane is not None and engine.statistics()['checks.skipped_busy'] == 1
         wait_for(lambda: lane.supervisor.ready, 300, 'the checks process warmed up')
         records = stream(engine, out, kitti, [5, 6, 7], start_s=100.4)  # 7: due, offered
-        assert lane.supervisor.busy.is_set()
+        assert lane.supervisor.in_flight
         os.kill(lane.supervisor.pid, signal.SIGSTOP)  # the check cannot end now
         try:
             later = stream(engine, out, kitti, [8, 9], start_s=100.7)
             assert [r['path'] for r in records + later] == ['tracked'] * 5, records + later
-            assert lane.supervisor.busy.is_set()  # the stream never waited for it
+            assert lane.supervisor.in_flight  # the stream never waited for it
         finally:
             os.kill(lane.supervisor.pid, signal.SIGCONT)
         wait_for(lambda: not lane.supervisor.in_flight, 300, 'the check landed')

@@ -122,7 +122,7 @@ def test_a_process_killed_busy_fails_its_pair_and_one_killed_idle_costs_nothing(
 
         caller = threading.Thread(target=register)
         caller.start()
-        assert iso.busy.wait(60), 'the pair never reached the registration process'
+        wait_for(lambda: iso.in_flight, 60, 'the pair to reach the registration process')
         pid = iso.pid
         assert iso.health()['memory.worker_rss_mb'] > 0 and rss_mb(pid) > 0
         os.kill(pid, signal.SIGKILL)
@@ -130,7 +130,7 @@ def test_a_process_killed_busy_fails_its_pair_and_one_killed_idle_costs_nothing(
         assert [str(f) for f in failed] == [
             'the registration process died during this pair (killed, out of memory or a '
             'native crash); restarted']
-        assert iso.crashes == 1 and iso.restarts == 1 and not iso.busy.is_set()
+        assert iso.crashes == 1 and iso.restarts == 1 and not iso.in_flight
 
         iso.wait_ready()
         pid = iso.pid

@@ -85,6 +85,39 @@ def bad_map(folder, case):
     return path
 
 
+class FakeRunner:
+    """
+    A stand-in for the registration process, for tests of the runtime's plumbing.
+
+    A ``cgags_ros.runtime.jobs.Runner``: a pair's job is answered with ``register(source,
+    target, config=...)``; a map loads as in the real process (a ``ChildSession`` of this
+    one). It stands in for pairs only: a node or engine given one runs with
+    ``tracking.enabled`` false.
+    """
+
+    def __init__(self, register):
+        from cgags_ros.runtime.session import ChildSession
+
+        self.register, self._session = register, ChildSession()
+
+    def run(self, job, timeout_s=None):
+        from cgags_ros.runtime.jobs import PairDone, PrepareMap, RegisterPair
+
+        if isinstance(job, PrepareMap):
+            return self._session.run(job)
+        assert isinstance(job, RegisterPair), f'the stand-in registers pairs only: {job!r}'
+        return PairDone(self.register(job.source, job.target, config=job.config))
+
+    def supervise(self):
+        return False
+
+    def health(self, prefix='worker'):
+        return {}
+
+    def close(self):
+        pass
+
+
 def call(client, request, timeout, detail=None):
     """Call a service and return its answer; fail after ``timeout`` seconds."""
     assert client.wait_for_service(timeout_sec=30.0), client.srv_name

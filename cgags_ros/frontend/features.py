@@ -28,6 +28,8 @@ NORMAL_MAX_NN = 30
 # A cloud with fewer points after downsampling is refused as too small (too_few_points).
 MIN_POINTS = 10
 
+# Two threads may build one cloud's index at once: a pair's own and its target's beside it
+# (pipeline.register), when source and target are one cached cloud.
 _INDEX_LOCK = threading.Lock()
 
 

@@ -6,15 +6,16 @@ failed or was refused; the code is the one classification, on /diagnostics
 ``rejected.<code>`` and on ~/result), dropped (per pairing reason) or pending (waiting for a
 target, queued, or being registered). Targets: used, rejected (``rejected_targets.<code>``),
 dropped or held. The counters, the pairer, the upstream losses and the tracked stream's
-backlog change under one lock (the pairer uses it as its own), so every snapshot balances
-exactly; /diagnostics carries the buckets and ``accounting.ok``. Sources that never arrived
-are outside that balance: ``sources.lost_upstream`` counts the gaps in the received source
-stamps (:class:`~.upstream.UpstreamLoss`).
+backlog change under one lock, so every snapshot balances exactly; /diagnostics carries
+the buckets and ``accounting.ok``. Sources that never arrived are outside that balance:
+``sources.lost_upstream`` counts the gaps in the received source stamps
+(:class:`~.upstream.UpstreamLoss`).
 """
 
 from __future__ import annotations
 
 import collections
+import dataclasses
 import threading
 import time
 from typing import Any, Callable
@@ -24,6 +25,7 @@ from .pairing import is_source_drop, Pair, Pairer, Stamped
 from .transport import user_line
 from .upstream import UpstreamLoss
 from ..config.node import PairingConfig
+from ..pipeline.result import PipelineResult
 from ..refusal import Refusal
 
 LOG_REPEAT_S = 30.0  # a code already logged is logged again at most this often
@@ -32,19 +34,55 @@ LOG_REPEAT_S = 30.0  # a code already logged is logged again at most this often
 Skip = Callable[[list[int], Backlog], int]
 
 
+@dataclasses.dataclass(frozen=True)
+class LastRegistration:
+    """
+    The last registration, as /diagnostics shows it (``last_<field>``, ``last_timing.*``).
+
+    :ivar valid: the node took it (valid, finite). :ivar reason, refusal_code: why not ('').
+    :ivar voxel_size: the pipeline's, metres. :ivar path: 'global' or 'tracked'.
+    :ivar timings: its stages' times, seconds. :ivar source_stamp_ns: the scan's stamp.
+    """
+
+    valid: bool
+    reason: str
+    refusal_code: str
+    inliers: int
+    fitness: float
+    voxel_size: float
+    path: str
+    timings: dict[str, float]
+    source_stamp_ns: int
+
+    @classmethod
+    def of(cls, result: PipelineResult, refusal: Refusal | None, voxel_size: float,
+           stamp_ns: int) -> LastRegistration:
+        """Return the record of ``result``, refused by the node for ``refusal`` (None: taken)."""
+        return cls(refusal is None, refusal.message if refusal else '',
+                   refusal.code.value if refusal else '', result.num_inliers,
+                   float(result.fitness), voxel_size, result.path, dict(result.timings),
+                   stamp_ns)
+
+
 class Accounting:
-    """The counters, the pairer, the upstream losses and the backlog of one node."""
+    """
+    The counters, the pairer, the upstream losses and the backlog of one node.
+
+    Two threads write: the node's executor (clouds received, the pairing's settings) and the
+    engine's worker (pairs taken and finished); all of it changes under one condition,
+    which the worker also waits on for the next pair.
+    """
 
     def __init__(self, pairing: PairingConfig, queue_depth: int):
-        self._lock = threading.Condition()  # re-entrant; the pairer's lock too
-        self._pairer = Pairer.from_config(pairing, queue_depth, lock=self._lock)
+        self._lock = threading.Condition()  # the worker waits on it for a ready pair
+        self._pairer = Pairer.from_config(pairing, queue_depth)
         self._pairer.on_drop = self._on_drop
         self._upstream = UpstreamLoss()
         self.backlog = Backlog()  # a tracked stream's last scan (read under the lock)
         self._counts: collections.Counter[str] = collections.Counter()
         self._rejected: dict[str, collections.Counter[str]] = {
             'source': collections.Counter(), 'target': collections.Counter()}
-        self._last: dict[str, Any] = {}
+        self._last: LastRegistration | None = None
         self._latencies: collections.deque[float] = collections.deque(maxlen=200)
         self._in_progress = 0
         self._failing = ''  # why the worker failed, until a registration succeeds again
@@ -56,16 +94,16 @@ class Accounting:
         with self._lock:
             self._failing = code
 
-    def registered(self, last: dict[str, Any], path: str, valid: bool, stamp_ns: int) -> None:
+    def registered(self, last: LastRegistration) -> None:
         """
-        Record the last registration: its summary (``last_*`` keys), path and stamp.
+        Record the last registration (the worker's failure, if any, is over).
 
         The backlog keeps whether it was tracked and valid (a velocity exists).
         """
         with self._lock:
             self._failing = ''
-            self._last = dict(last)
-            self.backlog.saw(path == 'tracked' and valid, stamp_ns)
+            self._last = last
+            self.backlog.saw(last.path == 'tracked' and last.valid, last.source_stamp_ns)
 
     def count(self, key: str) -> None:
         """Count one event outside the balance (e.g. ``published_invalid``)."""
@@ -74,7 +112,8 @@ class Accounting:
 
     def wake(self) -> None:
         """End a :meth:`take` waiting for a pair (shutting down)."""
-        self._pairer.wake()
+        with self._lock:
+            self._lock.notify_all()
 
     def set_queue_depth(self, depth: int) -> None:
         """Keep ``depth`` ready pairs from the next pair on (the oldest dropped beyond)."""
@@ -103,6 +142,8 @@ class Accounting:
                 self._pairer.add_source(stamp_ns, frame_id, payload)
             else:
                 self._pairer.add_target(stamp_ns, frame_id, payload)
+            if self._pairer.pending:
+                self._lock.notify()
             return lost
 
     def _on_drop(self, reason: str, item: Stamped) -> None:
@@ -122,9 +163,11 @@ class Accounting:
         ``skip``: how many of the oldest ready pairs to drop first (counted as
         ``backlog.SKIPPED``), decided under the lock from their stamps and the backlog.
         """
-        if not self._pairer.wait_ready(timeout):
-            return None
         with self._lock:
+            if not self._pairer.pending:
+                self._lock.wait(timeout)
+            if not self._pairer.pending:
+                return None
             if skip is not None:
                 self._pairer.drop_oldest(skip(self._pairer.ready_stamps(), self.backlog),
                                          SKIPPED)
@@ -170,7 +213,8 @@ class Accounting:
             rejected_targets = dict(self._rejected['target'])
             pairing = self._pairer.counters()
             snap = {'counts': counts, 'rejected': rejected,
-                    'rejected_targets': rejected_targets, 'last': dict(self._last),
+                    'rejected_targets': rejected_targets,
+                    'last': dataclasses.asdict(self._last) if self._last else {},
                     'latencies': list(self._latencies), 'pairing': pairing,
                     'failing': self._failing}
             in_progress = self._in_progress

@@ -12,7 +12,6 @@ joint solve, which the registration process (one pair in, one result out) does n
 from __future__ import annotations
 
 import json
-import threading
 from typing import Any
 
 import numpy as np
@@ -27,14 +26,18 @@ COLLECTING, CONVERGED, FINAL, FAILED = 'collecting', 'converged', 'max_frames', 
 
 
 class CalibrationRun:
-    """One calibration of the pair (target frame <- source frame) from the node's pairs."""
+    """
+    One calibration of the pair (target frame <- source frame) from the node's pairs.
+
+    The worker alone takes pairs; :meth:`statistics` may be read from any thread: what it
+    reads is replaced whole (the status with its refusal as one pair), so no lock is needed.
+    """
 
     def __init__(self, config: CalibrationConfig, outputs: EngineOutputs):
         self.config, self._outputs = config, outputs
-        self._lock = threading.Lock()  # guards what statistics() reads
         self._calibrator: Any = None  # a Calibrator from the first frame on
-        self.status = COLLECTING
-        self.refusal: Refusal | None = None  # why the calibration failed
+        # The status, and why the calibration failed (None unless it did).
+        self._ended: tuple[str, Refusal | None] = (COLLECTING, None)
 
     @classmethod
     def for_mode(cls, mode: str, pipeline: PipelineConfig, config: CalibrationConfig | None,
@@ -45,10 +48,14 @@ class CalibrationRun:
         return cls(config or CalibrationConfig(pipeline=pipeline), outputs)
 
     @property
+    def status(self) -> str:
+        """Tell where the calibration stands: collecting, converged, max_frames or failed."""
+        return self._ended[0]
+
+    @property
     def done(self) -> bool:
         """Tell whether the calibration has ended (published or failed)."""
-        with self._lock:
-            return self.status != COLLECTING
+        return self.status != COLLECTING
 
     def take(self, pair: Pair) -> Refusal | None:
         """
@@ -76,8 +83,7 @@ class CalibrationRun:
                 f'({cal.parent_frame} <- {cal.child_frame}): ignored'))
         cal.add(Frame(parent.xyz, child.xyz, f'{pair.target.stamp_ns}',
                       pair.target.stamp_ns, pair.source.stamp_ns))
-        with self._lock:
-            self._calibrator = cal
+        self._calibrator = cal
         if len(cal.evidence) >= cal.config.min_frames:
             cal.solve()
         if not cal.done:
@@ -86,8 +92,7 @@ class CalibrationRun:
         status = CONVERGED if result.converged else FINAL
         if not result.valid or result.transform is None:
             status = FAILED
-        with self._lock:
-            self.status, self.refusal = status, result.refusal
+        self._ended = (status, result.refusal)
         frames = f'{result.num_agreeing} of {len(result.frames)} frames agree'
         if status == FAILED:
             self._outputs.log('error', f'calibration FAILED ({frames}): {result.refusal}')
@@ -104,8 +109,7 @@ class CalibrationRun:
 
     def statistics(self) -> dict[str, Any]:
         """Return the ``calibration.*`` keys of /diagnostics."""
-        with self._lock:
-            cal, status, refusal = self._calibrator, self.status, self.refusal
+        cal, (status, refusal) = self._calibrator, self._ended
         stats: dict[str, Any] = {'calibration.status': status,
                                  'calibration.max_frames': self.config.max_frames}
         if cal is not None:

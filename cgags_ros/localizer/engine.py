@@ -2,23 +2,24 @@
 What register_node does, without ROS: pairs in, one job a pair, what to publish out.
 
 ROS-free. :class:`RegistrationEngine` owns the accounting (:mod:`.accounting`: pairing,
-upstream losses, the backlog, the counts, under one lock), the registration process
-(:class:`~cgags_ros.runtime.supervisor.Supervisor`), the lane of a tracked stream's
-periodic checks (:class:`~cgags_ros.runtime.checks.CheckLane`), the map of ``map.file``
-and what a pose means for localization (:mod:`.localization`); in ``mode: calibrate`` the
-pairs are calibration frames (:mod:`.calibration_run`). The node decodes messages into
-:class:`Cloud` for :meth:`~RegistrationEngine.receive` and implements
-:class:`EngineOutputs`, through which the engine publishes, logs and asks for TF; it never
-reaches into the node.
+upstream losses, the backlog, the counts, under one lock), what runs the jobs (a
+:class:`~cgags_ros.runtime.jobs.Runner`: the registration process, or this process), the
+lane of a tracked stream's periodic checks (:class:`~cgags_ros.runtime.checks.CheckLane`),
+the map of ``map.file`` and what a pose means for localization (:mod:`.localization`); in
+``mode: calibrate`` the pairs are calibration frames (:mod:`.calibration_run`). The node
+decodes messages into :class:`Cloud` for :meth:`~RegistrationEngine.receive` and
+implements :class:`EngineOutputs`, through which the engine publishes, logs and asks for
+TF; it never reaches into the node.
 
 One worker thread takes each pair, chooses its job once (:meth:`~RegistrationEngine._job`:
 a scan of a relocalization over several scans, a tracked stream's scan, or a pair), runs it
 in the registration process (in this process when ``worker.registration_timeout`` is 0)
-and publishes what its typed answer says. Configuration alone decides the kind: continuous
-mode with ``tracking.enabled`` is a stream. Reception never waits for it: the accounting's
-bounded queue drops the oldest pair. While inactive (a lifecycle node's inactive state)
-sources are counted as rejected (``inactive``) and nothing is published; targets are still
-held, so a latched map survives a deactivation.
+and publishes what its typed answer says. Configuration alone decides the kind (continuous
+mode with ``tracking.enabled`` is a stream) and where a stream's periodic checks run (in a
+lane of their own when ``worker.registration_timeout`` > 0). Reception never waits for it:
+the accounting's bounded queue drops the oldest pair. While inactive (a lifecycle node's
+inactive state) sources are counted as rejected (``inactive``) and nothing is published;
+targets are still held, so a latched map survives a deactivation.
 """
 
 from __future__ import annotations
@@ -32,10 +33,10 @@ from typing import Any
 import numpy as np
 
 from . import backlog
-from .accounting import Accounting, LOG_REPEAT_S, lost_upstream_message
+from .accounting import Accounting, LastRegistration, LOG_REPEAT_S, lost_upstream_message
 from .calibration_run import CalibrationConfig, CalibrationRun
 from .interface import Cloud, EngineOutputs, Estimate, PairResult
-from .localization import Localization
+from .localization import Localization, RegisteredScan
 from .map_target import MapTarget
 from .pairing import Pair
 from .startup import start_registration
@@ -43,36 +44,48 @@ from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError
 from ..geometry import apply_transform
+from ..pipeline.result import PipelineResult
 from ..refusal import Refusal, RefusalCode
 from ..relocalization.requests import Answered, stale_scan
+from ..relocalization.sequence import StepAnswer
 from ..runtime.checks import CheckLane
-from ..runtime.jobs import (CheckVerdict, Job, RegisterPair, result_of, SequenceScan, Tracked,
-                            TrackScan)
-from ..runtime.session import RegisterFn
-from ..runtime.supervisor import Supervisor
+from ..runtime.jobs import (CheckVerdict, Job, RegisterPair, result_of, Runner, SequenceScan,
+                            Tracked, TrackScan)
 from ..tracking.counts import StreamCounts, tracks
+
+
+@dataclasses.dataclass(frozen=True)
+class Outcome:
+    """What became of the worker's pair: why it is rejected (None: published), its result."""
+
+    refusal: Refusal | None
+    result: PipelineResult | None = None
 
 
 class RegistrationEngine:
     """
     Registers paired clouds and decides what is published (see the module doc).
 
-    ``register_fn`` replaces ``register_clouds`` in every job (tests of the plumbing only;
-    the job kinds are chosen as without it). The engine is built stopped and inactive:
-    :meth:`start` starts the registration process, waits for it and the map, and starts the
-    worker; :meth:`activate` lets sources in and outputs out; :meth:`stop` ends the
-    processes and the worker for good.
+    The engine is built stopped and inactive: :meth:`start` starts the registration process,
+    waits for it and the map, and starts the worker; :meth:`activate` lets sources in and
+    outputs out; :meth:`stop` ends the processes and the worker for good. ``runner`` runs
+    the jobs instead of what :meth:`start` would start (a test's stand-in, for the plumbing:
+    the job kinds are chosen as without it); it stays the caller's, never closed here.
+
+    Two threads: the node's executor calls every method but the worker's loop, which runs
+    on the worker thread. The executor alone writes the configurations (replaced whole, one
+    pair) and the active flag, which the worker reads: no lock. The one event between them
+    stops the worker; the accounting, the requests and the registration process, which
+    both threads write, hold a lock each.
     """
 
     def __init__(self, pipeline_cfg: PipelineConfig, node_cfg: NodeConfig,
-                 outputs: EngineOutputs, register_fn: RegisterFn | None = None,
-                 calibration: CalibrationConfig | None = None):
-        self._lock = threading.Lock()  # guards the configs and the active flag
-        self._pipeline_cfg, self._node_cfg = pipeline_cfg, node_cfg
+                 outputs: EngineOutputs, calibration: CalibrationConfig | None = None,
+                 runner: Runner | None = None):
+        self._configs = (pipeline_cfg, node_cfg)
         self._outputs = outputs
-        self._register_fn = register_fn
-        self._runner: Any = None  # runs a job: the Supervisor, or a ChildSession in-process
-        self.registration: Supervisor | None = None  # the stream's supervised process
+        self._given = runner
+        self.runner: Runner | None = None  # runs the stream's jobs, once started
         self.checks: CheckLane | None = None  # the periodic checks' lane, while tracked
         self._verdict: CheckVerdict | None = None  # a check landed, for the next scan
         cfg = node_cfg
@@ -88,8 +101,8 @@ class RegistrationEngine:
         self._map = MapTarget(cfg) if cfg.map.file else None
         self._localization = Localization(cfg, outputs)
         self._active = False
-        self._stop = threading.Event()
-        self._worker: threading.Thread | None = None
+        self._stop = threading.Event()  # set by the lifecycle's thread, waited on by the worker
+        self._worker = threading.Thread(target=self._work, name='register_worker', daemon=True)
         self._tracking = StreamCounts()
 
     # ------------------------------------------------------------------ lifecycle
@@ -102,23 +115,20 @@ class RegistrationEngine:
 
         :raises StartFailed: why it cannot register; nothing it started is left running.
         """
-        self._runner, self.registration, target = start_registration(
-            self.pipeline_config, self.node_config, self._calibration is not None,
-            self._register_fn, self._map, self._outputs.log)
+        self.runner, target = start_registration(
+            self.pipeline_config, self.node_config, self._calibration is not None, self._map,
+            self._outputs.log, self._given)
         if target is not None:
             self._accounting.receive('target', 0, target.frame_id, target)
-        self._worker = threading.Thread(target=self._work, name='register_worker', daemon=True)
         self._worker.start()
 
     def activate(self) -> None:
         """Consume sources and publish outputs."""
-        with self._lock:
-            self._active = True
+        self._active = True
 
     def deactivate(self) -> None:
         """Ignore sources (counted as rejected), publish nothing, fail pending requests."""
-        with self._lock:
-            self._active = False
+        self._active = False
         calls = self._localization.calls
         calls.wake()  # no scan is registered for a pending request until activated
         calls.fail(Refusal(RefusalCode.INACTIVE, 'the node was deactivated'))
@@ -126,8 +136,7 @@ class RegistrationEngine:
     @property
     def active(self) -> bool:
         """Tell whether sources are consumed and outputs published."""
-        with self._lock:
-            return self._active
+        return self._active
 
     def stop(self) -> None:
         """End the worker and the registration processes; answer pending requests."""
@@ -135,9 +144,9 @@ class RegistrationEngine:
         self.deactivate()
         self._stop.set()
         self._accounting.wake()
-        if self.registration is not None:
-            self.registration.close()  # ends a job in flight at once
-        if self._worker is not None:
+        if self.runner is not None and self._given is None:
+            self.runner.close()  # ends a job in flight in a process of its own at once
+        if self._worker.ident is not None:  # started
             self._worker.join(timeout=5.0)
         if self.checks is not None:  # after the worker, which may have just started it
             self.checks.close()
@@ -147,19 +156,16 @@ class RegistrationEngine:
     @property
     def pipeline_config(self) -> PipelineConfig:
         """Return the pipeline configuration the next pair uses."""
-        with self._lock:
-            return self._pipeline_cfg
+        return self._configs[0]
 
     @property
     def node_config(self) -> NodeConfig:
         """Return the node configuration the next pair uses."""
-        with self._lock:
-            return self._node_cfg
+        return self._configs[1]
 
     def set_configs(self, pipeline_cfg: PipelineConfig, node_cfg: NodeConfig) -> None:
         """Use new (validated) configurations from the next pair on."""
-        with self._lock:
-            self._pipeline_cfg, self._node_cfg = pipeline_cfg, node_cfg
+        self._configs = (pipeline_cfg, node_cfg)
         self._accounting.set_slop(node_cfg.pairing.sync_slop)
         if not self.on_demand:  # tracking switched on or off: the backlog follows
             self._accounting.set_queue_depth(backlog.queue_depth(node_cfg, pipeline_cfg))
@@ -210,12 +216,6 @@ class RegistrationEngine:
             return
         self._localization.request(self.node_config.relocalization.timeout, on_answer)
 
-    def odometry(self, stamp_ns: int, odom_from_base: np.ndarray) -> None:
-        """Take the robot's odometry: ``odom <- base`` (4x4, metres) at ``stamp_ns``."""
-        sequence = self._localization.sequence
-        if sequence is not None:
-            sequence.track.add(stamp_ns, odom_from_base)
-
     # ------------------------------------------------------------------ worker
 
     def _work(self) -> None:
@@ -225,24 +225,23 @@ class RegistrationEngine:
             if pair is None:
                 continue
             self._tell_dropped()  # the scans a backlog skipped
-            refusal: Refusal | None = Refusal(RefusalCode.INTERNAL_ERROR, 'pair failed')
-            result = None
+            outcome = Outcome(Refusal(RefusalCode.INTERNAL_ERROR, 'pair failed'))
             try:
-                refusal, result = self._process(pair)
+                outcome = self._process(pair)
             except Exception as exc:  # noqa: BLE001 - the worker must outlive any bad pair
-                refusal = Refusal(RefusalCode.INTERNAL_ERROR,
-                                  f'pair failed: {exc!r}\n{traceback.format_exc()}')
+                outcome = Outcome(Refusal(RefusalCode.INTERNAL_ERROR,
+                                          f'pair failed: {exc!r}\n{traceback.format_exc()}'))
             finally:
                 latency = (time.monotonic_ns() - pair.source.payload.receipt_ns) * 1e-9
-                self._publish_result(pair, refusal, result, latency)
-                self._accounting.finish(refusal, latency)
-                self._localization.settle(refusal, result is not None)
-            if refusal is not None and not self._stop.is_set():
-                self._log_rejection(refusal, 'source')
+                self._publish_result(pair, outcome, latency)
+                self._accounting.finish(outcome.refusal, latency)
+                self._localization.settle(outcome.refusal, outcome.result is not None)
+            if outcome.refusal is not None and not self._stop.is_set():
+                self._log_rejection(outcome.refusal, 'source')
 
     def _skip(self, pending_ns: list[int], log: backlog.Backlog) -> int:
         """Return how many of the oldest waiting pairs a tracked stream skips (the backlog)."""
-        cfg, pipe_cfg = self.node_config, self.pipeline_config
+        pipe_cfg, cfg = self._configs
         if not tracks(cfg.mode, pipe_cfg):
             return 0
         return log.to_skip(pending_ns, cfg.pairing.backlog_max_lag, pipe_cfg.tracking.max_age,
@@ -262,7 +261,7 @@ class RegistrationEngine:
     def _job(self, pair: Pair, cfg: NodeConfig, pipe_cfg: PipelineConfig) -> Job:
         """Choose the pair's job, once: a sequence's scan, a tracked stream's scan, or a pair."""
         source, target = pair.source.payload.xyz, pair.target.payload.as_target()
-        step = self._localization.step(pair, cfg, self.on_demand)
+        step = self._localization.step(pair, cfg)
         if step is not None:
             return SequenceScan(source, target, pipe_cfg, step[0],
                                 cfg.relocalization.max_scans, step[1])
@@ -270,30 +269,31 @@ class RegistrationEngine:
         if tracks(cfg.mode, pipe_cfg) and self._localization.calls.waiting() is None:
             verdict, self._verdict = self._verdict, None
             return TrackScan(source, target, pipe_cfg, pair.source.stamp_ns * 1e-9,
-                             checks_beside=self.registration is not None, verdict=verdict)
+                             checks_beside=cfg.worker.registration_timeout > 0, verdict=verdict)
         return RegisterPair(source, target, pipe_cfg)
 
-    def _process(self, pair: Pair) -> tuple[Refusal | None, Any]:
-        """Register and publish a pair; return (None or why it is rejected, its result)."""
+    def _process(self, pair: Pair) -> Outcome:
+        """Register and publish a pair; return what became of it."""
         if self._calibration is not None:
-            return self._calibration.take(pair), None
+            return Outcome(self._calibration.take(pair))
         source = pair.source.payload
-        pipe_cfg, cfg = self.pipeline_config, self.node_config
+        pipe_cfg, cfg = self._configs  # one pair of configurations for the whole pair
         stale = stale_scan(self._localization.calls.waiting() if self.on_demand else None,
                            source.receipt_ns, cfg.relocalization.max_scan_age)
         if stale:
-            return stale, None
-        job = self._job(pair, cfg, pipe_cfg)
+            return Outcome(stale)
+        job, runner = self._job(pair, cfg, pipe_cfg), self.runner
+        assert runner is not None  # the worker runs once started
         try:
-            answer = self._runner.run(job)
+            answer = runner.run(job)
         except CgagsError as exc:
             if exc.code is RefusalCode.WORKER_CRASHED:
                 self._accounting.failed(exc.code.value)
-            return Refusal(exc.code, f'registration failed: {exc}'), None
+            return Outcome(Refusal(exc.code, f'registration failed: {exc}'))
         result = result_of(answer)
         if isinstance(answer, Tracked):
             self._tracking.add(answer.counts)
-            if answer.check_due:
+            if answer.check_due and isinstance(job, TrackScan):
                 self._offer_check(job)
         T = np.asarray(result.transform, dtype=np.float64)
         refusal = result.refusal or (None if np.isfinite(T).all() else Refusal(
@@ -301,33 +301,30 @@ class RegistrationEngine:
         if self._map is not None:
             self._map.update(result)
         frame = cfg.output.pose_frame_id or pair.target.frame_id
-        self._accounting.registered({
-            'valid': refusal is None, 'reason': refusal.message if refusal else '',
-            'refusal_code': refusal.code.value if refusal else '', 'inliers': result.num_inliers,
-            'fitness': float(result.fitness), 'voxel_size': pipe_cfg.voxel_size,
-            'path': result.path, 'timings': dict(result.timings),
-            'source_stamp_ns': pair.source.stamp_ns},
-            result.path, refusal is None, pair.source.stamp_ns)
+        self._accounting.registered(LastRegistration.of(result, refusal, pipe_cfg.voxel_size,
+                                                        pair.source.stamp_ns))
         if not self.active:
-            return Refusal(RefusalCode.INACTIVE, 'deactivated during registration'), result
-        cov = np.asarray(result.covariance, dtype=np.float64)
-        step = answer if isinstance(job, SequenceScan) else None
+            return Outcome(Refusal(RefusalCode.INACTIVE, 'deactivated during registration'),
+                           result)
+        scan = RegisteredScan(result, source.header, pair.source.frame_id, frame, cfg,
+                              answer if isinstance(answer, StepAnswer) else None)
         if refusal is not None:
             if not cfg.output.publish_invalid or not np.isfinite(T).all():
-                self._localization.finish(pair, result, T, cov, cfg, frame, self.on_demand, step)
-                return Refusal(refusal.code, f'invalid registration: {refusal.message}'), result
+                self._localization.finish(scan)
+                return Outcome(Refusal(refusal.code, f'invalid registration: {refusal.message}'),
+                               result)
             self._accounting.count('published_invalid')
         out = cfg.output
         self._outputs.publish_estimate(Estimate(
-            T, cov, source.header, frame,
+            T, np.asarray(result.covariance, dtype=np.float64), source.header, frame,
             apply_transform(T, source.xyz) if out.publish_aligned_cloud else None,
             (out.tf_child_frame or pair.source.frame_id) if out.broadcast_tf else ''))
-        self._localization.finish(pair, result, T, cov, cfg, frame, self.on_demand, step)
-        return None, result
+        self._localization.finish(scan)
+        return Outcome(None, result)
 
     # ------------------------------------------------------------------ the second lane
 
-    def _offer_check(self, job: Job) -> None:
+    def _offer_check(self, job: TrackScan) -> None:
         """Run the periodic check of a tracked scan in the checks' lane (started once)."""
         if self._stop.is_set():
             return
@@ -347,21 +344,20 @@ class RegistrationEngine:
 
     # ------------------------------------------------------------------ results and health
 
-    def _publish_result(self, pair: Pair, refusal: Refusal | None, result: Any,
-                        latency_s: float) -> None:
+    def _publish_result(self, pair: Pair, outcome: Outcome, latency_s: float) -> None:
         """Publish what became of the worker's pair (before it is counted as done)."""
-        source, target = pair.source, pair.target
+        source, target, result = pair.source, pair.target, outcome.result
         valid = (result is not None and bool(result.valid)
                  and bool(np.isfinite(result.transform).all()))
         self._outputs.publish_result(PairResult(
-            source.stamp_ns, source.frame_id, 'rejected' if refusal else 'published', '',
-            target.stamp_ns, target.frame_id,
-            self.node_config.output.pose_frame_id or target.frame_id, valid, result, refusal,
-            round(latency_s, 4)))
+            source.stamp_ns, source.frame_id, 'rejected' if outcome.refusal else 'published',
+            '', target.stamp_ns, target.frame_id,
+            self.node_config.output.pose_frame_id or target.frame_id, valid, result,
+            outcome.refusal, round(latency_s, 4)))
 
     def supervise(self) -> None:
         """Replace a registration process that died while idle (call it periodically)."""
-        if self.registration is not None and self.registration.supervise():
+        if self.runner is not None and self.runner.supervise():
             self._accounting.failed(RefusalCode.WORKER_CRASHED.value)
             self._outputs.log('warning', 'the registration process had died while idle; a '
                               'fresh one was started')
@@ -388,8 +384,8 @@ class RegistrationEngine:
             stats.update(self._map.statistics())
         stats.update(self._localization.statistics())
         stats.update(self._calibration.statistics() if self._calibration else {})
-        if self.registration is not None:
-            stats.update(self.registration.health())
+        if self.runner is not None:
+            stats.update(self.runner.health())
         if self.checks is not None:
             stats.update(self.checks.statistics())
         return stats

@@ -18,7 +18,6 @@ moved along the lever arm (:func:`~cgags_ros.pipeline.covariance.moved_covarianc
 from __future__ import annotations
 
 import collections
-import threading
 import time
 from typing import Callable
 
@@ -42,10 +41,14 @@ def extrinsic(cfg: NodeConfig) -> np.ndarray | None:
 
 
 class InitialPoseGuard:
-    """Decides whether an estimate becomes an initial pose; counts publishes and refusals."""
+    """
+    Decides whether an estimate becomes an initial pose; counts publishes and refusals.
+
+    The worker alone offers estimates; :meth:`statistics` may be read from any thread: the
+    counts are replaced whole, never changed in place, so no lock is needed.
+    """
 
     def __init__(self) -> None:
-        self._lock = threading.Lock()
         self.counts: collections.Counter[str] = collections.Counter()
         self._last_publish: float | None = None
 
@@ -64,16 +67,15 @@ class InitialPoseGuard:
             ``T_map_base`` or None, its covariance or None); a publish is counted as done.
         """
         now = time.monotonic()
-        with self._lock:
-            if not refusal and self._last_publish is not None \
-                    and now - self._last_publish < cfg.relocalization.cooldown:
-                refusal = Refusal(RefusalCode.COOLDOWN, (
-                    f'{now - self._last_publish:.1f} s since the last publish < '
-                    f'relocalization.cooldown {cfg.relocalization.cooldown:g} s'))
-            if not refusal and automatic and self.counts['auto'] >= cfg.relocalization.max_auto:
-                refusal = Refusal(RefusalCode.MAX_AUTO, (
-                    f'{self.counts["auto"]} automatic publishes = relocalization.max_auto '
-                    f'{cfg.relocalization.max_auto}'))
+        if not refusal and self._last_publish is not None \
+                and now - self._last_publish < cfg.relocalization.cooldown:
+            refusal = Refusal(RefusalCode.COOLDOWN, (
+                f'{now - self._last_publish:.1f} s since the last publish < '
+                f'relocalization.cooldown {cfg.relocalization.cooldown:g} s'))
+        if not refusal and automatic and self.counts['auto'] >= cfg.relocalization.max_auto:
+            refusal = Refusal(RefusalCode.MAX_AUTO, (
+                f'{self.counts["auto"]} automatic publishes = relocalization.max_auto '
+                f'{cfg.relocalization.max_auto}'))
         base = None
         if not refusal:
             base = extrinsic(cfg)
@@ -82,23 +84,22 @@ class InitialPoseGuard:
             refusal = Refusal(RefusalCode.NO_EXTRINSIC, (
                 f'no TF {cfg.relocalization.base_frame} <- {sensor_frame} (set '
                 'relocalization.base_from_sensor)'))
-        with self._lock:
-            if refusal:
-                self.counts[f'refused.{refusal.code.value}'] += 1
-                return str(refusal), None, None
-            self.counts['published'] += 1
-            self.counts['auto'] += automatic
-            self._last_publish = now
+        counts = self.counts.copy()
+        if refusal:
+            counts[f'refused.{refusal.code.value}'] += 1
+            self.counts = counts
+            return str(refusal), None, None
+        counts['published'] += 1
+        counts['auto'] += automatic
+        self.counts, self._last_publish = counts, now
         sensor_base = np.linalg.inv(base)
         return (f'initial pose published in {cfg.map.frame}', T @ sensor_base,
                 moved_covariance(cov, T, sensor_base))
 
     def may_publish_auto(self, cfg: NodeConfig) -> bool:
         """Tell whether an automatic publish (no relocalization request) is still allowed."""
-        with self._lock:
-            return self.counts['auto'] < cfg.relocalization.max_auto
+        return self.counts['auto'] < cfg.relocalization.max_auto
 
     def statistics(self) -> dict[str, int]:
         """Return ``initial_pose.*`` counters for /diagnostics."""
-        with self._lock:
-            return {f'initial_pose.{k}': v for k, v in sorted(self.counts.items())}
+        return {f'initial_pose.{k}': v for k, v in sorted(self.counts.items())}

@@ -19,6 +19,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from ..errors import CgagsError
+from ..pipeline.result import PipelineResult
 from ..refusal import Refusal, RefusalCode
 
 
@@ -140,7 +141,7 @@ class PairResult:
     :ivar target_frame: that target's frame.
     :ivar frame_id: the frame of the pose (the target's or ``output.pose_frame_id``; '' unpaired).
     :ivar valid: the registration is valid (and its transform finite).
-    :ivar result: the registration's result (a ``PipelineResult``), None when none ran.
+    :ivar result: the registration's result, None when none ran.
     :ivar refusal: why the node rejected or dropped the source (a refused registration, a
         timeout, a stale scan, a message it could not decode, ...); None when published.
     :ivar latency_s: seconds from the node's receipt of the source to this result (None when
@@ -155,7 +156,7 @@ class PairResult:
     target_frame: str = ''
     frame_id: str = ''
     valid: bool = False
-    result: Any = None
+    result: PipelineResult | None = None
     refusal: Refusal | None = None
     latency_s: float | None = None
 
@@ -195,7 +196,7 @@ class PairResult:
 
 
 class EngineOutputs(Protocol):
-    """What the engine needs from its node: publishing, logging and TF."""
+    """What the engine needs from its node: publishing, logging, TF and odometry."""
 
     def publish_estimate(self, estimate: Estimate) -> None:
         """Publish a pose (and its covariance, aligned cloud and TF as it says)."""
@@ -215,6 +216,15 @@ class EngineOutputs(Protocol):
 
     def base_from_sensor(self, base_frame: str, sensor_frame: str) -> np.ndarray | None:
         """Return ``T_base_sensor`` from TF (identity without TF), or None when unknown."""
+
+    def odometry(self, odom_frame: str, base_frame: str, stamp_ns: int
+                 ) -> tuple[bool, np.ndarray | None]:
+        """
+        Return the robot's odometry at a scan's stamp (``stamp_ns``).
+
+        :returns: (whether any odometry is known, ``T_odom_base`` (4x4, metres) at the stamp
+            or None when none is near it).
+        """
 
     def log(self, level: str, message: str) -> None:
         """Log ``message`` at ``level`` ('info', 'warning' or 'error')."""

@@ -12,7 +12,7 @@ answers the requests and keeps the last one-line summary for /diagnostics.
 
 from __future__ import annotations
 
-import threading
+import dataclasses
 from typing import Any
 
 import numpy as np
@@ -28,18 +28,43 @@ from ..relocalization.sequence import SequenceRun, StepAnswer, Verdict
 from ..validity import quality_refusal
 
 
+@dataclasses.dataclass(frozen=True)
+class RegisteredScan:
+    """
+    A scan the engine registered, what :meth:`Localization.finish` reads of it.
+
+    :ivar result: its registration (``transform``: map <- sensor, metres).
+    :ivar header: the scan's message header (its stamp is the outputs').
+    :ivar sensor_frame: the scan's frame. :ivar frame_id: the frame of its pose.
+    :ivar config: the node's configuration it was registered with.
+    :ivar step: the relocalizer's answer when the scan was a step of a sequence, else None.
+    """
+
+    result: PipelineResult
+    header: Any
+    sensor_frame: str
+    frame_id: str
+    config: NodeConfig
+    step: StepAnswer | None = None
+
+
 class Localization:
-    """Requests, the sequence in progress and the initial pose of one node (any thread)."""
+    """
+    Requests, the sequence in progress and the initial pose of one node.
+
+    The worker registers and finishes scans; any thread requests (:meth:`request`, the
+    requests hold their own lock) and reads :meth:`statistics`. What that reads the worker
+    alone writes, replacing it whole: no lock here.
+    """
 
     def __init__(self, cfg: NodeConfig, outputs: EngineOutputs):
         self._outputs = outputs
+        self._on_demand = cfg.mode == 'on_demand'
         self.calls = RelocalizeCalls()
         # With a map and odometry, a relocalization goes on over the next scans.
         self.sequence = SequenceRun() if cfg.map.file else None
         self._initial_pose = InitialPoseGuard()
-        self._lock = threading.Lock()  # guards what statistics() reads
-        self._candidates: list[Any] = []
-        self._last_summary = ''
+        self._shown: tuple[list[Any], str] = ([], '')  # the last candidates and summary
 
     def request(self, timeout_s: float, on_answer: Answered) -> None:
         """Queue a request; ``on_answer(success, message)`` once a scan answers it."""
@@ -52,31 +77,33 @@ class Localization:
         if self.calls.expire(late) and seq is not None and self.calls.waiting() is None:
             seq.reset()
 
-    def step(self, pair: Pair, cfg: NodeConfig, on_demand: bool
-             ) -> tuple[np.ndarray | None, bool] | None:
+    def step(self, pair: Pair, cfg: NodeConfig) -> tuple[np.ndarray | None, bool] | None:
         """
         Return (odom <- sensor, restart) when the scan is a step of a sequence, else None.
 
         A scan is one while a request waits, or in continuous mode while an automatic
-        initial pose may still go out, with a map and odometry received.
+        initial pose may still go out, with a map and any odometry known (the node's).
         """
         seq, called = self.sequence, self.calls.waiting() is not None
         reloc = cfg.relocalization
-        if seq is None or not (called or (reloc.publish_initial_pose and not on_demand
+        if seq is None or not (called or (reloc.publish_initial_pose and not self._on_demand
                                           and self._initial_pose.may_publish_auto(cfg))):
+            return None
+        known, odom_base = self._outputs.odometry(reloc.odom_frame, reloc.base_frame,
+                                                  pair.source.stamp_ns)
+        if not known:
             return None
         base = extrinsic(cfg)
         if base is None:
             base = self._outputs.base_from_sensor(reloc.base_frame, pair.source.frame_id)
-        return seq.step(pair.source.stamp_ns, base)
+        return seq.step(odom_base, base)
 
-    def finish(self, pair: Pair, result: PipelineResult, T: np.ndarray, cov: np.ndarray,
-               cfg: NodeConfig, frame_id: str, on_demand: bool,
-               answer: StepAnswer | None = None) -> None:
+    def finish(self, scan: RegisteredScan) -> None:
         """Publish the candidates, offer the initial pose, answer pending requests."""
-        header = pair.source.payload.header
+        result, cfg, header, answer = scan.result, scan.config, scan.header, scan.step
+        T = np.asarray(result.transform, dtype=np.float64)
         candidates = list(result.candidates)
-        self._outputs.publish_candidates(header, frame_id, [
+        self._outputs.publish_candidates(header, scan.frame_id, [
             c.transform for c in candidates if np.isfinite(c.transform).all()])
         called = self.calls.waiting() is not None
         published, why = False, 'relocalization.publish_initial_pose is off'
@@ -88,10 +115,10 @@ class Localization:
             refusal, T = verdict.refusal, verdict.transform
         if verdict is not None and not verdict.finished:
             why = 'not confirmed yet'
-        elif reloc.publish_initial_pose and (called or not on_demand):
+        elif reloc.publish_initial_pose and (called or not self._on_demand):
             why, T_map_base, cov_base = self._initial_pose.offer(
-                refusal, T, cov, pair.source.frame_id, cfg, not called,
-                self._outputs.base_from_sensor)
+                refusal, T, np.asarray(result.covariance, dtype=np.float64), scan.sensor_frame,
+                cfg, not called, self._outputs.base_from_sensor)
             if T_map_base is not None:
                 published = True
                 self._outputs.publish_initial_pose(BasePose(
@@ -100,8 +127,7 @@ class Localization:
                     verdict.map_from_odom if verdict else None))
         line = (verdict.line(published, why) if verdict
                 else summary_line(result, T, refusal, published, why))
-        with self._lock:
-            self._candidates, self._last_summary = candidates, line
+        self._shown = (candidates, line)
         if called and (verdict is None or verdict.finished):
             self.calls.answer(line, refusal)
 
@@ -115,8 +141,7 @@ class Localization:
 
     def statistics(self) -> dict[str, Any]:
         """Return the candidates, the last summary, the guards' and the requests' keys."""
-        with self._lock:
-            candidates, line = list(self._candidates), self._last_summary
+        candidates, line = self._shown
         stats: dict[str, Any] = {'candidates.count': len(candidates)}
         for i, c in enumerate(candidates):
             stats[f'candidates.{i}.inliers'] = c.num_inliers
@@ -124,8 +149,6 @@ class Localization:
             stats[f'candidates.{i}.ratio'] = round(c.ratio, 4)
         if line:
             stats['last_summary'] = line
-        if self.sequence is not None:
-            stats['odometry.samples'] = self.sequence.track.samples
         stats.update(self._initial_pose.statistics())
         stats.update(self.calls.statistics())
         return stats

@@ -17,8 +17,7 @@ from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError
 from ..pipeline.result import PipelineResult
-from ..runtime.jobs import MapReady, MapRef, PrepareMap
-from ..runtime.supervisor import Supervisor
+from ..runtime.jobs import MapReady, MapRef, PrepareMap, Runner
 
 
 class MapTarget:
@@ -29,14 +28,13 @@ class MapTarget:
         self.info: dict[str, Any] = {}
         self.error = ''
 
-    def load(self, runner: Any, config: PipelineConfig, cfg: NodeConfig,
+    def load(self, runner: Runner, config: PipelineConfig, cfg: NodeConfig,
              log: Callable[[str, str], None]) -> MapCloud:
         """
         Load the map where the pipeline runs (features computed or from the cache).
 
-        ``runner`` runs the job: in the registration process (a :class:`Supervisor`) the
-        load may take ``map.load_timeout``; in this process (a ``ChildSession``) it cannot
-        be bounded.
+        ``runner`` runs the job: in a registration process of its own the load may take
+        ``map.load_timeout``; in this process it cannot be bounded.
 
         :returns: the map as the target of every scan.
         :raises StartFailed: the map is missing, unreadable or empty, or its load failed
@@ -45,9 +43,7 @@ class MapTarget:
         ref = self.ref
         log('info', f'loading map {ref.path} (cache {ref.cache_dir or "off"})')
         try:
-            job = PrepareMap(ref, config)
-            answer = (runner.run(job, cfg.map.load_timeout) if isinstance(runner, Supervisor)
-                      else runner.run(job))
+            answer = runner.run(PrepareMap(ref, config), cfg.map.load_timeout)
             assert isinstance(answer, MapReady)
             info = answer.info
         except CgagsError as exc:

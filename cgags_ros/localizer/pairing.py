@@ -1,11 +1,13 @@
 """
 Pairing of source and target clouds.
 
-The one implementation the node and the offline replay tool share (ROS-free, thread-safe).
+The one implementation the node and the offline replay tool share (ROS-free). One thread at
+a time: the node's :class:`~.accounting.Accounting` calls it under its own lock, and waits
+for its pairs there.
 
 Feed it ``(stamp_ns, frame_id, payload)`` for every source and target as they arrive; take
-ready :class:`Pair` objects out with :meth:`Pairer.pop` (or :meth:`Pairer.wait_pop` from a
-worker thread). Payloads are opaque (the node passes numpy arrays).
+ready :class:`Pair` objects out with :meth:`Pairer.pop`. Payloads are opaque (the node
+passes numpy arrays).
 
 The two modes (``latest_target`` for scan-to-map, ``synchronized`` for approximate-time
 pairs), the bounded ready queue (the oldest pair is dropped when full: for localization a
@@ -19,7 +21,6 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import threading
 from typing import Any, Callable, Iterable
 
 MODES = ('latest_target', 'synchronized')
@@ -56,16 +57,12 @@ class Pairer:
     :param queue_depth: ready pairs kept (>= 1); the oldest is dropped when full.
     :param max_waiting_sources: sources kept while waiting for a target (>= 1).
     :param max_waiting_targets: synchronized mode only, targets kept while unmatched (>= 1).
-    :param lock: the condition the pairer's state changes under (a new one when None): the
-        node's accounting passes its own, so that its counters and the pairer's change under
-        one lock (a re-entrant one: the default ``threading.Condition`` is).
-    :ivar on_drop: None, or called with (reason, the dropped :class:`Stamped`) at every drop,
-        under the pairer's lock (a dropped pair hands over its source).
+    :ivar on_drop: None, or called with (reason, the dropped :class:`Stamped`) at every drop
+        (a dropped pair hands over its source).
     """
 
     @classmethod
-    def from_config(cls, cfg, queue_depth: int | None = None,
-                    lock: threading.Condition | None = None) -> 'Pairer':
+    def from_config(cls, cfg, queue_depth: int | None = None) -> 'Pairer':
         """
         Return the Pairer a :class:`~cgags_ros.config.node.PairingConfig` describes.
 
@@ -74,12 +71,11 @@ class Pairer:
         """
         return cls(cfg.mode, slop=cfg.sync_slop,
                    queue_depth=queue_depth or cfg.queue_depth,
-                   max_waiting_sources=cfg.max_waiting_sources, lock=lock)
+                   max_waiting_sources=cfg.max_waiting_sources)
 
     def __init__(self, mode: str = 'latest_target', *, slop: float = 0.05,
                  queue_depth: int = 2, max_waiting_sources: int = 1,
-                 max_waiting_targets: int = MAX_WAITING_TARGETS,
-                 lock: threading.Condition | None = None):
+                 max_waiting_targets: int = MAX_WAITING_TARGETS):
         if mode not in MODES:
             raise ValueError(f"pairing mode {mode!r} is not one of {', '.join(MODES)}")
         if slop < 0 or queue_depth < 1 or max_waiting_sources < 1 or max_waiting_targets < 1:
@@ -92,7 +88,7 @@ class Pairer:
         self.received_sources = 0
         self.received_targets = 0
         self.paired = 0
-        self.taken = 0  # pairs handed out by pop()/wait_pop()
+        self.taken = 0  # pairs handed out by pop()
         self.targets_used = 0  # targets retired after serving at least one pair
         self.clock_resets: collections.Counter[str] = collections.Counter()
         self.drops: collections.Counter[str] = collections.Counter()
@@ -104,7 +100,6 @@ class Pairer:
         self._newest_source_ns: int | None = None  # newest stamps since the last reset
         self._newest_target_ns: int | None = None
         self._receipts = 0
-        self._cond = lock or threading.Condition()
 
     def set_slop(self, slop: float) -> None:
         """Set the synchronized-mode slop (seconds); applies to the next match."""
@@ -114,80 +109,56 @@ class Pairer:
 
     def add_source(self, stamp_ns: int, frame_id: str, payload: Any) -> None:
         """Add a source cloud; it waits, or is paired at once (then ready to pop)."""
-        with self._cond:
-            self.received_sources += 1
-            item = self._stamped(stamp_ns, frame_id, payload)
-            if self._newest_source_ns is not None and item.stamp_ns < self._newest_source_ns:
-                self._clock_reset('source_stamp_backwards', item.stamp_ns)
-            if self.mode == 'latest_target':
-                self._newest_source_ns = _newest(self._newest_source_ns, item.stamp_ns)
-                if self._targets:
-                    self._emit(item, self._targets[-1])
-                else:
-                    self._push(self._sources, item, self.max_waiting_sources,
-                               'source_superseded_before_target')
+        self.received_sources += 1
+        item = self._stamped(stamp_ns, frame_id, payload)
+        if self._newest_source_ns is not None and item.stamp_ns < self._newest_source_ns:
+            self._clock_reset('source_stamp_backwards', item.stamp_ns)
+        if self.mode == 'latest_target':
+            self._newest_source_ns = _newest(self._newest_source_ns, item.stamp_ns)
+            if self._targets:
+                self._emit(item, self._targets[-1])
             else:
-                self._newest_source_ns = _newest(self._newest_source_ns, item.stamp_ns)
-                self._push(self._sources, item, self.max_waiting_sources, 'source_buffer_full')
-                self._match()
+                self._push(self._sources, item, self.max_waiting_sources,
+                           'source_superseded_before_target')
+        else:
+            self._newest_source_ns = _newest(self._newest_source_ns, item.stamp_ns)
+            self._push(self._sources, item, self.max_waiting_sources, 'source_buffer_full')
+            self._match()
 
     def add_target(self, stamp_ns: int, frame_id: str, payload: Any) -> None:
         """Add a target cloud; waiting sources it completes become ready to pop."""
-        with self._cond:
-            self.received_targets += 1
-            item = self._stamped(stamp_ns, frame_id, payload)
-            if self.mode == 'latest_target':
-                # A latched map may be re-sent with an old stamp: no clock check here.
-                self._retire_target()
-                self._targets = [item]
-                self._target_used = False
-                waiting, self._sources = self._sources, []
-                for source in waiting:
-                    self._emit(source, item)
-            else:
-                if (self._newest_target_ns is not None
-                        and item.stamp_ns < self._newest_target_ns):
-                    self._clock_reset('target_stamp_backwards', item.stamp_ns)
-                self._newest_target_ns = _newest(self._newest_target_ns, item.stamp_ns)
-                self._push(self._targets, item, self.max_waiting_targets, 'target_buffer_full')
-                self._match()
+        self.received_targets += 1
+        item = self._stamped(stamp_ns, frame_id, payload)
+        if self.mode == 'latest_target':
+            # A latched map may be re-sent with an old stamp: no clock check here.
+            self._retire_target()
+            self._targets = [item]
+            self._target_used = False
+            waiting, self._sources = self._sources, []
+            for source in waiting:
+                self._emit(source, item)
+        else:
+            if (self._newest_target_ns is not None
+                    and item.stamp_ns < self._newest_target_ns):
+                self._clock_reset('target_stamp_backwards', item.stamp_ns)
+            self._newest_target_ns = _newest(self._newest_target_ns, item.stamp_ns)
+            self._push(self._targets, item, self.max_waiting_targets, 'target_buffer_full')
+            self._match()
 
     # ------------------------------------------------------------------ output
 
     def pop(self) -> Pair | None:
         """Return the oldest ready pair, or None."""
-        with self._cond:
-            return self._take()
-
-    def wait_pop(self, timeout: float | None = None) -> Pair | None:
-        """Block until a pair is ready (or ``timeout`` seconds pass, or :meth:`wake`)."""
-        with self._cond:
-            if not self._ready:
-                self._cond.wait(timeout)
-            return self._take()
-
-    def wait_ready(self, timeout: float | None = None) -> bool:
-        """Block until a pair is ready, without taking it; False after ``timeout`` s."""
-        with self._cond:
-            if not self._ready:
-                self._cond.wait(timeout)
-            return bool(self._ready)
+        return self._take()
 
     def ready_stamps(self) -> list[int]:
         """Return the source stamps (ns) of the ready pairs, oldest first."""
-        with self._cond:
-            return [pair.source.stamp_ns for pair in self._ready]
+        return [pair.source.stamp_ns for pair in self._ready]
 
     def drop_oldest(self, count: int, reason: str) -> None:
         """Drop the ``count`` oldest ready pairs (their sources), counted as ``reason``."""
-        with self._cond:
-            for _ in range(min(count, len(self._ready))):
-                self._drop(reason, [self._ready.popleft().source])
-
-    def wake(self) -> None:
-        """Release threads blocked in :meth:`wait_pop` (used on shutdown)."""
-        with self._cond:
-            self._cond.notify_all()
+        for _ in range(min(count, len(self._ready))):
+            self._drop(reason, [self._ready.popleft().source])
 
     def reset(self) -> None:
         """
@@ -196,24 +167,20 @@ class Pairer:
         The latest target of latest_target mode is kept: a latched map is not sent again.
         Discarded items are counted as ``source_reset`` and ``target_reset``.
         """
-        with self._cond:
-            self._reset(keep_target_before=None)
+        self._reset(keep_target_before=None)
 
     @property
     def pending(self) -> int:
         """Ready pairs not yet popped."""
-        with self._cond:
-            return len(self._ready)
+        return len(self._ready)
 
     @property
     def waiting_sources(self) -> int:
-        with self._cond:
-            return len(self._sources)
+        return len(self._sources)
 
     @property
     def has_target(self) -> bool:
-        with self._cond:
-            return bool(self._targets)
+        return bool(self._targets)
 
     def counters(self) -> dict[str, int]:
         """
@@ -225,21 +192,20 @@ class Pairer:
         ``targets_used`` (retired after serving a pair). ``clock_resets.<reason>`` counts
         the resets that stamps going backwards caused.
         """
-        with self._cond:
-            held = len(self._targets)
-            out = {'received_sources': self.received_sources,
-                   'received_targets': self.received_targets,
-                   'paired': self.paired, 'pending': len(self._ready),
-                   'waiting_sources': len(self._sources), 'taken': self.taken,
-                   'targets_held': held, 'targets_used': self.targets_used,
-                   'dropped': sum(self.drops.values()),
-                   'dropped_sources': sum(v for k, v in self.drops.items()
-                                          if is_source_drop(k)),
-                   'dropped_targets': sum(v for k, v in self.drops.items()
-                                          if not is_source_drop(k))}
-            out.update({f'dropped.{k}': v for k, v in sorted(self.drops.items())})
-            out.update({f'clock_resets.{k}': v for k, v in sorted(self.clock_resets.items())})
-            return out
+        held = len(self._targets)
+        out = {'received_sources': self.received_sources,
+               'received_targets': self.received_targets,
+               'paired': self.paired, 'pending': len(self._ready),
+               'waiting_sources': len(self._sources), 'taken': self.taken,
+               'targets_held': held, 'targets_used': self.targets_used,
+               'dropped': sum(self.drops.values()),
+               'dropped_sources': sum(v for k, v in self.drops.items()
+                                      if is_source_drop(k)),
+               'dropped_targets': sum(v for k, v in self.drops.items()
+                                      if not is_source_drop(k))}
+        out.update({f'dropped.{k}': v for k, v in sorted(self.drops.items())})
+        out.update({f'clock_resets.{k}': v for k, v in sorted(self.clock_resets.items())})
+        return out
 
     # ------------------------------------------------------------------ internals
 
@@ -311,7 +277,6 @@ class Pairer:
         self._ready.append(Pair(source, target))
         while len(self._ready) > self.queue_depth:
             self._drop('queue_full', [self._ready.popleft().source])
-        self._cond.notify()
 
     def _match(self) -> None:
         slop = self.slop_ns

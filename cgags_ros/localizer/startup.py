@@ -18,50 +18,50 @@ map load end when they end.
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Callable
 
 from .interface import MapCloud, StartFailed
+from .map_target import MapTarget
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError
-from ..runtime.session import ChildSession, RegisterFn, warm_up
+from ..runtime.jobs import Runner
+from ..runtime.session import ChildSession, warm_up
 from ..runtime.supervisor import Supervisor
 
 
 def start_registration(pipeline_cfg: PipelineConfig, cfg: NodeConfig, in_process: bool,
-                       register_fn: RegisterFn | None, map_target: Any,
-                       log: Callable[[str, str], None]
-                       ) -> tuple[Any, Supervisor | None, MapCloud | None]:
+                       map_target: MapTarget | None, log: Callable[[str, str], None],
+                       runner: Runner | None = None) -> tuple[Runner, MapCloud | None]:
     """
     Start what registers pairs and wait until it can (see the module doc).
 
     :param in_process: run the pipeline in this process even if ``worker.registration_timeout``
         asks for a registration process (the calibrate mode does).
-    :param register_fn: replaces ``register_clouds`` in every job (tests of the plumbing
-        only): the jobs then run in this process.
-    :param map_target: the :class:`~.map_target.MapTarget` to load, or None.
-    :returns: (what runs a job: the supervised process or a ``ChildSession`` of this
-        process; the supervised process or None; the map as a target or None).
+    :param map_target: the map to load, or None.
+    :param runner: what runs the jobs (a test's stand-in); None: started here.
+    :returns: (what runs a job: a supervised process or a ``ChildSession`` of this process;
+        the map as a target or None).
     :raises StartFailed: the process did not warm up (it died, failed or ran past its
-        limit), the pipeline failed to load, or the map cannot be used.
+        limit), the pipeline failed to load, or the map cannot be used; a runner started
+        here is closed.
     """
-    registration = None
+    started: Runner | None = None
     try:
-        if register_fn is not None:
-            runner: Any = ChildSession(register_fn)
-        elif cfg.worker.registration_timeout > 0 and not in_process:
-            registration = runner = Supervisor(cfg.worker.registration_timeout)
-            registration.wait_ready()
-        else:  # import the pipeline (and Open3D) now, so the first pair is not slowed by it
+        if runner is None and cfg.worker.registration_timeout > 0 and not in_process:
+            process = Supervisor(cfg.worker.registration_timeout)
+            runner = started = process
+            process.wait_ready()
+        elif runner is None:  # import the pipeline (and Open3D) now, not with the first pair
             warm_up()
-            runner = ChildSession()
+            runner = started = ChildSession()
         target = None if map_target is None else map_target.load(runner, pipeline_cfg, cfg, log)
     except BaseException as exc:  # noqa: BLE001 - even Ctrl-C leaves no process behind
-        if registration is not None:
-            registration.close()
+        if started is not None:
+            started.close()
         if isinstance(exc, StartFailed) or not isinstance(exc, Exception):
             raise
         reason = (str(exc) if isinstance(exc, CgagsError)
                   else f'the registration pipeline failed to load: {exc!r}')
         raise StartFailed(reason) from exc
-    return runner, registration, target
+    return runner, target

@@ -14,6 +14,8 @@ from ..frontend.features import CloudFeatures, extract_features
 
 _CACHE_SIZE = 2  # clouds whose features are kept: a latched target plus one more
 _cache: OrderedDict[tuple, CloudFeatures] = OrderedDict()
+# Two threads write: a pair's source features are computed on its own, its target's beside
+# it (pipeline.register).
 _cache_lock = threading.Lock()
 
 

@@ -3,8 +3,9 @@ Relocalization in a prior map: requests, and a pose confirmed over several scans
 
 - :mod:`.requests`: what ``~/relocalize`` and ``reinitialize_global_localization`` ask, and
   their one-line answers (the node's engine holds them).
-- :mod:`.sequence` and :mod:`.odometry`: the node's side of a relocalization over several
-  scans (each scan's pose in odom, the verdict after each answer). Light: numpy only.
+- :mod:`.sequence`: the node's side of a relocalization over several scans (each scan's
+  pose in odom, the verdict after each answer). Light: numpy only. :mod:`.odometry`: the
+  robot's odometry by stamp where tf2 is missing.
 - :mod:`.relocalizer` and :mod:`.hypotheses`: the :class:`~.relocalizer.Relocalizer` itself,
   which runs where the map's features are (the registration process, ``cgags-relocalize``).
 """

@@ -31,17 +31,22 @@ Answered = Callable[[bool, str], None]  # called with (success, message) once an
 class Request:
     """One pending request: when it was made (monotonic s), its deadline, its answer."""
 
-    __slots__ = ('called', 'deadline', 'done', 'answer', 'on_answer')
+    __slots__ = ('called', 'deadline', 'answer', 'on_answer')
 
     def __init__(self, called: float, deadline: float, on_answer: Answered | None = None):
         self.called, self.deadline = called, deadline
-        self.done = threading.Event()
         self.answer: tuple[bool, str] = (False, 'not answered')
         self.on_answer = on_answer
 
 
 class RelocalizeCalls:
-    """Pending relocalization requests, answered by the registration worker."""
+    """
+    Pending relocalization requests, answered by the registration worker.
+
+    Two threads write: the node's executor adds requests (a service call) and fails them
+    (a deactivation), the worker answers and expires them; the pending list and the counts
+    change under one lock. The executor wakes the worker's :meth:`wait` with an event.
+    """
 
     def __init__(self) -> None:
         self.counts: collections.Counter[str] = collections.Counter()
@@ -119,7 +124,6 @@ class RelocalizeCalls:
         with self._lock:
             self.counts['succeeded' if success else f'failed.{refusal.code.value}'] += 1
         req.answer = (success, message)
-        req.done.set()
         if req.on_answer is not None:
             req.on_answer(success, message)
 

@@ -1,9 +1,10 @@
 """
 Relocalization over the next few scans with the robot's odometry, as the node runs it.
 
-ROS-free and light (numpy only). With a map and odometry (:mod:`.odometry`), a
-relocalization (a ``~/relocalize`` call, ``reinitialize_global_localization``, or continuous
-mode while an automatic initial pose may still go out) takes scans until the
+ROS-free and light (numpy only). With a map and the robot's odometry (the node's ``odom``
+topic or TF, looked up by the node: :mod:`cgags_ros.ros.transforms`), a relocalization (a
+``~/relocalize`` call, ``reinitialize_global_localization``, or continuous mode while an
+automatic initial pose may still go out) takes scans until the
 :class:`~.relocalizer.Relocalizer` in the registration process confirms a pose or the scans
 (``relocalization.max_scans``) or the time (``relocalization.timeout``) run out:
 
@@ -24,12 +25,11 @@ Without any odometry received, none of this runs: one scan at a time.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
 
 import numpy as np
 
-from .odometry import OdometryTrack
 from .requests import localized, not_localized
+from ..pipeline.result import PipelineResult
 from ..refusal import Judged, Refusal
 
 
@@ -39,14 +39,14 @@ class StepAnswer(Judged):
     The relocalizer's answer after one scan, without clouds (what the process sends back).
 
     :ivar refusal: why not confirmed (None: confirmed).
-    :ivar result: the scan's own registration (a ``PipelineResult``).
+    :ivar result: the scan's own registration.
     :ivar confirmed, done, transform, map_from_odom, scans_used: as in
         :class:`~.relocalizer.Answer`.
     :ivar hypotheses: how many hypotheses the sequence holds.
     """
 
     refusal: Refusal | None
-    result: Any
+    result: PipelineResult
     confirmed: bool
     done: bool
     transform: np.ndarray
@@ -84,10 +84,9 @@ class Verdict:
 
 
 class SequenceRun:
-    """The relocalization in progress: its odometry, its scans, its last verdict."""
+    """The relocalization in progress: its scans, its last verdict."""
 
     def __init__(self) -> None:
-        self.track = OdometryTrack()
         self.last: Verdict | None = None  # the last verdict of an unfinished relocalization
         self._why: Refusal | None = None  # why that one was not confirmed
         self._taken = 0
@@ -98,21 +97,17 @@ class SequenceRun:
         """Forget the relocalization in progress (the next scan starts a new one)."""
         self.last, self._why, self._taken, self._restart = None, None, 0, True
 
-    def step(self, stamp_ns: int, base_from_sensor: np.ndarray | None
-             ) -> tuple[np.ndarray | None, bool] | None:
+    def step(self, odom_base: np.ndarray | None, base_from_sensor: np.ndarray | None
+             ) -> tuple[np.ndarray | None, bool]:
         """
-        Return (the sensor's pose in odom, restart) of a scan stamped ``stamp_ns``.
+        Return (the sensor's pose in odom, restart) of a scan, a step of the sequence.
 
-        None without any odometry received (the scan is no step of a sequence).
-
+        :param odom_base: 4x4 ``T_odom_base`` at the scan's stamp (None: no odometry near it).
         :param base_from_sensor: 4x4 ``T_base_sensor`` (None: unknown, the scan has no
             pose in odom).
-        :returns: the 4x4 ``odom <- sensor`` (None: no odometry near the stamp) and whether
-            the relocalizer forgets the scans so far first.
+        :returns: the 4x4 ``odom <- sensor`` (None: no odometry near the stamp or no
+            extrinsic) and whether the relocalizer forgets the scans so far first.
         """
-        if not self.track.received:
-            return None
-        odom_base = self.track.at(stamp_ns)
         odom = (None if odom_base is None or base_from_sensor is None
                 else odom_base @ base_from_sensor)
         restart = self._restart

@@ -68,6 +68,7 @@ it too.
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import time
 from typing import Any
@@ -98,8 +99,8 @@ from ..localizer.engine import RegistrationEngine
 from ..localizer.interface import Cloud
 from ..localizer.transport import PROFILE_VARIABLE, use_large_data_profile
 from ..refusal import Refusal
+from ..runtime.jobs import Runner
 from ..runtime.procfs import rss_mb
-from ..runtime.session import RegisterFn
 
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
 # How the node destroys what configure created (so that it leaves the node's lists too).
@@ -111,26 +112,25 @@ class RegisterNode(LifecycleNode):
     """
     Wires topics, services, parameters and diagnostics around a :class:`RegistrationEngine`.
 
-    ``register_fn`` replaces ``register_clouds`` in every job; for tests of the plumbing only.
-    Invalid parameters at construction raise :class:`InvalidConfigError`.
+    ``runner`` runs the jobs instead of a registration process (a test's stand-in, for the
+    plumbing). Invalid parameters at construction raise :class:`InvalidConfigError`.
     """
 
-    def __init__(self, node_name: str = 'register_node', *,
-                 register_fn: RegisterFn | None = None, **kwargs: Any):
+    def __init__(self, node_name: str = 'register_node', *, runner: Runner | None = None,
+                 **kwargs: Any):
         # Undeclared names reach _on_set_parameters, which refuses them with a reason.
         kwargs.setdefault('allow_undeclared_parameters', True)
         super().__init__(node_name, **kwargs)
         self._descriptions = ros_parameter_descriptions()
         self._declare_parameters()
         _, cfg = self._configs()  # invalid startup values (a choice typo) raise here
-        self._register_fn = register_fn
+        self._runner = runner
         self._engine: RegistrationEngine | None = None
         self.outputs: Outputs | None = None
         self._entities: list[Any] = []
         self._service_group = ReentrantCallbackGroup()
         self._bond: Any = None
         self._transport_profile = os.environ.get(PROFILE_VARIABLE, '')
-        self._odometry_topic = False  # an Odometry message was received
         self.add_on_set_parameters_callback(self._on_set_parameters)
         if cfg.autostart and self.trigger_configure() == SUCCESS:
             self.trigger_activate()
@@ -148,9 +148,10 @@ class RegisterNode(LifecycleNode):
             pipe, cfg = self._configs()
             calibration = (calibration_config(pipe, cfg.config_file)
                            if cfg.mode == 'calibrate' else None)
-            self.outputs = Outputs(self, calibrate=calibration is not None)
-            self._engine = RegistrationEngine(pipe, cfg, self.outputs, self._register_fn,
-                                              calibration)
+            self.outputs = Outputs(self, calibrate=calibration is not None,
+                                   odometry=bool(cfg.map.file))
+            self._engine = RegistrationEngine(pipe, cfg, self.outputs, calibration,
+                                              self._runner)
             self._engine.start()  # returns once the process is warm and the map loaded
         except CgagsError as exc:  # a parameter, the registration process or the map
             self.get_logger().error(f'cannot configure: {exc}; the node stays unconfigured')
@@ -159,8 +160,8 @@ class RegisterNode(LifecycleNode):
             self._teardown()
             return FAILURE
         self._entities = [
-            self.create_subscription(PointCloud2, 'source_cloud', self._on_source,
-                                     source_qos(cfg)),
+            self.create_subscription(PointCloud2, 'source_cloud', functools.partial(
+                self._receive, role='source'), source_qos(cfg)),
             self.create_timer(cfg.output.diagnostics_period, self._publish_diagnostics),
             self.create_service(Trigger, '~/relocalize', self._on_relocalize,
                                 callback_group=self._service_group),
@@ -168,7 +169,8 @@ class RegisterNode(LifecycleNode):
                                 self._on_reinitialize, callback_group=self._service_group)]
         if not cfg.map.file:
             self._entities.append(self.create_subscription(
-                PointCloud2, 'target_cloud', self._on_target, target_qos(cfg)))
+                PointCloud2, 'target_cloud', functools.partial(self._receive, role='target'),
+                target_qos(cfg)))
         else:  # with odometry a relocalization goes on over the next scans
             self._entities.append(self.create_subscription(
                 Odometry, 'odom', self._on_odometry, qos_profile_sensor_data))
@@ -293,26 +295,10 @@ class RegisterNode(LifecycleNode):
             engine.receive(role, stamp, str(msg.header.frame_id),
                            Cloud(xyz, msg.header, receipt))
 
-    def _on_source(self, msg: PointCloud2) -> None:
-        engine, outputs = self._engine, self.outputs
-        if (not self._odometry_topic and engine is not None and outputs is not None
-                and engine.node_config.map.file):
-            cfg = engine.node_config  # no odom topic: TF odom -> base, if tf2_ros has it
-            reloc = cfg.relocalization
-            T = outputs.odometry(reloc.odom_frame, reloc.base_frame, msg.header.stamp)
-            if T is not None:
-                engine.odometry(stamp_to_ns(msg.header.stamp), T)
-        self._receive(msg, 'source')
-
     def _on_odometry(self, msg: Odometry) -> None:
-        engine, self._odometry_topic = self._engine, True
         with contextlib.suppress(InvalidInputError):  # a zero quaternion: no pose
-            T = pose_to_transform(msg)
-            if engine is not None:
-                engine.odometry(stamp_to_ns(msg.header.stamp), T)
-
-    def _on_target(self, msg: PointCloud2) -> None:
-        self._receive(msg, 'target')
+            if self.outputs is not None:
+                self.outputs.tf.add_odometry(stamp_to_ns(msg.header.stamp), pose_to_transform(msg))
 
     # ------------------------------------------------------------------ services
 

@@ -2,7 +2,7 @@
 The node's outputs: what the engine's ``EngineOutputs`` asks for, in ROS messages.
 
 :class:`~cgags_ros.localizer.interface.EngineOutputs` as ~/pose, ~/pose_with_covariance,
-~/aligned_cloud, ~/candidates, initialpose, /tf (when tf2_ros is importable), ~/result and
+~/aligned_cloud, ~/candidates, initialpose, /tf (:mod:`.transforms`), ~/result and
 /diagnostics; in calibrate mode ~/calibration, ~/calibration_report and /tf_static
 (latched). Frames and conventions as in :mod:`.node`: a pose maps source-frame points into
 the target (map) frame and carries the source's stamp. Pose outputs are lifecycle
@@ -12,8 +12,6 @@ publishers: they publish only while the node is active.
 from __future__ import annotations
 
 import collections
-import importlib.util
-import threading
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -23,9 +21,10 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header, String
 
 from . import diagnostics
-from .conversions import transform_to_pose, transform_to_transform_stamped, xyz_to_pointcloud2
+from .conversions import transform_to_pose, xyz_to_pointcloud2
 from .qos import latched_qos, result_qos
-from ..geometry import make_transform, quaternion_to_matrix
+from .transforms import Transforms
+from ..io.pointcloud2 import stamp_to_ns
 from ..localizer import statistics
 from ..localizer.interface import BasePose, Calibration, Estimate, PairResult
 from ..pipeline.covariance import map_to_odom
@@ -33,9 +32,15 @@ from ..refusal import Refusal
 
 
 class Outputs:
-    """Publishers, TF and logging of one node: the engine's ``EngineOutputs``."""
+    """
+    Publishers, TF and logging of one node: the engine's ``EngineOutputs``.
 
-    def __init__(self, node: Any, calibrate: bool = False):
+    ``odometry``: the node takes odometry (``map.file``), TF listens from the start. The
+    engine's TF questions are :attr:`tf`'s to answer. Only the worker counts (replacing the
+    counts whole): :meth:`statistics` needs no lock.
+    """
+
+    def __init__(self, node: Any, calibrate: bool = False, odometry: bool = False):
         self._node = node
         lifecycle = node.create_lifecycle_publisher
         self._pose_pub = lifecycle(PoseStamped, '~/pose', 10)
@@ -48,14 +53,10 @@ class Outputs:
         self._result_pub = node.create_publisher(String, '~/result', result_qos())
         self._lifecycle_publishers = [self._pose_pub, self._pose_cov_pub, self._aligned_pub,
                                       self._candidates_pub, self._initial_pub]
-        self._lock = threading.Lock()
         self.counts: collections.Counter[str] = collections.Counter()
-        self._tf_buffer: Any = None
-        self._tf_listener: Any = None
-        self._tf_broadcaster: Any = None
-        self._tf_said = False
-        self._tf_importable = importlib.util.find_spec('tf2_ros') is not None
-        self._static_pub: Any = None  # /tf_static: a broadcaster, a publisher, or False
+        self._odometry = odometry
+        self.tf = Transforms(node, self.log, self._send, listen=odometry)
+        self.base_from_sensor, self.odometry = self.tf.base_from_sensor, self.tf.odometry
         self._calibration_pub = self._report_pub = None
         if calibrate:
             self._calibration_pub = lifecycle(PoseWithCovarianceStamped, '~/calibration',
@@ -76,11 +77,10 @@ class Outputs:
         self._send(self._pose_cov_pub, cov_msg)
         if estimate.aligned is not None:
             self._send(self._aligned_pub, xyz_to_pointcloud2(estimate.aligned, header))
-        if estimate.tf_child_frame and self._tf_ready('output.broadcast_tf is set'):
-            self._broadcast(estimate.transform, header, estimate.tf_child_frame)
+        if estimate.tf_child_frame and self.tf.available('output.broadcast_tf is set'):
+            self.tf.broadcast(estimate.transform, header, estimate.tf_child_frame)
 
-    def publish_candidates(self, header: Any, frame_id: str,
-                           transforms: list[np.ndarray]) -> None:
+    def publish_candidates(self, header: Any, frame_id: str, transforms: list[np.ndarray]) -> None:
         """Publish ~/candidates (geometry_msgs/PoseArray, best first)."""
         msg = PoseArray(header=Header(stamp=header.stamp, frame_id=frame_id))
         msg.poses = [transform_to_pose(T) for T in transforms]
@@ -93,15 +93,16 @@ class Outputs:
         msg.pose.pose = transform_to_pose(pose.transform)
         msg.pose.covariance = [float(v) for v in pose.covariance.ravel()]
         self._send(self._initial_pub, msg)
-        if pose.odom_frame and self._tf_ready('relocalization.broadcast_map_to_odom is set'):
+        if pose.odom_frame and self.tf.available('relocalization.broadcast_map_to_odom is set'):
             T_map_odom = pose.map_from_odom
             if T_map_odom is None:
-                T_odom_base = self._lookup(pose.odom_frame, pose.base_frame, msg.header.stamp)
+                T_odom_base = self.tf.lookup(pose.odom_frame, pose.base_frame,
+                                             stamp_to_ns(msg.header.stamp))
                 if T_odom_base is None:
                     self._count('map_to_odom.no_odom_tf')
                     return
                 T_map_odom = map_to_odom(pose.transform, T_odom_base)
-            self._broadcast(T_map_odom, msg.header, pose.odom_frame)
+            self.tf.broadcast(T_map_odom, msg.header, pose.odom_frame)
             self._count('map_to_odom.broadcast')
 
     def publish_calibration(self, calibration: Calibration) -> None:
@@ -112,31 +113,11 @@ class Outputs:
         msg.pose.covariance = [float(v) for v in calibration.covariance.ravel()]
         self._send(self._calibration_pub, msg)
         self._send(self._report_pub, String(data=calibration.report))
-        static = self._static()
-        if static:
-            tf = transform_to_transform_stamped(calibration.transform, header,
-                                                calibration.child_frame)
-            if hasattr(static, 'sendTransform'):
-                static.sendTransform(tf)
-            else:
-                from tf2_msgs.msg import TFMessage
-                self._send(static, TFMessage(transforms=[tf]))
+        self.tf.broadcast_static(calibration.transform, header, calibration.child_frame)
 
     def publish_result(self, result: PairResult) -> None:
         """Publish ~/result (std_msgs/String): the source's result as JSON."""
         self._send(self._result_pub, String(data=result.to_json()))
-
-    def base_from_sensor(self, base_frame: str, sensor_frame: str) -> np.ndarray | None:
-        """Return ``T_base_sensor`` from TF; the identity (said once) without tf2_ros."""
-        if not self._tf_ready('relocalization.base_from_sensor is not set'):
-            return np.eye(4)
-        return self._lookup(base_frame, sensor_frame)
-
-    def odometry(self, odom_frame: str, base_frame: str, stamp: Any) -> np.ndarray | None:
-        """Return ``T_odom_base`` from TF at ``stamp``; None without it or tf2_ros (silent)."""
-        if not self._tf_importable:
-            return None
-        return self._lookup(odom_frame, base_frame, stamp) if self._tf_ready('') else None
 
     def log(self, level: str, message: str) -> None:
         """Log through the node's logger, unless its context has ended."""
@@ -166,9 +147,11 @@ class Outputs:
                                   statistics.CONFIGURE_CODE: refusal.code.value})
 
     def statistics(self) -> dict[str, int]:
-        """Return the ``map_to_odom.*`` counters for /diagnostics."""
-        with self._lock:
-            return {f'initial_pose.{k}': v for k, v in sorted(self.counts.items())}
+        """Return the ``map_to_odom.*`` counters and ``odometry.samples`` for /diagnostics."""
+        stats = {f'initial_pose.{k}': v for k, v in sorted(self.counts.items())}
+        if self._odometry:
+            stats['odometry.samples'] = self.tf.odometry_samples
+        return stats
 
     def destroy(self) -> None:
         """Destroy the publishers (the node's cleanup)."""
@@ -176,12 +159,12 @@ class Outputs:
             self._node.destroy_lifecycle_publisher(pub)
         self._node.destroy_publisher(self._diag_pub)
         self._node.destroy_publisher(self._result_pub)
-        if self._static_pub and not hasattr(self._static_pub, 'sendTransform'):
-            self._node.destroy_publisher(self._static_pub)
+        self.tf.destroy()
 
     def _count(self, key: str) -> None:
-        with self._lock:
-            self.counts[key] += 1
+        counts = self.counts.copy()
+        counts[key] += 1
+        self.counts = counts
 
     def _send(self, publisher: Any, msg: Any) -> None:
         """
@@ -200,60 +183,3 @@ class Outputs:
         except RuntimeError:  # rclpy's RCLError derives from RuntimeError
             if self._node.context.ok():
                 raise
-
-    # ------------------------------------------------------------------ TF
-
-    def _tf_ready(self, why: str) -> bool:
-        """Start TF once; False (said once) when tf2_ros is not importable."""
-        if self._tf_buffer is not None:
-            return True
-        try:
-            from tf2_ros import Buffer, TransformBroadcaster, TransformListener
-        except ImportError:
-            if not self._tf_said:
-                self._tf_said = True
-                self.log('warning', f'{why} but tf2_ros is not importable: no TF is broadcast '
-                         'or looked up (the sensor pose stands for the base pose unless '
-                         'relocalization.base_from_sensor is set)')
-            return False
-        self._tf_buffer = Buffer()
-        self._tf_listener = TransformListener(self._tf_buffer, self._node)
-        self._tf_broadcaster = TransformBroadcaster(self._node)
-        return True
-
-    def _static(self) -> Any:
-        """
-        Return what publishes /tf_static, made once; False (said once) when nothing can.
-
-        tf2_ros's StaticTransformBroadcaster when it imports; else a latched publisher of
-        tf2_msgs/TFMessage on /tf_static (what that broadcaster is) when tf2_msgs imports.
-        """
-        if self._static_pub is None:
-            try:
-                from tf2_ros import StaticTransformBroadcaster
-                self._static_pub = StaticTransformBroadcaster(self._node)
-            except ImportError:
-                try:
-                    from tf2_msgs.msg import TFMessage
-                    self._static_pub = self._node.create_publisher(TFMessage, '/tf_static',
-                                                                   latched_qos())
-                except ImportError:
-                    self._static_pub = False
-                    self.log('warning', 'neither tf2_ros nor tf2_msgs is importable: the '
-                             'calibration is not broadcast on /tf_static (use ~/calibration or '
-                             'the static_transform_publisher line of ~/calibration_report)')
-        return self._static_pub
-
-    def _broadcast(self, T: np.ndarray, header: Header, child: str) -> None:
-        self._tf_broadcaster.sendTransform(transform_to_transform_stamped(T, header, child))
-
-    def _lookup(self, parent: str, child: str, stamp: Any = None) -> np.ndarray | None:
-        from rclpy.time import Time
-
-        try:
-            tf = self._tf_buffer.lookup_transform(
-                parent, child, Time.from_msg(stamp) if stamp is not None else Time())
-        except Exception:  # noqa: BLE001 - tf2's lookup errors have no common base here
-            return None
-        r, t = tf.transform.rotation, tf.transform.translation
-        return make_transform(quaternion_to_matrix((r.x, r.y, r.z, r.w)), (t.x, t.y, t.z))

@@ -71,7 +71,7 @@ class CheckLane:
             return None
         stamp = self._stamp
         try:
-            answer: Any = self.supervisor.collect(0.0)
+            answer = self.supervisor.collect(0.0)
         except CgagsError as exc:  # a timeout, a crash or a failed pair: no verdict
             self.counts[f'failed.{exc.code.value}'] += 1
             return None if stamp is None else CheckVerdict(stamp, None)

@@ -2,8 +2,10 @@
 The jobs the registration process runs, one type a kind, and the typed answer of each.
 
 The engine chooses the kind once (:meth:`~cgags_ros.localizer.engine.RegistrationEngine`),
-the :class:`~.session.ChildSession` runs it (in the registration process, or in this one),
-and the answer's type says what came back: no answer is unpacked by kind downstream.
+a :class:`Runner` runs it (a :class:`~.supervisor.Supervisor`'s registration process, or a
+:class:`~.session.ChildSession` in this process), and the answer's type says what came
+back; every answer to a registration carries its
+:class:`~cgags_ros.pipeline.result.PipelineResult` (:func:`result_of`).
 
 - :class:`RegisterPair` -> :class:`PairDone`: one pair through ``register_clouds``.
 - :class:`TrackScan` -> :class:`Tracked`: a stream's next scan through the session's
@@ -16,18 +18,19 @@ and the answer's type says what came back: no answer is unpacked by kind downstr
 
 Targets are an array (metres, the target's frame), a :class:`MapRef` (the process loads
 and keeps the map), or :data:`HELD`: the target the session was sent last, so a latched
-target crosses the pipe once. Light to import (numpy only): the node's own process builds
-jobs and reads answers without loading the pipeline.
+target crosses the pipe once. Light to import (numpy, no Open3D): the node's own process
+builds jobs and reads answers without loading the pipeline.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Union
+from typing import Any, Protocol, Union
 
 import numpy as np
 
 from ..config.pipeline import PipelineConfig
+from ..pipeline.result import PipelineResult
 from ..relocalization.sequence import StepAnswer
 
 HELD = 'held'  # a job's target: the one the session holds (sent by an earlier job)
@@ -134,7 +137,7 @@ class PrepareMap:
 class PairDone:
     """The answer to :class:`RegisterPair`: the pipeline's result."""
 
-    result: Any  # a PipelineResult
+    result: PipelineResult
 
 
 @dataclasses.dataclass
@@ -147,22 +150,58 @@ class Tracked:
     :ivar check_due: a periodic check of this scan is due: run it in the other lane.
     """
 
-    result: Any
+    result: PipelineResult
     counts: dict[str, int]
     check_due: bool = False
+
+
+MapSummary = dict[str, Union[str, int, float, list[float], None]]  # PreparedMap.info()
 
 
 @dataclasses.dataclass
 class MapReady:
     """The answer to :class:`PrepareMap`: the map's summary (``PreparedMap.info()``)."""
 
-    info: dict[str, Any]
+    info: MapSummary
 
 
 Job = Union[RegisterPair, TrackScan, SequenceScan, PrepareMap, CheckScan]
 Answer = Union[PairDone, Tracked, StepAnswer, MapReady, CheckVerdict]
 
 
-def result_of(answer: Answer) -> Any:
-    """Return the registration result an answer carries (None for a map or a check)."""
-    return None if isinstance(answer, (MapReady, CheckVerdict)) else answer.result
+def result_of(answer: Answer) -> PipelineResult:
+    """
+    Return the registration an answer to a pair, a tracked scan or a sequence's scan carries.
+
+    :raises TypeError: the answer of a map load or a check, which carries none.
+    """
+    if isinstance(answer, (MapReady, CheckVerdict)):
+        raise TypeError(f'{type(answer).__name__} carries no registration')
+    return answer.result
+
+
+class Runner(Protocol):
+    """
+    What runs jobs, the engine's one seam to the pipeline.
+
+    A :class:`~.supervisor.Supervisor` (a registration process of its own), a
+    :class:`~.session.ChildSession` (this process), or a test's stand-in.
+    """
+
+    def run(self, job: Job, timeout_s: float | None = None) -> Answer:
+        """
+        Run ``job``; return its answer.
+
+        :param timeout_s: its time limit where one can be kept (a process of its own), else
+            ignored; None: the runner's own.
+        :raises CgagsError: what the job raised, or why it did not end (its ``code``).
+        """
+
+    def supervise(self) -> bool:
+        """Replace what died while idle; tell whether something was (call it periodically)."""
+
+    def health(self, prefix: str = 'worker') -> dict[str, Any]:
+        """Return its keys of /diagnostics (none in this process)."""
+
+    def close(self) -> None:
+        """End it for good (a job in flight in a process of its own ends at once)."""

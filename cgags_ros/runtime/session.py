@@ -18,7 +18,7 @@ The pipeline (Open3D) is imported when the first job runs.
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -29,8 +29,6 @@ from ..errors import CgagsError
 from ..relocalization.sequence import StepAnswer
 from ..tracking.counts import track
 
-RegisterFn = Callable[..., Any]  # register_clouds(source, target, *, config) -> result
-
 
 class TargetNotHeld(CgagsError):
     """A job asked for the held target, and this session holds none (it was restarted)."""
@@ -40,40 +38,50 @@ class ChildSession:
     """
     Runs jobs (:meth:`run`) and keeps the state they share (see the module doc).
 
-    ``register`` replaces ``register_clouds`` everywhere it would run (the pairs, the
-    Tracker's global path); for tests of the runtime's plumbing only.
+    A :class:`~.jobs.Runner` of this process: nothing to supervise, no time limit.
     """
 
-    def __init__(self, register: RegisterFn | None = None):
-        self._register = register
+    def __init__(self) -> None:
         self._target: Any = None
         self._maps: Any = None
         self._tracker: Any = None
         self._relocalizer: Any = None
 
-    def run(self, job: Job) -> Answer:
-        """Run one job; return its typed answer. :raises CgagsError: as the job's pipeline."""
+    def run(self, job: Job, timeout_s: float | None = None) -> Answer:
+        """
+        Run one job; return its typed answer.
+
+        ``timeout_s`` is ignored: a call in this process cannot be interrupted.
+
+        :raises CgagsError: as the job's pipeline.
+        """
         if isinstance(job, PrepareMap):
             return MapReady(self._prepared(job.ref, job.config).info())
         target = self._resolve(job.target, job.config)
-        if isinstance(job, RegisterPair):
-            return PairDone(self._registration()(job.source, target, config=job.config))
         if isinstance(job, TrackScan):
             return self._track(job, target)
         if isinstance(job, SequenceScan):
             return self._sequence_scan(job, target)
+        from ..pipeline.register import register_clouds
+
+        if isinstance(job, RegisterPair):
+            return PairDone(register_clouds(job.source, target, config=job.config))
         if isinstance(job, CheckScan):
-            result = self._registration()(job.source, target, config=job.config)
+            result = register_clouds(job.source, target, config=job.config)
             return CheckVerdict(job.stamp, np.asarray(result.transform) if result.valid else None,
                                 '' if result.valid else result.refusal.code.value)
         raise TypeError(f'not a job: {job!r}')
 
-    def _registration(self) -> RegisterFn:
-        if self._register is None:
-            from ..pipeline.register import register_clouds
+    def supervise(self) -> bool:
+        """Tell that nothing was replaced: this process runs the jobs."""
+        return False
 
-            self._register = register_clouds
-        return self._register
+    def health(self, prefix: str = 'worker') -> dict[str, Any]:
+        """Return no /diagnostics keys: this process's are the node's."""
+        return {}
+
+    def close(self) -> None:
+        """End nothing: this process runs the jobs (its state goes with this object)."""
 
     def _resolve(self, target: Target, config: PipelineConfig) -> Any:
         """Return the points or the prepared map a job's target stands for, and hold it."""
@@ -96,8 +104,6 @@ class ChildSession:
             from ..tracking.tracker import Tracker
 
             self._tracker = Tracker()
-            if self._register is not None:
-                self._tracker.global_registration = self._register
         tracker = self._tracker
 
         def run() -> Any:

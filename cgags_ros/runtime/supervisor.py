@@ -73,9 +73,13 @@ class Supervisor:
     one; one that dies during a job is replaced and the job fails with
     :class:`WorkerCrashed`. :meth:`supervise` replaces a dead idle process early, so that
     the next job does not wait for the fresh one's start-up. ``crashes`` counts deaths,
-    ``restarts`` every replacement (crashes and timeouts). ``busy`` is set from the moment a
-    job is sent until its answer is received. One caller at a time; :meth:`health`,
-    :meth:`supervise` and :attr:`ready` may be called from any thread.
+    ``restarts`` every replacement (crashes and timeouts). :attr:`in_flight` from the moment
+    a job is sent until its answer is received.
+
+    Two threads use the process: the caller's (its jobs: :meth:`run`, :meth:`submit`,
+    :meth:`collect`, :meth:`restart`; the node's worker) and another that supervises it
+    (:meth:`supervise`, :attr:`ready` and :meth:`close`; the node's executor). Each holds
+    one lock while it uses or replaces the process. :meth:`health` takes no lock.
     """
 
     def __init__(self, timeout_s: float, name: str = 'cgags-registration', niceness: int = 0,
@@ -85,7 +89,6 @@ class Supervisor:
         self.crashes = 0
         self.restarts = 0
         self.targets_sent = 0
-        self.busy = threading.Event()
         self._lock = threading.Lock()  # held while the process is used (a job, a replacement)
         self._child: Child | None = None
         self._closed = False
@@ -167,7 +170,10 @@ class Supervisor:
         for attempt in (0, 1):
             self.submit(job, timeout_s)
             try:
-                return self.collect(None)
+                answer = None
+                while answer is None:  # a poll may end a hair before the deadline: poll again
+                    answer = self.collect(None)
+                return answer
             except TargetNotHeld:  # not expected (a restart forgets what was sent): resend
                 if attempt:
                     raise
@@ -198,7 +204,6 @@ class Supervisor:
                                             'was sent; restarted') from None
                     self._crashed()
             self._flight = _InFlight(job, time.monotonic() + limit, too_long, spilled)
-            self.busy.set()
 
     def collect(self, wait_s: float | None = 0.0) -> Answer | None:
         """
@@ -242,7 +247,6 @@ class Supervisor:
         if self._flight is not None:
             remove_files(self._flight.spilled)
         self._flight = None
-        self.busy.clear()
 
     def _with_held_target(self, job: Job) -> Job:
         """Return ``job`` with :data:`HELD` for a target the process already holds."""

@@ -11,7 +11,6 @@ the node's own process only counts.
 from __future__ import annotations
 
 from collections import Counter
-import threading
 from typing import Any, Callable
 
 from ..config.pipeline import PipelineConfig
@@ -34,18 +33,22 @@ def track(tracker: Any, run: Callable[[], Any]) -> tuple[Any, dict[str, int]]:
 
 
 class StreamCounts:
-    """The Tracker's counts, added up from each scan's share (thread-safe)."""
+    """
+    The Tracker's counts, added up from each scan's share.
+
+    One thread adds (the engine's worker); :meth:`statistics` may be read from any: the
+    counts are replaced whole, never changed in place, so no lock is needed.
+    """
 
     def __init__(self) -> None:
-        self._lock = threading.Lock()
         self._counts: Counter[str] = Counter({name: 0 for name in SHOWN})
 
     def add(self, counts: dict[str, int]) -> None:
         """Add what one scan counted."""
-        with self._lock:
-            self._counts.update(counts)
+        total = self._counts.copy()
+        total.update(counts)
+        self._counts = total
 
     def statistics(self) -> dict[str, int]:
         """Return ``tracking.<count>`` for /diagnostics."""
-        with self._lock:
-            return {f'tracking.{k}': v for k, v in sorted(self._counts.items())}
+        return {f'tracking.{k}': v for k, v in sorted(self._counts.items())}
