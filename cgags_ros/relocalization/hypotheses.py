@@ -159,9 +159,9 @@ def judge(hypotheses: list[Hypothesis], results: list[PipelineResult], odom: lis
         return i in h.checks and h.checks[i].explains(seq, limit)
 
     if not hypotheses:
-        return settle(results[-1].transform, odom[-1], results[-1].refusal
-                      or Refusal(RefusalCode.NO_ESTIMATE, 'no scan gave a candidate pose'),
-                      [], results, seq)
+        return make_answer(results[-1].transform, odom[-1], results[-1].refusal
+                           or Refusal(RefusalCode.NO_ESTIMATE, 'no scan gave a candidate pose'),
+                           [], results, seq)
     void = [i for i in range(n) if not any(explains(h, i) for h in hypotheses)]
     used = [i for i in range(n) if i not in void]
 
@@ -177,11 +177,11 @@ def judge(hypotheses: list[Hypothesis], results: list[PipelineResult], odom: lis
 
     ranked = sorted(hypotheses, key=score, reverse=True)
     if void and used == [n - 1]:
-        return settle(results[-1].transform, odom[-1], results[-1].refusal, ranked,
-                      results, seq, used=1)
+        return make_answer(results[-1].transform, odom[-1], results[-1].refusal, ranked,
+                           results, seq, used=1)
     if void and len(used) < 2:
-        return settle(results[-1].transform, odom[-1], unexplained_refusal(void), ranked,
-                      results, seq)
+        return make_answer(results[-1].transform, odom[-1], unexplained_refusal(void), ranked,
+                           results, seq)
     best = ranked[0]
     last = latest(best)
     misses = [i for i, ok in zip(used, explained(best)) if not ok]
@@ -195,12 +195,12 @@ def judge(hypotheses: list[Hypothesis], results: list[PipelineResult], odom: lis
             refusal = sequence_ambiguity_refusal(n, rotation_error_deg(pose, last),
                                                  translation_error(pose, last))
             break
-    return settle(last, odom[-1], refusal, ranked, results, seq, used=len(used))
+    return make_answer(last, odom[-1], refusal, ranked, results, seq, used=len(used))
 
 
-def settle(transform: np.ndarray, odom: np.ndarray, refusal: Refusal | None,
-           hypotheses: list[Hypothesis], results: list[PipelineResult],
-           seq: SequenceConfig, used: int | None = None) -> Answer:
+def make_answer(transform: np.ndarray, odom: np.ndarray, refusal: Refusal | None,
+                hypotheses: list[Hypothesis], results: list[PipelineResult],
+                seq: SequenceConfig, used: int | None = None) -> Answer:
     """
     Return the answer: confirmed without a refusal and with enough scans, else why not.
 

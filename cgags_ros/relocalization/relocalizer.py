@@ -35,7 +35,7 @@ import dataclasses
 
 import numpy as np
 
-from .hypotheses import Answer, Check, Hypothesis, judge, SequenceConfig, settle
+from .hypotheses import Answer, Check, Hypothesis, judge, make_answer, SequenceConfig
 from ..config.pipeline import PipelineConfig
 from ..errors import InvalidInputError
 from ..frontend.features import CloudFeatures, finite_points
@@ -47,7 +47,7 @@ from ..pipeline.covariance import loosest_sigma, overlap_covariance
 from ..pipeline.map import PreparedMap
 from ..pipeline.register import register_clouds
 from ..pipeline.result import PipelineResult
-from ..pipeline.settle import CHECK, Pair, settle as settle_start
+from ..pipeline.settle import CHECK, Pair, settle
 from ..pipeline.twins import map_symmetries
 from ..validity import uncertainty_refusal
 
@@ -108,8 +108,8 @@ class Relocalizer:
             # may ask for more (``min_scans``), without it there will be none.
             seq = (self.sequence if odom_from_sensor is not None
                    else dataclasses.replace(self.sequence, min_scans=1))
-            return settle(result.transform, odom, result.refusal, self.hypotheses, [result],
-                          seq)
+            return make_answer(result.transform, odom, result.refusal, self.hypotheses, [result],
+                               seq)
         answer = self._judge()
         if self.sequence.submap and not answer.confirmed:
             # The scans alone did not settle it: the scans so far, fused with the odometry,
@@ -151,8 +151,8 @@ class Relocalizer:
         refusal = uncertainty_refusal(loosest_sigma(cov), cfg)
         if refusal is None:
             return answer
-        return settle(answer.transform, scan.odom, refusal, answer.hypotheses, answer.results,
-                      self.sequence)
+        return make_answer(answer.transform, scan.odom, refusal, answer.hypotheses, answer.results,
+                           self.sequence)
 
     def _add_twins(self, best: Hypothesis) -> bool:
         """Add ``best`` turned by each symmetry of the map; tell whether any is new."""
@@ -231,8 +231,8 @@ class Relocalizer:
                          float('nan'))
         # Settled on the map's own k-d tree and normals, built once with its features: a
         # check costs its few Gauss-Newton steps, not a tree of the map near the scan.
-        s = settle_start(Pair(scan.features, ft, cfg, map_target=True), predicted,
-                         reach + final, CHECK)
+        s = settle(Pair(scan.features, ft, cfg, map_target=True), predicted,
+                   reach + final, CHECK)
         return Check(self.prepared.to_map(s.transform), s.moved_deg, s.moved_m, steps,
                      travelled, s.fitness, s.free_space)
 
