@@ -39,15 +39,15 @@ class FrontEndConfig:
         "in the target's descriptor index, but fewer correspondences; 0 matches every point.",
         low=0)
     source_sensor: tuple[float, float, float] | None = option(
-        None, "[x, y, z]: the position (metres) of the sensor that saw the source cloud, in "
+        None, '[x, y, z]: the position (metres) of the sensor that saw the source cloud, in '
         "that cloud's frame. Set it when the cloud is not in its sensor's frame (a deskewed "
         'scan in base_link, a scan moved into odom or map): normals and free space are judged '
         "from it, else from the frame's origin, refusing right poses (free_space, "
-        "low_confidence). Unset (null or []): the origin (docs/frames.md).",
+        'low_confidence). Unset (null or []): the origin (docs/frames.md).',
         allow_none=True)
     target_sensor: tuple[float, float, float] | None = option(
         None, 'frontend.source_sensor for the target cloud: the position of its sensor in '
-        "its frame (metres); unset (null or []): the origin. Target clouds only: a map "
+        'its frame (metres); unset (null or []): the origin. Target clouds only: a map '
         '(map.file, a prepared map) has no one sensor and refuses it.', allow_none=True)
 
     def check(self) -> None:
