@@ -44,7 +44,7 @@ def section(cls: type) -> Any:
     return dataclasses.field(default_factory=cls)
 
 
-def _check_vector(name: str, default: tuple, value: Any) -> tuple:
+def check_vector(name: str, default: tuple, value: Any) -> tuple:
     """Return ``value`` as a tuple of ``len(default)`` finite floats, or raise."""
     items = value.tolist() if hasattr(value, 'tolist') else value
     if (isinstance(items, (str, bytes, Mapping)) or not hasattr(items, '__len__')
@@ -65,7 +65,7 @@ def _check_field(owner: str, f: dataclasses.Field, value: Any) -> Any:
         raise InvalidConfigError(f'{name} must not be None')
     default = f.default
     if isinstance(default, tuple):
-        return _check_vector(name, default, value)
+        return check_vector(name, default, value)
     if isinstance(default, bool) or (default is None and isinstance(value, bool)):
         if not isinstance(value, bool):
             raise InvalidConfigError(f'{name} must be true or false, got {value!r}')

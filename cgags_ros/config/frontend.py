@@ -8,8 +8,13 @@ import here: the node reads these to declare its parameters.
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
-from .fields import option
+from .fields import check_vector, option
+from ..errors import InvalidConfigError
+
+MAP_TARGET_SENSOR = ('frontend.target_sensor is for target clouds: a map (map.file, a prepared '
+                     'map) has no one sensor, and free space is not judged from it; unset it')
 
 
 @dataclasses.dataclass
@@ -33,6 +38,35 @@ class FrontEndConfig:
         'downsampled source, one point a cell) against every target point: fewer searches '
         "in the target's descriptor index, but fewer correspondences; 0 matches every point.",
         low=0)
+    source_sensor: tuple[float, float, float] | None = option(
+        None, '[x, y, z]: the position (metres) of the sensor that saw the source cloud, in '
+        "that cloud's frame. Set it when the cloud is not in its sensor's frame (a deskewed "
+        'scan in base_link, a scan moved into odom or map): normals and free space are judged '
+        "from it, else from the frame's origin, refusing right poses (free_space, "
+        'low_confidence). Unset (null or []): the origin (docs/frames.md).',
+        allow_none=True)
+    target_sensor: tuple[float, float, float] | None = option(
+        None, 'frontend.source_sensor for the target cloud: the position of its sensor in '
+        'its frame (metres); unset (null or []): the origin. Target clouds only: a map '
+        '(map.file, a prepared map) has no one sensor and refuses it.', allow_none=True)
+
+    def check(self) -> None:
+        """Check the sensor positions; an empty one (``[]``) becomes None (unset)."""
+        self.source_sensor = _sensor_position('frontend.source_sensor', self.source_sensor)
+        self.target_sensor = _sensor_position('frontend.target_sensor', self.target_sensor)
+
+
+def _sensor_position(name: str, value: Any) -> tuple[float, float, float] | None:
+    """Return ``value`` as three finite floats, None when unset; raise otherwise."""
+    items = value.tolist() if hasattr(value, 'tolist') else value
+    if items is None or (isinstance(items, (list, tuple)) and not items):
+        return None
+    try:
+        return check_vector(name, (0.0, 0.0, 0.0), items)
+    except InvalidConfigError:
+        raise InvalidConfigError(
+            f'{name} must be [x, y, z], the sensor position in metres (three finite numbers), '
+            f"or empty for the cloud frame's origin; got {value!r}") from None
 
 
 @dataclasses.dataclass

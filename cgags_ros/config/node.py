@@ -19,6 +19,7 @@ from typing import Any, Mapping
 from . import fields
 from .calibration import CalibrationConfig
 from .fields import option, section
+from .frontend import MAP_TARGET_SENSOR
 from .pipeline import load_yaml, PipelineConfig
 from ..errors import InvalidConfigError
 
@@ -272,6 +273,8 @@ def configs_from_parameters(values: Mapping[str, Any], *,
     if node_cfg.mode == 'calibrate' and node_cfg.map.file:
         raise InvalidConfigError('mode calibrate takes two live sensors (source_cloud = child, '
                                  'target_cloud = parent); map.file must be empty')
+    if node_cfg.map.file and pipe_cfg.frontend.target_sensor is not None:
+        raise InvalidConfigError(MAP_TARGET_SENSOR)
     return pipe_cfg, node_cfg
 
 

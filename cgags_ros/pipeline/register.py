@@ -32,6 +32,7 @@ from .regenerate import regenerated_estimate
 from .result import PipelineResult
 from .twins import add_twin, find_twin
 from ..config import fields
+from ..config.frontend import MAP_TARGET_SENSOR
 from ..config.pipeline import PipelineConfig
 from ..coordinates import (coarse_coordinates, CoarseCoordinatesWarning, local_origin, moved,
                            sensor_at_origin)
@@ -66,10 +67,11 @@ def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
     :param config: :class:`PipelineConfig`; defaults when None.
     :param source_sensor, target_sensor: (3,) the position of the sensor that saw a cloud,
         in that cloud's frame (metres), for a cloud not in its sensor frame (a scan in UTM
-        and its GNSS position). None (the default): the frame's origin when the cloud is
-        within 1 km of it, else unknown (:mod:`cgags_ros.coordinates`). Clouds anywhere up
-        to 10^7 m from their origins register as near it; the result is in the caller's
-        frames.
+        and its GNSS position). None (the default): ``config.frontend``'s ``source_sensor``,
+        ``target_sensor``, and where that is unset too the frame's origin when the cloud is
+        within 1 km of it, else unknown (:mod:`cgags_ros.coordinates`). A map target takes
+        none. Clouds anywhere up to 10^7 m from their origins register as near it; the
+        result is in the caller's frames.
     :returns: a :class:`PipelineResult`. Its ``refusal`` (a code and a message; ``valid``
         False) says why not to trust it when the clouds are too small after downsampling,
         yield too few or degenerate correspondences, when the estimate fails a validity
@@ -79,12 +81,16 @@ def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
         best first. Never raises for such data-dependent failures.
     :raises InvalidInputError: when an array is not (N, 3) numeric.
     :raises EmptyCloudError: when a cloud has no finite point.
-    :raises InvalidConfigError: when a configuration value is out of range, or a prepared
-        map was computed with other feature settings than ``config``'s.
+    :raises InvalidConfigError: when a configuration value is out of range, a prepared
+        map was computed with other feature settings than ``config``'s, or is given a sensor.
     """
     cfg = _effective_config(config, voxel_size)
+    source_sensor = cfg.frontend.source_sensor if source_sensor is None else source_sensor
+    target_sensor = cfg.frontend.target_sensor if target_sensor is None else target_sensor
     src = finite_points(source, 'source')
     if isinstance(target, PreparedMap):
+        if target_sensor is not None:
+            raise InvalidConfigError(MAP_TARGET_SENSOR)
         dst, target_origin = target, target.origin
     else:
         dst = finite_points(target, 'target')

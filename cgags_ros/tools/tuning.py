@@ -312,10 +312,11 @@ def check_consistency(pairs: Sequence[TunePair], rows: Sequence[PairRow],
     """
     Judge each valid row by the reverse registration of its pair; return those unconfirmed.
 
-    The reverse (target onto source, ``settings``, global: no tracking) must compose with
-    the row's estimate to the identity within ``criteria``: then the row's ``success`` is
-    True; a valid reverse that disagrees makes it False (the pair counts as wrong); a
-    refused reverse leaves it None (neither). An invalid row is not right (False).
+    The reverse (target onto source, ``settings`` with the sensors swapped, global: no
+    tracking) must compose with the row's estimate to the identity within ``criteria``:
+    then the row's ``success`` is True; a valid reverse that disagrees makes it False (the
+    pair counts as wrong); a refused reverse leaves it None (neither). An invalid row is not
+    right (False).
     """
     from ..pipeline import register_clouds  # here: the CLI must start without Open3D
 
@@ -326,7 +327,9 @@ def check_consistency(pairs: Sequence[TunePair], rows: Sequence[PairRow],
         if not row.valid or row.transform is None:
             continue
         try:
-            reverse = register_clouds(pair.target, pair.source, config=pipe)
+            reverse = register_clouds(pair.target, pair.source, config=pipe,
+                                      source_sensor=pipe.frontend.target_sensor,
+                                      target_sensor=pipe.frontend.source_sensor)
         except InvalidInputError:
             reverse = None
         if reverse is None or not reverse.valid:

@@ -44,16 +44,18 @@ def target_features(target: np.ndarray | PreparedMap, cfg: PipelineConfig,
     Return the target's features at ``cfg.voxel_size`` and the local origin they are about.
 
     A map's are returned as they are; a cloud's are those :func:`register_clouds` computes
-    (:mod:`cgags_ros.coordinates`), so a scan that went global makes this a cache hit.
+    (:mod:`cgags_ros.coordinates`, about ``frontend.target_sensor`` when set), so a scan
+    that went global makes this a cache hit.
     """
     if isinstance(target, PreparedMap):
         return target.features, target.origin
     points = finite_points(target, 'target')
-    origin = local_origin(points)
+    sensor = cfg.frontend.target_sensor
+    origin = local_origin(points, sensor)
     with timed(timings, 'target_features'):
         features = cached_features(moved(points, origin), cfg.voxel_size, cfg.frontend,
                                    'target', None, DEFAULT_WORKERS)
-    return features.with_sensor(sensor_at_origin(origin)), origin
+    return features.with_sensor(sensor_at_origin(origin, sensor is not None)), origin
 
 
 def refine_prediction(source: np.ndarray, ft: CloudFeatures, prediction: np.ndarray,
@@ -69,10 +71,11 @@ def refine_prediction(source: np.ndarray, ft: CloudFeatures, prediction: np.ndar
         transforms in the caller's frames, as ``prediction``.
     """
     target_origin = np.zeros(3) if target_origin is None else target_origin
-    source_origin = local_origin(source)
+    sensor = cfg.frontend.source_sensor
+    source_origin = local_origin(source, sensor)
     result = _refined(moved(source, source_origin), ft,
                       to_local(prediction, source_origin, target_origin), cfg, last_fitness,
-                      map_target, sensor_at_origin(source_origin))
+                      map_target, sensor_at_origin(source_origin, sensor is not None))
     return result.in_caller_frames(source_origin, target_origin)
 
 
