@@ -116,7 +116,7 @@ def test_every_parameter_is_documented_and_short():
     assert 'core.edge_tournament' in advanced and 'voxel_size' not in advanced
     assert len(advanced) <= 12
     calibration = [k for k in fields.describe(CalibrationConfig) if not k.startswith('pipeline.')]
-    assert len(parameter_descriptions()) + len(calibration) <= 92  # the options a user sets
+    assert len(parameter_descriptions()) + len(calibration) <= 90  # the options a user sets
 
 
 def test_node_and_pipeline_keys_are_disjoint_and_described():

@@ -283,8 +283,7 @@ def test_only_a_collinear_core_refusal_is_left_to_the_gates():
     assert not validity.unsettled(
         dataclasses.replace(core, refusal=Refusal(Code.CHANCE_LEVEL, 'chance')), CFG)
     assert not validity.unsettled(dataclasses.replace(core, refusal=None), CFG)
-    for other in ({'gates.collinear_consensus': False}, {'refine.method': 'none'},
-                  {'core.motion_model': '4dof'}):
+    for other in ({'refine.method': 'none'}, {'core.motion_model': '4dof'}):
         assert not validity.unsettled(core, pipeline_config_from(other)), other
 
 

@@ -72,17 +72,9 @@ class GatesConfig:
         'information matrix over the overlapping points (rotation scaled by the overlap '
         'radius). Planes, lines, spheres and cylinders leave some motion unconstrained and '
         'give ~0; the estimate is then invalid. 0 disables.', low=0.0, high=1.0)
-    collinear_consensus: bool = option(
-        True, 'When the core refuses its estimate only because the inliers are nearly '
-        'collinear, refine it anyway and let the gates on the whole overlap decide '
-        '(observability, free space, chance inliers, ambiguity).', advanced=True)
     max_free_space_violation: float = option(
         0.3, "Free-space gate (sensor-frame clouds: frontend.normal_orientation 'origin'): "
         "the share of aligned points in front of the other cloud's observed surface (by "
         'over two voxels), among those in front or on it, the larger '
         'direction; above this the pose puts surfaces where a sensor saw free space and is '
         'invalid. 1 disables.', low=0.0, high=1.0)
-    free_space_settle_factor: float = option(
-        0.5, 'An estimate the correspondences alone did not settle (a collinear consensus, '
-        'or a candidate within ambiguity_ratio) is trusted only below this times '
-        'max_free_space_violation.', low=0.0, high=1.0, advanced=True)

@@ -31,6 +31,11 @@ from ..config.pipeline import PipelineConfig
 from ..geometry import rotation_error_deg, translation_error
 from ..refusal import Refusal, RefusalCode
 
+# An estimate the correspondences did not settle (a collinear consensus, or a candidate
+# within the ambiguity ratio) is trusted only below this share of the free-space bound:
+# nothing but the overlap's geometry vouches for it (docs/ablation.md, unsettled estimates).
+FREE_SPACE_SETTLE_FACTOR = 0.5
+
 Code = RefusalCode
 
 
@@ -92,19 +97,19 @@ def unsettled(core: Consensus, cfg: PipelineConfig) -> bool:
     Tell whether a core refusal is left to the gates: only its consensus was collinear.
 
     Such a consensus leaves the rotation about its line to the correspondences' noise, but
-    the refinement fits the whole overlap, whose geometry may well fix that rotation: with
-    ``gates.collinear_consensus`` it is refined and judged by the gates on the overlap
-    (observability, free space under a tighter bound, chance inliers, ambiguity) instead.
+    the refinement fits the whole overlap, whose geometry may well fix that rotation: it is
+    refined and judged by the gates on the overlap (observability, free space under a
+    tighter bound, chance inliers, ambiguity) instead.
     """
     return (core.refusal is not None and core.refusal.code is Code.COLLINEAR
-            and core.num_inliers >= cfg.core.min_inliers and cfg.gates.collinear_consensus
+            and core.num_inliers >= cfg.core.min_inliers
             and cfg.core.motion_model != '4dof' and cfg.refine.method != 'none')
 
 
 def free_space_limit(cfg: PipelineConfig, unsettled: bool = False) -> float:
     """Return the free-space bound: tighter for an estimate the correspondences did not settle."""
     limit = cfg.gates.max_free_space_violation
-    return limit * cfg.gates.free_space_settle_factor if unsettled and limit < 1 else limit
+    return limit * FREE_SPACE_SETTLE_FACTOR if unsettled and limit < 1 else limit
 
 
 def gate_refusal(e: Estimate, cfg: PipelineConfig, unsettled: bool = False) -> Refusal | None:
@@ -174,7 +179,7 @@ def overlap_refusal(e: Overlap, cfg: PipelineConfig, unsettled: bool = False) ->
             f'{100 * e.free_space_violation:.0f} % of the aligned '
             "points that meet the other cloud's view lie in front of its observed surface "
             f'(> {limit:g}, gates.max_free_space_violation, times '
-            'gates.free_space_settle_factor for an unsettled estimate): the pose stacks '
+            f'{FREE_SPACE_SETTLE_FACTOR:g} for an unsettled estimate): the pose stacks '
             'surfaces where a sensor saw free space'))
     return tilt_refusal(e.tilt_deg, cfg.core.max_tilt_deg,
                         'a 6-DoF point-to-plane step over the overlap', 'core.max_tilt_deg',
