@@ -1,5 +1,5 @@
 """
-cgags_ros.localizer.accounting and .statistics: scans lost upstream, beside the balanced buckets.
+cgags_ros.engine.accounting and .statistics: scans lost upstream, beside the balanced buckets.
 
 No DDS: the node's accounting object fed directly, its /diagnostics message built (with the
 ROS message packages; the rest without).
@@ -10,9 +10,9 @@ from __future__ import annotations
 import threading
 
 from cgags_ros.config.node import PairingConfig
-from cgags_ros.localizer import statistics
-from cgags_ros.localizer.accounting import Accounting
-from cgags_ros.localizer.transport import PROFILE_VARIABLE
+from cgags_ros.engine import statistics
+from cgags_ros.engine.accounting import Accounting
+from cgags_ros.engine.transport import PROFILE_VARIABLE
 from cgags_ros.refusal import Refusal, RefusalCode
 import pytest
 

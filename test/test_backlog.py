@@ -3,8 +3,8 @@
 from cgags_ros.config.node import NodeConfig, PairingConfig
 from cgags_ros.config.pipeline import PipelineConfig
 from cgags_ros.config.tracking import TrackingConfig
-from cgags_ros.localizer.backlog import Backlog, queue_depth, SKIPPED
-from cgags_ros.localizer.pairing import is_source_drop, Pairer
+from cgags_ros.engine.backlog import Backlog, queue_depth, SKIPPED
+from cgags_ros.engine.pairing import is_source_drop, Pairer
 
 MS = 10**6
 

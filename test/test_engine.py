@@ -1,5 +1,5 @@
 """
-cgags_ros.localizer.engine without ROS: pairing, accounting, lifecycle states, guards, requests.
+cgags_ros.engine.engine without ROS: pairing, accounting, lifecycle states, guards, requests.
 
 The engine is fed decoded clouds directly and publishes into a recorder; the registration
 is a stand-in that returns a known pose (the real pipeline runs in the DDS tests), so these
@@ -19,11 +19,11 @@ import time
 from cgags_ros.config.node import configs_from_parameters
 from cgags_ros.config.pipeline import PipelineConfig
 from cgags_ros.config.tracking import TrackingConfig
+from cgags_ros.engine import startup
+from cgags_ros.engine.engine import RegistrationEngine
+from cgags_ros.engine.interface import Cloud, StartFailed
 from cgags_ros.geometry import make_transform, quaternion_to_matrix
 from cgags_ros.io.clouds import write_cloud
-from cgags_ros.localizer import startup
-from cgags_ros.localizer.engine import RegistrationEngine
-from cgags_ros.localizer.interface import Cloud, StartFailed
 from cgags_ros.pipeline.result import PipelineResult
 from cgags_ros.refusal import Refusal, RefusalCode
 from cgags_ros.runtime.procfs import running
@@ -120,8 +120,8 @@ def balanced(engine):
 
 @pytest.mark.subprocess
 def test_the_engine_imports_no_ros():
-    code = ('import sys, cgags_ros.localizer.engine, cgags_ros.localizer.map_target, '
-            'cgags_ros.localizer.startup; '
+    code = ('import sys, cgags_ros.engine.engine, cgags_ros.engine.map_target, '
+            'cgags_ros.engine.startup; '
             "print(sorted(m for m in sys.modules if m.split('.')[0] in "
             "('rclpy', 'rcl_interfaces', 'std_msgs', 'sensor_msgs', 'geometry_msgs')))")
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
@@ -259,7 +259,7 @@ def test_initial_pose_guards_extrinsic_and_max_auto():
 
 
 def test_one_quality_refusal_a_pair_serves_the_guard_and_the_answer(monkeypatch):
-    from cgags_ros.localizer import localization as engine_module
+    from cgags_ros.engine import relocalization_run as engine_module
 
     decide, verdicts = engine_module.quality_refusal, []
 
@@ -348,7 +348,7 @@ def sphere(n=3000):
 
 def test_a_map_without_normals_loads_with_a_warning_and_one_with_normals_without(tmp_path):
     """The map's normals face the map origin unless the file signs them: the log says which."""
-    from cgags_ros.localizer.map_target import MapTarget
+    from cgags_ros.engine.map_target import MapTarget
 
     points, normals = sphere()
     write_cloud(tmp_path / 'bare.ply', points)

@@ -27,7 +27,7 @@ import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
-from cgags_ros.localizer.transport import profile_path, PROFILE_VARIABLE  # noqa: E402, I100
+from cgags_ros.engine.transport import profile_path, PROFILE_VARIABLE  # noqa: E402, I100
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from std_msgs.msg import String  # noqa: E402

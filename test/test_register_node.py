@@ -282,7 +282,7 @@ def test_callbacks_after_context_shutdown_do_not_raise():
     diagnostics timer or the worker may still publish a pose; that must end quietly, not
     as an RCLError that makes rclpy.spin() raise and the node exit 1 (seen once in CI).
     """
-    from cgags_ros.localizer.interface import Estimate
+    from cgags_ros.engine.interface import Estimate
     from rclpy.context import Context
 
     ctx = Context()

@@ -17,9 +17,9 @@ import time
 from cgags_ros.config.node import NodeConfig, PairingConfig, WorkerConfig
 from cgags_ros.config.pipeline import PipelineConfig
 from cgags_ros.config.tracking import TrackingConfig
+from cgags_ros.engine.engine import RegistrationEngine
+from cgags_ros.engine.interface import Cloud
 from cgags_ros.geometry import rotation_error_deg, translation_error
-from cgags_ros.localizer.engine import RegistrationEngine
-from cgags_ros.localizer.interface import Cloud
 from cgags_ros.tracking.counts import StreamCounts, tracks
 import numpy as np
 import pytest

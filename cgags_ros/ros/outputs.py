@@ -1,7 +1,7 @@
 """
 The node's outputs: what the engine's ``EngineOutputs`` asks for, in ROS messages.
 
-:class:`~cgags_ros.localizer.interface.EngineOutputs` as ~/pose, ~/pose_with_covariance,
+:class:`~cgags_ros.engine.interface.EngineOutputs` as ~/pose, ~/pose_with_covariance,
 ~/aligned_cloud, ~/candidates, initialpose, /tf (:mod:`.transforms`), ~/result and
 /diagnostics; in calibrate mode ~/calibration, ~/calibration_report and /tf_static
 (latched). Frames and conventions as in :mod:`.node`: a pose maps source-frame points into
@@ -24,9 +24,9 @@ from . import diagnostics
 from .conversions import transform_to_pose, xyz_to_pointcloud2
 from .qos import latched_qos, result_qos
 from .transforms import Transforms
+from ..engine import statistics
+from ..engine.interface import BasePose, Calibration, Estimate, PairResult
 from ..io.pointcloud2 import stamp_to_ns
-from ..localizer import statistics
-from ..localizer.interface import BasePose, Calibration, Estimate, PairResult
 from ..pipeline.covariance import map_to_odom
 from ..refusal import Refusal
 

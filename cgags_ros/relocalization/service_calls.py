@@ -39,7 +39,7 @@ class Request:
         self.on_answer = on_answer
 
 
-class RelocalizeCalls:
+class ServiceCalls:
     """
     Pending relocalization requests, answered by the registration worker.
 

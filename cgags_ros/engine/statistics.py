@@ -5,7 +5,7 @@ The node's /diagnostics, ROS-free: one flat key space and its status, decided he
 and :func:`status` says what they amount to (a level and one line, which
 ``cgags_ros.ros.diagnostics`` puts into the message); what became of each source, typed,
 is on ``~/result``. ``sources.*`` and
-``targets.*`` are the accounting buckets of :mod:`cgags_ros.localizer.accounting`
+``targets.*`` are the accounting buckets of :mod:`cgags_ros.engine.accounting`
 (``accounting.ok``: they balance; ``sources.lost_upstream``, scans that never arrived,
 stands outside the balance); ``worker.*`` and ``memory.*`` the registration process and the
 resident memory (MB); ``transport.profile`` the Fast DDS profile loaded; ``configure.error``
@@ -28,7 +28,7 @@ from .transport import user_line
 OK, WARN, ERROR, STALE = 'OK', 'WARN', 'ERROR', 'STALE'
 REJECTED = 'rejected.'  # rejected.<code>: sources the node refused, per refusal code
 REJECTED_TARGETS = 'rejected_targets.'  # rejected_targets.<code>: targets it could not use
-PAIRING = 'pairing.'  # pairing.<counter> of cgags_ros.localizer.pairing.Pairer.counters()
+PAIRING = 'pairing.'  # pairing.<counter> of cgags_ros.engine.pairing.Pairer.counters()
 DROPPED = PAIRING + 'dropped.'  # pairing.dropped.<reason>
 LAST = 'last_'  # last_<field>: the most recent registration
 REFUSAL_CODE = LAST + 'refusal_code'  # its refusal's code ('' when valid), beside last_reason
@@ -44,7 +44,7 @@ def build_statistics(snapshot: Mapping[str, Any], voxel_size: float,
     """
     Return the flat statistics of the node (what /diagnostics carries).
 
-    ``snapshot`` is :meth:`cgags_ros.localizer.accounting.Accounting.snapshot`; ``extra`` holds
+    ``snapshot`` is :meth:`cgags_ros.engine.accounting.Accounting.snapshot`; ``extra`` holds
     the worker's and the memory's keys.
     """
     counts, rejected, last = snapshot['counts'], snapshot['rejected'], snapshot['last']

@@ -19,7 +19,7 @@ import numpy as np
 from .interface import Calibration, EngineOutputs
 from ..config.calibration import CalibrationConfig
 from ..config.pipeline import PipelineConfig
-from ..localizer.pairing import Pair
+from ..engine.pairing import Pair
 from ..refusal import Refusal, RefusalCode
 
 COLLECTING, CONVERGED, FINAL, FAILED = 'collecting', 'converged', 'max_frames', 'failed'

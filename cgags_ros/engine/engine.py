@@ -36,9 +36,9 @@ from . import backlog
 from .accounting import Accounting, LastRegistration, LOG_REPEAT_S, lost_upstream_message
 from .calibration_run import CalibrationConfig, CalibrationRun
 from .interface import Cloud, EngineOutputs, Estimate, PairResult
-from .localization import Localization, RegisteredScan
 from .map_target import MapTarget
 from .pairing import Pair
+from .relocalization_run import RegisteredScan, RelocalizationRun
 from .startup import start_registration
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
@@ -46,8 +46,8 @@ from ..errors import CgagsError
 from ..geometry import apply_transform
 from ..pipeline.result import PipelineResult
 from ..refusal import Refusal, RefusalCode
-from ..relocalization.requests import Answered, stale_scan
 from ..relocalization.sequence import StepAnswer
+from ..relocalization.service_calls import Answered, stale_scan
 from ..runtime.checks import CheckLane
 from ..runtime.jobs import (CheckVerdict, Job, RegisterPair, result_of, Runner, SequenceScan,
                             Tracked, TrackScan)
@@ -99,7 +99,7 @@ class RegistrationEngine:
             1 if cfg.mode == 'on_demand' else backlog.queue_depth(cfg, pipeline_cfg))
         self.on_demand = cfg.mode == 'on_demand'
         self._map = MapTarget(cfg) if cfg.map.file else None
-        self._localization = Localization(cfg, outputs)
+        self._relocalization = RelocalizationRun(cfg, outputs)
         self._active = False
         self._stop = threading.Event()  # set by the lifecycle's thread, waited on by the worker
         self._worker = threading.Thread(target=self._work, name='register_worker', daemon=True)
@@ -129,7 +129,7 @@ class RegistrationEngine:
     def deactivate(self) -> None:
         """Ignore sources (counted as rejected), publish nothing, fail pending requests."""
         self._active = False
-        calls = self._localization.calls
+        calls = self._relocalization.calls
         calls.wake()  # no scan is registered for a pending request until activated
         calls.fail(Refusal(RefusalCode.INACTIVE, 'the node was deactivated'))
 
@@ -140,7 +140,7 @@ class RegistrationEngine:
 
     def stop(self) -> None:
         """End the worker and the registration processes; answer pending requests."""
-        self._localization.calls.fail(Refusal(RefusalCode.SHUTDOWN, 'the node is shutting down'))
+        self._relocalization.calls.fail(Refusal(RefusalCode.SHUTDOWN, 'the node is shutting down'))
         self.deactivate()
         self._stop.set()
         self._accounting.wake()
@@ -208,13 +208,13 @@ class RegistrationEngine:
         Request a relocalization: the next registration answers it.
 
         The answer goes to ``on_answer(success, message)``, from the worker thread, or at
-        once when inactive (:mod:`cgags_ros.relocalization.requests`).
+        once when inactive (:mod:`cgags_ros.relocalization.service_calls`).
         """
         if not self.active:
-            on_answer(*self._localization.calls.refuse(
+            on_answer(*self._relocalization.calls.refuse(
                 Refusal(RefusalCode.INACTIVE, 'the node is not active')))
             return
-        self._localization.request(self.node_config.relocalization.timeout, on_answer)
+        self._relocalization.request(self.node_config.relocalization.timeout, on_answer)
 
     # ------------------------------------------------------------------ worker
 
@@ -235,7 +235,7 @@ class RegistrationEngine:
                 latency = (time.monotonic_ns() - pair.source.payload.receipt_ns) * 1e-9
                 self._publish_result(pair, outcome, latency)
                 self._accounting.finish(outcome.refusal, latency)
-                self._localization.settle(outcome.refusal, outcome.result is not None)
+                self._relocalization.settle(outcome.refusal, outcome.result is not None)
             if outcome.refusal is not None and not self._stop.is_set():
                 self._log_rejection(outcome.refusal, 'source')
 
@@ -245,28 +245,28 @@ class RegistrationEngine:
         if not tracks(cfg.mode, pipe_cfg):
             return 0
         return log.to_skip(pending_ns, cfg.pairing.backlog_max_lag, pipe_cfg.tracking.max_age,
-                           self._localization.calls.waiting() is not None)
+                           self._relocalization.calls.waiting() is not None)
 
     def _ready(self) -> bool:
         """Tell whether the worker may take a pair now; else wait a little."""
-        self._localization.tick(self.node_config.relocalization.timeout)
+        self._relocalization.tick(self.node_config.relocalization.timeout)
         if not self.active:
             self._stop.wait(0.1)
             return False
-        if self.on_demand and self._localization.calls.waiting() is None:
-            self._localization.calls.wait(0.1)
+        if self.on_demand and self._relocalization.calls.waiting() is None:
+            self._relocalization.calls.wait(0.1)
             return False
         return True
 
     def _job(self, pair: Pair, cfg: NodeConfig, pipe_cfg: PipelineConfig) -> Job:
         """Choose the pair's job, once: a sequence's scan, a tracked stream's scan, or a pair."""
         source, target = pair.source.payload.xyz, pair.target.payload.as_target()
-        step = self._localization.step(pair, cfg)
+        step = self._relocalization.step(pair, cfg)
         if step is not None:
             return SequenceScan(source, target, pipe_cfg, step[0],
                                 cfg.relocalization.max_scans, step[1])
         # A ~/relocalize call is answered from a global search, as the other modes are.
-        if tracks(cfg.mode, pipe_cfg) and self._localization.calls.waiting() is None:
+        if tracks(cfg.mode, pipe_cfg) and self._relocalization.calls.waiting() is None:
             verdict, self._verdict = self._verdict, None
             return TrackScan(source, target, pipe_cfg, pair.source.stamp_ns * 1e-9,
                              checks_beside=cfg.worker.registration_timeout > 0, verdict=verdict)
@@ -278,7 +278,7 @@ class RegistrationEngine:
             return Outcome(self._calibration.take(pair))
         source = pair.source.payload
         pipe_cfg, cfg = self._configs  # one pair of configurations for the whole pair
-        stale = stale_scan(self._localization.calls.waiting() if self.on_demand else None,
+        stale = stale_scan(self._relocalization.calls.waiting() if self.on_demand else None,
                            source.receipt_ns, cfg.relocalization.max_scan_age)
         if stale:
             return Outcome(stale)
@@ -310,7 +310,7 @@ class RegistrationEngine:
                               answer if isinstance(answer, StepAnswer) else None)
         if refusal is not None:
             if not cfg.output.publish_invalid or not np.isfinite(T).all():
-                self._localization.finish(scan)
+                self._relocalization.finish(scan)
                 return Outcome(Refusal(refusal.code, f'invalid registration: {refusal.message}'),
                                result)
             self._accounting.count('published_invalid')
@@ -319,7 +319,7 @@ class RegistrationEngine:
             T, np.asarray(result.covariance, dtype=np.float64), source.header, frame,
             apply_transform(T, source.xyz) if out.publish_aligned_cloud else None,
             (out.tf_child_frame or pair.source.frame_id) if out.broadcast_tf else ''))
-        self._localization.finish(scan)
+        self._relocalization.finish(scan)
         return Outcome(None, result)
 
     # ------------------------------------------------------------------ the second lane
@@ -382,7 +382,7 @@ class RegistrationEngine:
                                  **self._tracking.statistics()}
         if self._map is not None:
             stats.update(self._map.statistics())
-        stats.update(self._localization.statistics())
+        stats.update(self._relocalization.statistics())
         stats.update(self._calibration.statistics() if self._calibration else {})
         if self.runner is not None:
             stats.update(self.runner.health())
