@@ -57,7 +57,7 @@ def test_no_source_yet_names_the_transport_fix():
 
 
 def test_take_wakes_on_a_pair_and_on_wake():
-    """The worker's wait for a pair ends when a source completes one, or when it is woken."""
+    """The engine thread's wait for a pair ends when a source completes one, or when woken."""
     health = Accounting(PairingConfig(), queue_depth=2)
     health.receive('target', 1, 'map', 'T')
     threading.Timer(0.05, health.receive, args=('source', 2, 'lidar', 's')).start()

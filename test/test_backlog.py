@@ -1,4 +1,4 @@
-"""What a tracked stream's worker skips of its backlog (cgags_ros/pipeline/backlog.py)."""
+"""What a tracked stream's engine thread skips of its backlog (cgags_ros/pipeline/backlog.py)."""
 
 from cgags_ros.config.node import NodeConfig, PairingConfig
 from cgags_ros.config.pipeline import PipelineConfig

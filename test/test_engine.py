@@ -388,7 +388,7 @@ def test_start_returns_once_the_process_is_warm_and_the_map_loaded(
     out = Recorder()
     engine = RegistrationEngine(PipelineConfig(voxel_size=0.2), node_config(**{
         'map.file': str(tmp_path / 'map.ply') if with_map else '', 'map.cache_dir': '',
-        'worker.registration_timeout': 60.0}), out)
+        'runtime.registration_timeout': 60.0}), out)
     engine.start()
     try:
         (process,) = processes
@@ -396,7 +396,7 @@ def test_start_returns_once_the_process_is_warm_and_the_map_loaded(
         pid = process.pid
         assert running(pid)
         stats = engine.statistics()
-        assert stats['worker.ready'] is True
+        assert stats['registration.ready'] is True
         if with_map:
             assert stats['map.cache'] == 'off' and 0 < stats['map.points'] <= 3000
             assert engine.snapshot()['accounting']['targets']['pending'] == 1  # the map
@@ -409,7 +409,7 @@ def test_start_returns_once_the_process_is_warm_and_the_map_loaded(
 @pytest.mark.subprocess
 @pytest.mark.parametrize('case', ['missing', 'empty', 'unreadable', 'all_nan'])
 def test_a_bad_map_fails_start_with_its_reason(tmp_path, case):
-    """A missing, empty, unreadable or all-NaN map: StartFailed naming it, no worker thread."""
+    """A missing, empty, unreadable or all-NaN map: StartFailed naming it, no engine thread."""
     path = bad_map(tmp_path, case)
     cfg = node_config(**{'map.file': str(path), 'map.cache_dir': str(tmp_path / 'cache')})
     engine = RegistrationEngine(PipelineConfig(), cfg, Recorder(),
@@ -418,7 +418,7 @@ def test_a_bad_map_fails_start_with_its_reason(tmp_path, case):
         engine.start()
     assert path.name in str(failure.value)
     assert engine.statistics()['map.error'] == str(failure.value)
-    assert 'register_worker' not in [t.name for t in threading.enumerate()]
+    assert 'engine' not in [t.name for t in threading.enumerate()]
     engine.stop()  # what the node's cleanup does: harmless after a failed start
 
 
@@ -426,7 +426,7 @@ def test_a_bad_map_fails_start_with_its_reason(tmp_path, case):
 def test_a_bad_map_ends_the_registration_process_it_was_loaded_in(tmp_path, processes):
     """The map is loaded in the real process: start fails and that process is ended."""
     engine = RegistrationEngine(PipelineConfig(), node_config(**{
-        'map.file': str(bad_map(tmp_path, 'unreadable')), 'worker.registration_timeout': 60.0}),
+        'map.file': str(bad_map(tmp_path, 'unreadable')), 'runtime.registration_timeout': 60.0}),
         Recorder())
     with pytest.raises(StartFailed, match='map.file cannot be used: .*broken.ply'):
         engine.start()
@@ -439,7 +439,7 @@ def test_a_bad_map_ends_the_registration_process_it_was_loaded_in(tmp_path, proc
 def test_a_process_that_dies_while_warming_up_fails_start(processes):
     """Killed (-9) during its warm-up: StartFailed says so, and nothing is left running."""
     engine = RegistrationEngine(PipelineConfig(),
-                                node_config(**{'worker.registration_timeout': 60.0}), Recorder())
+                                node_config(**{'runtime.registration_timeout': 60.0}), Recorder())
     failures = []
 
     def start():
@@ -458,4 +458,4 @@ def test_a_process_that_dies_while_warming_up_fails_start(processes):
         'the registration process failed to start (it died)']
     wait_for(lambda: not running(pid), 10, 'the killed process reaped')
     assert engine.runner is None and processes[0].pid is None
-    assert 'register_worker' not in [t.name for t in threading.enumerate()]
+    assert 'engine' not in [t.name for t in threading.enumerate()]

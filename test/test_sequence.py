@@ -129,7 +129,7 @@ def relocalize(scene_data, ids, odom_sensor, **node):
     base = make_transform(quaternion_to_matrix(BASE_FROM_SENSOR[3:]), BASE_FROM_SENSOR[:3])
     out = Recorder()
     engine = RegistrationEngine(cfg, configs_from_parameters({
-        'map.file': str(path), 'map.cache_dir': '', 'worker.registration_timeout': 0.0,
+        'map.file': str(path), 'map.cache_dir': '', 'runtime.registration_timeout': 0.0,
         'mode': 'on_demand', 'relocalization.publish_initial_pose': True,
         'relocalization.cooldown': 0.0, 'relocalization.timeout': 600.0,
         'relocalization.base_from_sensor': list(BASE_FROM_SENSOR), **node})[1], out)

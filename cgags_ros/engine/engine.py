@@ -11,12 +11,12 @@ decodes messages into :class:`Cloud` for :meth:`~RegistrationEngine.receive` and
 implements :class:`EngineOutputs`, through which the engine publishes, logs and asks for
 TF; it never reaches into the node.
 
-One worker thread takes each pair, chooses its job once (:meth:`~RegistrationEngine._job`:
-a scan of a relocalization over several scans, a tracked stream's scan, or a pair), runs it
-in the registration process (in this process when ``worker.registration_timeout`` is 0)
+The engine thread takes each pair, chooses its job once (:meth:`~RegistrationEngine._job`: a
+scan of a relocalization over several scans, a tracked stream's scan, or a pair), runs it
+in the registration process (in this process when ``runtime.registration_timeout`` is 0)
 and publishes what its typed answer says. Configuration alone decides the kind (continuous
 mode with ``tracking.enabled`` is a stream) and where a stream's periodic checks run (in a
-lane of their own when ``worker.registration_timeout`` > 0). Reception never waits for it:
+lane of their own when ``runtime.registration_timeout`` > 0). Reception never waits for it:
 the accounting's bounded queue drops the oldest pair. While inactive (a lifecycle node's
 inactive state) sources are counted as rejected (``inactive``) and nothing is published;
 targets are still held, so a latched map survives a deactivation.
@@ -56,7 +56,7 @@ from ..tracking.counts import StreamCounts, tracks
 
 @dataclasses.dataclass(frozen=True)
 class Outcome:
-    """What became of the worker's pair: why it is rejected (None: published), its result."""
+    """What became of a pair: why it is rejected (None: published), its result."""
 
     refusal: Refusal | None
     result: PipelineResult | None = None
@@ -67,15 +67,15 @@ class RegistrationEngine:
     Registers paired clouds and decides what is published (see the module doc).
 
     The engine is built stopped and inactive: :meth:`start` starts the registration process,
-    waits for it and the map, and starts the worker; :meth:`activate` lets sources in and
-    outputs out; :meth:`stop` ends the processes and the worker for good. ``runner`` runs
+    waits for it and the map, and starts the engine thread; :meth:`activate` lets sources in and
+    outputs out; :meth:`stop` ends the processes and the engine thread for good. ``runner`` runs
     the jobs instead of what :meth:`start` would start (a test's stand-in, for the plumbing:
     the job kinds are chosen as without it); it stays the caller's, never closed here.
 
-    Two threads: the node's executor calls every method but the worker's loop, which runs
-    on the worker thread. The executor alone writes the configurations (replaced whole, one
-    pair) and the active flag, which the worker reads: no lock. The one event between them
-    stops the worker; the accounting, the requests and the registration process, which
+    Two threads: the node's executor calls every method but the engine thread's loop, which runs
+    on the engine thread. The executor alone writes the configurations (replaced whole, one
+    pair) and the active flag, which the engine thread reads: no lock. The one event between them
+    stops the engine thread; the accounting, the requests and the registration process, which
     both threads write, hold a lock each.
     """
 
@@ -101,8 +101,9 @@ class RegistrationEngine:
         self._map = MapTarget(cfg) if cfg.map.file else None
         self._relocalization = RelocalizationRun(cfg, outputs)
         self._active = False
-        self._stop = threading.Event()  # set by the lifecycle's thread, waited on by the worker
-        self._worker = threading.Thread(target=self._work, name='register_worker', daemon=True)
+        # Set by the lifecycle's thread, waited on by the engine thread.
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._work, name='engine', daemon=True)
         self._tracking = StreamCounts()
 
     # ------------------------------------------------------------------ lifecycle
@@ -120,7 +121,7 @@ class RegistrationEngine:
             self._outputs.log, self._given)
         if target is not None:
             self._accounting.receive('target', 0, target.frame_id, target)
-        self._worker.start()
+        self._thread.start()
 
     def activate(self) -> None:
         """Consume sources and publish outputs."""
@@ -139,16 +140,16 @@ class RegistrationEngine:
         return self._active
 
     def stop(self) -> None:
-        """End the worker and the registration processes; answer pending requests."""
+        """End the engine thread and the registration processes; answer pending requests."""
         self._relocalization.calls.fail(Refusal(RefusalCode.SHUTDOWN, 'the node is shutting down'))
         self.deactivate()
         self._stop.set()
         self._accounting.wake()
         if self.runner is not None and self._given is None:
             self.runner.close()  # ends a job in flight in a process of its own at once
-        if self._worker.ident is not None:  # started
-            self._worker.join(timeout=5.0)
-        if self.checks is not None:  # after the worker, which may have just started it
+        if self._thread.ident is not None:  # started
+            self._thread.join(timeout=5.0)
+        if self.checks is not None:  # after the engine thread, which may have just started it
             self.checks.close()
 
     # ------------------------------------------------------------------ configuration
@@ -207,7 +208,7 @@ class RegistrationEngine:
         """
         Request a relocalization: the next registration answers it.
 
-        The answer goes to ``on_answer(success, message)``, from the worker thread, or at
+        The answer goes to ``on_answer(success, message)``, from the engine thread, or at
         once when inactive (:mod:`cgags_ros.relocalization.service_calls`).
         """
         if not self.active:
@@ -216,7 +217,7 @@ class RegistrationEngine:
             return
         self._relocalization.request(self.node_config.relocalization.timeout, on_answer)
 
-    # ------------------------------------------------------------------ worker
+    # ------------------------------------------------------------- engine thread
 
     def _work(self) -> None:
         while not self._stop.is_set():
@@ -228,7 +229,7 @@ class RegistrationEngine:
             outcome = Outcome(Refusal(RefusalCode.INTERNAL_ERROR, 'pair failed'))
             try:
                 outcome = self._process(pair)
-            except Exception as exc:  # noqa: BLE001 - the worker must outlive any bad pair
+            except Exception as exc:  # noqa: BLE001 - the engine thread must outlive any bad pair
                 outcome = Outcome(Refusal(RefusalCode.INTERNAL_ERROR,
                                           f'pair failed: {exc!r}\n{traceback.format_exc()}'))
             finally:
@@ -248,7 +249,7 @@ class RegistrationEngine:
                            self._relocalization.calls.waiting() is not None)
 
     def _ready(self) -> bool:
-        """Tell whether the worker may take a pair now; else wait a little."""
+        """Tell whether the engine thread may take a pair now; else wait a little."""
         self._relocalization.tick(self.node_config.relocalization.timeout)
         if not self.active:
             self._stop.wait(0.1)
@@ -269,7 +270,7 @@ class RegistrationEngine:
         if tracks(cfg.mode, pipe_cfg) and self._relocalization.calls.waiting() is None:
             verdict, self._verdict = self._verdict, None
             return TrackScan(source, target, pipe_cfg, pair.source.stamp_ns * 1e-9,
-                             checks_beside=cfg.worker.registration_timeout > 0, verdict=verdict)
+                             checks_beside=cfg.runtime.registration_timeout > 0, verdict=verdict)
         return RegisterPair(source, target, pipe_cfg)
 
     def _process(self, pair: Pair) -> Outcome:
@@ -283,7 +284,7 @@ class RegistrationEngine:
         if stale:
             return Outcome(stale)
         job, runner = self._job(pair, cfg, pipe_cfg), self.runner
-        assert runner is not None  # the worker runs once started
+        assert runner is not None  # the engine thread runs once started
         try:
             answer = runner.run(job)
         except CgagsError as exc:
@@ -329,7 +330,7 @@ class RegistrationEngine:
         if self._stop.is_set():
             return
         if self.checks is None:
-            self.checks = CheckLane(self.node_config.worker.registration_timeout)
+            self.checks = CheckLane(self.node_config.runtime.registration_timeout)
             if self._map is not None:  # loaded there once the lane is warm, before a check
                 self.checks.prepare_map(self._map.ref, job.config,
                                         self.node_config.map.load_timeout)
@@ -345,7 +346,7 @@ class RegistrationEngine:
     # ------------------------------------------------------------------ results and health
 
     def _publish_result(self, pair: Pair, outcome: Outcome, latency_s: float) -> None:
-        """Publish what became of the worker's pair (before it is counted as done)."""
+        """Publish what became of the engine thread's pair (before it is counted as done)."""
         source, target, result = pair.source, pair.target, outcome.result
         valid = (result is not None and bool(result.valid)
                  and bool(np.isfinite(result.transform).all()))

@@ -52,8 +52,8 @@ class RelocalizationRun:
     """
     Requests, the sequence in progress and the initial pose of one node.
 
-    The worker registers and finishes scans; any thread requests (:meth:`request`, the
-    requests hold their own lock) and reads :meth:`statistics`. What that reads the worker
+    The engine thread registers and finishes scans; any thread requests (:meth:`request`, the
+    requests hold their own lock) and reads :meth:`statistics`. What that reads the engine thread
     alone writes, replacing it whole: no lock here.
     """
 

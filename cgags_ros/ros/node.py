@@ -310,7 +310,7 @@ class RegisterNode(LifecycleNode):
             return response
         answer = Future()
 
-        def on_answer(success: bool, message: str) -> None:  # the worker thread, or at once
+        def on_answer(success: bool, message: str) -> None:  # the engine thread, or at once
             answer.set_result((success, message))
             if executor is not None:
                 executor.wake()  # the executor resumes an awaiting callback when it wakes
@@ -357,7 +357,7 @@ def main(args: list[str] | None = None) -> None:
 
     The ``register_node`` entry point (``ros2 run``, ``python -m cgags_ros.register_node``).
     A single-threaded executor: every callback is short (a cloud decoded and counted, a
-    parameter checked, the diagnostics), the registration runs in the engine's worker
+    parameter checked, the diagnostics), the registration runs in the engine thread
     thread and its process, and ``~/relocalize`` awaits its answer without holding the
     executor. rclpy's multi-threaded executor took received scans to their callback
     later, its own loop busy while they waited (docs/tracking.md, item 11).

@@ -36,7 +36,7 @@ class Outputs:
     Publishers, TF and logging of one node: the engine's ``EngineOutputs``.
 
     ``odometry``: the node takes odometry (``map.file``), TF listens from the start. The
-    engine's TF questions are :attr:`tf`'s to answer. Only the worker counts (replacing the
+    engine's TF questions are :attr:`tf`'s to answer. Only the engine thread counts (replacing the
     counts whole): :meth:`statistics` needs no lock.
     """
 
@@ -171,7 +171,7 @@ class Outputs:
         Publish unless the context has been shut down (Ctrl-C / SIGTERM).
 
         rclpy's signal handler shuts the context down asynchronously: the executor may
-        still dispatch the diagnostics timer, and the worker may still be finishing a
+        still dispatch the diagnostics timer, and the engine thread may still be finishing a
         pair. A publish then raises RCLError ("publisher's context is invalid"), which
         from a timer callback would escape rclpy.spin() and end the node with exit 1.
         Errors while the context is still valid are re-raised.

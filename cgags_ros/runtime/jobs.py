@@ -200,7 +200,7 @@ class Runner(Protocol):
     def supervise(self) -> bool:
         """Replace what died while idle; tell whether something was (call it periodically)."""
 
-    def health(self, prefix: str = 'worker') -> dict[str, Any]:
+    def health(self, prefix: str = 'registration') -> dict[str, Any]:
         """Return its keys of /diagnostics (none in this process)."""
 
     def close(self) -> None:
