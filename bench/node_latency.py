@@ -11,7 +11,7 @@ Latency is measured inside the node (monotonic clock, from the source callback t
 publish of ~/pose), so it includes decoding, queueing, registration and covariance, not
 DDS transport. "max pending" samples the pairing queue every 20 ms: it must never exceed
 queue_depth; the surplus shows up as dropped.queue_full. Sources are published once the
-registration process reports ``worker.ready`` (its warm-up, 2-3 s here, is timed
+registration process reports ``registration.ready`` (its warm-up, 2-3 s here, is timed
 separately): before that every pair waits and, at 10 Hz, ~25 of them were dropped.
 """
 
@@ -70,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
         Parameter('voxel_size', value=args.voxel_size),
         Parameter('pairing.queue_depth', value=args.queue_depth),
         Parameter('pairing.target_durability', value='transient_local'),
-        Parameter('worker.registration_timeout', value=args.registration_timeout)])
+        Parameter('runtime.registration_timeout', value=args.registration_timeout)])
     io = rclpy.create_node('bench_io')
     latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -88,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     # Steady state: sources only once the registration process has warmed up (a robot
     # starts the node before its sensors; until then pairs wait and the queue drops).
     warm_start = time.monotonic()
-    while (args.registration_timeout > 0 and not node.statistics().get('worker.ready')
+    while (args.registration_timeout > 0 and not node.statistics().get('registration.ready')
            and time.monotonic() < deadline + 120):
         time.sleep(0.05)
     warm_wait = time.monotonic() - warm_start
@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
         ('duration (s)', f'{args.duration:g}'), ('voxel_size (m)', f'{args.voxel_size:g}'),
         ('queue_depth', str(args.queue_depth)),
         ('registration', 'child process' if args.registration_timeout > 0 else 'in thread'),
-        ('waited for the worker warm-up (s)', f'{warm_wait:.1f}'),
+        ('waited for the registration process warm-up (s)', f'{warm_wait:.1f}'),
         ('sources published', str(k)),
         ('sources received', str(stats.get('received_source', 0))),
         ('poses published', str(stats.get('published', 0))),

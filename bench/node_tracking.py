@@ -292,7 +292,7 @@ def summarize(client: StreamClient, stamps: list[int], truth: np.ndarray) -> dic
         'node_tracked_latency_p95_ms': _ms(np.array(node_tracked), 95),
         'periodic_checks': client.value('tracking.periodic_checks'),
         'checks_rss_mb': client.value('memory.checks_rss_mb'),
-        'worker_rss_mb': client.value('memory.worker_rss_mb'),
+        'registration_rss_mb': client.value('memory.registration_rss_mb'),
         'node_rss_mb': client.value('memory.node_rss_mb'),  # its DDS histories included
         'stage_median_ms': {p: {s: _ms(np.array(v), 50) for s, v in by.items()}
                             for p, by in stages.items()},
@@ -330,7 +330,7 @@ def run_node(client: StreamClient, msgs: list, truth: np.ndarray, voxel: float,
     proc, log = start_node(args, dds_environment(DOMAIN_ID), log_path, repo)
     cells = []
     try:
-        _wait(lambda: client.value('worker.ready') == 'True', 300, 'the node warm', proc)
+        _wait(lambda: client.value('registration.ready') == 'True', 300, 'the node warm', proc)
         _wait(lambda: client.source_pub.get_subscription_count(), 60, 'the match', proc)
         client.target_pub.publish(msgs[0])
         _wait(lambda: client.value('targets.received') == '1', 60, 'the map received', proc)

@@ -8,7 +8,7 @@ Run by hand::
 
 For every bag in ``<shared data>/bags`` (or ``--bags-dir``) and every source cloud with
 ground truth, paired with its target exactly as ``cgags-replay`` pairs them (the node's
-:class:`~cgags_ros.localizer.pairing.Pairer`), it runs:
+:class:`~cgags_ros.engine.pairing.Pairer`), it runs:
 
 ``cgags``
     :func:`cgags_ros.pipeline.register_clouds` with default parameters, or those changed by
@@ -58,12 +58,12 @@ from bench.common import (add_set_option, argument_parser, cell, LIMITS, machine
 from cgags_ros.config import PipelineConfig
 from cgags_ros.config.fields import update_from_flat
 from cgags_ros.config.node import NodeConfig
+from cgags_ros.engine.pairing import Pairer
 from cgags_ros.errors import CgagsError, InvalidInputError
 from cgags_ros.geometry import rotation_error_deg, translation_error, voxel_size_for
 from cgags_ros.io.bag import read_messages
 from cgags_ros.io.pointcloud2 import pointcloud2_to_xyz, pose_to_transform
 from cgags_ros.io.shared_data import shared_data_dir
-from cgags_ros.localizer.pairing import Pairer
 import numpy as np
 
 KISS_DEFAULT_VOXEL = 0.3

@@ -11,8 +11,8 @@ memory of both processes (from /proc) and the node's latency percentiles are rec
     .venv/bin/python -m bench.soak --duration 600 \
         --output out/bench/soak.json --plot out/bench/soak.png
 
-Target: RSS growth after warm-up (the first minute) <= 20 MB for node + worker, and the
-invariant holding at every sample.
+Target: RSS growth after warm-up (the first minute) <= 20 MB for node + registration
+process, and the invariant holding at every sample.
 """
 
 from __future__ import annotations
@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901 - one linear scrip
     try:
         deadline = time.monotonic() + 60
         while not (source_pub.get_subscription_count() and int(state['diag'].get(
-                'worker.pid', 0))) and time.monotonic() < deadline:
+                'registration.pid', 0))) and time.monotonic() < deadline:
             time.sleep(0.1)
         target_pub.publish(target)
         start = time.monotonic()
@@ -134,10 +134,10 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901 - one linear scrip
             now = time.monotonic()
             if now >= next_sample:
                 d = state['diag']
-                worker = int(d.get('worker.pid', 0))
+                registration = int(d.get('registration.pid', 0))
                 samples.append({
                     't_s': now - start, 'sent': k, 'node_rss_mb': rss_mb(proc.pid),
-                    'worker_rss_mb': rss_mb(worker) if worker else 0.0,
+                    'registration_rss_mb': rss_mb(registration) if registration else 0.0,
                     'published': int(d.get('published', 0)),
                     'dropped': int(d.get('sources.dropped', 0)),
                     'rejected': int(d.get('sources.rejected', 0)),
@@ -161,15 +161,15 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901 - one linear scrip
         log.close()
 
     after = [s for s in samples if s['t_s'] >= WARM_UP_S] or samples
-    total = [s['node_rss_mb'] + s['worker_rss_mb'] for s in after]
+    total = [s['node_rss_mb'] + s['registration_rss_mb'] for s in after]
     summary = {
         'duration_s': args.duration, 'rate_hz': args.rate, 'voxel_size': args.voxel_size,
         'sources_sent': k, 'poses_received': state['poses'],
         'diagnostics_messages': state['messages'], 'unbalanced_messages': state['unbalanced'],
         'final': {key: final.get(key) for key in (
             'sources.received', 'sources.published', 'sources.rejected', 'sources.dropped',
-            'sources.pending', 'sources.lost_upstream', 'transport.profile', 'worker.crashes',
-            'accounting.ok')},
+            'sources.pending', 'sources.lost_upstream', 'transport.profile',
+            'registration.crashes', 'accounting.ok')},
         'rss_after_warm_up_mb': {'first': total[0], 'last': total[-1],
                                  'max': max(total), 'growth': total[-1] - total[0]},
         'node_exit_code': proc.returncode}
@@ -181,14 +181,14 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901 - one linear scrip
 
 
 def plot(samples: list[dict], path: Path) -> Path:
-    """Write RSS (node, worker, total) and latency (p50, p95) over time as a PNG."""
+    """Write RSS (node, registration process, total) and latency (p50, p95) over time as a PNG."""
     plt = pyplot()
 
     t = [s['t_s'] / 60 for s in samples]
     fig, (a, b) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
     a.plot(t, [s['node_rss_mb'] for s in samples], label='node')
-    a.plot(t, [s['worker_rss_mb'] for s in samples], label='worker')
-    a.plot(t, [s['node_rss_mb'] + s['worker_rss_mb'] for s in samples], label='total')
+    a.plot(t, [s['registration_rss_mb'] for s in samples], label='registration process')
+    a.plot(t, [s['node_rss_mb'] + s['registration_rss_mb'] for s in samples], label='total')
     a.set_ylabel('RSS [MB]')
     a.legend()
     b.plot(t, [s['p50_ms'] for s in samples], label='p50')

@@ -181,7 +181,8 @@ def run_pub(topic: str, clouds: str, rate: float, count: int, node: bool) -> int
     executor.add_node(io)
     threading.Thread(target=executor.spin, daemon=True).start()
     deadline = time.monotonic() + 180  # a node's registration process warms up first
-    while not pub.get_subscription_count() or (node and values.get('worker.ready') != 'True'):
+    while not pub.get_subscription_count() or (
+            node and values.get('registration.ready') != 'True'):
         if time.monotonic() > deadline:
             print(json.dumps({'error': 'no subscriber ready in 180 s'}), flush=True)
             os._exit(1)

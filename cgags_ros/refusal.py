@@ -44,7 +44,7 @@ class RefusalCode(enum.Enum):
     UNCERTAIN = 'uncertain'  # the covariance's loosest sigma is too large to act on
     TRACKING_LOST = 'tracking_lost'  # a tracked pose jumped from its prediction or lost fit
     # The node and its services
-    TIMEOUT = 'timeout'  # past worker.registration_timeout (or map.load_timeout)
+    TIMEOUT = 'timeout'  # past runtime.registration_timeout (or map.load_timeout)
     WORKER_CRASHED = 'worker_crashed'  # the registration process died during the pair
     START_FAILED = 'start_failed'  # the registration process or the map is unusable
     STALE = 'stale'  # on demand: the latest scan is older than relocalization.max_scan_age

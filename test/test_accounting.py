@@ -1,5 +1,5 @@
 """
-cgags_ros.localizer.accounting and .statistics: scans lost upstream, beside the balanced buckets.
+cgags_ros.engine.accounting and .statistics: scans lost upstream, beside the balanced buckets.
 
 No DDS: the node's accounting object fed directly, its /diagnostics message built (with the
 ROS message packages; the rest without).
@@ -10,9 +10,9 @@ from __future__ import annotations
 import threading
 
 from cgags_ros.config.node import PairingConfig
-from cgags_ros.localizer import statistics
-from cgags_ros.localizer.accounting import Accounting
-from cgags_ros.localizer.transport import PROFILE_VARIABLE
+from cgags_ros.engine import statistics
+from cgags_ros.engine.accounting import Accounting
+from cgags_ros.engine.transport import PROFILE_VARIABLE
 from cgags_ros.refusal import Refusal, RefusalCode
 import pytest
 
@@ -57,7 +57,7 @@ def test_no_source_yet_names_the_transport_fix():
 
 
 def test_take_wakes_on_a_pair_and_on_wake():
-    """The worker's wait for a pair ends when a source completes one, or when it is woken."""
+    """The engine thread's wait for a pair ends when a source completes one, or when woken."""
     health = Accounting(PairingConfig(), queue_depth=2)
     health.receive('target', 1, 'map', 'T')
     threading.Timer(0.05, health.receive, args=('source', 2, 'lidar', 's')).start()

@@ -1,10 +1,10 @@
-"""What a tracked stream's worker skips of its backlog (cgags_ros/pipeline/backlog.py)."""
+"""What a tracked stream's engine thread skips of its backlog (cgags_ros/pipeline/backlog.py)."""
 
 from cgags_ros.config.node import NodeConfig, PairingConfig
 from cgags_ros.config.pipeline import PipelineConfig
 from cgags_ros.config.tracking import TrackingConfig
-from cgags_ros.localizer.backlog import Backlog, queue_depth, SKIPPED
-from cgags_ros.localizer.pairing import is_source_drop, Pairer
+from cgags_ros.engine.backlog import Backlog, queue_depth, SKIPPED
+from cgags_ros.engine.pairing import is_source_drop, Pairer
 
 MS = 10**6
 

@@ -227,7 +227,7 @@ def stop(proc, timeout=20.0):
         except subprocess.TimeoutExpired:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
-    try:  # the node's registration worker process, should it have outlived the node
+    try:  # the node's registration process, should it have outlived the node
         os.killpg(proc.pid, signal.SIGKILL)
     except ProcessLookupError:
         pass
@@ -353,7 +353,7 @@ def test_colcon_build_installs_a_runnable_node(tmp_path, data_dir, monkeypatch):
 
     assert returncode == 0, f'exit code {returncode} after SIGINT\n{shown}'
     assert 'Traceback' not in err, shown
-    # Every cgags_ros module the node (and its registration worker) loaded came from the
+    # Every cgags_ros module the node (and its registration process) loaded came from the
     # install, none from the source tree or the venv's editable install of it.
     # Found anywhere in a line: the node and its registration process write to one stderr,
     # and one's trace can land inside a line of the other's.

@@ -27,7 +27,7 @@ ROS_NAMES = [
     'core.time_budget', 'tracking.enabled', 'mode', 'autostart', 'config_file', 'pairing.mode',
     'pairing.sync_slop',
     'pairing.queue_depth', 'pairing.source_qos', 'pairing.target_durability',
-    'worker.registration_timeout', 'map.file', 'map.frame', 'map.cache_dir',
+    'runtime.registration_timeout', 'map.file', 'map.frame', 'map.cache_dir',
     'relocalization.publish_initial_pose', 'relocalization.base_from_sensor',
     'relocalization.min_ratio', 'output.pose_frame_id', 'output.publish_invalid',
     'output.publish_aligned_cloud', 'output.broadcast_tf', 'output.diagnostics_period']
@@ -49,7 +49,7 @@ def test_yaml_holds_the_ros_parameters_at_their_defaults():
     assert values['core.gravity'] == [0.0, 0.0, 1.0]
     assert values['relocalization.base_from_sensor'] == [0.0] * 7
     assert {name.split('.')[0] for name in values if '.' in name} == {
-        'frontend', 'core', 'pairing', 'worker', 'map', 'relocalization', 'output',
+        'frontend', 'core', 'pairing', 'runtime', 'map', 'relocalization', 'output',
         'tracking'}
     pipe, node = configs_from_parameters(values)
     assert pipe == PipelineConfig() and node == NodeConfig()

@@ -1,5 +1,5 @@
 """
-cgags_ros.localizer.engine without ROS: pairing, accounting, lifecycle states, guards, requests.
+cgags_ros.engine.engine without ROS: pairing, accounting, lifecycle states, guards, requests.
 
 The engine is fed decoded clouds directly and publishes into a recorder; the registration
 is a stand-in that returns a known pose (the real pipeline runs in the DDS tests), so these
@@ -19,11 +19,11 @@ import time
 from cgags_ros.config.node import configs_from_parameters
 from cgags_ros.config.pipeline import PipelineConfig
 from cgags_ros.config.tracking import TrackingConfig
+from cgags_ros.engine import startup
+from cgags_ros.engine.engine import RegistrationEngine
+from cgags_ros.engine.interface import Cloud, StartFailed
 from cgags_ros.geometry import make_transform, quaternion_to_matrix
 from cgags_ros.io.clouds import write_cloud
-from cgags_ros.localizer import startup
-from cgags_ros.localizer.engine import RegistrationEngine
-from cgags_ros.localizer.interface import Cloud, StartFailed
 from cgags_ros.pipeline.result import PipelineResult
 from cgags_ros.refusal import Refusal, RefusalCode
 from cgags_ros.runtime.procfs import running
@@ -120,8 +120,8 @@ def balanced(engine):
 
 @pytest.mark.subprocess
 def test_the_engine_imports_no_ros():
-    code = ('import sys, cgags_ros.localizer.engine, cgags_ros.localizer.map_target, '
-            'cgags_ros.localizer.startup; '
+    code = ('import sys, cgags_ros.engine.engine, cgags_ros.engine.map_target, '
+            'cgags_ros.engine.startup; '
             "print(sorted(m for m in sys.modules if m.split('.')[0] in "
             "('rclpy', 'rcl_interfaces', 'std_msgs', 'sensor_msgs', 'geometry_msgs')))")
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
@@ -259,7 +259,7 @@ def test_initial_pose_guards_extrinsic_and_max_auto():
 
 
 def test_one_quality_refusal_a_pair_serves_the_guard_and_the_answer(monkeypatch):
-    from cgags_ros.localizer import localization as engine_module
+    from cgags_ros.engine import relocalization_run as engine_module
 
     decide, verdicts = engine_module.quality_refusal, []
 
@@ -348,7 +348,7 @@ def sphere(n=3000):
 
 def test_a_map_without_normals_loads_with_a_warning_and_one_with_normals_without(tmp_path):
     """The map's normals face the map origin unless the file signs them: the log says which."""
-    from cgags_ros.localizer.map_target import MapTarget
+    from cgags_ros.engine.map_target import MapTarget
 
     points, normals = sphere()
     write_cloud(tmp_path / 'bare.ply', points)
@@ -388,7 +388,7 @@ def test_start_returns_once_the_process_is_warm_and_the_map_loaded(
     out = Recorder()
     engine = RegistrationEngine(PipelineConfig(voxel_size=0.2), node_config(**{
         'map.file': str(tmp_path / 'map.ply') if with_map else '', 'map.cache_dir': '',
-        'worker.registration_timeout': 60.0}), out)
+        'runtime.registration_timeout': 60.0}), out)
     engine.start()
     try:
         (process,) = processes
@@ -396,7 +396,7 @@ def test_start_returns_once_the_process_is_warm_and_the_map_loaded(
         pid = process.pid
         assert running(pid)
         stats = engine.statistics()
-        assert stats['worker.ready'] is True
+        assert stats['registration.ready'] is True
         if with_map:
             assert stats['map.cache'] == 'off' and 0 < stats['map.points'] <= 3000
             assert engine.snapshot()['accounting']['targets']['pending'] == 1  # the map
@@ -409,7 +409,7 @@ def test_start_returns_once_the_process_is_warm_and_the_map_loaded(
 @pytest.mark.subprocess
 @pytest.mark.parametrize('case', ['missing', 'empty', 'unreadable', 'all_nan'])
 def test_a_bad_map_fails_start_with_its_reason(tmp_path, case):
-    """A missing, empty, unreadable or all-NaN map: StartFailed naming it, no worker thread."""
+    """A missing, empty, unreadable or all-NaN map: StartFailed naming it, no engine thread."""
     path = bad_map(tmp_path, case)
     cfg = node_config(**{'map.file': str(path), 'map.cache_dir': str(tmp_path / 'cache')})
     engine = RegistrationEngine(PipelineConfig(), cfg, Recorder(),
@@ -418,7 +418,7 @@ def test_a_bad_map_fails_start_with_its_reason(tmp_path, case):
         engine.start()
     assert path.name in str(failure.value)
     assert engine.statistics()['map.error'] == str(failure.value)
-    assert 'register_worker' not in [t.name for t in threading.enumerate()]
+    assert 'engine' not in [t.name for t in threading.enumerate()]
     engine.stop()  # what the node's cleanup does: harmless after a failed start
 
 
@@ -426,7 +426,7 @@ def test_a_bad_map_fails_start_with_its_reason(tmp_path, case):
 def test_a_bad_map_ends_the_registration_process_it_was_loaded_in(tmp_path, processes):
     """The map is loaded in the real process: start fails and that process is ended."""
     engine = RegistrationEngine(PipelineConfig(), node_config(**{
-        'map.file': str(bad_map(tmp_path, 'unreadable')), 'worker.registration_timeout': 60.0}),
+        'map.file': str(bad_map(tmp_path, 'unreadable')), 'runtime.registration_timeout': 60.0}),
         Recorder())
     with pytest.raises(StartFailed, match='map.file cannot be used: .*broken.ply'):
         engine.start()
@@ -439,7 +439,7 @@ def test_a_bad_map_ends_the_registration_process_it_was_loaded_in(tmp_path, proc
 def test_a_process_that_dies_while_warming_up_fails_start(processes):
     """Killed (-9) during its warm-up: StartFailed says so, and nothing is left running."""
     engine = RegistrationEngine(PipelineConfig(),
-                                node_config(**{'worker.registration_timeout': 60.0}), Recorder())
+                                node_config(**{'runtime.registration_timeout': 60.0}), Recorder())
     failures = []
 
     def start():
@@ -458,4 +458,4 @@ def test_a_process_that_dies_while_warming_up_fails_start(processes):
         'the registration process failed to start (it died)']
     wait_for(lambda: not running(pid), 10, 'the killed process reaped')
     assert engine.runner is None and processes[0].pid is None
-    assert 'register_worker' not in [t.name for t in threading.enumerate()]
+    assert 'engine' not in [t.name for t in threading.enumerate()]

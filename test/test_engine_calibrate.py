@@ -16,9 +16,9 @@ from bench.datasets.rigs import OPENCALIB, opencalib_rig, REFERENCE
 from cgags_ros.config.calibration import CalibrationConfig
 from cgags_ros.config.node import NodeConfig
 from cgags_ros.config.pipeline import PipelineConfig
+from cgags_ros.engine.engine import RegistrationEngine
+from cgags_ros.engine.interface import Cloud
 from cgags_ros.geometry import rotation_error_deg, translation_error
-from cgags_ros.localizer.engine import RegistrationEngine
-from cgags_ros.localizer.interface import Cloud
 import numpy as np
 import pytest
 from test_calibration import _plane_rig

@@ -106,7 +106,7 @@ def test_fixture_pair_over_dds_meets_ground_truth(tmp_path):
                      and io.node.count_publishers(f'{NODE}/pose'), 60, 'node discovery')
             # The publisher can see the match before the subscriber does, and a pair sent
             # while the registration process still compiles waits on it: wait for both.
-            wait_for(lambda: io.values.get('worker.ready') == 'True', WARM_UP_S,
+            wait_for(lambda: io.values.get('registration.ready') == 'True', WARM_UP_S,
                      'the registration process to be ready', lambda: io.values)
             io.target_pub.publish(xyz_to_pointcloud2(target, Header(frame_id='map')))
             wait_for(lambda: io.values.get('received_target') == '1', 30, 'the target',

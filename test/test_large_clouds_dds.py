@@ -27,7 +27,7 @@ import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
-from cgags_ros.localizer.transport import profile_path, PROFILE_VARIABLE  # noqa: E402, I100
+from cgags_ros.engine.transport import profile_path, PROFILE_VARIABLE  # noqa: E402, I100
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
@@ -88,9 +88,9 @@ def run(diag, data_dir, tmp_path, node_profile, pub_profile):
         + ros_args(**NODE_PARAMS),
         cwd=REPO, env=env(node_profile), stdout=log, stderr=subprocess.STDOUT, text=True)
     try:
-        wait_for(lambda: diag.values.get('worker.ready') == 'True', 180,
+        wait_for(lambda: diag.values.get('registration.ready') == 'True', 180,
                  'the node and its registration process', lambda: diag.values)
-        # The publisher waits for the match (and worker.ready) before its first scan.
+        # The publisher waits for the match (and registration.ready) before its first scan.
         pub = subprocess.run(
             [sys.executable, '-m', 'bench.transport', '--role', 'pub',
              '--clouds', 'kitti', '--rate', str(RATE_HZ), '--count', str(COUNT), '--node'],

@@ -1,7 +1,7 @@
 """
 The package's architecture, checked from its sources with ast.
 
-Layers import one way: tools -> ros -> localizer -> runtime -> calibration, tracking,
+Layers import one way: tools -> ros -> engine -> runtime -> calibration, tracking,
 relocalization -> pipeline -> frontend / registration -> validity -> geometry, config, io (and
 errors, timing, and the refusal codes below them all). Only ros/ (and the live replay's DDS
 client) imports rclpy and message packages, and ros/ is wiring only: every module of it imports
@@ -33,7 +33,7 @@ LAYERS = {  # top-level part of the module name -> layer (higher imports lower)
     'tracking': 5,  # a stream's scans, from their predicted pose or through the pipeline
     'relocalization': 5,  # several scans with odometry in a map
     'runtime': 6,  # the registration processes: typed jobs, their state, supervision
-    'localizer': 7,  # what the node decides, without ROS
+    'engine': 7,  # what the node decides, without ROS
     'ros': 8,
     'register_node': 9, 'tools': 9,  # entry points
 }
@@ -156,10 +156,10 @@ def test_ros_is_wiring_only():
         if path.name != '__init__.py':
             assert any(map(is_ros, GRAPH[name][1])), (
                 f'{name} imports neither rclpy nor a message package: what works without ROS '
-                'belongs in localizer/ (what the node decides) or below')
+                'belongs in engine/ (what the node decides) or below')
     assert 0 < total <= ROS_MAX_LINES, (
         f'ros/ holds {total} lines: it wires topics, services and parameters to the engine; '
-        'decisions belong in localizer/')
+        'decisions belong in engine/')
 
 
 @pytest.mark.subprocess
@@ -167,7 +167,7 @@ def test_importing_the_package_sets_no_environment_and_the_entry_points_do():
     """The idle-thread settings belong to the processes that run the pipeline, not to importers."""
     # (Open3D sets KMP_* variables of its own when it loads.)
     show = "print(os.environ.get('OMP_WAIT_POLICY'), os.environ.get('OPENBLAS_THREAD_TIMEOUT'))"
-    code = ('import os; import cgags_ros.pipeline.register, cgags_ros.localizer.engine, '
+    code = ('import os; import cgags_ros.pipeline.register, cgags_ros.engine.engine, '
             f'cgags_ros.register_node; {show}; import cgags_ros.tools; {show}')
     env = {k: v for k, v in os.environ.items()
            if k not in ('OMP_WAIT_POLICY', 'OPENBLAS_THREAD_TIMEOUT')}
@@ -182,7 +182,7 @@ def test_the_checker_sees_real_edges():
     assert 'cgags_ros.config.fields' in GRAPH['cgags_ros.config.node'][0]
     assert 'rclpy' in GRAPH['cgags_ros.ros.node'][1]
     assert 'diagnostic_msgs' in GRAPH['cgags_ros.ros.outputs'][1]
-    assert not any(map(is_ros, GRAPH['cgags_ros.localizer.engine'][1]))
+    assert not any(map(is_ros, GRAPH['cgags_ros.engine.engine'][1]))
     # a function-level import
     assert 'cgags_ros.pipeline.map' in GRAPH['cgags_ros.runtime.session'][0]
 

@@ -32,7 +32,7 @@ REPO = Path(__file__).resolve().parents[1]
 PARAMS = {'autostart': False, 'voxel_size': 0.4, 'pairing.source_qos': 'reliable',
           'pairing.source_depth': 50, 'pairing.target_durability': 'transient_local',
           'pairing.queue_depth': 10,
-          'output.diagnostics_period': 0.1, 'worker.registration_timeout': 120.0,
+          'output.diagnostics_period': 0.1, 'runtime.registration_timeout': 120.0,
           # the guards of a relocalization answer, loose enough for a 6-scan bag
           'relocalization.min_ratio': 1.0, 'relocalization.min_fitness': 0.0}
 

@@ -1,7 +1,7 @@
 """
 Run register_node under faults over real DDS; every cloud must end in a counted bucket.
 
-The faults: a dying worker, floods of malformed clouds, fuzzed parameters and a bag
+The faults: a dying registration process, floods of malformed clouds, fuzzed parameters and a bag
 replayed in a loop.
 
 The node runs in this process with its own rclpy context and DDS domain; accuracy checks
@@ -116,7 +116,8 @@ def balanced(values):
     return values
 
 
-def test_worker_killed_idle_and_busy_is_replaced_and_the_next_pair_is_correct(wire, lidar):
+def test_killed_registration_process_idle_and_busy_is_replaced_and_the_next_pair_is_correct(
+        wire, lidar):
     _, _, io = wire
     records, gt = lidar
     targets = [m for t, _, m in records if t == '/target_cloud']
@@ -132,7 +133,7 @@ def test_worker_killed_idle_and_busy_is_replaced_and_the_next_pair_is_correct(wi
         # killed while idle: the next pair runs on a fresh process
         pid = iso.pid
         os.kill(pid, signal.SIGKILL)
-        wait_for(lambda: not running(pid), 10, 'the worker to die')
+        wait_for(lambda: not running(pid), 10, 'the registration process to die')
         stamp, msg = sources[1]
         io.source_pub.publish(msg)
         check(wait_for(lambda: io.pose_at(stamp), 60, 'pose after an idle kill',
@@ -150,8 +151,9 @@ def test_worker_killed_idle_and_busy_is_replaced_and_the_next_pair_is_correct(wi
         os.kill(pid, signal.SIGKILL)
         values = wait_for(lambda: io.values.get('rejected.worker_crashed') == '1'
                           and io.values, 30, 'the crash in /diagnostics', node.statistics)
-        assert io.level == DiagnosticStatus.ERROR and 'worker' in values['worker.failing']
-        assert int(values['worker.crashes']) == 2 and int(values['worker.restarts']) == 2
+        assert io.level == DiagnosticStatus.ERROR and 'worker' in values['registration.failing']
+        assert int(values['registration.crashes']) == 2
+        assert int(values['registration.restarts']) == 2
         stamp, msg = sources[2]
         stamp += 2 * 10**9  # after the noise cloud's stamp
         msg = copy.deepcopy(msg)
@@ -164,7 +166,7 @@ def test_worker_killed_idle_and_busy_is_replaced_and_the_next_pair_is_correct(wi
                           'the status to recover')
         balanced(values)
         assert float(values['memory.node_rss_mb']) > 0
-        assert float(values['memory.worker_rss_mb']) > 0
+        assert float(values['memory.registration_rss_mb']) > 0
     finally:
         stop(wire, node)
 
@@ -304,8 +306,9 @@ def test_a_bag_replayed_twice_gives_the_same_poses(wire, lidar):
         stop(wire, node)
 
 
-def test_separate_process_node_survives_a_worker_kill_quietly(wire, lidar, tmp_path):
-    """The node as users run it: a killed worker is replaced, with no traceback on stderr."""
+def test_separate_process_node_survives_a_registration_process_kill_quietly(wire, lidar,
+                                                                            tmp_path):
+    """The node as users run it: a killed registration process is replaced, no traceback."""
     _, _, io = wire
     records, gt = lidar
     env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED='1',
@@ -319,12 +322,13 @@ def test_separate_process_node_survives_a_worker_kill_quietly(wire, lidar, tmp_p
         wait_for(lambda: io.source_pub.get_subscription_count()
                  and io.target_pub.get_subscription_count()
                  and io.values.get('sources.received') == '0'
-                 and int(io.values.get('worker.pid', 0)), 60, 'the node and its worker')
-        pid = int(io.values['worker.pid'])
+                 and int(io.values.get('registration.pid', 0)), 60,
+                 'the node and its registration process')
+        pid = int(io.values['registration.pid'])
         os.kill(pid, signal.SIGKILL)
-        values = wait_for(lambda: io.values.get('worker.crashes') == '1' and io.values, 20,
+        values = wait_for(lambda: io.values.get('registration.crashes') == '1' and io.values, 20,
                           'the idle crash in /diagnostics')
-        assert io.level == DiagnosticStatus.ERROR and int(values['worker.pid']) != pid
+        assert io.level == DiagnosticStatus.ERROR and int(values['registration.pid']) != pid
         io.poses.clear()  # an earlier test's pose at this stamp is no answer of this node
         io.target_pub.publish(next(m for t, _, m in records if t == '/target_cloud'))
         stamp, source = next((s, m) for t, s, m in records if t == '/source_cloud')

@@ -42,7 +42,7 @@ def start_with_map(client, msgs, tmp_path: Path, **params):
     proc, log = bench.start_node(ros_args(**NODE_PARAMS, **params),
                                  bench.dds_environment(DOMAIN_ID), tmp_path / 'node.log')
     try:
-        wait_for(lambda: client.value('worker.ready') == 'True', 300,
+        wait_for(lambda: client.value('registration.ready') == 'True', 300,
                  'the node and its registration process', lambda: client.diagnostics)
         client.target_pub.publish(msgs[0])
         wait_for(lambda: client.value('targets.received') == '1', 60, 'the map')

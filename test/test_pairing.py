@@ -1,11 +1,11 @@
-"""cgags_ros.localizer.pairing: both modes, waiting sources, bounded queue, drop counters."""
+"""cgags_ros.engine.pairing: both modes, waiting sources, bounded queue, drop counters."""
 
 from __future__ import annotations
 
 import collections
 
+from cgags_ros.engine.pairing import is_source_drop, Pairer
 from cgags_ros.io.bag import read_messages
-from cgags_ros.localizer.pairing import is_source_drop, Pairer
 import numpy as np
 import pytest
 

@@ -279,10 +279,10 @@ def test_callbacks_after_context_shutdown_do_not_raise():
     Check that callbacks running after the context has shut down end quietly.
 
     SIGTERM shuts the context down while the executor may still dispatch the
-    diagnostics timer or the worker may still publish a pose; that must end quietly, not
+    diagnostics timer or the engine thread may still publish a pose; that must end quietly, not
     as an RCLError that makes rclpy.spin() raise and the node exit 1 (seen once in CI).
     """
-    from cgags_ros.localizer.interface import Estimate
+    from cgags_ros.engine.interface import Estimate
     from rclpy.context import Context
 
     ctx = Context()
@@ -298,7 +298,7 @@ def test_callbacks_after_context_shutdown_do_not_raise():
         with pytest.raises(RuntimeError, match='context is invalid'):  # what would escape
             probe.publish(DiagnosticArray())
         node._publish_diagnostics()  # noqa: SLF001 - the timer's callback
-        node.outputs.publish_estimate(estimate)  # the worker's publish
+        node.outputs.publish_estimate(estimate)  # the engine thread's publish
         node.outputs.publish_diagnostics(node.statistics())
     finally:
         node.destroy_node()
@@ -353,7 +353,7 @@ def test_faulty_bag_rejections_counted_and_good_pair_published(ros, data_dir):
     # bounds it should the core ever stall on it.
     node = start_node(executor, voxel_size=VOXEL['faulty'], **{
         'output.diagnostics_period': 0.2, 'pairing.queue_depth': 10,
-        'worker.registration_timeout': 20.0})
+        'runtime.registration_timeout': 20.0})
     try:
         # Configure returns once the registration process is warm; the subscriptions exist
         # from then, so wait until both sides of both topics have matched.

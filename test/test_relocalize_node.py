@@ -143,7 +143,7 @@ def test_on_demand_relocalization_in_a_merged_kitchen_map(wire, kitchen, data_di
               'map.cache_dir': str(cache), 'voxel_size': 0.05, 'pairing.source_qos': 'reliable',
               'frontend.normal_orientation': 'centroid',  # the scans are moved
               'relocalization.publish_initial_pose': True, 'relocalization.cooldown': 0.0,
-              'worker.registration_timeout': 120.0, 'output.diagnostics_period': 0.2,
+              'runtime.registration_timeout': 120.0, 'output.diagnostics_period': 0.2,
               'relocalization.max_scan_age': 30.0}
     node = start(wire, **params)
     try:
@@ -317,7 +317,7 @@ def test_a_bad_map_file_fails_configure_and_leaves_nothing_running(
     _, _, io = wire
     path = bad_map(tmp_path, case)
     node = start(wire, **{'map.file': str(path), 'map.cache_dir': str(tmp_path / 'c'),
-                          'worker.registration_timeout': 30.0, 'voxel_size': 0.4,
+                          'runtime.registration_timeout': 30.0, 'voxel_size': 0.4,
                           'output.diagnostics_period': 0.2, 'autostart': autostart})
     try:
         if not autostart:

@@ -89,11 +89,11 @@ def test_calls_in_flight_are_answered_once_the_odometry_confirms_the_pose(scene)
             'mode': 'on_demand', 'pairing.source_qos': 'reliable',
             'relocalization.publish_initial_pose': True, 'relocalization.cooldown': 0.0,
             'relocalization.base_from_sensor': list(BASE_FROM_SENSOR),
-            'worker.registration_timeout': 300.0, 'relocalization.timeout': 900.0,
+            'runtime.registration_timeout': 300.0, 'relocalization.timeout': 900.0,
             'relocalization.max_scan_age': 60.0, 'output.diagnostics_period': 0.2}))
         executor.add_node(node)
         try:
-            wait_for(lambda: io.values.get('worker.ready') == 'True', 600.0,
+            wait_for(lambda: io.values.get('registration.ready') == 'True', 600.0,
                      'the registration process and the map', lambda: io.values)
             wait_for(lambda: io.source_pub.get_subscription_count() > 0
                      and io.odom_pub.get_subscription_count() > 0, 30.0, 'the subscriptions')

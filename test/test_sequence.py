@@ -13,10 +13,10 @@ from __future__ import annotations
 import time
 
 from cgags_ros.config.node import configs_from_parameters
+from cgags_ros.engine.engine import RegistrationEngine
+from cgags_ros.engine.interface import Cloud
 from cgags_ros.geometry import make_transform, quaternion_to_matrix
 from cgags_ros.geometry import rotation_error_deg, translation_error
-from cgags_ros.localizer.engine import RegistrationEngine
-from cgags_ros.localizer.interface import Cloud
 from cgags_ros.refusal import Refusal, RefusalCode
 from cgags_ros.relocalization.sequence import SequenceRun, StepAnswer
 import numpy as np
@@ -80,13 +80,13 @@ def test_a_scan_without_odometry_near_its_stamp_is_judged_alone_and_starts_over(
 
 
 def test_a_scan_is_a_step_of_a_sequence_only_with_odometry_known():
-    from cgags_ros.localizer.localization import Localization
-    from cgags_ros.localizer.pairing import Pair, Stamped
+    from cgags_ros.engine.relocalization_run import RelocalizationRun
+    from cgags_ros.engine.pairing import Pair, Stamped
 
     out = Recorder()
     cfg = configs_from_parameters({'map.file': 'map.ply', 'mode': 'on_demand',
                                    'relocalization.base_from_sensor': list(BASE_FROM_SENSOR)})[1]
-    localization = Localization(cfg, out)
+    localization = RelocalizationRun(cfg, out)
     pair = Pair(Stamped(5 * S, 'sensor', None), Stamped(0, 'map', None))
     out.odom[5 * S] = turn(10, (1.0, 0.0, 0.0))
     assert localization.step(pair, cfg) is None  # no request waits: one scan at a time
@@ -129,7 +129,7 @@ def relocalize(scene_data, ids, odom_sensor, **node):
     base = make_transform(quaternion_to_matrix(BASE_FROM_SENSOR[3:]), BASE_FROM_SENSOR[:3])
     out = Recorder()
     engine = RegistrationEngine(cfg, configs_from_parameters({
-        'map.file': str(path), 'map.cache_dir': '', 'worker.registration_timeout': 0.0,
+        'map.file': str(path), 'map.cache_dir': '', 'runtime.registration_timeout': 0.0,
         'mode': 'on_demand', 'relocalization.publish_initial_pose': True,
         'relocalization.cooldown': 0.0, 'relocalization.timeout': 600.0,
         'relocalization.base_from_sensor': list(BASE_FROM_SENSOR), **node})[1], out)

@@ -14,12 +14,12 @@ import os
 import signal
 import time
 
-from cgags_ros.config.node import NodeConfig, PairingConfig, WorkerConfig
+from cgags_ros.config.node import NodeConfig, PairingConfig, RuntimeConfig
 from cgags_ros.config.pipeline import PipelineConfig
 from cgags_ros.config.tracking import TrackingConfig
+from cgags_ros.engine.engine import RegistrationEngine
+from cgags_ros.engine.interface import Cloud
 from cgags_ros.geometry import rotation_error_deg, translation_error
-from cgags_ros.localizer.engine import RegistrationEngine
-from cgags_ros.localizer.interface import Cloud
 from cgags_ros.tracking.counts import StreamCounts, tracks
 import numpy as np
 import pytest
@@ -35,7 +35,7 @@ def start(registration_timeout=0.0, pairing=None, **tracking):
     out = Recorder()
     engine = RegistrationEngine(
         PipelineConfig(voxel_size=VOXEL, tracking=TrackingConfig(**tracking)),
-        NodeConfig(worker=WorkerConfig(registration_timeout=registration_timeout),
+        NodeConfig(runtime=RuntimeConfig(registration_timeout=registration_timeout),
                    pairing=PairingConfig(**(pairing or {}))), out)
     engine.start()
     engine.activate()

@@ -66,9 +66,10 @@ def test_the_process_is_sent_an_unchanged_target_once(pair):
     other = target[::-1].copy()  # same points, another array: must be sent
     iso = Supervisor(60.0)
     try:
-        assert not iso.ready and iso.health()['worker.ready'] is False  # spawning, warming up
+        # Spawning, warming up.
+        assert not iso.ready and iso.health()['registration.ready'] is False
         first = pair_result(iso, source, target)
-        assert iso.ready and iso.health()['worker.ready'] is True
+        assert iso.ready and iso.health()['registration.ready'] is True
         assert iso.targets_sent == 1
         again = pair_result(iso, source, target)
         assert iso.targets_sent == 1
@@ -93,7 +94,7 @@ def test_a_pair_past_the_time_limit_restarts_the_process_and_the_next_one_runs(p
     try:
         iso.wait_ready()  # the warm-up is not counted against the limit
         pid = iso.pid
-        with pytest.raises(RegistrationTimeout, match='worker.registration_timeout = 0.01 s'):
+        with pytest.raises(RegistrationTimeout, match='runtime.registration_timeout = 0.01 s'):
             pair_result(iso, source, target)
         assert iso.restarts == 1 and iso.crashes == 0 and iso.pid != pid
         wait_for(lambda: not running(pid), 10, 'the timed-out process to end')
@@ -124,7 +125,7 @@ def test_a_process_killed_busy_fails_its_pair_and_one_killed_idle_costs_nothing(
         caller.start()
         wait_for(lambda: iso.in_flight, 60, 'the pair to reach the registration process')
         pid = iso.pid
-        assert iso.health()['memory.worker_rss_mb'] > 0 and rss_mb(pid) > 0
+        assert iso.health()['memory.registration_rss_mb'] > 0 and rss_mb(pid) > 0
         os.kill(pid, signal.SIGKILL)
         caller.join(60)
         assert [str(f) for f in failed] == [
@@ -136,10 +137,10 @@ def test_a_process_killed_busy_fails_its_pair_and_one_killed_idle_costs_nothing(
         pid = iso.pid
         os.kill(pid, signal.SIGKILL)  # idle: found dead before the next pair is sent
         wait_for(lambda: not running(pid), 10, 'the idle process to die')
-        assert iso.health()['worker.alive'] is False
+        assert iso.health()['registration.alive'] is False
         result = pair_result(iso, source, target)
         assert result.valid, result.reason
-        assert iso.crashes == 2 and iso.pid != pid and iso.health()['worker.alive'] is True
+        assert iso.crashes == 2 and iso.pid != pid and iso.health()['registration.alive'] is True
     finally:
         iso.close()
     assert not running(pid)

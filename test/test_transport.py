@@ -1,10 +1,10 @@
-"""cgags_ros.localizer.transport: the shipped Fast DDS profile and when the package turns it on."""
+"""cgags_ros.engine.transport: the shipped Fast DDS profile and when the package turns it on."""
 
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
 
-from cgags_ros.localizer import transport
+from cgags_ros.engine import transport
 import pytest
 
 NS = {'p': 'http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles'}

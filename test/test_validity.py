@@ -18,19 +18,19 @@ from cgags_ros import validity
 from cgags_ros.config import pipeline_config_from, PipelineConfig
 from cgags_ros.config.core import CoreConfig
 from cgags_ros.config.node import configs_from_parameters
+from cgags_ros.engine.interface import PairResult, StartFailed
 from cgags_ros.errors import (BagError, CgagsError, DegenerateCorrespondencesError,
                               EmptyCloudError, InvalidConfigError, InvalidInputError,
                               MalformedCloudError)
 from cgags_ros.frontend.refine import Alignment
 from cgags_ros.geometry import apply_transform, cross_spread
-from cgags_ros.localizer.interface import PairResult, StartFailed
 from cgags_ros.pipeline import register_clouds
 from cgags_ros.pipeline.gates import free_space_violation, observability
 from cgags_ros.pipeline.result import Candidate, PipelineResult
 from cgags_ros.pipeline.twins import add_twin
 from cgags_ros.refusal import Refusal, RefusalCode as Code, summary
 from cgags_ros.registration import register_correspondences, RegistrationResult
-from cgags_ros.relocalization.requests import not_localized
+from cgags_ros.relocalization.service_calls import not_localized
 from cgags_ros.runtime.supervisor import RegistrationTimeout, WorkerCrashed
 from cgags_ros.tracking.prediction import difference
 from cgags_ros.validity import consensus

@@ -111,7 +111,7 @@ class FakeRunner:
     def supervise(self):
         return False
 
-    def health(self, prefix='worker'):
+    def health(self, prefix='registration'):
         return {}
 
     def close(self):

@@ -93,8 +93,8 @@ def parameters_markdown() -> str:
         '(local refinement), `gates` (when a result is valid or ambiguous: what',
         '`cgags_ros/validity` decides with), `tracking` (the temporal prior), the candidate',
         "search at the top level; the node's `pairing` (input topics, QoS, pairing, the",
-        'size limit of an incoming cloud), `worker` (where and how long a registration runs:',
-        "the worker's, not the core's, limit), `map`, `relocalization` and `output`.",
+        'size limit of an incoming cloud), `runtime` (where and how long a registration runs:',
+        "the node's, not the core's, limit), `map`, `relocalization` and `output`.",
         'Advanced keys are research switches of the method (most are INFERRED choices, see',
         '[method.md](method.md) and [ablation.md](ablation.md)); they are never ROS parameters.',
     ]

@@ -41,7 +41,7 @@ class PairingConfig:
         0.05, 'synchronized mode: largest |source stamp - target stamp|, seconds.',
         low=0.0, high=3600.0, ros=True)
     queue_depth: int = option(
-        1, 'Pairs waiting for the registration worker; when full the oldest pair is dropped '
+        1, 'Pairs waiting for the engine thread; when full the oldest pair is dropped '
         '(counted in /diagnostics). 1 gives the lowest latency (a new source waits only '
         'behind the pair in progress); more buffers bursts at the cost of latency.',
         low=1, high=1000, ros=True, read_only=True)
@@ -88,14 +88,14 @@ class PairingConfig:
 
 
 @dataclasses.dataclass
-class WorkerConfig:
-    """The registration worker: where each pair's registration runs, and for how long."""
+class RuntimeConfig:
+    """The registration process: where each pair's registration runs, and for how long."""
 
     registration_timeout: float = option(
         30.0, 'Seconds one registration may take. > 0 runs the pipeline in a child process '
         'that is killed and restarted past this limit (the pair is rejected as '
         "'timeout'), so a pathological cloud cannot stall the node; 0 runs it in the "
-        "node's worker thread with no limit.", low=0.0, high=3600.0, ros=True, read_only=True)
+        "node's engine thread with no limit.", low=0.0, high=3600.0, ros=True, read_only=True)
 
 
 @dataclasses.dataclass
@@ -203,7 +203,7 @@ class OutputConfig:
 
 @dataclasses.dataclass
 class NodeConfig:
-    """The node's own options: what it does, its inputs, the worker, the map and outputs."""
+    """The node's own options: what it does, its inputs, its runtime, the map and outputs."""
 
     mode: str = option(
         'continuous', "'continuous' registers every source scan; 'on_demand' registers "
@@ -223,7 +223,7 @@ class NodeConfig:
         "replace the defaults, and ROS parameters given to the node replace its values. '' "
         'reads none.', ros=True, read_only=True)
     pairing: PairingConfig = section(PairingConfig)
-    worker: WorkerConfig = section(WorkerConfig)
+    runtime: RuntimeConfig = section(RuntimeConfig)
     map: MapConfig = section(MapConfig)  # noqa: A003 - the ROS parameters map.*
     relocalization: RelocalizationConfig = section(RelocalizationConfig)
     output: OutputConfig = section(OutputConfig)

@@ -1,7 +1,7 @@
 """
 Relocalization in a prior map: requests, and a pose confirmed over several scans.
 
-- :mod:`.requests`: what ``~/relocalize`` and ``reinitialize_global_localization`` ask, and
+- :mod:`.service_calls`: what ``~/relocalize`` and ``reinitialize_global_localization`` ask, and
   their one-line answers (the node's engine holds them).
 - :mod:`.sequence`: the node's side of a relocalization over several scans (each scan's
   pose in odom, the verdict after each answer). Light: numpy only. :mod:`.odometry`: the

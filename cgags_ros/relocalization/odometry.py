@@ -27,7 +27,7 @@ class OdometrySamples:
     """
     Odometry samples ``odom <- base`` (4x4, metres) by stamp.
 
-    One thread adds (the node's executor), any other may read (the worker): the samples are
+    One thread adds (the node's executor), any other may read (the engine thread): the samples are
     replaced whole at each one, never changed in place, so no lock is needed.
     """
 

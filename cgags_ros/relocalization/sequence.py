@@ -28,7 +28,7 @@ import dataclasses
 
 import numpy as np
 
-from .requests import localized, not_localized
+from .service_calls import localized, not_localized
 from ..pipeline.result import PipelineResult
 from ..refusal import Judged, Refusal
 

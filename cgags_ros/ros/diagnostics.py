@@ -1,4 +1,4 @@
-"""The node's /diagnostics message, from :mod:`cgags_ros.localizer.statistics`."""
+"""The node's /diagnostics message, from :mod:`cgags_ros.engine.statistics`."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from typing import Any, Mapping
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-from ..localizer.statistics import status
+from ..engine.statistics import status
 
 
 def diagnostic_array(stats: Mapping[str, Any], name: str, hardware_id: str,

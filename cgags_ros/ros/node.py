@@ -2,7 +2,7 @@
 ROS 2 lifecycle node: registers each source cloud onto a target cloud and publishes the pose.
 
 A managed node (``rclpy.lifecycle``): configure reads the parameters, starts the registration
-process, waits (bounded) for its warm-up and the map load (:mod:`cgags_ros.localizer.startup`)
+process, waits (bounded) for its warm-up and the map load (:mod:`cgags_ros.engine.startup`)
 and creates the topics and services; a failure is logged, reported once on /diagnostics and
 leaves the node unconfigured with nothing running. Activate consumes sources and publishes;
 deactivate ignores sources (``rejected.source_inactive``) and publishes no pose; cleanup ends
@@ -28,11 +28,11 @@ Topics (relative names; remap them):
     ~/candidates (geometry_msgs/PoseArray, out): ranked candidate poses, best first.
     ~/result (std_msgs/String, out, JSON; reliable): what became of each source (published,
         rejected or dropped, and why) with its registration's result as ``cgags-register
-        --json`` prints it (:class:`~cgags_ros.localizer.interface.PairResult`), also while
+        --json`` prints it (:class:`~cgags_ros.engine.interface.PairResult`), also while
         inactive.
     initialpose (geometry_msgs/PoseWithCovarianceStamped, out,
         ``relocalization.publish_initial_pose``):
-        the guarded base pose for Nav2/AMCL (:mod:`cgags_ros.localizer.initial_pose`).
+        the guarded base pose for Nav2/AMCL (:mod:`cgags_ros.engine.initial_pose`).
     /diagnostics (diagnostic_msgs/DiagnosticArray, out): status and counters
         (:mod:`.diagnostics`), also while inactive.
     /tf (``output.broadcast_tf``, when tf2_ros is importable): target frame -> source frame.
@@ -57,11 +57,11 @@ as arrays), under their own names, with descriptions and ranges from the config 
 ``config_file`` (read first) may set any key; its values become the declared defaults, so a
 ROS parameter given to the node (params file, ``-p``) overrides it. Changes at run time are
 validated and apply to the next pair; a name that is no ROS parameter is refused.
-The node only wires: :class:`~cgags_ros.localizer.engine.RegistrationEngine` decides,
+The node only wires: :class:`~cgags_ros.engine.engine.RegistrationEngine` decides,
 :class:`~.outputs.Outputs` publishes.
 
 Transport: :func:`main` points Fast DDS at the package's large-data profile
-(:mod:`cgags_ros.localizer.transport`) unless the user chose one; the clouds' publisher needs
+(:mod:`cgags_ros.engine.transport`) unless the user chose one; the clouds' publisher needs
 it too.
 """
 
@@ -92,12 +92,12 @@ from ..config.node import (calibration_config, configs_from_file, configs_from_p
                            NodeConfig, ros_parameter_descriptions,
                            ros_value)
 from ..config.pipeline import PipelineConfig
+from ..engine import statistics
+from ..engine.engine import RegistrationEngine
+from ..engine.interface import Cloud
+from ..engine.transport import PROFILE_VARIABLE, use_large_data_profile
 from ..errors import CgagsError, InvalidConfigError, InvalidInputError
 from ..io.pointcloud2 import pointcloud2_to_xyz, pose_to_transform, stamp_to_ns
-from ..localizer import statistics
-from ..localizer.engine import RegistrationEngine
-from ..localizer.interface import Cloud
-from ..localizer.transport import PROFILE_VARIABLE, use_large_data_profile
 from ..refusal import Refusal
 from ..runtime.jobs import Runner
 from ..runtime.procfs import rss_mb
@@ -310,7 +310,7 @@ class RegisterNode(LifecycleNode):
             return response
         answer = Future()
 
-        def on_answer(success: bool, message: str) -> None:  # the worker thread, or at once
+        def on_answer(success: bool, message: str) -> None:  # the engine thread, or at once
             answer.set_result((success, message))
             if executor is not None:
                 executor.wake()  # the executor resumes an awaiting callback when it wakes
@@ -357,7 +357,7 @@ def main(args: list[str] | None = None) -> None:
 
     The ``register_node`` entry point (``ros2 run``, ``python -m cgags_ros.register_node``).
     A single-threaded executor: every callback is short (a cloud decoded and counted, a
-    parameter checked, the diagnostics), the registration runs in the engine's worker
+    parameter checked, the diagnostics), the registration runs in the engine thread
     thread and its process, and ``~/relocalize`` awaits its answer without holding the
     executor. rclpy's multi-threaded executor took received scans to their callback
     later, its own loop busy while they waited (docs/tracking.md, item 11).

@@ -1,7 +1,7 @@
 """
 The node's outputs: what the engine's ``EngineOutputs`` asks for, in ROS messages.
 
-:class:`~cgags_ros.localizer.interface.EngineOutputs` as ~/pose, ~/pose_with_covariance,
+:class:`~cgags_ros.engine.interface.EngineOutputs` as ~/pose, ~/pose_with_covariance,
 ~/aligned_cloud, ~/candidates, initialpose, /tf (:mod:`.transforms`), ~/result and
 /diagnostics; in calibrate mode ~/calibration, ~/calibration_report and /tf_static
 (latched). Frames and conventions as in :mod:`.node`: a pose maps source-frame points into
@@ -24,9 +24,9 @@ from . import diagnostics
 from .conversions import transform_to_pose, xyz_to_pointcloud2
 from .qos import latched_qos, result_qos
 from .transforms import Transforms
+from ..engine import statistics
+from ..engine.interface import BasePose, Calibration, Estimate, PairResult
 from ..io.pointcloud2 import stamp_to_ns
-from ..localizer import statistics
-from ..localizer.interface import BasePose, Calibration, Estimate, PairResult
 from ..pipeline.covariance import map_to_odom
 from ..refusal import Refusal
 
@@ -36,7 +36,7 @@ class Outputs:
     Publishers, TF and logging of one node: the engine's ``EngineOutputs``.
 
     ``odometry``: the node takes odometry (``map.file``), TF listens from the start. The
-    engine's TF questions are :attr:`tf`'s to answer. Only the worker counts (replacing the
+    engine's TF questions are :attr:`tf`'s to answer. Only the engine thread counts (replacing the
     counts whole): :meth:`statistics` needs no lock.
     """
 
@@ -171,7 +171,7 @@ class Outputs:
         Publish unless the context has been shut down (Ctrl-C / SIGTERM).
 
         rclpy's signal handler shuts the context down asynchronously: the executor may
-        still dispatch the diagnostics timer, and the worker may still be finishing a
+        still dispatch the diagnostics timer, and the engine thread may still be finishing a
         pair. A publish then raises RCLError ("publisher's context is invalid"), which
         from a timer callback would escape rclpy.spin() and end the node with exit 1.
         Errors while the context is still valid are re-raised.

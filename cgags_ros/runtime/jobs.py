@@ -1,7 +1,7 @@
 """
 The jobs the registration process runs, one type a kind, and the typed answer of each.
 
-The engine chooses the kind once (:meth:`~cgags_ros.localizer.engine.RegistrationEngine`),
+The engine chooses the kind once (:meth:`~cgags_ros.engine.engine.RegistrationEngine`),
 a :class:`Runner` runs it (a :class:`~.supervisor.Supervisor`'s registration process, or a
 :class:`~.session.ChildSession` in this process), and the answer's type says what came
 back; every answer to a registration carries its
@@ -200,7 +200,7 @@ class Runner(Protocol):
     def supervise(self) -> bool:
         """Replace what died while idle; tell whether something was (call it periodically)."""
 
-    def health(self, prefix: str = 'worker') -> dict[str, Any]:
+    def health(self, prefix: str = 'registration') -> dict[str, Any]:
         """Return its keys of /diagnostics (none in this process)."""
 
     def close(self) -> None:

@@ -2,7 +2,7 @@
 The registration process's state: one object that runs every job and holds what they share.
 
 A :class:`ChildSession` is created with the process that runs the pipeline (the node's
-registration process, or the node's own process when ``worker.registration_timeout`` is 0)
+registration process, or the node's own process when ``runtime.registration_timeout`` is 0)
 and forgotten with it: a replaced process starts with no target, no map, no stream prior
 and no relocalization in progress, and the next job says so (a map is loaded again, a
 stream goes global, a sequence starts over). It holds:
@@ -76,7 +76,7 @@ class ChildSession:
         """Tell that nothing was replaced: this process runs the jobs."""
         return False
 
-    def health(self, prefix: str = 'worker') -> dict[str, Any]:
+    def health(self, prefix: str = 'registration') -> dict[str, Any]:
         """Return no /diagnostics keys: this process's are the node's."""
         return {}
 

@@ -4,7 +4,7 @@ A supervised registration process: typed jobs in, typed answers out, with a time
 A pathological input that makes the pipeline loop costs one job (the process is killed
 past the time limit and a fresh one started), and a process that dies (the OOM killer, a
 native crash in a library, ``kill -9``), idle or busy, is replaced; the caller keeps
-registering. The node runs a stream's jobs through one (``worker.registration_timeout`` >
+registering. The node runs a stream's jobs through one (``runtime.registration_timeout`` >
 0) and, while it tracks, its periodic checks through a second at a lower OS priority
 (:mod:`.checks`); any other caller that must survive a bad pair can use one too.
 
@@ -61,7 +61,7 @@ class Supervisor:
     """
     Runs jobs in one spawned process, supervised, with a time limit (see the module doc).
 
-    :param timeout_s: the time limit of a job (``worker.registration_timeout``).
+    :param timeout_s: the time limit of a job (``runtime.registration_timeout``).
     :param name: the process's name. :param niceness: added to its OS niceness (a lower
         priority: global work that must not take the CPU from a stream).
     :param spill_dir: send the jobs' clouds through files in this folder, not the pipe.
@@ -77,7 +77,7 @@ class Supervisor:
     a job is sent until its answer is received.
 
     Two threads use the process: the caller's (its jobs: :meth:`run`, :meth:`submit`,
-    :meth:`collect`, :meth:`restart`; the node's worker) and another that supervises it
+    :meth:`collect`, :meth:`restart`; the engine thread) and another that supervises it
     (:meth:`supervise`, :attr:`ready` and :meth:`close`; the node's executor). Each holds
     one lock while it uses or replaces the process. :meth:`health` takes no lock.
     """
@@ -130,7 +130,7 @@ class Supervisor:
         """Tell whether a job was submitted and its answer not yet collected."""
         return self._flight is not None
 
-    def health(self, prefix: str = 'worker') -> dict[str, Any]:
+    def health(self, prefix: str = 'registration') -> dict[str, Any]:
         """Return the process's counters and resident memory, for /diagnostics."""
         pid = self.pid
         return {f'{prefix}.pid': pid or 0, f'{prefix}.alive': self.alive,
@@ -185,7 +185,7 @@ class Supervisor:
         limit = self.timeout_s if timeout_s is None else timeout_s
         too_long = (f'loading the map took longer than {limit:g} s'
                     if isinstance(job, PrepareMap) else
-                    f'registration took longer than worker.registration_timeout = {limit:g} s')
+                    f'registration took longer than runtime.registration_timeout = {limit:g} s')
         with self._lock:
             if self._flight is not None:
                 raise RuntimeError('a job is already in flight')

@@ -8,7 +8,7 @@ Offline (default, no ROS installation needed)::
                  [--set key=value ...] [--pairing latest_target|synchronized] [--output OUT_DIR]
 
 reads the bag (:mod:`cgags_ros.io.bag`), pairs sources and targets with the node's
-:class:`~cgags_ros.localizer.pairing.Pairer` (same code, same parameters) and runs
+:class:`~cgags_ros.engine.pairing.Pairer` (same code, same parameters) and runs
 :func:`cgags_ros.pipeline.register_clouds` on every pair (:mod:`.replay_offline`).
 
 Live (``--live [--rate R] [--no-spawn]``): starts ``python -m cgags_ros.register_node``
@@ -51,8 +51,8 @@ from .replay_common import (
     user_parameters,
 )
 from .report import BagReport
+from ..engine.pairing import MODES
 from ..errors import InvalidConfigError
-from ..localizer.pairing import MODES
 
 PROG = 'cgags-replay'
 

@@ -4,7 +4,7 @@ What offline and live replay share: the bag's contents, configuration, pairing, 
 :func:`read_bag_contents` decodes the bag (:mod:`cgags_ros.io.bag`,
 :mod:`cgags_ros.io.pointcloud2`); :func:`resolve_configs` applies the user's parameters
 (or :func:`auto_voxel_size`); :func:`iter_pairs` forms pairs with the node's own
-:class:`~cgags_ros.localizer.pairing.Pairer`; :func:`finish_report` evaluates against the
+:class:`~cgags_ros.engine.pairing.Pairer`; :func:`finish_report` evaluates against the
 ground truth and writes the poses bag and result files.
 """
 
@@ -22,11 +22,11 @@ from .report import (BagReport, BrokenMessage, PairRow, pairs_table, SuccessCrit
 from ..config import fields
 from ..config.node import configs_from_parameters, NodeConfig, ros_value
 from ..config.pipeline import load_yaml, PipelineConfig
+from ..engine.pairing import Pair, Pairer
 from ..errors import CgagsError, InvalidInputError
 from ..geometry import voxel_size_for
 from ..io.bag import BagReader, BagRecord, write_poses_mcap
 from ..io.pointcloud2 import pointcloud2_to_xyz, pose_to_transform
-from ..localizer.pairing import Pair, Pairer
 from ..refusal import Refusal, RefusalCode
 
 DEFAULT_POSE_TOPIC = '/cgags/pose'

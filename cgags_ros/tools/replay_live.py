@@ -47,7 +47,7 @@ from .replay_common import (
 )
 from .replay_player import LiveSession, MAX_QUEUE, Received
 from .report import BagReport, PairRow
-from ..localizer.pairing import Pairer
+from ..engine.pairing import Pairer
 from ..refusal import Refusal, RefusalCode
 
 SHUTDOWN_GRACE_S = 10.0

@@ -18,8 +18,8 @@ from .replay_common import (finish_report, iter_pairs, load_contents, make_row, 
                             ReplayOptions, resolve_configs, stamp_s, start_report)
 from .report import BagReport, PairRow
 from ..config.pipeline import PipelineConfig
+from ..engine.pairing import Pairer
 from ..errors import InvalidInputError
-from ..localizer.pairing import Pairer
 from ..refusal import Refusal
 from ..tracking.counts import tracks
 

@@ -3,7 +3,7 @@ The player of live replay: a client of register_node over DDS, not part of the n
 
 An rclpy context that publishes a bag's clouds into a register_node and records what the
 node answers: its poses (``~/pose_with_covariance``) and, for every source it is done with,
-its result (``~/result``, the JSON of :class:`~cgags_ros.localizer.interface.PairResult`).
+its result (``~/result``, the JSON of :class:`~cgags_ros.engine.interface.PairResult`).
 It also reads and sets the node's parameters through its parameter services, as
 rqt_reconfigure and ``ros2 param`` do (``cgags-tune --live``).
 """
@@ -26,8 +26,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 
+from ..engine.transport import use_large_data_profile
 from ..io.pointcloud2 import pose_to_transform, stamp_to_ns
-from ..localizer.transport import use_large_data_profile
 
 MAX_QUEUE = 1000  # the node config's upper bound for depths
 

@@ -35,7 +35,7 @@ from . import tuning
 from .replay_common import fill_from_result, iter_pairs, ReplayError
 from .replay_player import LiveSession, MAX_QUEUE
 from ..config.node import configs_from_parameters
-from ..localizer.pairing import Pairer
+from ..engine.pairing import Pairer
 from ..refusal import Refusal, RefusalCode
 
 SERVICE_TIMEOUT_S = 10.0  # the parameter services answer at once: this is a dead node

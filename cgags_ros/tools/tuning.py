@@ -50,9 +50,9 @@ from .replay_common import (auto_voxel_size, DEFAULT_GT_TOPIC, DEFAULT_MAX_RE_DE
 from .replay_offline import register_row, stream_tracker
 from .report import PairRow, SuccessCriteria
 from ..config.node import configs_from_parameters, NODE_NAME, ros_value
+from ..engine.pairing import Pairer
 from ..errors import InvalidConfigError, InvalidInputError
 from ..geometry import rotation_error_deg, translation_error
-from ..localizer.pairing import Pairer
 from ..refusal import RefusalCode
 
 GRID_STEPS = 10  # voxel sizes a decade: neighbours 26 % apart

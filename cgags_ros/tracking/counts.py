@@ -36,7 +36,7 @@ class StreamCounts:
     """
     The Tracker's counts, added up from each scan's share.
 
-    One thread adds (the engine's worker); :meth:`statistics` may be read from any: the
+    One thread adds (the engine thread); :meth:`statistics` may be read from any: the
     counts are replaced whole, never changed in place, so no lock is needed.
     """
 

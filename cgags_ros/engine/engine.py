@@ -11,12 +11,12 @@ decodes messages into :class:`Cloud` for :meth:`~RegistrationEngine.receive` and
 implements :class:`EngineOutputs`, through which the engine publishes, logs and asks for
 TF; it never reaches into the node.
 
-One worker thread takes each pair, chooses its job once (:meth:`~RegistrationEngine._job`:
-a scan of a relocalization over several scans, a tracked stream's scan, or a pair), runs it
-in the registration process (in this process when ``worker.registration_timeout`` is 0)
+The engine thread takes each pair, chooses its job once (:meth:`~RegistrationEngine._job`: a
+scan of a relocalization over several scans, a tracked stream's scan, or a pair), runs it
+in the registration process (in this process when ``runtime.registration_timeout`` is 0)
 and publishes what its typed answer says. Configuration alone decides the kind (continuous
 mode with ``tracking.enabled`` is a stream) and where a stream's periodic checks run (in a
-lane of their own when ``worker.registration_timeout`` > 0). Reception never waits for it:
+lane of their own when ``runtime.registration_timeout`` > 0). Reception never waits for it:
 the accounting's bounded queue drops the oldest pair. While inactive (a lifecycle node's
 inactive state) sources are counted as rejected (``inactive``) and nothing is published;
 targets are still held, so a latched map survives a deactivation.
@@ -36,9 +36,9 @@ from . import backlog
 from .accounting import Accounting, LastRegistration, LOG_REPEAT_S, lost_upstream_message
 from .calibration_run import CalibrationConfig, CalibrationRun
 from .interface import Cloud, EngineOutputs, Estimate, PairResult
-from .localization import Localization, RegisteredScan
 from .map_target import MapTarget
 from .pairing import Pair
+from .relocalization_run import RegisteredScan, RelocalizationRun
 from .startup import start_registration
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
@@ -46,8 +46,8 @@ from ..errors import CgagsError
 from ..geometry import apply_transform
 from ..pipeline.result import PipelineResult
 from ..refusal import Refusal, RefusalCode
-from ..relocalization.requests import Answered, stale_scan
 from ..relocalization.sequence import StepAnswer
+from ..relocalization.service_calls import Answered, stale_scan
 from ..runtime.checks import CheckLane
 from ..runtime.jobs import (CheckVerdict, Job, RegisterPair, result_of, Runner, SequenceScan,
                             Tracked, TrackScan)
@@ -56,7 +56,7 @@ from ..tracking.counts import StreamCounts, tracks
 
 @dataclasses.dataclass(frozen=True)
 class Outcome:
-    """What became of the worker's pair: why it is rejected (None: published), its result."""
+    """What became of a pair: why it is rejected (None: published), its result."""
 
     refusal: Refusal | None
     result: PipelineResult | None = None
@@ -67,15 +67,15 @@ class RegistrationEngine:
     Registers paired clouds and decides what is published (see the module doc).
 
     The engine is built stopped and inactive: :meth:`start` starts the registration process,
-    waits for it and the map, and starts the worker; :meth:`activate` lets sources in and
-    outputs out; :meth:`stop` ends the processes and the worker for good. ``runner`` runs
+    waits for it and the map, and starts the engine thread; :meth:`activate` lets sources in and
+    outputs out; :meth:`stop` ends the processes and the engine thread for good. ``runner`` runs
     the jobs instead of what :meth:`start` would start (a test's stand-in, for the plumbing:
     the job kinds are chosen as without it); it stays the caller's, never closed here.
 
-    Two threads: the node's executor calls every method but the worker's loop, which runs
-    on the worker thread. The executor alone writes the configurations (replaced whole, one
-    pair) and the active flag, which the worker reads: no lock. The one event between them
-    stops the worker; the accounting, the requests and the registration process, which
+    Two threads: the node's executor calls every method but the engine thread's loop, which runs
+    on the engine thread. The executor alone writes the configurations (replaced whole, one
+    pair) and the active flag, which the engine thread reads: no lock. The one event between them
+    stops the engine thread; the accounting, the requests and the registration process, which
     both threads write, hold a lock each.
     """
 
@@ -99,10 +99,11 @@ class RegistrationEngine:
             1 if cfg.mode == 'on_demand' else backlog.queue_depth(cfg, pipeline_cfg))
         self.on_demand = cfg.mode == 'on_demand'
         self._map = MapTarget(cfg) if cfg.map.file else None
-        self._localization = Localization(cfg, outputs)
+        self._relocalization = RelocalizationRun(cfg, outputs)
         self._active = False
-        self._stop = threading.Event()  # set by the lifecycle's thread, waited on by the worker
-        self._worker = threading.Thread(target=self._work, name='register_worker', daemon=True)
+        # Set by the lifecycle's thread, waited on by the engine thread.
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._work, name='engine', daemon=True)
         self._tracking = StreamCounts()
 
     # ------------------------------------------------------------------ lifecycle
@@ -120,7 +121,7 @@ class RegistrationEngine:
             self._outputs.log, self._given)
         if target is not None:
             self._accounting.receive('target', 0, target.frame_id, target)
-        self._worker.start()
+        self._thread.start()
 
     def activate(self) -> None:
         """Consume sources and publish outputs."""
@@ -129,7 +130,7 @@ class RegistrationEngine:
     def deactivate(self) -> None:
         """Ignore sources (counted as rejected), publish nothing, fail pending requests."""
         self._active = False
-        calls = self._localization.calls
+        calls = self._relocalization.calls
         calls.wake()  # no scan is registered for a pending request until activated
         calls.fail(Refusal(RefusalCode.INACTIVE, 'the node was deactivated'))
 
@@ -139,16 +140,16 @@ class RegistrationEngine:
         return self._active
 
     def stop(self) -> None:
-        """End the worker and the registration processes; answer pending requests."""
-        self._localization.calls.fail(Refusal(RefusalCode.SHUTDOWN, 'the node is shutting down'))
+        """End the engine thread and the registration processes; answer pending requests."""
+        self._relocalization.calls.fail(Refusal(RefusalCode.SHUTDOWN, 'the node is shutting down'))
         self.deactivate()
         self._stop.set()
         self._accounting.wake()
         if self.runner is not None and self._given is None:
             self.runner.close()  # ends a job in flight in a process of its own at once
-        if self._worker.ident is not None:  # started
-            self._worker.join(timeout=5.0)
-        if self.checks is not None:  # after the worker, which may have just started it
+        if self._thread.ident is not None:  # started
+            self._thread.join(timeout=5.0)
+        if self.checks is not None:  # after the engine thread, which may have just started it
             self.checks.close()
 
     # ------------------------------------------------------------------ configuration
@@ -207,16 +208,16 @@ class RegistrationEngine:
         """
         Request a relocalization: the next registration answers it.
 
-        The answer goes to ``on_answer(success, message)``, from the worker thread, or at
-        once when inactive (:mod:`cgags_ros.relocalization.requests`).
+        The answer goes to ``on_answer(success, message)``, from the engine thread, or at
+        once when inactive (:mod:`cgags_ros.relocalization.service_calls`).
         """
         if not self.active:
-            on_answer(*self._localization.calls.refuse(
+            on_answer(*self._relocalization.calls.refuse(
                 Refusal(RefusalCode.INACTIVE, 'the node is not active')))
             return
-        self._localization.request(self.node_config.relocalization.timeout, on_answer)
+        self._relocalization.request(self.node_config.relocalization.timeout, on_answer)
 
-    # ------------------------------------------------------------------ worker
+    # ------------------------------------------------------------- engine thread
 
     def _work(self) -> None:
         while not self._stop.is_set():
@@ -228,14 +229,14 @@ class RegistrationEngine:
             outcome = Outcome(Refusal(RefusalCode.INTERNAL_ERROR, 'pair failed'))
             try:
                 outcome = self._process(pair)
-            except Exception as exc:  # noqa: BLE001 - the worker must outlive any bad pair
+            except Exception as exc:  # noqa: BLE001 - the engine thread must outlive any bad pair
                 outcome = Outcome(Refusal(RefusalCode.INTERNAL_ERROR,
                                           f'pair failed: {exc!r}\n{traceback.format_exc()}'))
             finally:
                 latency = (time.monotonic_ns() - pair.source.payload.receipt_ns) * 1e-9
                 self._publish_result(pair, outcome, latency)
                 self._accounting.finish(outcome.refusal, latency)
-                self._localization.settle(outcome.refusal, outcome.result is not None)
+                self._relocalization.settle(outcome.refusal, outcome.result is not None)
             if outcome.refusal is not None and not self._stop.is_set():
                 self._log_rejection(outcome.refusal, 'source')
 
@@ -245,31 +246,31 @@ class RegistrationEngine:
         if not tracks(cfg.mode, pipe_cfg):
             return 0
         return log.to_skip(pending_ns, cfg.pairing.backlog_max_lag, pipe_cfg.tracking.max_age,
-                           self._localization.calls.waiting() is not None)
+                           self._relocalization.calls.waiting() is not None)
 
     def _ready(self) -> bool:
-        """Tell whether the worker may take a pair now; else wait a little."""
-        self._localization.tick(self.node_config.relocalization.timeout)
+        """Tell whether the engine thread may take a pair now; else wait a little."""
+        self._relocalization.tick(self.node_config.relocalization.timeout)
         if not self.active:
             self._stop.wait(0.1)
             return False
-        if self.on_demand and self._localization.calls.waiting() is None:
-            self._localization.calls.wait(0.1)
+        if self.on_demand and self._relocalization.calls.waiting() is None:
+            self._relocalization.calls.wait(0.1)
             return False
         return True
 
     def _job(self, pair: Pair, cfg: NodeConfig, pipe_cfg: PipelineConfig) -> Job:
         """Choose the pair's job, once: a sequence's scan, a tracked stream's scan, or a pair."""
         source, target = pair.source.payload.xyz, pair.target.payload.as_target()
-        step = self._localization.step(pair, cfg)
+        step = self._relocalization.step(pair, cfg)
         if step is not None:
             return SequenceScan(source, target, pipe_cfg, step[0],
                                 cfg.relocalization.max_scans, step[1])
         # A ~/relocalize call is answered from a global search, as the other modes are.
-        if tracks(cfg.mode, pipe_cfg) and self._localization.calls.waiting() is None:
+        if tracks(cfg.mode, pipe_cfg) and self._relocalization.calls.waiting() is None:
             verdict, self._verdict = self._verdict, None
             return TrackScan(source, target, pipe_cfg, pair.source.stamp_ns * 1e-9,
-                             checks_beside=cfg.worker.registration_timeout > 0, verdict=verdict)
+                             checks_beside=cfg.runtime.registration_timeout > 0, verdict=verdict)
         return RegisterPair(source, target, pipe_cfg)
 
     def _process(self, pair: Pair) -> Outcome:
@@ -278,12 +279,12 @@ class RegistrationEngine:
             return Outcome(self._calibration.take(pair))
         source = pair.source.payload
         pipe_cfg, cfg = self._configs  # one pair of configurations for the whole pair
-        stale = stale_scan(self._localization.calls.waiting() if self.on_demand else None,
+        stale = stale_scan(self._relocalization.calls.waiting() if self.on_demand else None,
                            source.receipt_ns, cfg.relocalization.max_scan_age)
         if stale:
             return Outcome(stale)
         job, runner = self._job(pair, cfg, pipe_cfg), self.runner
-        assert runner is not None  # the worker runs once started
+        assert runner is not None  # the engine thread runs once started
         try:
             answer = runner.run(job)
         except CgagsError as exc:
@@ -310,7 +311,7 @@ class RegistrationEngine:
                               answer if isinstance(answer, StepAnswer) else None)
         if refusal is not None:
             if not cfg.output.publish_invalid or not np.isfinite(T).all():
-                self._localization.finish(scan)
+                self._relocalization.finish(scan)
                 return Outcome(Refusal(refusal.code, f'invalid registration: {refusal.message}'),
                                result)
             self._accounting.count('published_invalid')
@@ -319,7 +320,7 @@ class RegistrationEngine:
             T, np.asarray(result.covariance, dtype=np.float64), source.header, frame,
             apply_transform(T, source.xyz) if out.publish_aligned_cloud else None,
             (out.tf_child_frame or pair.source.frame_id) if out.broadcast_tf else ''))
-        self._localization.finish(scan)
+        self._relocalization.finish(scan)
         return Outcome(None, result)
 
     # ------------------------------------------------------------------ the second lane
@@ -329,7 +330,7 @@ class RegistrationEngine:
         if self._stop.is_set():
             return
         if self.checks is None:
-            self.checks = CheckLane(self.node_config.worker.registration_timeout)
+            self.checks = CheckLane(self.node_config.runtime.registration_timeout)
             if self._map is not None:  # loaded there once the lane is warm, before a check
                 self.checks.prepare_map(self._map.ref, job.config,
                                         self.node_config.map.load_timeout)
@@ -345,7 +346,7 @@ class RegistrationEngine:
     # ------------------------------------------------------------------ results and health
 
     def _publish_result(self, pair: Pair, outcome: Outcome, latency_s: float) -> None:
-        """Publish what became of the worker's pair (before it is counted as done)."""
+        """Publish what became of the engine thread's pair (before it is counted as done)."""
         source, target, result = pair.source, pair.target, outcome.result
         valid = (result is not None and bool(result.valid)
                  and bool(np.isfinite(result.transform).all()))
@@ -382,7 +383,7 @@ class RegistrationEngine:
                                  **self._tracking.statistics()}
         if self._map is not None:
             stats.update(self._map.statistics())
-        stats.update(self._localization.statistics())
+        stats.update(self._relocalization.statistics())
         stats.update(self._calibration.statistics() if self._calibration else {})
         if self.runner is not None:
             stats.update(self.runner.health())

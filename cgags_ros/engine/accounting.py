@@ -69,12 +69,12 @@ class Accounting:
     The counters, the pairer, the upstream losses and the backlog of one node.
 
     Two threads write: the node's executor (clouds received, the pairing's settings) and the
-    engine's worker (pairs taken and finished); all of it changes under one condition,
-    which the worker also waits on for the next pair.
+    engine thread (pairs taken and finished); all of it changes under one condition,
+    which the engine thread also waits on for the next pair.
     """
 
     def __init__(self, pairing: PairingConfig, queue_depth: int):
-        self._lock = threading.Condition()  # the worker waits on it for a ready pair
+        self._lock = threading.Condition()  # the engine thread waits on it for a ready pair
         self._pairer = Pairer.from_config(pairing, queue_depth)
         self._pairer.on_drop = self._on_drop
         self._upstream = UpstreamLoss()
@@ -85,18 +85,18 @@ class Accounting:
         self._last: LastRegistration | None = None
         self._latencies: collections.deque[float] = collections.deque(maxlen=200)
         self._in_progress = 0
-        self._failing = ''  # why the worker failed, until a registration succeeds again
+        self._failing = ''  # why the engine thread failed, until a registration succeeds again
         self._logged: dict[str, float] = {}
         self._dropped: list[tuple[str, Stamped]] = []  # sources pairing dropped, not yet told
 
     def failed(self, code: str) -> None:
-        """Mark the registration worker failing (``code``) until a registration succeeds."""
+        """Mark registration failing (``code``) until a registration succeeds."""
         with self._lock:
             self._failing = code
 
     def registered(self, last: LastRegistration) -> None:
         """
-        Record the last registration (the worker's failure, if any, is over).
+        Record the last registration (the engine thread's failure, if any, is over).
 
         The backlog keeps whether it was tracked and valid (a velocity exists).
         """

@@ -44,7 +44,7 @@ class InitialPoseGuard:
     """
     Decides whether an estimate becomes an initial pose; counts publishes and refusals.
 
-    The worker alone offers estimates; :meth:`statistics` may be read from any thread: the
+    The engine thread alone offers estimates; :meth:`statistics` may be read from any thread: the
     counts are replaced whole, never changed in place, so no lock is needed.
     """
 

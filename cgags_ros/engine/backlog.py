@@ -14,7 +14,7 @@ prediction); the Tracker scales the constant velocity to the next scan's stamp. 
 oldest waiting scan is already beyond ``tracking.max_age`` (the full backlog dropped the
 scans between), it would be registered globally anyway: the newest is taken instead. A
 ``~/relocalize`` call is answered from the newest scan, as with a queue of one pair.
-ROS-free; the accounting decides with it, under its lock, which pair the engine's worker
+ROS-free; the accounting decides with it, under its lock, which pair the engine thread
 takes next (:meth:`~.pairing.Pairer.drop_oldest`).
 """
 
@@ -36,7 +36,7 @@ def queue_depth(node: NodeConfig, config: PipelineConfig) -> int:
 
 
 class Backlog:
-    """What the worker of a tracked stream skips; it remembers whether the last scan tracked."""
+    """What a tracked stream's engine thread skips; it remembers whether the last scan tracked."""
 
     def __init__(self) -> None:
         self.tracked = False  # the last registered scan was tracked (a velocity exists)

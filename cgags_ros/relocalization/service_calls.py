@@ -1,8 +1,8 @@
 """
 Relocalization requests: what ``~/relocalize`` and ``reinitialize_global_localization`` ask.
 
-ROS-free. A request is answered by the registration worker with the next registration
-(in ``mode: on_demand`` it is what makes the worker register at all): ``success`` for a
+ROS-free. A request is answered by the engine thread with the next registration
+(in ``mode: on_demand`` it is what makes the engine thread register at all): ``success`` for a
 confident pose (valid, not ambiguous, every quality guard of the initial pose passed) and a
 one-line summary (pose, inliers, best/runner-up ratio), or, on failure, a line that
 starts with the refusal's code (``ambiguous: not localized: ...``, :func:`not_localized`).
@@ -39,13 +39,13 @@ class Request:
         self.on_answer = on_answer
 
 
-class RelocalizeCalls:
+class ServiceCalls:
     """
-    Pending relocalization requests, answered by the registration worker.
+    Pending relocalization requests, answered by the engine thread.
 
     Two threads write: the node's executor adds requests (a service call) and fails them
-    (a deactivation), the worker answers and expires them; the pending list and the counts
-    change under one lock. The executor wakes the worker's :meth:`wait` with an event.
+    (a deactivation), the engine thread answers and expires them; the pending list and the counts
+    change under one lock. The executor wakes the engine thread's :meth:`wait` with an event.
     """
 
     def __init__(self) -> None:

@@ -1,12 +1,12 @@
 """
-What a registered scan means for localization: requests, the sequence, the initial pose.
+The node's relocalization run: what a registered scan answers (requests, sequence, initial pose).
 
-ROS-free. :class:`Localization` holds the pending relocalization requests
-(:mod:`cgags_ros.relocalization.requests`), the relocalization over several scans in
+ROS-free. :class:`RelocalizationRun` holds the pending relocalization requests
+(:mod:`cgags_ros.relocalization.service_calls`), the relocalization over several scans in
 progress (:mod:`cgags_ros.relocalization.sequence`) and the initial-pose guards
 (:mod:`.initial_pose`). The engine asks it whether a scan is a step of a sequence
-(:meth:`~Localization.step`) and, once the scan is registered, hands it the result
-(:meth:`~Localization.finish`): it publishes the candidates, offers the initial pose,
+(:meth:`~RelocalizationRun.step`) and, once the scan is registered, hands it the result
+(:meth:`~RelocalizationRun.finish`): it publishes the candidates, offers the initial pose,
 answers the requests and keeps the last one-line summary for /diagnostics.
 """
 
@@ -23,15 +23,15 @@ from .pairing import Pair
 from ..config.node import NodeConfig
 from ..pipeline.result import PipelineResult
 from ..refusal import Refusal, RefusalCode
-from ..relocalization.requests import Answered, RelocalizeCalls, summary_line
 from ..relocalization.sequence import SequenceRun, StepAnswer, Verdict
+from ..relocalization.service_calls import Answered, ServiceCalls, summary_line
 from ..validity import quality_refusal
 
 
 @dataclasses.dataclass(frozen=True)
 class RegisteredScan:
     """
-    A scan the engine registered, what :meth:`Localization.finish` reads of it.
+    A scan the engine registered, what :meth:`RelocalizationRun.finish` reads of it.
 
     :ivar result: its registration (``transform``: map <- sensor, metres).
     :ivar header: the scan's message header (its stamp is the outputs').
@@ -48,19 +48,19 @@ class RegisteredScan:
     step: StepAnswer | None = None
 
 
-class Localization:
+class RelocalizationRun:
     """
     Requests, the sequence in progress and the initial pose of one node.
 
-    The worker registers and finishes scans; any thread requests (:meth:`request`, the
-    requests hold their own lock) and reads :meth:`statistics`. What that reads the worker
+    The engine thread registers and finishes scans; any thread requests (:meth:`request`, the
+    requests hold their own lock) and reads :meth:`statistics`. What that reads the engine thread
     alone writes, replacing it whole: no lock here.
     """
 
     def __init__(self, cfg: NodeConfig, outputs: EngineOutputs):
         self._outputs = outputs
         self._on_demand = cfg.mode == 'on_demand'
-        self.calls = RelocalizeCalls()
+        self.calls = ServiceCalls()
         # With a map and odometry, a relocalization goes on over the next scans.
         self.sequence = SequenceRun() if cfg.map.file else None
         self._initial_pose = InitialPoseGuard()

@@ -9,10 +9,10 @@ where the pipeline runs (:class:`~.map_target.MapTarget`). Otherwise it raises
 :class:`~.interface.StartFailed` with the reason and leaves nothing running, so that
 configure fails and the node stays unconfigured.
 
-Every wait is bounded when the pipeline runs in its own process (``worker.registration_timeout``
+Every wait is bounded when the pipeline runs in its own process (``runtime.registration_timeout``
 > 0, the default): the warm-up by :data:`~cgags_ros.runtime.supervisor.WARM_UP_LIMIT_S`, the
-map load by ``map.load_timeout``. In the node's own process (``worker.registration_timeout`` 0, and
-``mode: calibrate``) a Python call cannot be interrupted: the import, the warm-up and the
+map load by ``map.load_timeout``. In the node's own process (``runtime.registration_timeout`` 0,
+and ``mode: calibrate``) a Python call cannot be interrupted: the import, the warm-up and the
 map load end when they end.
 """
 
@@ -36,7 +36,7 @@ def start_registration(pipeline_cfg: PipelineConfig, cfg: NodeConfig, in_process
     """
     Start what registers pairs and wait until it can (see the module doc).
 
-    :param in_process: run the pipeline in this process even if ``worker.registration_timeout``
+    :param in_process: run the pipeline in this process even if ``runtime.registration_timeout``
         asks for a registration process (the calibrate mode does).
     :param map_target: the map to load, or None.
     :param runner: what runs the jobs (a test's stand-in); None: started here.
@@ -48,8 +48,8 @@ def start_registration(pipeline_cfg: PipelineConfig, cfg: NodeConfig, in_process
     """
     started: Runner | None = None
     try:
-        if runner is None and cfg.worker.registration_timeout > 0 and not in_process:
-            process = Supervisor(cfg.worker.registration_timeout)
+        if runner is None and cfg.runtime.registration_timeout > 0 and not in_process:
+            process = Supervisor(cfg.runtime.registration_timeout)
             runner = started = process
             process.wait_ready()
         elif runner is None:  # import the pipeline (and Open3D) now, not with the first pair

@@ -4,7 +4,7 @@ register_node's calibrate mode, without ROS: synchronized pairs -> one extrinsic
 ROS-free. :class:`CalibrationRun` feeds each synchronized pair of the node (source =
 child sensor, target = parent sensor) to a :class:`~cgags_ros.calibration.Calibrator` and,
 once it is done, hands the result to :meth:`EngineOutputs.publish_calibration` (a valid
-result) or logs its reason (a FAIL, never a pose). It runs on the engine's worker thread,
+result) or logs its reason (a FAIL, never a pose). It runs on the engine thread,
 in-process: the calibrator keeps every frame's downsampled clouds and candidates for the
 joint solve, which the registration process (one pair in, one result out) does not keep.
 """
@@ -19,7 +19,7 @@ import numpy as np
 from .interface import Calibration, EngineOutputs
 from ..config.calibration import CalibrationConfig
 from ..config.pipeline import PipelineConfig
-from ..localizer.pairing import Pair
+from ..engine.pairing import Pair
 from ..refusal import Refusal, RefusalCode
 
 COLLECTING, CONVERGED, FINAL, FAILED = 'collecting', 'converged', 'max_frames', 'failed'
@@ -29,7 +29,7 @@ class CalibrationRun:
     """
     One calibration of the pair (target frame <- source frame) from the node's pairs.
 
-    The worker alone takes pairs; :meth:`statistics` may be read from any thread: what it
+    The engine thread alone takes pairs; :meth:`statistics` may be read from any thread: what it
     reads is replaced whole (the status with its refusal as one pair), so no lock is needed.
     """
 

@@ -5,9 +5,9 @@ The node's /diagnostics, ROS-free: one flat key space and its status, decided he
 and :func:`status` says what they amount to (a level and one line, which
 ``cgags_ros.ros.diagnostics`` puts into the message); what became of each source, typed,
 is on ``~/result``. ``sources.*`` and
-``targets.*`` are the accounting buckets of :mod:`cgags_ros.localizer.accounting`
+``targets.*`` are the accounting buckets of :mod:`cgags_ros.engine.accounting`
 (``accounting.ok``: they balance; ``sources.lost_upstream``, scans that never arrived,
-stands outside the balance); ``worker.*`` and ``memory.*`` the registration process and the
+stands outside the balance); ``registration.*`` and ``memory.*`` the registration process and the
 resident memory (MB); ``transport.profile`` the Fast DDS profile loaded; ``configure.error``
 why configure failed (the node's last message before it is unconfigured, its code in
 ``configure.refusal_code``). Every refusal's code sits beside its message:
@@ -28,7 +28,7 @@ from .transport import user_line
 OK, WARN, ERROR, STALE = 'OK', 'WARN', 'ERROR', 'STALE'
 REJECTED = 'rejected.'  # rejected.<code>: sources the node refused, per refusal code
 REJECTED_TARGETS = 'rejected_targets.'  # rejected_targets.<code>: targets it could not use
-PAIRING = 'pairing.'  # pairing.<counter> of cgags_ros.localizer.pairing.Pairer.counters()
+PAIRING = 'pairing.'  # pairing.<counter> of cgags_ros.engine.pairing.Pairer.counters()
 DROPPED = PAIRING + 'dropped.'  # pairing.dropped.<reason>
 LAST = 'last_'  # last_<field>: the most recent registration
 REFUSAL_CODE = LAST + 'refusal_code'  # its refusal's code ('' when valid), beside last_reason
@@ -44,8 +44,8 @@ def build_statistics(snapshot: Mapping[str, Any], voxel_size: float,
     """
     Return the flat statistics of the node (what /diagnostics carries).
 
-    ``snapshot`` is :meth:`cgags_ros.localizer.accounting.Accounting.snapshot`; ``extra`` holds
-    the worker's and the memory's keys.
+    ``snapshot`` is :meth:`cgags_ros.engine.accounting.Accounting.snapshot`; ``extra`` holds
+    the registration process's and the memory's keys.
     """
     counts, rejected, last = snapshot['counts'], snapshot['rejected'], snapshot['last']
     latencies, pairing = snapshot['latencies'], snapshot['pairing']
@@ -71,7 +71,7 @@ def build_statistics(snapshot: Mapping[str, Any], voxel_size: float,
         stats['sources.period_s'] = round(snapshot['source_period_s'], 6)
     stats[ACCOUNTING_OK] = snapshot['accounting']['ok']
     if snapshot['failing']:
-        stats['worker.failing'] = snapshot['failing']
+        stats['registration.failing'] = snapshot['failing']
     stats.update(extra)
     return stats
 
@@ -97,14 +97,14 @@ def status(stats: Mapping[str, Any]) -> tuple[str, str]:
     elif stats.get('map.error'):
         level = ERROR
         message = str(stats['map.error'])
-    elif stats.get('worker.failing'):
+    elif stats.get('registration.failing'):
         level = ERROR
-        message = (f"registration worker failed ({stats['worker.failing']}); "
+        message = (f"registration failed ({stats['registration.failing']}); "
                    'restarted, no pair has succeeded since')
     elif stats.get('active') is False:
         level = STALE
         message = 'inactive (lifecycle): sources are counted, nothing is published'
-    elif stats.get('worker.ready') is False:
+    elif stats.get('registration.ready') is False:
         level = STALE
         message = 'registration process warming up; pairs wait for it'
     elif not stats.get('received_source') or not stats.get('received_target'):
