@@ -45,7 +45,7 @@ class RefusalCode(enum.Enum):
     TRACKING_LOST = 'tracking_lost'  # a tracked pose jumped from its prediction or lost fit
     # The node and its services
     TIMEOUT = 'timeout'  # past runtime.registration_timeout (or map.load_timeout)
-    WORKER_CRASHED = 'worker_crashed'  # the registration process died during the pair
+    PROCESS_CRASHED = 'process_crashed'  # the registration process died during the pair
     START_FAILED = 'start_failed'  # the registration process or the map is unusable
     STALE = 'stale'  # on demand: the latest scan is older than relocalization.max_scan_age
     NO_SCAN = 'no_scan'  # a relocalization request saw no scan before its timeout

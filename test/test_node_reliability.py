@@ -149,7 +149,7 @@ def test_killed_registration_process_idle_and_busy_is_replaced_and_the_next_pair
         wait_for(lambda: iso.in_flight, 30, 'the noise pair to reach the registration process')
         pid = iso.pid
         os.kill(pid, signal.SIGKILL)
-        values = wait_for(lambda: io.values.get('rejected.worker_crashed') == '1'
+        values = wait_for(lambda: io.values.get('rejected.process_crashed') == '1'
                           and io.values, 30, 'the crash in /diagnostics', node.statistics)
         assert io.level == DiagnosticStatus.ERROR and 'worker' in values['registration.failing']
         assert int(values['registration.crashes']) == 2

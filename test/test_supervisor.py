@@ -20,7 +20,7 @@ from cgags_ros.relocalization.sequence import StepAnswer
 from cgags_ros.runtime.jobs import (CheckScan, CheckVerdict, MapReady, MapRef, PairDone,
                                     PrepareMap, RegisterPair, SequenceScan, Tracked, TrackScan)
 from cgags_ros.runtime.procfs import rss_mb, running
-from cgags_ros.runtime.supervisor import RegistrationTimeout, Supervisor, WorkerCrashed
+from cgags_ros.runtime.supervisor import ProcessCrashed, RegistrationTimeout, Supervisor
 import numpy as np
 import pytest
 from waiting import wait_for
@@ -118,7 +118,7 @@ def test_a_process_killed_busy_fails_its_pair_and_one_killed_idle_costs_nothing(
         def register():
             try:
                 pair_result(iso, noise, target)
-            except WorkerCrashed as exc:
+            except ProcessCrashed as exc:
                 failed.append(exc)
 
         caller = threading.Thread(target=register)

@@ -31,7 +31,7 @@ from cgags_ros.pipeline.twins import add_twin
 from cgags_ros.refusal import Refusal, RefusalCode as Code, summary
 from cgags_ros.registration import register_correspondences, RegistrationResult
 from cgags_ros.relocalization.service_calls import not_localized
-from cgags_ros.runtime.supervisor import RegistrationTimeout, WorkerCrashed
+from cgags_ros.runtime.supervisor import ProcessCrashed, RegistrationTimeout
 from cgags_ros.tracking.prediction import difference
 from cgags_ros.validity import consensus
 import numpy as np
@@ -116,7 +116,7 @@ def test_a_refusal_says_its_code_once():
     (BagError, Code.BAD_INPUT), (EmptyCloudError, Code.TOO_FEW_POINTS),
     (InvalidConfigError, Code.BAD_CONFIG),
     (DegenerateCorrespondencesError, Code.NO_CORRESPONDENCES),
-    (RegistrationTimeout, Code.TIMEOUT), (WorkerCrashed, Code.WORKER_CRASHED),
+    (RegistrationTimeout, Code.TIMEOUT), (ProcessCrashed, Code.PROCESS_CRASHED),
     (StartFailed, Code.START_FAILED), (CgagsError, Code.INTERNAL_ERROR),
 ])
 def test_every_error_carries_its_code(error, code):

@@ -288,7 +288,7 @@ class RegistrationEngine:
         try:
             answer = runner.run(job)
         except CgagsError as exc:
-            if exc.code is RefusalCode.WORKER_CRASHED:
+            if exc.code is RefusalCode.PROCESS_CRASHED:
                 self._accounting.failed(exc.code.value)
             return Outcome(Refusal(exc.code, f'registration failed: {exc}'))
         result = result_of(answer)
@@ -359,7 +359,7 @@ class RegistrationEngine:
     def supervise(self) -> None:
         """Replace a registration process that died while idle (call it periodically)."""
         if self.runner is not None and self.runner.supervise():
-            self._accounting.failed(RefusalCode.WORKER_CRASHED.value)
+            self._accounting.failed(RefusalCode.PROCESS_CRASHED.value)
             self._outputs.log('warning', 'the registration process had died while idle; a '
                               'fresh one was started')
         if self.checks is not None:

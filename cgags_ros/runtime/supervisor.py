@@ -43,10 +43,10 @@ class RegistrationTimeout(CgagsError):
     code = RefusalCode.TIMEOUT
 
 
-class WorkerCrashed(CgagsError):
+class ProcessCrashed(CgagsError):
     """The registration process died while it ran a job; a fresh one was started."""
 
-    code = RefusalCode.WORKER_CRASHED
+    code = RefusalCode.PROCESS_CRASHED
 
 
 @dataclasses.dataclass
@@ -71,7 +71,7 @@ class Supervisor:
     a decoded cloud); ``targets_sent`` counts the targets that crossed the pipe. A process
     found dead before a job is sent (it died idle) is replaced and the job runs on the fresh
     one; one that dies during a job is replaced and the job fails with
-    :class:`WorkerCrashed`. :meth:`supervise` replaces a dead idle process early, so that
+    :class:`ProcessCrashed`. :meth:`supervise` replaces a dead idle process early, so that
     the next job does not wait for the fresh one's start-up. ``crashes`` counts deaths,
     ``restarts`` every replacement (crashes and timeouts). :attr:`in_flight` from the moment
     a job is sent until its answer is received.
@@ -139,7 +139,7 @@ class Supervisor:
                 f'memory.{prefix}_rss_mb': round(rss_mb(pid) or 0.0, 1) if pid else 0.0}
 
     def wait_ready(self) -> None:
-        """Wait for the warm-up; raise :class:`WorkerCrashed` if it failed or did not end."""
+        """Wait for the warm-up; raise :class:`ProcessCrashed` if it failed or did not end."""
         with self._lock:
             child = self._child
             if child is None:
@@ -147,14 +147,14 @@ class Supervisor:
             try:
                 warm = child.wait_warm(WARM_UP_LIMIT_S)
             except ChildDied:
-                raise WorkerCrashed('the registration process failed to start (it died)') \
+                raise ProcessCrashed('the registration process failed to start (it died)') \
                     from None
         if not warm:
-            raise WorkerCrashed('the registration process failed to start (not ready after '
-                                f'{WARM_UP_LIMIT_S:g} s)')
+            raise ProcessCrashed('the registration process failed to start (not ready after '
+                                 f'{WARM_UP_LIMIT_S:g} s)')
         if child.warm_error is not None:
-            raise WorkerCrashed('the registration process failed to start '
-                                f'({child.warm_error!r})')
+            raise ProcessCrashed('the registration process failed to start '
+                                 f'({child.warm_error!r})')
 
     # ------------------------------------------------------------------ jobs
 
@@ -164,7 +164,7 @@ class Supervisor:
 
         :param timeout_s: its time limit (default ``timeout_s``).
         :raises RegistrationTimeout: past the limit (the process is restarted).
-        :raises WorkerCrashed: the process died during the job (it is replaced).
+        :raises ProcessCrashed: the process died during the job (it is replaced).
         :raises CgagsError: what the job raised (bad input, an unusable map, ...).
         """
         for attempt in (0, 1):
@@ -200,8 +200,8 @@ class Supervisor:
                 except (EOFError, OSError):  # it died idle since the check: a fresh one
                     remove_files(spilled)
                     if attempt:
-                        raise WorkerCrashed('the registration process died before the job '
-                                            'was sent; restarted') from None
+                        raise ProcessCrashed('the registration process died before the job '
+                                             'was sent; restarted') from None
                     self._crashed()
             self._flight = _InFlight(job, time.monotonic() + limit, too_long, spilled)
 
@@ -226,8 +226,8 @@ class Supervisor:
                     self._crashed()
                 what = ('loading the map (out of memory?)' if isinstance(flight.job, PrepareMap)
                         else 'this pair (killed, out of memory or a native crash)')
-                raise WorkerCrashed(f'the registration process died during {what}; '
-                                    'restarted') from None
+                raise ProcessCrashed(f'the registration process died during {what}; '
+                                     'restarted') from None
             if answer is None:
                 if time.monotonic() < flight.deadline:
                     return None
