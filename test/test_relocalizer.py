@@ -39,15 +39,19 @@ def scene(data_dir, tmp_path_factory):
     root = data_dir / '3dmatch_benchmark'
     poses, fragments = tdm.fragment_poses(root, SCENE), tdm.Fragments(root, SCENE)
     cfg = pipeline_config_from({'voxel_size': 0.05})
-    maps = {}
+    maps, normals = {}, {}  # a fragment's normals serve every map that holds it
+
+    def fragment_normals(k):
+        if k not in normals:
+            normals[k] = estimate_normals(fragments[k], cfg.voxel_size, cfg.frontend)
+        return normals[k]
 
     def without(ids):
         if tuple(ids) not in maps:
             kept = {k: P for k, P in poses.items() if k not in ids}
-            normals = [estimate_normals(fragments[k], cfg.voxel_size, cfg.frontend)
-                       @ P[:3, :3].T for k, P in kept.items()]
+            world = [fragment_normals(k) @ P[:3, :3].T for k, P in kept.items()]
             path = tmp_path_factory.mktemp('map') / 'kitchen.ply'
-            write_cloud(path, tdm.scene_map(fragments, kept), np.vstack(normals))
+            write_cloud(path, tdm.scene_map(fragments, kept), np.vstack(world))
             maps[tuple(ids)] = load_map(path, cfg), path
         prepared, path = maps[tuple(ids)]
         return prepared, cfg, poses, fragments, path
