@@ -28,5 +28,6 @@ GENERATED = ('build', 'install', 'log', 'out')
 @pytest.mark.pep257
 def test_pep257(monkeypatch):
     monkeypatch.chdir(PACKAGE_ROOT)
-    rc = main(argv=['.', 'test', '--exclude', *(str(PACKAGE_ROOT / name) for name in GENERATED)])
+    # '.' holds test/ too: naming it again would check every test module twice.
+    rc = main(argv=['.', '--exclude', *(str(PACKAGE_ROOT / name) for name in GENERATED)])
     assert rc == 0, 'Found code style errors / warnings'

@@ -39,15 +39,19 @@ def scene(data_dir, tmp_path_factory):
     root = data_dir / '3dmatch_benchmark'
     poses, fragments = tdm.fragment_poses(root, SCENE), tdm.Fragments(root, SCENE)
     cfg = pipeline_config_from({'voxel_size': 0.05})
-    maps = {}
+    maps, normals = {}, {}  # a fragment's normals serve every map that holds it
+
+    def fragment_normals(k):
+        if k not in normals:
+            normals[k] = estimate_normals(fragments[k], cfg.voxel_size, cfg.frontend)
+        return normals[k]
 
     def without(ids):
         if tuple(ids) not in maps:
             kept = {k: P for k, P in poses.items() if k not in ids}
-            normals = [estimate_normals(fragments[k], cfg.voxel_size, cfg.frontend)
-                       @ P[:3, :3].T for k, P in kept.items()]
+            world = [fragment_normals(k) @ P[:3, :3].T for k, P in kept.items()]
             path = tmp_path_factory.mktemp('map') / 'kitchen.ply'
-            write_cloud(path, tdm.scene_map(fragments, kept), np.vstack(normals))
+            write_cloud(path, tdm.scene_map(fragments, kept), np.vstack(world))
             maps[tuple(ids)] = load_map(path, cfg), path
         prepared, path = maps[tuple(ids)]
         return prepared, cfg, poses, fragments, path
@@ -200,6 +204,7 @@ def scan_files(folder, fragments, ids):
     return [str(p) for p in paths]
 
 
+@pytest.mark.slow  # the command end to end on the real map; the API tests above are fast
 def test_the_command_confirms_over_three_scans_and_prints_json(easy, tmp_path, capsys):
     _, _, poses, fragments, map_path = easy
     odom = odometry(poses, EASY, np.random.default_rng(1))
@@ -221,6 +226,7 @@ def test_the_command_confirms_over_three_scans_and_prints_json(easy, tmp_path, c
     assert 'confirmed: yes' in text and 'scans used: 1' in text
 
 
+@pytest.mark.slow  # the command end to end on the real map; the API tests above are fast
 def test_the_command_refuses_contradicting_odometry_with_exit_1(easy, tmp_path, capsys):
     _, _, poses, fragments, map_path = easy
     odom = odometry(poses, EASY, np.random.default_rng(1))
@@ -327,10 +333,10 @@ def test_a_square_room_is_not_confirmed_from_scans_that_share_its_symmetry(tmp_p
     path = tmp_path / 'room.ply'
     write_cloud(path, *square_room.room_map(room, furniture, cfg.voxel_size, cfg.frontend))
 
+    prepared = load_map(path, cfg)  # once: the runs differ only in the symmetries they know
+
     def relocalize(symmetries):
-        prepared = load_map(path, cfg)
-        if symmetries is not None:
-            prepared.symmetries = symmetries
+        prepared.symmetries = symmetries  # None: found from the map, as a load leaves it
         reloc = Relocalizer(prepared, cfg)
         for cloud, odom, P in scans:
             answer = reloc.add(cloud, odom)
