@@ -183,7 +183,7 @@ def run(name: str, built: dict, kiss: int, out_dir: Path,
             'map': name, 'frame': frame, 'rooms': built['rooms'],
             'queries': len(built['queries']), 'outside': len(built['outside']),
             'raw_points': len(built['points']), 'map_points': len(prepared.features.points),
-            'places': len(prepared.places) if prepared.places is not None else 0,
+            'map_places': len(prepared.places) if prepared.places is not None else 0,
             'load_cold_s': cold_s, 'load_cached_s': prepared.load_s,
             'cache_mb': cache_mb, 'max_rss_mb': rss_mb,
             **{way: _tally(seen[way]) for way in WAYS},
@@ -204,13 +204,13 @@ def _outcome(result, truth: np.ndarray | None, limits: tuple[float, float]) -> s
 def _tally(seen: list[tuple[str, float, bool]]) -> dict:
     """Return the counts and times of one way's queries (``seen``: outcome, s, outside)."""
     seconds = [s for _, s, _ in seen]
-    refusals = [s for o, s, _ in seen if o == 'refused']
+    away = [s for _, s, out in seen if out]
     return {'found': sum(o == 'found' for o, _, _ in seen),
             'wrong': sum(o == 'WRONG' for o, _, _ in seen),
             'refused': sum(o == 'refused' for o, _, out in seen if not out),
             'outside_refused': sum(o == 'refused' for o, _, out in seen if out),
             'median_s': float(np.median(seconds)), 'p90_s': float(np.percentile(seconds, 90)),
-            'refusal_median_s': float(np.median(refusals)) if refusals else float('nan')}
+            'outside_median_s': float(np.median(away)) if away else float('nan')}
 
 
 def _kiss(scan: np.ndarray, target: np.ndarray, voxel: float) -> np.ndarray | None:
@@ -224,10 +224,13 @@ def _kiss(scan: np.ndarray, target: np.ndarray, voxel: float) -> np.ndarray | No
     out = ctx.Queue()
     child = ctx.Process(target=_kiss_child, args=(scan, target, voxel, out))
     child.start()
-    try:
-        T = out.get(timeout=KISS_TIMEOUT)
-    except queue.Empty:
-        T = None
+    T, deadline = None, time.monotonic() + KISS_TIMEOUT
+    while T is None and time.monotonic() < deadline:
+        try:
+            T = out.get(timeout=1.0)
+        except queue.Empty:
+            if not child.is_alive() and out.empty():
+                break  # it died without an answer
     child.join(10)
     if child.is_alive():
         child.kill()
@@ -248,13 +251,13 @@ def _right(T: np.ndarray, truth: np.ndarray, limits: tuple[float, float]) -> boo
 def table(rows: list[dict]) -> str:
     """Return the Markdown tables of ``rows``: outcomes and times, then the maps."""
     lines = ['| map | frame | queries (+ outside) | found / wrong / refused: whole · places · '
-             'hint | outside refused: whole · places | median / p90 s: whole · places · hint '
+             'hint | outside refused (median s): whole · places | median / p90 s: whole · places · hint '
              '| whole / places time (median) |', '|---|---|---|---|---|---|---|']
     for r in rows:
         counts = ' · '.join(f"{r[w]['found']} / {r[w]['wrong']} / {r[w]['refused']}"
                             for w in WAYS)
-        outside = (' · '.join(f"{r[w]['outside_refused']}" for w in WAYS[:2])
-                   if r['outside'] else '')
+        outside = (' · '.join(f"{r[w]['outside_refused']} ({r[w]['outside_median_s']:.2f} s)"
+                              for w in WAYS[:2]) if r['outside'] else '')
         times = ' · '.join(f"{r[w]['median_s']:.2f} / {r[w]['p90_s']:.2f}" for w in WAYS)
         queries = f"{r['queries']}" + (f" (+ {r['outside']})" if r['outside'] else '')
         lines.append(f"| {r['map']} | {r['frame']} | {queries} | {counts} | {outside} "
@@ -268,7 +271,7 @@ def table(rows: list[dict]) -> str:
                 f"{np.median([x['s'] for x in k]):.1f}"
                 + (f' ({crashed} crashed)' if crashed else '') if k else '')
         lines.append(f"| {r['map']} | {r['frame']} | {r['raw_points']:,} / {r['map_points']:,} "
-                     f"| {r['places']:,} | {r['load_cold_s']:.1f} / {r['load_cached_s']:.2f} "
+                     f"| {r['map_places']:,} | {r['load_cold_s']:.1f} / {r['load_cached_s']:.2f} "
                      f"| {r['cache_mb']:.0f} | {r['max_rss_mb']:.0f} | {kiss} |")
     return '\n'.join(lines)
 
@@ -295,10 +298,12 @@ def main(argv: list[str] | None = None) -> int:
                 shapes, outside = growth_rooms(data, rooms)
                 rows += run(f'{rooms} rooms', floor(data, args.per_room, shapes, outside), 0,
                             args.output, ('origin',))
+                # Kept after each map: a long run that fails later loses nothing.
+                write_text(args.output / 'maps.json', json.dumps(rows, indent=1) + '\n')
+        write_text(args.output / 'maps.json', json.dumps(rows, indent=1) + '\n')
     text = table(rows)
     print(text)
     write_text(args.output / 'maps.md', text + '\n')
-    write_text(args.output / 'maps.json', json.dumps(rows, indent=1) + '\n')
     return 0
 
 

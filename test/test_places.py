@@ -1,10 +1,10 @@
 """
 Places of a prepared map (pipeline/places.py, pipeline/locate.py) on a floor of real rooms.
 
-The floor: two 3DMatch scenes (redkitchen, home_at), each fused from its even fragments with
-their normals facing each fragment's sensor, turned and placed as rooms 30 m apart; queries
-are odd fragments in their own frames, held out of the map; a hotel_uc fragment is a scan
-from outside it.
+The floor: three 3DMatch scenes (redkitchen, home_at, mit_lab), each fused from its even
+fragments with their normals facing each fragment's sensor, turned and placed as rooms 30 m
+apart; queries are odd fragments in their own frames, held out of the map; a hotel_uc
+fragment is a scan from outside it.
 """
 
 from __future__ import annotations
@@ -31,7 +31,8 @@ from scipy.spatial.transform import Rotation
 
 # scene -> (x of the room, its yaw in degrees)
 ROOMS = {'7-scenes-redkitchen': (0.0, 30.0),
-         'sun3d-home_at-home_at_scan1_2013_jan_1': (30.0, 250.0)}
+         'sun3d-home_at-home_at_scan1_2013_jan_1': (30.0, 250.0),
+         'sun3d-mit_lab_hj-lab_hj_tea_nov_2_2012_scan1_erika': (60.0, 120.0)}
 QUERY = ('sun3d-home_at-home_at_scan1_2013_jan_1', 53)  # (scene, odd fragment)
 OUTSIDE = ('sun3d-hotel_uc-scan3', 27)
 VOXEL = 0.05

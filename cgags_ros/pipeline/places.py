@@ -202,11 +202,17 @@ class PlaceIndex:
         voted = np.flatnonzero(votes)
         candidates = voted[covered[voted]]
         if len(candidates) == 0:  # no vote where the hint is: the hint alone places the scan
-            return Ranked([self._place(hint[0], 0, reach + near, map_tree)], False, reach,
-                          keypoints)
-        where = self.centres[voted]
-        tree = cKDTree(where)
-        around = tree.query_ball_point(self.centres[candidates], near)
+            places = [self._place(hint[0], 0, reach + near, map_tree)]
+        else:
+            places = self._best(votes, voted, candidates, near, count, reach + near, map_tree)
+        # A place that holds half the map is the map: testing it costs more than it saves.
+        whole = 2 * len(places[0].rows) >= map_tree.n
+        return Ranked([] if whole else places, whole, reach, keypoints)
+
+    def _best(self, votes: np.ndarray, voted: np.ndarray, candidates: np.ndarray,
+              near: float, count: int, radius: float, map_tree: cKDTree) -> list[Place]:
+        """Return the ``count`` best-voted places, each more than ``near`` from the others."""
+        around = cKDTree(self.centres[voted]).query_ball_point(self.centres[candidates], near)
         score = np.array([votes[voted[a]].sum() for a in around])
         places: list[Place] = []
         for i in np.argsort(-score, kind='stable'):
@@ -215,10 +221,10 @@ class PlaceIndex:
                 continue
             members = voted[around[i]]
             centre = np.average(self.centres[members], axis=0, weights=votes[members])
-            places.append(self._place(centre, int(score[i]), reach + near, map_tree))
+            places.append(self._place(centre, int(score[i]), radius, map_tree))
             if len(places) == count:
                 break
-        return Ranked(places, False, reach, keypoints)
+        return places
 
     def _covered(self, hint: tuple[np.ndarray, float] | None, reach: float) -> np.ndarray:
         if hint is None:
