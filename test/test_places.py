@@ -24,7 +24,7 @@ from cgags_ros.pipeline.map import load_map
 from cgags_ros.pipeline.places import Hint, HINT_SIGMAS
 from cgags_ros.refusal import RefusalCode as Code
 from cgags_ros.relocalization.relocalizer import Relocalizer
-from cgags_ros.tools import map_cli
+from cgags_ros.tools import map_cli, relocalize_cli
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -148,3 +148,17 @@ def test_a_pose_hint_covers_its_position_to_three_standard_deviations():
         Hint([0.0, np.nan, 0.0], 1.0)
     with pytest.raises(InvalidInputError):
         Hint([0.0, 0.0, 0.0], -1.0)
+
+
+def test_the_relocalize_command_takes_a_hint(floor, tmp_path, capsys):
+    prepared, _, path, _, query = floor
+    scan, truth = query(*QUERY)
+    np.save(tmp_path / 'scan.npy', scan)
+    argv = [str(path), str(tmp_path / 'scan.npy'), '--voxel-size', str(VOXEL), '--json',
+            '--map-cache-dir', prepared.cache_path.rsplit('/', 1)[0], '--hint']
+    assert relocalize_cli.main(argv + [*map(str, truth[:3, 3]), '2']) == 0
+    [found] = json.loads(capsys.readouterr().out)['scans']
+    assert found['place']['points'] < len(prepared.features.points)
+    assert relocalize_cli.main(argv + ['500', '500', '0', '10']) == 1
+    out = json.loads(capsys.readouterr().out)
+    assert out['refusal']['code'] == Code.NO_SHARED_SURFACE.value

@@ -183,18 +183,16 @@ class PlaceIndex:
         :param hint: (position in the map's local frame, radius), metres: only the places
             within the radius and the scan's reach of the position are ranked.
         """
-        keypoints = select_keypoints(scan.points, KEYPOINTS, voxel_size)
-        keypoints = keypoints[informative_rows(scan.descriptors[keypoints])]
         spread = np.linalg.norm(scan.points - scan.points.mean(axis=0), axis=1)
         reach = float(np.percentile(spread, REACH_QUANTILE))
         # Votes are counted within ``near`` of a place: the scan's reach and the error of a
         # centroid placed by votes; its submap reaches as far again beyond the centre.
         near = 1.5 * reach + self.spacing
         covered = self._covered(hint, reach)
-        if not covered.any():
-            return Ranked([], False, reach, keypoints)
-        if self._radius <= reach + near:
-            return Ranked([], True, reach, keypoints)
+        if not covered.any() or self._radius <= reach + near:
+            return Ranked([], bool(covered.any()), reach, np.zeros(0, dtype=np.int64))
+        keypoints = select_keypoints(scan.points, KEYPOINTS, voxel_size)
+        keypoints = keypoints[informative_rows(scan.descriptors[keypoints])]
         votes = np.zeros(len(self.centres), dtype=np.int64)
         if len(keypoints):
             nearest = self.index.query(scan.descriptors[keypoints], 1, workers)[0][:, 0]
