@@ -251,8 +251,8 @@ def _right(T: np.ndarray, truth: np.ndarray, limits: tuple[float, float]) -> boo
 def table(rows: list[dict]) -> str:
     """Return the Markdown tables of ``rows``: outcomes and times, then the maps."""
     lines = ['| map | frame | queries (+ outside) | found / wrong / refused: whole · places · '
-             'hint | outside refused (median s): whole · places | median / p90 s: whole · places · hint '
-             '| whole / places time (median) |', '|---|---|---|---|---|---|---|']
+             'hint | outside refused (median s): whole · places | median / p90 s: whole · '
+             'places · hint | whole / places time (median) |', '|---|---|---|---|---|---|---|']
     for r in rows:
         counts = ' · '.join(f"{r[w]['found']} / {r[w]['wrong']} / {r[w]['refused']}"
                             for w in WAYS)
