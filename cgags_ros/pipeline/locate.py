@@ -15,8 +15,9 @@ and the other places' matches drown its own; here:
    registration's, in the map frame as against the whole map; its ``map_info`` is the whole
    map's with the place's beside it, its ``stats['places']`` what was ranked and tested.
 
-A map within the scan's reach of one place is registered whole, as without places. So is a
-scan too small to be featurised (it is refused as the whole map refuses it).
+A map within one submap of the scan, or whose best place holds half its points, is
+registered whole, as without places: testing would cost more than it saves. So is a scan too
+small to be featurised (it is refused as the whole map refuses it).
 """
 
 from __future__ import annotations

@@ -7,14 +7,14 @@ the other rooms' matches drown its own as the map grows (docs/maps.md). The map'
 query look only where it may be:
 
 - **places**: the map's points grouped on a grid of ``TILE_VOXELS`` voxels; a place is
-  the centre of an occupied cell, and its submap is the map within the query's reach of
-  it. The reach is the query's own, not the map's: a room's RGB-D fragment reaches ~26
+  the centre of an occupied cell, and its submap is the map within 2.5 of the query's
+  reaches of it. The reach is the query's own, not the map's: a room's RGB-D fragment reaches ~26
   voxels from its centroid, a LiDAR scan ~150 (docs/maps.md), so no one submap size
   would fit both.
 - **votes**: one map point a ``VOTE_CELL_VOXELS`` cell (its informative descriptor) with
   its own descriptor index. Each of at most ``KEYPOINTS`` scan keypoints votes for the
-  place of its nearest voting descriptor; a place's score is the votes within the scan's
-  reach of it, so a scan's own place collects the votes of all its surfaces.
+  place of its nearest voting descriptor; a place's score is the votes within 1.5 of the
+  scan's reaches of it, so a scan's own place collects the votes of all its surfaces.
 - a **hint** (:class:`Hint`: a position with a radius, e.g. ``initialpose`` with its
   covariance) leaves only the places it covers.
 
@@ -103,7 +103,8 @@ class Ranked:
     What a query's ranking found: the places to test, best first, or the whole map.
 
     :ivar places: the ranked places (empty with ``whole`` or when a hint covers none).
-    :ivar whole: the map is within one submap of the query: register against all of it.
+    :ivar whole: the map is within one submap of the query, or its best place holds half
+        of it: register against all of it.
     :ivar reach: the scan's reach (metres).
     :ivar keypoints: the scan's rows that voted (informative keypoints).
     """
