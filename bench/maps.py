@@ -1,9 +1,9 @@
 r"""
-Maps robots carry: a street and a floor of rooms built from the shared data, queries held out.
+Maps robots carry: a street and floors of rooms built from the shared data, queries held out.
 
 Run by hand::
 
-    .venv/bin/python -m bench.maps [--maps street floor] [--per-room 5] [--kiss 3] \
+    .venv/bin/python -m bench.maps [--maps street floor growth] [--per-room 5] [--kiss 3] \
         [--output out/bench/maps]
 
 ``street``: the 16 KITTI scans (``kitti/seq00_16scans``), every fourth (0, 4, 8, 12) fused by
@@ -12,16 +12,26 @@ in their own sensor frames (voxel 0.3 m, the README's LiDAR value; right: 5 deg,
 ``floor``: the four 3DMatch scenes, each fused from its even fragments (normals facing the
 fragment's sensor, as a mapper writes them), turned by a seeded yaw and placed as rooms 30 m
 apart on one floor; the queries are ``--per-room`` odd fragments a room (seeded), in their own
-frames (voxel 5 cm; right: 15 deg, 0.3 m). ``floor-growth`` registers the first room's
-queries as the floor grows from one room to four (the cost curve).
+frames (voxel 5 cm; right: 15 deg, 0.3 m). Each is also moved to UTM coordinates (512345.678
+E, 5412345.678 N, 265.4 m up) and queried again, and ``--kiss N`` queries a map are given to
+KISS-Matcher on the same scan and raw map (its ``estimate``; no flag, every estimate counts).
 
-Each map is also moved to UTM coordinates (512345.678 E, 5412345.678 N, 265.4 m up) and
-queried again. Per map: found (valid and right), wrong (valid, not right), refused; median and
-p90 seconds a query (``register_clouds`` onto the prepared map, the node's path); the map's
-load cold (features computed and cached) and cached (memory-mapped), its points, the cache's
-size and the process's resident memory after the load; and ``--kiss N`` queries of KISS-Matcher
-on the same scan and raw map (its ``estimate``; no flag, every estimate counts). Writes
-``<output>/maps.{md,json}``.
+``growth``: floors of 1, 3, 6 and 12 rooms at the origin. The first three are three of the
+scenes (redkitchen, home_at, hotel_uc); then the same three mirrored, then all six enlarged
+by 1.25: rooms no query fits under any rigid motion, which look like the real ones. The
+queries are the real rooms' (``--per-room`` each) and five fragments of the fourth scene
+(mit_lab), which is in no map: they are right only when refused.
+
+Every query is registered three ways in the same process, one after the other, the feature
+cache cleared before each so that each pays for the scan's features: ``whole`` (the whole
+prepared map, as before places: ``prepared.whole()``), ``places`` (``register_clouds`` onto the
+prepared map: its places ranked, the best tested and registered) and ``hint`` (places, with
+a hint of radius ``HINT_RADIUS`` around the true sensor position; the outside queries get the
+first room's centre). Per map and way: found (valid and right), wrong (valid and not right,
+or an outside query accepted), refused; median and p90 seconds; and the median over queries
+of the whole map's time over the places' (the ratio). Per map: the load cold (features and
+places computed and cached) and cached (memory-mapped), its points and places, the cache's
+size and the process's peak resident memory. Writes ``<output>/maps.{md,json}``.
 """
 
 from __future__ import annotations
@@ -45,14 +55,19 @@ from cgags_ros.geometry import apply_transform, make_transform, rotation_error_d
 from cgags_ros.geometry import translation_error
 from cgags_ros.io.clouds import write_cloud
 from cgags_ros.io.shared_data import shared_data_dir
-from cgags_ros.pipeline import register_clouds
+from cgags_ros.pipeline import clear_feature_cache, register_clouds
 from cgags_ros.pipeline.map import load_map
+from cgags_ros.pipeline.places import Hint
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 UTM = np.array([512345.678, 5412345.678, 265.4])
 ROOM_SPACING = 30.0  # metres between the floor's rooms
 KISS_TIMEOUT = 600.0  # seconds a KISS-Matcher estimate may take
+HINT_RADIUS = {'street': 10.0, 'floor': 2.0}  # metres around the true sensor position
+WAYS = ('whole', 'places', 'hint')
+GROWTH = (1, 3, 6, 12)  # rooms of the growth floors
+ENLARGED = 1.25  # the growth floors' enlarged rooms
 
 
 def street(data: Path) -> dict:
@@ -62,70 +77,140 @@ def street(data: Path) -> dict:
     in_map = [0, 4, 8, 12]
     points = np.vstack([apply_transform(truth[k], scans[k]) for k in in_map])
     queries = [(f'scan {k}', scans[k], truth[k]) for k in range(16) if k not in in_map]
-    return {'points': points, 'normals': None, 'queries': queries, 'voxel': 0.3,
-            'right': (5.0, 0.6)}
+    return {'points': points, 'normals': None, 'queries': queries, 'outside': [],
+            'voxel': 0.3, 'right': (5.0, 0.6), 'hint': HINT_RADIUS['street'],
+            'rooms': 1}
 
 
-def floor(data: Path, per_room: int, rooms: int = 4, seed: int = 0) -> dict:
-    """Return the floor of ``rooms`` 3DMatch scenes, its queries (``per_room`` a room)."""
+def floor(data: Path, per_room: int, rooms: list[tuple[str, bool, float]],
+          outside: str | None = None, seed: int = 0) -> dict:
+    """
+    Return a floor of ``rooms`` (scene, mirrored, scale) and its queries (``per_room`` a room).
+
+    Only rooms as the scene was (not mirrored, scale 1) have queries; ``outside``: a scene
+    of none of the rooms whose ``per_room`` fragments are queries from outside the map.
+    """
     root = data / '3dmatch_benchmark'
     cfg = pipeline_config_from({'voxel_size': 0.05})
     rng = np.random.default_rng(seed)
-    points, normals, queries = [], [], []
-    for r, scene in enumerate(tdm.scenes(root)[:rooms]):
+    points, normals, queries, centres = [], [], [], []
+    for r, (scene, mirrored, scale) in enumerate(rooms):
         poses, fragments = tdm.fragment_poses(root, scene), tdm.Fragments(root, scene)
         place = make_transform(Rotation.from_euler('z', rng.uniform(0, 360),
                                                    degrees=True).as_matrix(),
-                               [ROOM_SPACING * (r % 2), ROOM_SPACING * (r // 2), 0.0])
+                               [ROOM_SPACING * (r % 4), ROOM_SPACING * (r // 4), 0.0])
+        shape = np.diag([-scale if mirrored else scale, scale, scale, 1.0])
+        room = []
         for k, P in poses.items():
             if k % 2 == 0:
-                points.append(apply_transform(place @ P, fragments[k]))
-                normals.append(estimate_normals(fragments[k], 0.05, cfg.frontend)
-                               @ (place @ P)[:3, :3].T)
+                A = place @ shape @ P
+                room.append(apply_transform(A, fragments[k]))
+                side = estimate_normals(fragments[k], 0.05, cfg.frontend) @ np.linalg.inv(
+                    A[:3, :3])
+                normals.append(side / np.linalg.norm(side, axis=1, keepdims=True))
+        points += room
+        centres.append(np.vstack(room).mean(axis=0))
+        if mirrored or scale != 1.0:
+            continue
         odd = sorted(k for k in poses if k % 2)
         for k in sorted(rng.choice(odd, min(per_room, len(odd)), replace=False)):
             queries.append((f'{scene[:20]} {k}', fragments[k], place @ poses[k]))
+    away = []
+    if outside:
+        fragments = tdm.Fragments(root, outside)
+        odd = sorted(k for k in tdm.fragment_poses(root, outside) if k % 2)
+        away = [(f'{outside[:20]} {k}', fragments[k], None)
+                for k in sorted(rng.choice(odd, min(per_room, len(odd)), replace=False))]
     return {'points': np.vstack(points), 'normals': np.vstack(normals), 'queries': queries,
-            'voxel': 0.05, 'right': (15.0, 0.3)}
+            'outside': away, 'voxel': 0.05, 'right': (15.0, 0.3), 'hint': HINT_RADIUS['floor'],
+            'rooms': len(rooms), 'first_room': centres[0]}
 
 
-def run(name: str, built: dict, kiss: int, out_dir: Path) -> list[dict]:
-    """Query ``built``'s map at the origin and in UTM; return a row of each."""
+def four_rooms(data: Path) -> list[tuple[str, bool, float]]:
+    """Return the four scenes as rooms, as they are."""
+    return [(s, False, 1.0) for s in tdm.scenes(data / '3dmatch_benchmark')[:4]]
+
+
+def growth_rooms(data: Path, rooms: int) -> tuple[list[tuple[str, bool, float]], str]:
+    """Return the first ``rooms`` rooms of the growth floors, and the scene left outside."""
+    scenes = tdm.scenes(data / '3dmatch_benchmark')[:4]
+    real, outside = scenes[:3], scenes[3]
+    shapes = ([(s, False, 1.0) for s in real] + [(s, True, 1.0) for s in real]
+              + [(s, m, ENLARGED) for m in (False, True) for s in real])
+    return shapes[:rooms], outside
+
+
+def run(name: str, built: dict, kiss: int, out_dir: Path,
+        frames: tuple[str, ...] = ('origin', 'UTM')) -> list[dict]:
+    """Query ``built``'s map in each frame the three ways; return a row a frame."""
     rows = []
-    for frame, offset in (('origin', np.zeros(3)), ('UTM', UTM)):
+    for frame in frames:
+        offset = UTM if frame == 'UTM' else np.zeros(3)
         cfg = pipeline_config_from({'voxel_size': built['voxel']})
         move = make_transform(np.eye(3), offset)
         with tempfile.TemporaryDirectory(dir=out_dir) as tmp:
             path, cache = Path(tmp) / 'map.ply', Path(tmp) / 'cache'
             write_cloud(path, built['points'] + offset, built['normals'])
-            cold = load_map(path, cfg, cache)
+            cold_s = load_map(path, cfg, cache).load_s
             prepared = load_map(path, cfg, cache)
             cache_mb = sum(f.stat().st_size for f in Path(prepared.cache_path).iterdir()) / 2**20
             rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-            outcomes, seconds, kiss_out = [], [], []
-            for i, (label, scan, truth) in enumerate(built['queries']):
-                t0 = time.perf_counter()
-                result = register_clouds(scan, prepared, config=cfg)
-                seconds.append(time.perf_counter() - t0)
-                right = _right(result.transform, move @ truth, built['right'])
-                outcomes.append('found' if result.valid and right else
-                                'WRONG' if result.valid else 'refused')
-                print(f'{name:6s} {frame:6s} {label:26s} {outcomes[-1]:8s} {seconds[-1]:.2f} s '
-                      f'{result.reason[:70]}', flush=True)
-                if i < kiss:
+            seen = {way: [] for way in WAYS}
+            kiss_out = []
+            queries = built['queries'] + built['outside']
+            for i, (label, scan, truth) in enumerate(queries):
+                truth = None if truth is None else move @ truth
+                where = built.get('first_room', np.zeros(3)) + offset if truth is None else (
+                    truth[:3, 3])
+                hint = Hint(where, built['hint'])
+                for way in WAYS:
+                    clear_feature_cache()
+                    target = prepared.whole() if way == 'whole' else prepared
+                    t0 = time.perf_counter()
+                    result = register_clouds(scan, target, config=cfg,
+                                             hint=hint if way == 'hint' else None)
+                    seconds = time.perf_counter() - t0
+                    outcome = _outcome(result, truth, built['right'])
+                    seen[way].append((outcome, seconds, truth is None))
+                    print(f'{name:9s} {frame:6s} {label:26s} {way:6s} {outcome:8s} '
+                          f'{seconds:5.2f} s {result.reason[:60]}', flush=True)
+                if i < kiss and truth is not None:
                     t0 = time.perf_counter()
                     T = _kiss(scan, built['points'] + offset, built['voxel'])
-                    kiss_out.append((T is not None and _right(T, move @ truth, built['right']),
+                    kiss_out.append((T is not None and _right(T, truth, built['right']),
                                      time.perf_counter() - t0, T is None))
         rows.append({
-            'map': name, 'frame': frame, 'queries': len(outcomes),
-            'found': outcomes.count('found'), 'wrong': outcomes.count('WRONG'),
-            'refused': outcomes.count('refused'), 'median_s': float(np.median(seconds)),
-            'p90_s': float(np.percentile(seconds, 90)), 'raw_points': len(built['points']),
-            'map_points': len(prepared.features.points), 'load_cold_s': cold.load_s,
-            'load_cached_s': prepared.load_s, 'cache_mb': cache_mb, 'max_rss_mb': rss_mb,
+            'map': name, 'frame': frame, 'rooms': built['rooms'],
+            'queries': len(built['queries']), 'outside': len(built['outside']),
+            'raw_points': len(built['points']), 'map_points': len(prepared.features.points),
+            'map_places': len(prepared.places) if prepared.places is not None else 0,
+            'load_cold_s': cold_s, 'load_cached_s': prepared.load_s,
+            'cache_mb': cache_mb, 'max_rss_mb': rss_mb,
+            **{way: _tally(seen[way]) for way in WAYS},
+            'ratio': float(np.median([w[1] / p[1] for w, p in zip(seen['whole'],
+                                                                  seen['places'])])),
             'kiss': [{'right': bool(r), 's': s, 'crashed': c} for r, s, c in kiss_out]})
     return rows
+
+
+def _outcome(result, truth: np.ndarray | None, limits: tuple[float, float]) -> str:
+    if truth is None:  # a query from outside the map: right only when refused
+        return 'WRONG' if result.valid else 'refused'
+    if not result.valid:
+        return 'refused'
+    return 'found' if _right(result.transform, truth, limits) else 'WRONG'
+
+
+def _tally(seen: list[tuple[str, float, bool]]) -> dict:
+    """Return the counts and times of one way's queries (``seen``: outcome, s, outside)."""
+    seconds = [s for _, s, _ in seen]
+    away = [s for _, s, out in seen if out]
+    return {'found': sum(o == 'found' for o, _, _ in seen),
+            'wrong': sum(o == 'WRONG' for o, _, _ in seen),
+            'refused': sum(o == 'refused' for o, _, out in seen if not out),
+            'outside_refused': sum(o == 'refused' for o, _, out in seen if out),
+            'median_s': float(np.median(seconds)), 'p90_s': float(np.percentile(seconds, 90)),
+            'outside_median_s': float(np.median(away)) if away else float('nan')}
 
 
 def _kiss(scan: np.ndarray, target: np.ndarray, voxel: float) -> np.ndarray | None:
@@ -139,10 +224,13 @@ def _kiss(scan: np.ndarray, target: np.ndarray, voxel: float) -> np.ndarray | No
     out = ctx.Queue()
     child = ctx.Process(target=_kiss_child, args=(scan, target, voxel, out))
     child.start()
-    try:
-        T = out.get(timeout=KISS_TIMEOUT)
-    except queue.Empty:
-        T = None
+    T, deadline = None, time.monotonic() + KISS_TIMEOUT
+    while T is None and time.monotonic() < deadline:
+        try:
+            T = out.get(timeout=1.0)
+        except queue.Empty:
+            if not child.is_alive() and out.empty():
+                break  # it died without an answer
     child.join(10)
     if child.is_alive():
         child.kill()
@@ -161,9 +249,21 @@ def _right(T: np.ndarray, truth: np.ndarray, limits: tuple[float, float]) -> boo
 
 
 def table(rows: list[dict]) -> str:
-    lines = ['| map | frame | raw / map points | found / wrong / refused | median / p90 s a query '
-             '| load cold / cached s | cache MB | max RSS MB | KISS-Matcher right, median s |',
-             '|---|---|---|---|---|---|---|---|---|']
+    """Return the Markdown tables of ``rows``: outcomes and times, then the maps."""
+    lines = ['| map | frame | queries (+ outside) | found / wrong / refused: whole · places · '
+             'hint | outside refused (median s): whole · places | median / p90 s: whole · '
+             'places · hint | whole / places time (median) |', '|---|---|---|---|---|---|---|']
+    for r in rows:
+        counts = ' · '.join(f"{r[w]['found']} / {r[w]['wrong']} / {r[w]['refused']}"
+                            for w in WAYS)
+        outside = (' · '.join(f"{r[w]['outside_refused']} ({r[w]['outside_median_s']:.2f} s)"
+                              for w in WAYS[:2]) if r['outside'] else '')
+        times = ' · '.join(f"{r[w]['median_s']:.2f} / {r[w]['p90_s']:.2f}" for w in WAYS)
+        queries = f"{r['queries']}" + (f" (+ {r['outside']})" if r['outside'] else '')
+        lines.append(f"| {r['map']} | {r['frame']} | {queries} | {counts} | {outside} "
+                     f"| {times} | {r['ratio']:.2f} |")
+    lines += ['', '| map | frame | raw / map points | places | load cold / cached s | cache MB '
+              '| max RSS MB | KISS-Matcher right, median s |', '|---|---|---|---|---|---|---|---|']
     for r in rows:
         k = r['kiss']
         crashed = sum(x['crashed'] for x in k)
@@ -171,9 +271,7 @@ def table(rows: list[dict]) -> str:
                 f"{np.median([x['s'] for x in k]):.1f}"
                 + (f' ({crashed} crashed)' if crashed else '') if k else '')
         lines.append(f"| {r['map']} | {r['frame']} | {r['raw_points']:,} / {r['map_points']:,} "
-                     f"| {r['found']} / {r['wrong']} / {r['refused']} of {r['queries']} "
-                     f"| {r['median_s']:.2f} / {r['p90_s']:.2f} "
-                     f"| {r['load_cold_s']:.1f} / {r['load_cached_s']:.2f} "
+                     f"| {r['map_places']:,} | {r['load_cold_s']:.1f} / {r['load_cached_s']:.2f} "
                      f"| {r['cache_mb']:.0f} | {r['max_rss_mb']:.0f} | {kiss} |")
     return '\n'.join(lines)
 
@@ -181,7 +279,7 @@ def table(rows: list[dict]) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argument_parser('bench.maps', __doc__)
     parser.add_argument('--maps', nargs='+', default=['street', 'floor'],
-                        choices=['street', 'floor', 'floor-growth'])
+                        choices=['street', 'floor', 'growth'])
     parser.add_argument('--per-room', type=int, default=5, help='queries a room of the floor')
     parser.add_argument('--kiss', type=int, default=3, help='KISS-Matcher queries a map')
     parser.add_argument('--output', type=Path, default=Path('out/bench/maps'))
@@ -193,18 +291,19 @@ def main(argv: list[str] | None = None) -> int:
         if name == 'street':
             rows += run('street', street(data), args.kiss, args.output)
         elif name == 'floor':
-            rows += run('floor', floor(data, args.per_room), args.kiss, args.output)
+            rows += run('floor', floor(data, args.per_room, four_rooms(data)), args.kiss,
+                        args.output)
         else:
-            first_room = floor(data, args.per_room, rooms=1)['queries']
-            for rooms in range(1, 5):
-                built = floor(data, args.per_room, rooms)
-                built['queries'] = first_room
-                rows += [r for r in run(f'{rooms} rooms', built, 0, args.output)
-                         if r['frame'] == 'origin']
+            for rooms in GROWTH:
+                shapes, outside = growth_rooms(data, rooms)
+                rows += run(f'{rooms} rooms', floor(data, args.per_room, shapes, outside), 0,
+                            args.output, ('origin',))
+                # Kept after each map: a long run that fails later loses nothing.
+                write_text(args.output / 'maps.json', json.dumps(rows, indent=1) + '\n')
+        write_text(args.output / 'maps.json', json.dumps(rows, indent=1) + '\n')
     text = table(rows)
     print(text)
     write_text(args.output / 'maps.md', text + '\n')
-    write_text(args.output / 'maps.json', json.dumps(rows, indent=1) + '\n')
     return 0
 
 

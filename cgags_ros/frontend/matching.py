@@ -87,15 +87,22 @@ def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfi
     return _best(src_ok[keep], dst_ok[nn[keep, 0]], dist[keep, 0], config.max_correspondences)
 
 
-def informative_index(descriptors: np.ndarray, workers: int = 1) -> DescriptorIndex | None:
+def informative_index(descriptors: np.ndarray, workers: int = 1,
+                      like: DescriptorIndex | None = None) -> DescriptorIndex | None:
     """
     Return the index :func:`match_features` searches as ``target_index``, or None.
 
-    It holds the informative rows of ``descriptors`` (finite, not all zero), in order;
-    None when there are none.
+    It holds the informative rows of ``descriptors`` (:func:`informative_rows`), in order;
+    None when there are none. ``like``: as for :class:`DescriptorIndex` (a part of a map
+    reuses the map's cells).
     """
-    rows = np.flatnonzero(_informative(descriptors))
-    return DescriptorIndex(descriptors[rows], workers) if len(rows) else None
+    rows = informative_rows(descriptors)
+    return DescriptorIndex(descriptors[rows], workers, like=like) if len(rows) else None
+
+
+def informative_rows(descriptors: np.ndarray) -> np.ndarray:
+    """Return the rows of ``descriptors`` that can match: finite and not all zero."""
+    return np.flatnonzero(_informative(descriptors))
 
 
 def _informative(descriptors: np.ndarray) -> np.ndarray:

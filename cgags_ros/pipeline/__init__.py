@@ -6,7 +6,8 @@ validity gates (``gates.py``), settles the correspondences' other candidates
 (``candidates.py``) and the estimate's twins (``twins.py``) with one primitive
 (``settle.py``) and rates the estimate (``confidence.py``); features of recent clouds are
 cached (``cache.py``); ``covariance.py`` turns a result into a pose covariance; ``map.py``
-prepares a map file's features once. A stream's scans (:mod:`cgags_ros.tracking`) and a
+prepares a map file's features and places (``places.py``) once, and a scan onto a map is
+registered in its best places (``locate.py``). A stream's scans (:mod:`cgags_ros.tracking`) and a
 relocalization over several scans (:mod:`cgags_ros.relocalization`) build on this one pair.
 
 ``register_clouds``, ``warm_up`` and the cache functions are imported on first use: they

@@ -4,7 +4,9 @@ A prior map from a file: its features computed once, cached on disk, reused by e
 :func:`load_map` reads the map file (PLY, PCD, NPY, XYZ/CSV/TXT; metres, map frame, any
 coordinates: :mod:`cgags_ros.coordinates`), drops non-finite points (counted), and returns the
 map's :class:`PreparedMap`: the downsampled points, normals, FPFH descriptors, their
-descriptor index and k-d tree :func:`register_clouds` needs, and nothing of the raw cloud.
+descriptor index and k-d tree :func:`register_clouds` needs, its places
+(:mod:`.places`: where a scan is looked for before it is registered), and nothing of the
+raw cloud.
 With a cache directory they are stored (:mod:`cgags_ros.io.map_cache`) under a key of the
 file's content hash and every setting that changes them (:data:`FEATURE_SETTINGS`, the voxel
 size, the Open3D version), and every load, the first included, returns them memory-mapped from
@@ -32,6 +34,7 @@ import warnings
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .places import PlaceIndex
 from ..config.pipeline import PipelineConfig
 from ..coordinates import (coarse_coordinates, CoarseCoordinatesWarning, local_origin, moved,
                            translation)
@@ -70,6 +73,8 @@ class PreparedMap:
     :ivar origin: (3,) where the map's local frame sits in the map frame (metres): the
         features' points are the map's less it (:func:`~cgags_ros.coordinates.local_origin`:
         zeros unless the map is georeferenced, far from its frame's origin).
+    :ivar places: the map's places (:class:`~.places.PlaceIndex`); None for a map that
+        is registered whole (:meth:`whole`, a place's submap).
     """
 
     features: CloudFeatures
@@ -84,6 +89,15 @@ class PreparedMap:
     oriented_by: str = ''
     symmetries: list[np.ndarray] | None = None
     origin: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+    places: PlaceIndex | None = None
+
+    def whole(self) -> PreparedMap:
+        """Return this map without its places: a scan is registered against all of it."""
+        return dataclasses.replace(self, places=None)
+
+    def part(self, features: CloudFeatures) -> PreparedMap:
+        """Return a part of this map (a place's submap: ``features``, local frame) as a map."""
+        return dataclasses.replace(self, features=features, places=None)
 
     def to_local(self, T: np.ndarray) -> np.ndarray:
         """Return a pose in the map frame (4x4, target side) in the features' local frame."""
@@ -100,7 +114,8 @@ class PreparedMap:
                 'nonfinite_points': self.num_nonfinite,
                 'points': len(self.features.points), 'voxel_size': self.settings['voxel_size'],
                 'normals': self.oriented_by, 'load_s': round(self.load_s, 3),
-                'origin': [float(x) for x in self.origin]}
+                'origin': [float(x) for x in self.origin],
+                'places': 0 if self.places is None else len(self.places)}
 
 
 def feature_settings(config: PipelineConfig) -> dict[str, Any]:
@@ -135,24 +150,25 @@ def load_map(path: str | Path, config: PipelineConfig,
     stored = map_cache.load_entry(cache_dir, key) if cache_dir else None
     status = 'hit'
     if stored is None:
-        features, meta = _prepare(path, config)
+        features, places, meta = _prepare(path, config)
         if not cache_dir:
-            return _prepared(features, meta, settings, path, digest, 'off', '', start)
-        map_cache.save_entry(cache_dir, key, _arrays(features), {
+            return _prepared(features, places, meta, settings, path, digest, 'off', '', start)
+        map_cache.save_entry(cache_dir, key, _arrays(features, places), {
             **meta, 'map': str(path.resolve()), 'digest': digest, 'settings': settings})
         # Read back: the memory-mapped copy is the one every process that loads this map
         # shares; the one just computed is freed.
         stored, status = map_cache.load_entry(cache_dir, key), 'miss'
         if stored is None:
-            return _prepared(features, meta, settings, path, digest, status,
+            return _prepared(features, places, meta, settings, path, digest, status,
                              str(map_cache.entry_path(cache_dir, key)), start)
     arrays, meta = stored
-    return _prepared(_features_from(arrays), meta, settings, path, digest, status,
-                     str(map_cache.entry_path(cache_dir, key)), start)
+    return _prepared(_features_from(arrays), PlaceIndex.from_arrays(arrays), meta, settings,
+                     path, digest, status, str(map_cache.entry_path(cache_dir, key)), start)
 
 
-def _prepare(path: Path, config: PipelineConfig) -> tuple[CloudFeatures, dict[str, Any]]:
-    """Read the map file and compute its features, descriptor index included; and their meta."""
+def _prepare(path: Path, config: PipelineConfig
+             ) -> tuple[CloudFeatures, PlaceIndex | None, dict[str, Any]]:
+    """Read the map file; return its features (descriptor index built), places and meta."""
     points, sides = read_cloud_and_normals(path)
     if config.frontend.normal_orientation != 'origin':
         sides = None  # the file's normals sign the map's only where a scan's face its sensor
@@ -170,29 +186,34 @@ def _prepare(path: Path, config: PipelineConfig) -> tuple[CloudFeatures, dict[st
     features = extract_features(moved(points, origin), config.voxel_size, config.frontend,
                                 'map', sides=None if sides is None else sides[finite])
     features.descriptor_index()  # built with the map, not on the first scan
+    places = PlaceIndex.build(features, config.voxel_size)
     low, high = features.points.min(axis=0) + origin, features.points.max(axis=0) + origin
-    return features, {'raw_points': raw, 'nonfinite_points': nonfinite,
-                      'oriented_by': oriented_by, 'origin': origin.tolist(),
-                      'resolution': features.resolution, 'points': len(features.points),
-                      'extent': [low.tolist(), high.tolist()]}
+    return features, places, {
+        'raw_points': raw, 'nonfinite_points': nonfinite, 'oriented_by': oriented_by,
+        'origin': origin.tolist(), 'resolution': features.resolution,
+        'points': len(features.points), 'extent': [low.tolist(), high.tolist()],
+        'places': 0 if places is None else len(places)}
 
 
-def _prepared(features: CloudFeatures, meta: dict[str, Any], settings: dict[str, Any],
-              path: Path, digest: str, status: str, entry: str, start: float) -> PreparedMap:
+def _prepared(features: CloudFeatures, places: PlaceIndex | None, meta: dict[str, Any],
+              settings: dict[str, Any], path: Path, digest: str, status: str, entry: str,
+              start: float) -> PreparedMap:
     return PreparedMap(features, settings, str(path), digest, status, entry,
                        int(meta['raw_points']), int(meta['nonfinite_points']),
                        time.perf_counter() - start, str(meta['oriented_by']),
-                       origin=np.asarray(meta['origin'], dtype=np.float64))
+                       origin=np.asarray(meta['origin'], dtype=np.float64), places=places)
 
 
-def _arrays(features: CloudFeatures) -> dict[str, np.ndarray]:
-    """Return what the cache stores of ``features``: the arrays, and the index's."""
+def _arrays(features: CloudFeatures, places: PlaceIndex | None) -> dict[str, np.ndarray]:
+    """Return what the cache stores of ``features``: the arrays, the index's, the places'."""
     arrays = {'points': features.points, 'normals': features.normals,
               'descriptors': features.descriptors,
               'resolution': np.array([features.resolution])}
     index = features.descriptor_index()
     if index is not None:
         arrays.update({f'index.{k}': v for k, v in index.to_arrays().items()})
+    if places is not None:
+        arrays.update(places.to_arrays())
     return arrays
 
 

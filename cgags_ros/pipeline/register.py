@@ -27,7 +27,9 @@ from .candidates import rank_candidates, search_candidates, settle_candidates
 from .confidence import features, NO_SHARED_SURFACE, probability
 from .covariance import loosest_sigma, result_covariance, with_confidence
 from .gates import measure, measure_shared_surface
+from .locate import locate
 from .map import matches_config, PreparedMap
+from .places import Hint
 from .regenerate import regenerated_estimate
 from .result import PipelineResult
 from .twins import add_twin, find_twin
@@ -36,7 +38,8 @@ from ..config.frontend import MAP_TARGET_SENSOR
 from ..config.pipeline import PipelineConfig
 from ..coordinates import (coarse_coordinates, CoarseCoordinatesWarning, local_origin, moved,
                            sensor_at_origin)
-from ..errors import DegenerateCorrespondencesError, EmptyCloudError, InvalidConfigError
+from ..errors import (DegenerateCorrespondencesError, EmptyCloudError, InvalidConfigError,
+                      InvalidInputError)
 from ..frontend.features import CloudFeatures, finite_points
 from ..frontend.keypoints import match_keypoints
 from ..frontend.matching import Correspondences
@@ -55,13 +58,16 @@ def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
                     voxel_size: float | None = None,
                     config: PipelineConfig | None = None,
                     source_sensor: np.ndarray | None = None,
-                    target_sensor: np.ndarray | None = None) -> PipelineResult:
+                    target_sensor: np.ndarray | None = None,
+                    hint: Hint | None = None) -> PipelineResult:
     """
     Register ``source`` onto ``target`` with no initial guess.
 
     :param source, target: (N, 3) points in metres, each in its own frame; non-finite rows
         are dropped. ``target`` may also be a map's :class:`~.map.PreparedMap`
-        (:func:`~.map.load_map`), whose features are then used as they are.
+        (:func:`~.map.load_map`), whose features are then used as they are; the scan is
+        then registered against its best places (:mod:`.locate`), and the result is in the
+        map frame as against the whole map.
     :param voxel_size: metres; overrides ``config.voxel_size`` (every radius derives from
         it).
     :param config: :class:`PipelineConfig`; defaults when None.
@@ -72,6 +78,10 @@ def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
         within 1 km of it, else unknown (:mod:`cgags_ros.coordinates`). A map target takes
         none. Clouds anywhere up to 10^7 m from their origins register as near it; the
         result is in the caller's frames.
+    :param hint: with a map target, where the source's sensor is believed to be
+        (:class:`~.places.Hint`, map frame): only the places it covers are searched, and a
+        hint that covers none refuses the scan as ``no_shared_surface``. A map without
+        places (:meth:`~.map.PreparedMap.whole`) is searched whole, hint or not.
     :returns: a :class:`PipelineResult`. Its ``refusal`` (a code and a message; ``valid``
         False) says why not to trust it when the clouds are too small after downsampling,
         yield too few or degenerate correspondences, when the estimate fails a validity
@@ -79,7 +89,8 @@ def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
         free space; decided by :mod:`cgags_ros.validity`) or is ambiguous (see
         :mod:`.candidates`). ``candidates`` holds up to ``num_candidates`` distinct poses,
         best first. Never raises for such data-dependent failures.
-    :raises InvalidInputError: when an array is not (N, 3) numeric.
+    :raises InvalidInputError: when an array is not (N, 3) numeric, or a hint is given
+        without a map target.
     :raises EmptyCloudError: when a cloud has no finite point.
     :raises InvalidConfigError: when a configuration value is out of range, a prepared
         map was computed with other feature settings than ``config``'s, or is given a sensor.
@@ -88,9 +99,15 @@ def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
     source_sensor = cfg.frontend.source_sensor if source_sensor is None else source_sensor
     target_sensor = cfg.frontend.target_sensor if target_sensor is None else target_sensor
     src = finite_points(source, 'source')
+    if hint is not None and not isinstance(target, PreparedMap):
+        raise InvalidInputError('a hint places the source in a map: the target must be a '
+                                'prepared map (load_map)')
+    if isinstance(target, PreparedMap) and target_sensor is not None:
+        raise InvalidConfigError(MAP_TARGET_SENSOR)
+    if isinstance(target, PreparedMap) and target.places is not None:
+        return locate(src, target, cfg, hint, source_sensor, lambda part: register_clouds(
+            src, part, config=cfg, source_sensor=source_sensor))
     if isinstance(target, PreparedMap):
-        if target_sensor is not None:
-            raise InvalidConfigError(MAP_TARGET_SENSOR)
         dst, target_origin = target, target.origin
     else:
         dst = finite_points(target, 'target')

@@ -45,6 +45,7 @@ from ..pipeline.cache import cached_features
 from ..pipeline.candidates import distinct
 from ..pipeline.covariance import loosest_sigma, overlap_covariance
 from ..pipeline.map import PreparedMap
+from ..pipeline.places import Hint
 from ..pipeline.register import register_clouds
 from ..pipeline.result import PipelineResult
 from ..pipeline.settle import CHECK, Pair, settle
@@ -82,7 +83,8 @@ class Relocalizer:
         """Forget every scan and hypothesis."""
         self.scans, self.hypotheses, self.submaps = [], [], {}
 
-    def add(self, scan_xyz: np.ndarray, odom_from_sensor: np.ndarray | None = None) -> Answer:
+    def add(self, scan_xyz: np.ndarray, odom_from_sensor: np.ndarray | None = None,
+            hint: Hint | None = None) -> Answer:
         """
         Take the next scan and return the answer.
 
@@ -90,12 +92,16 @@ class Relocalizer:
         :param odom_from_sensor: 4x4 pose of the sensor in the odometry frame when the scan
             was taken (p_odom = T p_sensor); None: no odometry, the scan starts a new
             sequence and is judged alone (``min_scans`` does not apply).
+        :param hint: where the sensor is believed to be when the scan was taken
+            (:class:`~.places.Hint`, map frame; e.g. ``Hint.from_pose`` of ``initialpose``):
+            the scan (and the scans so far, fused) is registered only in the map's places
+            it covers. The hypotheses' checks are not restricted.
         """
         if odom_from_sensor is None:
             self.reset()
         odom = np.eye(4) if odom_from_sensor is None else _checked_pose(odom_from_sensor)
         xyz = finite_points(scan_xyz, 'scan')
-        result = register_clouds(xyz, self.prepared, config=self.config)
+        result = register_clouds(xyz, self.prepared, config=self.config, hint=hint)
         # The features register_clouds just computed (a cache hit, not recomputed).
         features = cached_features(xyz, self.config.voxel_size, self.config.frontend, 'source')
         travelled = (self.scans[-1].travelled_m + translation_error(odom, self.scans[-1].odom)
@@ -120,7 +126,8 @@ class Relocalizer:
             # otherwise fuse a different cloud and register it differently.
             fused = np.round(np.vstack([apply_transform(to_latest @ s.odom, s.xyz)
                                         for s in self.scans]), 6)
-            self.submaps[index] = register_clouds(fused, self.prepared, config=self.config)
+            self.submaps[index] = register_clouds(fused, self.prepared, config=self.config,
+                                                  hint=hint)
             self._propose_all(self.submaps[index], index, 'submap')
             answer = self._judge()
         return answer

@@ -2,10 +2,10 @@
 ``cgags-map``: prepare a map's feature cache ahead of time, and inspect what a cache holds.
 
 ``prepare`` computes what :func:`~cgags_ros.pipeline.map.load_map` needs (grid, normals, FPFH,
-descriptor index) once and stores it where the node and ``cgags-relocalize`` read it: a node
-started on that map then loads it memory-mapped, its processes sharing one copy.
-``inspect`` lists the cache's entries of a map: voxel, points, extent, local origin, and
-whether each is stale (the map file changed since). Errors are one line on stderr, exit 2.
+descriptor index, places) once and stores it where the node and ``cgags-relocalize`` read it:
+a node started on that map then loads it memory-mapped, its processes sharing one copy.
+``inspect`` lists the cache's entries of a map: voxel, points, places, extent, local origin,
+and whether each is stale (the map file changed since). Errors are one line on stderr, exit 2.
 """
 
 from __future__ import annotations
@@ -67,8 +67,9 @@ def _prepare(args: argparse.Namespace) -> int:
 
     info = load_map(args.map, config, args.cache_dir).info()
     print(json.dumps(info, indent=2) if args.json else
-          f"{info['path']}: {info['points']} points at {info['voxel_size']:g} m "
-          f"({info['cache']}: {info['load_s']:.2f} s), stored in {info['cache_path']}")
+          f"{info['path']}: {info['points']} points at {info['voxel_size']:g} m, "
+          f"{info['places']} places ({info['cache']}: {info['load_s']:.2f} s), stored in "
+          f"{info['cache_path']}")
     return 0
 
 
@@ -89,14 +90,16 @@ def _inspect(args: argparse.Namespace) -> int:
         size = ' x '.join(f'{h - lo:.1f}' for lo, h in zip(low, high))
         print(f"{e['entry']}: {'STALE (the map file changed)' if e['stale'] else 'fresh'}, "
               f"voxel {e['voxel_size']:g} m, {e['points']} points of {e['raw_points']}, "
-              f"extent {size} m, origin {' '.join(f'{x:.3f}' for x in e['origin'])}")
+              f"{e['places']} places, extent {size} m, "
+              f"origin {' '.join(f'{x:.3f}' for x in e['origin'])}")
     return 0
 
 
 def _entry(path: Path, meta: dict[str, Any], digest: str) -> dict[str, Any]:
     return {'entry': str(path), 'stale': meta.get('digest') != digest,
             'voxel_size': meta['settings']['voxel_size'], 'points': meta['points'],
-            'raw_points': meta['raw_points'], 'extent': meta['extent'],
+            'raw_points': meta['raw_points'], 'places': meta.get('places', 0),
+            'extent': meta['extent'],
             'origin': meta['origin'], 'settings': meta['settings']}
 
 

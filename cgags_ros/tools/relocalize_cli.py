@@ -54,6 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument('--min-scans', type=int, default=2, metavar='N',
                         help='scans a confirmation needs, at most those given (default 2: a '
                         'second scan must agree; one scan given is judged alone)')
+    parser.add_argument('--hint', type=float, nargs=4, metavar=('X', 'Y', 'Z', 'RADIUS'),
+                        help='the sensor is within RADIUS metres of X Y Z (map frame) for '
+                        "every scan: only the map's places that covers are searched")
     parser.add_argument('--map-cache-dir', type=Path, metavar='DIR',
                         help="cache of the map's features (default: none)")
     parser.add_argument('--json', action='store_true',
@@ -100,13 +103,15 @@ def _relocalize(args: argparse.Namespace) -> int:
                 else [None] * len(args.scans))
     scans = [read_cloud(path) for path in args.scans]
     from ..pipeline.map import load_map  # after the cheap checks: imports Open3D
+    from ..pipeline.places import Hint
     from ..relocalization.relocalizer import Relocalizer, SequenceConfig
 
+    hint = None if args.hint is None else Hint(args.hint[:3], args.hint[3])
     prepared = load_map(args.map, config, args.map_cache_dir)
     sequence = SequenceConfig(max_scans=len(scans), min_scans=min(args.min_scans, len(scans)))
     reloc = Relocalizer(prepared, config, sequence)
     for scan, odom in zip(scans, odometry):
-        answer = reloc.add(scan, odom)
+        answer = reloc.add(scan, odom, hint)
         if answer.done:
             break
     limit = config.gates.max_free_space_violation
@@ -116,7 +121,8 @@ def _relocalize(args: argparse.Namespace) -> int:
            'hypotheses': [h.summary(sequence, limit) for h in answer.hypotheses],
            'scans': [{'file': str(path), 'valid': r.valid, 'reason': r.reason,
                       'refusal': refusal_summary(r.refusal),
-                      'inliers': r.num_inliers, 'fitness': r.fitness}
+                      'inliers': r.num_inliers, 'fitness': r.fitness,
+                      'place': (r.map_info or {}).get('place')}
                      for path, r in zip(args.scans, answer.results)],
            'map': prepared.info()}
     print(json.dumps(out, indent=2) if args.json else format_answer(out))

@@ -1,0 +1,126 @@
+"""
+A scan in a prepared map with places: the places ranked, the best few tested, one registered.
+
+:func:`~.register.register_clouds` runs :func:`locate` for a map with places
+(:mod:`.places`). Matching a scan against the whole map costs as much as the map is large,
+and the other places' matches drown its own; here:
+
+1. **rank**: the scan's keypoints vote for places (:meth:`~.places.PlaceIndex.rank`), at
+   most ``TESTED`` of them, the hint's only when one is given;
+2. **test**: each is matched against the scan's keypoints and searched by the core for at
+   most ``TEST_ITERATIONS`` hypotheses: its own place gives a consensus within a few
+   hundred, a wrong one none that stands out (docs/maps.md);
+3. **register**: the place with the largest consensus goes through the whole pipeline as
+   a map of its own (its submap, in the map's local frame). The result is that
+   registration's, in the map frame as against the whole map; its ``map_info`` is the whole
+   map's with the place's beside it, its ``stats['places']`` what was ranked and tested.
+
+A map within one submap of the scan, or whose best place holds half its points, is
+registered whole, as without places: testing would cost more than it saves. So is a scan too
+small to be featurised (it is refused as the whole map refuses it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Callable
+
+import numpy as np
+
+from .cache import cached_features
+from .map import PreparedMap
+from .places import Hint, Place, submap_features, with_tree
+from .result import PipelineResult
+from ..config.pipeline import PipelineConfig
+from ..coordinates import local_origin, moved
+from ..errors import DegenerateCorrespondencesError, EmptyCloudError
+from ..frontend.features import CloudFeatures
+from ..frontend.matching import match_features
+from ..parallel import DEFAULT_WORKERS
+from ..refusal import Refusal, RefusalCode
+from ..registration import register_correspondences, single_blas_thread
+from ..timing import timed
+
+TESTED = 3  # places tested a query: its own is among the first three ranked, mostly
+TEST_ITERATIONS = 10_000  # the core's hypotheses a test draws at most
+
+Register = Callable[[PreparedMap], PipelineResult]
+
+
+def locate(src: np.ndarray, prepared: PreparedMap, cfg: PipelineConfig, hint: Hint | None,
+           source_sensor: np.ndarray | None, register: Register) -> PipelineResult:
+    """
+    Register the finite scan ``src`` (sensor frame) in ``prepared`` through its places.
+
+    ``register(part)`` registers the scan against a map without places (the whole map or a
+    place's submap) as :func:`~.register.register_clouds` does; ``source_sensor`` as there.
+    """
+    start = time.perf_counter()
+    timings: dict[str, float] = {}
+    local_hint = None if hint is None else (hint.position - prepared.origin, hint.radius)
+    try:
+        with timed(timings, 'places_rank'), single_blas_thread():
+            origin = local_origin(src, source_sensor)
+            scan = cached_features(moved(src, origin), cfg.voxel_size, cfg.frontend, 'source',
+                                   workers=DEFAULT_WORKERS)
+            ranked = prepared.places.rank(scan, cfg.voxel_size, TESTED,
+                                          prepared.features.tree, local_hint, DEFAULT_WORKERS)
+    except EmptyCloudError:
+        return register(prepared.whole())  # refused as the whole map refuses it
+    if ranked.whole:
+        return register(prepared.whole())
+    if not ranked.places:
+        return _uncovered(prepared, cfg, hint, start)
+    with timed(timings, 'places_test'), single_blas_thread():
+        parts = [submap_features(prepared.features, p.rows, DEFAULT_WORKERS)
+                 for p in ranked.places]
+        scores = [_tested(scan, ranked.keypoints, part, cfg) for part in parts]
+    best = int(np.argmax(scores))  # ties: the better voted
+    result = register(prepared.part(with_tree(parts[best])))
+    result.stats['places'] = {'ranked': [_summary(prepared, p, s)
+                                         for p, s in zip(ranked.places, scores)],
+                              'registered': best}
+    return _noted(result, prepared, ranked.places[best], scores[best], timings, start)
+
+
+def _tested(scan: CloudFeatures, keypoints: np.ndarray, part: CloudFeatures,
+            cfg: PipelineConfig) -> int:
+    """Return the inliers of a short search of the keypoints' matches in ``part`` (0: none)."""
+    corr = match_features(scan.descriptors[keypoints], part.descriptors, cfg.frontend,
+                          DEFAULT_WORKERS, part.descriptor_index(DEFAULT_WORKERS))
+    core = dataclasses.replace(cfg.core,
+                               max_iterations=min(cfg.core.max_iterations, TEST_ITERATIONS))
+    try:
+        found = register_correspondences(
+            scan.points[keypoints[corr.source_index]], part.points[corr.target_index],
+            inlier_threshold=cfg.core.inlier_threshold or None,
+            resolution=0.5 * (scan.resolution + part.resolution), config=core, seed=cfg.seed)
+    except DegenerateCorrespondencesError:
+        return 0
+    return int(found.num_inliers)
+
+
+def _summary(prepared: PreparedMap, place: Place, score: int) -> dict:
+    return {'centre': [float(x) for x in place.centre + prepared.origin],
+            'points': int(len(place.rows)), 'votes': place.votes, 'tested_inliers': score}
+
+
+def _noted(result: PipelineResult, prepared: PreparedMap, place: Place, score: int,
+           timings: dict[str, float], start: float) -> PipelineResult:
+    """Return ``result`` with the whole map's info and its place's, and the total time."""
+    result.map_info = {**prepared.info(), 'place': _summary(prepared, place, score)}
+    result.timings.update(timings)
+    result.timings['total'] = time.perf_counter() - start
+    return result
+
+
+def _uncovered(prepared: PreparedMap, cfg: PipelineConfig, hint: Hint,
+               start: float) -> PipelineResult:
+    """Return the refusal of a scan whose hint covers no place of the map."""
+    where = ' '.join(f'{x:.3f}' for x in hint.position)
+    refusal = Refusal(RefusalCode.NO_SHARED_SURFACE,
+                      f'the hint ({hint.radius:.2f} m around {where}) covers no place of '
+                      f'the map {prepared.path}')
+    result = PipelineResult(voxel_size=cfg.voxel_size, map_info=prepared.info())
+    return result.finish(start, refusal)

@@ -1,0 +1,259 @@
+"""
+Places of a prepared map: where in it a scan may be, ranked before it is registered.
+
+A scan registered against a whole map matches its descriptors against every map point, and
+the other rooms' matches drown its own as the map grows (docs/maps.md). The map's
+**place grid**, built once when the map is prepared and stored with its features, lets a
+query look only where it may be:
+
+- **places**: the map's points grouped on a grid of ``TILE_VOXELS`` voxels; a place is
+  the centre of an occupied cell, and its submap is the map within 2.5 of the query's
+  reaches of it. The reach is the query's own, not the map's: a room's RGB-D fragment reaches ~26
+  voxels from its centroid, a LiDAR scan ~150 (docs/maps.md), so no one submap size
+  would fit both.
+- **votes**: one map point a ``VOTE_CELL_VOXELS`` cell (its informative descriptor) with
+  its own descriptor index. Each of at most ``KEYPOINTS`` scan keypoints votes for the
+  place of its nearest voting descriptor; a place's score is the votes within 1.5 of the
+  scan's reaches of it, so a scan's own place collects the votes of all its surfaces.
+- a **hint** (:class:`Hint`: a position with a radius, e.g. ``initialpose`` with its
+  covariance) leaves only the places it covers.
+
+Numpy and the front end only: :mod:`.locate` tests and registers the ranked places.
+All positions are in the map's local frame (the features', :class:`~.map.PreparedMap`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Mapping
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..errors import InvalidInputError
+from ..frontend.descriptor_index import DescriptorIndex
+from ..frontend.features import CloudFeatures
+from ..frontend.keypoints import select_keypoints
+from ..frontend.matching import informative_index, informative_rows
+
+TILE_VOXELS = 10.0  # the place grid's spacing: fine beside the smallest reach, ~26 voxels
+VOTE_CELL_VOXELS = 3.0  # one voting point a cell: a ninth of a surface's points
+KEYPOINTS = 1000  # scan keypoints that vote for places and test them
+REACH_QUANTILE = 90.0  # a scan's reach: this percentile of its points' distance to their centroid
+HINT_SIGMAS = 3.0  # a pose hint covers this many standard deviations of its position
+
+
+@dataclasses.dataclass(frozen=True)
+class Hint:
+    """
+    Where the sensor is believed to be: within ``radius`` of ``position``.
+
+    :ivar position: (3,) metres, in the map frame (the map file's coordinates).
+    :ivar radius: metres, at least 0.
+    """
+
+    position: np.ndarray
+    radius: float
+
+    def __post_init__(self) -> None:
+        """Check the position (finite (3,)) and the radius (finite, at least 0)."""
+        position = np.asarray(self.position, dtype=np.float64).reshape(-1)
+        if position.shape != (3,) or not np.isfinite(position).all():
+            raise InvalidInputError(f'a hint position is a finite (3,) vector, got {position}')
+        if not np.isfinite(self.radius) or self.radius < 0:
+            raise InvalidInputError(f'a hint radius is finite and at least 0, got {self.radius}')
+        object.__setattr__(self, 'position', position)
+        object.__setattr__(self, 'radius', float(self.radius))
+
+    @classmethod
+    def from_pose(cls, pose: np.ndarray, covariance: np.ndarray) -> Hint:
+        """
+        Return the hint of a pose with its covariance (``initialpose``, a GNSS fix).
+
+        :param pose: 4x4 pose in the map frame (its translation is the position, metres).
+        :param covariance: 6x6 (or 36 values, row-major) in PoseWithCovariance order; its
+            position block's largest standard deviation times ``HINT_SIGMAS`` is the radius.
+        """
+        pose = np.asarray(pose, dtype=np.float64)
+        cov = np.asarray(covariance, dtype=np.float64).reshape(6, 6)[:3, :3]
+        if pose.shape != (4, 4) or not np.isfinite(cov).all():
+            raise InvalidInputError('a pose hint is a 4x4 pose and a finite 6x6 covariance')
+        sigma = float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (cov + cov.T)).max(), 0.0)))
+        return cls(pose[:3, 3], HINT_SIGMAS * sigma)
+
+
+@dataclasses.dataclass
+class Place:
+    """
+    One place a query ranked: its centre, score and submap (map local frame, metres).
+
+    :ivar centre: (3,) the submap's centre.
+    :ivar votes: the scan's votes within its reach of the centre.
+    :ivar rows: sorted rows of the map's features in the submap.
+    """
+
+    centre: np.ndarray
+    votes: int
+    rows: np.ndarray
+
+
+@dataclasses.dataclass
+class Ranked:
+    """
+    What a query's ranking found: the places to test, best first, or the whole map.
+
+    :ivar places: the ranked places (empty with ``whole`` or when a hint covers none).
+    :ivar whole: the map is within one submap of the query, or its best place holds half
+        of it: register against all of it.
+    :ivar reach: the scan's reach (metres).
+    :ivar keypoints: the scan's rows that voted (informative keypoints).
+    """
+
+    places: list[Place]
+    whole: bool
+    reach: float
+    keypoints: np.ndarray
+
+
+class PlaceIndex:
+    """The place grid and the voting points of a map's features (see the module doc)."""
+
+    PREFIX = 'places.'
+
+    def __init__(self, centres: np.ndarray, vote_place: np.ndarray, index: DescriptorIndex,
+                 spacing: float) -> None:
+        """Hold the arrays (as they are: memory-mapped ones stay so)."""
+        self.centres, self.vote_place = centres, vote_place
+        self.index, self.spacing = index, float(spacing)
+        low, high = centres.min(axis=0), centres.max(axis=0)
+        self._middle = 0.5 * (low + high)
+        # Every map point lies within half a cell's diagonal of its place's cell.
+        self._radius = float(np.linalg.norm(centres - self._middle, axis=1).max()
+                             + np.sqrt(3.0) * self.spacing)
+
+    def __len__(self) -> int:
+        """Return the number of places."""
+        return len(self.centres)
+
+    @classmethod
+    def build(cls, features: CloudFeatures, voxel_size: float,
+              workers: int = 1) -> PlaceIndex | None:
+        """Return the place index of a map's features; None when no descriptor can match."""
+        points, map_index = features.points, features.descriptor_index(workers)
+        if map_index is None:
+            return None
+        spacing = TILE_VOXELS * voxel_size
+        low = points.min(axis=0)
+        _, place_of, counts = np.unique(np.floor((points - low) / spacing).astype(np.int64),
+                                        axis=0, return_inverse=True, return_counts=True)
+        place_of = place_of.reshape(-1)
+        centres = np.stack([np.bincount(place_of, points[:, i]) for i in range(3)], axis=1)
+        centres /= counts[:, None]
+        cell = VOTE_CELL_VOXELS * voxel_size
+        _, first = np.unique(np.floor((points - low) / cell).astype(np.int64), axis=0,
+                             return_index=True)
+        rows = np.sort(first)
+        rows = rows[informative_rows(features.descriptors[rows])]
+        index = DescriptorIndex(features.descriptors[rows], workers, like=map_index)
+        return cls(centres, place_of[rows], index, spacing)
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Return the index as named arrays for the map cache (:meth:`from_arrays`)."""
+        out = {'centres': self.centres, 'vote_place': self.vote_place,
+               'spacing': np.array([self.spacing])}
+        out.update({f'index.{k}': v for k, v in self.index.to_arrays().items()})
+        return {self.PREFIX + k: v for k, v in out.items()}
+
+    @classmethod
+    def from_arrays(cls, arrays: Mapping[str, np.ndarray]) -> PlaceIndex | None:
+        """Return the index of a cache entry's arrays (None when it holds none), as they are."""
+        mine = {k[len(cls.PREFIX):]: v for k, v in arrays.items() if k.startswith(cls.PREFIX)}
+        if not mine:
+            return None
+        index = DescriptorIndex.from_arrays(
+            {k[len('index.'):]: v for k, v in mine.items() if k.startswith('index.')})
+        return cls(mine['centres'], mine['vote_place'], index, float(mine['spacing'][0]))
+
+    def rank(self, scan: CloudFeatures, voxel_size: float, count: int, map_tree: cKDTree,
+             hint: tuple[np.ndarray, float] | None = None, workers: int = 1) -> Ranked:
+        """
+        Rank the places ``scan`` may be in; return at most ``count``, best first.
+
+        :param scan: the scan's features (its own frame).
+        :param map_tree: the map's k-d tree (its submaps are read from it).
+        :param hint: (position in the map's local frame, radius), metres: only the places
+            within the radius and the scan's reach of the position are ranked.
+        """
+        spread = np.linalg.norm(scan.points - scan.points.mean(axis=0), axis=1)
+        reach = float(np.percentile(spread, REACH_QUANTILE))
+        # Votes are counted within ``near`` of a place: the scan's reach and the error of a
+        # centroid placed by votes; its submap reaches as far again beyond the centre.
+        near = 1.5 * reach + self.spacing
+        covered = self._covered(hint, reach)
+        if not covered.any() or self._radius <= reach + near:
+            return Ranked([], bool(covered.any()), reach, np.zeros(0, dtype=np.int64))
+        keypoints = select_keypoints(scan.points, KEYPOINTS, voxel_size)
+        keypoints = keypoints[informative_rows(scan.descriptors[keypoints])]
+        votes = np.zeros(len(self.centres), dtype=np.int64)
+        if len(keypoints):
+            nearest = self.index.query(scan.descriptors[keypoints], 1, workers)[0][:, 0]
+            np.add.at(votes, self.vote_place[nearest], 1)
+        voted = np.flatnonzero(votes)
+        candidates = voted[covered[voted]]
+        if len(candidates) == 0:  # no vote where the hint is: the hint alone places the scan
+            places = [self._place(hint[0], 0, reach + near, map_tree)]
+        else:
+            places = self._best(votes, voted, candidates, near, count, reach + near, map_tree)
+        # A place that holds half the map is the map: testing it costs more than it saves.
+        whole = 2 * len(places[0].rows) >= map_tree.n
+        return Ranked([] if whole else places, whole, reach, keypoints)
+
+    def _best(self, votes: np.ndarray, voted: np.ndarray, candidates: np.ndarray,
+              near: float, count: int, radius: float, map_tree: cKDTree) -> list[Place]:
+        """Return the ``count`` best-voted places, each more than ``near`` from the others."""
+        around = cKDTree(self.centres[voted]).query_ball_point(self.centres[candidates], near)
+        score = np.array([votes[voted[a]].sum() for a in around])
+        places: list[Place] = []
+        for i in np.argsort(-score, kind='stable'):
+            if any(np.linalg.norm(self.centres[candidates[i]] - p.centre) <= near
+                   for p in places):
+                continue
+            members = voted[around[i]]
+            centre = np.average(self.centres[members], axis=0, weights=votes[members])
+            places.append(self._place(centre, int(score[i]), radius, map_tree))
+            if len(places) == count:
+                break
+        return places
+
+    def _covered(self, hint: tuple[np.ndarray, float] | None, reach: float) -> np.ndarray:
+        if hint is None:
+            return np.ones(len(self.centres), dtype=bool)
+        return np.linalg.norm(self.centres - hint[0], axis=1) <= hint[1] + reach
+
+    @staticmethod
+    def _place(centre: np.ndarray, votes: int, radius: float, map_tree: cKDTree) -> Place:
+        rows = np.asarray(map_tree.query_ball_point(centre, radius), dtype=np.int64)
+        return Place(np.asarray(centre, dtype=np.float64), votes, np.sort(rows))
+
+
+def submap_features(features: CloudFeatures, rows: np.ndarray,
+                    workers: int = 1) -> CloudFeatures:
+    """
+    Return the features of the map's ``rows`` (copied), their descriptor index built.
+
+    The map's resolution is kept (its gates and thresholds are the map's), and its
+    descriptor index lends the submap's its cells: only the assignment is computed. The
+    k-d tree is left to :func:`with_tree`: only a submap that is registered needs one.
+    """
+    descriptors = np.ascontiguousarray(features.descriptors[rows])
+    sub = CloudFeatures(np.ascontiguousarray(features.points[rows]),
+                        np.ascontiguousarray(features.normals[rows]), descriptors,
+                        features.resolution, None, features.sensor_at_origin)
+    sub._index.append(informative_index(descriptors, workers,
+                                        like=features.descriptor_index(workers)))
+    return sub
+
+
+def with_tree(sub: CloudFeatures) -> CloudFeatures:
+    """Return :func:`submap_features`' ``sub`` with its k-d tree (its index shared)."""
+    return sub if sub.tree is not None else dataclasses.replace(sub, tree=cKDTree(sub.points))

@@ -1,0 +1,164 @@
+"""
+Places of a prepared map (pipeline/places.py, pipeline/locate.py) on a floor of real rooms.
+
+The floor: three 3DMatch scenes (redkitchen, home_at, mit_lab), each fused from its even
+fragments with their normals facing each fragment's sensor, turned and placed as rooms 30 m
+apart; queries are odd fragments in their own frames, held out of the map; a hotel_uc
+fragment is a scan from outside it.
+"""
+
+from __future__ import annotations
+
+import json
+
+from bench.datasets import threedmatch as tdm
+from cgags_ros.config import pipeline_config_from
+from cgags_ros.errors import InvalidInputError
+from cgags_ros.frontend.features import estimate_normals
+from cgags_ros.geometry import apply_transform, make_transform, rotation_error_deg
+from cgags_ros.geometry import translation_error
+from cgags_ros.io.clouds import write_cloud
+from cgags_ros.pipeline import register_clouds
+from cgags_ros.pipeline.locate import TESTED
+from cgags_ros.pipeline.map import load_map
+from cgags_ros.pipeline.places import Hint, HINT_SIGMAS
+from cgags_ros.refusal import RefusalCode as Code
+from cgags_ros.relocalization.relocalizer import Relocalizer
+from cgags_ros.tools import map_cli, relocalize_cli
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+# scene -> (x of the room, its yaw in degrees)
+ROOMS = {'7-scenes-redkitchen': (0.0, 30.0),
+         'sun3d-home_at-home_at_scan1_2013_jan_1': (30.0, 250.0),
+         'sun3d-mit_lab_hj-lab_hj_tea_nov_2_2012_scan1_erika': (60.0, 120.0)}
+QUERY = ('sun3d-home_at-home_at_scan1_2013_jan_1', 53)  # (scene, odd fragment)
+OUTSIDE = ('sun3d-hotel_uc-scan3', 27)
+VOXEL = 0.05
+RIGHT = (15.0, 0.3)  # RE (deg), TE (m): 3DMatch's registration recall
+
+
+@pytest.fixture(scope='module')
+def floor(data_dir, tmp_path_factory):
+    """Return the floor's prepared map (cached), its config, path, rooms and a query maker."""
+    root = data_dir / '3dmatch_benchmark'
+    cfg = pipeline_config_from({'voxel_size': VOXEL})
+    points, normals, rooms = [], [], {}
+    for scene, (x, yaw) in ROOMS.items():
+        poses, fragments = tdm.fragment_poses(root, scene), tdm.Fragments(root, scene)
+        place = make_transform(Rotation.from_euler('z', yaw, degrees=True).as_matrix(),
+                               [x, 0.0, 0.0])
+        room = [apply_transform(place @ P, fragments[k]) for k, P in poses.items() if k % 2 == 0]
+        normals += [estimate_normals(fragments[k], VOXEL, cfg.frontend) @ (place @ P)[:3, :3].T
+                    for k, P in poses.items() if k % 2 == 0]
+        points += room
+        rooms[scene] = (place, np.vstack(room).mean(axis=0))
+    folder = tmp_path_factory.mktemp('floor')
+    path = folder / 'floor.ply'
+    write_cloud(path, np.vstack(points), np.vstack(normals))
+    prepared = load_map(path, cfg, folder / 'cache')
+
+    def query(scene, k):
+        """Return fragment ``k`` of ``scene`` (its frame) and its pose on the floor (or None)."""
+        fragment = tdm.Fragments(root, scene)[k]
+        if scene not in rooms:
+            return fragment, None
+        return fragment, rooms[scene][0] @ tdm.fragment_poses(root, scene)[k]
+
+    return prepared, cfg, path, rooms, query
+
+
+def test_places_are_stored_with_the_map_and_memory_mapped(floor, capsys):
+    prepared, cfg, path, _, _ = floor
+    again = load_map(path, cfg, prepared.cache_path.rsplit('/', 1)[0])
+    assert again.cache == 'hit'
+    places = again.places
+    assert len(places) > 2 * len(ROOMS)  # many places a room
+    for array in (places.centres, places.vote_place, places.index.arrays.points):
+        assert isinstance(array.base, np.memmap)  # a view of the cache, not a copy
+    assert np.array_equal(places.centres, prepared.places.centres)
+    assert map_cli.main(['inspect', str(path), '--cache-dir',
+                         prepared.cache_path.rsplit('/', 1)[0], '--json']) == 0
+    [entry] = json.loads(capsys.readouterr().out)['entries']
+    assert entry['places'] == len(places) == again.info()['places']
+
+
+def test_a_query_is_registered_in_its_own_place_as_against_the_whole_map(floor):
+    prepared, cfg, _, rooms, query = floor
+    scan, truth = query(*QUERY)
+    located = register_clouds(scan, prepared, config=cfg)
+    whole = register_clouds(scan, prepared.whole(), config=cfg)
+    assert located.valid and whole.valid, (located.reason, whole.reason)
+    assert rotation_error_deg(located.transform, truth) < RIGHT[0]
+    assert translation_error(located.transform, truth) < RIGHT[1]
+    # Its place is in its room, a part of the map, and the pose is the whole map's.
+    place = located.map_info['place']
+    assert np.linalg.norm(np.array(place['centre']) - rooms[QUERY[0]][1]) < 5.0
+    assert place['points'] < 0.7 * len(prepared.features.points)
+    assert located.num_target_points == place['points']
+    assert len(located.stats['places']['ranked']) <= TESTED
+    assert rotation_error_deg(located.transform, whole.transform) < 0.5
+    assert translation_error(located.transform, whole.transform) < 0.02
+
+
+def test_a_hint_ranks_only_the_places_it_covers(floor):
+    prepared, cfg, _, rooms, query = floor
+    scan, truth = query(*QUERY)
+    here = register_clouds(scan, prepared, config=cfg, hint=Hint(truth[:3, 3], 2.0))
+    assert here.valid and translation_error(here.transform, truth) < RIGHT[1]
+    other = rooms['7-scenes-redkitchen'][1]
+    there = register_clouds(scan, prepared, config=cfg, hint=Hint(other, 2.0))
+    ranked = there.stats['places']['ranked']
+    assert ranked and all(np.linalg.norm(np.array(p['centre']) - other) < 2.0 + 5.0
+                          for p in ranked)
+    assert not there.valid  # the kitchen does not hold the scan
+
+
+def test_a_hint_that_covers_no_place_refuses_before_any_registration(floor):
+    prepared, cfg, path, _, query = floor
+    scan, _ = query(*QUERY)
+    far = register_clouds(scan, prepared, config=cfg, hint=Hint([500.0, 500.0, 0.0], 10.0))
+    assert far.refusal.code is Code.NO_SHARED_SURFACE and 'covers no place' in far.reason
+    assert far.num_target_points == 0 and 'places' not in far.stats
+    reloc = Relocalizer(prepared, cfg)
+    answer = reloc.add(scan, hint=Hint([500.0, 500.0, 0.0], 10.0))
+    assert not answer.confirmed and answer.refusal.code is Code.NO_SHARED_SURFACE
+    with pytest.raises(InvalidInputError, match='prepared map'):
+        register_clouds(scan, scan, voxel_size=VOXEL, hint=Hint([0.0, 0.0, 0.0], 1.0))
+
+
+def test_a_scan_from_outside_the_map_is_refused_against_one_place(floor):
+    prepared, cfg, _, _, query = floor
+    scan, _ = query(*OUTSIDE)
+    result = register_clouds(scan, prepared, config=cfg)
+    assert not result.valid
+    # Cheap: one place's registration, not the whole map's.
+    assert 0 < result.num_target_points < 0.7 * len(prepared.features.points)
+    assert result.map_info['place']['points'] == result.num_target_points
+
+
+def test_a_pose_hint_covers_its_position_to_three_standard_deviations():
+    pose = make_transform(np.eye(3), [1.0, 2.0, 3.0])
+    cov = np.diag([0.25, 0.04, 0.01, 0.1, 0.1, 0.1])  # sigma x 0.5 m
+    hint = Hint.from_pose(pose, cov.reshape(-1))
+    assert np.allclose(hint.position, [1.0, 2.0, 3.0])
+    assert hint.radius == pytest.approx(HINT_SIGMAS * 0.5)
+    with pytest.raises(InvalidInputError):
+        Hint([0.0, np.nan, 0.0], 1.0)
+    with pytest.raises(InvalidInputError):
+        Hint([0.0, 0.0, 0.0], -1.0)
+
+
+def test_the_relocalize_command_takes_a_hint(floor, tmp_path, capsys):
+    prepared, _, path, _, query = floor
+    scan, truth = query(*QUERY)
+    np.save(tmp_path / 'scan.npy', scan)
+    argv = [str(path), str(tmp_path / 'scan.npy'), '--voxel-size', str(VOXEL), '--json',
+            '--map-cache-dir', prepared.cache_path.rsplit('/', 1)[0], '--hint']
+    assert relocalize_cli.main(argv + [*map(str, truth[:3, 3]), '2']) == 0
+    [found] = json.loads(capsys.readouterr().out)['scans']
+    assert found['place']['points'] < len(prepared.features.points)
+    assert relocalize_cli.main(argv + ['500', '500', '0', '10']) == 1
+    out = json.loads(capsys.readouterr().out)
+    assert out['refusal']['code'] == Code.NO_SHARED_SURFACE.value
