@@ -151,7 +151,8 @@ def test_killed_registration_process_idle_and_busy_is_replaced_and_the_next_pair
         os.kill(pid, signal.SIGKILL)
         values = wait_for(lambda: io.values.get('rejected.process_crashed') == '1'
                           and io.values, 30, 'the crash in /diagnostics', node.statistics)
-        assert io.level == DiagnosticStatus.ERROR and values['registration.failing'] == 'process_crashed'
+        assert io.level == DiagnosticStatus.ERROR
+        assert values['registration.failing'] == 'process_crashed'
         assert int(values['registration.crashes']) == 2
         assert int(values['registration.restarts']) == 2
         stamp, msg = sources[2]
