@@ -4,7 +4,7 @@ A tracked stream's backlog: the scans that arrive while a registration runs.
 A global registration takes several scan periods. With a queue of one pair, the scan taken
 after it is the newest, too far from the last pose (and with no velocity yet) to be tracked,
 so the stream goes global again and never settles. A tracked stream
-(:func:`~cgags_ros.tracking.counts.tracks`) therefore keeps up to ``pairing.backlog`` pairs
+(:func:`~cgags_ros.runtime.jobs.tracks`) therefore keeps up to ``pairing.backlog`` pairs
 and registers them in stamp order, each from its predecessor's pose: tracking a scan takes
 less than a scan period, so the backlog drains and the stream keeps up. When it does not
 drain fast enough (the oldest waiting scan more than ``pairing.backlog_max_lag`` behind the
@@ -24,7 +24,7 @@ from typing import Sequence
 
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
-from ..tracking.counts import tracks
+from ..runtime.jobs import tracks
 
 SKIPPED = 'source_skipped_catching_up'  # the pairing drop reason of a skipped scan
 

@@ -50,8 +50,7 @@ from ..relocalization.sequence import StepAnswer
 from ..relocalization.service_calls import Answered, stale_scan
 from ..runtime.checks import CheckLane
 from ..runtime.jobs import (CheckVerdict, Job, RegisterPair, result_of, Runner, SequenceScan,
-                            Tracked, TrackScan)
-from ..tracking.counts import StreamCounts, tracks
+                            StreamCounts, Tracked, tracks, TrackScan)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -23,11 +23,10 @@ from typing import Any
 import numpy as np
 
 from .jobs import (Answer, CheckScan, CheckVerdict, HELD, Job, MapReady, MapRef, PairDone,
-                   PrepareMap, RegisterPair, SequenceScan, Target, Tracked, TrackScan)
+                   PrepareMap, RegisterPair, SequenceScan, Target, track, Tracked, TrackScan)
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError
 from ..relocalization.sequence import StepAnswer
-from ..tracking.counts import track
 
 
 class TargetNotHeld(CgagsError):
