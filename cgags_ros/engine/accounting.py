@@ -37,8 +37,7 @@ import threading
 import time
 from typing import Any, Callable
 
-from .backlog import Backlog, SKIPPED
-from .pairing import is_source_drop, Pair, Pairer, Stamped
+from .pairing import Backlog, is_source_drop, Pair, Pairer, SKIPPED, Stamped
 from .transport import user_line
 from ..config.node import PairingConfig
 from ..pipeline.result import PipelineResult
@@ -185,7 +184,7 @@ class Accounting:
         Return the next ready pair (now in progress), or None after ``timeout`` s.
 
         ``skip``: how many of the oldest ready pairs to drop first (counted as
-        ``backlog.SKIPPED``), decided under the lock from their stamps and the backlog.
+        ``pairing.SKIPPED``), decided under the lock from their stamps and the backlog.
         """
         with self._lock:
             if not self._pairer.pending:
