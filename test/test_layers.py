@@ -184,7 +184,7 @@ def test_the_checker_sees_real_edges():
     assert 'diagnostic_msgs' in GRAPH['cgags_ros.ros.outputs'][1]
     assert not any(map(is_ros, GRAPH['cgags_ros.engine.engine'][1]))
     # a function-level import
-    assert 'cgags_ros.pipeline.map' in GRAPH['cgags_ros.runtime.session'][0]
+    assert 'cgags_ros.pipeline.map' in GRAPH['cgags_ros.runtime.process'][0]
 
 
 def test_no_module_holds_two_ideas_by_its_length():

@@ -96,7 +96,7 @@ class FakeRunner:
     """
 
     def __init__(self, register):
-        from cgags_ros.runtime.session import ChildSession
+        from cgags_ros.runtime.process import ChildSession
 
         self.register, self._session = register, ChildSession()
 

@@ -3,7 +3,7 @@ The jobs the registration process runs, one type a kind, the typed answer of eac
 
 The engine chooses the kind once (:meth:`~cgags_ros.engine.engine.RegistrationEngine`),
 a :class:`Runner` runs it (a :class:`~.supervisor.Supervisor`'s registration process, or a
-:class:`~.session.ChildSession` in this process), and the answer's type says what came
+:class:`~.process.ChildSession` in this process), and the answer's type says what came
 back; every answer to a registration carries its
 :class:`~cgags_ros.pipeline.result.PipelineResult` (:func:`result_of`).
 
@@ -229,7 +229,7 @@ class Runner(Protocol):
     What runs jobs, the engine's one seam to the pipeline.
 
     A :class:`~.supervisor.Supervisor` (a registration process of its own), a
-    :class:`~.session.ChildSession` (this process), or a test's stand-in.
+    :class:`~.process.ChildSession` (this process), or a test's stand-in.
     """
 
     def run(self, job: Job, timeout_s: float | None = None) -> Answer:
