@@ -41,7 +41,7 @@ ROS_MODULES = {'rclpy', 'tf2_ros', 'bondpy'}  # and every *_msgs, *_srvs, *_inte
 # Tools that talk to a running node over DDS: clients of ros/, not part of the node.
 ROS_CLIENTS = {'cgags_ros.tools.replay_player'}
 CORE_THIRD_PARTY = {'numba', 'numpy', 'scipy', 'threadpoolctl'}
-ROS_MAX_LINES = 1000  # all of ros/: the node, its outputs, conversions, QoS, parameters
+ROS_MAX_LINES = 1000  # all of ros/: the node, its outputs and their messages, TF, QoS, parameters
 MODULE_MAX_LINES = 400
 
 
