@@ -5,7 +5,7 @@ tf2_ros (Jazzy's, in ``package.xml``): the ``odom`` topic fills a tf2 ``Buffer``
 (with no message, TF's ``odom_frame`` -> ``base_frame`` serves; a stamp past the newest sample
 by at most :data:`TOLERANCE_S` takes the newest); lookups and broadcasts go through tf2. The
 stand-in (stacks without it, as the emulated test stack): the odom topic in an
-:class:`~cgags_ros.relocalization.odometry.OdometrySamples`, the identity as the extrinsic,
+:class:`~cgags_ros.relocalization.sequence.OdometrySamples`, the identity as the extrinsic,
 no /tf (said once), /tf_static through a latched tf2_msgs publisher. TF's message is built
 here (:func:`transform_to_transform_stamped`).
 """
@@ -23,7 +23,7 @@ from std_msgs.msg import Header
 from .qos import latched_qos
 from ..geometry import finite_transform, make_transform, matrix_to_quaternion, quaternion_to_matrix
 from ..io.pointcloud2 import stamp_to_ns
-from ..relocalization.odometry import KEEP_S, OdometrySamples, TOLERANCE_S
+from ..relocalization.sequence import KEEP_S, OdometrySamples, TOLERANCE_S
 
 ODOM, BASE = 'odom', 'base'  # the frames of the odom topic's own buffer
 
