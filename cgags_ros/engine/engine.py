@@ -5,7 +5,7 @@ ROS-free. :class:`RegistrationEngine` owns the accounting (:mod:`.accounting`: p
 upstream losses, the backlog, the counts, under one lock), what runs the jobs (a
 :class:`~cgags_ros.runtime.jobs.Runner`: the registration process, or this process), the
 lane of a tracked stream's periodic checks (:class:`~cgags_ros.runtime.checks.CheckLane`),
-the map of ``map.file`` and what a pose means for localization (:mod:`.localization`); in
+the map of ``map.file`` and what a pose means for localization (:mod:`.relocalization_run`); in
 ``mode: calibrate`` the pairs are calibration frames (:mod:`.calibration_run`). The node
 decodes messages into :class:`Cloud` for :meth:`~RegistrationEngine.receive` and
 implements :class:`EngineOutputs`, through which the engine publishes, logs and asks for
