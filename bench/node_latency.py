@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     from sensor_msgs.msg import PointCloud2
 
     from cgags_ros.io.bag import read_messages
-    from cgags_ros.ros.conversions import to_rclpy_pointcloud2
+    from cgags_ros.ros.outputs import to_rclpy_pointcloud2
     from cgags_ros.ros.node import RegisterNode
 
     bag = Path(args.bag) if args.bag else shared_data_dir() / 'bags' / 'lidar'

@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901 - one linear scrip
     from sensor_msgs.msg import PointCloud2
 
     from cgags_ros.io.bag import read_messages
-    from cgags_ros.ros.conversions import to_rclpy_pointcloud2
+    from cgags_ros.ros.outputs import to_rclpy_pointcloud2
 
     sources, target = [], None
     for rec in read_messages(shared_data_dir() / 'bags' / 'lidar'):

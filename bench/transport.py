@@ -102,7 +102,7 @@ def load_clouds(which: str) -> list:
 
     from cgags_ros.io.pcd import read_fields as read_pcd_fields
     from cgags_ros.io.shared_data import shared_data_dir
-    from cgags_ros.ros.conversions import fields_to_pointcloud2, to_rclpy_pointcloud2
+    from cgags_ros.ros.outputs import fields_to_pointcloud2, to_rclpy_pointcloud2
 
     if which == 'kitti':
         folder = shared_data_dir() / 'kitti' / 'seq00_16scans' / 'pcd'

@@ -25,6 +25,18 @@ def make_transform(R: np.ndarray, t: Any) -> np.ndarray:
     return T
 
 
+def finite_transform(T: Any) -> np.ndarray:
+    """
+    Return ``T`` as a float64 4x4 array.
+
+    :raises InvalidInputError: unless it is a finite 4x4 array.
+    """
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise InvalidInputError(f'transform must be a finite 4x4 array, got shape {T.shape}')
+    return T
+
+
 def apply_transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Map (N, 3) ``points`` by the 4x4 transform ``T``."""
     return points @ T[:3, :3].T + T[:3, 3]

@@ -1,10 +1,9 @@
-"""What a tracked stream's engine thread skips of its backlog (cgags_ros/pipeline/backlog.py)."""
+"""What a tracked stream's engine thread skips of its backlog (cgags_ros/engine/pairing.py)."""
 
 from cgags_ros.config.node import NodeConfig, PairingConfig
 from cgags_ros.config.pipeline import PipelineConfig
 from cgags_ros.config.tracking import TrackingConfig
-from cgags_ros.engine.backlog import Backlog, queue_depth, SKIPPED
-from cgags_ros.engine.pairing import is_source_drop, Pairer
+from cgags_ros.engine.pairing import Backlog, is_source_drop, Pairer, queue_depth, SKIPPED
 
 MS = 10**6
 

@@ -19,8 +19,8 @@ import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
-from cgags_ros.ros.conversions import xyz_to_pointcloud2  # noqa: E402, I100
-from cgags_ros.ros.node import RegisterNode  # noqa: E402
+from cgags_ros.ros.node import RegisterNode  # noqa: E402, I100
+from cgags_ros.ros.outputs import xyz_to_pointcloud2  # noqa: E402
 from cgags_ros.ros.qos import latched_qos  # noqa: E402
 from geometry_msgs.msg import PoseWithCovarianceStamped  # noqa: E402
 from std_msgs.msg import Header, String  # noqa: E402

@@ -1,7 +1,7 @@
 """
 PointCloud2 layouts, malformed clouds, poses and quaternions.
 
-Tests of cgags_ros.io.pointcloud2 and cgags_ros.ros.conversions.
+Tests of cgags_ros.io.pointcloud2 and the message builders of ros/outputs.py and transforms.py.
 """
 
 from __future__ import annotations
@@ -12,7 +12,8 @@ from cgags_ros import geometry
 from cgags_ros.errors import EmptyCloudError, InvalidInputError, MalformedCloudError
 from cgags_ros.io import pointcloud2 as pc2
 from cgags_ros.io.bag import read_messages
-from cgags_ros.ros import conversions as conv
+from cgags_ros.ros import outputs as conv
+from cgags_ros.ros.transforms import transform_to_transform_stamped
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -160,7 +161,7 @@ def test_pose_round_trip_rclpy_and_duck_typed():
 
     stamped = PoseStamped(header=Header(frame_id='map'), pose=pose)  # as ~/pose carries it
     np.testing.assert_allclose(pc2.pose_to_transform(stamped), T, atol=1e-12)
-    tf = conv.transform_to_transform_stamped(T, Header(frame_id='map'), 'base')
+    tf = transform_to_transform_stamped(T, Header(frame_id='map'), 'base')
     np.testing.assert_allclose(pc2.pose_to_transform(tf), T, atol=1e-12)
     ns = types.SimpleNamespace
     duck = ns(header=None, pose=ns(

@@ -233,7 +233,7 @@ def test_links_resolve(page):
 def test_the_path_check_finds_stale_paths_and_leaves_others_alone():
     text = ('`cgags_ros/pipeline/backlog.py`, `pipeline/upstream.py`, `bench/nope.py`, '
             '`test/test_nope.py`, `cgags_ros.pipeline.nope.thing`; fine: '
-            '`cgags_ros/engine/backlog.py`, `engine/upstream.py`, `compiled/bits.py`, '
+            '`cgags_ros/engine/accounting.py`, `engine/pairing.py`, `compiled/bits.py`, '
             '`cgags_ros.pipeline.register.register_clouds`, `bench/studies/*.py`, '
             '`out/bench/soak.json`, `$(ros2 pkg prefix cgags_ros)/share/cgags_ros/config/x.xml`, '
             '`src/cgags_ros/requirements.txt`, `launch/register_node.launch.py`')

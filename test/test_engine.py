@@ -26,8 +26,8 @@ from cgags_ros.geometry import make_transform, quaternion_to_matrix
 from cgags_ros.io.clouds import write_cloud
 from cgags_ros.pipeline.result import PipelineResult
 from cgags_ros.refusal import Refusal, RefusalCode
+from cgags_ros.runtime.process import ChildSession
 from cgags_ros.runtime.procfs import running
-from cgags_ros.runtime.session import ChildSession
 from cgags_ros.runtime.supervisor import Supervisor
 import numpy as np
 import pytest

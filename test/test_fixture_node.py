@@ -24,7 +24,7 @@ from scipy.spatial.transform import Rotation
 
 rclpy = pytest.importorskip('rclpy')
 
-from cgags_ros.ros.conversions import xyz_to_pointcloud2  # noqa: E402, I100
+from cgags_ros.ros.outputs import xyz_to_pointcloud2  # noqa: E402, I100
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402

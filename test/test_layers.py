@@ -41,7 +41,7 @@ ROS_MODULES = {'rclpy', 'tf2_ros', 'bondpy'}  # and every *_msgs, *_srvs, *_inte
 # Tools that talk to a running node over DDS: clients of ros/, not part of the node.
 ROS_CLIENTS = {'cgags_ros.tools.replay_player'}
 CORE_THIRD_PARTY = {'numba', 'numpy', 'scipy', 'threadpoolctl'}
-ROS_MAX_LINES = 1000  # all of ros/: the node, its outputs, conversions, QoS, parameters
+ROS_MAX_LINES = 1000  # all of ros/: the node, its outputs and their messages, TF, QoS, parameters
 MODULE_MAX_LINES = 400
 
 
@@ -184,7 +184,7 @@ def test_the_checker_sees_real_edges():
     assert 'diagnostic_msgs' in GRAPH['cgags_ros.ros.outputs'][1]
     assert not any(map(is_ros, GRAPH['cgags_ros.engine.engine'][1]))
     # a function-level import
-    assert 'cgags_ros.pipeline.map' in GRAPH['cgags_ros.runtime.session'][0]
+    assert 'cgags_ros.pipeline.map' in GRAPH['cgags_ros.runtime.process'][0]
 
 
 def test_no_module_holds_two_ideas_by_its_length():

@@ -20,8 +20,8 @@ from cgags_ros.geometry import apply_transform, rotation_error_deg  # noqa: E402
 from cgags_ros.geometry import translation_error  # noqa: E402
 from cgags_ros.io.clouds import read_cloud  # noqa: E402
 from cgags_ros.io.pointcloud2 import pose_to_transform  # noqa: E402
-from cgags_ros.ros.conversions import to_rclpy_pointcloud2, xyz_to_pointcloud2  # noqa: E402
 from cgags_ros.ros.node import RegisterNode  # noqa: E402
+from cgags_ros.ros.outputs import to_rclpy_pointcloud2, xyz_to_pointcloud2  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402

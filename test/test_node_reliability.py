@@ -29,8 +29,8 @@ import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
-from cgags_ros.ros.conversions import xyz_to_pointcloud2  # noqa: E402, I100
-from cgags_ros.ros.node import RegisterNode  # noqa: E402
+from cgags_ros.ros.node import RegisterNode  # noqa: E402, I100
+from cgags_ros.ros.outputs import xyz_to_pointcloud2  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402

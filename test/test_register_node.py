@@ -29,8 +29,8 @@ from cgags_ros.io.bag import read_messages  # noqa: E402
 from cgags_ros.io.pointcloud2 import pose_to_transform  # noqa: E402
 from cgags_ros.pipeline.result import PipelineResult  # noqa: E402
 from cgags_ros.refusal import Refusal, RefusalCode  # noqa: E402
-from cgags_ros.ros.conversions import to_rclpy_pointcloud2, xyz_to_pointcloud2  # noqa: E402
 from cgags_ros.ros.node import RegisterNode  # noqa: E402
+from cgags_ros.ros.outputs import to_rclpy_pointcloud2, xyz_to_pointcloud2  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped  # noqa: E402
 from rcl_interfaces.srv import SetParameters  # noqa: E402

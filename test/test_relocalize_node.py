@@ -24,8 +24,8 @@ from scipy.spatial.transform import Rotation
 
 rclpy = pytest.importorskip('rclpy')
 
-from cgags_ros.ros.conversions import xyz_to_pointcloud2  # noqa: E402, I100
-from cgags_ros.ros.node import RegisterNode  # noqa: E402
+from cgags_ros.ros.node import RegisterNode  # noqa: E402, I100
+from cgags_ros.ros.outputs import xyz_to_pointcloud2  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped  # noqa: E402
 from lifecycle_msgs.msg import Transition  # noqa: E402

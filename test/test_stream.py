@@ -20,7 +20,7 @@ from cgags_ros.config.tracking import TrackingConfig
 from cgags_ros.engine.engine import RegistrationEngine
 from cgags_ros.engine.interface import Cloud
 from cgags_ros.geometry import rotation_error_deg, translation_error
-from cgags_ros.tracking.counts import StreamCounts, tracks
+from cgags_ros.runtime.jobs import StreamCounts, tracks
 import numpy as np
 import pytest
 from test_engine import Header, Recorder

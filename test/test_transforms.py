@@ -140,7 +140,7 @@ class FakeTf2:
 
 
 def tf_message(T, parent, child, stamp_ns):
-    from cgags_ros.ros.conversions import transform_to_transform_stamped
+    from cgags_ros.ros.transforms import transform_to_transform_stamped
     from rclpy.time import Time
 
     return transform_to_transform_stamped(T, Header(

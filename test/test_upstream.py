@@ -1,8 +1,8 @@
-"""cgags_ros.engine.upstream: scans lost before the node, from gaps in source stamps."""
+"""cgags_ros.engine.accounting.UpstreamLoss: scans lost before the node, from stamp gaps."""
 
 from __future__ import annotations
 
-from cgags_ros.engine.upstream import UpstreamLoss
+from cgags_ros.engine.accounting import UpstreamLoss
 import numpy as np
 import pytest
 

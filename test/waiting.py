@@ -96,7 +96,7 @@ class FakeRunner:
     """
 
     def __init__(self, register):
-        from cgags_ros.runtime.session import ChildSession
+        from cgags_ros.runtime.process import ChildSession
 
         self.register, self._session = register, ChildSession()
 
@@ -164,7 +164,7 @@ def lidar_bag(data_dir):
     """Return the LiDAR bag: (records (topic, stamp, rclpy cloud) in log order, GT by stamp)."""
     from cgags_ros.io.bag import read_messages
     from cgags_ros.io.pointcloud2 import pose_to_transform
-    from cgags_ros.ros.conversions import to_rclpy_pointcloud2
+    from cgags_ros.ros.outputs import to_rclpy_pointcloud2
 
     records, gt = [], {}
     for rec in read_messages(data_dir / 'bags' / 'lidar'):

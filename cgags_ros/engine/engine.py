@@ -5,7 +5,7 @@ ROS-free. :class:`RegistrationEngine` owns the accounting (:mod:`.accounting`: p
 upstream losses, the backlog, the counts, under one lock), what runs the jobs (a
 :class:`~cgags_ros.runtime.jobs.Runner`: the registration process, or this process), the
 lane of a tracked stream's periodic checks (:class:`~cgags_ros.runtime.checks.CheckLane`),
-the map of ``map.file`` and what a pose means for localization (:mod:`.localization`); in
+the map of ``map.file`` and what a pose means for localization (:mod:`.relocalization_run`); in
 ``mode: calibrate`` the pairs are calibration frames (:mod:`.calibration_run`). The node
 decodes messages into :class:`Cloud` for :meth:`~RegistrationEngine.receive` and
 implements :class:`EngineOutputs`, through which the engine publishes, logs and asks for
@@ -32,12 +32,11 @@ from typing import Any
 
 import numpy as np
 
-from . import backlog
 from .accounting import Accounting, LastRegistration, LOG_REPEAT_S, lost_upstream_message
 from .calibration_run import CalibrationConfig, CalibrationRun
 from .interface import Cloud, EngineOutputs, Estimate, PairResult
 from .map_target import MapTarget
-from .pairing import Pair
+from .pairing import Backlog, Pair, queue_depth
 from .relocalization_run import RegisteredScan, RelocalizationRun
 from .startup import start_registration
 from ..config.node import NodeConfig
@@ -50,8 +49,7 @@ from ..relocalization.sequence import StepAnswer
 from ..relocalization.service_calls import Answered, stale_scan
 from ..runtime.checks import CheckLane
 from ..runtime.jobs import (CheckVerdict, Job, RegisterPair, result_of, Runner, SequenceScan,
-                            Tracked, TrackScan)
-from ..tracking.counts import StreamCounts, tracks
+                            StreamCounts, Tracked, tracks, TrackScan)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,7 +94,7 @@ class RegistrationEngine:
                                                     outputs)
         self._accounting = Accounting(
             dataclasses.replace(cfg.pairing, mode=pairing),
-            1 if cfg.mode == 'on_demand' else backlog.queue_depth(cfg, pipeline_cfg))
+            1 if cfg.mode == 'on_demand' else queue_depth(cfg, pipeline_cfg))
         self.on_demand = cfg.mode == 'on_demand'
         self._map = MapTarget(cfg) if cfg.map.file else None
         self._relocalization = RelocalizationRun(cfg, outputs)
@@ -169,7 +167,7 @@ class RegistrationEngine:
         self._configs = (pipeline_cfg, node_cfg)
         self._accounting.set_slop(node_cfg.pairing.sync_slop)
         if not self.on_demand:  # tracking switched on or off: the backlog follows
-            self._accounting.set_queue_depth(backlog.queue_depth(node_cfg, pipeline_cfg))
+            self._accounting.set_queue_depth(queue_depth(node_cfg, pipeline_cfg))
 
     # ------------------------------------------------------------------ input
 
@@ -240,7 +238,7 @@ class RegistrationEngine:
             if outcome.refusal is not None and not self._stop.is_set():
                 self._log_rejection(outcome.refusal, 'source')
 
-    def _skip(self, pending_ns: list[int], log: backlog.Backlog) -> int:
+    def _skip(self, pending_ns: list[int], log: Backlog) -> int:
         """Return how many of the oldest waiting pairs a tracked stream skips (the backlog)."""
         pipe_cfg, cfg = self._configs
         if not tracks(cfg.mode, pipe_cfg):

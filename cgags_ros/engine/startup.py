@@ -26,7 +26,7 @@ from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
 from ..errors import CgagsError
 from ..runtime.jobs import Runner
-from ..runtime.session import ChildSession, warm_up
+from ..runtime.process import ChildSession, warm_up
 from ..runtime.supervisor import Supervisor
 
 

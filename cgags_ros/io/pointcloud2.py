@@ -4,7 +4,7 @@ PointCloud2 decoding and pose/stamp reading, duck-typed and ROS-free.
 Decoding reads only the attributes every PointCloud2 has (``height``, ``width``,
 ``fields[name, offset, datatype, count]``, ``is_bigendian``, ``point_step``, ``row_step``,
 ``data``), so rclpy messages and rosbags-deserialized messages both work, and the offline
-tools need no ROS installation. Building messages is :mod:`cgags_ros.ros.conversions`.
+tools need no ROS installation. Building messages is :mod:`cgags_ros.ros.outputs`.
 
 Conventions: points in metres, in the frame of the message header (REP-103). A pose is the
 4x4 transform ``T`` of the source frame in the target frame (``p_target = T[:3,:3] @

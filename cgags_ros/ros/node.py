@@ -32,7 +32,7 @@ Topics (relative names; remap them):
         inactive.
     initialpose (geometry_msgs/PoseWithCovarianceStamped, out,
         ``relocalization.publish_initial_pose``):
-        the guarded base pose for Nav2/AMCL (:mod:`cgags_ros.engine.initial_pose`).
+        the guarded base pose for Nav2/AMCL (:mod:`cgags_ros.engine.relocalization_run`).
     /diagnostics (diagnostic_msgs/DiagnosticArray, out): status and counters
         (:mod:`.diagnostics`), also while inactive.
     /tf (``output.broadcast_tf``, when tf2_ros is importable): target frame -> source frame.

@@ -5,24 +5,25 @@ tf2_ros (Jazzy's, in ``package.xml``): the ``odom`` topic fills a tf2 ``Buffer``
 (with no message, TF's ``odom_frame`` -> ``base_frame`` serves; a stamp past the newest sample
 by at most :data:`TOLERANCE_S` takes the newest); lookups and broadcasts go through tf2. The
 stand-in (stacks without it, as the emulated test stack): the odom topic in an
-:class:`~cgags_ros.relocalization.odometry.OdometrySamples`, the identity as the extrinsic,
-no /tf (said once), /tf_static through a latched tf2_msgs publisher.
+:class:`~cgags_ros.relocalization.sequence.OdometrySamples`, the identity as the extrinsic,
+no /tf (said once), /tf_static through a latched tf2_msgs publisher. TF's message is built
+here (:func:`transform_to_transform_stamped`).
 """
 
 from __future__ import annotations
 
 from typing import Any, Callable
 
+from geometry_msgs.msg import TransformStamped
 import numpy as np
 from rclpy.duration import Duration
 from rclpy.time import Time
 from std_msgs.msg import Header
 
-from .conversions import transform_to_transform_stamped
 from .qos import latched_qos
-from ..geometry import make_transform, quaternion_to_matrix
+from ..geometry import finite_transform, make_transform, matrix_to_quaternion, quaternion_to_matrix
 from ..io.pointcloud2 import stamp_to_ns
-from ..relocalization.odometry import KEEP_S, OdometrySamples, TOLERANCE_S
+from ..relocalization.sequence import KEEP_S, OdometrySamples, TOLERANCE_S
 
 ODOM, BASE = 'odom', 'base'  # the frames of the odom topic's own buffer
 
@@ -137,3 +138,13 @@ def _lookup(buffer: Any, parent: str, child: str, stamp_ns: int | None,
             r, t = tf.transform.rotation, tf.transform.translation
             return make_transform(quaternion_to_matrix((r.x, r.y, r.z, r.w)), (t.x, t.y, t.z))
     return None
+
+
+def transform_to_transform_stamped(T: np.ndarray, header: Any, child_frame_id: str) -> Any:
+    """4x4 transform -> geometry_msgs/TransformStamped (parent = header.frame_id)."""
+    T = finite_transform(T)
+    msg = TransformStamped(header=header, child_frame_id=child_frame_id)
+    tr, rot = msg.transform.translation, msg.transform.rotation
+    tr.x, tr.y, tr.z = (float(v) for v in T[:3, 3])
+    rot.x, rot.y, rot.z, rot.w = (float(v) for v in matrix_to_quaternion(T[:3, :3]))
+    return msg

@@ -1,9 +1,9 @@
 """
-The jobs the registration process runs, one type a kind, and the typed answer of each.
+The jobs the registration process runs, one type a kind, the typed answer of each, their counts.
 
 The engine chooses the kind once (:meth:`~cgags_ros.engine.engine.RegistrationEngine`),
 a :class:`Runner` runs it (a :class:`~.supervisor.Supervisor`'s registration process, or a
-:class:`~.session.ChildSession` in this process), and the answer's type says what came
+:class:`~.process.ChildSession` in this process), and the answer's type says what came
 back; every answer to a registration carries its
 :class:`~cgags_ros.pipeline.result.PipelineResult` (:func:`result_of`).
 
@@ -20,12 +20,19 @@ Targets are an array (metres, the target's frame), a :class:`MapRef` (the proces
 and keeps the map), or :data:`HELD`: the target the session was sent last, so a latched
 target crosses the pipe once. Light to import (numpy, no Open3D): the node's own process
 builds jobs and reads answers without loading the pipeline.
+
+A stream is tracked (:func:`tracks`: continuous mode, tracking on) when its scans are
+:class:`TrackScan` jobs. Its Tracker lives where registration runs, beside the target, and a
+replaced process starts a fresh one. So each :class:`Tracked` answer carries what the scan
+added to its Tracker's counts (:func:`track`), and the engine's :class:`StreamCounts` adds
+them up across restarts.
 """
 
 from __future__ import annotations
 
+from collections import Counter
 import dataclasses
-from typing import Any, Protocol, Union
+from typing import Any, Callable, Protocol, Union
 
 import numpy as np
 
@@ -34,6 +41,8 @@ from ..pipeline.result import PipelineResult
 from ..relocalization.sequence import StepAnswer
 
 HELD = 'held'  # a job's target: the one the session holds (sent by an earlier job)
+# The Tracker's counts /diagnostics always carries (the others appear once they happen).
+SHOWN = ('tracked', 'global', 'tracking_failures', 'periodic_checks')
 
 
 @dataclasses.dataclass(frozen=True)
@@ -180,12 +189,47 @@ def result_of(answer: Answer) -> PipelineResult:
     return answer.result
 
 
+def tracks(mode: str, config: PipelineConfig) -> bool:
+    """Tell whether a stream in node mode ``mode`` is tracked (continuous, tracking on)."""
+    return mode == 'continuous' and config.tracking.enabled
+
+
+def track(tracker: Any, run: Callable[[], Any]) -> tuple[Any, dict[str, int]]:
+    """Run ``run()`` (a call of ``tracker``); return its value and what it added to the counts."""
+    before = tracker.counts()
+    value = run()
+    return value, {k: v - before.get(k, 0) for k, v in tracker.counts().items()
+                   if v != before.get(k, 0)}
+
+
+class StreamCounts:
+    """
+    The Tracker's counts, added up from each scan's share.
+
+    One thread adds (the engine thread); :meth:`statistics` may be read from any: the
+    counts are replaced whole, never changed in place, so no lock is needed.
+    """
+
+    def __init__(self) -> None:
+        self._counts: Counter[str] = Counter({name: 0 for name in SHOWN})
+
+    def add(self, counts: dict[str, int]) -> None:
+        """Add what one scan counted."""
+        total = self._counts.copy()
+        total.update(counts)
+        self._counts = total
+
+    def statistics(self) -> dict[str, int]:
+        """Return ``tracking.<count>`` for /diagnostics."""
+        return {f'tracking.{k}': v for k, v in sorted(self._counts.items())}
+
+
 class Runner(Protocol):
     """
     What runs jobs, the engine's one seam to the pipeline.
 
     A :class:`~.supervisor.Supervisor` (a registration process of its own), a
-    :class:`~.session.ChildSession` (this process), or a test's stand-in.
+    :class:`~.process.ChildSession` (this process), or a test's stand-in.
     """
 
     def run(self, job: Job, timeout_s: float | None = None) -> Answer:

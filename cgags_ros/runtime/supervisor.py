@@ -10,7 +10,7 @@ registering. The node runs a stream's jobs through one (``runtime.registration_t
 
 Built on public API only: one ``multiprocessing`` spawn-context
 :class:`~multiprocessing.Process` and a :func:`~multiprocessing.Pipe` per process, which
-runs a :class:`~.session.ChildSession`. One job is in flight at a time, so the caller's own
+runs a :class:`~.process.ChildSession`. One job is in flight at a time, so the caller's own
 thread sends it, polls the pipe until the answer or the time limit, and receives: no
 thread reads answers. A pipe that ends (the process died) fails the job in flight.
 
@@ -28,9 +28,8 @@ import time
 from typing import Any
 
 from .jobs import Answer, HELD, Job, PrepareMap
-from .process import Child, ChildDied, remove_files, spill
+from .process import Child, ChildDied, remove_files, spill, TargetNotHeld
 from .procfs import rss_mb
-from .session import TargetNotHeld
 from ..errors import CgagsError
 from ..refusal import RefusalCode
 

@@ -21,7 +21,7 @@ from ..config.pipeline import PipelineConfig
 from ..engine.pairing import Pairer
 from ..errors import InvalidInputError
 from ..refusal import Refusal
-from ..tracking.counts import tracks
+from ..runtime.jobs import tracks
 
 
 def replay_offline(opts: ReplayOptions) -> BagReport:

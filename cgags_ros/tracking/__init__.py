@@ -2,9 +2,10 @@
 A stream's scans: tracked from their predicted pose when the gates allow, else global.
 
 :class:`~.tracker.Tracker` registers a stream's scans (the node in continuous mode,
-``cgags-replay``); :mod:`.prediction` predicts and compares poses; :mod:`.counts` adds up
-what each path produced, for /diagnostics. ``Tracker`` is imported on first use: it brings
-in the pipeline (Open3D), which the node's own process (it only counts) never needs.
+``cgags-replay``); :mod:`.prediction` predicts and compares poses; what each path produced
+is added up where the stream is reported (:class:`~cgags_ros.runtime.jobs.StreamCounts`).
+``Tracker`` is imported on first use: it brings in the pipeline (Open3D), which the node's
+own process (it only counts) never needs.
 """
 
 import importlib
