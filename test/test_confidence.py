@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+from cgags_ros import fitted
 from cgags_ros.config import GatesConfig, PipelineConfig
 from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.pipeline import confidence, covariance, register_clouds
@@ -45,13 +46,13 @@ def test_each_input_moves_the_confidence_one_way():
     """Monotone: a weight's sign is its input's meaning, whatever the fit."""
     assert set(confidence.SIGNS) == set(confidence.FEATURES)
     for name, sign in confidence.SIGNS.items():
-        assert confidence.WEIGHTS[name] * sign > 0
+        assert fitted.CONFIDENCE_WEIGHTS[name] * sign > 0
 
 
 def test_every_feature_has_a_weight_and_the_weights_are_finite():
-    assert set(confidence.WEIGHTS) == set(confidence.FEATURES)
-    assert all(math.isfinite(w) for w in confidence.WEIGHTS.values())
-    assert math.isfinite(confidence.INTERCEPT)
+    assert set(fitted.CONFIDENCE_WEIGHTS) == set(confidence.FEATURES)
+    assert all(math.isfinite(w) for w in fitted.CONFIDENCE_WEIGHTS.values())
+    assert math.isfinite(fitted.CONFIDENCE_INTERCEPT)
 
 
 def test_a_result_without_an_estimate_has_zero_confidence():

@@ -24,6 +24,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / 'cgags_ros'
 LAYERS = {  # top-level part of the module name -> layer (higher imports lower)
     'refusal': -1,  # the refusal codes, which every error and result carries
     'errors': 0, 'timing': 0, 'parallel': 0, 'compiled_types': 0,
+    'fitted': 0,  # the numbers a study fitted, with their record
     'geometry': 1, 'config': 1,  # the bottom: typed config, geometry, then files and data
     'coordinates': 1,  # far coordinates worked on near a local origin
     'io': 2, 'validity': 2,  # validity: the core and the pipeline ask it for their verdicts

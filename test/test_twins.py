@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from cgags_ros import validity
+from cgags_ros import fitted, validity
 from cgags_ros.config import GatesConfig, PipelineConfig
 from cgags_ros.frontend.matching import Correspondences
 from cgags_ros.frontend.refine import evaluate_alignment
@@ -135,7 +135,7 @@ def test_the_verdict_on_measured_twins_is_the_pipelines():
 
 def test_the_screen_at_its_limit():
     """The shipped screen by default, a study's by argument."""
-    assert twins.worth_refining(twins.PROMISING, 1.0)
+    assert twins.worth_refining(fitted.TWIN_PROMISING, 1.0)
     assert not twins.worth_refining(0.2, 1.0, promising=0.25)
 
 

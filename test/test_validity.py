@@ -14,7 +14,7 @@ from pathlib import Path
 import pickle
 import re
 
-from cgags_ros import validity
+from cgags_ros import fitted, validity
 from cgags_ros.config import pipeline_config_from, PipelineConfig
 from cgags_ros.config.core import CoreConfig
 from cgags_ros.config.node import configs_from_parameters
@@ -328,12 +328,12 @@ def test_each_test_of_the_twins_verdict_at_its_limit():
     """The shipped limits by default, a study's by argument; an unmeasured violation is clear."""
     voxel = 0.1
     assert validity.settled_apart(10.5, 0.0, voxel, 10.0)
-    assert validity.settled_apart(0.0, (validity.TWIN_APART + 0.1) * voxel, voxel, 10.0)
-    assert not validity.settled_apart(10.0, validity.TWIN_APART * voxel, voxel, 10.0)
+    assert validity.settled_apart(0.0, (fitted.TWIN_APART + 0.1) * voxel, voxel, 10.0)
+    assert not validity.settled_apart(10.0, fitted.TWIN_APART * voxel, voxel, 10.0)
     assert not validity.settled_apart(0.0, 3 * voxel, voxel, 10.0, apart=6.0)
-    assert validity.fits_as_well(1.01 / validity.TWIN_OVERLAP_RATIO, 1.0)
+    assert validity.fits_as_well(1.01 / fitted.TWIN_OVERLAP_RATIO, 1.0)
     assert not validity.fits_as_well(0.5, 1.0, ratio=1.5)
-    assert validity.clear_of_free_space(validity.TWIN_MAX_VIOLATION)
+    assert validity.clear_of_free_space(fitted.TWIN_MAX_VIOLATION)
     assert not validity.clear_of_free_space(0.2, limit=0.15)
     assert validity.clear_of_free_space(float('nan'))
 

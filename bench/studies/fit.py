@@ -1,63 +1,64 @@
 r"""
-Regenerate the shipped constants the trust studies fit, from their measurement records.
+The numbers of :mod:`cgags_ros.fitted` as the trust study fits them from a record.
 
 Run from the repository root (offline: it registers nothing)::
 
-    .venv/bin/python -m bench.studies.fit [--gates out/loso_trust/gates.jsonl] \
-        [--records RECORDS] [--root <shared data>/3dmatch_benchmark] [--check]
+    .venv/bin/python -m bench.studies.fit [--record bench/studies/records/trust.jsonl.gz] [--check]
+    .venv/bin/python -m bench.studies.fit --gates out/loso_trust/gates.jsonl \
+        [--records RECORDS] [--root <shared data>/3dmatch_benchmark] [--write-record FILE]
 
-It prints each block of constants as the source holds it, fit by the studies' own code:
+It prints every number of :mod:`cgags_ros.fitted` as that module writes it, fit by the
+studies' own code:
 
-- ``cgags_ros/pipeline/confidence.py`` (``WEIGHTS``, ``INTERCEPT``),
-  ``cgags_ros/pipeline/twins.py`` (``PROMISING``) and ``cgags_ros/validity/__init__.py``
-  (``TWIN_APART``, ``TWIN_MAX_VIOLATION``, ``TWIN_OVERLAP_RATIO``):
-  :func:`.trust_shift.shipped` on ``--gates``, the gates-only records, the pairs whose
-  truth is in doubt left out (:func:`.trust_shift.trusted`, which reads the benchmark's
-  poses under ``--root``);
-- ``cgags_ros/pipeline/covariance.py`` (``CELL_FACTOR``, ``SCALE``, ``FLOOR_POSITION``,
-  ``FLOOR_ROTATION``, ``WRONG_POSITION``, ``WRONG_ROTATION``, ``DOUBT_EXPONENT``):
-  :func:`.loso_trust_study.shipped_covariance` and :func:`.loso_trust_study.shipped_doubt`
-  on ``--records``: the ``--gates`` records unless given (records of the defaults,
-  ``measure`` without ``--gates-only``, are that study's own).
+- the confidence, the twins and the gates' ``min_confidence`` and ``max_position_sigma``:
+  :func:`.trust_shift.shipped` on gates-only records;
+- the covariance: :func:`.loso_trust_study.shipped_covariance` and
+  :func:`.loso_trust_study.shipped_doubt` on the same records (``--records``: others).
 
-The gates' options the same fit chooses (``gates.max_position_sigma``,
-``gates.min_confidence``) are printed beside their defaults, unchecked. It measures
-nothing: a missing record file is named with the :mod:`.loso_trust` command that writes it.
-A shipped value matches its fit when the fit rounds to it at the significant digits the
-source gives it (at least two); it is then printed as the source holds it, the fit's four
-digits beside it, and otherwise the fit is printed beside it. ``--check`` exits 1 when a
-shipped constant differs from its fit. No source file is rewritten.
+``--record`` (the default) reads the committed record: the gates-only records of every pair
+whose truth is not in doubt, trimmed to what the fit reads. ``--gates`` reads a full
+``measure --gates-only`` output instead, leaves out the pairs whose truth is in doubt
+(:func:`.trust_shift.trusted`, which reads the benchmark's poses under ``--root``), and
+``--write-record FILE`` writes what is left as a record. It measures nothing: a missing
+file is named with the :mod:`.loso_trust` command that writes it.
+
+A number matches its fit when the fit rounds to it at the significant digits the module
+gives it (at least two); it is then printed as the module writes it, the fit's four digits
+beside it, and otherwise the fit is printed beside it. ``--check`` exits 1 when a number
+differs from its fit. No source file is rewritten.
 """
 
 from __future__ import annotations
 
 from decimal import Decimal
+import gzip
+import json
 import math
 from pathlib import Path
 
 from bench.common import argument_parser
 from bench.studies import loso_trust_study, trust_shift
-from cgags_ros import validity
-from cgags_ros.config import GatesConfig
+from cgags_ros import fitted
 from cgags_ros.io.shared_data import shared_data_dir
-from cgags_ros.pipeline import confidence, covariance, twins
+from cgags_ros.pipeline import confidence
 import numpy as np
 
 MEASURE = {
     'gates': 'OMP_NUM_THREADS=1 python -m bench.studies.loso_trust measure --gates-only '
              '--output {path}',
     'records': 'OMP_NUM_THREADS=1 python -m bench.studies.loso_trust measure --output {path}',
+    'record': 'python -m bench.studies.fit --gates GATES --write-record {path}',
 }
 
 
 def literal(value) -> str:
-    """Return ``value`` as the source writes it: four significant digits, ``np.pi``, a dict."""
+    """Return ``value`` as the module writes it: four significant digits, ``math.pi``, a dict."""
     if isinstance(value, dict):
         return '{' + ', '.join(f'{k!r}: {literal(v)}' for k, v in value.items()) + '}'
     if isinstance(value, (int, np.integer)):
         return str(int(value))
     if math.isclose(value, math.pi, rel_tol=1e-9):
-        return 'np.pi'
+        return 'math.pi'
     return repr(float(f'{value:.4g}'))
 
 
@@ -71,75 +72,139 @@ def same(fit, shipped) -> bool:
     return float(f'{fit:.{digits}g}') == float(shipped)
 
 
-def constants(gates: list[dict], records: list[dict], root: Path) -> dict:
-    """Return ``{source file: [(name, fit, shipped)]}`` of every constant the studies fit."""
-    chosen = trust_shift.shipped(trust_shift.trusted(gates, root)[0])
+def constants(gates: list[dict], records: list[dict]) -> dict:
+    """
+    Return ``{block: [(name, fit, shipped)]}`` of every number in :mod:`cgags_ros.fitted`.
+
+    ``gates``: gates-only records whose truth is not in doubt (:func:`trusted_records`);
+    ``records``: the covariance's (the same unless given).
+    """
+    chosen = trust_shift.shipped(gates)
     limit, rho, apart, promising = chosen['twins']
     valid = np.array([r['valid'] for r in records], dtype=bool)
     g, k, ft, fr = loso_trust_study.shipped_covariance(records, valid)
     wt, wr, gamma, _ = loso_trust_study.shipped_doubt(records, valid)
     weights = chosen['weights']
     unused = {n: w for n, w in weights.items() if n not in confidence.FEATURES and w != 0}
-    gates_defaults = GatesConfig()
     return {
-        'cgags_ros/pipeline/confidence.py': [
-            ('WEIGHTS', {n: weights[n] for n in confidence.FEATURES}, confidence.WEIGHTS),
-            ('INTERCEPT', chosen['intercept'], confidence.INTERCEPT),
+        'confidence': [
+            ('CONFIDENCE_WEIGHTS', {n: weights[n] for n in confidence.FEATURES},
+             fitted.CONFIDENCE_WEIGHTS),
+            ('CONFIDENCE_INTERCEPT', chosen['intercept'], fitted.CONFIDENCE_INTERCEPT),
+            ('MIN_CONFIDENCE', chosen['threshold'], fitted.MIN_CONFIDENCE),
             *[(f'# weight of {n}, not an input of the model', w, 0) for n, w in unused.items()]],
-        'cgags_ros/pipeline/twins.py': [('PROMISING', promising, twins.PROMISING)],
-        'cgags_ros/validity/__init__.py': [
-            ('TWIN_APART', apart, validity.TWIN_APART),
-            ('TWIN_MAX_VIOLATION', limit, validity.TWIN_MAX_VIOLATION),
-            ('TWIN_OVERLAP_RATIO', rho, validity.TWIN_OVERLAP_RATIO)],
-        'cgags_ros/pipeline/covariance.py': [
-            ('CELL_FACTOR', int(g), covariance.CELL_FACTOR), ('SCALE', k, covariance.SCALE),
-            ('FLOOR_POSITION', ft, covariance.FLOOR_POSITION),
-            ('FLOOR_ROTATION', fr, covariance.FLOOR_ROTATION),
-            ('WRONG_POSITION', wt, covariance.WRONG_POSITION),
-            ('WRONG_ROTATION', wr, covariance.WRONG_ROTATION),
-            ('DOUBT_EXPONENT', gamma, covariance.DOUBT_EXPONENT)],
-        'cgags_ros/config/gates.py (defaults, not checked)': [
-            ('max_position_sigma', chosen['sigma_voxels'], gates_defaults.max_position_sigma),
-            ('min_confidence', chosen['threshold'], gates_defaults.min_confidence)],
+        'twins': [
+            ('TWIN_PROMISING', promising, fitted.TWIN_PROMISING),
+            ('TWIN_APART', apart, fitted.TWIN_APART),
+            ('TWIN_OVERLAP_RATIO', rho, fitted.TWIN_OVERLAP_RATIO),
+            ('TWIN_MAX_VIOLATION', limit, fitted.TWIN_MAX_VIOLATION)],
+        'covariance': [
+            ('COVARIANCE_CELL_FACTOR', int(g), fitted.COVARIANCE_CELL_FACTOR),
+            ('COVARIANCE_SCALE', k, fitted.COVARIANCE_SCALE),
+            ('COVARIANCE_FLOOR_POSITION', ft, fitted.COVARIANCE_FLOOR_POSITION),
+            ('COVARIANCE_FLOOR_ROTATION', fr, fitted.COVARIANCE_FLOOR_ROTATION),
+            ('WRONG_POSITION', wt, fitted.WRONG_POSITION),
+            ('WRONG_ROTATION', wr, fitted.WRONG_ROTATION),
+            ('DOUBT_EXPONENT', gamma, fitted.DOUBT_EXPONENT),
+            ('MAX_POSITION_SIGMA', chosen['sigma_voxels'], fitted.MAX_POSITION_SIGMA)],
     }
+
+
+RECORD = Path(__file__).parent / 'records' / 'trust.jsonl.gz'
+# What the fit reads of a record: the pair, its truth and flag, the gates' measures, the
+# overlap's information, and the twins a grid value of the study could settle.
+FIELDS = ('benchmark', 'scene', 'source', 'target', 'success', 'valid', 'confidence', 'error',
+          'covariance', 'fitness', 'overlap', 'inlier_rmse', 'free_space_violation',
+          'observability', 'runner_up_ratio', 'num_inliers', 'num_correspondences',
+          'num_hypotheses', 'chance_inliers')
+OVERLAP = ('axis_rms', 'cells', 'overlap_points', 'plane_info', 'plane_r2')
+TWIN = ('fitness', 'free_space_violation', 'from_estimate_deg', 'from_estimate_m',
+        'start_fitness')
+DIGITS = 6
+
+
+def _rounded(value):
+    if isinstance(value, float):
+        return float(f'{value:.{DIGITS}g}')
+    if isinstance(value, list):
+        return [_rounded(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _rounded(v) for k, v in value.items()}
+    return value
+
+
+def trimmed(r: dict) -> dict:
+    """Return what the fit reads of a record, floats at :data:`DIGITS` significant digits."""
+    out = {k: r[k] for k in FIELDS}
+    out['candidates'] = [{'fitness': c['fitness']} for c in r['candidates']]
+    if r.get('overlap_info'):
+        out['overlap_info'] = {k: r['overlap_info'][k] for k in OVERLAP
+                               if k in r['overlap_info']}
+    least = min(loso_trust_study.TWIN_GRID['promising']) * (r['fitness'] or 0.0)
+    out['twins'] = [{k: x[k] for k in TWIN} for x in loso_trust_study.measured_twins(r)
+                    if x['start_fitness'] >= least]
+    return _rounded(out)
+
+
+def read_record(path: Path) -> list[dict]:
+    """Return the rows of a record (gzipped JSON lines, as :func:`write_record` writes)."""
+    with gzip.open(path, 'rt', encoding='utf-8') as f:
+        return [json.loads(line) for line in f]
+
+
+def write_record(records: list[dict], path: Path) -> None:
+    """Write ``records`` trimmed (:func:`trimmed`) as a record."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with gzip.open(path, 'wt', encoding='utf-8', compresslevel=9) as f:
+        for r in records:
+            f.write(json.dumps(trimmed(r), separators=(',', ':')) + '\n')
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argument_parser(__spec__.name, __doc__)
-    p.add_argument('--gates', type=Path, default=Path('out/loso_trust/gates.jsonl'),
-                   help='gates-only records: the confidence and the twins (default: %(default)s)')
+    p.add_argument('--record', type=Path, default=RECORD,
+                   help='a committed record (default: %(default)s)')
+    p.add_argument('--gates', type=Path, default=None,
+                   help='a measure --gates-only output instead of --record')
     p.add_argument('--records', type=Path, default=None,
-                   help='records for the covariance (default: the --gates records)')
+                   help="records for the covariance (default: the fit's own)")
     p.add_argument('--root', type=Path, default=shared_data_dir() / '3dmatch_benchmark',
                    help="the 3DMatch benchmark: its fragments' poses (default: %(default)s)")
+    p.add_argument('--write-record', type=Path, default=None,
+                   help="write --gates's trusted pairs as a record to this file")
     p.add_argument('--check', action='store_true',
-                   help='exit 1 when a shipped constant differs from its fit')
+                   help='exit 1 when a number differs from its fit')
     args = p.parse_args(argv)
-    args.records = args.records or args.gates
-    loaded = {}
-    for kind in ('gates', 'records'):
-        path = getattr(args, kind)
-        if not path.is_file():
+    for path, kind in ((args.gates, 'gates'), (args.records, 'records'),
+                       (None if args.gates else args.record, 'record')):
+        if path is not None and not path.is_file():
             print(f'missing {path}; it is written by\n    {MEASURE[kind].format(path=path)}')
             return 2
-        loaded[kind] = loaded['gates'] if path == args.gates and kind == 'records' \
-            else loso_trust_study.load(path)
-        scenes = loso_trust_study.scenes(loaded[kind])
-        print(f'# read {path}: {len(loaded[kind])} pairs, {len(scenes)} scenes '
-              f"({', '.join(map(loso_trust_study.short, scenes))})")
+    if args.gates:
+        gates = trust_shift.trusted(loso_trust_study.load(args.gates), args.root)[0]
+        source = args.gates
+    else:
+        gates, source = read_record(args.record), args.record
+    if args.write_record:
+        write_record(gates, args.write_record)
+        print(f'# wrote {args.write_record}: {len(gates)} pairs')
+    records = loso_trust_study.load(args.records) if args.records else gates
+    scenes = loso_trust_study.scenes(gates)
+    print(f'# read {source}: {len(gates)} pairs whose truth is not in doubt, {len(scenes)} '
+          f"scenes ({', '.join(map(loso_trust_study.short, scenes))})")
     differ = []
-    for source, block in constants(loaded['gates'], loaded['records'], args.root).items():
-        print(f'\n# {source}')
-        for name, fit, shipped in block:
-            # As the source would hold it: the shipped literal when the fit rounds to it.
+    for block, numbers in constants(gates, records).items():
+        print(f'\n# {block}')
+        for name, fit, shipped in numbers:
+            # As the module would hold it: its literal when the fit rounds to it.
             if same(fit, shipped):
                 text = literal(shipped) + ('' if literal(fit) == literal(shipped)
                                            else f'  # fit: {literal(fit)}')
             else:
                 text = f'{literal(fit)}  # shipped: {literal(shipped)}'
-                differ += [] if 'not checked' in source else [f'{source} {name}']
-            print(f"{name}{' = ' if name.isupper() else ': '}{text}")
-    print('\nevery shipped constant matches its fit' if not differ else
+                differ.append(name)
+            print(f'{name} = {text}')
+    print('\nevery number matches its fit' if not differ else
           '\ndiffering from the fit: ' + ', '.join(differ))
     return 1 if args.check and differ else 0
 

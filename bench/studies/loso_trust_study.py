@@ -45,8 +45,8 @@ from pathlib import Path
 from types import SimpleNamespace
 
 from bench.common import argument_parser, markdown_table
-from cgags_ros import validity
-from cgags_ros.pipeline import confidence, covariance, twins
+from cgags_ros import fitted, validity
+from cgags_ros.pipeline import confidence, twins
 from cgags_ros.pipeline.candidates import MIN_ROTATION_DEG  # the records' default too
 import numpy as np
 
@@ -421,9 +421,9 @@ FEATURES = confidence.FEATURES
 
 def overlap_covariance(r: dict) -> np.ndarray:
     """Return the overlap's covariance of a record: the reported one less its doubt."""
-    W = np.diag([covariance.WRONG_POSITION ** 2] * 3 + [covariance.WRONG_ROTATION ** 2] * 3)
+    W = np.diag([fitted.WRONG_POSITION ** 2] * 3 + [fitted.WRONG_ROTATION ** 2] * 3)
     return np.asarray(r['covariance']) \
-        - (1.0 - r['confidence']) ** covariance.DOUBT_EXPONENT * W
+        - (1.0 - r['confidence']) ** fitted.DOUBT_EXPONENT * W
 
 
 def as_result(r: dict) -> SimpleNamespace:

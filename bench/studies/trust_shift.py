@@ -90,7 +90,7 @@ def alternative_fit(r: dict) -> float:
     Return the best fit of a distinct alternative over the estimate's fit (0: none).
 
     The correspondences' other candidates, and the twins the pipeline settles (a start at
-    least ``twins.PROMISING`` times the estimate's fit) that settle away from the estimate.
+    least ``fitted.TWIN_PROMISING`` times the estimate's fit) that settle away from the estimate.
     """
     fitness = r['fitness'] or 0.0
     fits = [c['fitness'] for c in r['candidates'][1:] if c['fitness'] is not None]

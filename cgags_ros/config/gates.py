@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 
 from .fields import option
+from .. import fitted
 
 
 @dataclasses.dataclass
@@ -24,12 +25,14 @@ class GatesConfig:
         "candidate's inlier count is below this times the runner-up's: two poses are then "
         'nearly equally supported (a symmetric room, a corridor).', low=1.0, high=100.0)
     min_confidence: float = option(
-        0.5, 'The estimate is valid only when its confidence (the calibrated probability that '
+        fitted.MIN_CONFIDENCE,
+        'The estimate is valid only when its confidence (the calibrated probability that '
         "it is right, from the gates' measurements) is at least this, on top of every gate. "
         '6-DoF pairs only: against a map or in 4-DoF mode the confidence is reported but '
         'decides nothing. 0 leaves the decision to the gates.', low=0.0, high=1.0)
     max_position_sigma: float = option(
-        34.0, "Valid means usable: the estimate is invalid when its covariance's position "
+        fitted.MAX_POSITION_SIGMA,
+        "Valid means usable: the estimate is invalid when its covariance's position "
         "sigma along its loosest direction (the overlap's, opened by the doubt the "
         "confidence leaves; against a map, the overlap's alone) is above this many voxel "
         'sizes; the covariance is still reported. 6-DoF pairs of scans, and the '

@@ -19,17 +19,12 @@ from typing import Any
 
 from .covariance import loosest_sigma
 from .gates import chance_bound
+from .. import fitted
 
 # Inputs of the model, each a number every estimate has (see :func:`features`), with the
 # sign its weight must have.
 SIGNS = {'log_margin': 1.0, 'log_sigma': -1.0, 'free_space': -1.0}
 FEATURES = tuple(SIGNS)
-
-# Weights of the logistic model (on the raw features) and its intercept, fit on every pair
-# of the shared 3DMatch scenes (docs/confidence.md); ``python -m bench.studies.fit``
-# regenerates them from the study's records.
-WEIGHTS = {'log_margin': 1.007, 'log_sigma': -4.209, 'free_space': -19.09}
-INTERCEPT = 5.614
 
 SIGMA_FLOOR = 1e-3  # voxels: log of a sigma that no overlap reaches
 
@@ -67,5 +62,6 @@ def probability(values: dict[str, float] | None) -> float:
     """Return the model's P(right) for :func:`features`' values (0 without an estimate)."""
     if values is None:
         return 0.0
-    z = INTERCEPT + sum(WEIGHTS[name] * values[name] for name in FEATURES)
+    z = fitted.CONFIDENCE_INTERCEPT + sum(fitted.CONFIDENCE_WEIGHTS[name] * values[name]
+                                          for name in FEATURES)
     return 1.0 / (1.0 + math.exp(-z)) if z > -700 else 0.0

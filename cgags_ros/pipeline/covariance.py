@@ -7,21 +7,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-# The overlap covariance's settings (:func:`overlap_covariance`), chosen leave-one-scene-out
-# on real RGB-D pairs so that right poses fall inside their ellipsoids as often as the
-# normal law says while the ellipsoids stay as small as that allows (docs/ablation.md);
-# ``python -m bench.studies.fit`` regenerates them from the study's records.
-CELL_FACTOR = 4
-SCALE = 12.7
-FLOOR_POSITION = 0.5
-FLOOR_ROTATION = 0.5
-# The spread of a wrong estimate's error (metres a position axis, radians a rotation axis)
-# by which a covariance opens with the chance that its pose is wrong, and how fast that
-# chance falls with the confidence (:func:`with_confidence`), chosen leave-one-scene-out on
-# the same pairs (docs/ablation.md); ``python -m bench.studies.fit`` regenerates them too.
-WRONG_POSITION = 4.0
-WRONG_ROTATION = np.pi
-DOUBT_EXPONENT = 1.5
+from .. import fitted
 
 
 def pose_covariance(src: np.ndarray, dst: np.ndarray, T: np.ndarray,
@@ -146,12 +132,13 @@ def overlap_covariance(source: np.ndarray, target: np.ndarray, target_normals: n
     normals = np.asarray(target_normals, dtype=np.float64)[nn]
     J = np.hstack([normals, np.cross(p, normals)])
     r = np.einsum('ij,ij->i', normals, moved - np.asarray(target, dtype=np.float64)[nn])
-    cells = _occupied_cells(moved, CELL_FACTOR * voxel_size)
+    cells = _occupied_cells(moved, fitted.COVARIANCE_CELL_FACTOR * voxel_size)
     sigma2 = max(float(r @ r) / max(n_points - 6, 1), 1e-12)
-    scale = SCALE * sigma2 * n_points / max(cells, 1)
+    scale = fitted.COVARIANCE_SCALE * sigma2 * n_points / max(cells, 1)
     radius = np.sqrt(np.mean(np.sum((moved - moved.mean(axis=0)) ** 2, axis=1)))
-    floor = np.diag([(FLOOR_POSITION * voxel_size) ** 2] * 3
-                    + [(FLOOR_ROTATION * voxel_size / max(radius, voxel_size)) ** 2] * 3)
+    floor = np.diag([(fitted.COVARIANCE_FLOOR_POSITION * voxel_size) ** 2] * 3
+                    + [(fitted.COVARIANCE_FLOOR_ROTATION * voxel_size
+                        / max(radius, voxel_size)) ** 2] * 3)
     B = np.eye(6)
     if gravity is not None:
         B = np.zeros((6, 4))
@@ -187,8 +174,8 @@ def with_confidence(cov: np.ndarray, confidence: float) -> np.ndarray:
     of a wrong pose falls faster than ``1 - confidence``. ``confidence`` 0 (no estimate)
     opens it by the whole of ``W``.
     """
-    W = np.diag([WRONG_POSITION ** 2] * 3 + [WRONG_ROTATION ** 2] * 3)
-    doubt = (1.0 - min(max(confidence, 0.0), 1.0)) ** DOUBT_EXPONENT
+    W = np.diag([fitted.WRONG_POSITION ** 2] * 3 + [fitted.WRONG_ROTATION ** 2] * 3)
+    doubt = (1.0 - min(max(confidence, 0.0), 1.0)) ** fitted.DOUBT_EXPONENT
     return np.asarray(cov, dtype=np.float64) + doubt * W
 
 

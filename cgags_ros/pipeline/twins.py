@@ -11,9 +11,9 @@ the way both ways about each principal axis of the overlap's normals (a room's w
 floor face along those axes, and a near-square room turns about its vertical one); and the
 other distinct poses the correspondences support (the candidates within the ambiguity ratio
 were settled already; the others were not). Each start that already fits reasonably (at
-least ``PROMISING`` times the estimate's fitness, on the settling's sample of the source:
-a share needs no more to be told apart; most that start worse never settle anywhere
-plausible) is settled (:func:`~.settle.settle`, :data:`~.settle.TWIN`: a twin only has to
+least ``fitted.TWIN_PROMISING`` times the estimate's fitness, on the settling's sample of
+the source: a share needs no more to be told apart; most that start worse never settle
+anywhere plausible) is settled (:func:`~.settle.settle`, :data:`~.settle.TWIN`: a twin only has to
 show where it goes) and measured; :func:`cgags_ros.validity.plausible_twin` judges it, so
 that a study judging recorded twins judges them as the pipeline does. A plausible twin
 makes the result ambiguous, with the twin as runner-up. The settings were chosen
@@ -33,6 +33,7 @@ from .candidates import MIN_ROTATION_DEG
 from .map import PreparedMap
 from .result import Candidate, PipelineResult
 from .settle import Pair, settle, SYMMETRY, TWIN
+from .. import fitted
 from ..config.pipeline import PipelineConfig
 from ..frontend.features import CloudFeatures
 from ..frontend.matching import Correspondences
@@ -45,13 +46,10 @@ SLIDE = 10.0
 SYMMETRY_FIT = 0.5  # a turn is a symmetry of a map when it puts half of the map on itself
 SYMMETRY_START = 1 / 3  # ...and it is refined only when it starts with a third there
 SYMMETRY_POINTS = 2000  # about this many of the map's points judge a turn
-# The screen of :func:`worth_refining`, chosen on real RGB-D pairs with the verdict's limits
-# (:mod:`cgags_ros.validity`, docs/ablation.md); ``python -m bench.studies.fit`` regenerates
-# it from the study's records.
-PROMISING = 0.45
 
 
-def worth_refining(start_fitness: float, fitness: float, promising: float = PROMISING) -> bool:
+def worth_refining(start_fitness: float, fitness: float,
+                   promising: float = fitted.TWIN_PROMISING) -> bool:
     """Tell whether a twin is settled: its start fits ``promising`` times the estimate's."""
     return start_fitness >= promising * fitness
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 from typing import Any, Protocol, Sequence
 
 from .consensus import Consensus, tilt_refusal
+from .. import fitted
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
 from ..geometry import rotation_error_deg, translation_error
@@ -242,13 +243,6 @@ def uncertainty_refusal(sigma: float, cfg: PipelineConfig) -> Refusal | None:
 
 # --- ambiguity: a distinct pose about as good ----------------------------------------------
 
-# The twins' limits (:func:`plausible_twin`), chosen on real RGB-D pairs (docs/ablation.md);
-# ``python -m bench.studies.fit`` regenerates them from the study's records.
-TWIN_APART = 4.0
-TWIN_MAX_VIOLATION = 0.1
-TWIN_OVERLAP_RATIO = 1.25
-
-
 class Twin(Protocol):
     """What a twin measured where it settled (a :class:`~cgags_ros.pipeline.settle.Settled`)."""
 
@@ -289,18 +283,18 @@ def still_ambiguous(s: Settlement, cfg: PipelineConfig) -> bool:
 
 
 def settled_apart(rotation_deg: float, translation_m: float, voxel_size: float,
-                  min_rotation_deg: float, apart: float = TWIN_APART) -> bool:
+                  min_rotation_deg: float, apart: float = fitted.TWIN_APART) -> bool:
     """Tell whether a twin settled this far from the estimate is another pose, not it."""
     return rotation_deg > min_rotation_deg or translation_m > apart * voxel_size
 
 
 def fits_as_well(fitness: float, estimate_fitness: float,
-                 ratio: float = TWIN_OVERLAP_RATIO) -> bool:
+                 ratio: float = fitted.TWIN_OVERLAP_RATIO) -> bool:
     """Tell whether a twin's fitness is at least ``1 / ratio`` of the estimate's."""
     return fitness * ratio >= estimate_fitness
 
 
-def clear_of_free_space(violation: float, limit: float = TWIN_MAX_VIOLATION) -> bool:
+def clear_of_free_space(violation: float, limit: float = fitted.TWIN_MAX_VIOLATION) -> bool:
     """Tell whether a twin stacks few enough surfaces in free space (NaN: not measured)."""
     return not violation > limit
 
