@@ -72,6 +72,7 @@ def _is_study(name: str) -> bool:
     return name == STUDIES or name.startswith(f'{STUDIES}.')
 
 
+@pytest.mark.source_only
 def test_every_module_is_found():
     assert {'bench.common', 'bench.core', 'bench.ab_core', 'bench.pipeline',
             'bench.threedmatch', 'bench.datasets.threedmatch', 'bench.studies.fit',
@@ -92,6 +93,7 @@ def test_module_imports_as_a_package_module_and_its_command_parses(name, capsys)
         assert capsys.readouterr().out.startswith(f'usage: python -m {name} ')
 
 
+@pytest.mark.source_only
 @pytest.mark.parametrize('name', MODULES)
 def test_no_sys_path_edit(name):
     for node in ast.walk(_tree(name)):
@@ -101,6 +103,7 @@ def test_no_sys_path_edit(name):
     assert not [i for i in _imports(name) if i[:2] in (('sys', 'path'), ('site', 'addsitedir'))]
 
 
+@pytest.mark.source_only
 @pytest.mark.parametrize('name', MODULES)
 def test_only_the_public_api_of_cgags_ros(name):
     bound = set()
@@ -119,6 +122,7 @@ def test_only_the_public_api_of_cgags_ros(name):
                 f'{name}:{node.lineno} reads {node.value.id}.{node.attr}')
 
 
+@pytest.mark.source_only
 def test_no_import_cycle_among_bench_modules():
     graph = {name: _bench_edges(name) for name in MODULES}
     # The checker sees real edges, function-level ones included.
@@ -131,6 +135,7 @@ def test_no_import_cycle_among_bench_modules():
         pytest.fail(f'import cycle in bench/: {" -> ".join(exc.args[1])}')
 
 
+@pytest.mark.source_only
 def test_the_package_ships_no_benchmark_data():
     package = Path(cgags_ros.__file__).resolve().parent
     for name in BENCH_ONLY:
@@ -138,6 +143,7 @@ def test_the_package_ships_no_benchmark_data():
         assert (BENCH / 'datasets' / name).is_file()
 
 
+@pytest.mark.source_only
 def test_commands_and_paths_of_readme_and_docs_exist():
     texts = {path: path.read_text(encoding='utf-8')
              for path in [REPO / 'README.md', *sorted((REPO / 'docs').glob('*.md'))]}
@@ -158,6 +164,7 @@ def test_the_studies_package_lists_every_study():
             assert f':mod:`.{name.rpartition(".")[2]}`' in listed, f'{STUDIES} omits {name}'
 
 
+@pytest.mark.source_only
 def test_no_other_bench_module_imports_a_study():
     """The tools stay whole without the lab notebook; a study may import a tool."""
     for name in MODULES:
@@ -165,6 +172,7 @@ def test_no_other_bench_module_imports_a_study():
             assert not [m for m in _bench_edges(name) if _is_study(m)], f'{name} imports a study'
 
 
+@pytest.mark.source_only
 def test_no_test_imports_a_study():
     """A test checks what ships, in the package; a study's code is not what ships."""
     for path in sorted((REPO / 'test').rglob('*.py')):

@@ -24,6 +24,7 @@ import tokenize
 
 import pytest
 
+pytestmark = pytest.mark.source_only
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = REPO / 'cgags_ros'
 

@@ -33,6 +33,7 @@ ROS_NAMES = [
     'output.publish_aligned_cloud', 'output.broadcast_tf', 'output.diagnostics_period']
 
 
+@pytest.mark.source_only
 def test_checked_in_yaml_and_docs_are_the_generated_ones():
     assert YAML.read_text(encoding='utf-8') == ros_parameters_yaml(), (
         'config/register_node.yaml is stale; regenerate it with '

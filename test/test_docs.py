@@ -27,6 +27,7 @@ import re
 import pytest
 from test_comments import normalized, PATTERNS
 
+pytestmark = pytest.mark.source_only
 REPO = Path(__file__).resolve().parents[1]
 PAGES = sorted((REPO / 'docs').glob('*.md'))
 NOTES = sorted((REPO / 'docs' / 'notes').glob('*.md'))

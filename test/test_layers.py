@@ -104,11 +104,13 @@ def layer(name: str) -> tuple[int, str]:
 GRAPH = {name: imports(name, path) for name, path in modules().items()}
 
 
+@pytest.mark.source_only
 def test_every_module_has_a_layer():
     for name in GRAPH:
         assert name == 'cgags_ros' or name.split('.')[1] in LAYERS, name
 
 
+@pytest.mark.source_only
 @pytest.mark.parametrize('name', sorted(GRAPH))
 def test_imports_run_one_way(name):
     level, part = layer(name)
@@ -119,6 +121,7 @@ def test_imports_run_one_way(name):
             'tools -> ros -> pipeline -> frontend/registration -> geometry/config/io')
 
 
+@pytest.mark.source_only
 def test_no_import_cycle():
     graph = {name: ours for name, (ours, _) in GRAPH.items()}
     state: dict[str, int] = {}
@@ -136,6 +139,7 @@ def test_no_import_cycle():
         visit(name, [])
 
 
+@pytest.mark.source_only
 def test_only_ros_imports_ros_and_the_core_stays_numpy_scipy():
     for name, (ours, theirs) in GRAPH.items():
         _, part = layer(name)
@@ -147,6 +151,7 @@ def test_only_ros_imports_ros_and_the_core_stays_numpy_scipy():
             assert not any(layer(o)[1] == 'frontend' for o in ours), name
 
 
+@pytest.mark.source_only
 def test_ros_is_wiring_only():
     """Every module of ros/ imports rclpy or a message package; ros/ stays small."""
     total = 0
@@ -177,6 +182,7 @@ def test_importing_the_package_sets_no_environment_and_the_entry_points_do():
     assert out == ['None', 'None', 'PASSIVE', '20']
 
 
+@pytest.mark.source_only
 def test_the_checker_sees_real_edges():
     # The checks above can only fail if the parser finds the imports: pin a few known ones.
     assert 'cgags_ros.registration.search' in GRAPH['cgags_ros.registration.cgags'][0]
@@ -188,6 +194,7 @@ def test_the_checker_sees_real_edges():
     assert 'cgags_ros.pipeline.map' in GRAPH['cgags_ros.runtime.process'][0]
 
 
+@pytest.mark.source_only
 def test_no_module_holds_two_ideas_by_its_length():
     long = {name: n for name, path in modules().items()
             if (n := len(path.read_text(encoding='utf-8').splitlines())) > MODULE_MAX_LINES}

@@ -60,6 +60,7 @@ def _tool_commands() -> list[list[str]]:
     return [words for words in _shell_commands() if words[0] in PARSERS]
 
 
+@pytest.mark.source_only
 def test_readme_is_short_and_free_of_run_by_run_figures():
     text = _text()
     assert len(text.splitlines()) <= 150
@@ -88,6 +89,7 @@ def test_ros_parameters_of_readme_exist_and_are_accepted():
         configs_from_parameters({name: yaml.safe_load(value)})
 
 
+@pytest.mark.source_only
 def test_ros2_run_names_the_installed_executable():
     runs = [words for words in _shell_commands()
             if words[:2] == ['ros2', 'run'] and len(words) > 2]
@@ -125,5 +127,6 @@ def test_register_command_runs_on_the_fixture(monkeypatch, capsys):
     assert translation_error(T, _ground_truth()) < MAX_TE_M
 
 
+@pytest.mark.source_only
 def test_readme_links_resolve():
     assert broken_links(README) == []
