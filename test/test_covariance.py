@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from cgags_ros.pipeline.covariance import (FLOOR_POSITION, overlap_covariance, pose_covariance,
-                                           with_confidence, WRONG_POSITION, WRONG_ROTATION)
+from cgags_ros.fitted import COVARIANCE_FLOOR_POSITION, WRONG_POSITION, WRONG_ROTATION
+from cgags_ros.pipeline.covariance import overlap_covariance, pose_covariance, with_confidence
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -163,7 +163,7 @@ def test_overlap_covariance_opens_along_the_motion_the_overlap_leaves_weak():
         assert np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
         sd[block] = np.sqrt(np.diag(cov))
         # The floor: no position sigma below it, whatever the fit.
-        assert np.all(sd[block][:3] >= FLOOR_POSITION * 0.05 * (1 - 1e-9))
+        assert np.all(sd[block][:3] >= COVARIANCE_FLOOR_POSITION * 0.05 * (1 - 1e-9))
     assert sd[0.1][0] > 1.5 * sd[1.0][0]
     np.testing.assert_allclose(sd[0.1][1:], sd[1.0][1:], rtol=0.2)
     # With nothing at all to fix x the information is singular: the pose is unknown.

@@ -108,7 +108,8 @@ def overlap_covariance(source: np.ndarray, target: np.ndarray, target_normals: n
     - a floor no fit goes below: ``FLOOR_POSITION`` voxels on each position axis, and on
       each rotation axis the angle that moves a point at the overlap's RMS radius (about
       its centroid) by ``FLOOR_ROTATION`` voxels: the voxel grid and the surfaces' own
-      noise bound what any alignment can resolve;
+      noise bound what any alignment can resolve (the four numbers are
+      :mod:`cgags_ros.fitted`'s ``COVARIANCE_*``);
     - ``gravity`` (4-DoF): the yaw-only information ``B^T H B`` as in
       :func:`pose_covariance`, the floor on yaw only.
 
@@ -166,13 +167,13 @@ def with_confidence(cov: np.ndarray, confidence: float) -> np.ndarray:
 
     A right pose errs as ``cov`` says; a wrong one (a slide along a wall, a turn a
     near-symmetric room allows) by far more, with the spread ``W = diag(WRONG_POSITION^2 I,
-    WRONG_ROTATION^2 I)``. With ``q`` the chance of a wrong pose the mixture's second moment
-    is ``cov + q W``: a pose the pipeline is sure of keeps its ellipsoid, one it calls valid
-    with less to spare opens, so that the error of the wrong ones among them lies inside it
-    rather than far outside. ``q = (1 - confidence)^DOUBT_EXPONENT``: the confidence is
-    cautious at its top (estimates near 1 are right more often than it says), so the chance
-    of a wrong pose falls faster than ``1 - confidence``. ``confidence`` 0 (no estimate)
-    opens it by the whole of ``W``.
+    WRONG_ROTATION^2 I)`` (these numbers and ``DOUBT_EXPONENT``: :mod:`cgags_ros.fitted`). With
+    ``q`` the chance of a wrong pose the mixture's second moment is ``cov + q W``: a pose the
+    pipeline is sure of keeps its ellipsoid, one it calls valid with less to spare opens, so
+    that the error of the wrong ones among them lies inside it rather than far outside. ``q =
+    (1 - confidence)^DOUBT_EXPONENT``: the confidence is cautious at its top (estimates near 1
+    are right more often than it says), so the chance of a wrong pose falls faster than ``1 -
+    confidence``. ``confidence`` 0 (no estimate) opens it by the whole of ``W``.
     """
     W = np.diag([fitted.WRONG_POSITION ** 2] * 3 + [fitted.WRONG_ROTATION ** 2] * 3)
     doubt = (1.0 - min(max(confidence, 0.0), 1.0)) ** fitted.DOUBT_EXPONENT
