@@ -48,7 +48,7 @@ DOCUMENTED = {'bunny': 0.0024, 'redkitchen': 0.05, 'lidar': 0.3}  # metres, READ
 
 def motion(bag: str) -> np.ndarray:
     """
-    Return the rigid motion (4x4) :func:`moved_bag` moves ``bag``'s clouds by.
+    Return the rigid 4x4 transform :func:`moved_bag` moves ``bag``'s clouds by.
 
     The translation is a hundred documented voxels, so that it is far on every bag's scale;
     it is where the sensor sits in every moved cloud's frame.
