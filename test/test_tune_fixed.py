@@ -122,9 +122,7 @@ def test_fixed_settings_no_trial_could_run_with_fail_before_any_trial(
              (['--set', 'voxel_size=-1'], 'voxel_size'),
              (['--set', 'map.file=map.ply'], 'not a map'),
              (['--set', 'mode=calibrate'], 'calibrate'),
-             (['--set', 'voxel_size=0.01', '--voxel-size', '0.02'], 'give one of them'),
-             (['--set', 'frontend.source_sensor=[0, 0, 1]', '--live'], '--live sets'),
-             (['--set', 'pairing.mode=synchronized', '--live'], 'read-only')]
+             (['--set', 'voxel_size=0.01', '--voxel-size', '0.02'], 'give one of them')]
     for argv, message in cases:
         code = tune.main([str(a) for a in [bunny, '--output', out, *argv]])
         err = capsys.readouterr().err.strip()
@@ -133,6 +131,11 @@ def test_fixed_settings_no_trial_could_run_with_fail_before_any_trial(
     assert not out.exists()
     with pytest.raises(InvalidConfigError, match='config_file'):
         tune_fixed.check({'config_file': 'x.yaml'}, live=False, voxel_size=None)
+    # Tuning a running node, only what it takes at run time: no sensor, nothing read-only.
+    for key, value in (('frontend.source_sensor', [0, 0, 1]), ('pairing.mode', 'synchronized')):
+        with pytest.raises(InvalidConfigError, match=f'{key} cannot be'):
+            tune.Options(bags=[bunny], live=True, fixed={key: value}).check()
+    tune.Options(bags=[bunny], live=True, fixed={ORIENTATION: 'centroid'}).check()
 
 
 @pytest.mark.slow
