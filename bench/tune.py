@@ -4,7 +4,8 @@ r"""
 Run by hand from the repository root, nothing else running (minutes a start)::
 
     .venv/bin/python -m bench.tune [--bags bunny lidar redkitchen] [--trials 30] \
-        [--factors 10 0.1] [--moved] [--consistency] [--live] [--output out/bench/tune]
+        [--factors 10 0.1] [--moved [--sensors]] [--consistency] [--live] \
+        [--output out/bench/tune]
 
 For every bag and start (the documented voxel size of the bag, the one ``cgags-demo``
 chooses, times each factor) it runs ``cgags-tune`` in a fresh study (seed 0, hold-out 0.3,
@@ -17,7 +18,11 @@ reached the best tuned-on score.
 (:func:`moved_bag`, written to ``<output>/bags``): the free-space gate then refuses right
 poses on the defaults, and the tuning must find the documented fix. For every bag the
 defaults (the documented voxel, nothing else) are replayed too, with their free-space
-refusals counted.
+refusals counted. ``--sensors`` tunes the moved copies alone, with the sensors' positions
+fixed (``cgags-tune --set frontend.source_sensor=... --set frontend.target_sensor=...``: the
+motion's translation, where the sensor sits in every moved cloud's frame); their defaults
+are then the documented voxel with those positions. The unmoved bags need no position: their
+sensors sit at their clouds' origins, the default.
 
 ``--consistency`` tunes without the ground truth (``--ignore-ground-truth``: pairs judged
 by consistency), the replay still judging against it. ``--live`` also replays the bag
@@ -32,6 +37,7 @@ import os
 from pathlib import Path
 import subprocess
 import sys
+from typing import Sequence
 
 from bench.common import argument_parser, LIMITS, markdown_table
 from cgags_ros.io.shared_data import shared_data_dir
@@ -40,23 +46,40 @@ import numpy as np
 DOCUMENTED = {'bunny': 0.0024, 'redkitchen': 0.05, 'lidar': 0.3}  # metres, README's table
 
 
-def moved_bag(bag: str, path: Path) -> Path:
+def motion(bag: str) -> np.ndarray:
     """
-    Write ``bag`` with every cloud moved by one rigid motion (its ground truth moved with it).
+    Return the rigid 4x4 transform :func:`moved_bag` moves ``bag``'s clouds by.
 
-    As a tool that re-centres clouds would: the sensor is no longer at the clouds' origin.
-    The translation is a hundred documented voxels, so that it is far on every bag's scale.
+    The translation is a hundred documented voxels, so that it is far on every bag's scale;
+    it is where the sensor sits in every moved cloud's frame.
     """
     from scipy.spatial.transform import Rotation
 
-    from cgags_ros.geometry import apply_transform, make_transform
+    from cgags_ros.geometry import make_transform
+
+    return make_transform(Rotation.from_euler('xyz', [70, -40, 120], degrees=True).as_matrix(),
+                          100 * DOCUMENTED[bag] * np.array([1.6, -1.2, 1.0]))
+
+
+def sensor_settings(bag: str) -> list[str]:
+    """Return the ``--set`` items that fix both sensors' positions in ``bag``'s moved copy."""
+    position = [float(c) for c in motion(bag)[:3, 3]]
+    return [f'frontend.{role}_sensor={position}' for role in ('source', 'target')]
+
+
+def moved_bag(bag: str, path: Path) -> Path:
+    """
+    Write ``bag`` with every cloud moved by :func:`motion` (its ground truth moved with it).
+
+    As a tool that re-centres clouds would: the sensor is no longer at the clouds' origin.
+    """
+    from cgags_ros.geometry import apply_transform
     from cgags_ros.io.bag import read_messages, write_bag
     from cgags_ros.io.pointcloud2 import pointcloud2_to_xyz, pose_to_transform
 
     if path.exists():
         return path
-    moved = make_transform(Rotation.from_euler('xyz', [70, -40, 120], degrees=True).as_matrix(),
-                           100 * DOCUMENTED[bag] * np.array([1.6, -1.2, 1.0]))
+    moved = motion(bag)
     messages = []
     for rec in read_messages(shared_data_dir() / 'bags' / bag,
                              ['/source_cloud', '/target_cloud', '/ground_truth']):
@@ -74,14 +97,16 @@ def moved_bag(bag: str, path: Path) -> Path:
     return path
 
 
-def run_start(bag: Path, voxel: float, trials: int, out: Path, consistency: bool) -> dict:
+def run_start(bag: Path, voxel: float, trials: int, out: Path, consistency: bool,
+              fixed: Sequence[str] = ()) -> dict:
     """Run ``cgags-tune`` on ``bag`` from ``voxel`` in a fresh study; return its summary."""
     max_re, max_te = LIMITS[_kind(bag)]
     (out / 'study.db').unlink(missing_ok=True)
     subprocess.run([sys.executable, '-m', 'cgags_ros.tools.tune', str(bag),
                     '--voxel-size', f'{voxel:g}', '--trials', str(trials), '--output', str(out),
                     '--quiet', '--max-re-deg', str(max_re), '--max-te', str(max_te)]
-                   + (['--ignore-ground-truth'] if consistency else []), check=True)
+                   + (['--ignore-ground-truth'] if consistency else [])
+                   + [arg for item in fixed for arg in ('--set', item)], check=True)
     return json.loads((out / 'summary.json').read_text(encoding='utf-8'))
 
 
@@ -110,6 +135,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--factors', type=float, nargs='+', default=[10.0, 0.1])
     parser.add_argument('--moved', action='store_true',
                         help="also each bag's clouds moved out of their sensor frame")
+    parser.add_argument('--sensors', action='store_true',
+                        help="only the moved copies, the sensors' positions fixed (cgags-tune "
+                        '--set frontend.source_sensor/target_sensor)')
     parser.add_argument('--consistency', action='store_true',
                         help='tune without the ground truth (judged by consistency)')
     parser.add_argument('--live', action='store_true',
@@ -119,18 +147,21 @@ def main(argv: list[str] | None = None) -> int:
     if args.live:
         os.environ.update(ROS_DOMAIN_ID='43', ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
     bags = [shared_data_dir() / 'bags' / bag for bag in args.bags]
-    if args.moved:  # first: they need the fix the defaults lack
+    if args.moved or args.sensors:  # first: they need the fix the defaults lack
         bags = [moved_bag(bag, args.output / 'bags' / f'{bag}_moved')
-                for bag in args.bags] + bags
+                for bag in args.bags] + ([] if args.sensors else bags)
+    suffix = '_consistency' * args.consistency + '_sensors' * args.sensors
     rows = []
     for bag in bags:
         voxel = DOCUMENTED[_kind(bag)]
-        right, wrong, pairs, free = replay_params(bag, ['--voxel-size', f'{voxel:g}'],
-                                                  args.output / f'{bag.name}_defaults', False)
+        fixed = sensor_settings(_kind(bag)) if args.sensors else []
+        right, wrong, pairs, free = replay_params(
+            bag, ['--voxel-size', f'{voxel:g}'] + [a for s in fixed for a in ('--set', s)],
+            args.output / f'{bag.name}_defaults{suffix}', False)
         defaults = f'{right}/{pairs}, {wrong} wrong, {free} free space'
         for factor in args.factors:
-            out = args.output / f"{bag.name}_x{factor:g}{'_consistency' * args.consistency}"
-            summary = run_start(bag, voxel * factor, args.trials, out, args.consistency)
+            out = args.output / f'{bag.name}_x{factor:g}{suffix}'
+            summary = run_start(bag, voxel * factor, args.trials, out, args.consistency, fixed)
             params = ['--config', str(out / 'params.yaml')]
             right, wrong, pairs, free = replay_params(bag, params, out / 'replay', live=False)
             live = (replay_params(bag, params, out / 'replay_live', live=True)

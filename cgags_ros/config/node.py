@@ -341,5 +341,5 @@ def calibration_config(pipeline: PipelineConfig, config_file: str) -> Calibratio
 
 
 def ros_value(value: Any) -> Any:
-    """Return a configuration value as a ROS parameter value (a vector as a list)."""
-    return list(value) if isinstance(value, tuple) else value
+    """Return a configuration value as a ROS parameter value (a vector as a new list)."""
+    return list(value) if isinstance(value, (tuple, list)) else value

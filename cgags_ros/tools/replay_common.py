@@ -20,7 +20,7 @@ import numpy as np
 from .report import (BagReport, BrokenMessage, PairRow, pairs_table, SuccessCriteria,
                      summary_line, write_results)
 from ..config import fields
-from ..config.node import configs_from_parameters, NodeConfig, ros_value
+from ..config.node import config_file_keys, configs_from_parameters, NodeConfig, ros_value
 from ..config.pipeline import load_yaml, PipelineConfig
 from ..engine.pairing import Pair, Pairer
 from ..errors import CgagsError, InvalidInputError
@@ -154,13 +154,26 @@ def user_parameters(config_file: str | None, sets: Sequence[str], voxel_size: fl
     """Merge the node/pipeline parameters in priority order: YAML < --set < explicit flags."""
     values: dict[str, Any] = {}
     if config_file:
-        values.update(fields.flatten_mapping(load_yaml(config_file)))
+        values.update(config_keys(config_file))
     values.update(fields.parse_key_values(sets))
     if voxel_size is not None:
         values['voxel_size'] = voxel_size
     if pairing is not None:
         values['pairing.mode'] = pairing
     return values
+
+
+def config_keys(path: str | Path) -> dict[str, Any]:
+    """
+    Return the flat keys of a ``--config`` file, read as the node reads a parameters file.
+
+    A ``config_file`` it names is read first and the file's own keys replace its values, so
+    a ``params.yaml`` whose keys that are no ROS parameters sit in its ``config_file`` (as
+    ``cgags-tune`` writes them) configures a replay as it configures the node.
+    """
+    values = fields.flatten_mapping(load_yaml(path))
+    named = values.pop('config_file', '')
+    return {**config_file_keys(named), **values} if named else values
 
 
 def resolve_configs(values: dict[str, Any], contents: BagContents

@@ -3,10 +3,11 @@
 
 ::
 
-    cgags-tune BAG [BAG ...] [--voxel-size V0] [--trials N] [--seed S] [--holdout 0.3]
-               [--max-wrong 0] [--output DIR] [--storage URL] [--resume] [--jobs N]
-               [--ground-truth FILE] [--source-topic T] [--target-topic T]
-               [--ground-truth-topic T] [--live [--node /register_node]]
+    cgags-tune BAG [BAG ...] [--voxel-size V0] [--config FILE] [--set KEY=VALUE ...]
+               [--trials N] [--seed S] [--holdout 0.3] [--max-wrong 0] [--output DIR]
+               [--storage URL] [--resume] [--jobs N] [--ground-truth FILE]
+               [--source-topic T] [--target-topic T] [--ground-truth-topic T]
+               [--live [--node /register_node]]
 
 Replays every pair of the bags (paired as the node pairs them, the topics as in
 ``cgags-replay``) once a trial with Optuna's seeded TPE sampler choosing the settings
@@ -20,7 +21,9 @@ qw``), or by their consistency when the bags have none, and writes to DIR (defau
   ros__parameters:``), for ``--ros-args --params-file``, ``ros2 param load`` and
   ``cgags-replay --config``; every searched setting is a ROS parameter of the node. Ties
   are broken on every pair, and settings worse than the defaults on the held-out pairs are
-  not written without a warning (:mod:`.tune_choice`);
+  not written without a warning (:mod:`.tune_choice`). The settings fixed with
+  ``--config``/``--set`` are written too; those that are no ROS parameters (the sensors'
+  positions) in ``config.yaml``, which ``params.yaml`` names as ``config_file``;
 - ``report.md``: the best trial against the defaults on the pairs tuned on and on the
   held-out ones (pairs right and valid, valid but wrong, median seconds a pair), a warning
   when the held-out pairs fare worse than noise allows, and every trial;
@@ -33,6 +36,11 @@ after the arguments that define it, so a run with other arguments starts its own
 ``--resume`` continues a stopped study up to ``--trials`` trials, without repeating one.
 ``--jobs N`` runs the trials in N processes on that storage (then the trials' order, and so
 the proposals, depend on timing: a seed no longer replays them).
+
+``--config FILE`` (read as ``cgags-replay --config`` reads it) and ``--set KEY=VALUE``
+fix settings: every trial runs with them, the start included, and none is searched
+(:mod:`.tune_fixed`); e.g. ``frontend.source_sensor`` and ``frontend.target_sensor`` for
+clouds not in their sensor's frame, which no tuner can guess (docs/frames.md).
 
 ``--live`` tunes a running ``register_node`` instead (:mod:`.tune_live`): each trial sets
 the node's parameters through its parameter services and replays the bags through it; the
@@ -49,9 +57,11 @@ from pathlib import Path
 import sys
 from typing import Any, Sequence
 
+from . import tune_fixed
 from .cli import Parser, run_cli
-from .replay_common import DEFAULT_GT_TOPIC, ReplayError
+from .replay_common import DEFAULT_GT_TOPIC, ReplayError, user_parameters
 from .tune_study import prepare, search, SQLITE
+from ..config.node import ros_value
 from ..errors import InvalidConfigError
 
 PROG = 'cgags-tune'
@@ -67,6 +77,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--voxel-size', type=float, default=None,
                    help='metres: where the search starts (default: chosen from the first '
                    'target cloud, as cgags-replay chooses it)')
+    p.add_argument('--config', default=None, metavar='FILE',
+                   help='settings fixed in every trial and never searched: YAML of node/'
+                   'pipeline keys, as cgags-replay --config reads it (ROS format or a plain '
+                   "mapping), e.g. the sensors' positions of clouds not in their sensor frame")
+    p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
+                   help='fix one setting (repeatable, over --config), e.g. --set '
+                   "'frontend.source_sensor=[0.1, 0, 0.3]'")
     p.add_argument('--trials', type=int, default=30, help='distinct settings scored, the '
                    'start included (default: 30)')
     p.add_argument('--seed', type=int, default=0, help='sampler and hold-out seed')
@@ -134,9 +151,10 @@ class Options:
     live: bool = False
     node: str = '/register_node'
     timeout: float = 60.0
+    fixed: dict[str, Any] = dataclasses.field(default_factory=dict)  # --config, --set
 
     def check(self) -> None:
-        """Raise InvalidConfigError for options out of range."""
+        """Raise InvalidConfigError for options out of range, or fixed settings (tune_fixed)."""
         if self.trials < 1:
             raise InvalidConfigError(f'--trials must be >= 1, got {self.trials}')
         if not 0.0 <= self.holdout < 1.0:
@@ -152,6 +170,7 @@ class Options:
                                      '(--jobs 1)')
         if not self.timeout > 0:
             raise InvalidConfigError(f'--timeout must be > 0, got {self.timeout}')
+        tune_fixed.check(self.fixed, self.live, self.voxel_size)
 
     @property
     def name(self) -> str:
@@ -168,6 +187,8 @@ class Options:
                     self.source_topic, self.target_topic, self.ground_truth_topic,
                     self.ignore_ground_truth, self.max_re_deg, self.max_te, self.live,
                     self.node if self.live else None]
+        if self.fixed:  # only then: the studies of earlier runs keep their names
+            defining.append(sorted(self.fixed.items()))
         digest = hashlib.sha1(json.dumps(defining).encode()).hexdigest()[:10]
         return f'{self.name}-{digest}'
 
@@ -199,6 +220,7 @@ class Outcome:
     written: dict[str, Any] = dataclasses.field(default_factory=dict)
     guard: str = ''  # why the written settings are not the best trial's, or ''
     stages: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+    fixed: dict[str, Any] = dataclasses.field(default_factory=dict)  # by the user: every trial
 
 
 def tune(opts: Options) -> Outcome:
@@ -215,7 +237,6 @@ def _finish(setup: Any, opts: Options) -> Outcome:
     """Choose the settings to write (:mod:`.tune_choice`) and write the outputs."""
     import optuna
 
-    from . import tuning
     from .tune_choice import choose, score_of
     from .tune_report import holdout_warning, plot_trials, report_markdown
 
@@ -240,21 +261,26 @@ def _finish(setup: Any, opts: Options) -> Outcome:
         notes.append(f'{setup.trials.lost} pair(s) got no result from the node (lost by DDS '
                      'or later than --timeout) and counted as not right: while tuning, start '
                      'the node with pairing.source_qos:=reliable (docs/tuning.md)')
+    if opts.fixed:
+        notes.insert(0, tune_fixed.note(opts.fixed))
     out = opts.out_dir
     out.mkdir(parents=True, exist_ok=True)
     comment = (f'cgags-tune {" ".join(map(str, opts.bags))}: {len(scored)} trials, seed '
                f'{opts.seed}; report.md beside this file')
+    if opts.fixed:
+        comment += f"\nfixed by the user: {', '.join(sorted(opts.fixed))}"
     if choice.guard:
         comment += f'\nWARNING: {choice.guard}'
-    paths = {'params': out / 'params.yaml', 'report': out / 'report.md',
-             'plot': out / 'trials.png', 'summary': out / 'summary.json'}
-    paths['params'].write_text(tuning.params_yaml(choice.written, comment), encoding='utf-8')
+    paths = tune_fixed.write_params(out, choice.written, opts.fixed, comment)
+    paths.update({'report': out / 'report.md', 'plot': out / 'trials.png',
+                  'summary': out / 'summary.json'})
     outcome = Outcome(choice.best, choice.defaults, scores, rows, warning, paths, notes,
-                      choice.written, choice.guard, stages)
+                      choice.written, choice.guard, stages, dict(opts.fixed))
     report = report_markdown(opts.bags, choice, scores, rows, notes)
     paths['report'].write_text(report, encoding='utf-8')
     paths['summary'].write_text(json.dumps({
         'best': choice.best, 'written': choice.written, 'defaults': choice.defaults,
+        'fixed': {k: ros_value(v) for k, v in opts.fixed.items()},
         'warning': warning, 'guard': choice.guard, 'notes': notes, 'stages': stages,
         'trials': rows,
         'scores': [{'settings': name, 'split': split, **dataclasses.asdict(score)}
@@ -288,9 +314,14 @@ def _trial_row(trial: Any) -> dict[str, Any]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``cgags-tune``."""
-    args = build_parser().parse_args(argv)
-    opts = Options(**vars(args))
-    return run_cli(PROG, lambda: (tune(opts), 0)[1])
+    args = vars(build_parser().parse_args(argv))
+    config, sets = args.pop('config'), args.pop('set')
+
+    def body() -> int:
+        tune(Options(**args, fixed=user_parameters(config, sets, None, None)))
+        return 0
+
+    return run_cli(PROG, body)
 
 
 if __name__ == '__main__':

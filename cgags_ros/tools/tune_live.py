@@ -21,7 +21,8 @@ read for its pairs: each bag is read once a run.
 What "defaults" means here: the node's values of the searched settings before the first
 trial. A setting a trial does not search (the space grows as the study goes,
 :mod:`.tune_search`) is set back to that value, so no trial inherits the one before's.
-When the study ends, the node is left on the settings written.
+When the study ends, the node is left on the settings written. The settings the user
+fixed (:mod:`.tune_fixed`: runtime ROS parameters only) are set with every trial.
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ class LiveTrials:
                  contents: list[tuple[str, Any]]):
         """Connect to ``opts.node``; ``contents`` are the bags as read for the pairs."""
         self.splits, self.criteria, self.timeout = splits, criteria, opts.timeout
+        self.fixed = dict(opts.fixed)
         self.bags = []  # (name, playable clouds, source stamps to wait for after their target)
         for name, bag in contents:
             _, node = configs_from_parameters({})
@@ -62,7 +64,8 @@ class LiveTrials:
                                    opts.node.lstrip('/'), min(n_sources, MAX_QUEUE))
         try:
             self._connect(opts)
-            names = ['voxel_size'] + [name for name, _ in tuning.FIXES.values()]
+            names = [name for name in ['voxel_size'] + [n for n, _ in tuning.FIXES.values()]
+                     if name not in self.fixed]
             values = self.session.get_parameters(names, SERVICE_TIMEOUT_S)
             self.initial = {k: v for k, v in values.items() if v is not None}  # None: unset
         except BaseException:
@@ -93,7 +96,7 @@ class LiveTrials:
 
         :raises SettingRefused: the node refused a setting (its reasons).
         """
-        self._set({**self.initial, **settings})  # a setting not searched yet: the node's own
+        self._set({**self.initial, **settings, **self.fixed})  # not searched: the node's own
         results = {}
         for name, clouds, paired in self.bags:
             for stamp, result in self._play(clouds, paired).items():
@@ -110,7 +113,7 @@ class LiveTrials:
 
     def leave_on(self, best: dict[str, Any]) -> None:
         """Leave the node on the best settings."""
-        self._set({**self.initial, **best})
+        self._set({**self.initial, **best, **self.fixed})
 
     def close(self) -> None:
         """Leave the node (running, on whatever was set last) and close the player."""

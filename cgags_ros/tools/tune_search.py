@@ -1,14 +1,15 @@
 """
 How a ``cgags-tune`` study runs its trials: a space that follows the refusals, no repeats.
 
-**Stages.** The space starts as ``voxel_size`` alone. After every scored trial (trial 0,
-the start, first), the refusals of the best trials so far (every trial at the best
-tuned-on score) are read: a setting that docs/refusals.md names as their fix
-(:data:`.tuning.FIXES`) and that is not searched yet is opened, and its other choices are
-tried next on the fastest best trial that was refused so. Each such step is a stage, and
-the study records it (its user attribute ``stages``: the trial, its refusals, what it
-opened). A bag whose start registers nothing, so refuses nothing for free space, still
-reaches ``frontend.normal_orientation`` once a better voxel shows free-space refusals.
+**Stages.** The space starts as ``voxel_size`` alone (nothing when the user fixed it).
+After every scored trial (trial 0, the start, first), the refusals of the best trials so
+far (every trial at the best tuned-on score) are read: a setting that docs/refusals.md
+names as their fix (:data:`.tuning.FIXES`), that the user did not fix, and that is not
+searched yet is opened, and its other choices are tried next on the fastest best trial
+that was refused so. Each such step is a stage, and the study records it (its user
+attribute ``stages``: the trial, its refusals, what it opened). A bag whose start
+registers nothing, so refuses nothing for free space, still reaches
+``frontend.normal_orientation`` once a better voxel shows free-space refusals.
 
 **Repeats.** On a grid the sampler often proposes settings tried before. Such a proposal
 is recorded (its score read back, ``repeat_of``) but not replayed, and it does not count
@@ -33,10 +34,10 @@ def stored_space(study: Any) -> dict[str, tuple]:
 
 
 def distributions(grid: list[float], space: dict[str, tuple]) -> dict[str, Any]:
-    """Return the Optuna distributions of the voxel grid and ``space``."""
+    """Return the Optuna distributions of the voxel grid (none when empty) and ``space``."""
     from optuna.distributions import CategoricalDistribution
 
-    return {'voxel_size': CategoricalDistribution(grid),
+    return {**({'voxel_size': CategoricalDistribution(grid)} if grid else {}),
             **{name: CategoricalDistribution(list(c)) for name, c in space.items()}}
 
 
@@ -89,13 +90,15 @@ def nearest_untried(setup: Any, study: Any, params: dict[str, Any]) -> dict[str,
     want = filled(setup.trials, params)
     best, best_key = None, None
     names = list(space)
-    for values in itertools.product(setup.grid, *space.values()):
-        candidate = dict(zip(['voxel_size'] + names, values))
+    axes = {**({'voxel_size': setup.grid} if setup.grid else {}), **space}
+    for values in itertools.product(*axes.values()):
+        candidate = dict(zip(axes, values))
         full = filled(setup.trials, candidate)
         if full in tried:
             continue
         key = (sum(full[n] != want[n] for n in names),
-               abs(math.log(candidate['voxel_size'] / want['voxel_size'])))
+               abs(math.log(candidate['voxel_size'] / want['voxel_size'])) if setup.grid
+               else 0.0)
         if best_key is None or key < best_key:
             best, best_key = candidate, key
     return best
@@ -113,7 +116,8 @@ def open_stages(setup: Any, study: Any) -> list[dict[str, Any]]:
     opened: dict[int, list[str]] = {}
     anchors = {}
     for trial in best:
-        for name, choices in tuning.search_space(trial.user_attrs['refusals']).items():
+        for name, choices in tuning.search_space(trial.user_attrs['refusals'],
+                                                 setup.fixed).items():
             if name not in space:
                 space[name] = choices
                 opened.setdefault(trial.number, []).append(name)

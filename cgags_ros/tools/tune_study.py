@@ -4,7 +4,9 @@ A ``cgags-tune`` study: its pairs, its storage, and its first trial.
 :func:`prepare` loads the bags' pairs (each bag read once, live too), splits off the
 held-out ones and opens the study in its storage; every process of a study calls it. The
 first process of a new study replays the start once, records it as trial 0, queues the
-automatic choice, and opens the space the start's refusals call for. :func:`search` runs
+automatic choice, and opens the space the start's refusals call for. The settings the user
+fixed (:mod:`.tune_fixed`) apply to every trial and are never searched; a fixed
+``voxel_size`` leaves the voxel out of the space (an empty grid). :func:`search` runs
 the rest (:mod:`.tune_search`), in ``--jobs`` processes on the study's storage. Trials run
 in this process (:class:`OfflineTrials`) or through a running node
 (:class:`~.tune_live.LiveTrials`).
@@ -38,24 +40,30 @@ class Setup:
     reference: float
     trials: Any  # OfflineTrials or tune_live.LiveTrials
     notes: list[str]
+    fixed: dict[str, Any] = dataclasses.field(default_factory=dict)  # by the user, never searched
 
 
 class OfflineTrials:
     """Trials replayed in this process, through the path ``cgags-replay`` takes."""
 
-    def __init__(self, splits: dict[str, list], criteria: Any, reference: float):
+    def __init__(self, splits: dict[str, list], criteria: Any, reference: float,
+                 fixed: dict[str, Any] | None = None):
         self.splits, self.criteria, self.reference = splits, criteria, reference
+        self.fixed = dict(fixed or {})
 
     def defaults(self) -> dict[str, Any]:
-        """Return the settings the user would run without tuning: the automatic voxel."""
-        return {'voxel_size': self.reference}
+        """Return the searched settings the user would run without tuning: the automatic voxel."""
+        return {} if 'voxel_size' in self.fixed else {'voxel_size': self.reference}
 
     def score(self, settings: dict[str, Any], splits: Sequence[str]) -> dict[str, Any]:
         """
         Replay the pairs of ``splits`` with ``settings``; return each split's score.
 
+        The fixed settings apply too (and win: the search never proposes one).
+
         :raises SettingRefused: a setting out of its range, as the node would refuse it.
         """
+        settings = {**settings, **self.fixed}
         try:
             return {name: tuning.replay(self.splits[name], settings, self.criteria)[0]
                     for name in splits if self.splits[name]}
@@ -99,7 +107,7 @@ def prepare(opts: Any, first: bool = True) -> Setup:
 
     opts.check()
     pairs, contents = tuning.load_bags(opts.bags, opts.source_topic, opts.target_topic,
-                                       opts.ground_truth_topic, opts.ground_truth)
+                                       opts.ground_truth_topic, opts.ground_truth, opts.fixed)
     if opts.ignore_ground_truth:
         pairs = [dataclasses.replace(p, truth=None) for p in pairs]
     tuned_on, held_out = tuning.holdout_split(pairs, opts.holdout, opts.seed)
@@ -114,8 +122,9 @@ def prepare(opts: Any, first: bool = True) -> Setup:
     reference = tuning.reference_voxel(pairs)
     start = opts.voxel_size or reference
     criteria = tuning.criteria_for(reference, opts.max_re_deg, opts.max_te)
-    grid = tuning.voxel_grid(reference, start)
-    start, automatic = (min(grid, key=lambda v: abs(math.log(v / x))) for x in (start, reference))
+    grid = [] if 'voxel_size' in opts.fixed else tuning.voxel_grid(reference, start)
+    start, automatic = (min(grid, key=lambda v: abs(math.log(v / x))) if grid else None
+                        for x in (start, reference))
     try:
         study = _open_study(opts)
     except Exception as exc:  # an unreachable database or a bad URL: what the user can fix
@@ -127,8 +136,8 @@ def prepare(opts: Any, first: bool = True) -> Setup:
 
         trials: Any = LiveTrials(opts, splits, criteria, contents)
     else:
-        trials = OfflineTrials(splits, criteria, reference)
-    setup = Setup(study, splits, criteria, grid, {}, reference, trials, notes)
+        trials = OfflineTrials(splits, criteria, reference, opts.fixed)
+    setup = Setup(study, splits, criteria, grid, {}, reference, trials, notes, dict(opts.fixed))
     if not first:
         setup.space = stored_space(study)
         return setup
@@ -144,12 +153,12 @@ def prepare(opts: Any, first: bool = True) -> Setup:
     return setup
 
 
-def _start(setup: Setup, opts: Any, start: float, automatic: float) -> None:
+def _start(setup: Setup, opts: Any, start: float | None, automatic: float | None) -> None:
     """Replay the start once as trial 0, queue the automatic choice, open stage 0."""
     import optuna
 
     study = setup.study
-    params = {'voxel_size': start}
+    params = {} if start is None else {'voxel_size': start}  # None: voxel_size fixed
     try:
         score = setup.trials.score(params, ('tuned on',))['tuned on']
     except SettingRefused as exc:

@@ -27,7 +27,8 @@ setting only where the bags' own refusals name it as the fix (docs/refusals.md):
 ``frontend.normal_orientation`` for free-space refusals (clouds not in their sensor frame),
 ``core.motion_model`` for tilt refusals (levelled clouds expected), ``core.time_budget``
 for pairs that ran into a timeout, each opened when the best trials so far are refused so
-(:mod:`.tune_search`). No research switch is searched.
+(:mod:`.tune_search`). No research switch is searched, nor a setting the user fixes
+(:mod:`.tune_fixed`): that one applies to every trial.
 
 Part of the pairs (``holdout``) is held out, chosen by a seeded shuffle: the search sees
 only the rest, and the best trial is then replayed on both, so that a setting that only
@@ -131,10 +132,13 @@ def load_pairs(bags: Sequence[Path], source_topic: str, target_topic: str,
 
 
 def load_bags(bags: Sequence[Path], source_topic: str, target_topic: str,
-              ground_truth_topic: str | None, ground_truth_file: Path | None = None
+              ground_truth_topic: str | None, ground_truth_file: Path | None = None,
+              fixed: dict[str, Any] | None = None
               ) -> tuple[list[TunePair], list[tuple[str, Any]]]:
     """
-    Return every pair of ``bags`` (as the node pairs them, defaults) and each bag's contents.
+    Return every pair of ``bags`` (as the node pairs them) and each bag's contents.
+
+    The pairing is the node's with the ``fixed`` settings (its defaults when None).
 
     The contents (``(name, BagContents)``, every cloud with its message) are what a live
     study plays to the node, so that each bag is read once.
@@ -161,7 +165,7 @@ def load_bags(bags: Sequence[Path], source_topic: str, target_topic: str,
         has_truth = ground_truth_file is not None or contents.ground_truth_topic is not None
         name = bag.stem if bag.suffix == '.mcap' else bag.resolve().name
         read.append((name, contents))
-        _, node = configs_from_parameters({})
+        _, node = configs_from_parameters(fixed or {})
         found = matched = 0
         for pair in iter_pairs(contents, Pairer.from_config(node.pairing)):
             src, tgt = pair.source.payload, pair.target.payload
@@ -256,10 +260,16 @@ def voxel_grid(reference: float, start: float | None) -> list[float]:
     return [v for v in grid if bounds['low'] <= v <= bounds['high']]  # what the node accepts
 
 
-def search_space(refusals: Iterable[str]) -> dict[str, tuple]:
-    """Return the settings beside ``voxel_size`` that the bags' refusal codes call for."""
+def search_space(refusals: Iterable[str], fixed: Iterable[str] = ()) -> dict[str, tuple]:
+    """
+    Return the settings beside ``voxel_size`` that the bags' refusal codes call for.
+
+    A setting the user ``fixed`` (its key) is never searched, whatever the refusals.
+    """
     codes = {RefusalCode(code) for code in refusals}
-    return {name: choices for code, (name, choices) in FIXES.items() if code in codes}
+    fixed = set(fixed)
+    return {name: choices for code, (name, choices) in FIXES.items()
+            if code in codes and name not in fixed}
 
 
 def replay(pairs: Sequence[TunePair], settings: dict[str, Any],
