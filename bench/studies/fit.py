@@ -76,7 +76,7 @@ def constants(gates: list[dict], records: list[dict]) -> dict:
     """
     Return ``{block: [(name, fit, shipped)]}`` of every number in :mod:`cgags_ros.fitted`.
 
-    ``gates``: gates-only records whose truth is not in doubt (:func:`trusted_records`);
+    ``gates``: gates-only records whose truth is not in doubt (:func:`.trust_shift.trusted`);
     ``records``: the covariance's (the same unless given).
     """
     chosen = trust_shift.shipped(gates)

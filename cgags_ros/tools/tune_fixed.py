@@ -65,7 +65,7 @@ def check(fixed: Mapping[str, Any], live: bool, voxel_size: float | None) -> Non
                 'config_file or --params-file) and leave them out of --config/--set')
 
 
-def config_keys(fixed: Mapping[str, Any]) -> dict[str, Any]:
+def non_ros_keys(fixed: Mapping[str, Any]) -> dict[str, Any]:
     """Return the fixed keys that are no ROS parameter of the node (its config_file's)."""
     meta = parameter_descriptions()
     return {k: v for k, v in fixed.items() if not meta[k]['ros']}
@@ -80,7 +80,7 @@ def write_params(out: Path, written: Mapping[str, Any], fixed: Mapping[str, Any]
     """
     import yaml
 
-    config = config_keys(fixed)
+    config = non_ros_keys(fixed)
     settings = {**{k: v for k, v in fixed.items() if k not in config}, **written}
     paths = {'params': out / 'params.yaml'}
     if config:
