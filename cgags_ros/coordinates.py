@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import InvalidInputError
+from .geometry import bounds
 
 # Metres from a cloud's centre beyond which its frame's origin cannot be the sensor that saw
 # it: past any LiDAR's or depth camera's range, far below georeferenced magnitudes.
@@ -53,7 +54,8 @@ def local_origin(points: np.ndarray, sensor: np.ndarray | None = None) -> np.nda
         return position
     if len(points) == 0:
         return np.zeros(3)
-    centre = 0.5 * (points.min(axis=0) + points.max(axis=0))
+    lower, upper = bounds(points)
+    centre = 0.5 * (lower + upper)
     return centre if np.linalg.norm(centre) > SENSOR_REACH else np.zeros(3)
 
 

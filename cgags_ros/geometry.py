@@ -25,6 +25,17 @@ def make_transform(R: np.ndarray, t: Any) -> np.ndarray:
     return T
 
 
+def bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Return the lowest and highest coordinate (3,) of the (N, 3) ``points`` (N >= 1).
+
+    Column by column: numpy reduces an (N, 3) array along its first axis element by element,
+    far slower than each contiguous-strided column, and this runs on every scan a stream sends.
+    """
+    lower = np.array([points[:, axis].min() for axis in range(3)])
+    return lower, np.array([points[:, axis].max() for axis in range(3)])
+
+
 def finite_transform(T: Any) -> np.ndarray:
     """
     Return ``T`` as a float64 4x4 array.
@@ -140,8 +151,9 @@ def voxel_size_for(points: np.ndarray, occupied: int) -> float:
     if len(pts) <= occupied:
         raise InvalidInputError(f'the cloud has only {len(pts)} points, not more than '
                                 f'the {occupied} voxels asked for')
-    pts = pts - pts.min(axis=0)
-    diag = float(np.linalg.norm(pts.max(axis=0))) or 1.0
+    lower, upper = bounds(pts)
+    pts = pts - lower
+    diag = float(np.linalg.norm(upper - lower)) or 1.0
     lo, hi = np.log(diag * 1e-5), np.log(diag)
     for _ in range(30):
         mid = 0.5 * (lo + hi)

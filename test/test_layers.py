@@ -26,8 +26,8 @@ LAYERS = {  # top-level part of the module name -> layer (higher imports lower)
     'errors': 0, 'timing': 0, 'parallel': 0, 'compiled_types': 0,
     'fitted': 0,  # the numbers a study fitted, with their record
     'geometry': 1, 'config': 1,  # the bottom: typed config, geometry, then files and data
-    'coordinates': 1,  # far coordinates worked on near a local origin
     'io': 2, 'validity': 2,  # validity: the core and the pipeline ask it for their verdicts
+    'coordinates': 2,  # far coordinates worked on near a local origin (geometry's bounds)
     'frontend': 3, 'registration': 3,  # siblings: neither imports the other
     'pipeline': 4,  # one pair
     'calibration': 5,  # several frames, each through the pipeline

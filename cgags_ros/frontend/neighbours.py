@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import compiled
+from ..geometry import bounds
 from ..parallel import run_chunks
 
 # Neighbour grid cells are radius / _REACH wide, and a point's neighbours lie within
@@ -48,8 +49,8 @@ class NeighbourGrid:
     def build(cls, points: np.ndarray, radius: float) -> NeighbourGrid | None:
         """Return the grid of ``points`` (finite, float64), or None when its keys overflow."""
         cell = radius * (1.0 + 1e-9) / _REACH
-        lower = points.min(axis=0)
-        span = (points.max(axis=0) - lower) / cell
+        lower, upper = bounds(points)
+        span = (upper - lower) / cell
         if not np.isfinite(span).all() or span.max() > 2.0 ** 40:
             return None
         dims = [int(d) + 1 + 2 * _REACH for d in span]  # Python ints: no overflow here

@@ -42,6 +42,7 @@ from ..errors import EmptyCloudError, InvalidInputError
 from ..frontend.descriptor_index import DescriptorIndex
 from ..frontend.features import CloudFeatures, extract_features, MIN_POINTS, NORMAL_MAX_NN
 from ..frontend.fpfh import FPFH_MAX_NN
+from ..geometry import bounds
 from ..io import map_cache
 from ..io.clouds import read_cloud_and_normals
 
@@ -187,7 +188,7 @@ def _prepare(path: Path, config: PipelineConfig
                                 'map', sides=None if sides is None else sides[finite])
     features.descriptor_index()  # built with the map, not on the first scan
     places = PlaceIndex.build(features, config.voxel_size)
-    low, high = features.points.min(axis=0) + origin, features.points.max(axis=0) + origin
+    low, high = (side + origin for side in bounds(features.points))
     return features, places, {
         'raw_points': raw, 'nonfinite_points': nonfinite, 'oriented_by': oriented_by,
         'origin': origin.tolist(), 'resolution': features.resolution,

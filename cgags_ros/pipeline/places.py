@@ -35,6 +35,7 @@ from ..frontend.descriptor_index import DescriptorIndex
 from ..frontend.features import CloudFeatures
 from ..frontend.keypoints import select_keypoints
 from ..frontend.matching import informative_index, informative_rows
+from ..geometry import bounds
 
 TILE_VOXELS = 10.0  # the place grid's spacing: fine beside the smallest reach, ~26 voxels
 VOTE_CELL_VOXELS = 3.0  # one voting point a cell: a ninth of a surface's points
@@ -143,7 +144,7 @@ class PlaceIndex:
         if map_index is None:
             return None
         spacing = TILE_VOXELS * voxel_size
-        low = points.min(axis=0)
+        low = bounds(points)[0]
         _, place_of, counts = np.unique(np.floor((points - low) / spacing).astype(np.int64),
                                         axis=0, return_inverse=True, return_counts=True)
         place_of = place_of.reshape(-1)
