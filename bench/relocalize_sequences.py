@@ -168,7 +168,9 @@ def replay(record: dict, n: int, seq: SequenceConfig, submap: bool, cfg) -> dict
         if h['scan'] >= n or (h['source'] == 'submap' and not submap):
             continue
         checks = {int(i): Check(np.asarray(c['transform']), c['moved_deg'], c['moved_m'],
-                                c['steps'], c['travelled_m'], c['fitness'], c['free_space'])
+                                c['steps'], c['travelled_m'], c['fitness'], c['free_space'],
+                                c.get('descriptor_ratio', np.nan),
+                                c.get('observability', np.nan))
                   for i, c in h['checks'].items() if int(i) < n}
         hypotheses.append(Hypothesis(np.asarray(h['map_from_odom']), h['scan'], h['rank'],
                                      h['inliers'], h['source'], checks))

@@ -14,6 +14,7 @@ from cgags_ros.pipeline.result import Candidate, PipelineResult
 from cgags_ros.pipeline.settle import Pair, settle, TWIN
 from cgags_ros.pipeline.twins import add_twin, find_twin
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 VOXEL = 0.1
 
@@ -191,3 +192,22 @@ def test_a_right_pose_in_a_square_room_stays_valid():
     assert result.valid
     assert rotation_error_deg(result.transform, gt) < 2
     assert translation_error(result.transform, gt) < 0.05
+
+
+def test_the_directions_a_room_faces_are_found_where_two_walls_look_alike():
+    """
+    A room's floor and walls give its facing axes, turned with it, whichever two look alike.
+
+    Two walls with as many points make two principal axes of the normals' scatter equal, and
+    their eigenvectors any mix of the two: the axes found are the room's, within a degree.
+    """
+    rng = np.random.default_rng(0)
+    normals = np.vstack([np.tile(axis, (n, 1)) for axis, n in
+                         (([0, 0, 1], 3000), ([1, 0, 0], 2000), ([0, 1, 0], 2000))])
+    normals = normals + rng.normal(0, 0.05, normals.shape)  # a real surface's noise
+    R = Rotation.from_euler('zyx', [30, 10, -20], degrees=True).as_matrix()
+    axes = twins.facing_axes(normals @ R.T)
+    assert np.allclose(np.abs(axes @ axes.T), np.eye(3), atol=1e-9)  # orthonormal
+    found = np.abs(axes @ R)  # each row: one room axis (either sign)
+    assert np.all(np.degrees(np.arccos(np.clip(found.max(axis=1), -1, 1))) < 1.0)
+    assert found[0].argmax() == 2  # the floor, faced by the most surface, first

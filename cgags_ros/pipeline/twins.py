@@ -31,6 +31,7 @@ from scipy.spatial.transform import Rotation
 
 from .candidates import MIN_ROTATION_DEG
 from .map import PreparedMap
+from .places import REACH_QUANTILE
 from .result import Candidate, PipelineResult
 from .settle import Pair, settle, SYMMETRY, TWIN
 from .. import fitted
@@ -46,6 +47,9 @@ SLIDE = 10.0
 SYMMETRY_FIT = 0.5  # a turn is a symmetry of a map when it puts half of the map on itself
 SYMMETRY_START = 1 / 3  # ...and it is refined only when it starts with a third there
 SYMMETRY_POINTS = 2000  # about this many of the map's points judge a turn
+AXIS_NORMALS = 4000  # about this many normals find the directions surfaces face...
+AXIS_TRIES = 200  # ...each of about this many tried as one
+AXIS_TOLERANCE_DEG = 10.0  # a normal faces along a direction within this angle
 
 
 def worth_refining(start_fitness: float, fitness: float,
@@ -154,29 +158,129 @@ def map_symmetries(prepared: PreparedMap, cfg: PipelineConfig) -> list[np.ndarra
 
     A room, a hall or a box-like store whose floor plan is near-square looks alike turned a
     quarter or half of the way about its vertical: every pose in it has such twins, whatever
-    the scans show of the room. The map is turned by 90, -90 and 180 degrees about each
-    principal axis of its normals' scatter, through its centroid (a symmetric room's centre);
-    a turn that puts at least ``SYMMETRY_START`` of about ``SYMMETRY_POINTS`` evenly spread
-    map points back on the map is settled map onto map (:data:`~.settle.SYMMETRY`), and one
-    that then puts at least ``SYMMETRY_FIT`` of them there is a symmetry. Kept on
-    ``prepared``.
+    the scans show of the room. Its turns are :func:`symmetries_of` the whole map. Kept on
+    ``prepared``; a room inside a larger map has those of :func:`local_symmetries`.
     """
-    if prepared.symmetries is not None:
-        return prepared.symmetries
+    if prepared.symmetries is None:
+        ft = prepared.features
+        prepared.symmetries = symmetries_of(ft.points, ft.normals, ft, cfg)
+    return prepared.symmetries
+
+
+def local_symmetries(prepared: PreparedMap, cfg: PipelineConfig,
+                     placed: np.ndarray) -> list[np.ndarray]:
+    """
+    Return the turns of the part of a map that scans placed in it see (4x4 each, map frame).
+
+    A near-square room inside a larger map has no symmetry of the whole map, yet scans in
+    the room look alike turned about it. The part is the map within the scans' reach (the
+    :data:`~.places.REACH_QUANTILE` percentile of the ``placed`` points' distances from
+    their centroid; (N, 3), the map's local frame). Its turns are :func:`symmetries_of` it,
+    onto the whole map.
+    """
     ft = prepared.features
+    centre = placed.mean(axis=0)
+    reach = np.percentile(np.linalg.norm(placed - centre, axis=1), REACH_QUANTILE)
+    rows = ft.tree.query_ball_point(centre, reach)
+    if len(rows) < SYMMETRY_POINTS:  # too little of the map there to judge a turn
+        return []
+    rows = np.sort(np.asarray(rows))
+    # Turned, the part lands on another side of its room: within twice the reach.
+    around = np.sort(np.asarray(ft.tree.query_ball_point(centre, 2 * reach)))
+    return symmetries_of(ft.points[rows], ft.normals[rows], ft, cfg, ft.points[around])
+
+
+def symmetries_of(points: np.ndarray, normals: np.ndarray, ft: CloudFeatures,
+                  cfg: PipelineConfig, around: np.ndarray | None = None) -> list[np.ndarray]:
+    """
+    Return the turns that put ``points`` (with their ``normals``) onto the map ``ft``.
+
+    The points are turned by 90, -90 and 180 degrees about each of their
+    :func:`facing_axes`, through their centroid, and shifted along those axes onto
+    ``around`` (the map near them; default themselves: :func:`_onto`, since the centroid
+    of the part of a room a scan sees is not the room's centre); a turn that puts
+    at least ``SYMMETRY_START`` of about ``SYMMETRY_POINTS`` evenly spread points on the
+    map is settled onto it (:data:`~.settle.SYMMETRY`), and one that then puts at least
+    ``SYMMETRY_FIT`` of them there is a symmetry.
+    """
     final = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
-    points = ft.points[::max(1, len(ft.points) // SYMMETRY_POINTS)]
-    found, pair = [], Pair(points, ft, cfg)
-    if len(points) >= 6:
-        centre = ft.points.mean(axis=0)
-        _, axes = np.linalg.eigh(ft.normals.T @ ft.normals)
-        for axis in axes.T:
-            for angle in (np.pi / 2, -np.pi / 2, np.pi):
-                start = _turned(np.eye(4), axis, angle, centre)
-                if evaluate_alignment(points, ft.tree, start, final).fitness < SYMMETRY_START:
-                    continue
-                S = settle(pair, start, SLIDE * cfg.voxel_size, SYMMETRY)
-                if S.fitness >= SYMMETRY_FIT:
-                    found.append(S.transform)
-    prepared.symmetries = found
+    sample = points[::max(1, len(points) // SYMMETRY_POINTS)]
+    found, pair = [], Pair(sample, ft, cfg)
+    if len(sample) < 6:
+        return found
+    centre, axes = points.mean(axis=0), facing_axes(normals)
+    around = points if around is None else around
+    spread = around[::max(1, len(around) // (4 * SYMMETRY_POINTS))]
+    for axis in axes:
+        for angle in (np.pi / 2, -np.pi / 2, np.pi):
+            start = _onto(_turned(np.eye(4), axis, angle, centre), sample, spread, axes,
+                          cfg.voxel_size)
+            if evaluate_alignment(sample, ft.tree, start, final).fitness < SYMMETRY_START:
+                continue
+            S = settle(pair, start, SLIDE * cfg.voxel_size, SYMMETRY)
+            if S.fitness >= SYMMETRY_FIT:
+                found.append(S.transform)
+    # A turn that puts a room onto itself does so turned back too, though that start may
+    # have missed (a quarter turn one way found, the other screened out).
+    for S in list(found):
+        back = np.linalg.inv(S)
+        if all(rotation_error_deg(back, F) > MIN_ROTATION_DEG for F in found):
+            found.append(back)
     return found
+
+
+def facing_axes(normals: np.ndarray) -> np.ndarray:
+    """
+    Return three orthonormal directions (rows) most surfaces of ``normals`` face along.
+
+    A room's floor and walls face along three directions. The principal axes of the normals'
+    scatter find them only when the three are faced by different amounts of surface; two
+    walls seen alike make two axes equal and their eigenvectors any mix of the two. So the
+    first direction is the one most normals face (either way, within ``AXIS_TOLERANCE_DEG``),
+    the second the one most of the normals across it face, the third across both.
+    """
+    n = normals[::max(1, len(normals) // AXIS_NORMALS)]
+    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    across = np.sin(np.radians(AXIS_TOLERANCE_DEG))
+    first = _most_faced(n)
+    others = n[np.abs(n @ first) < across]
+    if len(others) == 0:  # one plane: any direction across it will do
+        others = np.cross(first, np.eye(3)[np.argmin(np.abs(first))])[None]
+    second = _most_faced(others)
+    second = second - (second @ first) * first
+    second /= np.linalg.norm(second)
+    return np.stack([first, second, np.cross(first, second)])
+
+
+def _most_faced(n: np.ndarray) -> np.ndarray:
+    """Return the unit direction most unit normals ``n`` face (either way): their mean there."""
+    near = np.cos(np.radians(AXIS_TOLERANCE_DEG))
+    tries = n[::max(1, len(n) // AXIS_TRIES)]
+    best = tries[np.argmax((np.abs(tries @ n.T) > near).sum(axis=1))]
+    along = n @ best
+    mean = (np.sign(along[np.abs(along) > near])[:, None] * n[np.abs(along) > near]).sum(axis=0)
+    return mean / np.linalg.norm(mean)
+
+
+def _onto(start: np.ndarray, sample: np.ndarray, points: np.ndarray, axes: np.ndarray,
+          bin_size: float) -> np.ndarray:
+    """
+    Return ``start`` shifted along each of ``axes`` to put ``sample`` most on ``points``.
+
+    Along each axis, the shift that best lines up the histograms of the moved sample's and
+    the points' coordinates (``bin_size`` metres a bin): a room's walls and floor are its
+    histograms' peaks, and a turn about the wrong centre only shifts them.
+    """
+    moved = sample @ start[:3, :3].T + start[:3, 3]
+    shift = np.zeros(3)
+    for axis in axes:
+        a, b = moved @ axis, points @ axis
+        low = min(a.min(), b.min())
+        bins = int((max(a.max(), b.max()) - low) / bin_size) + 1
+        ha = np.bincount(((a - low) / bin_size).astype(np.int64), minlength=bins)
+        hb = np.bincount(((b - low) / bin_size).astype(np.int64), minlength=bins)
+        best = int(np.argmax(np.correlate(hb / len(b), ha / len(a), 'full'))) - (bins - 1)
+        shift += best * bin_size * axis
+    T = np.array(start, dtype=np.float64)
+    T[:3, 3] += shift
+    return T

@@ -20,7 +20,8 @@ from ..geometry import rotation_error_deg, translation_error
 from ..pipeline.candidates import distinct
 from ..pipeline.result import PipelineResult
 from ..refusal import Judged, Refusal, RefusalCode
-from ..validity import more_scans_refusal, sequence_ambiguity_refusal, unexplained_refusal
+from ..validity import (more_scans_refusal, sequence_ambiguity_refusal, unalike,
+                        unexplained_refusal)
 
 
 @dataclasses.dataclass
@@ -67,6 +68,8 @@ class Check:
         one that proposed the hypothesis (the drift allowance grows with them).
     :ivar fitness: share of the scan's points within the refinement distance of the map.
     :ivar free_space: the free-space violation of the refined pose (NaN: not measured).
+    :ivar descriptor_ratio, observability: the scan's overlap with the map under the refined
+        pose, measured as a single registration's (``PipelineResult``; NaN: not measured).
     """
 
     transform: np.ndarray
@@ -76,14 +79,25 @@ class Check:
     travelled_m: float
     fitness: float
     free_space: float
+    descriptor_ratio: float = float('nan')
+    observability: float = float('nan')
 
-    def explains(self, seq: SequenceConfig, max_free_space: float) -> bool:
-        """Tell whether the scan fits the hypothesis within the drift allowance."""
+    def explains(self, seq: SequenceConfig, config: PipelineConfig) -> bool:
+        """
+        Tell whether the scan fits the hypothesis within the drift allowance.
+
+        It must also pass the single registration's gates on what it shares with the map:
+        free space (``gates.max_free_space_violation``) and a shared surface whose
+        descriptors look alike (:func:`~cgags_ros.validity.unalike`). A scan placed in a
+        wrong place of a larger map can fit its surfaces there (a floor, walls) without
+        them looking like its own.
+        """
         return (self.moved_deg <= seq.drift_deg * max(self.steps, 1)
                 and self.moved_m <= (seq.drift_m * max(self.steps, 1)
                                      + seq.drift_fraction * self.travelled_m)
                 and self.fitness >= seq.min_fitness
-                and not self.free_space > max_free_space)
+                and not self.free_space > config.gates.max_free_space_violation
+                and not unalike(self.descriptor_ratio, self.observability, config))
 
 
 @dataclasses.dataclass
@@ -106,11 +120,11 @@ class Hypothesis:
     source: str = 'scan'
     checks: dict[int, Check] = dataclasses.field(default_factory=dict)
 
-    def summary(self, seq: SequenceConfig, max_free_space: float) -> dict[str, Any]:
+    def summary(self, seq: SequenceConfig, config: PipelineConfig) -> dict[str, Any]:
         """Return a JSON-friendly dict: the pose, who proposed it, how each scan sees it."""
         return {'map_from_odom': self.map_from_odom.tolist(), 'proposed_by_scan': self.scan,
                 'candidate_rank': self.rank, 'inliers': self.inliers,
-                'scans_explained': sum(c.explains(seq, max_free_space)
+                'scans_explained': sum(c.explains(seq, config)
                                        for c in self.checks.values()),
                 'fitness': [round(self.checks[i].fitness, 4) for i in sorted(self.checks)]}
 
@@ -153,10 +167,10 @@ def judge(hypotheses: list[Hypothesis], results: list[PipelineResult], odom: lis
 
     A pure function of the checks, so that thresholds can be studied on recorded ones.
     """
-    n, limit = len(results), config.gates.max_free_space_violation
+    n = len(results)
 
     def explains(h: Hypothesis, i: int) -> bool:  # a check left out: refuted earlier
-        return i in h.checks and h.checks[i].explains(seq, limit)
+        return i in h.checks and h.checks[i].explains(seq, config)
 
     if not hypotheses:
         return make_answer(results[-1].transform, odom[-1], results[-1].refusal

@@ -44,12 +44,13 @@ from ..geometry import apply_transform, translation_error
 from ..pipeline.cache import cached_features
 from ..pipeline.candidates import distinct
 from ..pipeline.covariance import loosest_sigma, overlap_covariance
+from ..pipeline.gates import descriptor_ratio, observability
 from ..pipeline.map import PreparedMap
 from ..pipeline.places import Hint
 from ..pipeline.register import register_clouds
 from ..pipeline.result import PipelineResult
 from ..pipeline.settle import CHECK, Pair, settle
-from ..pipeline.twins import map_symmetries
+from ..pipeline.twins import local_symmetries, map_symmetries
 from ..validity import uncertainty_refusal
 
 
@@ -137,11 +138,12 @@ class Relocalizer:
         Decide; before confirming a pose, also check its twins under the map's symmetries.
 
         Scans that all see a near-square room alike cannot tell a pose from the pose turned
-        about the room: each twin (:func:`~.twins.map_symmetries`) is checked on every
-        scan as a hypothesis, and one that explains them as well leaves the answer
-        ambiguous. A confirmed pose must also be usable: its covariance over the latest
-        scan's overlap with the map at most ``gates.max_position_sigma`` voxels along its
-        loosest direction (a corridor leaves the pose loose along it).
+        about the room: each twin (:func:`~.twins.map_symmetries`,
+        :func:`~.twins.local_symmetries`) is checked on every scan as a hypothesis, and one
+        that explains them as well leaves the answer ambiguous. A confirmed pose must also be
+        usable: its covariance over the latest scan's overlap with the map at most
+        ``gates.max_position_sigma`` voxels along its loosest direction (a corridor leaves
+        the pose loose along it).
         """
         answer = self._checked()
         if answer.confirmed and self._add_twins(answer.hypotheses[0]):
@@ -162,10 +164,18 @@ class Relocalizer:
                            self.sequence)
 
     def _add_twins(self, best: Hypothesis) -> bool:
-        """Add ``best`` turned by each symmetry of the map; tell whether any is new."""
+        """
+        Add ``best`` turned by each symmetry of the map; tell whether any is new.
+
+        The whole map's symmetries, and those of the part the scans see where ``best``
+        puts them (a square room inside a larger map).
+        """
         added = False
         local = self.prepared.to_local(best.map_from_odom)
-        for S in map_symmetries(self.prepared, self.config):
+        placed = np.vstack([apply_transform(local @ s.odom, s.features.points)
+                            for s in self.scans])
+        for S in (map_symmetries(self.prepared, self.config)
+                  + local_symmetries(self.prepared, self.config, placed)):
             twin = self.prepared.to_map(S @ local)
             if all(distinct(h.map_from_odom, twin, self.config) for h in self.hypotheses):
                 self.hypotheses.append(Hypothesis(twin, best.scan, best.rank, 0, 'symmetry'))
@@ -174,7 +184,6 @@ class Relocalizer:
 
     def _checked(self) -> Answer:
         """Check every hypothesis not yet checked on every scan, then decide."""
-        limit = self.config.gates.max_free_space_violation
         for h in self.hypotheses:
             # Its own scan first: a pose that does not explain the scan that proposed it is
             # no pose at all. Then every other scan, so that a scan no hypothesis explains
@@ -183,8 +192,8 @@ class Relocalizer:
                 if i not in h.checks:
                     h.checks[i] = self._check(h, i)
                     if i == h.scan:
-                        self._anchor(h, limit)
-                if i == h.scan and not h.checks[i].explains(self.sequence, limit):
+                        self._anchor(h)
+                if i == h.scan and not h.checks[i].explains(self.sequence, self.config):
                     break
         return judge(self.hypotheses, [s.result for s in self.scans],
                      [s.odom for s in self.scans], self.config, self.sequence)
@@ -205,7 +214,7 @@ class Relocalizer:
                 self.hypotheses.append(Hypothesis(c.transform @ np.linalg.inv(odom), index,
                                                   rank, c.num_inliers, source))
 
-    def _anchor(self, h: Hypothesis, max_free_space: float) -> None:
+    def _anchor(self, h: Hypothesis) -> None:
         """
         Move ``h`` to where its own scan's check settled, when the scan fits there.
 
@@ -215,7 +224,8 @@ class Relocalizer:
         refined pose is the hypothesis, and the other scans are checked against it.
         """
         c = h.checks[h.scan]
-        if c.fitness < self.sequence.min_fitness or c.free_space > max_free_space:
+        if (c.fitness < self.sequence.min_fitness
+                or c.free_space > self.config.gates.max_free_space_violation):
             return
         h.map_from_odom = c.transform @ np.linalg.inv(self.scans[h.scan].odom)
         h.checks[h.scan] = dataclasses.replace(c, moved_deg=0.0, moved_m=0.0)
@@ -240,8 +250,12 @@ class Relocalizer:
         # check costs its few Gauss-Newton steps, not a tree of the map near the scan.
         s = settle(Pair(scan.features, ft, cfg, map_target=True), predicted,
                    reach + final, CHECK)
+        # What the scan shares with the map there, as a single registration measures it.
+        align = evaluate_alignment(points, ft.tree, s.transform, final)
         return Check(self.prepared.to_map(s.transform), s.moved_deg, s.moved_m, steps,
-                     travelled, s.fitness, s.free_space)
+                     travelled, s.fitness, s.free_space,
+                     descriptor_ratio(scan.features.descriptors, ft.descriptors, align),
+                     observability(points, ft.normals, align))
 
 
 def _checked_pose(T: np.ndarray) -> np.ndarray:

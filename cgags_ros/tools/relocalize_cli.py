@@ -114,11 +114,10 @@ def _relocalize(args: argparse.Namespace) -> int:
         answer = reloc.add(scan, odom, hint)
         if answer.done:
             break
-    limit = config.gates.max_free_space_violation
     out = {'confirmed': answer.confirmed, 'transform': answer.transform.tolist(),
            'map_from_odom': answer.map_from_odom.tolist(), 'scans_used': answer.scans_used,
            'reason': answer.reason, 'refusal': refusal_summary(answer.refusal),
-           'hypotheses': [h.summary(sequence, limit) for h in answer.hypotheses],
+           'hypotheses': [h.summary(sequence, config) for h in answer.hypotheses],
            'scans': [{'file': str(path), 'valid': r.valid, 'reason': r.reason,
                       'refusal': refusal_summary(r.refusal),
                       'inliers': r.num_inliers, 'fitness': r.fitness,

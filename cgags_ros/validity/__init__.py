@@ -126,6 +126,19 @@ def gate_refusal(e: Estimate, cfg: PipelineConfig, unsettled: bool = False) -> R
     return overlap_refusal(e, cfg, unsettled)
 
 
+def unalike(descriptor_ratio: float, observability: float, cfg: PipelineConfig) -> bool:
+    """
+    Tell whether an overlap's descriptors differ as different surfaces' do (NaN: no).
+
+    ``descriptor_ratio`` above ``gates.max_descriptor_ratio``, unless the overlap is
+    degenerate (``observability`` below ``gates.min_observability``): there every descriptor
+    looks alike, or none does.
+    """
+    gates = cfg.gates
+    return (0 < gates.max_descriptor_ratio < descriptor_ratio
+            and observability >= gates.min_observability)
+
+
 def shared_surface_refusal(e: Shared, cfg: PipelineConfig) -> Refusal | None:
     """
     Return why the clouds share no surface under the estimate, or None (NaN passes).
@@ -139,8 +152,7 @@ def shared_surface_refusal(e: Shared, cfg: PipelineConfig) -> Refusal | None:
         shown = (f'the best pose makes the clouds share {e.shared_area:.3g} m^2 ({cells:.0f} '
                  f'voxels; < gates.min_shared_area {gates.min_shared_area:g} voxels, '
                  f'{gates.min_shared_area * v2:.3g} m^2): too little to tell one place')
-    elif (0 < gates.max_descriptor_ratio < e.descriptor_ratio
-          and e.observability >= gates.min_observability):
+    elif unalike(e.descriptor_ratio, e.observability, cfg):
         shown = (f'the {e.shared_area:.3g} m^2 the best pose makes the clouds share look '
                  f'unalike (descriptor ratio {e.descriptor_ratio:.2f} > gates.max_descriptor'
                  f'_ratio {gates.max_descriptor_ratio:g}): different surfaces that only meet')
