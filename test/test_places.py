@@ -19,9 +19,9 @@ from cgags_ros.geometry import apply_transform, make_transform, rotation_error_d
 from cgags_ros.geometry import translation_error
 from cgags_ros.io.clouds import write_cloud
 from cgags_ros.pipeline import register_clouds
+from cgags_ros.pipeline.hint import Hint, HINT_SIGMAS
 from cgags_ros.pipeline.locate import TESTED
 from cgags_ros.pipeline.map import load_map
-from cgags_ros.pipeline.places import Hint, HINT_SIGMAS
 from cgags_ros.refusal import RefusalCode as Code
 from cgags_ros.relocalization.relocalizer import Relocalizer
 from cgags_ros.tools import map_cli, relocalize_cli
