@@ -111,6 +111,33 @@ def test_a_hint_is_carried_to_the_scan_by_the_odometry_and_to_the_sensor_by_the_
     assert hints.statistics() == {'hint.received': 1, 'hint.used': 2}
 
 
+def test_the_pending_requests_hint_follows_the_robot_to_each_scan():
+    """RelocalizationRun: the hint at a scan, moved by the odometry between the two stamps."""
+    from cgags_ros.engine.pairing import Pair, Stamped
+    from cgags_ros.engine.relocalization_run import RelocalizationRun
+
+    out = Recorder()
+    cfg = configs_from_parameters({'map.file': 'map.ply', 'mode': 'on_demand',
+                                   'relocalization.base_from_sensor': list(BASE_FROM_SENSOR)})[1]
+    run = RelocalizationRun(cfg, out)
+    pair = Pair(Stamped(7 * S, 'velodyne', None), Stamped(0, 'map', None))
+    assert run.hint(pair, cfg) is None  # no request, no hint
+    run.request(60.0, lambda *answer: None)
+    assert run.hint(pair, cfg) is None  # a ~/relocalize call carries none
+    T_map_base = turn(90, (5.0, 2.0, 0.0))
+    run.receive_hint(5 * S, 'map', values(T_map_base), RVIZ, cfg, active=True)
+    base = make_transform(quaternion_to_matrix(BASE_FROM_SENSOR[3:]), BASE_FROM_SENSOR[:3])
+    as_given = T_map_base @ base
+    np.testing.assert_allclose(run.hint(pair, cfg).position, as_given[:3, 3], atol=1e-6)
+    out.odom[5 * S] = turn(10, (3.0, 0.0, 0.0))  # the base, then 2 m ahead, at the scan
+    out.odom[7 * S] = turn(10, (3.0, 0.0, 0.0)) @ turn(0, (2.0, 0.0, 0.0))
+    moved = T_map_base @ turn(0, (2.0, 0.0, 0.0)) @ base
+    np.testing.assert_allclose(run.hint(pair, cfg).position, moved[:3, 3], atol=1e-6)
+    assert run.statistics()['hint.used'] == 2 and run.statistics()['relocalize.calls'] == 2
+    run.calls.answer('localized')  # the requests answered: the hint ends with them
+    assert run.hint(pair, cfg) is None
+
+
 # --- the engine, on the LiDAR pair's map ------------------------------------------------------
 
 class Recording:
