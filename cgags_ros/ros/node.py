@@ -175,7 +175,7 @@ class RegisterNode(LifecycleNode):
             self._entities.append(self.create_subscription(
                 PointCloud2, 'target_cloud', functools.partial(self._receive, role='target'),
                 target_qos(cfg)))
-        else:  # with odometry a relocalization goes on over the next scans
+        else:  # a map: odometry carries a relocalization over scans; a hint says where
             self._entities += [self.create_subscription(
                 Odometry, 'odom', self._on_odometry, qos_profile_sensor_data),
                 self.create_subscription(PoseWithCovarianceStamped, '~/hint', self._on_hint, 10)]
