@@ -56,8 +56,8 @@ from cgags_ros.geometry import translation_error
 from cgags_ros.io.clouds import write_cloud
 from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import clear_feature_cache, register_clouds
+from cgags_ros.pipeline.hint import Hint
 from cgags_ros.pipeline.map import load_map
-from cgags_ros.pipeline.places import Hint
 import numpy as np
 from scipy.spatial.transform import Rotation
 

@@ -50,6 +50,7 @@ class Recorder:
         self.estimates, self.candidates, self.initial, self.logs = [], [], [], []
         self.results = []
         self.odom = {}  # odom <- base by stamp (ns), as the node's odometry has it
+        self.tf = {}  # (parent, child) -> parent <- child, as the node's TF has it
 
     def publish_estimate(self, estimate):
         self.estimates.append(estimate)
@@ -68,6 +69,9 @@ class Recorder:
 
     def odometry(self, odom_frame, base_frame, stamp_ns):
         return bool(self.odom), self.odom.get(stamp_ns)
+
+    def lookup(self, parent, child, stamp_ns=None):
+        return self.tf.get((parent, child))
 
     def log(self, level, message):
         self.logs.append((level, message))

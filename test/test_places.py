@@ -19,9 +19,9 @@ from cgags_ros.geometry import apply_transform, make_transform, rotation_error_d
 from cgags_ros.geometry import translation_error
 from cgags_ros.io.clouds import write_cloud
 from cgags_ros.pipeline import register_clouds
+from cgags_ros.pipeline.hint import Hint, HINT_SIGMAS
 from cgags_ros.pipeline.locate import TESTED
 from cgags_ros.pipeline.map import load_map
-from cgags_ros.pipeline.places import Hint, HINT_SIGMAS
 from cgags_ros.refusal import RefusalCode as Code
 from cgags_ros.relocalization.relocalizer import Relocalizer
 from cgags_ros.tools import map_cli, relocalize_cli
@@ -113,6 +113,17 @@ def test_a_hint_ranks_only_the_places_it_covers(floor):
     assert ranked and all(np.linalg.norm(np.array(p['centre']) - other) < 2.0 + 5.0
                           for p in ranked)
     assert not there.valid  # the kitchen does not hold the scan
+
+
+def test_a_planar_hint_restricts_only_x_and_y(floor):
+    """A 2-D pose (RViz's, at height 0) says nothing of the height: 300 m off in z still finds."""
+    prepared, cfg, _, _, query = floor
+    scan, truth = query(*QUERY)
+    up = truth[:3, 3] + [0.0, 0.0, 300.0]
+    here = register_clouds(scan, prepared, config=cfg, hint=Hint(up, 2.0, planar=True))
+    assert here.valid and translation_error(here.transform, truth) < RIGHT[1]
+    above = register_clouds(scan, prepared, config=cfg, hint=Hint(up, 2.0))
+    assert above.refusal.code is Code.NO_SHARED_SURFACE
 
 
 def test_a_hint_that_covers_no_place_refuses_before_any_registration(floor):

@@ -25,7 +25,7 @@ from scipy.spatial.transform import Rotation
 rclpy = pytest.importorskip('rclpy')
 
 from cgags_ros.ros.node import RegisterNode  # noqa: E402, I100
-from cgags_ros.ros.outputs import xyz_to_pointcloud2  # noqa: E402
+from cgags_ros.ros.outputs import transform_to_pose, xyz_to_pointcloud2  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped  # noqa: E402
 from lifecycle_msgs.msg import Transition  # noqa: E402
@@ -245,6 +245,63 @@ def test_lidar_initial_pose_is_the_base_pose(wire, data_dir, tmp_path, utm):
         sensor_te = errors(io.initial[0].pose, gt @ np.linalg.inv(A))[1]
         assert sensor_te > 0.5  # the extrinsic really moved it: this is not the sensor pose
     finally:
+        stop(wire, node)
+
+
+def test_a_hint_on_its_topic_places_the_next_scan(wire, data_dir):
+    """
+    ~/hint over DDS: a relocalization request searched only where the hint says.
+
+    on_demand: the hint alone makes the node register the next scan. A hint 4 m from the
+    true base pose (RViz's covariance) finds it (ground truth and the extrinsic); one 200 m
+    away refuses the scan as no_shared_surface; a hint in a frame TF cannot move and one
+    with a NaN are rejected and counted.
+    """
+    _, _, io = wire
+    folder = data_dir / 'lidar' / 'small_gicp'
+    gt, source = np.loadtxt(folder / 'T_target_source.txt'), read_cloud(folder / 'source.ply')
+    t, q = (0.3, -0.1, 0.8), (0.0, 0.0, 0.3826834, 0.9238795)
+    T_map_base = gt @ np.linalg.inv(make_transform(quaternion_to_matrix(q), t))
+    node = start(wire, **{
+        'mode': 'on_demand', 'map.file': str(folder / 'target.ply'), 'map.cache_dir': '',
+        'voxel_size': 0.4, 'pairing.source_qos': 'reliable', 'relocalization.timeout': 120.0,
+        'relocalization.publish_initial_pose': True, 'relocalization.cooldown': 0.0,
+        'relocalization.base_from_sensor': list(t + q), 'output.diagnostics_period': 0.2})
+    hints = io.node.create_publisher(PoseWithCovarianceStamped, '/register_node/hint', RELIABLE)
+
+    def hint(T, frame='map', calls=None, x=None):
+        msg = PoseWithCovarianceStamped(header=Header(frame_id=frame))
+        msg.pose.pose = transform_to_pose(T)
+        msg.pose.pose.position.x = msg.pose.pose.position.x if x is None else x
+        msg.pose.covariance = [0.25, 0, 0, 0, 0, 0, 0, 0.25] + [0.0] * 27 + [0.0685]
+        hints.publish(msg)
+        if calls:  # the hint's request reached the node: the next scan answers it
+            wait_for(lambda: io.values.get('relocalize.calls') == calls, 30.0,
+                     'the hint to be taken', lambda: io.values)
+            io.send(source, frame='velodyne')
+
+    try:
+        assert wait_map(io) == 'off', io.values.get('map.error')
+        wait_for(lambda: hints.get_subscription_count() > 0, 30.0, 'the ~/hint subscription')
+        offset = make_transform(Rotation.from_euler('z', 20, degrees=True).as_matrix(),
+                                (3.0, -2.5, 0.0))
+        hint(T_map_base @ offset, calls='1')
+        wait_for(lambda: io.initial, 120.0, 'initialpose', lambda: io.values)
+        re, te = errors(io.initial[0].pose, T_map_base)
+        assert re < LIDAR[0] and te < LIDAR[1], f'RE {re:.2f} deg, TE {te:.3f} m'
+        hint(T_map_base @ make_transform(np.eye(3), (200.0, 0.0, 0.0)), calls='2')
+        wait_for(lambda: io.values.get('relocalize.failed.no_shared_surface') == '1', 120.0,
+                 'the scan refused', lambda: io.values)
+        hint(T_map_base, frame='odom')
+        hint(T_map_base, x=float('nan'))
+        wait_for(lambda: io.values.get('hint.received') == '4', 30.0, 'every hint counted',
+                 lambda: io.values)
+        values = io.values
+        assert values['hint.rejected.frame'] == values['hint.rejected.not_finite'] == '1'
+        assert values['hint.used'] == '2' and values['relocalize.calls'] == '2'
+        assert len(io.initial) == 1 and values['accounting.ok'] == 'True'
+    finally:
+        io.node.destroy_publisher(hints)
         stop(wire, node)
 
 

@@ -215,6 +215,15 @@ class RegistrationEngine:
             return
         self._relocalization.request(self.node_config.relocalization.timeout, on_answer)
 
+    def hint(self, stamp_ns: int, frame_id: str, pose: Any, covariance: Any) -> None:
+        """
+        Take a pose hint, a relocalization request searched where it says (:mod:`.pose_hint`).
+
+        ``pose``: [x y z qx qy qz qw], the base in ``frame_id`` (m); ``covariance``: 36 values.
+        """
+        self._relocalization.receive_hint(stamp_ns, frame_id, pose, covariance,
+                                          self.node_config, self.active)
+
     # ------------------------------------------------------------- engine thread
 
     def _work(self) -> None:
@@ -261,15 +270,16 @@ class RegistrationEngine:
         """Choose the pair's job, once: a sequence's scan, a tracked stream's scan, or a pair."""
         source, target = pair.source.payload.xyz, pair.target.payload.as_target()
         step = self._relocalization.step(pair, cfg)
+        hint = self._relocalization.hint(pair, cfg)  # a hint is a request: never tracked
         if step is not None:
             return SequenceScan(source, target, pipe_cfg, step[0],
-                                cfg.relocalization.max_scans, step[1])
+                                cfg.relocalization.max_scans, step[1], hint)
         # A ~/relocalize call is answered from a global search, as the other modes are.
         if tracks(cfg.mode, pipe_cfg) and self._relocalization.calls.waiting() is None:
             verdict, self._verdict = self._verdict, None
             return TrackScan(source, target, pipe_cfg, pair.source.stamp_ns * 1e-9,
                              checks_beside=cfg.runtime.registration_timeout > 0, verdict=verdict)
-        return RegisterPair(source, target, pipe_cfg)
+        return RegisterPair(source, target, pipe_cfg, hint)
 
     def _process(self, pair: Pair) -> Outcome:
         """Register and publish a pair; return what became of it."""

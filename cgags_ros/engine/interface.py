@@ -226,5 +226,9 @@ class EngineOutputs(Protocol):
             or None when none is near it).
         """
 
+    def lookup(self, parent: str, child: str, stamp_ns: int | None = None
+               ) -> np.ndarray | None:
+        """Return ``parent <- child`` (4x4, metres) from TF at ``stamp_ns``, None if unknown."""
+
     def log(self, level: str, message: str) -> None:
         """Log ``message`` at ``level`` ('info', 'warning' or 'error')."""

@@ -2,10 +2,11 @@
 The node's relocalization run: what a registered scan answers (requests, sequence, initial pose).
 
 ROS-free. :class:`RelocalizationRun` holds the pending relocalization requests
-(:mod:`cgags_ros.relocalization.service_calls`), the relocalization over several scans in
-progress (:mod:`cgags_ros.relocalization.sequence`) and the initial-pose guards
-(:class:`InitialPoseGuard`). The engine asks it whether a scan is a step of a sequence
-(:meth:`~RelocalizationRun.step`) and, once the scan is registered, hands it the result
+(:mod:`cgags_ros.relocalization.service_calls`; a pose hint is one, :mod:`.pose_hint`), the
+relocalization over several scans in progress (:mod:`cgags_ros.relocalization.sequence`) and
+the initial-pose guards (:class:`InitialPoseGuard`). The engine asks it whether a scan is a
+step of a sequence (:meth:`~RelocalizationRun.step`) and where the pending requests' hint puts
+it (:meth:`~RelocalizationRun.hint`) and, once the scan is registered, hands it the result
 (:meth:`~RelocalizationRun.finish`): it publishes the candidates, offers the initial pose,
 answers the requests and keeps the last one-line summary for /diagnostics.
 
@@ -35,9 +36,11 @@ import numpy as np
 
 from .interface import BasePose, EngineOutputs
 from .pairing import Pair
+from .pose_hint import PoseHint, PoseHints
 from ..config.node import NodeConfig
 from ..geometry import make_transform, quaternion_to_matrix
 from ..pipeline.covariance import moved_covariance
+from ..pipeline.hint import Hint
 from ..pipeline.result import PipelineResult
 from ..refusal import Refusal, RefusalCode
 from ..relocalization.sequence import SequenceRun, StepAnswer, Verdict
@@ -157,11 +160,26 @@ class RelocalizationRun:
         # With a map and odometry, a relocalization goes on over the next scans.
         self.sequence = SequenceRun() if cfg.map.file else None
         self._initial_pose = InitialPoseGuard()
+        self.hints = PoseHints() if cfg.map.file else None  # hints place scans in a map
         self._shown: tuple[list[Any], str] = ([], '')  # the last candidates and summary
 
     def request(self, timeout_s: float, on_answer: Answered) -> None:
         """Queue a request; ``on_answer(success, message)`` once a scan answers it."""
         self.calls.add(timeout_s, on_answer)
+
+    def receive_hint(self, stamp_ns: int, frame_id: str, pose: Any, covariance: Any,
+                     cfg: NodeConfig, active: bool) -> None:
+        """Make a hint's request (:meth:`.engine.RegistrationEngine.hint`), or reject it."""
+        if self.hints is None:  # no map to place it in; the node subscribes only with one
+            return
+        held = self.hints.receive(stamp_ns, frame_id, pose, covariance, cfg.map.frame,
+                                  self._outputs.lookup, self._outputs.log,
+                                  '' if active else 'inactive')
+        if held is not None:
+            self.calls.add(cfg.relocalization.timeout, self._hint_answered, held)
+
+    def _hint_answered(self, success: bool, message: str) -> None:
+        self._outputs.log('info' if success else 'warning', f'~/hint: {message}')
 
     def tick(self, timeout_s: float) -> None:
         """Fail the requests past their deadline (why: the sequence in progress, if any)."""
@@ -186,10 +204,33 @@ class RelocalizationRun:
                                                   pair.source.stamp_ns)
         if not known:
             return None
+        return seq.step(odom_base, self._base_from_sensor(pair, cfg))
+
+    def hint(self, pair: Pair, cfg: NodeConfig) -> Hint | None:
+        """
+        Return where the pending requests' hint puts the scan's sensor (None: no hint).
+
+        The hint is carried to the scan's stamp by the odometry, when known at both stamps,
+        and to the sensor by the extrinsic (:meth:`.pose_hint.PoseHints.at_scan`).
+        """
+        held = self.calls.hint()
+        if not isinstance(held, PoseHint) or self.hints is None:
+            return None
+        reloc, moved = cfg.relocalization, None
+        then = self._outputs.odometry(reloc.odom_frame, reloc.base_frame, held.stamp_ns)[1]
+        if then is not None and held.stamp_ns:
+            now = self._outputs.odometry(reloc.odom_frame, reloc.base_frame,
+                                         pair.source.stamp_ns)[1]
+            moved = None if now is None else np.linalg.inv(then) @ now
+        return self.hints.at_scan(held, moved, self._base_from_sensor(pair, cfg))
+
+    def _base_from_sensor(self, pair: Pair, cfg: NodeConfig) -> np.ndarray | None:
+        """Return ``T_base_sensor`` of the pair's scan (the parameter's, else TF's), or None."""
         base = extrinsic(cfg)
         if base is None:
-            base = self._outputs.base_from_sensor(reloc.base_frame, pair.source.frame_id)
-        return seq.step(odom_base, base)
+            base = self._outputs.base_from_sensor(cfg.relocalization.base_frame,
+                                                  pair.source.frame_id)
+        return base
 
     def finish(self, scan: RegisteredScan) -> None:
         """Publish the candidates, offer the initial pose, answer pending requests."""
@@ -244,4 +285,5 @@ class RelocalizationRun:
             stats['last_summary'] = line
         stats.update(self._initial_pose.statistics())
         stats.update(self.calls.statistics())
+        stats.update(self.hints.statistics() if self.hints is not None else {})
         return stats

@@ -29,8 +29,9 @@ from typing import Callable
 import numpy as np
 
 from .cache import cached_features
+from .hint import Hint
 from .map import PreparedMap
-from .places import Hint, Place, submap_features, with_tree
+from .places import Place, submap_features, with_tree
 from .result import PipelineResult
 from ..config.pipeline import PipelineConfig
 from ..coordinates import local_origin, moved
@@ -58,7 +59,8 @@ def locate(src: np.ndarray, prepared: PreparedMap, cfg: PipelineConfig, hint: Hi
     """
     start = time.perf_counter()
     timings: dict[str, float] = {}
-    local_hint = None if hint is None else (hint.position - prepared.origin, hint.radius)
+    local_hint = (None if hint is None
+                  else (hint.position - prepared.origin, hint.radius, hint.planar))
     try:
         with timed(timings, 'places_rank'), single_blas_thread():
             origin = local_origin(src, source_sensor)

@@ -15,7 +15,7 @@ query look only where it may be:
   its own descriptor index. Each of at most ``KEYPOINTS`` scan keypoints votes for the
   place of its nearest voting descriptor; a place's score is the votes within 1.5 of the
   scan's reaches of it, so a scan's own place collects the votes of all its surfaces.
-- a **hint** (:class:`Hint`: a position with a radius, e.g. ``initialpose`` with its
+- a **hint** (:class:`~.hint.Hint`: a position with a radius, e.g. ``initialpose`` with its
   covariance) leaves only the places it covers.
 
 Numpy and the front end only: :mod:`.locate` tests and registers the ranked places.
@@ -30,7 +30,6 @@ from typing import Mapping
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..errors import InvalidInputError
 from ..frontend.descriptor_index import DescriptorIndex
 from ..frontend.features import CloudFeatures
 from ..frontend.keypoints import select_keypoints
@@ -41,46 +40,6 @@ TILE_VOXELS = 10.0  # the place grid's spacing: fine beside the smallest reach, 
 VOTE_CELL_VOXELS = 3.0  # one voting point a cell: a ninth of a surface's points
 KEYPOINTS = 1000  # scan keypoints that vote for places and test them
 REACH_QUANTILE = 90.0  # a scan's reach: this percentile of its points' distance to their centroid
-HINT_SIGMAS = 3.0  # a pose hint covers this many standard deviations of its position
-
-
-@dataclasses.dataclass(frozen=True)
-class Hint:
-    """
-    Where the sensor is believed to be: within ``radius`` of ``position``.
-
-    :ivar position: (3,) metres, in the map frame (the map file's coordinates).
-    :ivar radius: metres, at least 0.
-    """
-
-    position: np.ndarray
-    radius: float
-
-    def __post_init__(self) -> None:
-        """Check the position (finite (3,)) and the radius (finite, at least 0)."""
-        position = np.asarray(self.position, dtype=np.float64).reshape(-1)
-        if position.shape != (3,) or not np.isfinite(position).all():
-            raise InvalidInputError(f'a hint position is a finite (3,) vector, got {position}')
-        if not np.isfinite(self.radius) or self.radius < 0:
-            raise InvalidInputError(f'a hint radius is finite and at least 0, got {self.radius}')
-        object.__setattr__(self, 'position', position)
-        object.__setattr__(self, 'radius', float(self.radius))
-
-    @classmethod
-    def from_pose(cls, pose: np.ndarray, covariance: np.ndarray) -> Hint:
-        """
-        Return the hint of a pose with its covariance (``initialpose``, a GNSS fix).
-
-        :param pose: 4x4 pose in the map frame (its translation is the position, metres).
-        :param covariance: 6x6 (or 36 values, row-major) in PoseWithCovariance order; its
-            position block's largest standard deviation times ``HINT_SIGMAS`` is the radius.
-        """
-        pose = np.asarray(pose, dtype=np.float64)
-        cov = np.asarray(covariance, dtype=np.float64).reshape(6, 6)[:3, :3]
-        if pose.shape != (4, 4) or not np.isfinite(cov).all():
-            raise InvalidInputError('a pose hint is a 4x4 pose and a finite 6x6 covariance')
-        sigma = float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (cov + cov.T)).max(), 0.0)))
-        return cls(pose[:3, 3], HINT_SIGMAS * sigma)
 
 
 @dataclasses.dataclass
@@ -176,14 +135,15 @@ class PlaceIndex:
         return cls(mine['centres'], mine['vote_place'], index, float(mine['spacing'][0]))
 
     def rank(self, scan: CloudFeatures, voxel_size: float, count: int, map_tree: cKDTree,
-             hint: tuple[np.ndarray, float] | None = None, workers: int = 1) -> Ranked:
+             hint: tuple[np.ndarray, float, bool] | None = None, workers: int = 1) -> Ranked:
         """
         Rank the places ``scan`` may be in; return at most ``count``, best first.
 
         :param scan: the scan's features (its own frame).
         :param map_tree: the map's k-d tree (its submaps are read from it).
-        :param hint: (position in the map's local frame, radius), metres: only the places
-            within the radius and the scan's reach of the position are ranked.
+        :param hint: (position in the map's local frame, radius, planar), metres: only the
+            places within the radius and the scan's reach of the position (in x and y
+            alone when planar) are ranked.
         """
         spread = np.linalg.norm(scan.points - scan.points.mean(axis=0), axis=1)
         reach = float(np.percentile(spread, REACH_QUANTILE))
@@ -202,7 +162,7 @@ class PlaceIndex:
         voted = np.flatnonzero(votes)
         candidates = voted[covered[voted]]
         if len(candidates) == 0:  # no vote where the hint is: the hint alone places the scan
-            places = [self._place(hint[0], 0, reach + near, map_tree)]
+            places = [self._place(self._where(hint, covered), 0, reach + near, map_tree)]
         else:
             places = self._best(votes, voted, candidates, near, count, reach + near, map_tree)
         # A place that holds half the map is the map: testing it costs more than it saves.
@@ -226,10 +186,22 @@ class PlaceIndex:
                 break
         return places
 
-    def _covered(self, hint: tuple[np.ndarray, float] | None, reach: float) -> np.ndarray:
+    def _covered(self, hint: tuple[np.ndarray, float, bool] | None,
+                 reach: float) -> np.ndarray:
         if hint is None:
             return np.ones(len(self.centres), dtype=bool)
-        return np.linalg.norm(self.centres - hint[0], axis=1) <= hint[1] + reach
+        return self._distance(hint) <= hint[1] + reach
+
+    def _distance(self, hint: tuple[np.ndarray, float, bool]) -> np.ndarray:
+        """Return each place's distance to the hint (in x and y alone when planar)."""
+        return np.linalg.norm((self.centres - hint[0])[:, :2 if hint[2] else 3], axis=1)
+
+    def _where(self, hint: tuple[np.ndarray, float, bool], covered: np.ndarray) -> np.ndarray:
+        """Return the hint's position; a planar one at the height of its nearest place."""
+        if not hint[2]:
+            return hint[0]
+        nearest = np.flatnonzero(covered)[np.argmin(self._distance(hint)[covered])]
+        return np.array([hint[0][0], hint[0][1], self.centres[nearest, 2]])
 
     @staticmethod
     def _place(centre: np.ndarray, votes: int, radius: float, map_tree: cKDTree) -> Place:

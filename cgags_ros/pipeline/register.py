@@ -27,9 +27,9 @@ from .candidates import rank_candidates, search_candidates, settle_candidates
 from .confidence import features, NO_SHARED_SURFACE, probability
 from .covariance import loosest_sigma, result_covariance, with_confidence
 from .gates import measure, measure_shared_surface
+from .hint import Hint
 from .locate import locate
 from .map import matches_config, PreparedMap
-from .places import Hint
 from .regenerate import regenerated_estimate
 from .result import PipelineResult
 from .twins import add_twin, find_twin
@@ -79,7 +79,7 @@ def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
         none. Clouds anywhere up to 10^7 m from their origins register as near it; the
         result is in the caller's frames.
     :param hint: with a map target, where the source's sensor is believed to be
-        (:class:`~.places.Hint`, map frame): only the places it covers are searched, and a
+        (:class:`~.hint.Hint`, map frame): only the places it covers are searched, and a
         hint that covers none refuses the scan as ``no_shared_surface``. A map without
         places (:meth:`~.map.PreparedMap.whole`) is searched whole, hint or not.
     :returns: a :class:`PipelineResult`. Its ``refusal`` (a code and a message; ``valid``

@@ -45,8 +45,8 @@ from ..pipeline.cache import cached_features
 from ..pipeline.candidates import distinct
 from ..pipeline.covariance import loosest_sigma, overlap_covariance
 from ..pipeline.gates import descriptor_ratio, observability
+from ..pipeline.hint import Hint
 from ..pipeline.map import PreparedMap
-from ..pipeline.places import Hint
 from ..pipeline.register import register_clouds
 from ..pipeline.result import PipelineResult
 from ..pipeline.settle import CHECK, Pair, settle
@@ -94,9 +94,9 @@ class Relocalizer:
             was taken (p_odom = T p_sensor); None: no odometry, the scan starts a new
             sequence and is judged alone (``min_scans`` does not apply).
         :param hint: where the sensor is believed to be when the scan was taken
-            (:class:`~.places.Hint`, map frame; e.g. ``Hint.from_pose`` of ``initialpose``):
-            the scan (and the scans so far, fused) is registered only in the map's places
-            it covers. The hypotheses' checks are not restricted.
+            (:class:`~cgags_ros.pipeline.hint.Hint`, map frame; e.g. ``Hint.from_pose`` of
+            ``initialpose``): the scan (and the scans so far, fused) is registered only in
+            the map's places it covers. The hypotheses' checks are not restricted.
         """
         if odom_from_sensor is None:
             self.reset()

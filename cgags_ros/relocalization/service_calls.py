@@ -29,12 +29,18 @@ Answered = Callable[[bool, str], None]  # called with (success, message) once an
 
 
 class Request:
-    """One pending request: when it was made (monotonic s), its deadline, its answer."""
+    """
+    One pending request: when it was made (monotonic s), its deadline, its answer.
 
-    __slots__ = ('called', 'deadline', 'answer', 'on_answer')
+    ``hint``: where to look, opaque here (the node's pose hint): the scans that answer the
+    request carry it, and it ends with the request.
+    """
 
-    def __init__(self, called: float, deadline: float, on_answer: Answered | None = None):
-        self.called, self.deadline = called, deadline
+    __slots__ = ('called', 'deadline', 'answer', 'on_answer', 'hint')
+
+    def __init__(self, called: float, deadline: float, on_answer: Answered | None = None,
+                 hint: object = None):
+        self.called, self.deadline, self.hint = called, deadline, hint
         self.answer: tuple[bool, str] = (False, 'not answered')
         self.on_answer = on_answer
 
@@ -54,10 +60,11 @@ class ServiceCalls:
         self._pending: list[Request] = []
         self._wake = threading.Event()
 
-    def add(self, timeout_s: float, on_answer: Answered | None = None) -> Request:
+    def add(self, timeout_s: float, on_answer: Answered | None = None,
+            hint: object = None) -> Request:
         """Queue a request that fails unless answered within ``timeout_s`` seconds."""
         now = time.monotonic()
-        req = Request(now, now + timeout_s, on_answer)
+        req = Request(now, now + timeout_s, on_answer, hint)
         with self._lock:
             self.counts['calls'] += 1
             self._pending.append(req)
@@ -75,6 +82,11 @@ class ServiceCalls:
         """Return the monotonic time of the oldest pending request, or None when none is."""
         with self._lock:
             return self._pending[0].called if self._pending else None
+
+    def hint(self) -> object:
+        """Return the hint of the newest pending request that has one (None: none has)."""
+        with self._lock:
+            return next((r.hint for r in reversed(self._pending) if r.hint is not None), None)
 
     def wait(self, timeout: float) -> None:
         """Sleep until a request arrives or ``timeout`` seconds pass."""

@@ -19,6 +19,9 @@ Topics (relative names; remap them):
         Reliable; durability ``pairing.target_durability``. Not subscribed with ``map.file``.
     odom (nav_msgs/Odometry, in, with ``map.file``; else TF odom -> base): relocalization
         over the next scans (:mod:`cgags_ros.relocalization.sequence`).
+    ~/hint (geometry_msgs/PoseWithCovarianceStamped, in, with ``map.file``): where the base
+        roughly is, a relocalization request searched there (:mod:`cgags_ros.engine.pose_hint`);
+        not ``initialpose``, which the node publishes.
     ~/pose (geometry_msgs/PoseStamped, out): pose of the source frame in the target frame
         (``T``: ``p_target = R p_source + t``, metres), stamped with the source's stamp,
         frame_id = target frame (or ``output.pose_frame_id``).
@@ -73,6 +76,7 @@ import os
 import time
 from typing import Any
 
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
 import rclpy
@@ -171,9 +175,10 @@ class RegisterNode(LifecycleNode):
             self._entities.append(self.create_subscription(
                 PointCloud2, 'target_cloud', functools.partial(self._receive, role='target'),
                 target_qos(cfg)))
-        else:  # with odometry a relocalization goes on over the next scans
-            self._entities.append(self.create_subscription(
-                Odometry, 'odom', self._on_odometry, qos_profile_sensor_data))
+        else:  # a map: odometry carries a relocalization over scans; a hint says where
+            self._entities += [self.create_subscription(
+                Odometry, 'odom', self._on_odometry, qos_profile_sensor_data),
+                self.create_subscription(PoseWithCovarianceStamped, '~/hint', self._on_hint, 10)]
         self.get_logger().info(
             f"registering source_cloud onto {cfg.map.file or 'target_cloud'} ({cfg.mode}, "
             f'{cfg.pairing.mode}, voxel_size {pipe.voxel_size} m; '
@@ -299,6 +304,12 @@ class RegisterNode(LifecycleNode):
         with contextlib.suppress(InvalidInputError):  # a zero quaternion: no pose
             if self.outputs is not None:
                 self.outputs.tf.add_odometry(stamp_to_ns(msg.header.stamp), pose_to_transform(msg))
+
+    def _on_hint(self, msg: PoseWithCovarianceStamped) -> None:
+        p, q = msg.pose.pose.position, msg.pose.pose.orientation
+        if self._engine is not None:
+            self._engine.hint(stamp_to_ns(msg.header.stamp), msg.header.frame_id,
+                              (p.x, p.y, p.z, q.x, q.y, q.z, q.w), msg.pose.covariance)
 
     # ------------------------------------------------------------------ services
 

@@ -65,7 +65,8 @@ class Outputs:
         self.counts: collections.Counter[str] = collections.Counter()
         self._odometry = odometry
         self.tf = Transforms(node, self.log, self._send, listen=odometry)
-        self.base_from_sensor, self.odometry = self.tf.base_from_sensor, self.tf.odometry
+        self.base_from_sensor, self.odometry, self.lookup = (self.tf.base_from_sensor,
+                                                             self.tf.odometry, self.tf.lookup)
         self._calibration_pub = self._report_pub = None
         if calibrate:
             self._calibration_pub = lifecycle(PoseWithCovarianceStamped, '~/calibration',

@@ -7,13 +7,14 @@ a :class:`Runner` runs it (a :class:`~.supervisor.Supervisor`'s registration pro
 back; every answer to a registration carries its
 :class:`~cgags_ros.pipeline.result.PipelineResult` (:func:`result_of`).
 
-- :class:`RegisterPair` -> :class:`PairDone`: one pair through ``register_clouds``.
+- :class:`RegisterPair` -> :class:`PairDone`: one pair through ``register_clouds`` (a scan
+  on a map with the :class:`~cgags_ros.pipeline.hint.Hint` of a relocalization, if any).
 - :class:`TrackScan` -> :class:`Tracked`: a stream's next scan through the session's
   :class:`~cgags_ros.tracking.Tracker`, which may ask for a periodic check beside it.
 - :class:`CheckScan` -> :class:`CheckVerdict`: that check, a global registration of a
   tracked scan, answered with the pose alone (the checks' lane, :mod:`.checks`).
 - :class:`SequenceScan` -> :class:`~cgags_ros.relocalization.sequence.StepAnswer`: one scan
-  of a relocalization over several scans, on the map.
+  of a relocalization over several scans, on the map (with its hint, if any).
 - :class:`PrepareMap` -> :class:`MapReady`: load a map's features.
 
 Targets are an array (metres, the target's frame), a :class:`MapRef` (the process loads
@@ -37,6 +38,7 @@ from typing import Any, Callable, Protocol, Union
 import numpy as np
 
 from ..config.pipeline import PipelineConfig
+from ..pipeline.hint import Hint
 from ..pipeline.result import PipelineResult
 from ..relocalization.sequence import StepAnswer
 
@@ -63,11 +65,17 @@ Target = Union[np.ndarray, MapRef, str]  # an array, a map, or HELD
 
 @dataclasses.dataclass(frozen=True)
 class RegisterPair:
-    """Register ``source`` (N, 3, metres, its sensor frame) onto ``target`` globally."""
+    """
+    Register ``source`` (N, 3, metres, its sensor frame) onto ``target`` globally.
+
+    :ivar hint: with a map target, where the source's sensor is believed to be: only the
+        map's places it covers are searched (None: everywhere).
+    """
 
     source: np.ndarray
     target: Target
     config: PipelineConfig
+    hint: Hint | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -124,6 +132,7 @@ class SequenceScan:
         over.
     :ivar max_scans: scans after which an unconfirmed answer is refused.
     :ivar restart: forget the scans so far first.
+    :ivar hint: where the scan's sensor is believed to be in the map (None: anywhere).
     """
 
     source: np.ndarray
@@ -132,6 +141,7 @@ class SequenceScan:
     odom_from_sensor: np.ndarray | None
     max_scans: int
     restart: bool
+    hint: Hint | None = None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -77,7 +77,8 @@ class ChildSession:
         from ..pipeline.register import register_clouds
 
         if isinstance(job, RegisterPair):
-            return PairDone(register_clouds(job.source, target, config=job.config))
+            return PairDone(register_clouds(job.source, target, config=job.config,
+                                            hint=job.hint))
         if isinstance(job, CheckScan):
             result = register_clouds(job.source, target, config=job.config)
             return CheckVerdict(job.stamp, np.asarray(result.transform) if result.valid else None,
@@ -136,7 +137,7 @@ class ChildSession:
             reloc = self._relocalizer = Relocalizer(prepared, job.config,
                                                     SequenceConfig(max_scans=job.max_scans))
         odom = None if job.odom_from_sensor is None else np.asarray(job.odom_from_sensor)
-        answer = reloc.add(job.source, odom)
+        answer = reloc.add(job.source, odom, job.hint)
         return StepAnswer(answer.refusal, answer.results[-1], answer.confirmed, answer.done,
                           answer.transform, answer.map_from_odom, answer.scans_used,
                           len(answer.hypotheses))

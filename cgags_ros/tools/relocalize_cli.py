@@ -103,7 +103,7 @@ def _relocalize(args: argparse.Namespace) -> int:
                 else [None] * len(args.scans))
     scans = [read_cloud(path) for path in args.scans]
     from ..pipeline.map import load_map  # after the cheap checks: imports Open3D
-    from ..pipeline.places import Hint
+    from ..pipeline.hint import Hint
     from ..relocalization.relocalizer import Relocalizer, SequenceConfig
 
     hint = None if args.hint is None else Hint(args.hint[:3], args.hint[3])
