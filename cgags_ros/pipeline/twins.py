@@ -50,6 +50,7 @@ SYMMETRY_POINTS = 2000  # about this many of the map's points judge a turn
 AXIS_NORMALS = 4000  # about this many normals find the directions surfaces face...
 AXIS_TRIES = 200  # ...each of about this many tried as one
 AXIS_TOLERANCE_DEG = 10.0  # a normal faces along a direction within this angle
+MAX_SHIFT_BINS = 4096  # the histograms that shift a turn onto the map: at most this many bins
 
 
 def worth_refining(start_fitness: float, fitness: float,
@@ -201,7 +202,7 @@ def symmetries_of(points: np.ndarray, normals: np.ndarray, ft: CloudFeatures,
     of the part of a room a scan sees is not the room's centre); a turn that puts
     at least ``SYMMETRY_START`` of about ``SYMMETRY_POINTS`` evenly spread points on the
     map is settled onto it (:data:`~.settle.SYMMETRY`), and one that then puts at least
-    ``SYMMETRY_FIT`` of them there is a symmetry.
+    ``SYMMETRY_FIT`` of them there is a symmetry, and so is its inverse.
     """
     final = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
     sample = points[::max(1, len(points) // SYMMETRY_POINTS)]
@@ -275,8 +276,10 @@ def _onto(start: np.ndarray, sample: np.ndarray, points: np.ndarray, axes: np.nd
     shift = np.zeros(3)
     for axis in axes:
         a, b = moved @ axis, points @ axis
-        low = min(a.min(), b.min())
-        bins = int((max(a.max(), b.max()) - low) / bin_size) + 1
+        low, high = min(a.min(), b.min()), max(a.max(), b.max())
+        # A map kilometres long gets coarser bins: the settling finds the rest.
+        bin_size = max(bin_size, (high - low) / MAX_SHIFT_BINS)
+        bins = int((high - low) / bin_size) + 1
         ha = np.bincount(((a - low) / bin_size).astype(np.int64), minlength=bins)
         hb = np.bincount(((b - low) / bin_size).astype(np.int64), minlength=bins)
         best = int(np.argmax(np.correlate(hb / len(b), ha / len(a), 'full'))) - (bins - 1)
