@@ -16,8 +16,8 @@ from cgags_ros.frontend.fpfh import fpfh_with_spacing
 from cgags_ros.frontend.neighbours import NeighbourGrid
 from cgags_ros.geometry import point_resolution
 from cgags_ros.io.clouds import read_cloud
+from cgags_ros.open3d_import import open3d as o3d
 import numpy as np
-import open3d as o3d
 import pytest
 from scipy.spatial import cKDTree
 

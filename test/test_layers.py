@@ -6,8 +6,8 @@ relocalization -> pipeline -> frontend / registration -> validity -> geometry, c
 errors, timing, and the refusal codes below them all). Only ros/ (and the live replay's DDS
 client) imports rclpy and message packages, and ros/ is wiring only: every module of it imports
 them, and the whole stays small enough to read in one sitting. The core (registration/) imports
-neither ROS nor Open3D. No import cycle. No module over 400 lines: past that, a module
-usually holds two ideas.
+neither ROS nor Open3D; the rest takes Open3D from open3d_import only. No import cycle. No module
+over 400 lines: past that, a module usually holds two ideas.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ LAYERS = {  # top-level part of the module name -> layer (higher imports lower)
     'refusal': -1,  # the refusal codes, which every error and result carries
     'errors': 0, 'timing': 0, 'parallel': 0, 'compiled_types': 0,
     'fitted': 0,  # the numbers a study fitted, with their record
+    'open3d_import': 0,  # Open3D as the front end, io and pipeline import it (without open3d.ml)
     'geometry': 1, 'config': 1,  # the bottom: typed config, geometry, then files and data
     'io': 2, 'validity': 2,  # validity: the core and the pipeline ask it for their verdicts
     'coordinates': 2,  # far coordinates worked on near a local origin (geometry's bounds)
@@ -148,7 +149,16 @@ def test_only_ros_imports_ros_and_the_core_stays_numpy_scipy():
             assert not ros, f'{name} imports {ros}'
         if part == 'registration':
             assert theirs <= CORE_THIRD_PARTY, f'the core module {name} imports {theirs}'
-            assert not any(layer(o)[1] == 'frontend' for o in ours), name
+            assert not any(layer(o)[1] in ('frontend', 'open3d_import') for o in ours), name
+
+
+@pytest.mark.source_only
+def test_open3d_is_imported_in_one_place():
+    """Every module takes Open3D from open3d_import, which leaves open3d.ml and its kin out."""
+    direct = sorted(name for name, (_, theirs) in GRAPH.items()
+                    if 'open3d' in theirs and name != 'cgags_ros.open3d_import')
+    assert not direct, f'{direct} import open3d: take it from cgags_ros.open3d_import'
+    assert 'cgags_ros.open3d_import' in GRAPH['cgags_ros.frontend.features'][0]
 
 
 @pytest.mark.source_only

@@ -12,7 +12,6 @@ import dataclasses
 import threading
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 
 from .descriptor_index import DescriptorIndex
@@ -21,6 +20,7 @@ from .matching import informative_index
 from ..config.frontend import FrontEndConfig
 from ..errors import EmptyCloudError, InvalidInputError
 from ..geometry import point_resolution
+from ..open3d_import import open3d as o3d
 from ..timing import timed
 
 # A normal is the PCA of at most this many nearest neighbours within its radius.

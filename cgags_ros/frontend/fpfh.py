@@ -8,12 +8,12 @@ metres, in the cloud's own frame.
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
 
 from . import compiled
 from .neighbours import NeighbourGrid
 from ..compiled_types import c_array
 from ..config.frontend import FrontEndConfig
+from ..open3d_import import open3d as o3d
 from ..parallel import run_chunks
 
 # Neighbour lists of at most this many bytes are kept for both passes; a larger cloud (a

@@ -10,11 +10,11 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 
 from ..config.frontend import RefineConfig
 from ..geometry import apply_transform, GravityFrame
+from ..open3d_import import open3d as o3d
 
 # A first, coarser stage stops once fitness and inlier RMSE change by less than this
 # (relative): it only has to bring the estimate within the final distance, whose stage

@@ -103,7 +103,7 @@ def _columns(header: dict[str, list[str]]) -> list[str]:
 
 def read_open3d(path: Path, declared: int) -> tuple[np.ndarray, np.ndarray | None]:
     """Return the points and (when the file has them) the normals, through Open3D."""
-    import open3d as o3d
+    from ..open3d_import import open3d as o3d
 
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         cloud = o3d.io.read_point_cloud(str(path), format='pcd')

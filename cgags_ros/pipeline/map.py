@@ -121,7 +121,7 @@ class PreparedMap:
 
 def feature_settings(config: PipelineConfig) -> dict[str, Any]:
     """Return every setting that changes a cloud's features (voxel size, front end, Open3D)."""
-    import open3d
+    from ..open3d_import import open3d
 
     out = {name: getattr(config.frontend, name) for name in FEATURE_SETTINGS}
     out.update(normal_max_nn=NORMAL_MAX_NN, fpfh_max_nn=FPFH_MAX_NN, min_points=MIN_POINTS)
