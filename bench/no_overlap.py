@@ -27,10 +27,11 @@ once (the estimates are those of a cold run, the times are not).
 
 One JSON line a pair: the scenes and fragments, ``valid``, ``confidence``, the refusal code,
 what each gate reads (inliers, chance bound, runner-up ratio, fitness, overlap,
-observability, free-space violation), and what this study adds (:func:`shared_surface`):
-the shared surface's points, its area and extent in each cloud, and how the descriptors
-agree over it (:func:`descriptor_agreement`; ``remeasure`` adds it to older records from
-their transforms). ``summary`` prints the
+observability, free-space violation, from both sensors too), and what this study adds
+(:func:`shared_surface`): the shared surface's points, its area and extent in each cloud,
+and how the descriptors agree over it (:func:`descriptor_agreement`; ``remeasure`` adds it
+and the free space seen from both sensors to older records from their transforms, and
+reads the benchmark records of :mod:`bench.studies.loso_trust` too). ``summary`` prints the
 accepted share, the refusal codes and the measures' quantiles of each kind of pair.
 Results go under the git-ignored ``out/``.
 """
@@ -51,11 +52,13 @@ from cgags_ros.frontend.refine import evaluate_alignment
 from cgags_ros.geometry import rotation_error_deg, spread, translation_error
 from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import cached_features, register_clouds, set_feature_cache_size
+from cgags_ros.pipeline.gates import measured_free_space_surface
 import numpy as np
 
 GATE_FIELDS = ('confidence', 'num_inliers', 'num_correspondences', 'num_hypotheses',
                'chance_inliers', 'chance_bound', 'runner_up_ratio', 'fitness', 'overlap',
-               'observability', 'free_space_violation', 'inlier_threshold')
+               'observability', 'free_space_violation', 'free_space_surface',
+               'inlier_threshold')
 
 
 def _num(x) -> float | None:
@@ -120,18 +123,31 @@ def descriptor_agreement(fs, ft, T: np.ndarray, cfg: PipelineConfig) -> dict:
 
 
 def remeasure(records: list[dict], root: Path, cfg: PipelineConfig) -> list[dict]:
-    """Return ``records`` with :func:`descriptor_agreement` of their recorded transforms."""
+    """
+    Return ``records`` with what today's gates measure of their recorded transforms.
+
+    :func:`descriptor_agreement` and the surfaces put in free space as both sensors see it
+    (``free_space_surface``, :func:`cgags_ros.pipeline.gates.free_space_surface`), for each
+    record with an estimate; the verdicts stay the recorded ones. Records of
+    :mod:`bench.studies.loso_trust` (the benchmark's pairs, keyed ``benchmark``, ``scene``)
+    are given this module's keys.
+    """
     frags: dict[str, tdm.Fragments] = {}
     out = []
     for rec in records:
-        if rec.get('shared_points') is not None:
+        if 'benchmark' in rec:
+            rec = {**rec, 'kind': rec['benchmark'], 'source_scene': rec['scene'],
+                   'target_scene': rec['scene']}
+        if rec.get('transform') is not None and (rec.get('fitness') or 0) > 0:
             for scene in (rec['source_scene'], rec['target_scene']):
                 frags.setdefault(scene, tdm.Fragments(root, scene))
             fs = cached_features(frags[rec['source_scene']][rec['source']], cfg.voxel_size,
                                  cfg.frontend, 'source')
             ft = cached_features(frags[rec['target_scene']][rec['target']], cfg.voxel_size,
                                  cfg.frontend, 'target')
-            rec = {**rec, **descriptor_agreement(fs, ft, np.asarray(rec['transform']), cfg)}
+            T = np.asarray(rec['transform'])
+            rec = {**rec, **descriptor_agreement(fs, ft, T, cfg),
+                   'free_space_surface': _num(measured_free_space_surface(fs, ft, T, cfg))}
         out.append(rec)
     return out
 
