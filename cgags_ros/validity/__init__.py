@@ -40,7 +40,7 @@ FREE_SPACE_SETTLE_FACTOR = 0.5
 # (:func:`cgags_ros.pipeline.gates.free_space_surface`): chosen on the right low-overlap
 # poses, which rarely show any, where clouds of two places laid on a shared-looking surface
 # show more (docs/no_overlap.md). On with the free-space gate.
-MAX_FREE_SPACE_SURFACE = 0.033
+MAX_FREE_SPACE_SURFACE = 0.04
 
 Code = RefusalCode
 
