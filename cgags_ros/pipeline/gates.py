@@ -25,14 +25,6 @@ from ..registration import poisson_isf
 # the sensor by more than the margin, which absorbs the voxel grid's and the sensor's noise.
 FREE_SPACE_MARGIN_FACTOR = 2.0
 FREE_SPACE_BIN_DEG = 2.0
-# Surfaces in free space (:func:`free_space_surface`): a tighter depth margin and coarser bins
-# (a depth map of 5-cm voxels at 2-degree bins is too sparse to show a surface as one piece),
-# and a point counts only when most of its neighbours within the radius (voxel sizes) are in
-# front too: a patch of surface, not the thin misfit along an occlusion edge.
-FREE_SURFACE_MARGIN_FACTOR = 1.0
-FREE_SURFACE_BIN_DEG = 3.0
-FREE_SURFACE_RADIUS_FACTOR = 3.0
-FREE_SURFACE_SOLID = 0.8
 
 
 def measure(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
@@ -42,9 +34,8 @@ def measure(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
     Set the measurements the gates judge on ``result`` (its ``transform`` is the estimate).
 
     The chance-level inliers of the correspondences and their bound, then
-    :func:`measure_overlap`, whose overlap is returned, the descriptors' agreement
-    over it (:func:`descriptor_ratio`) and the surfaces it puts in free space as both
-    sensors see it (:func:`free_space_surface`). ``map_target``: the target is a map
+    :func:`measure_overlap`, whose overlap is returned, and the descriptors' agreement
+    over it (:func:`descriptor_ratio`). ``map_target``: the target is a map
     fused from many viewpoints, so it has no sensor at its origin (the free-space violation
     is then measured against the scan's view only).
     """
@@ -59,8 +50,6 @@ def measure(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
     align = measure_overlap(fs.points, fs.tree, ft, result, cfg, map_target,
                             fs.sensor_at_origin)
     result.descriptor_ratio = descriptor_ratio(fs.descriptors, ft.descriptors, align)
-    result.free_space_surface = measured_free_space_surface(fs, ft, result.transform, cfg,
-                                                            map_target)
     return align
 
 
@@ -218,9 +207,17 @@ def _view_bins(points: np.ndarray, bin_rad: float) -> tuple[np.ndarray, np.ndarr
     return ia * (int(np.pi / bin_rad) + 2) + ie, r
 
 
-def _depth_status(moved: np.ndarray, viewer: np.ndarray, margin: float,
-                  bin_deg: float) -> tuple[np.ndarray, np.ndarray]:
-    """Return which ``moved`` points lie in front of ``viewer``'s surface, and which on it."""
+def depth_status(moved: np.ndarray, viewer: np.ndarray, margin: float,
+                 bin_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Return which ``moved`` points lie in front of ``viewer``'s surface, and which on it.
+
+    ``viewer`` seen from its origin, its sensor, as :func:`free_space_violation` sees it: a
+    depth map of its nearest point per angular bin of ``bin_deg`` degrees; a point of
+    ``moved`` (in the same frame) in an observed bin is in front when nearer the origin by
+    more than ``margin`` (metres), on the surface within it; both False in a bin the viewer
+    did not observe, or behind its surface.
+    """
     front = np.zeros(len(moved), dtype=bool)
     if len(moved) == 0 or len(viewer) == 0:
         return front, front.copy()
@@ -242,69 +239,9 @@ def _depth_status(moved: np.ndarray, viewer: np.ndarray, margin: float,
 def _in_front_share(moved: np.ndarray, viewer: np.ndarray, margin: float,
                     bin_deg: float) -> float:
     """Share of ``moved`` points in front of ``viewer``'s surface, among those in front or on."""
-    front, on = _depth_status(moved, viewer, margin, bin_deg)
+    front, on = depth_status(moved, viewer, margin, bin_deg)
     in_front, compared = int(front.sum()), int(front.sum() + on.sum())
     return in_front / compared if compared else 0.0
-
-
-def measured_free_space_surface(fs: CloudFeatures, ft: CloudFeatures, transform: np.ndarray,
-                                cfg: PipelineConfig, map_target: bool = False) -> float:
-    """
-    Return :func:`free_space_surface` of ``transform`` as the config asks for it.
-
-    NaN unless both clouds are in their sensor frames (a map has no sensor; normals
-    oriented to the origin) and the free-space gate is on (``gates.max_free_space_violation``
-    below 1).
-    """
-    if (cfg.frontend.normal_orientation != 'origin' or cfg.gates.max_free_space_violation >= 1
-            or map_target or not (fs.sensor_at_origin and ft.sensor_at_origin)):
-        return float('nan')
-    return free_space_surface(fs.points, fs.tree, ft.points, ft.tree, transform,
-                              cfg.voxel_size)
-
-
-def free_space_surface(source: np.ndarray, source_tree: cKDTree, target: np.ndarray,
-                       target_tree: cKDTree, transform: np.ndarray, voxel_size: float) -> float:
-    """
-    Return the share of points an alignment puts in free space as surfaces both sensors see.
-
-    As :func:`free_space_violation` (each cloud seen from its origin, its sensor; source ->
-    target, metres), with a margin of :data:`FREE_SURFACE_MARGIN_FACTOR` voxels and bins of
-    :data:`FREE_SURFACE_BIN_DEG` degrees, but a point in front of the other cloud's surface
-    counts only when :data:`FREE_SURFACE_SOLID` of its own cloud's points within
-    :data:`FREE_SURFACE_RADIUS_FACTOR` voxels are in front too: a piece of surface where the
-    other sensor saw through, not a misfit along an occlusion edge. Per view, the share of
-    such points among those in front or on the surface; returned, the smaller of the two
-    views. A right pose, even of little overlap, leaves at most one view's occlusion edges
-    and fused-in surfaces; clouds of two places laid on a shared-looking floor, bed or
-    corner put each room's surfaces in the other's free space, seen from both sensors.
-    ``source_tree``, ``target_tree``: k-d trees over the clouds in their own frames.
-    """
-    T = np.asarray(transform, dtype=np.float64)
-    seen_by_source = _surface_share(target, target_tree, apply_transform(np.linalg.inv(T),
-                                                                         target), source,
-                                    voxel_size)
-    seen_by_target = _surface_share(source, source_tree, apply_transform(T, source), target,
-                                    voxel_size)
-    return min(seen_by_source, seen_by_target)
-
-
-def _surface_share(points: np.ndarray, tree: cKDTree, moved: np.ndarray, viewer: np.ndarray,
-                   voxel_size: float) -> float:
-    """Return one view's share of :func:`free_space_surface`: ``moved`` seen by ``viewer``."""
-    front, on = _depth_status(moved, viewer, FREE_SURFACE_MARGIN_FACTOR * voxel_size,
-                              FREE_SURFACE_BIN_DEG)
-    compared = int(front.sum() + on.sum())
-    idx = np.flatnonzero(front)
-    if not compared or not len(idx):
-        return 0.0
-    # a rigid motion keeps neighbourhoods: they are looked up in the cloud's own frame
-    near = tree.query_ball_point(points[idx], r=FREE_SURFACE_RADIUS_FACTOR * voxel_size)
-    sizes = np.fromiter((len(n) for n in near), dtype=np.int64, count=len(near))
-    starts = np.r_[0, np.cumsum(sizes)[:-1]]
-    in_front = np.add.reduceat(front[np.concatenate(near)].astype(np.int64), starts)
-    solid = np.count_nonzero(in_front >= FREE_SURFACE_SOLID * sizes)
-    return solid / compared
 
 
 def chance_inliers(src: np.ndarray, dst: np.ndarray, transform: np.ndarray, tau: float) -> float:

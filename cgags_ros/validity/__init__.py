@@ -36,11 +36,6 @@ from ..refusal import Refusal, RefusalCode
 # within the ambiguity ratio) is trusted only below this share of the free-space bound:
 # nothing but the overlap's geometry vouches for it (docs/ablation.md, unsettled estimates).
 FREE_SPACE_SETTLE_FACTOR = 0.5
-# The most surface in free space from both sensors a valid estimate may show
-# (:func:`cgags_ros.pipeline.gates.free_space_surface`): chosen on the right low-overlap
-# poses, which rarely show any, where clouds of two places laid on a shared-looking surface
-# show more (docs/no_overlap.md). On with the free-space gate.
-MAX_FREE_SPACE_SURFACE = 0.04
 
 Code = RefusalCode
 
@@ -60,7 +55,6 @@ class Overlap(Protocol):
     observability: float
     fitness: float
     free_space_violation: float
-    free_space_surface: float  # seen from both sensors (NaN: not measured, e.g. tracked)
     tilt_deg: float  # 4-DoF only (else NaN)
 
 
@@ -167,8 +161,7 @@ def overlap_refusal(e: Overlap, cfg: PipelineConfig, unsettled: bool = False) ->
     Return why an estimate must not be trusted on its overlap alone, or None.
 
     The gates that need no correspondences (degenerate axis, fitness, free space, tilt), so
-    that a pose refined from a prediction is judged as a global one is (the free space seen
-    from both sensors is measured on global estimates of two sensor-frame clouds only).
+    that a pose refined from a prediction is judged as a global one is.
     """
     gates = cfg.gates
     distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
@@ -189,13 +182,6 @@ def overlap_refusal(e: Overlap, cfg: PipelineConfig, unsettled: bool = False) ->
             f'(> {limit:g}, gates.max_free_space_violation, times '
             f'{FREE_SPACE_SETTLE_FACTOR:g} for an unsettled estimate): the pose stacks '
             'surfaces where a sensor saw free space'))
-    if e.free_space_surface > MAX_FREE_SPACE_SURFACE:  # NaN: not measured
-        return Refusal(Code.FREE_SPACE, (
-            f'{100 * e.free_space_surface:.0f} % of the aligned points that meet the other '
-            "cloud's view lie in front of its observed surface as whole pieces of surface, "
-            f'seen from both sensors (> {MAX_FREE_SPACE_SURFACE:g}): each cloud puts '
-            'surfaces where the other sensor saw through; clouds of two places (a wrong map, '
-            'a scan outside it) meet like this'))
     return tilt_refusal(e.tilt_deg, cfg.core.max_tilt_deg,
                         'a 6-DoF point-to-plane step over the overlap', 'core.max_tilt_deg',
                         "core.motion_model='6dof'")
