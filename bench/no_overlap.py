@@ -28,9 +28,11 @@ once (the estimates are those of a cold run, the times are not).
 One JSON line a pair: the scenes and fragments, ``valid``, ``confidence``, the refusal code,
 what each gate reads (inliers, chance bound, runner-up ratio, fitness, overlap,
 observability, free-space violation), and what this study adds (:func:`shared_surface`):
-the shared surface's points, its area and extent in each cloud, and how the descriptors
-agree over it (:func:`descriptor_agreement`; ``remeasure`` adds it to older records from
-their transforms). ``summary`` prints the
+the shared surface's points, its area and extent in each cloud, how the descriptors agree
+over it (:func:`descriptor_agreement`) and the surfaces the pose puts in free space as both
+sensors see it (:func:`free_space_surface`); ``remeasure`` adds the last two to older
+records from their transforms, and reads the benchmark records of
+:mod:`bench.studies.loso_trust` too. ``summary`` prints the
 accepted share, the refusal codes and the measures' quantiles of each kind of pair.
 Results go under the git-ignored ``out/``.
 """
@@ -48,14 +50,18 @@ from bench.datasets import threedmatch as tdm
 from cgags_ros.config import PipelineConfig
 from cgags_ros.config.fields import update_from_flat
 from cgags_ros.frontend.refine import evaluate_alignment
-from cgags_ros.geometry import rotation_error_deg, spread, translation_error
+from cgags_ros.geometry import apply_transform, rotation_error_deg, spread, translation_error
 from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import cached_features, register_clouds, set_feature_cache_size
+from cgags_ros.pipeline.gates import depth_status
 import numpy as np
 
 GATE_FIELDS = ('confidence', 'num_inliers', 'num_correspondences', 'num_hypotheses',
                'chance_inliers', 'chance_bound', 'runner_up_ratio', 'fitness', 'overlap',
                'observability', 'free_space_violation', 'inlier_threshold')
+# The free space seen from both sensors (:func:`free_space_surface`): depth margin (voxels),
+# angular bin (degrees), neighbourhood (voxels) and the share of it that must be in front.
+SURFACE_MARGIN, SURFACE_BIN_DEG, SURFACE_RADIUS, SURFACE_SOLID = 1.0, 3.0, 3.0, 0.8
 
 
 def _num(x) -> float | None:
@@ -119,19 +125,64 @@ def descriptor_agreement(fs, ft, T: np.ndarray, cfg: PipelineConfig) -> dict:
             'desc_close_share': float(np.mean(paired < 0.5 * np.median(shuffled)))}
 
 
+def free_space_surface(fs, ft, T: np.ndarray, voxel_size: float) -> float:
+    """
+    Return the share of points ``T`` puts in free space as surfaces both sensors see.
+
+    As the free-space gate (each cloud seen from its origin, its sensor:
+    :func:`cgags_ros.pipeline.gates.depth_status`), with a margin of one voxel and bins of
+    3 degrees, but a point in front of the other cloud's surface counts only when 80 % of
+    its own cloud's points within 3 voxels are in front too: a piece of surface where the
+    other sensor saw through, not a misfit along an occlusion edge. Per view, the share of
+    such points among those in front or on the surface; returned, the smaller of the two.
+    ``fs``, ``ft``: the clouds' features (points and k-d trees in their own frames).
+    """
+    T = np.asarray(T, dtype=np.float64)
+    return min(_surface_share(ft, apply_transform(np.linalg.inv(T), ft.points), fs.points,
+                              voxel_size),
+               _surface_share(fs, apply_transform(T, fs.points), ft.points, voxel_size))
+
+
+def _surface_share(own, moved: np.ndarray, viewer: np.ndarray, voxel_size: float) -> float:
+    front, on = depth_status(moved, viewer, SURFACE_MARGIN * voxel_size, SURFACE_BIN_DEG)
+    compared = int(front.sum() + on.sum())
+    idx = np.flatnonzero(front)
+    if not compared or not len(idx):
+        return 0.0
+    # a rigid motion keeps neighbourhoods: they are looked up in the cloud's own frame
+    near = own.tree.query_ball_point(own.points[idx], r=SURFACE_RADIUS * voxel_size)
+    sizes = np.fromiter((len(n) for n in near), dtype=np.int64, count=len(near))
+    starts = np.r_[0, np.cumsum(sizes)[:-1]]
+    in_front = np.add.reduceat(front[np.concatenate(near)].astype(np.int64), starts)
+    return int(np.count_nonzero(in_front >= SURFACE_SOLID * sizes)) / compared
+
+
 def remeasure(records: list[dict], root: Path, cfg: PipelineConfig) -> list[dict]:
-    """Return ``records`` with :func:`descriptor_agreement` of their recorded transforms."""
+    """
+    Return ``records`` with what today's gates measure of their recorded transforms.
+
+    :func:`descriptor_agreement` and the surfaces put in free space as both sensors see it
+    (:func:`free_space_surface`), for each
+    record with an estimate; the verdicts stay the recorded ones. Records of
+    :mod:`bench.studies.loso_trust` (the benchmark's pairs, keyed ``benchmark``, ``scene``)
+    are given this module's keys.
+    """
     frags: dict[str, tdm.Fragments] = {}
     out = []
     for rec in records:
-        if rec.get('shared_points') is not None:
+        if 'benchmark' in rec:
+            rec = {**rec, 'kind': rec['benchmark'], 'source_scene': rec['scene'],
+                   'target_scene': rec['scene']}
+        if rec.get('transform') is not None and (rec.get('fitness') or 0) > 0:
             for scene in (rec['source_scene'], rec['target_scene']):
                 frags.setdefault(scene, tdm.Fragments(root, scene))
             fs = cached_features(frags[rec['source_scene']][rec['source']], cfg.voxel_size,
                                  cfg.frontend, 'source')
             ft = cached_features(frags[rec['target_scene']][rec['target']], cfg.voxel_size,
                                  cfg.frontend, 'target')
-            rec = {**rec, **descriptor_agreement(fs, ft, np.asarray(rec['transform']), cfg)}
+            T = np.asarray(rec['transform'])
+            rec = {**rec, **descriptor_agreement(fs, ft, T, cfg),
+                   'free_space_surface': free_space_surface(fs, ft, T, cfg.voxel_size)}
         out.append(rec)
     return out
 
@@ -151,6 +202,8 @@ def measure(src: np.ndarray, tgt: np.ndarray, cfg: PipelineConfig) -> dict:
         ft = cached_features(tgt, cfg.voxel_size, cfg.frontend, 'target')
         rec.update(shared_surface(fs, ft, np.asarray(result.transform), cfg))
         rec.update(descriptor_agreement(fs, ft, np.asarray(result.transform), cfg))
+        rec['free_space_surface'] = free_space_surface(fs, ft, np.asarray(result.transform),
+                                                       cfg.voxel_size)
     return rec
 
 

@@ -40,4 +40,7 @@ any other bench module: they may import the tools of :mod:`bench`, never the rev
 - :mod:`.no_overlap_bound`: the shared-surface gate's bounds (``gates.min_shared_area``,
   ``gates.max_descriptor_ratio``) chosen on the right low-overlap poses of the training
   scenes, leave one scene out and easiest to hardest (docs/no_overlap.md).
+- :mod:`.shared_surface_measures`: candidate measures of a pose's shared surface (extent,
+  inliers' spread, descriptors at three radii, mutual descriptor matches, free space from
+  each sensor and both) from recorded transforms, against the right low-overlap poses.
 """

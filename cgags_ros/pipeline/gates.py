@@ -207,11 +207,20 @@ def _view_bins(points: np.ndarray, bin_rad: float) -> tuple[np.ndarray, np.ndarr
     return ia * (int(np.pi / bin_rad) + 2) + ie, r
 
 
-def _in_front_share(moved: np.ndarray, viewer: np.ndarray, margin: float,
-                    bin_deg: float) -> float:
-    """Share of ``moved`` points in front of ``viewer``'s surface, among those in front or on."""
+def depth_status(moved: np.ndarray, viewer: np.ndarray, margin: float,
+                 bin_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Return which ``moved`` points lie in front of ``viewer``'s surface, and which on it.
+
+    ``viewer`` seen from its origin, its sensor, as :func:`free_space_violation` sees it: a
+    depth map of its nearest point per angular bin of ``bin_deg`` degrees; a point of
+    ``moved`` (in the same frame) in an observed bin is in front when nearer the origin by
+    more than ``margin`` (metres), on the surface within it; both False in a bin the viewer
+    did not observe, or behind its surface.
+    """
+    front = np.zeros(len(moved), dtype=bool)
     if len(moved) == 0 or len(viewer) == 0:
-        return 0.0
+        return front, front.copy()
     bin_rad = np.radians(bin_deg)
     keys, ranges = _view_bins(viewer, bin_rad)
     order = np.lexsort((ranges, keys))
@@ -220,11 +229,19 @@ def _in_front_share(moved: np.ndarray, viewer: np.ndarray, margin: float,
     keys, nearest = keys[first], ranges[first]  # the depth map: nearest range per bin
     k, r = _view_bins(moved, bin_rad)
     i = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
-    seen = keys[i] == k
+    seen = np.flatnonzero(keys[i] == k)
     depth = nearest[i[seen]] - r[seen]  # > 0: in front of the observed surface
-    in_front = int(np.count_nonzero(depth > margin))
-    on = int(np.count_nonzero(np.abs(depth) <= margin))
-    return in_front / (in_front + on) if in_front + on else 0.0
+    on = front.copy()
+    front[seen], on[seen] = depth > margin, np.abs(depth) <= margin
+    return front, on
+
+
+def _in_front_share(moved: np.ndarray, viewer: np.ndarray, margin: float,
+                    bin_deg: float) -> float:
+    """Share of ``moved`` points in front of ``viewer``'s surface, among those in front or on."""
+    front, on = depth_status(moved, viewer, margin, bin_deg)
+    in_front, compared = int(front.sum()), int(front.sum() + on.sum())
+    return in_front / compared if compared else 0.0
 
 
 def chance_inliers(src: np.ndarray, dst: np.ndarray, transform: np.ndarray, tau: float) -> float:
