@@ -89,11 +89,12 @@ def floor(data: Path, per_room: int, rooms: list[tuple[str, bool, float]],
 
     Only rooms as the scene was (not mirrored, scale 1) have queries; ``outside``: a scene
     of none of the rooms whose ``per_room`` fragments are queries from outside the map.
+    ``sites``: (scene, fragment, the room's placement scene -> floor) of each query.
     """
     root = data / '3dmatch_benchmark'
     cfg = pipeline_config_from({'voxel_size': 0.05})
     rng = np.random.default_rng(seed)
-    points, normals, queries, centres = [], [], [], []
+    points, normals, queries, centres, sites = [], [], [], [], []
     for r, (scene, mirrored, scale) in enumerate(rooms):
         poses, fragments = tdm.fragment_poses(root, scene), tdm.Fragments(root, scene)
         place = make_transform(Rotation.from_euler('z', rng.uniform(0, 360),
@@ -115,6 +116,7 @@ def floor(data: Path, per_room: int, rooms: list[tuple[str, bool, float]],
         odd = sorted(k for k in poses if k % 2)
         for k in sorted(rng.choice(odd, min(per_room, len(odd)), replace=False)):
             queries.append((f'{scene[:20]} {k}', fragments[k], place @ poses[k]))
+            sites.append((scene, int(k), place))
     away = []
     if outside:
         fragments = tdm.Fragments(root, outside)
@@ -123,7 +125,7 @@ def floor(data: Path, per_room: int, rooms: list[tuple[str, bool, float]],
                 for k in sorted(rng.choice(odd, min(per_room, len(odd)), replace=False))]
     return {'points': np.vstack(points), 'normals': np.vstack(normals), 'queries': queries,
             'outside': away, 'voxel': 0.05, 'right': (15.0, 0.3), 'hint': HINT_RADIUS['floor'],
-            'rooms': len(rooms), 'first_room': centres[0]}
+            'rooms': len(rooms), 'first_room': centres[0], 'sites': sites}
 
 
 def four_rooms(data: Path) -> list[tuple[str, bool, float]]:
@@ -170,14 +172,14 @@ def run(name: str, built: dict, kiss: int, out_dir: Path,
                     result = register_clouds(scan, target, config=cfg,
                                              hint=hint if way == 'hint' else None)
                     seconds = time.perf_counter() - t0
-                    outcome = _outcome(result, truth, built['right'])
-                    seen[way].append((outcome, seconds, truth is None))
-                    print(f'{name:9s} {frame:6s} {label:26s} {way:6s} {outcome:8s} '
+                    got = outcome(result, truth, built['right'])
+                    seen[way].append((got, seconds, truth is None))
+                    print(f'{name:9s} {frame:6s} {label:26s} {way:6s} {got:8s} '
                           f'{seconds:5.2f} s {result.reason[:60]}', flush=True)
                 if i < kiss and truth is not None:
                     t0 = time.perf_counter()
                     T = _kiss(scan, built['points'] + offset, built['voxel'])
-                    kiss_out.append((T is not None and _right(T, truth, built['right']),
+                    kiss_out.append((T is not None and right(T, truth, built['right']),
                                      time.perf_counter() - t0, T is None))
         rows.append({
             'map': name, 'frame': frame, 'rooms': built['rooms'],
@@ -186,22 +188,23 @@ def run(name: str, built: dict, kiss: int, out_dir: Path,
             'map_places': len(prepared.places) if prepared.places is not None else 0,
             'load_cold_s': cold_s, 'load_cached_s': prepared.load_s,
             'cache_mb': cache_mb, 'max_rss_mb': rss_mb,
-            **{way: _tally(seen[way]) for way in WAYS},
+            **{way: tally(seen[way]) for way in WAYS},
             'ratio': float(np.median([w[1] / p[1] for w, p in zip(seen['whole'],
                                                                   seen['places'])])),
             'kiss': [{'right': bool(r), 's': s, 'crashed': c} for r, s, c in kiss_out]})
     return rows
 
 
-def _outcome(result, truth: np.ndarray | None, limits: tuple[float, float]) -> str:
+def outcome(result, truth: np.ndarray | None, limits: tuple[float, float]) -> str:
+    """Return 'found', 'WRONG' or 'refused' for ``result`` (``limits``: degrees, metres)."""
     if truth is None:  # a query from outside the map: right only when refused
         return 'WRONG' if result.valid else 'refused'
     if not result.valid:
         return 'refused'
-    return 'found' if _right(result.transform, truth, limits) else 'WRONG'
+    return 'found' if right(result.transform, truth, limits) else 'WRONG'
 
 
-def _tally(seen: list[tuple[str, float, bool]]) -> dict:
+def tally(seen: list[tuple[str, float, bool]]) -> dict:
     """Return the counts and times of one way's queries (``seen``: outcome, s, outside)."""
     seconds = [s for _, s, _ in seen]
     away = [s for _, s, out in seen if out]
@@ -244,7 +247,8 @@ def _kiss_child(scan, target, voxel, out) -> None:
     out.put(kiss_matcher_estimate(scan, target, voxel).transform)
 
 
-def _right(T: np.ndarray, truth: np.ndarray, limits: tuple[float, float]) -> bool:
+def right(T: np.ndarray, truth: np.ndarray, limits: tuple[float, float]) -> bool:
+    """Return whether ``T`` is within ``limits`` (degrees, metres) of ``truth``."""
     return rotation_error_deg(T, truth) <= limits[0] and translation_error(T, truth) <= limits[1]
 
 

@@ -165,8 +165,10 @@ def voxel_size_for(points: np.ndarray, occupied: int) -> float:
 
 
 def _occupied_voxels(points: np.ndarray, voxel: float) -> int:
+    # ``points`` start at 0 and the voxel is at least 1e-5 of their diagonal, so each index
+    # fits in 21 bits and a voxel is one int64: a flat unique is many times faster.
     keys = np.floor(points / voxel).astype(np.int64)
-    return len(np.unique(keys, axis=0))
+    return len(np.unique((keys[:, 0] << 42) | (keys[:, 1] << 21) | keys[:, 2]))
 
 
 def spread(points: np.ndarray) -> np.ndarray:

@@ -16,6 +16,8 @@ from cgags_ros.pipeline import register_clouds
 from cgags_ros.pipeline.map import load_map
 from cgags_ros.refusal import RefusalCode as Code
 from cgags_ros.tools import register_cli
+from cgags_ros.tools.replay_common import auto_voxel_size, MAP_SCANS, map_voxel_size
+from cgags_ros.tools.replay_common import read_bag_contents
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -245,3 +247,9 @@ def test_replay_localizes_every_bag_scan_in_a_map(data_dir, tmp_path):
     assert len(rows) == 6 and all(r['success'] for r in rows)
     assert all(len(r['candidates']) >= 1 for r in rows)
     assert any('cache miss' in n for n in out['notes'])
+    # No voxel given: the bag's first source scans choose the map's, not its target cloud.
+    contents = read_bag_contents(data_dir / 'bags' / 'lidar', '/source_cloud',
+                                 '/target_cloud', None)
+    chosen = map_voxel_size([c.xyz for c in contents.sources[:MAP_SCANS]])
+    assert chosen != auto_voxel_size(contents.first_target_points())
+    assert f'voxel size {chosen:g} m (auto for a map' in ' '.join(out['notes'])

@@ -12,9 +12,10 @@ import json
 
 from bench.datasets import threedmatch as tdm
 from cgags_ros.config import pipeline_config_from
-from cgags_ros.errors import InvalidInputError
+from cgags_ros.errors import CgagsError, InvalidInputError
 from cgags_ros.frontend.features import estimate_normals
 from cgags_ros.geometry import apply_transform, make_transform, rotation_error_deg
+from cgags_ros.geometry import voxel_size_for
 from cgags_ros.geometry import translation_error
 from cgags_ros.io.clouds import read_cloud_and_normals, write_cloud
 from cgags_ros.pipeline.map import load_map
@@ -23,6 +24,7 @@ from cgags_ros.refusal import RefusalCode as Code
 from cgags_ros.relocalization.relocalizer import Relocalizer, SequenceConfig
 from cgags_ros.tools import relocalize_cli
 from cgags_ros.tools.cli import EXIT_ERROR
+from cgags_ros.tools.replay_common import MAP_SCAN_VOXELS, map_voxel_size
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -222,6 +224,13 @@ def test_the_command_confirms_over_three_scans_and_prints_json(easy, tmp_path, c
     assert relocalize_cli.main([str(map_path), argv[1], '--voxel-size', '0.05']) == 0
     text = capsys.readouterr().out
     assert 'confirmed: yes' in text and 'scans used: 1' in text
+    # No voxel given: the scans choose the map's, and it finds them.
+    assert relocalize_cli.main(argv[:-5] + ['--min-scans', '3', '--json']) == 0
+    out = json.loads(capsys.readouterr().out)
+    chosen = map_voxel_size([fragments[k] for k in EASY])
+    assert out['voxel_size'] == out['map']['voxel_size'] == chosen != 0.05
+    assert out['voxel'].startswith('chosen from the scans')
+    assert out['confirmed'] is True and right(np.asarray(out['transform']), poses[EASY[-1]])
 
 
 @pytest.mark.slow  # the command end to end on the real map; the API tests above are fast
@@ -237,6 +246,18 @@ def test_the_command_refuses_contradicting_odometry_with_exit_1(easy, tmp_path, 
     out = json.loads(capsys.readouterr().out)
     assert out['confirmed'] is False and out['scans_used'] == 3
     assert 'odometry contradicts' in out['reason']
+
+
+def test_the_voxel_chosen_for_a_map_is_its_scans_median_and_follows_their_scale():
+    rng = np.random.default_rng(0)
+    scans = [rng.uniform(-side, side, (20000, 3)) for side in (4.0, 1.0, 2.0)]
+    voxel = map_voxel_size(scans)
+    assert voxel == voxel_size_for(scans[2], MAP_SCAN_VOXELS)
+    assert voxel != voxel_size_for(scans[0], MAP_SCAN_VOXELS)
+    tenfold = map_voxel_size([10.0 * scan for scan in scans])
+    assert tenfold == pytest.approx(10.0 * voxel, rel=0.05)
+    with pytest.raises(CgagsError, match='--voxel-size'):
+        map_voxel_size([scans[0][:MAP_SCAN_VOXELS]])
 
 
 @pytest.mark.parametrize('case, message', [

@@ -18,8 +18,9 @@ import sys
 from typing import Any, Sequence
 
 from .cli import Parser, run_cli
-from .register_cli import add_config_options, config_from_args
-from ..config.node import NodeConfig
+from .register_cli import add_config_options, option_keys
+from ..config.node import NodeConfig, pipeline_from_keys
+from ..config.pipeline import PipelineConfig
 from ..errors import InvalidInputError
 from ..io import map_cache
 
@@ -33,7 +34,9 @@ examples:
 The cache directory defaults to the node's map.cache_dir ({DEFAULT_CACHE}), which
 cgags-relocalize and cgags-replay read with --map-cache-dir; give the same --voxel-size (and
 --config/--set of the front end) they will use, or they compute the features again under
-their own settings.
+their own settings. A map wants the voxel of the scans that query it, not of its own size:
+cgags-relocalize MAP SCAN chooses and prints it; without --voxel-size, prepare uses the
+default ({PipelineConfig().voxel_size:g} m, the node's too) and says so (docs/maps.md).
 """
 
 
@@ -62,12 +65,16 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _prepare(args: argparse.Namespace) -> int:
-    config = config_from_args(args)
+    keys = option_keys(args)
+    config = pipeline_from_keys(keys)
     from ..pipeline.map import load_map  # after the cheap checks: imports Open3D
 
     info = load_map(args.map, config, args.cache_dir).info()
+    info['voxel'] = 'given' if 'voxel_size' in keys else 'default'
+    default = ('' if 'voxel_size' in keys else " (the default, as the node's without "
+               "voxel_size; a map wants its scans' voxel: see --help)")
     print(json.dumps(info, indent=2) if args.json else
-          f"{info['path']}: {info['points']} points at {info['voxel_size']:g} m, "
+          f"{info['path']}: {info['points']} points at {info['voxel_size']:g} m{default}, "
           f"{info['places']} places ({info['cache']}: {info['load_s']:.2f} s), stored in "
           f"{info['cache_path']}")
     return 0

@@ -65,11 +65,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def add_config_options(parser: argparse.ArgumentParser) -> None:
-    """Add the options that make the pipeline's configuration (shared by the tools)."""
+def add_config_options(parser: argparse.ArgumentParser, voxel_default: str = '') -> None:
+    """
+    Add the options that make the pipeline's configuration (shared by the tools).
+
+    ``voxel_default``: how the tool chooses the voxel size when none is given, if not the
+    config's default.
+    """
+    default = voxel_default or f"the config's, {PipelineConfig().voxel_size:g}"
     parser.add_argument('--voxel-size', type=float, metavar='V',
                         help='voxel size in metres; every radius and threshold derives from '
-                             f"it (default: the config's, {PipelineConfig().voxel_size:g})")
+                             f'it (default: {default})')
     parser.add_argument('--config', type=Path, metavar='YAML',
                         help="YAML of configuration keys, the node's format (flat or nested "
                              "keys, or a ROS 'node: {ros__parameters: ...}' file; the node's "
@@ -106,6 +112,11 @@ def _register(args: argparse.Namespace) -> int:
 
 def config_from_args(args: argparse.Namespace) -> PipelineConfig:
     """Return the pipeline configuration the options ask for (YAML, then --set, then flags)."""
+    return pipeline_from_keys(option_keys(args))
+
+
+def option_keys(args: argparse.Namespace) -> dict:
+    """Return the flat configuration keys the options set (YAML, then --set, then flags)."""
     values: dict = load_yaml(args.config) if args.config else {}
     values.update(fields.parse_key_values(args.overrides))
     if args.voxel_size is not None:
@@ -120,7 +131,7 @@ def config_from_args(args: argparse.Namespace) -> PipelineConfig:
         values['seed'] = args.seed
     if args.candidates is not None:
         values['num_candidates'] = args.candidates
-    return pipeline_from_keys(values)
+    return fields.flatten_mapping(values)
 
 
 def format_result(result) -> str:

@@ -18,7 +18,9 @@ from typing import Sequence
 import numpy as np
 
 from .cli import EXIT_ERROR, Parser, run_cli
-from .register_cli import add_config_options, config_from_args
+from .register_cli import add_config_options, option_keys
+from .replay_common import MAP_SCAN_VOXELS, map_voxel_size
+from ..config.node import pipeline_from_keys
 from ..errors import InvalidInputError
 from ..geometry import make_transform, quaternion_to_matrix
 from ..io.clouds import read_cloud, SUFFIXES
@@ -33,6 +35,9 @@ normals facing the sensors that saw each surface (as mappers write them) signs t
 --odometry FILE: one line a scan, 'x y z qx qy qz qw', the sensor's pose in the odometry
 frame when that scan was taken (p_odom = R p_sensor + t); needed with more than one scan.
 The transform maps the last scan used into the map: p_map = R p_scan + t.
+Without --voxel-size (or voxel_size in --config/--set) the scans choose it: the median voxel
+that leaves each about {MAP_SCAN_VOXELS} voxels (printed; docs/maps.md, the voxel for a map).
+Prepare the map (cgags-map prepare) and start the node with that voxel.
 Exit status: 0 confirmed, {EXIT_NOT_CONFIRMED} not confirmed (see 'refusal': code and message,
 docs/refusals.md), {EXIT_ERROR} bad input or option.
 example: cgags-relocalize site.ply s1.pcd s2.pcd s3.pcd --odometry odom.txt --voxel-size 0.05
@@ -50,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help='scans in time order, each in its sensor frame')
     parser.add_argument('--odometry', type=Path, metavar='FILE',
                         help="one 'x y z qx qy qz qw' line a scan (sensor pose in odometry)")
-    add_config_options(parser)
+    add_config_options(parser, f'chosen from the scans: ~{MAP_SCAN_VOXELS} voxels each')
     parser.add_argument('--min-scans', type=int, default=2, metavar='N',
                         help='scans a confirmation needs, at most those given (default 2: a '
                         'second scan must agree; one scan given is judged alone)')
@@ -98,10 +103,17 @@ def _relocalize(args: argparse.Namespace) -> int:
         raise InvalidInputError('more than one scan needs --odometry (one pose a scan)')
     if args.min_scans < 1:
         raise InvalidInputError(f'--min-scans {args.min_scans}: at least 1')
-    config = config_from_args(args)
+    keys = option_keys(args)
     odometry = (read_odometry(args.odometry, len(args.scans)) if args.odometry
                 else [None] * len(args.scans))
+    if not args.map.is_file():
+        raise InvalidInputError(f'map {str(args.map)!r}: no such file')
     scans = [read_cloud(path) for path in args.scans]
+    voxel = 'given'
+    if 'voxel_size' not in keys:
+        keys['voxel_size'] = map_voxel_size(scans)
+        voxel = f'chosen from the scans: ~{MAP_SCAN_VOXELS} voxels each'
+    config = pipeline_from_keys(keys)
     from ..pipeline.map import load_map  # after the cheap checks: imports Open3D
     from ..pipeline.hint import Hint
     from ..relocalization.relocalizer import Relocalizer, SequenceConfig
@@ -123,7 +135,7 @@ def _relocalize(args: argparse.Namespace) -> int:
                       'inliers': r.num_inliers, 'fitness': r.fitness,
                       'place': (r.map_info or {}).get('place')}
                      for path, r in zip(args.scans, answer.results)],
-           'map': prepared.info()}
+           'map': prepared.info(), 'voxel_size': config.voxel_size, 'voxel': voxel}
     print(json.dumps(out, indent=2) if args.json else format_answer(out))
     return 0 if answer.confirmed else EXIT_NOT_CONFIRMED
 
@@ -133,6 +145,7 @@ def format_answer(out: dict) -> str:
     why = f"{out['refusal']['code']}: {out['reason']}" if out['refusal'] else out['reason']
     lines = ['confirmed: ' + ('yes' if out['confirmed'] else f'no ({why})'),
              f"scans used: {out['scans_used']}",
+             f"voxel size: {out['voxel_size']:g} m ({out['voxel']})",
              'transform (last scan -> map, metres):']
     lines += ['  ' + ' '.join(f'{x: .6f}' for x in row) for row in out['transform']]
     lines += [f"hypothesis {i}: proposed by scan {h['proposed_by_scan']}, inliers "

@@ -26,7 +26,9 @@ Voxel size (metres), first match wins: ``--voxel-size``; ``--set voxel_size=V``;
 ``voxel_size`` in ``--config``; otherwise :func:`auto_voxel_size` of the first target cloud:
 the voxel at which it keeps about 5000 points after voxel downsampling (rounded to two
 significant digits; 2.5 mm for the bunny, 5 cm for the redkitchen fragment, 0.3 m for the
-LiDAR scan). The chosen value is printed.
+LiDAR scan). With ``--map``, :func:`map_voxel_size` of the first source scans: the median
+voxel at which each keeps about 2000 (a map wants its scans' voxel, docs/maps.md). The
+chosen value is printed.
 
 Broken messages (undeserializable, or a PointCloud2 that cannot be decoded) are reported,
 counted and skipped. A missing topic, an unreadable file or a path that is not a bag ends
@@ -72,7 +74,8 @@ def build_parser() -> argparse.ArgumentParser:
                         f'{DEFAULT_GT_TOPIC} when the bag has it; given explicitly, it must '
                         'exist)')
     p.add_argument('--voxel-size', type=float, default=None,
-                   help='metres (default: --set/--config, else chosen from the target cloud)')
+                   help='metres (default: --set/--config, else chosen from the target cloud; '
+                   'with --map, from the source scans)')
     p.add_argument('--config', default=None, help='YAML of node/pipeline keys '
                    '(ROS format or a plain mapping), e.g. config/register_node.yaml')
     p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',

@@ -3,9 +3,9 @@ What offline and live replay share: the bag's contents, configuration, pairing, 
 
 :func:`read_bag_contents` decodes the bag (:mod:`cgags_ros.io.bag`,
 :mod:`cgags_ros.io.pointcloud2`); :func:`resolve_configs` applies the user's parameters
-(or :func:`auto_voxel_size`); :func:`iter_pairs` forms pairs with the node's own
-:class:`~cgags_ros.engine.pairing.Pairer`; :func:`finish_report` evaluates against the
-ground truth and writes the poses bag and result files.
+(or :func:`auto_voxel_size`; with a map, :func:`map_voxel_size`); :func:`iter_pairs` forms
+pairs with the node's own :class:`~cgags_ros.engine.pairing.Pairer`; :func:`finish_report`
+evaluates against the ground truth and writes the poses bag and result files.
 """
 
 from __future__ import annotations
@@ -33,6 +33,8 @@ DEFAULT_POSE_TOPIC = '/cgags/pose'
 DEFAULT_GT_TOPIC = '/ground_truth'
 POSES_DIR = 'poses'
 AUTO_VOXEL_POINTS = 5000
+MAP_SCAN_VOXELS = 2000  # voxels a scan keeps at the voxel chosen for a map (docs/maps.md)
+MAP_SCANS = 5  # scans whose median voxel is a map's
 DEFAULT_MAX_RE_DEG = 5.0
 DEFAULT_MAX_TE_VOXELS = 3.0
 
@@ -149,6 +151,20 @@ def auto_voxel_size(points: np.ndarray, target_points: int = AUTO_VOXEL_POINTS) 
                           '--voxel-size') from exc
 
 
+def map_voxel_size(scans: Sequence[np.ndarray], voxels: int = MAP_SCAN_VOXELS) -> float:
+    """
+    Choose the voxel size (metres) for a map target from the scans that will query it.
+
+    The median over ``scans`` of the voxel that leaves each about ``voxels`` voxels: a map
+    wants the voxel of its scans' scale, not of its own (a map is many scans across).
+    """
+    try:
+        return float(f'{np.median([voxel_size_for(scan, voxels) for scan in scans]):.2g}')
+    except InvalidInputError as exc:
+        raise ReplayError(f'cannot choose a voxel size for the map from the scans: {exc}; '
+                          'pass --voxel-size') from exc
+
+
 def user_parameters(config_file: str | None, sets: Sequence[str], voxel_size: float | None,
                     pairing: str | None) -> dict[str, Any]:
     """Merge the node/pipeline parameters in priority order: YAML < --set < explicit flags."""
@@ -176,17 +192,26 @@ def config_keys(path: str | Path) -> dict[str, Any]:
     return {**config_file_keys(named), **values} if named else values
 
 
-def resolve_configs(values: dict[str, Any], contents: BagContents
+def resolve_configs(values: dict[str, Any], contents: BagContents, map_target: bool = False
                     ) -> tuple[PipelineConfig, NodeConfig, dict[str, Any], str]:
     """
     Validate the configs, choosing the voxel size when it is not given.
+
+    ``map_target``: the sources are registered onto a map, whose voxel the first
+    ``MAP_SCANS`` source scans choose (:func:`map_voxel_size`); else the first target does.
 
     :returns: the pipeline and node configs, the parameters to hand a node, and how the
         voxel size was chosen.
     """
     values = dict(values)
     how = 'given'
-    if 'voxel_size' not in values:
+    if 'voxel_size' not in values and map_target:
+        scans = [c.xyz for c in contents.sources if c.xyz is not None][:MAP_SCANS]
+        if not scans:
+            raise ReplayError(f'{contents.path} has no decodable source cloud')
+        values['voxel_size'] = map_voxel_size(scans)
+        how = f'auto for a map: ~{MAP_SCAN_VOXELS} voxels a source scan, {len(scans)} scans'
+    elif 'voxel_size' not in values:
         points = contents.first_target_points()
         if points is None:
             raise ReplayError(f'{contents.path} has no decodable target cloud')

@@ -17,7 +17,7 @@ def replay_map(opts: ReplayOptions) -> BagReport:
     """Localize every source scan in ``opts.map_file``; write and return the report."""
     start = time.perf_counter()
     contents = load_contents(opts)
-    pipe, node, _, how = resolve_configs(opts.parameters, contents)
+    pipe, node, _, how = resolve_configs(opts.parameters, contents, map_target=True)
     report = start_report(opts, contents, pipe, node, 'offline-map')
     prepared = load_map(opts.map_file, pipe, opts.map_cache_dir or None)
     info = prepared.info()
