@@ -15,8 +15,7 @@ from cgags_ros.config import pipeline_config_from
 from cgags_ros.errors import CgagsError, InvalidInputError
 from cgags_ros.frontend.features import estimate_normals
 from cgags_ros.geometry import apply_transform, make_transform, rotation_error_deg
-from cgags_ros.geometry import voxel_size_for
-from cgags_ros.geometry import translation_error
+from cgags_ros.geometry import translation_error, voxel_size_for
 from cgags_ros.io.clouds import read_cloud_and_normals, write_cloud
 from cgags_ros.pipeline.map import load_map
 from cgags_ros.pipeline.twins import local_symmetries
