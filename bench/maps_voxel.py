@@ -6,7 +6,8 @@ Run by hand::
     .venv/bin/python -m bench.maps_voxel [--maps street floor lidar rooms] \
         [--street 0.15 0.2 0.3 0.8 2.4] [--floor 0.025 0.035 0.05 0.08 0.12 0.17 0.25] \
         [--lidar 0.05 0.1 0.12 0.15 0.2 0.3 0.5] [--rooms 0.05 0.1] \
-        [--counts 2000 3000 5000 10000] [--per-room 5] [--output out/bench/maps_voxel]
+        [--counts 2000 3000 5000 10000] [--per-scan N ...] [--per-room 5] \
+        [--output out/bench/maps_voxel]
 
 The maps and queries of ``bench.maps`` at the origin: ``street`` (KITTI, queries the 12 scans
 between the four fused; right: 5 deg, 0.6 m) and ``floor`` (four 3DMatch rooms fused from
@@ -26,9 +27,11 @@ over the ones of the map's own voxel (0.3 m on the street, 5 cm on the floor and
 LiDAR) in the same run, with the load average before and after: the machine is shared.
 
 The rule: for each ``--counts`` N, the voxel ``voxel_size_for`` gives each query scan so
-that it keeps about N voxels (median and range over a map's queries); those voxels are
-measured too, so that a rule chosen on one map kind is judged on the others. Writes
-``<output>/maps_voxel.{md,json}``.
+that it keeps about N voxels (median and range over a map's queries); those medians are
+measured too, so that a rule chosen on one map kind is judged on the others. ``--per-scan
+N``: each query is also registered on the map prepared at the voxel its own scan gives, as
+``cgags-relocalize MAP SCAN`` chooses it, one row for all. "scan voxels": the median of the
+queries' voxels at the row's voxel. Writes ``<output>/maps_voxel.{md,json}``.
 """
 
 from __future__ import annotations
@@ -91,13 +94,14 @@ def curve(name: str, built: dict, voxels: list[float], ways: tuple[str, ...],
                     result = register_clouds(scan, target, config=cfg)
                     seconds = time.perf_counter() - t0
                     got = outcome(result, truth, built['right'])
-                    errors = ((np.nan, np.nan) if truth is None else
+                    re, te = ((np.nan, np.nan) if truth is None else
                               (rotation_error_deg(result.transform, truth),
                                translation_error(result.transform, truth)))
-                    seen[way].append((label, got, seconds, errors, result.reason,
-                                      truth is None))
+                    seen[way].append({'query': label, 'outcome': got, 's': seconds, 're': re,
+                                      'te': te, 'reason': result.reason,
+                                      'outside': truth is None})
                     print(f'{name:6s} {voxel:5.3f} {label:32s} {way:6s} {got:8s} '
-                          f'{seconds:6.2f} s  RE {errors[0]:6.2f} TE {errors[1]:6.3f}  '
+                          f'{seconds:6.2f} s  RE {re:6.2f} TE {te:6.3f}  '
                           f'{result.reason[:50]}', flush=True)
             rows.append({'map': name, 'voxel': voxel, 'queries': len(built['queries']),
                          'outside': len(built['outside']),
@@ -107,13 +111,32 @@ def curve(name: str, built: dict, voxels: list[float], ways: tuple[str, ...],
                          'map_places': (len(prepared.places) if prepared.places is not None
                                         else 0),
                          'prepare_s': prepared.load_s, 'load': [load, os.getloadavg()[0]],
-                         **{way: {**tally([(g, s, o) for _, g, s, _, _, o in seen[way]]),
-                                  **found_errors(seen[way])} for way in ways},
-                         'per_query': {way: [{'query': q, 'outcome': g, 's': s, 're': e[0],
-                                              'te': e[1], 'reason': r}
-                                             for q, g, s, e, r, _ in seen[way]]
-                                       for way in ways}})
+                         **{way: summary(seen[way]) for way in ways}, 'per_query': seen})
     return rows
+
+
+def per_scan(name: str, built: dict, n: int, ways: tuple[str, ...], out_dir: Path) -> dict:
+    """
+    Return one row: each query registered on the map at the voxel its own scan gives.
+
+    As ``cgags-relocalize MAP SCAN`` chooses it: the voxel leaving the scan about ``n``
+    voxels. Seconds and points are the medians over those maps.
+    """
+    groups: dict[float, list] = {}
+    for query in built['queries'] + built['outside']:
+        groups.setdefault(voxel_size_for(query[1], n), []).append(query)
+    rows = [curve(name, {**built, 'queries': [q for q in qs if q[2] is not None],
+                         'outside': [q for q in qs if q[2] is None]}, [v], ways, out_dir)[0]
+            for v, qs in sorted(groups.items())]
+    seen = {way: [x for r in rows for x in r['per_query'][way]] for way in ways}
+    return {'map': name, 'voxel': float(np.median([v for v, qs in groups.items()
+                                                   for _ in qs])),
+            'per_scan': [n, min(groups), max(groups)], 'queries': len(built['queries']),
+            'outside': len(built['outside']),
+            **{key: float(np.median([r[key] for r in rows]))
+               for key in ('scan_voxels', 'map_points', 'prepare_s')},
+            'load': [rows[0]['load'][0], rows[-1]['load'][1]],
+            **{way: summary(seen[way]) for way in ways}, 'per_query': seen}
 
 
 def occupied(points: np.ndarray, voxel: float) -> int:
@@ -121,11 +144,12 @@ def occupied(points: np.ndarray, voxel: float) -> int:
     return len(np.unique(np.floor(points / voxel).astype(np.int64), axis=0))
 
 
-def found_errors(seen: list[tuple]) -> dict:
-    """Return the median RE (degrees) and TE (metres) of the found queries of ``seen``."""
-    errors = np.array([e for _, g, _, e, _, _ in seen if g == 'found']).reshape(-1, 2)
-    return {'found_re': float(np.median(errors[:, 0])) if len(errors) else float('nan'),
-            'found_te': float(np.median(errors[:, 1])) if len(errors) else float('nan')}
+def summary(seen: list[dict]) -> dict:
+    """Return the counts and times of one way's queries, and the found ones' median errors."""
+    found = [(x['re'], x['te']) for x in seen if x['outcome'] == 'found']
+    return {**tally([(x['outcome'], x['s'], x['outside']) for x in seen]),
+            'found_re': float(np.median([e[0] for e in found])) if found else float('nan'),
+            'found_te': float(np.median([e[1] for e in found])) if found else float('nan')}
 
 
 def scan_voxels(built: dict, counts: list[int]) -> dict[int, list[float]]:
@@ -150,13 +174,16 @@ def table(rows: list[dict], rules: dict[str, dict[int, list[float]]]) -> str:
              '| load |', '|---|---|---|---|---|---|---|---|---|']
     for r in rows:
         ways = [w for w in ('places', 'whole') if w in r]
-        own = next((o for o in rows if o['map'] == r['map']
+        own = next((o for o in rows if o['map'] == r['map'] and 'per_scan' not in o
                     and o['voxel'] == OWN_VOXEL[r['map']]), r)
         counts = ' · '.join(f"{r[w]['found']} / {r[w]['wrong']} / {r[w]['refused']}"
                             + (f" ({r[w]['outside_refused']} of {r['outside']} outside refused)"
                                if r['outside'] else '') for w in ways)
+        voxel = (f"{r['voxel']:g}" if 'per_scan' not in r else
+                 f"each scan's, N = {r['per_scan'][0]:,}: {r['per_scan'][1]:g}–"
+                 f"{r['per_scan'][2]:g}")
         lines.append(
-            f"| {r['map']} | {r['voxel']:g} | {r['scan_voxels']:,.0f} | {r['map_points']:,} "
+            f"| {r['map']} | {voxel} | {r['scan_voxels']:,.0f} | {r['map_points']:,.0f} "
             f"| {counts} | {r['places']['median_s']:.2f} / {r['places']['p90_s']:.2f} "
             f"(x{r['places']['median_s'] / own['places']['median_s']:.2f}) "
             f"| {r['prepare_s']:.1f} (x{r['prepare_s'] / own['prepare_s']:.2f}) "
@@ -176,10 +203,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--maps', nargs='+', default=['street', 'floor', 'lidar'],
                         choices=list(VOXELS))
     for name, voxels in VOXELS.items():
-        parser.add_argument(f'--{name}', nargs='+', type=float, default=list(voxels),
+        parser.add_argument(f'--{name}', nargs='*', type=float, default=list(voxels),
                             metavar='V', help=f'voxel sizes of the {name} map (metres)')
-    parser.add_argument('--counts', nargs='+', type=int, default=list(COUNTS), metavar='N',
+    parser.add_argument('--counts', nargs='*', type=int, default=list(COUNTS), metavar='N',
                         help='scan voxels of the rule; their voxels are measured too')
+    parser.add_argument('--per-scan', nargs='*', type=int, default=[], metavar='N',
+                        help="also register each query at its own scan's voxel for N")
     parser.add_argument('--per-room', type=int, default=5, help='queries a room of the floor')
     parser.add_argument('--output', type=Path, default=Path('out/bench/maps_voxel'))
     args = parser.parse_args(argv)
@@ -195,6 +224,7 @@ def main(argv: list[str] | None = None) -> int:
         voxels = sorted(set(getattr(args, name)) | set(rule_voxels(rules[name])))
         ways = ('places',) if name in ('street', 'rooms') else ('places', 'whole')
         rows += curve(name, built, voxels, ways, args.output)
+        rows += [per_scan(name, built, n, ways, args.output) for n in args.per_scan]
         # Kept after each map: a long run that fails later loses nothing.
         write_text(args.output / 'maps_voxel.json',
                    json.dumps({'rows': rows, 'rules': {m: {str(n): v for n, v in r.items()}
