@@ -22,12 +22,11 @@ from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.io.clouds import read_cloud
 from cgags_ros.pipeline.hint import Hint, HINT_SIGMAS
 from cgags_ros.runtime.jobs import RegisterPair
-from cgags_ros.runtime.process import ChildSession
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 from test_engine import Header, Recorder
-from waiting import wait_for
+from waiting import InProcessRunner, wait_for
 
 S = 10**9  # nanoseconds a second
 # RViz's "2D Pose Estimate": 0.5 m in x and y, 15 deg in yaw, no height (a planar pose).
@@ -140,25 +139,6 @@ def test_the_pending_requests_hint_follows_the_robot_to_each_scan():
 
 # --- the engine, on the LiDAR pair's map ------------------------------------------------------
 
-class Recording:
-    """The registration in this process (a ChildSession), its jobs recorded."""
-
-    def __init__(self):
-        self.session, self.jobs = ChildSession(), []
-
-    def run(self, job, timeout_s=None):
-        self.jobs.append(job)
-        return self.session.run(job)
-
-    def supervise(self):
-        return False
-
-    def health(self, prefix='registration'):
-        return {}
-
-    def close(self):
-        pass
-
 
 @pytest.fixture(scope='module')
 def lidar(data_dir):
@@ -172,7 +152,7 @@ def test_the_engine_looks_for_a_scan_only_where_its_hint_says(lidar):
     path, scan, T_map_sensor = lidar
     base = make_transform(quaternion_to_matrix(BASE_FROM_SENSOR[3:]), BASE_FROM_SENSOR[:3])
     T_map_base = T_map_sensor @ np.linalg.inv(base)
-    out, runner = Recorder(), Recording()
+    out, runner = Recorder(), InProcessRunner()
     cfg = configs_from_parameters({
         'map.file': str(path), 'map.cache_dir': '', 'voxel_size': 0.4, 'mode': 'on_demand',
         'relocalization.publish_initial_pose': True, 'relocalization.cooldown': 0.0,

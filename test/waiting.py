@@ -85,7 +85,29 @@ def bad_map(folder, case):
     return path
 
 
-class FakeRunner:
+class InProcessRunner:
+    """A ``cgags_ros.runtime.jobs.Runner`` that registers in this process (a ``ChildSession``)."""
+
+    def __init__(self):
+        from cgags_ros.runtime.process import ChildSession
+
+        self.session, self.jobs = ChildSession(), []  # every job run, in order
+
+    def run(self, job, timeout_s=None):
+        self.jobs.append(job)
+        return self.session.run(job)
+
+    def supervise(self):
+        return False
+
+    def health(self, prefix='registration'):
+        return {}
+
+    def close(self):
+        pass
+
+
+class FakeRunner(InProcessRunner):
     """
     A stand-in for the registration process, for tests of the runtime's plumbing.
 
@@ -96,26 +118,17 @@ class FakeRunner:
     """
 
     def __init__(self, register):
-        from cgags_ros.runtime.process import ChildSession
-
-        self.register, self._session = register, ChildSession()
+        super().__init__()
+        self.register = register
 
     def run(self, job, timeout_s=None):
         from cgags_ros.runtime.jobs import PairDone, PrepareMap, RegisterPair
 
         if isinstance(job, PrepareMap):
-            return self._session.run(job)
+            return super().run(job)
         assert isinstance(job, RegisterPair), f'the stand-in registers pairs only: {job!r}'
+        self.jobs.append(job)
         return PairDone(self.register(job.source, job.target, config=job.config))
-
-    def supervise(self):
-        return False
-
-    def health(self, prefix='registration'):
-        return {}
-
-    def close(self):
-        pass
 
 
 def call(client, request, timeout, detail=None):
