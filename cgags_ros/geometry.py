@@ -29,8 +29,9 @@ def bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
     Return the lowest and highest coordinate (3,) of the (N, 3) ``points`` (N >= 1).
 
-    Column by column: numpy reduces an (N, 3) array along its first axis element by element,
-    far slower than each contiguous-strided column, and this runs on every scan a stream sends.
+    Column by column: numpy reduces an (N, 3) array along its first axis without
+    vectorising, far slower than one column at a time, and this runs on every scan a stream
+    sends.
     """
     lower = np.array([points[:, axis].min() for axis in range(3)])
     return lower, np.array([points[:, axis].max() for axis in range(3)])
