@@ -60,7 +60,7 @@ def locate(src: np.ndarray, prepared: PreparedMap, cfg: PipelineConfig, hint: Hi
     start = time.perf_counter()
     timings: dict[str, float] = {}
     local_hint = (None if hint is None
-                  else (hint.position - prepared.origin, hint.radius, hint.planar))
+                  else dataclasses.replace(hint, position=hint.position - prepared.origin))
     try:
         with timed(timings, 'places_rank'), single_blas_thread():
             origin = local_origin(src, source_sensor)

@@ -30,6 +30,7 @@ from typing import Mapping
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .hint import Hint
 from ..frontend.descriptor_index import DescriptorIndex
 from ..frontend.features import CloudFeatures
 from ..frontend.keypoints import select_keypoints
@@ -135,15 +136,15 @@ class PlaceIndex:
         return cls(mine['centres'], mine['vote_place'], index, float(mine['spacing'][0]))
 
     def rank(self, scan: CloudFeatures, voxel_size: float, count: int, map_tree: cKDTree,
-             hint: tuple[np.ndarray, float, bool] | None = None, workers: int = 1) -> Ranked:
+             hint: Hint | None = None, workers: int = 1) -> Ranked:
         """
         Rank the places ``scan`` may be in; return at most ``count``, best first.
 
         :param scan: the scan's features (its own frame).
         :param map_tree: the map's k-d tree (its submaps are read from it).
-        :param hint: (position in the map's local frame, radius, planar), metres: only the
-            places within the radius and the scan's reach of the position (in x and y
-            alone when planar) are ranked.
+        :param hint: a :class:`~.hint.Hint` in the map's local frame: only the places
+            within its radius and the scan's reach of its position (in x and y alone when
+            planar) are ranked.
         """
         spread = np.linalg.norm(scan.points - scan.points.mean(axis=0), axis=1)
         reach = float(np.percentile(spread, REACH_QUANTILE))
@@ -186,22 +187,22 @@ class PlaceIndex:
                 break
         return places
 
-    def _covered(self, hint: tuple[np.ndarray, float, bool] | None,
-                 reach: float) -> np.ndarray:
+    def _covered(self, hint: Hint | None, reach: float) -> np.ndarray:
         if hint is None:
             return np.ones(len(self.centres), dtype=bool)
-        return self._distance(hint) <= hint[1] + reach
+        return self._distance(hint) <= hint.radius + reach
 
-    def _distance(self, hint: tuple[np.ndarray, float, bool]) -> np.ndarray:
+    def _distance(self, hint: Hint) -> np.ndarray:
         """Return each place's distance to the hint (in x and y alone when planar)."""
-        return np.linalg.norm((self.centres - hint[0])[:, :2 if hint[2] else 3], axis=1)
+        return np.linalg.norm((self.centres - hint.position)[:, :2 if hint.planar else 3],
+                              axis=1)
 
-    def _where(self, hint: tuple[np.ndarray, float, bool], covered: np.ndarray) -> np.ndarray:
+    def _where(self, hint: Hint, covered: np.ndarray) -> np.ndarray:
         """Return the hint's position; a planar one at the height of its nearest place."""
-        if not hint[2]:
-            return hint[0]
+        if not hint.planar:
+            return hint.position
         nearest = np.flatnonzero(covered)[np.argmin(self._distance(hint)[covered])]
-        return np.array([hint[0][0], hint[0][1], self.centres[nearest, 2]])
+        return np.array([*hint.position[:2], self.centres[nearest, 2]])
 
     @staticmethod
     def _place(centre: np.ndarray, votes: int, radius: float, map_tree: cKDTree) -> Place:
