@@ -33,7 +33,8 @@ import numpy as np
 from .gates import measured_free_space
 from ..config.pipeline import PipelineConfig
 from ..frontend.features import CloudFeatures
-from ..frontend.refine import evaluate_alignment, refine_transform, staged_point_to_plane
+from ..frontend.refine import (Alignment, evaluate_alignment, refine_transform,
+                               staged_point_to_plane)
 from ..geometry import apply_transform, rotation_error_deg, translation_error
 
 
@@ -134,11 +135,15 @@ class Settled:
         self.pair, self.start, self.transform = pair, start, transform
 
     @cached_property
+    def alignment(self) -> Alignment:
+        """Return the source points paired with their nearest target points (final distance)."""
+        pair = self.pair
+        return evaluate_alignment(pair.points, pair.target.tree, self.transform, pair.distance)
+
+    @property
     def fitness(self) -> float:
         """Return the share of every source point within the final distance of the target."""
-        pair = self.pair
-        return evaluate_alignment(pair.points, pair.target.tree, self.transform,
-                                  pair.distance).fitness
+        return self.alignment.fitness
 
     @cached_property
     def back(self) -> float:

@@ -251,7 +251,7 @@ class Relocalizer:
         s = settle(Pair(scan.features, ft, cfg, map_target=True), predicted,
                    reach + final, CHECK)
         # What the scan shares with the map there, as a single registration measures it.
-        align = evaluate_alignment(points, ft.tree, s.transform, final)
+        align = s.alignment
         return Check(self.prepared.to_map(s.transform), s.moved_deg, s.moved_m, steps,
                      travelled, s.fitness, s.free_space,
                      descriptor_ratio(scan.features.descriptors, ft.descriptors, align),
