@@ -182,12 +182,11 @@ def local_symmetries(prepared: PreparedMap, cfg: PipelineConfig,
     ft = prepared.features
     centre = placed.mean(axis=0)
     reach = np.percentile(np.linalg.norm(placed - centre, axis=1), REACH_QUANTILE)
-    rows = ft.tree.query_ball_point(centre, reach)
+    # Turned, the part lands on another side of its room: within twice the reach.
+    around = np.sort(np.asarray(ft.tree.query_ball_point(centre, 2 * reach), dtype=np.int64))
+    rows = around[np.linalg.norm(ft.points[around] - centre, axis=1) <= reach]
     if len(rows) < SYMMETRY_POINTS:  # too little of the map there to judge a turn
         return []
-    rows = np.sort(np.asarray(rows))
-    # Turned, the part lands on another side of its room: within twice the reach.
-    around = np.sort(np.asarray(ft.tree.query_ball_point(centre, 2 * reach)))
     return symmetries_of(ft.points[rows], ft.normals[rows], ft, cfg, ft.points[around])
 
 
