@@ -16,6 +16,16 @@ frames (voxel 5 cm; right: 15 deg, 0.3 m). Each is also moved to UTM coordinates
 E, 5412345.678 N, 265.4 m up) and queried again, and ``--kiss N`` queries a map are given to
 KISS-Matcher on the same scan and raw map (its ``estimate``; no flag, every estimate counts).
 
+``campus``: the street among seven look-alike streets and the floor, 250 m apart on a grid
+(6.0 M raw points): the street itself at the origin; the others fused from the same four
+scans mirrored, enlarged or shrunk (1.0 mirrored; 0.8, 1.25, 1.5 each as is and mirrored:
+streets no query fits under a rigid motion, harder to tell apart than a campus's different
+streets), each turned by a seeded yaw; the floor's four rooms as one building. The queries
+are the street's, and the two small_gicp scans (another street, in no map) from outside.
+``--sequences`` also relocalizes three held-out scans with odometry (1-2-3, 5-6-7, 9-10-11,
+13-14-15 and each reversed; drift as ``bench.relocalize_sequences``') in the campus map with
+a :class:`~cgags_ros.relocalization.relocalizer.Relocalizer`.
+
 ``growth``: floors of 1, 3, 6 and 12 rooms at the origin. The first three are three of the
 scenes (redkitchen, home_at, hotel_uc); then the same three mirrored, then all six enlarged
 by 1.25: rooms no query fits under any rigid motion, which look like the real ones. The
@@ -49,15 +59,17 @@ from bench.baselines import kiss_matcher_estimate
 from bench.common import argument_parser, write_text
 from bench.datasets import threedmatch as tdm
 from bench.datasets.rigs import kitti_scans
+from bench.relocalize_sequences import drifted_odometry
 from cgags_ros.config import pipeline_config_from
 from cgags_ros.frontend.features import estimate_normals
 from cgags_ros.geometry import apply_transform, make_transform, rotation_error_deg
 from cgags_ros.geometry import translation_error
-from cgags_ros.io.clouds import write_cloud
+from cgags_ros.io.clouds import read_cloud, write_cloud
 from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import clear_feature_cache, register_clouds
 from cgags_ros.pipeline.hint import Hint
 from cgags_ros.pipeline.map import load_map
+from cgags_ros.relocalization.relocalizer import Relocalizer
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -68,6 +80,10 @@ HINT_RADIUS = {'street': 10.0, 'floor': 2.0}  # metres around the true sensor po
 WAYS = ('whole', 'places', 'hint')
 GROWTH = (1, 3, 6, 12)  # rooms of the growth floors
 ENLARGED = 1.25  # the growth floors' enlarged rooms
+CAMPUS_SPACING = 250.0  # metres between the campus's blocks: more than a street's extent
+LOOK_ALIKES = [(True, 1.0)] + [(m, s) for s in (0.8, 1.25, 1.5) for m in (False, True)]
+SEQUENCES = [(1, 2, 3), (5, 6, 7), (9, 10, 11), (13, 14, 15)]  # held-out scans, and reversed
+DRIFT = (0.5, 0.02, 0.01)  # degrees, metres and step fraction, as bench.relocalize_sequences
 
 
 def street(data: Path) -> dict:
@@ -128,6 +144,31 @@ def floor(data: Path, per_room: int, rooms: list[tuple[str, bool, float]],
             'rooms': len(rooms), 'first_room': centres[0], 'sites': sites}
 
 
+def campus(data: Path, seed: int = 0) -> dict:
+    """Return the street among look-alike streets and the floor, as the module doc says."""
+    own, rng = street(data), np.random.default_rng(seed)
+    building = floor(data, 0, four_rooms(data), seed=seed)['points']
+    blocks = [own['points']]
+    for b, (mirrored, scale) in enumerate(LOOK_ALIKES + [(None, 1.0)], start=1):
+        place = make_transform(Rotation.from_euler('z', rng.uniform(0, 360),
+                                                   degrees=True).as_matrix(),
+                               CAMPUS_SPACING * np.array([b % 3, b // 3, 0.0]))
+        if mirrored is None:  # the last block: the building, its centre on the grid
+            blocks.append(apply_transform(place, building - building.mean(axis=0)))
+            continue
+        shape = np.diag([-scale if mirrored else scale, scale, scale, 1.0])
+        blocks.append(apply_transform(place @ shape, own['points']))
+    away = [(f'small_gicp {n}', read_cloud(data / 'lidar' / 'small_gicp' / f'{n}.ply'), None)
+            for n in ('source', 'target')]
+    truth = np.loadtxt(data / 'kitti' / 'seq00_16scans' / 'pseudo_gt.txt').reshape(-1, 4, 4)
+    scans = dict(zip(range(16), kitti_scans(data, list(range(16)))))
+    runs = [ids for seq in SEQUENCES for ids in (seq, seq[::-1])]
+    return {**own, 'points': np.vstack(blocks), 'outside': away, 'rooms': len(blocks),
+            'first_room': np.zeros(3),
+            'sequences': [('scans ' + '-'.join(map(str, ids)), [scans[k] for k in ids],
+                           [truth[k] for k in ids]) for ids in runs]}
+
+
 def four_rooms(data: Path) -> list[tuple[str, bool, float]]:
     """Return the four scenes as rooms, as they are."""
     return [(s, False, 1.0) for s in tdm.scenes(data / '3dmatch_benchmark')[:4]]
@@ -181,8 +222,11 @@ def run(name: str, built: dict, kiss: int, out_dir: Path,
                     T = _kiss(scan, built['points'] + offset, built['voxel'])
                     kiss_out.append((T is not None and right(T, truth, built['right']),
                                      time.perf_counter() - t0, T is None))
+            runs = [relocalize(prepared, cfg, label, scans, [move @ T for T in truth],
+                               built['right'], np.random.default_rng(i))
+                    for i, (label, scans, truth) in enumerate(built.get('sequences', []))]
         rows.append({
-            'map': name, 'frame': frame, 'rooms': built['rooms'],
+            'map': name, 'frame': frame, 'rooms': built['rooms'], 'sequences': runs,
             'queries': len(built['queries']), 'outside': len(built['outside']),
             'raw_points': len(built['points']), 'map_points': len(prepared.features.points),
             'map_places': len(prepared.places) if prepared.places is not None else 0,
@@ -193,6 +237,24 @@ def run(name: str, built: dict, kiss: int, out_dir: Path,
                                                                   seen['places'])])),
             'kiss': [{'right': bool(r), 's': s, 'crashed': c} for r, s, c in kiss_out]})
     return rows
+
+
+def relocalize(prepared, cfg, label: str, scans: list[np.ndarray], truth: list[np.ndarray],
+               limits: tuple[float, float], rng: np.random.Generator) -> dict:
+    """Relocalize ``scans`` with drifted odometry; return the outcome of the last scan used."""
+    reloc = Relocalizer(prepared, cfg)
+    clear_feature_cache()
+    t0 = time.perf_counter()
+    for scan, odom in zip(scans, drifted_odometry(truth, rng, *DRIFT)):
+        answer = reloc.add(scan, odom)
+        if answer.done:
+            break
+    seconds, used = time.perf_counter() - t0, len(reloc.scans)
+    got = ('refused' if not answer.confirmed else
+           'found' if right(answer.transform, truth[used - 1], limits) else 'WRONG')
+    print(f'sequence {label:16s} {got:8s} after {used} scans {seconds:5.2f} s '
+          f'{answer.reason[:60]}', flush=True)
+    return {'label': label, 'outcome': got, 'scans': used, 's': seconds}
 
 
 def outcome(result, truth: np.ndarray | None, limits: tuple[float, float]) -> str:
@@ -277,13 +339,23 @@ def table(rows: list[dict]) -> str:
         lines.append(f"| {r['map']} | {r['frame']} | {r['raw_points']:,} / {r['map_points']:,} "
                      f"| {r['map_places']:,} | {r['load_cold_s']:.1f} / {r['load_cached_s']:.2f} "
                      f"| {r['cache_mb']:.0f} | {r['max_rss_mb']:.0f} | {kiss} |")
+    runs = [r for r in rows if r['sequences']]
+    if runs:
+        lines += ['', '| map | frame | sequences | found / wrong / refused | scans used (median) '
+                  '| median / max s |', '|---|---|---|---|---|---|']
+    for r in runs:
+        got, s = [x['outcome'] for x in r['sequences']], [x['s'] for x in r['sequences']]
+        lines.append(f"| {r['map']} | {r['frame']} | {len(got)} | {got.count('found')} / "
+                     f"{got.count('WRONG')} / {got.count('refused')} | "
+                     f"{np.median([x['scans'] for x in r['sequences']]):.0f} | "
+                     f'{np.median(s):.2f} / {max(s):.2f} |')
     return '\n'.join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argument_parser('bench.maps', __doc__)
     parser.add_argument('--maps', nargs='+', default=['street', 'floor'],
-                        choices=['street', 'floor', 'growth'])
+                        choices=['street', 'floor', 'campus', 'growth'])
     parser.add_argument('--per-room', type=int, default=5, help='queries a room of the floor')
     parser.add_argument('--kiss', type=int, default=3, help='KISS-Matcher queries a map')
     parser.add_argument('--output', type=Path, default=Path('out/bench/maps'))
@@ -294,6 +366,8 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.maps:
         if name == 'street':
             rows += run('street', street(data), args.kiss, args.output)
+        elif name == 'campus':
+            rows += run('campus', campus(data), args.kiss, args.output)
         elif name == 'floor':
             rows += run('floor', floor(data, args.per_room, four_rooms(data)), args.kiss,
                         args.output)
