@@ -86,6 +86,7 @@ class PlaceIndex:
         """Hold the arrays (as they are: memory-mapped ones stay so)."""
         self.centres, self.vote_place = centres, vote_place
         self.index, self.spacing = index, float(spacing)
+        self._voter_tree: cKDTree | None = None
         low, high = centres.min(axis=0), centres.max(axis=0)
         self._middle = 0.5 * (low + high)
         # Every map point lies within half a cell's diagonal of its place's cell.
@@ -165,16 +166,29 @@ class PlaceIndex:
         if len(candidates) == 0:  # no vote where the hint is: the hint alone places the scan
             places = [self._place(self._where(hint, covered), 0, reach + near, map_tree)]
         else:
-            places = self._best(votes, voted, candidates, near, count, reach + near, map_tree)
+            places = self._best(votes, voted, candidates, near, count, reach + near, map_tree,
+                                len(keypoints))
         # A place that holds half the map is the map: testing it costs more than it saves.
         whole = 2 * len(places[0].rows) >= map_tree.n
         return Ranked([] if whole else places, whole, reach, keypoints)
 
     def _best(self, votes: np.ndarray, voted: np.ndarray, candidates: np.ndarray,
-              near: float, count: int, radius: float, map_tree: cKDTree) -> list[Place]:
-        """Return the ``count`` best-voted places, each more than ``near`` from the others."""
+              near: float, count: int, radius: float, map_tree: cKDTree,
+              cast: int) -> list[Place]:
+        """
+        Return the ``count`` best places, each more than ``near`` from the others.
+
+        A place's score is how far its votes (within ``near``) exceed what ``cast`` votes
+        for random voting points would give it, in standard deviations: most votes are
+        chance, so raw counts favour where the map has most voting points (a larger room,
+        a denser street) over where the scan is.
+        """
         around = cKDTree(self.centres[voted]).query_ball_point(self.centres[candidates], near)
-        score = np.array([votes[voted[a]].sum() for a in around])
+        got = np.array([votes[voted[a]].sum() for a in around])
+        share = self._voters().query_ball_point(self.centres[candidates], near,
+                                                return_length=True) / len(self.vote_place)
+        expected = cast * share
+        score = (got - expected) / np.sqrt(expected + 1.0)
         places: list[Place] = []
         for i in np.argsort(-score, kind='stable'):
             if any(np.linalg.norm(self.centres[candidates[i]] - p.centre) <= near
@@ -182,10 +196,16 @@ class PlaceIndex:
                 continue
             members = voted[around[i]]
             centre = np.average(self.centres[members], axis=0, weights=votes[members])
-            places.append(self._place(centre, int(score[i]), radius, map_tree))
+            places.append(self._place(centre, int(got[i]), radius, map_tree))
             if len(places) == count:
                 break
         return places
+
+    def _voters(self) -> cKDTree:
+        """Return the k-d tree of the voting points, each at its place's centre (built once)."""
+        if self._voter_tree is None:
+            self._voter_tree = cKDTree(self.centres[self.vote_place])
+        return self._voter_tree
 
     def _covered(self, hint: Hint | None, reach: float) -> np.ndarray:
         if hint is None:
