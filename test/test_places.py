@@ -14,7 +14,8 @@ import json
 from bench.datasets import threedmatch as tdm
 from cgags_ros.config import pipeline_config_from
 from cgags_ros.errors import InvalidInputError
-from cgags_ros.frontend.features import estimate_normals
+from cgags_ros.frontend.descriptor_index import DescriptorIndex
+from cgags_ros.frontend.features import CloudFeatures, estimate_normals
 from cgags_ros.geometry import apply_transform, make_transform, rotation_error_deg
 from cgags_ros.geometry import translation_error
 from cgags_ros.io.clouds import write_cloud
@@ -22,11 +23,13 @@ from cgags_ros.pipeline import register_clouds
 from cgags_ros.pipeline.hint import Hint, HINT_SIGMAS
 from cgags_ros.pipeline.locate import TESTED
 from cgags_ros.pipeline.map import load_map
+from cgags_ros.pipeline.places import PlaceIndex
 from cgags_ros.refusal import RefusalCode as Code
 from cgags_ros.relocalization.relocalizer import Relocalizer
 from cgags_ros.tools import map_cli, relocalize_cli
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 # scene -> (x of the room, its yaw in degrees)
@@ -173,3 +176,31 @@ def test_the_relocalize_command_takes_a_hint(floor, tmp_path, capsys):
     assert relocalize_cli.main(argv + ['500', '500', '0', '10']) == 1
     out = json.loads(capsys.readouterr().out)
     assert out['refusal']['code'] == Code.NO_SHARED_SURFACE.value
+
+
+def test_places_are_ranked_by_votes_above_chance_not_by_raw_votes():
+    """
+    A scan's own room outranks a room with four times its voting points and more raw votes.
+
+    Synthetic descriptors: each map point's is random; the scan's keypoints are 60 copies of
+    the small room's (its true matches) and 440 random ones, which vote by chance for
+    wherever the map has most voting points: the large room gets more votes in all.
+    """
+    rng = np.random.default_rng(0)
+    small = rng.uniform(-5, 5, (400, 3))
+    large = rng.uniform(-10, 10, (1600, 3)) + [200.0, 0.0, 0.0]
+    points = np.vstack([small, large])
+    descriptors = rng.random((len(points), 33))
+    centres = np.array([[0.0, 0.0, 0.0], [200.0, 0.0, 0.0]])
+    vote_place = (np.arange(len(points)) >= len(small)).astype(np.int64)
+    index = PlaceIndex(centres, vote_place, DescriptorIndex(descriptors), spacing=3.0)
+    own = rng.choice(len(small), 60, replace=False)
+    scan_descriptors = np.vstack([descriptors[own], rng.random((440, 33))])
+    scan = CloudFeatures(rng.uniform(-5, 5, (500, 3)), np.tile([0.0, 0.0, 1.0], (500, 1)),
+                         scan_descriptors, 0.5, None)
+    nearest = index.index.query(scan_descriptors, 1)[0][:, 0]
+    raw = np.bincount(vote_place[nearest], minlength=2)
+    assert raw[1] > raw[0]  # the large room has more votes...
+    ranked = index.rank(scan, 0.5, 2, cKDTree(points))
+    assert not ranked.whole
+    assert np.linalg.norm(ranked.places[0].centre) < 10.0  # ...the small one is first

@@ -176,7 +176,9 @@ class PlaceIndex:
               near: float, count: int, radius: float, map_tree: cKDTree,
               cast: int) -> list[Place]:
         """
-        Return the ``count`` best places, each more than ``near`` from the others.
+        Return the ``count`` best places, apart and each with a submap of its own.
+
+        Each is more than ``near`` from the others, and its submap is not within theirs.
 
         A place's score is how far its votes (within ``near``) exceed what ``cast`` votes
         for random voting points would give it, in standard deviations: most votes are
@@ -196,7 +198,10 @@ class PlaceIndex:
                 continue
             members = voted[around[i]]
             centre = np.average(self.centres[members], axis=0, weights=votes[members])
-            places.append(self._place(centre, int(got[i]), radius, map_tree))
+            place = self._place(centre, int(got[i]), radius, map_tree)
+            if any(_within(place.rows, p.rows) for p in places):
+                continue  # testing a place ranked before it tests this submap too
+            places.append(place)
             if len(places) == count:
                 break
         return places
@@ -230,21 +235,29 @@ class PlaceIndex:
         return Place(np.asarray(centre, dtype=np.float64), votes, np.sort(rows))
 
 
+def _within(rows: np.ndarray, other: np.ndarray) -> bool:
+    """Return whether the sorted ``rows`` are all among the sorted ``other``."""
+    if len(rows) > len(other):
+        return False
+    at = np.minimum(np.searchsorted(other, rows), len(other) - 1)
+    return bool(np.all(other[at] == rows))
+
+
 def submap_features(features: CloudFeatures, rows: np.ndarray,
                     workers: int = 1) -> CloudFeatures:
     """
     Return the features of the map's ``rows`` (copied), their descriptor index built.
 
-    The map's resolution is kept (its gates and thresholds are the map's), and its
-    descriptor index lends the submap's its cells: only the assignment is computed. The
-    k-d tree is left to :func:`with_tree`: only a submap that is registered needs one.
+    The map's resolution is kept (its gates and thresholds are the map's). The descriptor
+    index gets cells of its own: the whole map's, fitted to many more descriptors, are too
+    many for a submap and make each query visit them all. The k-d tree is left to
+    :func:`with_tree`: only a submap that is registered needs one.
     """
     descriptors = np.ascontiguousarray(features.descriptors[rows])
     sub = CloudFeatures(np.ascontiguousarray(features.points[rows]),
                         np.ascontiguousarray(features.normals[rows]), descriptors,
                         features.resolution, None, features.sensor_at_origin)
-    sub._index.append(informative_index(descriptors, workers,
-                                        like=features.descriptor_index(workers)))
+    sub._index.append(informative_index(descriptors, workers))
     return sub
 
 
