@@ -178,12 +178,12 @@ def test_the_relocalize_command_takes_a_hint(floor, tmp_path, capsys):
     assert out['refusal']['code'] == Code.NO_SHARED_SURFACE.value
 
 
-def test_places_are_ranked_by_votes_above_chance_not_by_raw_votes():
+def test_places_are_ranked_by_votes_less_chance_not_by_raw_votes():
     """
     A scan's own room outranks a room with four times its voting points and more raw votes.
 
-    Synthetic descriptors: each map point's is random; the scan's keypoints are 60 copies of
-    the small room's (its true matches) and 440 random ones, which vote by chance for
+    Synthetic descriptors: each map point's is random; the scan's keypoints are 120 copies of
+    the small room's (its true matches) and 380 random ones, which vote by chance for
     wherever the map has most voting points: the large room gets more votes in all.
     """
     rng = np.random.default_rng(0)
@@ -194,8 +194,8 @@ def test_places_are_ranked_by_votes_above_chance_not_by_raw_votes():
     centres = np.array([[0.0, 0.0, 0.0], [200.0, 0.0, 0.0]])
     vote_place = (np.arange(len(points)) >= len(small)).astype(np.int64)
     index = PlaceIndex(centres, vote_place, DescriptorIndex(descriptors), spacing=3.0)
-    own = rng.choice(len(small), 60, replace=False)
-    scan_descriptors = np.vstack([descriptors[own], rng.random((440, 33))])
+    own = rng.choice(len(small), 120, replace=False)
+    scan_descriptors = np.vstack([descriptors[own], rng.random((380, 33))])
     scan = CloudFeatures(rng.uniform(-5, 5, (500, 3)), np.tile([0.0, 0.0, 1.0], (500, 1)),
                          scan_descriptors, 0.5, None)
     nearest = index.index.query(scan_descriptors, 1)[0][:, 0]

@@ -43,4 +43,6 @@ any other bench module: they may import the tools of :mod:`bench`, never the rev
 - :mod:`.shared_surface_measures`: candidate measures of a pose's shared surface (extent,
   inliers' spread, descriptors at three radii, mutual descriptor matches, free space from
   each sensor and both) from recorded transforms, against the right low-overlap poses.
+- :mod:`.place_ranking`: the share of chance votes a place's score discounts
+  (``cgags_ros/pipeline/places.py``), on the maps of ``bench.maps``.
 """

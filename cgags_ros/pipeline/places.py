@@ -13,8 +13,10 @@ query look only where it may be:
   would fit both.
 - **votes**: one map point a ``VOTE_CELL_VOXELS`` cell (its informative descriptor) with
   its own descriptor index. Each of at most ``KEYPOINTS`` scan keypoints votes for the
-  place of its nearest voting descriptor; a place's score is the votes within 1.5 of the
-  scan's reaches of it, so a scan's own place collects the votes of all its surfaces.
+  place of its nearest voting descriptor. A place's votes are those within 1.5 of the
+  scan's reaches of it, so a scan's own place collects the votes of all its surfaces; its
+  score discounts what chance gives it (most votes go to look-alike descriptors anywhere,
+  the more where the map has more voting points).
 - a **hint** (:class:`~.hint.Hint`: a position with a radius, e.g. ``initialpose`` with its
   covariance) leaves only the places it covers.
 
@@ -40,6 +42,7 @@ from ..geometry import bounds
 TILE_VOXELS = 10.0  # the place grid's spacing: fine beside the smallest reach, ~26 voxels
 VOTE_CELL_VOXELS = 3.0  # one voting point a cell: a ninth of a surface's points
 KEYPOINTS = 1000  # scan keypoints that vote for places and test them
+CHANCE_SHARE = 0.5  # of a place's chance votes not counted (docs/maps.md: how chosen)
 REACH_QUANTILE = 90.0  # a scan's reach: this percentile of its points' distance to their centroid
 
 
@@ -180,17 +183,17 @@ class PlaceIndex:
 
         Each is more than ``near`` from the others, and its submap is not within theirs.
 
-        A place's score is how far its votes (within ``near``) exceed what ``cast`` votes
-        for random voting points would give it, in standard deviations: most votes are
-        chance, so raw counts favour where the map has most voting points (a larger room,
-        a denser street) over where the scan is.
+        A place's score is its votes (within ``near``) less ``CHANCE_SHARE`` of what
+        ``cast`` votes for random voting points would give it: most votes are chance, so
+        raw counts favour where the map has most voting points (a larger street) over where
+        the scan is, yet a room's own place is where most of its chance votes land too.
         """
         around = cKDTree(self.centres[voted]).query_ball_point(self.centres[candidates], near)
         got = np.array([votes[voted[a]].sum() for a in around])
         share = self._voters().query_ball_point(self.centres[candidates], near,
                                                 return_length=True) / len(self.vote_place)
         expected = cast * share
-        score = (got - expected) / np.sqrt(expected + 1.0)
+        score = got - CHANCE_SHARE * expected
         places: list[Place] = []
         for i in np.argsort(-score, kind='stable'):
             if any(np.linalg.norm(self.centres[candidates[i]] - p.centre) <= near
