@@ -88,8 +88,9 @@ def measure_overlap(source: np.ndarray, source_tree: cKDTree | None, ft: CloudFe
     else:
         result.observability = observability(source, ft.normals, align)
     result.free_space_violation = free_space_of(
-        source, ft.points, result.transform, cfg, source_view,
-        not map_target and ft.sensor_at_origin)
+        source, _viewed(source, ft, result.transform, cfg) if map_target and source_view
+        else ft.points,
+        result.transform, cfg, source_view, not map_target and ft.sensor_at_origin)
     return align
 
 
@@ -153,8 +154,26 @@ def measured_free_space(fs: CloudFeatures, ft: CloudFeatures, transform: np.ndar
     :attr:`~cgags_ros.frontend.features.CloudFeatures.sensor_at_origin`) or the gate
     disabled (``gates.max_free_space_violation`` 1).
     """
-    return free_space_of(fs.points, ft.points, transform, cfg, fs.sensor_at_origin,
+    target = (_viewed(fs.points, ft, transform, cfg) if map_target and fs.sensor_at_origin
+              else ft.points)
+    return free_space_of(fs.points, target, transform, cfg, fs.sensor_at_origin,
                          not map_target and ft.sensor_at_origin)
+
+
+def _viewed(source: np.ndarray, ft: CloudFeatures, transform: np.ndarray,
+            cfg: PipelineConfig) -> np.ndarray:
+    """
+    Return the map points the source's sensor can judge under ``transform``, in map order.
+
+    A map point farther from the sensor than its farthest point by more than the margin lies
+    behind every surface it saw: it changes no share, and a map is mostly such points.
+    """
+    if ft.tree is None or len(source) == 0:
+        return ft.points
+    farthest = float(np.sqrt(np.einsum('ij,ij->i', source, source).max()))
+    rows = ft.tree.query_ball_point(np.asarray(transform, dtype=np.float64)[:3, 3],
+                                    farthest + (FREE_SPACE_MARGIN_FACTOR + 1) * cfg.voxel_size)
+    return ft.points[np.sort(np.asarray(rows, dtype=np.int64))]
 
 
 def free_space_of(source: np.ndarray, target: np.ndarray, transform: np.ndarray,
