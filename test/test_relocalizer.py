@@ -239,8 +239,8 @@ def test_a_relocalization_far_from_the_origin_gives_what_it_gives_near_it(near, 
     # map <- odom is compared by where it puts the scans: far from its origin, a turn of
     # the odometry frame moves its origin by the lever arm.
     for T, T_ref in [(answer.transform, translation(d) @ base.transform)] + [
-            (answer.map_from_odom @ translation(e) @ O, translation(d) @ base.map_from_odom @ O)
-            for O in odom]:
+            (answer.map_from_odom @ translation(e) @ pose, translation(d) @ base.map_from_odom
+             @ pose) for pose in odom]:
         assert translation_error(T, T_ref) < 0.01
         assert rotation_error_deg(T, T_ref) < 0.05
 
