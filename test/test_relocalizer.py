@@ -455,32 +455,37 @@ def test_a_square_room_is_not_confirmed_from_scans_that_share_its_symmetry(tmp_p
     """
     A near-square room's quarter-turned pose is refused, not confirmed.
 
-    Two scans agree on the truth turned about the room (a quarter of the way with the
-    pinned stack, half with Jazzy's: the stacks' numerics differ): without the map's
-    symmetries that pose is confirmed; with them, its twin (the truth) explains every scan
-    as well and the answer is refused as ambiguous.
+    The scans fit the room on overlaps that constrain it weakly (observability near 0.01):
+    under the degeneracy gate (the default) those checks explain nothing, and the turned
+    pose is not confirmed. With the gate off, two scans agree on the truth turned about
+    the room (a quarter of the way with the pinned stack, half with Jazzy's: the stacks'
+    numerics differ): without the map's symmetries that pose is confirmed; with them, its
+    twin (the truth) explains every scan as well and the answer is refused as ambiguous.
     """
     from bench.datasets import square_room
 
     room, furniture, scans = _square_room_scans(square_room)
     cfg = pipeline_config_from({'voxel_size': 0.05})
+    ungated = pipeline_config_from({'voxel_size': 0.05, 'gates': {'min_observability': 0.0}})
     path = tmp_path / 'room.ply'
     write_cloud(path, *square_room.room_map(room, furniture, cfg.voxel_size, cfg.frontend))
 
     prepared = load_map(path, cfg)  # once: the runs differ only in the symmetries they know
 
-    def relocalize(symmetries):
+    def relocalize(symmetries, config):
         prepared.symmetries = symmetries  # None: found from the map, as a load leaves it
-        reloc = Relocalizer(prepared, cfg)
+        reloc = Relocalizer(prepared, config)
         for cloud, odom, P in scans:
             answer = reloc.add(cloud, odom)
             if answer.done:
                 break
         return answer, P, prepared
 
-    blind, P, _ = relocalize([])
+    gated, P, _ = relocalize([], cfg)
+    assert not (gated.confirmed and rotation_error_deg(gated.transform, P) > 45)
+    blind, P, _ = relocalize([], ungated)
     assert blind.confirmed and rotation_error_deg(blind.transform, P) > 45  # a turned room
-    answer, P, prepared = relocalize(None)
+    answer, P, prepared = relocalize(None, ungated)
     turns = [rotation_error_deg(S, np.eye(4)) for S in prepared.symmetries]
     assert any(abs(t - 90) < 5 for t in turns)  # a quarter turn puts the room onto itself
     assert not answer.confirmed and answer.refusal.code is Code.AMBIGUOUS
