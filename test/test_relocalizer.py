@@ -12,14 +12,18 @@ import json
 
 from bench.datasets import threedmatch as tdm
 from cgags_ros.config import pipeline_config_from
+from cgags_ros.coordinates import translation
 from cgags_ros.errors import CgagsError, InvalidInputError
 from cgags_ros.frontend.features import estimate_normals
 from cgags_ros.geometry import apply_transform, make_transform, rotation_error_deg
 from cgags_ros.geometry import translation_error, voxel_size_for
 from cgags_ros.io.clouds import read_cloud_and_normals, write_cloud
 from cgags_ros.pipeline.map import load_map
+from cgags_ros.pipeline.result import PipelineResult
 from cgags_ros.pipeline.twins import local_symmetries
+from cgags_ros.refusal import Refusal
 from cgags_ros.refusal import RefusalCode as Code
+from cgags_ros.relocalization.hypotheses import Check, Hypothesis, judge
 from cgags_ros.relocalization.relocalizer import Relocalizer, SequenceConfig
 from cgags_ros.tools import relocalize_cli
 from cgags_ros.tools.cli import EXIT_ERROR
@@ -32,6 +36,8 @@ SCENE = '7-scenes-redkitchen'
 HARD = [13, 14, 15]  # one scan of it is ambiguous (a turned candidate); three settle it
 EASY = [7, 8, 9]  # each scan of it alone is valid
 RIGHT = (10.0, 0.3)  # RE (deg), TE (m)
+MAGNITUDES = (1e5, 1e6, 1e7)  # metres from the origin: UTM, MGRS and ECEF coordinates
+NEAR = 6  # the small map: the fragments this close to the sequence's
 
 
 @pytest.fixture(scope='module')
@@ -138,6 +144,105 @@ def test_odometry_that_contradicts_the_scans_is_refused_not_averaged(easy):
     explained = [sum(i in h.checks and h.checks[i].explains(seq, cfg) for i in range(3))
                  for h in last.hypotheses]
     assert 1 <= max(explained) < 3  # each scan fits some pose; no pose fits the three
+
+
+def test_scans_that_fit_a_pose_only_on_a_degenerate_overlap_do_not_confirm_it():
+    """
+    A pose that every scan fits only on a degenerate overlap is not confirmed.
+
+    The checks are those of a wrong pose three street scans confirmed in a campus map (their
+    fused submap placed in another street, bench.maps campus): each fits the map there
+    (fitness 0.4, free space under the gate) with descriptors unlike its own (ratio above
+    0.9), on an overlap so weakly constrained (observability under 0.01: a road) that the
+    shared-surface test leaves it unjudged. Such a check says nothing, as a single
+    registration's degeneracy gate says of such an overlap. The same checks on a
+    constrained overlap that looks alike do confirm the pose.
+    """
+    cfg, seq = pipeline_config_from({'voxel_size': 0.3}), SequenceConfig()
+    odom = [make_transform(np.eye(3), [4.0 * k, 0.0, 0.0]) for k in range(3)]
+    pose = make_transform(Rotation.from_euler('z', 40, degrees=True).as_matrix(),
+                          [250.0, 80.0, 1.0])
+    # scan: moved deg, moved m, fitness, free space, descriptor ratio, observability
+    measured = {2: (0.0, 0.0, 0.401, 0.288, 0.934, 0.005),
+                0: (1.45, 0.449, 0.391, 0.262, 0.953, 0.007),
+                1: (1.94, 0.311, 0.395, 0.263, 0.939, 0.008)}
+    refused = [PipelineResult(voxel_size=0.3, refusal=Refusal(Code.AMBIGUOUS, 'a rival'))
+               for _ in odom]
+
+    def judged(ratio=None, observability=None):
+        checks = {i: Check(pose @ odom[i], deg, m, abs(i - 2), 4.0 * abs(i - 2), fit, free,
+                           ratio or r, observability or o)
+                  for i, (deg, m, fit, free, r, o) in measured.items()}
+        return judge([Hypothesis(pose, 2, 0, 40, 'submap', checks)], refused, odom, cfg, seq)
+
+    answer = judged()
+    assert not answer.confirmed and answer.refusal.code is Code.UNEXPLAINED, answer.reason
+    assert judged(ratio=0.5, observability=0.1).confirmed
+
+
+@pytest.fixture(scope='module')
+def near(data_dir, tmp_path_factory):
+    """
+    Return ``relocalize(map_offset, odom_offset)`` on a small map of the EASY sequence.
+
+    The map is the fragments within ``NEAR`` of the sequence's (not theirs), normals facing
+    their sensors, written moved by ``map_offset``; the odometry frame is moved by
+    ``odom_offset``. Returns the answer after the scans (stopping when done), the truth and
+    the odometry near its origin. The fragment
+    poses are made rotations (their files keep a few decimals), so that the answers' poses
+    are too.
+    """
+    root = data_dir / '3dmatch_benchmark'
+    poses, fragments = tdm.fragment_poses(root, SCENE), tdm.Fragments(root, SCENE)
+    poses = {k: make_transform(Rotation.from_matrix(P[:3, :3]).as_matrix(), P[:3, 3])
+             for k, P in poses.items()}
+    cfg = pipeline_config_from({'voxel_size': 0.05})
+    kept = {k: P for k, P in poses.items()
+            if k not in EASY and min(EASY) - NEAR <= k <= max(EASY) + NEAR}
+    points = tdm.scene_map(fragments, kept)
+    normals = np.vstack([estimate_normals(fragments[k], cfg.voxel_size, cfg.frontend)
+                         @ P[:3, :3].T for k, P in kept.items()])
+    odom = odometry(poses, EASY, np.random.default_rng(0))
+
+    def relocalize(map_offset, odom_offset):
+        path = tmp_path_factory.mktemp('near') / 'map.ply'
+        write_cloud(path, points + map_offset, normals)
+        reloc = Relocalizer(load_map(path, cfg), cfg)
+        for k, O in zip(EASY, odom):
+            answer = reloc.add(fragments[k], translation(odom_offset) @ O)
+            if answer.done:
+                break
+        return answer, poses, odom
+
+    return relocalize
+
+
+@pytest.mark.parametrize('magnitude', MAGNITUDES)
+def test_a_relocalization_far_from_the_origin_gives_what_it_gives_near_it(near, magnitude):
+    """
+    The map and the odometry frame far from their origins: the same answer, moved.
+
+    Every step meets the map's far coordinates: the scans' registrations, their candidates
+    and the fused submap's turned into hypotheses, each checked on every scan, the twins,
+    the covariance. Moved back, the answer must be the one near the origin: the same
+    decision on as many scans, the same pose within a millimetre-scale tolerance (the map is
+    featurised about another local origin, where its voxel grid rounds a few points
+    otherwise).
+    """
+    rng = np.random.default_rng(int(np.log10(magnitude)))
+    d, e = (magnitude * v / np.linalg.norm(v) for v in rng.normal(size=(2, 3)))
+    base, poses, odom = near(np.zeros(3), np.zeros(3))
+    answer, _, _ = near(d, e)
+    assert base.confirmed and right(base.transform, poses[EASY[base.scans_used - 1]])
+    assert (answer.confirmed, answer.scans_used) == (base.confirmed, base.scans_used), \
+        answer.reason
+    # map <- odom is compared by where it puts the scans: far from its origin, a turn of
+    # the odometry frame moves its origin by the lever arm.
+    for T, T_ref in [(answer.transform, translation(d) @ base.transform)] + [
+            (answer.map_from_odom @ translation(e) @ pose, translation(d) @ base.map_from_odom
+             @ pose) for pose in odom]:
+        assert translation_error(T, T_ref) < 0.01
+        assert rotation_error_deg(T, T_ref) < 0.05
 
 
 def test_a_scan_taken_outside_the_map_is_left_out_not_held_against_the_rest(easy, data_dir):
@@ -350,32 +455,37 @@ def test_a_square_room_is_not_confirmed_from_scans_that_share_its_symmetry(tmp_p
     """
     A near-square room's quarter-turned pose is refused, not confirmed.
 
-    Two scans agree on the truth turned about the room (a quarter of the way with the
-    pinned stack, half with Jazzy's: the stacks' numerics differ): without the map's
-    symmetries that pose is confirmed; with them, its twin (the truth) explains every scan
-    as well and the answer is refused as ambiguous.
+    The scans fit the room on overlaps that constrain it weakly (observability near 0.01):
+    under the degeneracy gate (the default) those checks explain nothing, and the turned
+    pose is not confirmed. With the gate off, two scans agree on the truth turned about
+    the room (a quarter of the way with the pinned stack, half with Jazzy's: the stacks'
+    numerics differ): without the map's symmetries that pose is confirmed; with them, its
+    twin (the truth) explains every scan as well and the answer is refused as ambiguous.
     """
     from bench.datasets import square_room
 
     room, furniture, scans = _square_room_scans(square_room)
     cfg = pipeline_config_from({'voxel_size': 0.05})
+    ungated = pipeline_config_from({'voxel_size': 0.05, 'gates': {'min_observability': 0.0}})
     path = tmp_path / 'room.ply'
     write_cloud(path, *square_room.room_map(room, furniture, cfg.voxel_size, cfg.frontend))
 
     prepared = load_map(path, cfg)  # once: the runs differ only in the symmetries they know
 
-    def relocalize(symmetries):
+    def relocalize(symmetries, config):
         prepared.symmetries = symmetries  # None: found from the map, as a load leaves it
-        reloc = Relocalizer(prepared, cfg)
+        reloc = Relocalizer(prepared, config)
         for cloud, odom, P in scans:
             answer = reloc.add(cloud, odom)
             if answer.done:
                 break
         return answer, P, prepared
 
-    blind, P, _ = relocalize([])
+    gated, P, _ = relocalize([], cfg)
+    assert not (gated.confirmed and rotation_error_deg(gated.transform, P) > 45)
+    blind, P, _ = relocalize([], ungated)
     assert blind.confirmed and rotation_error_deg(blind.transform, P) > 45  # a turned room
-    answer, P, prepared = relocalize(None)
+    answer, P, prepared = relocalize(None, ungated)
     turns = [rotation_error_deg(S, np.eye(4)) for S in prepared.symmetries]
     assert any(abs(t - 90) < 5 for t in turns)  # a quarter turn puts the room onto itself
     assert not answer.confirmed and answer.refusal.code is Code.AMBIGUOUS

@@ -69,7 +69,8 @@ class Check:
     :ivar fitness: share of the scan's points within the refinement distance of the map.
     :ivar free_space: the free-space violation of the refined pose (NaN: not measured).
     :ivar descriptor_ratio, observability: the scan's overlap with the map under the refined
-        pose, measured as a single registration's (``PipelineResult``; NaN: not measured).
+        pose, measured as a single registration's (``PipelineResult``; NaN: not measured,
+        which no gate refuses).
     """
 
     transform: np.ndarray
@@ -87,16 +88,19 @@ class Check:
         Tell whether the scan fits the hypothesis within the drift allowance.
 
         It must also pass the single registration's gates on what it shares with the map:
-        free space (``gates.max_free_space_violation``) and a shared surface whose
-        descriptors look alike (:func:`~cgags_ros.validity.unalike`). A scan placed in a
-        wrong place of a larger map can fit its surfaces there (a floor, walls) without
-        them looking like its own.
+        free space (``gates.max_free_space_violation``), an overlap that constrains every
+        motion (``gates.min_observability``) and a shared surface whose descriptors look
+        alike (:func:`~cgags_ros.validity.unalike`). A scan placed in a wrong place of a
+        larger map can fit its surfaces there (a floor, walls) without them looking like
+        its own; on a degenerate overlap (a road, a floor) it fits anywhere along it, and
+        whether its descriptors look alike is not judged: such a check says nothing.
         """
         return (self.moved_deg <= seq.drift_deg * max(self.steps, 1)
                 and self.moved_m <= (seq.drift_m * max(self.steps, 1)
                                      + seq.drift_fraction * self.travelled_m)
                 and self.fitness >= seq.min_fitness
                 and not self.free_space > config.gates.max_free_space_violation
+                and not self.observability < config.gates.min_observability
                 and not unalike(self.descriptor_ratio, self.observability, config))
 
 

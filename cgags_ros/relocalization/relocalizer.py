@@ -15,7 +15,8 @@ hypothesis and the odometry predict and refined locally against the map
 (point-to-plane on the map's k-d tree, cheap from a close start), and the scan
 **explains** the hypothesis when the refinement stays within the drift allowance (the
 odometry's drift and the error of the registration the hypothesis came from), the fitness
-is at least ``min_fitness`` and the pose passes the free-space gate. A hypothesis that
+is at least ``min_fitness`` and the pose passes a single registration's gates on what the
+scan shares with the map (free space, degeneracy, alike descriptors). A hypothesis that
 explains a scan much worse than the best one does (its fitness ``refute_ratio`` times lower)
 or does not explain it is **refuted** by that scan.
 
