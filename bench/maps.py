@@ -7,7 +7,8 @@ Run by hand::
         [--output out/bench/maps]
 
 ``street``: the 16 KITTI scans (``kitti/seq00_16scans``), every fourth (0, 4, 8, 12) fused by
-the pseudo ground truth into scan 0's frame as the map; the 12 scans between are the queries,
+the pseudo ground truth into scan 0's frame as the map (normals facing each scan's sensor,
+as a mapper writes them); the 12 scans between are the queries,
 in their own sensor frames (voxel 0.3 m, the README's LiDAR value; right: 5 deg, 0.6 m).
 ``floor``: the four 3DMatch scenes, each fused from its even fragments (normals facing the
 fragment's sensor, as a mapper writes them), turned by a seeded yaw and placed as rooms 30 m
@@ -91,9 +92,13 @@ def street(data: Path) -> dict:
     scans = kitti_scans(data, list(range(16)))
     truth = np.loadtxt(data / 'kitti' / 'seq00_16scans' / 'pseudo_gt.txt').reshape(-1, 4, 4)
     in_map = [0, 4, 8, 12]
+    cfg = pipeline_config_from({'voxel_size': 0.3})
     points = np.vstack([apply_transform(truth[k], scans[k]) for k in in_map])
+    # Each scan's normals facing its sensor, as a mapper writes them.
+    normals = np.vstack([estimate_normals(scans[k], 0.3, cfg.frontend) @ truth[k][:3, :3].T
+                         for k in in_map])
     queries = [(f'scan {k}', scans[k], truth[k]) for k in range(16) if k not in in_map]
-    return {'points': points, 'normals': None, 'queries': queries, 'outside': [],
+    return {'points': points, 'normals': normals, 'queries': queries, 'outside': [],
             'voxel': 0.3, 'right': (5.0, 0.6), 'hint': HINT_RADIUS['street'],
             'rooms': 1}
 
@@ -147,23 +152,28 @@ def floor(data: Path, per_room: int, rooms: list[tuple[str, bool, float]],
 def campus(data: Path, seed: int = 0) -> dict:
     """Return the street among look-alike streets and the floor, as the module doc says."""
     own, rng = street(data), np.random.default_rng(seed)
-    building = floor(data, 0, four_rooms(data), seed=seed)['points']
-    blocks = [own['points']]
+    building = floor(data, 0, four_rooms(data), seed=seed)
+    blocks, sides = [own['points']], [own['normals']]
     for b, (mirrored, scale) in enumerate(LOOK_ALIKES + [(None, 1.0)], start=1):
         place = make_transform(Rotation.from_euler('z', rng.uniform(0, 360),
                                                    degrees=True).as_matrix(),
                                CAMPUS_SPACING * np.array([b % 3, b // 3, 0.0]))
         if mirrored is None:  # the last block: the building, its centre on the grid
-            blocks.append(apply_transform(place, building - building.mean(axis=0)))
+            blocks.append(apply_transform(place, building['points']
+                                          - building['points'].mean(axis=0)))
+            sides.append(building['normals'] @ place[:3, :3].T)
             continue
-        shape = np.diag([-scale if mirrored else scale, scale, scale, 1.0])
-        blocks.append(apply_transform(place @ shape, own['points']))
+        A = place @ np.diag([-scale if mirrored else scale, scale, scale, 1.0])
+        blocks.append(apply_transform(A, own['points']))
+        side = own['normals'] @ np.linalg.inv(A[:3, :3])  # normals turn by A's inverse transpose
+        sides.append(side / np.linalg.norm(side, axis=1, keepdims=True))
     away = [(f'small_gicp {n}', read_cloud(data / 'lidar' / 'small_gicp' / f'{n}.ply'), None)
             for n in ('source', 'target')]
     truth = np.loadtxt(data / 'kitti' / 'seq00_16scans' / 'pseudo_gt.txt').reshape(-1, 4, 4)
     scans = dict(zip(range(16), kitti_scans(data, list(range(16)))))
     runs = [ids for seq in SEQUENCES for ids in (seq, seq[::-1])]
-    return {**own, 'points': np.vstack(blocks), 'outside': away, 'rooms': len(blocks),
+    return {**own, 'points': np.vstack(blocks), 'normals': np.vstack(sides), 'outside': away,
+            'rooms': len(blocks),
             'first_room': np.zeros(3),
             'sequences': [('scans ' + '-'.join(map(str, ids)), [scans[k] for k in ids],
                            [truth[k] for k in ids]) for ids in runs]}

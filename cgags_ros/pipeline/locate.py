@@ -31,13 +31,14 @@ import numpy as np
 from .cache import cached_features
 from .hint import Hint
 from .map import PreparedMap
-from .places import Place, submap_features, with_tree
+from .places import Place, Ranked, submap_features, with_tree
 from .result import PipelineResult
 from ..config.pipeline import PipelineConfig
 from ..coordinates import local_origin, moved
 from ..errors import DegenerateCorrespondencesError, EmptyCloudError
 from ..frontend.features import CloudFeatures
 from ..frontend.matching import match_features
+from ..geometry import apply_transform
 from ..parallel import DEFAULT_WORKERS
 from ..refusal import Refusal, RefusalCode
 from ..registration import register_correspondences, single_blas_thread
@@ -75,20 +76,38 @@ def locate(src: np.ndarray, prepared: PreparedMap, cfg: PipelineConfig, hint: Hi
     if not ranked.places:
         return _uncovered(prepared, cfg, hint, start)
     with timed(timings, 'places_test'), single_blas_thread():
-        parts = [submap_features(prepared.features, p.rows, DEFAULT_WORKERS)
-                 for p in ranked.places]
-        scores = [_tested(scan, ranked.keypoints, part, cfg) for part in parts]
-    best = int(np.argmax(scores))  # ties: the better voted
+        places = _with_consensus(scan, ranked, prepared, cfg) if hint is None else ranked.places
+        parts = [submap_features(prepared.features, p.rows, DEFAULT_WORKERS) for p in places]
+        scores = [_tested(scan, ranked.keypoints, part, cfg)[0] for part in parts]
+    best = int(np.argmax(scores))  # ties: the first
     result = register(prepared.part(with_tree(parts[best])))
     result.stats['places'] = {'ranked': [_summary(prepared, p, s)
-                                         for p, s in zip(ranked.places, scores)],
+                                         for p, s in zip(places, scores)],
                               'registered': best}
-    return _noted(result, prepared, ranked.places[best], scores[best], timings, start)
+    return _noted(result, prepared, places[best], scores[best], timings, start)
+
+
+def _with_consensus(scan: CloudFeatures, ranked: Ranked, prepared: PreparedMap,
+                    cfg: PipelineConfig) -> list[Place]:
+    """
+    Return the places to test: the whole map's consensus place first, then the best voted.
+
+    The scan's keypoints matched against the whole map and searched briefly put it where
+    the most of them agree; that place is tested with the best voted ones not near it.
+    """
+    inliers, T = _tested(scan, ranked.keypoints, prepared.features, cfg)
+    if inliers == 0:
+        return ranked.places
+    centre = apply_transform(T, scan.points.mean(axis=0)[None])[0]
+    near = prepared.places.near(ranked.reach)
+    voted = [p for p in ranked.places if np.linalg.norm(p.centre - centre) > near]
+    return [prepared.places.place_at(centre, ranked.reach, prepared.features.tree),
+            *voted][:TESTED]
 
 
 def _tested(scan: CloudFeatures, keypoints: np.ndarray, part: CloudFeatures,
-            cfg: PipelineConfig) -> int:
-    """Return the inliers of a short search of the keypoints' matches in ``part`` (0: none)."""
+            cfg: PipelineConfig) -> tuple[int, np.ndarray]:
+    """Return the inliers of a short search of the keypoints' matches in ``part``, and its pose."""
     corr = match_features(scan.descriptors[keypoints], part.descriptors, cfg.frontend,
                           DEFAULT_WORKERS, part.descriptor_index(DEFAULT_WORKERS))
     core = dataclasses.replace(cfg.core,
@@ -99,8 +118,8 @@ def _tested(scan: CloudFeatures, keypoints: np.ndarray, part: CloudFeatures,
             inlier_threshold=cfg.core.inlier_threshold or None,
             resolution=0.5 * (scan.resolution + part.resolution), config=core, seed=cfg.seed)
     except DegenerateCorrespondencesError:
-        return 0
-    return int(found.num_inliers)
+        return 0, np.eye(4)
+    return int(found.num_inliers), found.transform
 
 
 def _summary(prepared: PreparedMap, place: Place, score: int) -> dict:

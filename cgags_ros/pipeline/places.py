@@ -154,7 +154,7 @@ class PlaceIndex:
         reach = float(np.percentile(spread, REACH_QUANTILE))
         # Votes are counted within ``near`` of a place: the scan's reach and the error of a
         # centroid placed by votes; its submap reaches as far again beyond the centre.
-        near = 1.5 * reach + self.spacing
+        near = self.near(reach)
         covered = self._covered(hint, reach)
         if not covered.any() or self._radius <= reach + near:
             return Ranked([], bool(covered.any()), reach, np.zeros(0, dtype=np.int64))
@@ -208,6 +208,14 @@ class PlaceIndex:
             if len(places) == count:
                 break
         return places
+
+    def near(self, reach: float) -> float:
+        """Return how near a place a scan of ``reach`` votes for it (metres)."""
+        return 1.5 * reach + self.spacing
+
+    def place_at(self, centre: np.ndarray, reach: float, map_tree: cKDTree) -> Place:
+        """Return the place centred at ``centre`` for a scan of ``reach`` (no votes)."""
+        return self._place(centre, 0, reach + self.near(reach), map_tree)
 
     def _voters(self) -> cKDTree:
         """Return the k-d tree of the voting points, each at its place's centre (built once)."""
