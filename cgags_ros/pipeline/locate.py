@@ -6,10 +6,13 @@ A scan in a prepared map with places: the places ranked, the best few tested, on
 and the other places' matches drown its own; here:
 
 1. **rank**: the scan's keypoints vote for places (:meth:`~.places.PlaceIndex.rank`), at
-   most ``TESTED`` of them, the hint's only when one is given;
+   most ``TESTED`` of them, the hint's only when one is given. Without a hint, the
+   keypoints are also matched against the whole map and searched briefly: where that
+   consensus puts the scan is the first place, the best voted not near it follow (votes
+   alone miss a scan's place among look-alikes, docs/maps.md);
 2. **test**: each is matched against the scan's keypoints and searched by the core for at
    most ``TEST_ITERATIONS`` hypotheses: its own place gives a consensus within a few
-   hundred, a wrong one none that stands out (docs/maps.md);
+   hundred, a wrong one none that stands out;
 3. **register**: the place with the largest consensus goes through the whole pipeline as
    a map of its own (its submap, in the map's local frame). The result is that
    registration's, in the map frame as against the whole map; its ``map_info`` is the whole
@@ -124,7 +127,8 @@ def _tested(scan: CloudFeatures, keypoints: np.ndarray, part: CloudFeatures,
 
 def _summary(prepared: PreparedMap, place: Place, score: int) -> dict:
     return {'centre': [float(x) for x in place.centre + prepared.origin],
-            'points': int(len(place.rows)), 'votes': place.votes, 'tested_inliers': score}
+            'points': int(len(place.rows)), 'by': place.by, 'votes': place.votes,
+            'tested_inliers': score}
 
 
 def _noted(result: PipelineResult, prepared: PreparedMap, place: Place, score: int,

@@ -54,11 +54,14 @@ class Place:
     :ivar centre: (3,) the submap's centre.
     :ivar votes: the scan's votes within its reach of the centre.
     :ivar rows: sorted rows of the map's features in the submap.
+    :ivar by: what put it there: 'votes', 'hint' (no vote where the hint is) or 'consensus'
+        (:mod:`.locate`: the whole map's short search).
     """
 
     centre: np.ndarray
     votes: int
     rows: np.ndarray
+    by: str = 'votes'
 
 
 @dataclasses.dataclass
@@ -167,7 +170,8 @@ class PlaceIndex:
         voted = np.flatnonzero(votes)
         candidates = voted[covered[voted]]
         if len(candidates) == 0:  # no vote where the hint is: the hint alone places the scan
-            places = [self._place(self._where(hint, covered), 0, reach + near, map_tree)]
+            places = [self._place(self._where(hint, covered), 0, reach + near, map_tree,
+                                  'hint')]
         else:
             places = self._best(votes, voted, candidates, near, count, reach + near, map_tree,
                                 len(keypoints))
@@ -215,7 +219,7 @@ class PlaceIndex:
 
     def place_at(self, centre: np.ndarray, reach: float, map_tree: cKDTree) -> Place:
         """Return the place centred at ``centre`` for a scan of ``reach`` (no votes)."""
-        return self._place(centre, 0, reach + self.near(reach), map_tree)
+        return self._place(centre, 0, reach + self.near(reach), map_tree, 'consensus')
 
     def _voters(self) -> cKDTree:
         """Return the k-d tree of the voting points, each at its place's centre (built once)."""
@@ -241,9 +245,10 @@ class PlaceIndex:
         return np.array([*hint.position[:2], self.centres[nearest, 2]])
 
     @staticmethod
-    def _place(centre: np.ndarray, votes: int, radius: float, map_tree: cKDTree) -> Place:
+    def _place(centre: np.ndarray, votes: int, radius: float, map_tree: cKDTree,
+               by: str = 'votes') -> Place:
         rows = np.asarray(map_tree.query_ball_point(centre, radius), dtype=np.int64)
-        return Place(np.asarray(centre, dtype=np.float64), votes, np.sort(rows))
+        return Place(np.asarray(centre, dtype=np.float64), votes, np.sort(rows), by)
 
 
 def _within(rows: np.ndarray, other: np.ndarray) -> bool:
