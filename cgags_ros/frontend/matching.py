@@ -56,9 +56,9 @@ def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfi
     dst_ok = np.flatnonzero(_informative(target))
     if len(src_ok) == 0 or len(dst_ok) == 0:
         return _empty_correspondences()
-    src, dst = source[src_ok], target[dst_ok]
+    src = source[src_ok]
     if target_index is None:
-        target_index = DescriptorIndex(dst, workers)
+        target_index = DescriptorIndex(target[dst_ok], workers)
     elif target_index.size != len(dst_ok):
         raise ValueError(f'target_index holds {target_index.size} rows, the target '
                          f'{len(dst_ok)} informative ones: not an index of this target')
@@ -66,7 +66,8 @@ def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfi
     nn = target_index.query(src, k, workers)[0]
     # The index's own distances can differ in the last bit (another summation order); these
     # keep the best-first order of equal-looking matches what it always was.
-    dist = np.linalg.norm(src[:, None, :] - dst[nn], axis=2)
+    # Rows are read where they are: a map's target is large and need not be copied whole.
+    dist = np.linalg.norm(src[:, None, :] - target[dst_ok[nn]], axis=2)
     keep = np.ones(len(src_ok), dtype=bool)
     if mutual:
         # Of the sources whose nearest is a target, only the nearest of them (ties to the
@@ -75,12 +76,12 @@ def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfi
         squared = np.empty(len(src_ok))
         # as the index ranks
         compiled.squared_pair_distances(c_array(src, np.float64),
-                                        c_array(dst[nn[:, 0]], np.float64), squared)
+                                        c_array(target[dst_ok[nn[:, 0]]], np.float64), squared)
         best = np.lexsort((np.arange(len(src_ok)), squared, nn[:, 0]))
         first = best[np.r_[True, nn[best[1:], 0] != nn[best[:-1], 0]]]
         source_index = DescriptorIndex(src, workers, like=target_index)
         keep[:] = False
-        keep[first] = source_index.is_nearest(dst[nn[first, 0]], first, workers)
+        keep[first] = source_index.is_nearest(target[dst_ok[nn[first, 0]]], first, workers)
     if k == 2:
         # Lowe: a match is distinctive when its best distance is clearly below the second.
         keep &= dist[:, 0] < ratio * dist[:, 1]
