@@ -45,6 +45,7 @@ class DescriptorIndex:
         ``like``: an index of similar descriptors (the other cloud's) whose cell centres
         and principal directions are reused instead of computing them (k-means) again.
         """
+        self.rows: np.ndarray | None = None  # which rows of a cloud's descriptors it holds
         ref = c_array(reference, np.float64)
         if ref.ndim != 2 or len(ref) == 0:
             raise ValueError(f'reference must be a non-empty (M, D) array, got {ref.shape}')
@@ -86,6 +87,8 @@ class DescriptorIndex:
         """Return the index as named arrays (:meth:`from_arrays` builds it back, as it was)."""
         out = {name: np.asarray(value) for name, value in self.arrays._asdict().items()}
         out['max_norm'] = np.array([self.arrays.max_norm])
+        if self.rows is not None:
+            out['rows'] = self.rows
         return out
 
     @classmethod
@@ -102,6 +105,7 @@ class DescriptorIndex:
         index.arrays = compiled.IndexArrays(**fields)
         index.size, index.dim = index.arrays.points.shape
         index.centres, index.basis = index.arrays.centres, index.arrays.basis
+        index.rows = arrays.get('rows')
         return index
 
     def _partition(self, ref: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:

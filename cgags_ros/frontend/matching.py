@@ -53,13 +53,15 @@ def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfi
     a map); it is built here otherwise. Either way the result is the same.
     """
     src_ok = np.flatnonzero(_informative(source))
-    dst_ok = np.flatnonzero(_informative(target))
+    # A kept index knows its target's informative rows: a map's are not scanned again.
+    known = None if target_index is None else target_index.rows
+    dst_ok = np.flatnonzero(_informative(target)) if known is None else known
     if len(src_ok) == 0 or len(dst_ok) == 0:
         return _empty_correspondences()
     src = source[src_ok]
     if target_index is None:
         target_index = DescriptorIndex(target[dst_ok], workers)
-    elif target_index.size != len(dst_ok):
+    elif not _indexes(target_index, target, dst_ok):
         raise ValueError(f'target_index holds {target_index.size} rows, the target '
                          f'{len(dst_ok)} informative ones: not an index of this target')
     k = 2 if ratio < 1.0 and len(dst_ok) > 1 else 1
@@ -93,12 +95,16 @@ def informative_index(descriptors: np.ndarray, workers: int = 1,
     """
     Return the index :func:`match_features` searches as ``target_index``, or None.
 
-    It holds the informative rows of ``descriptors`` (:func:`informative_rows`), in order;
-    None when there are none. ``like``: as for :class:`DescriptorIndex` (a part of a map
-    reuses the map's cells).
+    It holds the informative rows of ``descriptors`` (:func:`informative_rows`), in order,
+    and knows which they are (``rows``; a map's cache keeps them); None when there are
+    none. ``like``: as for :class:`DescriptorIndex`.
     """
     rows = informative_rows(descriptors)
-    return DescriptorIndex(descriptors[rows], workers, like=like) if len(rows) else None
+    if len(rows) == 0:
+        return None
+    index = DescriptorIndex(descriptors[rows], workers, like=like)
+    index.rows = rows
+    return index
 
 
 def informative_rows(descriptors: np.ndarray) -> np.ndarray:
@@ -108,6 +114,15 @@ def informative_rows(descriptors: np.ndarray) -> np.ndarray:
 
 def _informative(descriptors: np.ndarray) -> np.ndarray:
     return np.isfinite(descriptors).all(axis=1) & (np.abs(descriptors).sum(axis=1) > 0)
+
+
+def _indexes(index: DescriptorIndex, target: np.ndarray, rows: np.ndarray) -> bool:
+    """Tell whether ``index`` holds ``target``'s ``rows`` (its first, middle and last)."""
+    if index.size != len(rows) or (len(rows) and rows.max() >= len(target)):
+        return False
+    slots = np.unique(np.linspace(0, index.size - 1, 3).astype(np.int64))
+    return bool(np.array_equal(index.arrays.points[slots],
+                               target[rows[index.arrays.order[slots]]]))
 
 
 def _best(src: np.ndarray, dst: np.ndarray, dist: np.ndarray, cap: int) -> Correspondences:

@@ -42,6 +42,7 @@ from ..errors import EmptyCloudError, InvalidInputError
 from ..frontend.descriptor_index import DescriptorIndex
 from ..frontend.features import CloudFeatures, extract_features, MIN_POINTS, NORMAL_MAX_NN
 from ..frontend.fpfh import FPFH_MAX_NN
+from ..frontend.matching import informative_rows
 from ..geometry import bounds
 from ..io import map_cache
 from ..io.clouds import read_cloud_and_normals
@@ -230,7 +231,10 @@ def _features_from(arrays: dict[str, np.ndarray]) -> CloudFeatures:
     features = CloudFeatures(points, arrays['normals'], arrays['descriptors'],
                              float(arrays['resolution'][0]), cKDTree(points))
     index = {k[len('index.'):]: v for k, v in arrays.items() if k.startswith('index.')}
-    features._index.append(DescriptorIndex.from_arrays(index) if index else None)
+    kept = DescriptorIndex.from_arrays(index) if index else None
+    if kept is not None and kept.rows is None:  # a cache written before it kept them
+        kept.rows = informative_rows(features.descriptors)
+    features._index.append(kept)
     return features
 
 
