@@ -1,10 +1,10 @@
 r"""
-Maps robots carry: a street and floors of rooms built from the shared data, queries held out.
+Maps robots carry: a street, floors of rooms and a campus built from the shared data.
 
 Run by hand::
 
-    .venv/bin/python -m bench.maps [--maps street floor growth] [--per-room 5] [--kiss 3] \
-        [--output out/bench/maps]
+    .venv/bin/python -m bench.maps [--maps street floor campus growth] [--per-room 5] \
+        [--kiss 3] [--output out/bench/maps]
 
 ``street``: the 16 KITTI scans (``kitti/seq00_16scans``), every fourth (0, 4, 8, 12) fused by
 the pseudo ground truth into scan 0's frame as the map (normals facing each scan's sensor,
@@ -23,9 +23,9 @@ scans mirrored, enlarged or shrunk (1.0 mirrored; 0.8, 1.25, 1.5 each as is and 
 streets no query fits under a rigid motion, harder to tell apart than a campus's different
 streets), each turned by a seeded yaw; the floor's four rooms as one building. The queries
 are the street's, and the two small_gicp scans (another street, in no map) from outside.
-``--sequences`` also relocalizes three held-out scans with odometry (1-2-3, 5-6-7, 9-10-11,
-13-14-15 and each reversed; drift as ``bench.relocalize_sequences``') in the campus map with
-a :class:`~cgags_ros.relocalization.relocalizer.Relocalizer`.
+The campus also relocalizes three held-out scans with odometry (1-2-3, 5-6-7, 9-10-11,
+13-14-15 and each reversed; drift as ``bench.relocalize_sequences``') in its map with a
+:class:`~cgags_ros.relocalization.relocalizer.Relocalizer`, until it answers.
 
 ``growth``: floors of 1, 3, 6 and 12 rooms at the origin. The first three are three of the
 scenes (redkitchen, home_at, hotel_uc); then the same three mirrored, then all six enlarged
