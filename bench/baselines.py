@@ -61,6 +61,9 @@ KISS-Matcher (PyPI ``kiss-matcher`` 1.0.2, pybind11 module ``_kiss_matcher``)
 from __future__ import annotations
 
 import dataclasses
+import multiprocessing
+import os
+import queue
 import time
 from typing import Any, Callable
 
@@ -296,3 +299,37 @@ BASELINES: dict[str, Callable[[np.ndarray, np.ndarray, float], np.ndarray]] = {
     'kiss': kiss_prune_and_solve,
     'kiss-quatro': kiss_quatro_prune_and_solve,
 }
+
+
+def kiss_matcher_forked(scan: np.ndarray, target: np.ndarray, voxel: float,
+                        timeout: float = 600.0) -> np.ndarray | None:
+    """
+    Return :func:`kiss_matcher_estimate`'s transform, run in a forked process (or None).
+
+    None when that process died or took longer than ``timeout`` seconds.
+
+    It segfaults on some maps in UTM coordinates (after printing 'voxel coord is out of
+    range' for every point, silenced here), which would end the benchmark.
+    """
+    ctx = multiprocessing.get_context('fork')
+    out = ctx.Queue()
+    child = ctx.Process(target=_kiss_child, args=(scan, target, voxel, out))
+    child.start()
+    T, deadline = None, time.monotonic() + timeout
+    while T is None and time.monotonic() < deadline:
+        try:
+            T = out.get(timeout=1.0)
+        except queue.Empty:
+            if not child.is_alive() and out.empty():
+                break  # it died without an answer
+    child.join(10)
+    if child.is_alive():
+        child.kill()
+    return T
+
+
+def _kiss_child(scan, target, voxel, out) -> None:
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 1)
+    os.dup2(devnull, 2)
+    out.put(kiss_matcher_estimate(scan, target, voxel).transform)

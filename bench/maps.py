@@ -7,9 +7,9 @@ Run by hand::
         [--kiss 3] [--output out/bench/maps]
 
 ``street``: the 16 KITTI scans (``kitti/seq00_16scans``), every fourth (0, 4, 8, 12) fused by
-the pseudo ground truth into scan 0's frame as the map (normals facing each scan's sensor,
-as a mapper writes them); the 12 scans between are the queries,
-in their own sensor frames (voxel 0.3 m, the README's LiDAR value; right: 5 deg, 0.6 m).
+the pseudo ground truth into scan 0's frame (normals facing each scan's sensor, as a mapper
+writes them); the 12 between are the queries, in their own sensor frames (voxel 0.3 m, the
+README's LiDAR value; right: 5 deg, 0.6 m).
 ``floor``: the four 3DMatch scenes, each fused from its even fragments (normals facing the
 fragment's sensor, as a mapper writes them), turned by a seeded yaw and placed as rooms 30 m
 apart on one floor; the queries are ``--per-room`` odd fragments a room (seeded), in their own
@@ -17,15 +17,12 @@ frames (voxel 5 cm; right: 15 deg, 0.3 m). Each is also moved to UTM coordinates
 E, 5412345.678 N, 265.4 m up) and queried again, and ``--kiss N`` queries a map are given to
 KISS-Matcher on the same scan and raw map (its ``estimate``; no flag, every estimate counts).
 
-``campus``: the street among seven look-alike streets and the floor, 250 m apart on a grid
-(6.0 M raw points): the street itself at the origin; the others fused from the same four
-scans mirrored, enlarged or shrunk (1.0 mirrored; 0.8, 1.25, 1.5 each as is and mirrored:
-streets no query fits under a rigid motion, harder to tell apart than a campus's different
-streets), each turned by a seeded yaw; the floor's four rooms as one building. The queries
-are the street's, and the two small_gicp scans (another street, in no map) from outside.
-The campus also relocalizes three held-out scans with odometry (1-2-3, 5-6-7, 9-10-11,
-13-14-15 and each reversed; drift as ``bench.relocalize_sequences``') in its map with a
-:class:`~cgags_ros.relocalization.relocalizer.Relocalizer`, until it answers.
+``campus``: the street among seven look-alikes and the floor as a building, 250 m apart on a
+grid (6.0 M raw points), each turned by a seeded yaw; the look-alikes are the street
+mirrored, and shrunk or enlarged (0.8, 1.25, 1.5) as is and mirrored: no query fits them
+under a rigid motion. Queries: the street's, and the two small_gicp scans (in no map). It
+also relocalizes three held-out scans with odometry (``SEQUENCES``, each also reversed;
+drift as ``bench.relocalize_sequences``') with a ``Relocalizer``, until it answers.
 
 ``growth``: floors of 1, 3, 6 and 12 rooms at the origin. The first three are three of the
 scenes (redkitchen, home_at, hotel_uc); then the same three mirrored, then all six enlarged
@@ -42,21 +39,19 @@ first room's centre). Per map and way: found (valid and right), wrong (valid and
 or an outside query accepted), refused; median and p90 seconds; and the median over queries
 of the whole map's time over the places' (the ratio). Per map: the load cold (features and
 places computed and cached) and cached (memory-mapped), its points and places, the cache's
-size and the process's peak resident memory. Writes ``<output>/maps.{md,json}``.
+size and the process's peak resident memory; the places' tests (what put each place there,
+its test's inliers, the one registered) a query. Writes ``<output>/maps.{md,json}``.
 """
 
 from __future__ import annotations
 
 import json
-import multiprocessing
-import os
 from pathlib import Path
-import queue
 import resource
 import tempfile
 import time
 
-from bench.baselines import kiss_matcher_estimate
+from bench.baselines import kiss_matcher_forked
 from bench.common import argument_parser, write_text
 from bench.datasets import threedmatch as tdm
 from bench.datasets.rigs import kitti_scans
@@ -76,7 +71,6 @@ from scipy.spatial.transform import Rotation
 
 UTM = np.array([512345.678, 5412345.678, 265.4])
 ROOM_SPACING = 30.0  # metres between the floor's rooms
-KISS_TIMEOUT = 600.0  # seconds a KISS-Matcher estimate may take
 HINT_RADIUS = {'street': 10.0, 'floor': 2.0}  # metres around the true sensor position
 WAYS = ('whole', 'places', 'hint')
 GROWTH = (1, 3, 6, 12)  # rooms of the growth floors
@@ -208,7 +202,7 @@ def run(name: str, built: dict, kiss: int, out_dir: Path,
             prepared = load_map(path, cfg, cache)
             cache_mb = sum(f.stat().st_size for f in Path(prepared.cache_path).iterdir()) / 2**20
             rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-            seen = {way: [] for way in WAYS}
+            seen, tested = {way: [] for way in WAYS}, []
             kiss_out = []
             queries = built['queries'] + built['outside']
             for i, (label, scan, truth) in enumerate(queries):
@@ -225,11 +219,14 @@ def run(name: str, built: dict, kiss: int, out_dir: Path,
                     seconds = time.perf_counter() - t0
                     got = outcome(result, truth, built['right'])
                     seen[way].append((got, seconds, truth is None))
+                    if way == 'places':
+                        tested.append({'query': label, 'outcome': got,
+                                       **_tests(result.stats.get('places'))})
                     print(f'{name:9s} {frame:6s} {label:26s} {way:6s} {got:8s} '
                           f'{seconds:5.2f} s {result.reason[:60]}', flush=True)
                 if i < kiss and truth is not None:
                     t0 = time.perf_counter()
-                    T = _kiss(scan, built['points'] + offset, built['voxel'])
+                    T = kiss_matcher_forked(scan, built['points'] + offset, built['voxel'])
                     kiss_out.append((T is not None and right(T, truth, built['right']),
                                      time.perf_counter() - t0, T is None))
             runs = [relocalize(prepared, cfg, label, scans, [move @ T for T in truth],
@@ -245,7 +242,8 @@ def run(name: str, built: dict, kiss: int, out_dir: Path,
             **{way: tally(seen[way]) for way in WAYS},
             'ratio': float(np.median([w[1] / p[1] for w, p in zip(seen['whole'],
                                                                   seen['places'])])),
-            'kiss': [{'right': bool(r), 's': s, 'crashed': c} for r, s, c in kiss_out]})
+            'kiss': [{'right': bool(r), 's': s, 'crashed': c} for r, s, c in kiss_out],
+            'tests': tested})
     return rows
 
 
@@ -267,6 +265,15 @@ def relocalize(prepared, cfg, label: str, scans: list[np.ndarray], truth: list[n
     return {'label': label, 'outcome': got, 'scans': used, 's': seconds}
 
 
+def _tests(places: dict | None) -> dict:
+    """Return what the places' tests scored (``result.stats['places']``; empty: whole map)."""
+    if not places:
+        return {'by': [], 'inliers': [], 'registered': None}
+    return {'by': [p['by'] for p in places['ranked']],
+            'inliers': [p['tested_inliers'] for p in places['ranked']],
+            'registered': places['registered']}
+
+
 def outcome(result, truth: np.ndarray | None, limits: tuple[float, float]) -> str:
     """Return 'found', 'WRONG' or 'refused' for ``result`` (``limits``: degrees, metres)."""
     if truth is None:  # a query from outside the map: right only when refused
@@ -286,37 +293,6 @@ def tally(seen: list[tuple[str, float, bool]]) -> dict:
             'outside_refused': sum(o == 'refused' for o, _, out in seen if out),
             'median_s': float(np.median(seconds)), 'p90_s': float(np.percentile(seconds, 90)),
             'outside_median_s': float(np.median(away)) if away else float('nan')}
-
-
-def _kiss(scan: np.ndarray, target: np.ndarray, voxel: float) -> np.ndarray | None:
-    """
-    Return KISS-Matcher's estimate, run in a forked process; None when that process died.
-
-    It segfaults on some maps in UTM coordinates (after printing 'voxel coord is out of
-    range' for every point, silenced here), which would end the benchmark.
-    """
-    ctx = multiprocessing.get_context('fork')
-    out = ctx.Queue()
-    child = ctx.Process(target=_kiss_child, args=(scan, target, voxel, out))
-    child.start()
-    T, deadline = None, time.monotonic() + KISS_TIMEOUT
-    while T is None and time.monotonic() < deadline:
-        try:
-            T = out.get(timeout=1.0)
-        except queue.Empty:
-            if not child.is_alive() and out.empty():
-                break  # it died without an answer
-    child.join(10)
-    if child.is_alive():
-        child.kill()
-    return T
-
-
-def _kiss_child(scan, target, voxel, out) -> None:
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    os.dup2(devnull, 1)
-    os.dup2(devnull, 2)
-    out.put(kiss_matcher_estimate(scan, target, voxel).transform)
 
 
 def right(T: np.ndarray, truth: np.ndarray, limits: tuple[float, float]) -> bool:
