@@ -22,12 +22,10 @@ from cgags_ros.engine.interface import PairResult, StartFailed
 from cgags_ros.errors import (BagError, CgagsError, DegenerateCorrespondencesError,
                               EmptyCloudError, InvalidConfigError, InvalidInputError,
                               MalformedCloudError)
-from cgags_ros.frontend.features import CloudFeatures
 from cgags_ros.frontend.refine import Alignment
 from cgags_ros.geometry import apply_transform, cross_spread
 from cgags_ros.pipeline import register_clouds
-from cgags_ros.pipeline.gates import free_space_of, free_space_violation
-from cgags_ros.pipeline.gates import measured_free_space, observability
+from cgags_ros.pipeline.gates import depth_status, free_space_violation, observability
 from cgags_ros.pipeline.result import Candidate, PipelineResult
 from cgags_ros.pipeline.twins import add_twin
 from cgags_ros.refusal import Refusal, RefusalCode as Code, summary
@@ -38,7 +36,6 @@ from cgags_ros.tracking.prediction import difference
 from cgags_ros.validity import consensus
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
 from waiting import box_room
 
 DOCS = Path(__file__).resolve().parents[1] / 'docs' / 'refusals.md'
@@ -257,23 +254,19 @@ def test_the_gates_in_order_on_measured_geometry():
     assert validity.gate_refusal(passing(chance_bound=np.nan), off) is None
 
 
-def test_a_map_is_judged_from_the_scan_view_only_where_the_scan_reaches():
-    """A map's free space from a scan's sensor is the same without its points out of reach."""
+def test_free_space_reads_only_the_points_within_the_other_sensors_reach():
+    """The share from a scan's view is the same as with every map point judged (depth_status)."""
     rng = np.random.default_rng(3)
     room = box_room(rng, 6000)
     far = box_room(rng, 20000, size=(60.0, 40.0, 5.0)) + [500.0, 0.0, 0.0]
     world = np.vstack([room, far])
-    ones = np.ones((len(world), 3))
-    cfg = pipeline_config_from({'voxel_size': 0.05})
     T = _yaw(0.4, (0.5, -0.3, 0.1))
     scan = apply_transform(np.linalg.inv(T), box_room(rng, 6000))
-    source = CloudFeatures(scan, np.ones_like(scan), np.ones((len(scan), 33)), 0.05, None)
-    target = CloudFeatures(world, ones, np.ones((len(world), 33)), 0.05, cKDTree(world),
-                           sensor_at_origin=False)
     for pose in (T, _yaw(np.pi / 2) @ T, _yaw(0.1, (2.0, 0.0, 0.0)) @ T):
-        every = free_space_of(scan, world, pose, cfg, True, False)
-        assert measured_free_space(source, target, pose, cfg, map_target=True) == every
-    assert free_space_of(scan, world, _yaw(np.pi / 2) @ T, cfg, True, False) > 0.1
+        front, on = depth_status(apply_transform(np.linalg.inv(pose), world), scan, 0.1, 2.0)
+        every = front.sum() / (front.sum() + on.sum())
+        assert free_space_violation(scan, world, pose, 0.1, 2.0, target_view=False) == every
+    assert free_space_violation(scan, world, _yaw(np.pi / 2) @ T, 0.1, 2.0, False) > 0.1
 
 
 def test_a_symmetric_room_is_ambiguous():

@@ -88,9 +88,8 @@ def measure_overlap(source: np.ndarray, source_tree: cKDTree | None, ft: CloudFe
     else:
         result.observability = observability(source, ft.normals, align)
     result.free_space_violation = free_space_of(
-        source, _viewed(source, ft, result.transform, cfg) if map_target and source_view
-        else ft.points,
-        result.transform, cfg, source_view, not map_target and ft.sensor_at_origin)
+        source, ft.points, result.transform, cfg, source_view,
+        not map_target and ft.sensor_at_origin)
     return align
 
 
@@ -154,26 +153,8 @@ def measured_free_space(fs: CloudFeatures, ft: CloudFeatures, transform: np.ndar
     :attr:`~cgags_ros.frontend.features.CloudFeatures.sensor_at_origin`) or the gate
     disabled (``gates.max_free_space_violation`` 1).
     """
-    target = (_viewed(fs.points, ft, transform, cfg) if map_target and fs.sensor_at_origin
-              else ft.points)
-    return free_space_of(fs.points, target, transform, cfg, fs.sensor_at_origin,
+    return free_space_of(fs.points, ft.points, transform, cfg, fs.sensor_at_origin,
                          not map_target and ft.sensor_at_origin)
-
-
-def _viewed(source: np.ndarray, ft: CloudFeatures, transform: np.ndarray,
-            cfg: PipelineConfig) -> np.ndarray:
-    """
-    Return the map points the source's sensor can judge under ``transform``, in map order.
-
-    A map point farther from the sensor than its farthest point by more than the margin lies
-    behind every surface it saw: it changes no share, and a map is mostly such points.
-    """
-    if ft.tree is None or len(source) == 0:
-        return ft.points
-    farthest = float(np.sqrt(np.einsum('ij,ij->i', source, source).max()))
-    rows = ft.tree.query_ball_point(np.asarray(transform, dtype=np.float64)[:3, 3],
-                                    farthest + (FREE_SPACE_MARGIN_FACTOR + 1) * cfg.voxel_size)
-    return ft.points[np.sort(np.asarray(rows, dtype=np.int64))]
 
 
 def free_space_of(source: np.ndarray, target: np.ndarray, transform: np.ndarray,
@@ -206,14 +187,30 @@ def free_space_violation(source: np.ndarray, target: np.ndarray, transform: np.n
     and from the fusion of several views; a wrong one stacks surfaces in front of each other.
     """
     T = np.asarray(transform, dtype=np.float64)
+    inverse = np.linalg.inv(T)
     worst = 0.0
     if source_view:
-        worst = _in_front_share(apply_transform(np.linalg.inv(T), target), source, margin,
-                                bin_deg)
+        seen = _in_reach(target, T[:3, 3], source, margin)
+        worst = _in_front_share(apply_transform(inverse, seen), source, margin, bin_deg)
     if target_view:
-        worst = max(worst, _in_front_share(apply_transform(T, source), target, margin,
-                                           bin_deg))
+        seen = _in_reach(source, inverse[:3, 3], target, margin)
+        worst = max(worst, _in_front_share(apply_transform(T, seen), target, margin, bin_deg))
     return worst
+
+
+def _in_reach(points: np.ndarray, sensor: np.ndarray, viewer: np.ndarray,
+              margin: float) -> np.ndarray:
+    """
+    Return the ``points`` the ``viewer`` cloud's sensor (at ``sensor``, their frame) can judge.
+
+    A point farther from it than the viewer's farthest point by more than the margin lies
+    behind every surface it saw and changes no share; against a map, most points do.
+    """
+    if len(points) == 0 or len(viewer) == 0:
+        return points
+    reach = np.sqrt(np.einsum('ij,ij->i', viewer, viewer).max()) + 2.0 * margin
+    offset = points - sensor
+    return points[np.einsum('ij,ij->i', offset, offset) <= reach * reach]
 
 
 def _view_bins(points: np.ndarray, bin_rad: float) -> tuple[np.ndarray, np.ndarray]:
