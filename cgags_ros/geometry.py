@@ -165,6 +165,24 @@ def voxel_size_for(points: np.ndarray, occupied: int) -> float:
     return float(f'{np.exp(0.5 * (lo + hi)):.2g}')
 
 
+def grid_cells(points: np.ndarray, size: float, origin: Any = None) -> np.ndarray:
+    """
+    Return an int64 code of the cubic cell of ``size`` metres that holds each point.
+
+    Cells are counted from ``origin`` (default: the points' lower bound). The codes sort as
+    the cells' (i, j, k) rows sort, so ``np.unique`` of them groups and orders the points as
+    ``np.unique(ijk, axis=0)`` does, at a fraction of its cost (one column is sorted, not
+    rows).
+    """
+    low = points.min(axis=0) if origin is None else np.asarray(origin, dtype=np.float64)
+    ijk = np.floor((points - low) / size).astype(np.int64)
+    ijk -= ijk.min(axis=0)
+    span = ijk.max(axis=0) + 1
+    if float(np.prod(span.astype(np.float64))) >= 2.0 ** 62:  # too far apart for one code
+        return np.unique(ijk, axis=0, return_inverse=True)[1].reshape(-1)
+    return (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
+
+
 def _occupied_voxels(points: np.ndarray, voxel: float) -> int:
     # ``points`` start at 0 and the voxel is at least 1e-5 of their diagonal, so each index
     # fits in 21 bits and a voxel is one int64: a flat unique is many times faster.

@@ -1,7 +1,7 @@
-"""cgags_ros.geometry.voxel_size_for: the voxel size that leaves a cloud about N voxels."""
+"""cgags_ros.geometry: the voxel size that leaves a cloud about N voxels, grid cell codes."""
 
 from cgags_ros.errors import InvalidInputError
-from cgags_ros.geometry import voxel_size_for
+from cgags_ros.geometry import grid_cells, voxel_size_for
 import numpy as np
 import pytest
 
@@ -20,3 +20,23 @@ def test_voxel_size_for_a_lattice_and_its_scale():
 def test_voxel_size_for_too_few_points():
     with pytest.raises(InvalidInputError, match='only 10 points'):
         voxel_size_for(np.zeros((10, 3)), 5000)
+
+
+@pytest.mark.parametrize('spread', [3.0, 1e5])
+def test_grid_cells_group_and_order_points_as_their_cells_rows_do(spread):
+    rng = np.random.default_rng(4)
+    points = rng.normal(size=(5000, 3)) * spread
+    points[:, 2] *= 1e-3  # flat: one axis spans few cells
+    for size, origin in ((spread / 10, None), (spread / 7, np.zeros(3))):
+        low = points.min(axis=0) if origin is None else origin
+        ijk = np.floor((points - low) / size).astype(np.int64)
+        expected = np.unique(ijk, axis=0, return_index=True, return_inverse=True)
+        got = np.unique(grid_cells(points, size, origin), return_index=True,
+                        return_inverse=True)
+        assert np.array_equal(got[1], expected[1])
+        assert np.array_equal(got[2], expected[2].reshape(-1))
+    # Cells too many for one integer code are still grouped the same.
+    far = np.array([[0.0, 0.0, 0.0], [1e7, 1e7, 1e7], [0.0, 0.0, 0.0], [1e7, 0.0, 1e7]])
+    codes = grid_cells(far, 1e-5)
+    assert codes[0] == codes[2] and len(np.unique(codes)) == 3
+    assert list(np.argsort(codes, kind='stable')) == [0, 2, 3, 1]

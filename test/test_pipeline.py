@@ -151,6 +151,10 @@ def test_feature_cache_is_exact_and_keyed_on_content(data_dir):
     a = cached_features(target, 0.003, cfg)
     assert cached_features(target.copy(), 0.003, cfg) is a
     assert cached_features(target, 0.004, cfg) is not a  # other voxel size
+    # Matching options do not change features; a feature option does.
+    assert cached_features(target, 0.003, dataclasses.replace(cfg, max_keypoints=50)) is a
+    assert cached_features(target, 0.003, dataclasses.replace(
+        cfg, fpfh_radius_factor=cfg.fpfh_radius_factor + 1)) is not a
     moved = target.copy()
     moved[0, 0] += 1e-9  # any change of content misses
     assert cached_features(moved, 0.003, cfg) is not cached_features(target, 0.003, cfg)

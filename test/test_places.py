@@ -114,6 +114,12 @@ def test_a_hint_ranks_only_the_places_it_covers(floor):
     scan, truth = query(*QUERY)
     here = register_clouds(scan, prepared, config=cfg, hint=Hint(truth[:3, 3], 2.0))
     assert here.valid and translation_error(here.transform, truth) < RIGHT[1]
+    assert all(p['tested_inliers'] is not None for p in here.stats['places']['ranked'])
+    # A hint so tight it leaves one place: registered untested (there is nothing to rank).
+    tight = register_clouds(scan, prepared, config=cfg, hint=Hint(truth[:3, 3], 0.1))
+    [place] = tight.stats['places']['ranked']
+    assert place['tested_inliers'] is None and place['by'] in ('votes', 'hint')
+    assert tight.valid and translation_error(tight.transform, truth) < RIGHT[1]
     other = rooms['7-scenes-redkitchen'][1]
     there = register_clouds(scan, prepared, config=cfg, hint=Hint(other, 2.0))
     ranked = there.stats['places']['ranked']

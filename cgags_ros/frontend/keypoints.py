@@ -16,6 +16,7 @@ import numpy as np
 from .descriptor_index import DescriptorIndex
 from .matching import Correspondences, match_features
 from ..config.frontend import FrontEndConfig
+from ..geometry import grid_cells
 
 _GROWTH = 1.05  # cell size margin per step of the search, above the area scaling
 
@@ -32,11 +33,10 @@ def select_keypoints(points: np.ndarray, max_keypoints: int,
     n = len(points)
     if max_keypoints <= 0 or n <= max_keypoints:
         return np.arange(n)
-    origin = points.min(axis=0)
     cell = voxel_size * np.sqrt(n / max_keypoints)  # surfaces: count ~ 1 / cell^2
     while True:
-        keys = np.floor((points - origin) / cell).astype(np.int64)
-        _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+        _, inverse, counts = np.unique(grid_cells(points, cell), return_inverse=True,
+                                       return_counts=True)
         if len(counts) <= max_keypoints:
             break
         cell *= _GROWTH * np.sqrt(len(counts) / max_keypoints)

@@ -13,6 +13,8 @@ from ..config.frontend import FrontEndConfig
 from ..frontend.features import CloudFeatures, extract_features
 
 _CACHE_SIZE = 2  # clouds whose features are kept: a latched target plus one more
+# Front-end options that only choose what is matched: features do not depend on them.
+_MATCHING_ONLY = frozenset({'max_correspondences', 'max_keypoints'})
 _cache: OrderedDict[tuple, CloudFeatures] = OrderedDict()
 # Two threads write: a pair's source features are computed on its own, its target's beside
 # it (pipeline.register).
@@ -25,16 +27,19 @@ def cached_features(points: np.ndarray, voxel_size: float, config: FrontEndConfi
     """
     Run :func:`extract_features`, remembered for the last two clouds.
 
-    Clouds are keyed by exact content (and voxel size and front-end settings): a latched
-    map target, or a target shared by consecutive pairs, is featurised once, which saves a
-    large share of the front end at sensor rates. The front end is deterministic, so a hit
-    returns exactly what recomputing would; the arrays returned are shared and must not be
-    written to. Hashing costs far less than featurising.
+    Clouds are keyed by exact content (and voxel size and the front-end settings features
+    depend on, not the matching's): a latched map target, or a target shared by consecutive
+    pairs, is featurised once, which saves a large share of the front end at sensor rates.
+    The front end is deterministic, so a hit returns exactly what recomputing would; the
+    arrays returned are shared and must not be written to. Hashing costs far less than
+    featurising.
     """
     # SHA-256: the CPU's SHA extensions make it the fastest of hashlib's here (measured in
     # docs/design.md); a cold pair pays it for both clouds.
+    settings = tuple(getattr(config, f.name) for f in dataclasses.fields(config)
+                     if f.name not in _MATCHING_ONLY)
     key = (hashlib.sha256(np.ascontiguousarray(points)).digest(),
-           points.shape, voxel_size, dataclasses.astuple(config))
+           points.shape, voxel_size, settings)
     with _cache_lock:
         hit = _cache.get(key)
         if hit is not None:

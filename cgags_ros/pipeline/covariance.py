@@ -8,6 +8,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .. import fitted
+from ..geometry import grid_cells
 
 
 def pose_covariance(src: np.ndarray, dst: np.ndarray, T: np.ndarray,
@@ -153,12 +154,7 @@ def overlap_covariance(source: np.ndarray, target: np.ndarray, target_normals: n
 
 def _occupied_cells(points: np.ndarray, size: float) -> int:
     """Return how many cubic cells of ``size`` metres hold ``points``."""
-    ijk = np.floor(points / size).astype(np.int64)
-    ijk -= ijk.min(axis=0)
-    span = ijk.max(axis=0) + 1
-    if float(np.prod(span.astype(np.float64))) >= 2.0 ** 62:  # too far apart for one key
-        return len(np.unique(ijk, axis=0))
-    return len(np.unique((ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]))
+    return len(np.unique(grid_cells(points, size, np.zeros(3))))
 
 
 def with_confidence(cov: np.ndarray, confidence: float) -> np.ndarray:

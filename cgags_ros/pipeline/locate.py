@@ -11,12 +11,16 @@ and the other places' matches drown its own; here:
    consensus puts the scan is the first place, the best voted not near it follow (votes
    alone miss a scan's place among look-alikes, docs/maps.md);
 2. **test**: each is matched against the scan's keypoints and searched by the core for at
-   most ``TEST_ITERATIONS`` hypotheses: its own place gives a consensus within a few
-   hundred, a wrong one none that stands out;
+   most ``TEST_ITERATIONS`` hypotheses (the places side by side, a thread each): its own
+   place gives a consensus within a few hundred, a wrong one none that stands out. A hint
+   that leaves one place leaves nothing to test;
 3. **register**: the place with the largest consensus goes through the whole pipeline as
-   a map of its own (its submap, in the map's local frame). The result is that
-   registration's, in the map frame as against the whole map; its ``map_info`` is the whole
-   map's with the place's beside it, its ``stats['places']`` what was ranked and tested.
+   a map of its own (its submap, in the map's local frame), matching at most
+   ``PLACE_KEYPOINTS`` of the scan's points (unless ``frontend.max_keypoints`` bounds them:
+   matching a LiDAR scan's every point cost more than the rest of its registration). The
+   result is that registration's, in the map frame as against the whole map; its
+   ``map_info`` is the whole map's with the place's beside it, its ``stats['places']`` what
+   was ranked and tested (``tested_inliers`` None: not tested).
 
 A map within one submap of the scan, or whose best place holds half its points, is
 registered whole, as without places: testing would cost more than it saves. So is a scan too
@@ -42,15 +46,16 @@ from ..errors import DegenerateCorrespondencesError, EmptyCloudError
 from ..frontend.features import CloudFeatures
 from ..frontend.matching import match_features
 from ..geometry import apply_transform
-from ..parallel import DEFAULT_WORKERS
+from ..parallel import DEFAULT_WORKERS, map_ordered
 from ..refusal import Refusal, RefusalCode
 from ..registration import register_correspondences, single_blas_thread
 from ..timing import timed
 
 TESTED = 3  # places tested a query: its own is among the first three ranked, mostly
 TEST_ITERATIONS = 10_000  # the core's hypotheses a test draws at most
+PLACE_KEYPOINTS = 5000  # scan points matched against the registered place (docs/maps.md)
 
-Register = Callable[[PreparedMap], PipelineResult]
+Register = Callable[[PreparedMap, PipelineConfig], PipelineResult]
 
 
 def locate(src: np.ndarray, prepared: PreparedMap, cfg: PipelineConfig, hint: Hint | None,
@@ -58,8 +63,9 @@ def locate(src: np.ndarray, prepared: PreparedMap, cfg: PipelineConfig, hint: Hi
     """
     Register the finite scan ``src`` (sensor frame) in ``prepared`` through its places.
 
-    ``register(part)`` registers the scan against a map without places (the whole map or a
-    place's submap) as :func:`~.register.register_clouds` does; ``source_sensor`` as there.
+    ``register(part, config)`` registers the scan against a map without places (the whole
+    map or a place's submap) as :func:`~.register.register_clouds` does; ``source_sensor``
+    as there.
     """
     start = time.perf_counter()
     timings: dict[str, float] = {}
@@ -73,17 +79,25 @@ def locate(src: np.ndarray, prepared: PreparedMap, cfg: PipelineConfig, hint: Hi
             ranked = prepared.places.rank(scan, cfg.voxel_size, TESTED,
                                           prepared.features.tree, local_hint, DEFAULT_WORKERS)
     except EmptyCloudError:
-        return register(prepared.whole())  # refused as the whole map refuses it
+        return register(prepared.whole(), cfg)  # refused as the whole map refuses it
     if ranked.whole:
-        return register(prepared.whole())
+        return register(prepared.whole(), cfg)
     if not ranked.places:
         return _uncovered(prepared, cfg, hint, start)
     with timed(timings, 'places_test'), single_blas_thread():
         places = _with_consensus(scan, ranked, prepared, cfg) if hint is None else ranked.places
-        parts = [submap_features(prepared.features, p.rows, DEFAULT_WORKERS) for p in places]
-        scores = [_tested(scan, ranked.keypoints, part, cfg)[0] for part in parts]
-    best = int(np.argmax(scores))  # ties: the first
-    result = register(prepared.part(with_tree(parts[best])))
+        if len(places) == 1:  # a hint covering one place: nothing to rank, nothing to test
+            parts = [submap_features(prepared.features, places[0].rows, DEFAULT_WORKERS)]
+            scores = [None]
+        else:  # each place on a thread of its own: building its index is mostly serial
+            tested = map_ordered(lambda p: _test_place(scan, ranked.keypoints, prepared, p, cfg),
+                                 places, DEFAULT_WORKERS)
+            parts, scores = [t[0] for t in tested], [t[1] for t in tested]
+    best = int(np.argmax(scores)) if len(parts) > 1 else 0  # ties: the first
+    bounded = dataclasses.replace(cfg.frontend, max_keypoints=(
+        cfg.frontend.max_keypoints or PLACE_KEYPOINTS))
+    result = register(prepared.part(with_tree(parts[best])),
+                      dataclasses.replace(cfg, frontend=bounded))
     result.stats['places'] = {'ranked': [_summary(prepared, p, s)
                                          for p, s in zip(places, scores)],
                               'registered': best}
@@ -108,30 +122,38 @@ def _with_consensus(scan: CloudFeatures, ranked: Ranked, prepared: PreparedMap,
             *voted][:TESTED]
 
 
+def _test_place(scan: CloudFeatures, keypoints: np.ndarray, prepared: PreparedMap,
+                place: Place, cfg: PipelineConfig) -> tuple[CloudFeatures, int]:
+    """Return a place's submap features and what its test scored (one thread)."""
+    part = submap_features(prepared.features, place.rows, 1)
+    return part, _tested(scan, keypoints, part, cfg, 1)[0]
+
+
 def _tested(scan: CloudFeatures, keypoints: np.ndarray, part: CloudFeatures,
-            cfg: PipelineConfig) -> tuple[int, np.ndarray]:
+            cfg: PipelineConfig, workers: int = DEFAULT_WORKERS) -> tuple[int, np.ndarray]:
     """Return the inliers of a short search of the keypoints' matches in ``part``, and its pose."""
     corr = match_features(scan.descriptors[keypoints], part.descriptors, cfg.frontend,
-                          DEFAULT_WORKERS, part.descriptor_index(DEFAULT_WORKERS))
+                          workers, part.descriptor_index(workers))
     core = dataclasses.replace(cfg.core,
                                max_iterations=min(cfg.core.max_iterations, TEST_ITERATIONS))
     try:
         found = register_correspondences(
             scan.points[keypoints[corr.source_index]], part.points[corr.target_index],
             inlier_threshold=cfg.core.inlier_threshold or None,
-            resolution=0.5 * (scan.resolution + part.resolution), config=core, seed=cfg.seed)
+            resolution=0.5 * (scan.resolution + part.resolution), config=core, seed=cfg.seed,
+            workers=workers)
     except DegenerateCorrespondencesError:
         return 0, np.eye(4)
     return int(found.num_inliers), found.transform
 
 
-def _summary(prepared: PreparedMap, place: Place, score: int) -> dict:
+def _summary(prepared: PreparedMap, place: Place, score: int | None) -> dict:
     return {'centre': [float(x) for x in place.centre + prepared.origin],
             'points': int(len(place.rows)), 'by': place.by, 'votes': place.votes,
             'tested_inliers': score}
 
 
-def _noted(result: PipelineResult, prepared: PreparedMap, place: Place, score: int,
+def _noted(result: PipelineResult, prepared: PreparedMap, place: Place, score: int | None,
            timings: dict[str, float], start: float) -> PipelineResult:
     """Return ``result`` with the whole map's info and its place's, and the total time."""
     result.map_info = {**prepared.info(), 'place': _summary(prepared, place, score)}

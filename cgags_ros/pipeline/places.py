@@ -37,7 +37,7 @@ from ..frontend.descriptor_index import DescriptorIndex
 from ..frontend.features import CloudFeatures
 from ..frontend.keypoints import select_keypoints
 from ..frontend.matching import informative_index, informative_rows
-from ..geometry import bounds
+from ..geometry import bounds, grid_cells
 
 TILE_VOXELS = 10.0  # the place grid's spacing: fine beside the smallest reach, ~26 voxels
 VOTE_CELL_VOXELS = 3.0  # one voting point a cell: a ninth of a surface's points
@@ -112,14 +112,13 @@ class PlaceIndex:
             return None
         spacing = TILE_VOXELS * voxel_size
         low = bounds(points)[0]
-        _, place_of, counts = np.unique(np.floor((points - low) / spacing).astype(np.int64),
-                                        axis=0, return_inverse=True, return_counts=True)
+        _, place_of, counts = np.unique(grid_cells(points, spacing, low), return_inverse=True,
+                                        return_counts=True)
         place_of = place_of.reshape(-1)
         centres = np.stack([np.bincount(place_of, points[:, i]) for i in range(3)], axis=1)
         centres /= counts[:, None]
         cell = VOTE_CELL_VOXELS * voxel_size
-        _, first = np.unique(np.floor((points - low) / cell).astype(np.int64), axis=0,
-                             return_index=True)
+        _, first = np.unique(grid_cells(points, cell, low), return_index=True)
         rows = np.sort(first)
         rows = rows[informative_rows(features.descriptors[rows])]
         index = DescriptorIndex(features.descriptors[rows], workers, like=map_index)

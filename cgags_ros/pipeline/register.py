@@ -105,8 +105,8 @@ def register_clouds(source: np.ndarray, target: np.ndarray | PreparedMap, *,
     if isinstance(target, PreparedMap) and target_sensor is not None:
         raise InvalidConfigError(MAP_TARGET_SENSOR)
     if isinstance(target, PreparedMap) and target.places is not None:
-        return locate(src, target, cfg, hint, source_sensor, lambda part: register_clouds(
-            src, part, config=cfg, source_sensor=source_sensor))
+        return locate(src, target, cfg, hint, source_sensor, lambda part, c: register_clouds(
+            src, part, config=c, source_sensor=source_sensor))
     if isinstance(target, PreparedMap):
         dst, target_origin = target, target.origin
     else:
