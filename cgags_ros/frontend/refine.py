@@ -46,11 +46,16 @@ class Alignment:
 
 
 def evaluate_alignment(source: np.ndarray, target: np.ndarray | cKDTree,
-                       transform: np.ndarray, max_distance: float) -> Alignment:
-    """Evaluate ``transform`` (source (N, 3) -> target, metres): fitness and inlier RMSE."""
+                       transform: np.ndarray, max_distance: float,
+                       workers: int = 1) -> Alignment:
+    """
+    Evaluate ``transform`` (source (N, 3) -> target, metres): fitness and inlier RMSE.
+
+    ``workers``: threads of the nearest-neighbour query (the result does not depend on them).
+    """
     tree = target if isinstance(target, cKDTree) else cKDTree(target)
     moved = apply_transform(transform, source)
-    dist, nn = tree.query(moved, k=1, distance_upper_bound=max_distance)
+    dist, nn = tree.query(moved, k=1, distance_upper_bound=max_distance, workers=workers)
     close = np.isfinite(dist)
     rmse = float(np.sqrt(np.mean(dist[close] ** 2))) if close.any() else float('nan')
     fitness = float(close.mean()) if len(source) else 0.0

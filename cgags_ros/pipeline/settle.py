@@ -107,7 +107,8 @@ def settle(pair: Pair, start: np.ndarray, coarse_distance: float, settling: Sett
 
     ``coarse_distance`` (metres): how far the start may be off, the first stage's distance
     when it is larger than the final one (the core's inlier threshold for a pose it found,
-    the drift allowance for a predicted one). ``workers``: threads of a full refinement.
+    the drift allowance for a predicted one). ``workers``: threads of the refinement (the
+    result does not depend on them).
     """
     cfg, target = pair.cfg, pair.target
     if settling.iterations == 0:
@@ -119,7 +120,7 @@ def settle(pair: Pair, start: np.ndarray, coarse_distance: float, settling: Sett
     else:
         T = staged_point_to_plane(pair.points[::settling.stride], target.points,
                                   target.normals, target.tree, start, coarse_distance,
-                                  pair.distance, settling.iterations)
+                                  pair.distance, settling.iterations, workers)
     return Settled(pair, np.asarray(start, dtype=np.float64), T)
 
 

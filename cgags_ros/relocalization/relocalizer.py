@@ -42,6 +42,7 @@ from ..errors import InvalidInputError
 from ..frontend.features import CloudFeatures, finite_points
 from ..frontend.refine import evaluate_alignment
 from ..geometry import apply_transform, translation_error
+from ..parallel import DEFAULT_WORKERS
 from ..pipeline.cache import cached_features
 from ..pipeline.candidates import distinct
 from ..pipeline.covariance import loosest_sigma, overlap_covariance
@@ -243,14 +244,15 @@ class Relocalizer:
         reach = seq.drift_m * max(steps, 1) + seq.drift_fraction * travelled
         # Where the prediction leaves too little of the scan near the map even at the drift
         # allowance, no refinement can make the scan explain it: skip the refinement.
-        loose = evaluate_alignment(points, ft.tree, predicted, reach + final).fitness
+        loose = evaluate_alignment(points, ft.tree, predicted, reach + final,
+                                   DEFAULT_WORKERS).fitness
         if loose < seq.min_fitness:
             return Check(self.prepared.to_map(predicted), 0.0, 0.0, steps, travelled, loose,
                          float('nan'))
         # Settled on the map's own k-d tree and normals, built once with its features: a
         # check costs its few Gauss-Newton steps, not a tree of the map near the scan.
         s = settle(Pair(scan.features, ft, cfg, map_target=True), predicted,
-                   reach + final, CHECK)
+                   reach + final, CHECK, DEFAULT_WORKERS)
         # What the scan shares with the map there, as a single registration measures it.
         align = s.alignment
         return Check(self.prepared.to_map(s.transform), s.moved_deg, s.moved_m, steps,
