@@ -42,6 +42,17 @@ def test_index_equals_brute_force(seed, k):
                                rtol=1e-12, atol=1e-12)
 
 
+def test_a_brief_partition_gives_the_same_answers():
+    rng = np.random.default_rng(7)
+    ref = _clustered(rng, 3000)
+    query = np.vstack([_clustered(rng, 500), ref[:20]])
+    full, brief = DescriptorIndex(ref, 2), DescriptorIndex(ref, 2, brief=True)
+    assert not np.array_equal(full.centres, brief.centres)  # another partition
+    for k in (1, 2):
+        np.testing.assert_array_equal(brief.query(query, k, 2)[0], _brute(query, ref, k))
+        np.testing.assert_array_equal(brief.query(query, k, 2)[0], full.query(query, k, 2)[0])
+
+
 def test_index_result_independent_of_seed_and_workers():
     rng = np.random.default_rng(7)
     ref, query = _clustered(rng, 3000, dim=8), _clustered(rng, 2000, dim=8)

@@ -25,6 +25,10 @@ _CELLS_PER_SQRT = 0.4
 _MAX_CELLS = 256
 _SAMPLE_PER_CELL = 64  # k-means runs on at most this many rows a cell
 _ITERATIONS = 8
+# A brief partition (``brief``) divides the sample and the iterations by this: an index
+# queried once by a few thousand rows (a place's submap) gains less from a finer partition
+# than it costs (measured in docs/maps.md).
+_BRIEF = 2
 _PROJECTED = 12  # principal directions of the screening distance (float32)
 
 
@@ -38,12 +42,13 @@ class DescriptorIndex:
     """
 
     def __init__(self, reference: np.ndarray, workers: int = 1, seed: int = 0,
-                 like: DescriptorIndex | None = None) -> None:
+                 like: DescriptorIndex | None = None, brief: bool = False) -> None:
         """
         Build the index over the (M, D) ``reference`` rows (finite), on ``workers`` threads.
 
         ``like``: an index of similar descriptors (the other cloud's) whose cell centres
         and principal directions are reused instead of computing them (k-means) again.
+        ``brief``: a quicker k-means (for an index queried once; the answers are the same).
         """
         self.rows: np.ndarray | None = None  # which rows of a cloud's descriptors it holds
         ref = c_array(reference, np.float64)
@@ -53,7 +58,7 @@ class DescriptorIndex:
         if like is not None and like.dim == self.dim:
             centres, basis = like.centres, like.basis
         else:
-            centres, basis = self._partition(ref, seed)
+            centres, basis = self._partition(ref, seed, _BRIEF if brief else 1)
         cells = len(centres)
         labels = np.empty(self.size, dtype=np.int64)
         ring = np.empty(self.size)
@@ -108,14 +113,19 @@ class DescriptorIndex:
         index.rows = arrays.get('rows')
         return index
 
-    def _partition(self, ref: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
-        """Return k-means cell centres of ``ref`` and its leading principal directions."""
+    def _partition(self, ref: np.ndarray, seed: int,
+                   less: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """
+        Return k-means cell centres of ``ref`` and its leading principal directions.
+
+        ``less``: the sample and the iterations divided by it.
+        """
         cells = int(np.clip(round(_CELLS_PER_SQRT * np.sqrt(len(ref))), 1, _MAX_CELLS))
         rng = np.random.default_rng(seed)
-        pick = rng.permutation(len(ref))[:min(len(ref), _SAMPLE_PER_CELL * cells)]
+        pick = rng.permutation(len(ref))[:min(len(ref), _SAMPLE_PER_CELL // less * cells)]
         sample = ref[np.sort(pick)]
         centres = sample[rng.permutation(len(sample))[:cells]].copy()
-        compiled.kmeans(sample, centres, _ITERATIONS)
+        compiled.kmeans(sample, centres, _ITERATIONS // less)
         # Distances along the leading principal directions bound the full distance from
         # below and cost a fraction of it to compute.
         spread = sample - sample.mean(axis=0)

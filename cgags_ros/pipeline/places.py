@@ -264,15 +264,16 @@ def submap_features(features: CloudFeatures, rows: np.ndarray,
     Return the features of the map's ``rows`` (copied), their descriptor index built.
 
     The map's resolution is kept (its gates and thresholds are the map's). The descriptor
-    index gets cells of its own: the whole map's, fitted to many more descriptors, are too
-    many for a submap and make each query visit them all. The k-d tree is left to
+    index gets cells of its own, briefly fitted (it serves one query): the whole map's,
+    fitted to many more descriptors, are too many for a submap and make each query visit
+    them all. The k-d tree is left to
     :func:`with_tree`: only a submap that is registered needs one.
     """
     descriptors = np.ascontiguousarray(features.descriptors[rows])
     sub = CloudFeatures(np.ascontiguousarray(features.points[rows]),
                         np.ascontiguousarray(features.normals[rows]), descriptors,
                         features.resolution, None, features.sensor_at_origin)
-    sub._index.append(informative_index(descriptors, workers))
+    sub._index.append(informative_index(descriptors, workers, brief=True))
     return sub
 
 
