@@ -36,8 +36,8 @@ class FrontEndConfig:
     max_keypoints: int = option(
         0, 'Match at most this many source points (a coarser voxel grid over the '
         'downsampled source, one point a cell) against every target point: fewer searches '
-        "in the target's descriptor index, but fewer correspondences; 0 matches every point "
-        "but a prepared map's place (docs/maps.md: its own bound).",
+        "in the target's descriptor index, but fewer correspondences; 0 matches every point, "
+        "except against a prepared map's place, which has its own bound (docs/maps.md).",
         low=0)
     source_sensor: tuple[float, float, float] | None = option(
         None, '[x, y, z]: the position (metres) of the sensor that saw the source cloud, in '
