@@ -95,6 +95,7 @@ def feed(reloc, fragments, ids, odom):
     return [reloc.add(fragments[k], O) for k, O in zip(ids, odom)]
 
 
+@pytest.mark.slow  # the longest of the inner loop: the full suite runs it
 def test_a_sequence_one_scan_cannot_settle_is_confirmed_by_three(scene):
     prepared, cfg, poses, fragments, _ = scene(HARD)
     reloc = Relocalizer(prepared, cfg, SequenceConfig(max_scans=3))
@@ -451,6 +452,7 @@ def test_a_square_room_inside_a_larger_map_is_not_confirmed_in_a_wrong_place(sce
                for h in in_kitchen)
 
 
+@pytest.mark.slow  # the longest of the inner loop: the full suite runs it
 def test_a_square_room_is_not_confirmed_from_scans_that_share_its_symmetry(tmp_path):
     """
     A near-square room's quarter-turned pose is refused, not confirmed.
