@@ -158,7 +158,7 @@ def voxel_size_for(points: np.ndarray, occupied: int) -> float:
     lo, hi = np.log(diag * 1e-5), np.log(diag)
     for _ in range(30):
         mid = 0.5 * (lo + hi)
-        if _occupied_voxels(pts, np.exp(mid)) > occupied:
+        if occupied_cells(pts, np.exp(mid)) > occupied:
             lo = mid
         else:
             hi = mid
@@ -183,11 +183,9 @@ def grid_cells(points: np.ndarray, size: float, origin: Any = None) -> np.ndarra
     return (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
 
 
-def _occupied_voxels(points: np.ndarray, voxel: float) -> int:
-    # ``points`` start at 0 and the voxel is at least 1e-5 of their diagonal, so each index
-    # fits in 21 bits and a voxel is one int64: a flat unique is many times faster.
-    keys = np.floor(points / voxel).astype(np.int64)
-    return len(np.unique((keys[:, 0] << 42) | (keys[:, 1] << 21) | keys[:, 2]))
+def occupied_cells(points: np.ndarray, size: float) -> int:
+    """Return how many cubic cells of ``size`` metres (a grid through the origin) hold points."""
+    return len(np.unique(grid_cells(points, size, np.zeros(3))))
 
 
 def spread(points: np.ndarray) -> np.ndarray:

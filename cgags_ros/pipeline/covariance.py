@@ -8,7 +8,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .. import fitted
-from ..geometry import grid_cells
+from ..geometry import occupied_cells
 
 
 def pose_covariance(src: np.ndarray, dst: np.ndarray, T: np.ndarray,
@@ -134,7 +134,7 @@ def overlap_covariance(source: np.ndarray, target: np.ndarray, target_normals: n
     normals = np.asarray(target_normals, dtype=np.float64)[nn]
     J = np.hstack([normals, np.cross(p, normals)])
     r = np.einsum('ij,ij->i', normals, moved - np.asarray(target, dtype=np.float64)[nn])
-    cells = _occupied_cells(moved, fitted.COVARIANCE_CELL_FACTOR * voxel_size)
+    cells = occupied_cells(moved, fitted.COVARIANCE_CELL_FACTOR * voxel_size)
     sigma2 = max(float(r @ r) / max(n_points - 6, 1), 1e-12)
     scale = fitted.COVARIANCE_SCALE * sigma2 * n_points / max(cells, 1)
     radius = np.sqrt(np.mean(np.sum((moved - moved.mean(axis=0)) ** 2, axis=1)))
@@ -150,11 +150,6 @@ def overlap_covariance(source: np.ndarray, target: np.ndarray, target_normals: n
     if np.linalg.cond(info) > 1e12:
         return B @ np.diag([1e6] * B.shape[1]) @ B.T
     return B @ (scale * np.linalg.inv(info) + B.T @ floor @ B) @ B.T
-
-
-def _occupied_cells(points: np.ndarray, size: float) -> int:
-    """Return how many cubic cells of ``size`` metres hold ``points``."""
-    return len(np.unique(grid_cells(points, size, np.zeros(3))))
 
 
 def with_confidence(cov: np.ndarray, confidence: float) -> np.ndarray:
