@@ -50,18 +50,15 @@ from bench.datasets import threedmatch as tdm
 from cgags_ros.config import PipelineConfig
 from cgags_ros.config.fields import update_from_flat
 from cgags_ros.frontend.refine import evaluate_alignment
-from cgags_ros.geometry import apply_transform, rotation_error_deg, spread, translation_error
+from cgags_ros.geometry import rotation_error_deg, spread, translation_error
 from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import cached_features, register_clouds, set_feature_cache_size
-from cgags_ros.pipeline.gates import depth_status
+from cgags_ros.pipeline.free_space import free_space_surface
 import numpy as np
 
 GATE_FIELDS = ('confidence', 'num_inliers', 'num_correspondences', 'num_hypotheses',
                'chance_inliers', 'chance_bound', 'runner_up_ratio', 'fitness', 'overlap',
                'observability', 'free_space_violation', 'inlier_threshold')
-# The free space seen from both sensors (:func:`free_space_surface`): depth margin (voxels),
-# angular bin (degrees), neighbourhood (voxels) and the share of it that must be in front.
-SURFACE_MARGIN, SURFACE_BIN_DEG, SURFACE_RADIUS, SURFACE_SOLID = 1.0, 3.0, 3.0, 0.8
 
 
 def _num(x) -> float | None:
@@ -123,38 +120,6 @@ def descriptor_agreement(fs, ft, T: np.ndarray, cfg: PipelineConfig) -> dict:
     return {'desc_paired': float(np.median(paired)), 'desc_random': float(np.median(shuffled)),
             'desc_ratio': float(np.median(paired) / max(np.median(shuffled), 1e-12)),
             'desc_close_share': float(np.mean(paired < 0.5 * np.median(shuffled)))}
-
-
-def free_space_surface(fs, ft, T: np.ndarray, voxel_size: float) -> float:
-    """
-    Return the share of points ``T`` puts in free space as surfaces both sensors see.
-
-    As the free-space gate (each cloud seen from its origin, its sensor:
-    :func:`cgags_ros.pipeline.gates.depth_status`), with a margin of one voxel and bins of
-    3 degrees, but a point in front of the other cloud's surface counts only when 80 % of
-    its own cloud's points within 3 voxels are in front too: a piece of surface where the
-    other sensor saw through, not a misfit along an occlusion edge. Per view, the share of
-    such points among those in front or on the surface; returned, the smaller of the two.
-    ``fs``, ``ft``: the clouds' features (points and k-d trees in their own frames).
-    """
-    T = np.asarray(T, dtype=np.float64)
-    return min(_surface_share(ft, apply_transform(np.linalg.inv(T), ft.points), fs.points,
-                              voxel_size),
-               _surface_share(fs, apply_transform(T, fs.points), ft.points, voxel_size))
-
-
-def _surface_share(own, moved: np.ndarray, viewer: np.ndarray, voxel_size: float) -> float:
-    front, on = depth_status(moved, viewer, SURFACE_MARGIN * voxel_size, SURFACE_BIN_DEG)
-    compared = int(front.sum() + on.sum())
-    idx = np.flatnonzero(front)
-    if not compared or not len(idx):
-        return 0.0
-    # a rigid motion keeps neighbourhoods: they are looked up in the cloud's own frame
-    near = own.tree.query_ball_point(own.points[idx], r=SURFACE_RADIUS * voxel_size)
-    sizes = np.fromiter((len(n) for n in near), dtype=np.int64, count=len(near))
-    starts = np.r_[0, np.cumsum(sizes)[:-1]]
-    in_front = np.add.reduceat(front[np.concatenate(near)].astype(np.int64), starts)
-    return int(np.count_nonzero(in_front >= SURFACE_SOLID * sizes)) / compared
 
 
 def remeasure(records: list[dict], root: Path, cfg: PipelineConfig) -> list[dict]:

@@ -10,14 +10,17 @@ scenes, both lists; docs/confidence.md, docs/ablation.md), not by hand:
   settled, and when a settled twin makes an estimate ambiguous;
 - the covariance (:mod:`cgags_ros.pipeline.covariance`): the overlap's scale and floors, how
   it opens with the doubt the confidence leaves, and the gates' ``max_position_sigma``
-  default.
+  default;
+- the most a refused estimate's confidence may say (:mod:`cgags_ros.pipeline.confidence`):
+  the share of right estimates among the gates' refusals of each kind.
 
-Study: :mod:`bench.studies.trust_shift` (confidence, twins, the two defaults) and
-:mod:`bench.studies.loso_trust_study` (covariance). Command:
-``python -m bench.studies.fit`` prints what the record gives, as this module writes it.
-Record: ``bench/studies/records/trust.jsonl.gz`` (its README says how it was measured, and
-its licence: 3DMatch's, research and non-commercial). ``test/test_fitted.py`` re-fits from
-the record and fails when a number here is neither what the record gives nor listed in
+Study: :mod:`bench.studies.trust_shift` (confidence, twins, the two defaults),
+:mod:`bench.studies.loso_trust_study` (covariance) and :mod:`bench.no_overlap` (the
+refusals, with the defaults). Command: ``python -m bench.studies.fit`` prints what the
+records give, as this module writes it. Records: ``bench/studies/records/trust.jsonl.gz``
+and ``refusals.jsonl.gz`` (their README says how they were measured, and their licence:
+3DMatch's, research and non-commercial). ``test/test_fitted.py`` re-fits from the records
+and fails when a number here is neither what its record gives nor listed in
 :data:`DRIFTED` with what it gives.
 """
 
@@ -47,6 +50,13 @@ WRONG_POSITION = 4.0
 WRONG_ROTATION = math.pi
 DOUBT_EXPONENT = 1.5
 MAX_POSITION_SIGMA = 34.0  # voxels: the default of gates.max_position_sigma
+
+# The share of right estimates among the gates' refusals of each kind with enough of them
+# (refusal code: share), and among all the gates' refusals (for the other kinds): a refused
+# estimate's confidence says no more, since the model rates the pose, not the refusal.
+REFUSED_RIGHT = {'no_shared_surface': 0.074, 'ambiguous': 0.71, 'free_space': 0.63,
+                 'degenerate_axis': 0.35, 'chance_level': 0.4}
+REFUSED_RIGHT_OTHER = 0.34
 
 # What the record gives where it differs from the number above: the pipeline these numbers
 # were fitted on has changed since (docs/confidence.md, "The fitted numbers and their

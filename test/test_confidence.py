@@ -98,3 +98,24 @@ def test_a_pose_too_loose_to_use_is_refused_with_its_covariance_kept(redkitchen_
         gates=GatesConfig(max_position_sigma=0.0)))
     np.testing.assert_allclose(loose.transform, result.transform)
     assert loose.valid
+
+
+def test_a_refused_estimate_says_no_more_than_its_refusals_are_right(benchmark_pair,
+                                                                     monkeypatch):
+    """
+    The model rates the pose, never the refusal: a refused estimate is capped by its kind.
+
+    A 3DLoMatch pair the model rates as near certain, refused as ambiguous (a distinct pose
+    fits as well) and wrong: its confidence is the share of right ambiguous refusals at most.
+    """
+    src, tgt, gt = benchmark_pair('sun3d-mit_lab_hj-lab_hj_tea_nov_2_2012_scan1_erika', 21, 24)
+    result = register_clouds(src, tgt, voxel_size=0.05)
+    assert not result.valid and result.refusal.code.value == 'ambiguous'
+    assert rotation_error_deg(result.transform, gt) > 15  # wrong
+    assert result.confidence == pytest.approx(fitted.REFUSED_RIGHT['ambiguous'])
+    monkeypatch.setattr(fitted, 'REFUSED_RIGHT', {})
+    monkeypatch.setattr(fitted, 'REFUSED_RIGHT_OTHER', 1.0)
+    uncapped = register_clouds(src, tgt, voxel_size=0.05)
+    np.testing.assert_allclose(uncapped.transform, result.transform)
+    assert uncapped.confidence > 0.9  # what the model says of the pose alone
+    assert confidence.refused_at_most('no_estimate') == fitted.REFUSED_RIGHT_OTHER

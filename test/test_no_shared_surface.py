@@ -20,6 +20,7 @@ from cgags_ros.pipeline import register_clouds
 from cgags_ros.pipeline.gates import descriptor_ratio, shared_area
 from cgags_ros.pipeline.result import PipelineResult
 from cgags_ros.refusal import Refusal, RefusalCode as Code
+from cgags_ros.validity.shared import MAX_FREE_SPACE_SURFACE, THIN_OVERLAP
 import numpy as np
 import pytest
 from test_validity import passing as passing_gates
@@ -58,6 +59,15 @@ def test_the_gate_reads_the_area_then_the_descriptors_and_outranks_an_ambiguity(
     assert 'look unalike' in validity.gate_refusal(unlike, CFG).message
     assert validity.gate_refusal(passing(shared_area=np.nan, descriptor_ratio=np.nan),
                                  CFG) is None  # not measured: the other gates decide
+    # a thin overlap that stands surfaces where both sensors saw free space
+    above = MAX_FREE_SPACE_SURFACE + 0.01
+    seen = passing(free_space_surface=above, overlap=THIN_OVERLAP - 0.1)
+    assert validity.gate_refusal(seen, CFG).code is Code.NO_SHARED_SURFACE
+    assert 'free space' in validity.gate_refusal(seen, CFG).message
+    for fine in (passing(free_space_surface=above, overlap=THIN_OVERLAP),  # one place
+                 passing(free_space_surface=MAX_FREE_SPACE_SURFACE, overlap=0.1),
+                 passing(free_space_surface=np.nan, overlap=0.1)):  # not sensor frames
+        assert validity.gate_refusal(fine, CFG) is None
     off = dataclasses.replace(CFG, gates=dataclasses.replace(
         gates, min_shared_area=0.0, max_descriptor_ratio=0.0))
     assert validity.gate_refusal(small, off) is None and validity.gate_refusal(unlike, off) \

@@ -221,7 +221,7 @@ def test_a_pose_whose_candidates_all_converge_onto_it_is_judged_not_crashed_on(t
 def test_free_space_violation_tells_a_right_pose_from_a_turned_one():
     """Inside a 6 x 4 m room seen from two sensor poses: the truth violates no free space."""
     from cgags_ros.geometry import apply_transform
-    from cgags_ros.pipeline.gates import free_space_violation
+    from cgags_ros.pipeline.free_space import free_space_violation
 
     rng = np.random.default_rng(0)
     room = box_room(rng, 6000)

@@ -9,7 +9,7 @@ from cgags_ros.frontend.refine import evaluate_alignment
 from cgags_ros.geometry import rotation_error_deg, translation_error
 from cgags_ros.pipeline import cached_features, twins
 from cgags_ros.pipeline.candidates import MIN_ROTATION_DEG
-from cgags_ros.pipeline.gates import measured_free_space
+from cgags_ros.pipeline.free_space import measured_free_space
 from cgags_ros.pipeline.result import Candidate, PipelineResult
 from cgags_ros.pipeline.settle import Pair, settle, TWIN
 from cgags_ros.pipeline.twins import add_twin, find_twin

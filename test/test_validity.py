@@ -25,7 +25,8 @@ from cgags_ros.errors import (BagError, CgagsError, DegenerateCorrespondencesErr
 from cgags_ros.frontend.refine import Alignment
 from cgags_ros.geometry import apply_transform, cross_spread
 from cgags_ros.pipeline import register_clouds
-from cgags_ros.pipeline.gates import depth_status, free_space_violation, observability
+from cgags_ros.pipeline.free_space import depth_status, free_space_violation
+from cgags_ros.pipeline.gates import observability
 from cgags_ros.pipeline.result import Candidate, PipelineResult
 from cgags_ros.pipeline.twins import add_twin
 from cgags_ros.refusal import Refusal, RefusalCode as Code, summary

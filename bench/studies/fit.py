@@ -6,6 +6,8 @@ Run from the repository root (offline: it registers nothing)::
     .venv/bin/python -m bench.studies.fit [--record bench/studies/records/trust.jsonl.gz] [--check]
     .venv/bin/python -m bench.studies.fit --gates out/loso_trust/gates.jsonl \
         [--records RECORDS] [--root <shared data>/3dmatch_benchmark] [--write-record FILE]
+    .venv/bin/python -m bench.studies.fit --benchmark out/no_overlap/benchmark.jsonl \
+        [--write-refusals FILE]
 
 It prints every number of :mod:`cgags_ros.fitted` as that module writes it, fit by the
 studies' own code:
@@ -13,7 +15,11 @@ studies' own code:
 - the confidence, the twins and the gates' ``min_confidence`` and ``max_position_sigma``:
   :func:`.trust_shift.shipped` on gates-only records;
 - the covariance: :func:`.loso_trust_study.shipped_covariance` and
-  :func:`.loso_trust_study.shipped_doubt` on the same records (``--records``: others).
+  :func:`.loso_trust_study.shipped_doubt` on the same records (``--records``: others);
+- the refused estimates' confidence: :func:`refused_right` on the refusals record
+  (``--refusals``), the benchmark's pairs registered with the defaults
+  (``bench.no_overlap benchmark``); ``--benchmark`` reads such a run instead and
+  ``--write-refusals FILE`` writes its pairs of the trust record as a refusals record.
 
 ``--record`` (the default) reads the committed record: the gates-only records of every pair
 whose truth is not in doubt, trimmed to what the fit reads. ``--gates`` reads a full
@@ -48,7 +54,13 @@ MEASURE = {
              '--output {path}',
     'records': 'OMP_NUM_THREADS=1 python -m bench.studies.loso_trust measure --output {path}',
     'record': 'python -m bench.studies.fit --gates GATES --write-record {path}',
+    'benchmark': 'OMP_NUM_THREADS=1 python -m bench.no_overlap benchmark --output {path}',
+    'refusals': 'python -m bench.studies.fit --benchmark BENCHMARK --write-refusals {path}',
 }
+# Refusals the confidence decides, not the gates: never capped by a share.
+DECIDED_BY_CONFIDENCE = ('low_confidence', 'uncertain')
+# A kind of refusal has its own share with at least this many of the benchmark's pairs.
+MIN_REFUSALS = 10
 
 
 def literal(value) -> str:
@@ -72,14 +84,34 @@ def same(fit, shipped) -> bool:
     return float(f'{fit:.{digits}g}') == float(shipped)
 
 
-def constants(gates: list[dict], records: list[dict]) -> dict:
+def refused_right(rows: list[dict]) -> tuple[dict[str, float], float]:
+    """
+    Return the share of right estimates among each kind of the gates' refusals, and overall.
+
+    ``rows``: the benchmark's pairs registered with the defaults (``refusal``, ``success``).
+    Kinds with fewer than :data:`MIN_REFUSALS` pairs have no share of their own; the pooled
+    share of every gate refusal stands for them.
+    """
+    refused = [r for r in rows if r['refusal'] and r['refusal'] not in DECIDED_BY_CONFIDENCE]
+    kinds: dict[str, list[bool]] = {}
+    for r in refused:
+        kinds.setdefault(r['refusal'], []).append(bool(r['success']))
+    shares = {k: float(np.mean(v)) for k, v in sorted(kinds.items(), key=lambda kv: -len(kv[1]))
+              if len(v) >= MIN_REFUSALS}
+    return shares, float(np.mean([bool(r['success']) for r in refused]))
+
+
+def constants(gates: list[dict], records: list[dict],
+              refusals: list[dict] | None = None) -> dict:
     """
     Return ``{block: [(name, fit, shipped)]}`` of every number in :mod:`cgags_ros.fitted`.
 
     ``gates``: gates-only records whose truth is not in doubt (:func:`.trust_shift.trusted`);
-    ``records``: the covariance's (the same unless given).
+    ``records``: the covariance's (the same unless given); ``refusals``: the refusals
+    record's rows (:func:`refused_right`).
     """
     chosen = trust_shift.shipped(gates)
+    shares, other = refused_right(refusals or [])
     limit, rho, apart, promising = chosen['twins']
     valid = np.array([r['valid'] for r in records], dtype=bool)
     g, k, ft, fr = loso_trust_study.shipped_covariance(records, valid)
@@ -107,10 +139,15 @@ def constants(gates: list[dict], records: list[dict]) -> dict:
             ('WRONG_ROTATION', wr, fitted.WRONG_ROTATION),
             ('DOUBT_EXPONENT', gamma, fitted.DOUBT_EXPONENT),
             ('MAX_POSITION_SIGMA', chosen['sigma_voxels'], fitted.MAX_POSITION_SIGMA)],
+        'refusals': [
+            ('REFUSED_RIGHT', shares, fitted.REFUSED_RIGHT),
+            ('REFUSED_RIGHT_OTHER', other, fitted.REFUSED_RIGHT_OTHER)],
     }
 
 
 RECORD = Path(__file__).parent / 'records' / 'trust.jsonl.gz'
+REFUSALS = Path(__file__).parent / 'records' / 'refusals.jsonl.gz'
+REFUSAL_FIELDS = ('benchmark', 'scene', 'source', 'target', 'success', 'refusal')
 # What the fit reads of a record: the pair, its truth and flag, the gates' measures, the
 # overlap's information, and the twins a grid value of the study could settle.
 FIELDS = ('benchmark', 'scene', 'source', 'target', 'success', 'valid', 'confidence', 'error',
@@ -160,6 +197,28 @@ def write_record(records: list[dict], path: Path) -> None:
             f.write(json.dumps(trimmed(r), separators=(',', ':')) + '\n')
 
 
+def benchmark_refusals(run: list[dict], trusted: list[dict]) -> list[dict]:
+    """
+    Return the refusals record's rows of a ``bench.no_overlap benchmark`` run.
+
+    Only its pairs the trust record holds (``trusted``): those whose benchmark pose is not
+    in doubt.
+    """
+    keys = {(r['benchmark'], r['scene'], r['source'], r['target']) for r in trusted}
+    rows = [{'benchmark': r['kind'], 'scene': r['source_scene'], 'source': r['source'],
+             'target': r['target'], 'success': bool(r['success']), 'refusal': r['refusal']}
+            for r in run]
+    return [r for r in rows if (r['benchmark'], r['scene'], r['source'], r['target']) in keys]
+
+
+def write_refusals(rows: list[dict], path: Path) -> None:
+    """Write :func:`benchmark_refusals`' ``rows`` as a refusals record."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with gzip.open(path, 'wt', encoding='utf-8', compresslevel=9) as f:
+        for r in rows:
+            f.write(json.dumps(r, separators=(',', ':')) + '\n')
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argument_parser(__spec__.name, __doc__)
     p.add_argument('--record', type=Path, default=RECORD,
@@ -172,11 +231,19 @@ def main(argv: list[str] | None = None) -> int:
                    help="the 3DMatch benchmark: its fragments' poses (default: %(default)s)")
     p.add_argument('--write-record', type=Path, default=None,
                    help="write --gates's trusted pairs as a record to this file")
+    p.add_argument('--refusals', type=Path, default=REFUSALS,
+                   help='the refusals record (default: %(default)s)')
+    p.add_argument('--benchmark', type=Path, default=None,
+                   help='a bench.no_overlap benchmark run instead of --refusals')
+    p.add_argument('--write-refusals', type=Path, default=None,
+                   help="write --benchmark's trusted pairs as a refusals record to this file")
     p.add_argument('--check', action='store_true',
                    help='exit 1 when a number differs from its fit')
     args = p.parse_args(argv)
     for path, kind in ((args.gates, 'gates'), (args.records, 'records'),
-                       (None if args.gates else args.record, 'record')):
+                       (None if args.gates else args.record, 'record'),
+                       (args.benchmark, 'benchmark'),
+                       (None if args.benchmark else args.refusals, 'refusals')):
         if path is not None and not path.is_file():
             print(f'missing {path}; it is written by\n    {MEASURE[kind].format(path=path)}')
             return 2
@@ -189,11 +256,19 @@ def main(argv: list[str] | None = None) -> int:
         write_record(gates, args.write_record)
         print(f'# wrote {args.write_record}: {len(gates)} pairs')
     records = loso_trust_study.load(args.records) if args.records else gates
+    if args.benchmark:
+        run = [json.loads(line) for line in args.benchmark.read_text().splitlines() if line]
+        refusals = benchmark_refusals(run, gates)
+        if args.write_refusals:
+            write_refusals(refusals, args.write_refusals)
+            print(f'# wrote {args.write_refusals}: {len(refusals)} pairs')
+    else:
+        refusals = read_record(args.refusals)
     scenes = loso_trust_study.scenes(gates)
     print(f'# read {source}: {len(gates)} pairs whose truth is not in doubt, {len(scenes)} '
           f"scenes ({', '.join(map(loso_trust_study.short, scenes))})")
     differ = []
-    for block, numbers in constants(gates, records).items():
+    for block, numbers in constants(gates, records, refusals).items():
         print(f'\n# {block}')
         for name, fit, shipped in numbers:
             # As the module would hold it: its literal when the fit rounds to it.

@@ -58,7 +58,7 @@ from cgags_ros.geometry import rotation_error_deg, spread, translation_error
 from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import cached_features, clear_feature_cache, register_clouds
 from cgags_ros.pipeline import set_feature_cache_size, twins
-from cgags_ros.pipeline.gates import measured_free_space
+from cgags_ros.pipeline.free_space import measured_free_space
 from cgags_ros.pipeline.settle import Pair, settle, TWIN
 import numpy as np
 from scipy.spatial.transform import Rotation

@@ -29,7 +29,7 @@ from cgags_ros.config import PipelineConfig
 from cgags_ros.geometry import make_transform
 from cgags_ros.io.shared_data import shared_data_dir
 from cgags_ros.pipeline import clear_feature_cache
-from cgags_ros.pipeline.gates import measured_free_space
+from cgags_ros.pipeline.free_space import measured_free_space
 from cgags_ros.pipeline.settle import Pair, settle, TWIN
 import numpy as np
 

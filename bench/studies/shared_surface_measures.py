@@ -41,7 +41,8 @@ from cgags_ros.frontend.keypoints import match_keypoints
 from cgags_ros.frontend.refine import evaluate_alignment
 from cgags_ros.geometry import apply_transform
 from cgags_ros.io.shared_data import shared_data_dir
-from cgags_ros.pipeline.gates import free_space_violation, observability
+from cgags_ros.pipeline.free_space import free_space_violation
+from cgags_ros.pipeline.gates import observability
 import numpy as np
 from scipy.spatial import cKDTree
 

@@ -28,10 +28,16 @@ FEATURES = tuple(SIGNS)
 
 SIGMA_FLOOR = 1e-3  # voxels: log of a sigma that no overlap reaches
 
-# The most an estimate refused as ``no_shared_surface`` is given: the share of such
-# estimates that are right (docs/no_overlap.md); the model above never saw clouds of
-# different places, and rates a floor on a floor as it rates a room on itself.
-NO_SHARED_SURFACE = 0.11
+
+def refused_at_most(code: str) -> float:
+    """
+    Return the most the confidence of an estimate the gates refused as ``code`` may say.
+
+    The share of right estimates among such refusals (:data:`cgags_ros.fitted.REFUSED_RIGHT`):
+    the model rates the pose on what the overlap shows, never the refusal (it never saw
+    clouds of different places, and rates a floor on a floor as a room on itself).
+    """
+    return fitted.REFUSED_RIGHT.get(code, fitted.REFUSED_RIGHT_OTHER)
 
 
 def features(result: Any, significance: float, members: int = 3) -> dict[str, float] | None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .free_space import free_space_of, measured_free_space_surface
 from .result import PipelineResult
 from ..config.pipeline import PipelineConfig
 from ..frontend.features import CloudFeatures
@@ -19,12 +20,6 @@ from ..frontend.matching import Correspondences
 from ..frontend.refine import Alignment, evaluate_alignment
 from ..geometry import apply_transform, GravityFrame
 from ..registration import poisson_isf
-
-# The free-space gate's depth margin (voxel sizes) and the angular bin (degrees) of the depth
-# maps seen from each cloud's sensor: a point is in front of a surface only when it is nearer
-# the sensor by more than the margin, which absorbs the voxel grid's and the sensor's noise.
-FREE_SPACE_MARGIN_FACTOR = 2.0
-FREE_SPACE_BIN_DEG = 2.0
 
 
 def measure(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
@@ -34,8 +29,9 @@ def measure(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
     Set the measurements the gates judge on ``result`` (its ``transform`` is the estimate).
 
     The chance-level inliers of the correspondences and their bound, then
-    :func:`measure_overlap`, whose overlap is returned, and the descriptors' agreement
-    over it (:func:`descriptor_ratio`). ``map_target``: the target is a map
+    :func:`measure_overlap`, whose overlap is returned, the descriptors' agreement
+    over it (:func:`descriptor_ratio`) and the surfaces it puts in free space as both
+    sensors see it (:func:`~.free_space.free_space_surface`). ``map_target``: the target is a map
     fused from many viewpoints, so it has no sensor at its origin (the free-space violation
     is then measured against the scan's view only).
     """
@@ -50,6 +46,8 @@ def measure(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
     align = measure_overlap(fs.points, fs.tree, ft, result, cfg, map_target,
                             fs.sensor_at_origin)
     result.descriptor_ratio = descriptor_ratio(fs.descriptors, ft.descriptors, align)
+    result.free_space_surface = measured_free_space_surface(fs, ft, result.transform, cfg,
+                                                            map_target)
     return align
 
 
@@ -131,133 +129,22 @@ def _unit_rows(x: np.ndarray) -> np.ndarray:
 
 
 def measure_shared_surface(fs: CloudFeatures, ft: CloudFeatures, result: PipelineResult,
-                           cfg: PipelineConfig) -> None:
-    """Set ``result.shared_area``, ``descriptor_ratio`` (and ``observability``) alone."""
+                           cfg: PipelineConfig, map_target: bool = False) -> None:
+    """
+    Set what the shared-surface gate reads of ``result.transform`` alone.
+
+    ``shared_area``, ``descriptor_ratio``, ``free_space_surface``, ``overlap`` and
+    ``observability``: for an estimate the core refused, whose overlap was not measured.
+    """
     distance = cfg.refine.max_correspondence_distance_factor * cfg.voxel_size
     T = result.transform
     align = evaluate_alignment(fs.points, ft.tree, T, distance)
-    result.shared_area = shared_area(
-        align, evaluate_alignment(ft.points, fs.tree, np.linalg.inv(T), distance),
-        cfg.voxel_size)
+    back = evaluate_alignment(ft.points, fs.tree, np.linalg.inv(T), distance)
+    result.overlap = min(align.fitness, back.fitness)
+    result.shared_area = shared_area(align, back, cfg.voxel_size)
     result.descriptor_ratio = descriptor_ratio(fs.descriptors, ft.descriptors, align)
+    result.free_space_surface = measured_free_space_surface(fs, ft, T, cfg, map_target)
     result.observability = observability(fs.points, ft.normals, align)
-
-
-def measured_free_space(fs: CloudFeatures, ft: CloudFeatures, transform: np.ndarray,
-                        cfg: PipelineConfig, map_target: bool = False) -> float:
-    """
-    Return :func:`free_space_violation` of ``transform`` as the config asks for it.
-
-    NaN when the gate does not apply: clouds not in their sensor frames (normals not
-    oriented to the origin, or neither cloud's origin its sensor:
-    :attr:`~cgags_ros.frontend.features.CloudFeatures.sensor_at_origin`) or the gate
-    disabled (``gates.max_free_space_violation`` 1).
-    """
-    return free_space_of(fs.points, ft.points, transform, cfg, fs.sensor_at_origin,
-                         not map_target and ft.sensor_at_origin)
-
-
-def free_space_of(source: np.ndarray, target: np.ndarray, transform: np.ndarray,
-                  cfg: PipelineConfig, source_view: bool = True,
-                  target_view: bool = True) -> float:
-    """Return :func:`measured_free_space` of the downsampled clouds' points (metres)."""
-    if (cfg.frontend.normal_orientation != 'origin' or cfg.gates.max_free_space_violation >= 1
-            or not (source_view or target_view)):
-        return float('nan')
-    return free_space_violation(source, target, transform,
-                                FREE_SPACE_MARGIN_FACTOR * cfg.voxel_size,
-                                FREE_SPACE_BIN_DEG, target_view, source_view)
-
-
-def free_space_violation(source: np.ndarray, target: np.ndarray, transform: np.ndarray,
-                         margin: float, bin_deg: float, target_view: bool = True,
-                         source_view: bool = True) -> float:
-    """
-    Return the share of points an alignment puts where the other cloud's sensor saw nothing.
-
-    Each cloud is taken as seen from its own origin (its sensor): a depth map of its
-    nearest point per angular bin (``bin_deg`` degrees) says the space in front of that
-    point along the ray was seen to be empty. Under ``transform`` (source -> target,
-    metres), a point of the other cloud landing in an observed bin is *in front* (closer to
-    the sensor by more than ``margin`` metres: a surface where the sensor saw through),
-    *on* the surface (within ``margin``) or behind it (occluded: says nothing). Returns,
-    for the source seen from the target's sensor (when ``target_view``) and the target
-    seen from the source's (when ``source_view``), the larger share in front / (in front +
-    on); 0 with nothing to compare. A right pose leaves only the misfits at occlusion edges
-    and from the fusion of several views; a wrong one stacks surfaces in front of each other.
-    """
-    T = np.asarray(transform, dtype=np.float64)
-    inverse = np.linalg.inv(T)
-    worst = 0.0
-    if source_view:
-        seen = _in_reach(target, T[:3, 3], source, margin)
-        worst = _in_front_share(apply_transform(inverse, seen), source, margin, bin_deg)
-    if target_view:
-        seen = _in_reach(source, inverse[:3, 3], target, margin)
-        worst = max(worst, _in_front_share(apply_transform(T, seen), target, margin, bin_deg))
-    return worst
-
-
-def _in_reach(points: np.ndarray, sensor: np.ndarray, viewer: np.ndarray,
-              margin: float) -> np.ndarray:
-    """
-    Return the ``points`` the ``viewer`` cloud's sensor (at ``sensor``, their frame) can judge.
-
-    A point farther from it than the viewer's farthest point by more than the margin lies
-    behind every surface it saw and changes no share; against a map, most points do.
-    """
-    if len(points) == 0 or len(viewer) == 0:
-        return points
-    reach = np.sqrt(np.einsum('ij,ij->i', viewer, viewer).max()) + 2.0 * margin
-    offset = points - sensor
-    return points[np.einsum('ij,ij->i', offset, offset) <= reach * reach]
-
-
-def _view_bins(points: np.ndarray, bin_rad: float) -> tuple[np.ndarray, np.ndarray]:
-    """Return the angular bin key of each point seen from the origin, and its range."""
-    r = np.linalg.norm(points, axis=1)
-    azimuth = np.arctan2(points[:, 1], points[:, 0])
-    elevation = np.arcsin(np.clip(points[:, 2] / np.maximum(r, 1e-12), -1.0, 1.0))
-    ia = np.floor((azimuth + np.pi) / bin_rad).astype(np.int64)
-    ie = np.floor((elevation + np.pi / 2) / bin_rad).astype(np.int64)
-    return ia * (int(np.pi / bin_rad) + 2) + ie, r
-
-
-def depth_status(moved: np.ndarray, viewer: np.ndarray, margin: float,
-                 bin_deg: float) -> tuple[np.ndarray, np.ndarray]:
-    """
-    Return which ``moved`` points lie in front of ``viewer``'s surface, and which on it.
-
-    ``viewer`` seen from its origin, its sensor, as :func:`free_space_violation` sees it: a
-    depth map of its nearest point per angular bin of ``bin_deg`` degrees; a point of
-    ``moved`` (in the same frame) in an observed bin is in front when nearer the origin by
-    more than ``margin`` (metres), on the surface within it; both False in a bin the viewer
-    did not observe, or behind its surface.
-    """
-    front = np.zeros(len(moved), dtype=bool)
-    if len(moved) == 0 or len(viewer) == 0:
-        return front, front.copy()
-    bin_rad = np.radians(bin_deg)
-    keys, ranges = _view_bins(viewer, bin_rad)
-    order = np.lexsort((ranges, keys))
-    keys, ranges = keys[order], ranges[order]
-    first = np.r_[True, keys[1:] != keys[:-1]]
-    keys, nearest = keys[first], ranges[first]  # the depth map: nearest range per bin
-    k, r = _view_bins(moved, bin_rad)
-    i = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
-    seen = np.flatnonzero(keys[i] == k)
-    depth = nearest[i[seen]] - r[seen]  # > 0: in front of the observed surface
-    on = front.copy()
-    front[seen], on[seen] = depth > margin, np.abs(depth) <= margin
-    return front, on
-
-
-def _in_front_share(moved: np.ndarray, viewer: np.ndarray, margin: float,
-                    bin_deg: float) -> float:
-    """Share of ``moved`` points in front of ``viewer``'s surface, among those in front or on."""
-    front, on = depth_status(moved, viewer, margin, bin_deg)
-    in_front, compared = int(front.sum()), int(front.sum() + on.sum())
-    return in_front / compared if compared else 0.0
 
 
 def chance_inliers(src: np.ndarray, dst: np.ndarray, transform: np.ndarray, tau: float) -> float:

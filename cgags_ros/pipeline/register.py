@@ -24,7 +24,7 @@ import numpy as np
 
 from .cache import cached_features
 from .candidates import rank_candidates, search_candidates, settle_candidates
-from .confidence import features, NO_SHARED_SURFACE, probability
+from .confidence import features, probability, refused_at_most
 from .covariance import loosest_sigma, result_covariance, with_confidence
 from .gates import measure, measure_shared_surface
 from .hint import Hint
@@ -154,8 +154,8 @@ def _judged(result: PipelineResult, fs: CloudFeatures, ft: CloudFeatures,
         None if overlap is None else (overlap.source_index, overlap.target_index))
     result.confidence = probability(features(result, cfg.gates.significance,
                                              2 if four_dof else 3))
-    if refusal is not None and refusal.code is Code.NO_SHARED_SURFACE:
-        result.confidence = min(result.confidence, NO_SHARED_SURFACE)
+    if refusal is not None:  # the gates' refusal: the pose may be right, the verdict stands
+        result.confidence = min(result.confidence, refused_at_most(refusal.code.value))
     if map_target or four_dof:
         return result.finish(start, refusal)
     result.covariance = with_confidence(result.covariance, result.confidence)
@@ -230,7 +230,7 @@ def _register_clouds(src: np.ndarray, target: np.ndarray | PreparedMap, cfg: Pip
             _refine(fs, ft, core, result, cfg, workers)
         refusal = _candidates(fs, ft, corr, result, cfg) or core.refusal
         if refusal.code in (Code.AMBIGUOUS, Code.CHANCE_LEVEL):  # or no shared surface?
-            measure_shared_surface(fs, ft, result, cfg)
+            measure_shared_surface(fs, ft, result, cfg, map_target)
             refusal = shared_surface_refusal(result, cfg) or refusal
         return _judged(result, fs, ft, cfg, start, refusal, map_target)
     _refine(fs, ft, core, result, cfg, workers)

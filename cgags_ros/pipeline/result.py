@@ -80,8 +80,12 @@ class PipelineResult(RegistrationResult):
         the overlap (the core's, on its inliers, when the pipeline stopped before the
         refinement); above ``core.max_tilt_deg`` the result is invalid.
     :ivar free_space_violation: share of aligned points lying in front of the other
-        cloud's observed surface (see :func:`~.gates.free_space_violation`); NaN when not
+        cloud's observed surface (see :func:`~.free_space.free_space_violation`); NaN when not
         measured (clouds not in sensor frames, or the gate disabled).
+    :ivar free_space_surface: share of the compared points the estimate puts in the other
+        cloud's free space as pieces of surface, the smaller of the two views
+        (:func:`~.free_space.free_space_surface`); NaN unless both clouds are in their
+        sensor frames (never against a map).
     :ivar candidates: up to ``num_candidates`` distinct :class:`Candidate` poses, best
         first (the first is ``transform``); empty when the core gave no estimate.
     :ivar ambiguous: True when the runner-up candidate is nearly as well supported as the
@@ -123,6 +127,7 @@ class PipelineResult(RegistrationResult):
     voxel_size: float = float('nan')
     resolution: float = float('nan')
     free_space_violation: float = float('nan')
+    free_space_surface: float = float('nan')
     candidates: list[Candidate] = dataclasses.field(default_factory=list)
     ambiguous: bool = False
     runner_up_ratio: float = float('inf')
@@ -167,6 +172,7 @@ class PipelineResult(RegistrationResult):
             num_target_points=int(self.num_target_points),
             voxel_size=float(self.voxel_size), resolution=float(self.resolution),
             free_space_violation=float(self.free_space_violation),
+            free_space_surface=float(self.free_space_surface),
             candidates=[c.summary() for c in self.candidates], ambiguous=bool(self.ambiguous),
             runner_up_ratio=float(self.runner_up_ratio),
             covariance=np.asarray(self.covariance, dtype=float).tolist(),

@@ -30,7 +30,7 @@ from functools import cached_property
 
 import numpy as np
 
-from .gates import measured_free_space
+from .free_space import measured_free_space
 from ..config.pipeline import PipelineConfig
 from ..frontend.features import CloudFeatures
 from ..frontend.refine import (Alignment, evaluate_alignment, refine_transform,
@@ -160,7 +160,7 @@ class Settled:
 
     @cached_property
     def free_space(self) -> float:
-        """Return the free-space violation (:func:`~.gates.measured_free_space`; NaN: none)."""
+        """Return the free-space violation (:func:`.free_space.measured_free_space`; NaN: none)."""
         pair = self.pair
         return measured_free_space(pair.source, pair.target, self.transform, pair.cfg,
                                    pair.map_target)

@@ -26,6 +26,8 @@ from __future__ import annotations
 from typing import Any, Protocol, Sequence
 
 from .consensus import Consensus, tilt_refusal
+from .shared import (said_over_ambiguity, seen_through, Shared,  # noqa: F401 (the API)
+                     shared_surface_refusal, unalike)
 from .. import fitted
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
@@ -38,15 +40,6 @@ from ..refusal import Refusal, RefusalCode
 FREE_SPACE_SETTLE_FACTOR = 0.5
 
 Code = RefusalCode
-
-
-class Shared(Protocol):
-    """What the gates measured of the surface an estimate makes the clouds share (or NaN)."""
-
-    shared_area: float  # square metres
-    descriptor_ratio: float  # its pairs' descriptor distance over a random pairing's
-    observability: float
-    voxel_size: float
 
 
 class Overlap(Protocol):
@@ -124,48 +117,6 @@ def gate_refusal(e: Estimate, cfg: PipelineConfig, unsettled: bool = False) -> R
             f'of {max(e.num_hypotheses, 1)} hypotheses reaches {e.chance_bound:.0f}): the '
             'clouds probably do not overlap'))
     return overlap_refusal(e, cfg, unsettled)
-
-
-def unalike(descriptor_ratio: float, observability: float, cfg: PipelineConfig) -> bool:
-    """
-    Tell whether an overlap's descriptors differ as different surfaces' do (NaN: no).
-
-    ``descriptor_ratio`` above ``gates.max_descriptor_ratio``, unless the overlap is
-    degenerate (``observability`` below ``gates.min_observability``): there every descriptor
-    looks alike, or none does.
-    """
-    gates = cfg.gates
-    return (0 < gates.max_descriptor_ratio < descriptor_ratio
-            and observability >= gates.min_observability)
-
-
-def shared_surface_refusal(e: Shared, cfg: PipelineConfig) -> Refusal | None:
-    """
-    Return why the clouds share no surface under the estimate, or None (NaN passes).
-
-    Clouds of different places still meet under some pose (a floor on a floor, a corner):
-    too small a shared surface, or one whose descriptors differ as random pairs do (unless
-    the overlap is degenerate: there all descriptors look alike, or none do).
-    """
-    gates, v2 = cfg.gates, e.voxel_size ** 2
-    if gates.min_shared_area > 0 and (cells := e.shared_area / v2) < gates.min_shared_area:
-        shown = (f'the best pose makes the clouds share {e.shared_area:.3g} m^2 ({cells:.0f} '
-                 f'voxels; < gates.min_shared_area {gates.min_shared_area:g} voxels, '
-                 f'{gates.min_shared_area * v2:.3g} m^2): too little to tell one place')
-    elif unalike(e.descriptor_ratio, e.observability, cfg):
-        shown = (f'the {e.shared_area:.3g} m^2 the best pose makes the clouds share look '
-                 f'unalike (descriptor ratio {e.descriptor_ratio:.2f} > gates.max_descriptor'
-                 f'_ratio {gates.max_descriptor_ratio:g}): different surfaces that only meet')
-    else:
-        return None
-    return Refusal(Code.NO_SHARED_SURFACE, f'no shared surface: {shown}; no pose found shows '
-                   'one place: different places (a wrong map, a scan outside it)?')
-
-
-def said_over_ambiguity(refusal: Refusal | None, ambiguity: Refusal | None) -> Refusal | None:
-    """Return ``ambiguity`` over the gates' ``refusal``, unless that says no shared surface."""
-    shared = refusal is not None and refusal.code is Code.NO_SHARED_SURFACE
-    return refusal if shared else ambiguity or refusal
 
 
 def overlap_refusal(e: Overlap, cfg: PipelineConfig, unsettled: bool = False) -> Refusal | None:
