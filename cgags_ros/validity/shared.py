@@ -20,9 +20,10 @@ Code = RefusalCode
 # bounds were, on right poses of low overlap (docs/no_overlap.md).
 MAX_FREE_SPACE_SURFACE = 0.04
 # It is judged on thin overlaps only: a pose under which the clouds share at least this share
-# of both their surfaces shows one place however the free space reads, and clouds not in
-# their sensors' frames (object scans) read free space from a viewpoint no sensor had.
-THIN_OVERLAP = 0.5
+# of both their surfaces shows one place however the free space reads (clouds not in their
+# sensors' frames, object scans, read free space from a viewpoint no sensor had), and no
+# estimate between different places overlaps as much (docs/no_overlap.md).
+THIN_OVERLAP = 0.7
 
 
 class Shared(Protocol):
