@@ -11,8 +11,9 @@ be traced to numbers the result reports.
 Order, as a pair goes through the pipeline: a cloud that is a line; the core's outcome (no
 estimate, too few inliers, a collinear consensus, chance level or a distinct alternative, a
 tilt in 4-DoF mode: :mod:`.consensus`); then, on the refined estimate, too little shared
-surface, chance-level inliers, a degenerate axis, low fitness, a free-space violation, a
-tilt; an ambiguity among the candidates overrides all but the shared surface (also said of
+surface (or an unalike one), chance-level inliers, a degenerate axis, low fitness, a
+free-space violation, a tilt, surfaces in the free space both sensors saw (:mod:`.shared`);
+an ambiguity among the candidates overrides all but the shared surface (also said of
 the core's ambiguity or chance level). The node adds stricter guards
 (:func:`quality_refusal`).
 
@@ -108,7 +109,7 @@ def free_space_limit(cfg: PipelineConfig, unsettled: bool = False) -> float:
 
 def gate_refusal(e: Estimate, cfg: PipelineConfig, unsettled: bool = False) -> Refusal | None:
     """Return why the refined estimate must not be trusted, or None when every gate passes."""
-    if surface := shared_surface_refusal(e, cfg):
+    if surface := shared_surface_refusal(e, cfg, seen=False):
         return surface
     if cfg.gates.significance > 0 and not e.num_inliers > e.chance_bound:
         return Refusal(Code.CHANCE_LEVEL, (
@@ -116,7 +117,7 @@ def gate_refusal(e: Estimate, cfg: PipelineConfig, unsettled: bool = False) -> R
             f'than chance (random pairing gives {e.chance_inliers:.2g} per estimate; the best '
             f'of {max(e.num_hypotheses, 1)} hypotheses reaches {e.chance_bound:.0f}): the '
             'clouds probably do not overlap'))
-    return overlap_refusal(e, cfg, unsettled)
+    return overlap_refusal(e, cfg, unsettled) or shared_surface_refusal(e, cfg)
 
 
 def overlap_refusal(e: Overlap, cfg: PipelineConfig, unsettled: bool = False) -> Refusal | None:

@@ -50,14 +50,17 @@ def unalike(descriptor_ratio: float, observability: float, cfg: PipelineConfig) 
             and observability >= gates.min_observability)
 
 
-def shared_surface_refusal(e: Shared, cfg: PipelineConfig) -> Refusal | None:
+def shared_surface_refusal(e: Shared, cfg: PipelineConfig,
+                           seen: bool = True) -> Refusal | None:
     """
     Return why the clouds share no surface under the estimate, or None (NaN passes).
 
     Clouds of different places still meet under some pose (a floor on a floor, a corner):
     too small a shared surface, one whose descriptors differ as random pairs do (unless
-    the overlap is degenerate: there all descriptors look alike, or none do), or a thin
-    overlap that puts surfaces where both sensors saw free space (:func:`seen_through`).
+    the overlap is degenerate: there all descriptors look alike, or none do), or, with
+    ``seen``, a thin overlap that puts surfaces where both sensors saw free space
+    (:func:`seen_through`). The gates judge that last, after the free-space gate: clouds
+    not in their sensor frames read free space too, and ``free_space`` names their fix.
     """
     gates, v2 = cfg.gates, e.voxel_size ** 2
     if gates.min_shared_area > 0 and (cells := e.shared_area / v2) < gates.min_shared_area:
@@ -68,7 +71,7 @@ def shared_surface_refusal(e: Shared, cfg: PipelineConfig) -> Refusal | None:
         shown = (f'the {e.shared_area:.3g} m^2 the best pose makes the clouds share look '
                  f'unalike (descriptor ratio {e.descriptor_ratio:.2f} > gates.max_descriptor'
                  f'_ratio {gates.max_descriptor_ratio:g}): different surfaces that only meet')
-    elif seen_through(e.free_space_surface, e.overlap):
+    elif seen and seen_through(e.free_space_surface, e.overlap):
         shown = (f'the best pose puts {100 * e.free_space_surface:.0f} % of the points each '
                  'sensor saw of the other cloud where it saw free space, as whole surfaces '
                  f'(> {100 * MAX_FREE_SPACE_SURFACE:g} %, both sensors): two places that only '
