@@ -54,8 +54,8 @@ MAX_POSITION_SIGMA = 34.0  # voxels: the default of gates.max_position_sigma
 # The share of right estimates among the gates' refusals of each kind with enough of them
 # (refusal code: share), and among all the gates' refusals (for the other kinds): a refused
 # estimate's confidence says no more, since the model rates the pose, not the refusal.
-REFUSED_RIGHT = {'no_shared_surface': 0.073, 'ambiguous': 0.72, 'free_space': 0.63,
-                 'degenerate_axis': 0.36, 'chance_level': 0.4}
+REFUSED_RIGHT = {'ambiguous': 0.59, 'no_shared_surface': 0.096, 'free_space': 0.28,
+                 'degenerate_axis': 0.33, 'chance_level': 0.36}
 REFUSED_RIGHT_OTHER = 0.34
 
 # What the record gives where it differs from the number above: the pipeline these numbers
