@@ -154,7 +154,7 @@ def _judged(result: PipelineResult, fs: CloudFeatures, ft: CloudFeatures,
         None if overlap is None else (overlap.source_index, overlap.target_index))
     result.confidence = probability(features(result, cfg.gates.significance,
                                              2 if four_dof else 3))
-    if refusal is not None:  # the gates' refusal: the pose may be right, the verdict stands
+    if refusal is not None:  # refused before the confidence: the pose may be right, not trusted
         result.confidence = min(result.confidence, refused_at_most(refusal.code.value))
     if map_target or four_dof:
         return result.finish(start, refusal)
