@@ -167,8 +167,10 @@ def measure(src: np.ndarray, tgt: np.ndarray, cfg: PipelineConfig) -> dict:
         ft = cached_features(tgt, cfg.voxel_size, cfg.frontend, 'target')
         rec.update(shared_surface(fs, ft, np.asarray(result.transform), cfg))
         rec.update(descriptor_agreement(fs, ft, np.asarray(result.transform), cfg))
-        rec['free_space_surface'] = free_space_surface(fs, ft, np.asarray(result.transform),
-                                                       cfg.voxel_size)
+        # the pipeline's own where its gate measured it; the study records it everywhere
+        measured = result.free_space_surface
+        rec['free_space_surface'] = measured if math.isfinite(measured) else \
+            free_space_surface(fs, ft, np.asarray(result.transform), cfg.voxel_size)
     return rec
 
 

@@ -101,8 +101,7 @@ def refused_right(rows: list[dict]) -> tuple[dict[str, float], float]:
     return shares, float(np.mean([bool(r['success']) for r in refused]))
 
 
-def constants(gates: list[dict], records: list[dict],
-              refusals: list[dict] | None = None) -> dict:
+def constants(gates: list[dict], records: list[dict], refusals: list[dict]) -> dict:
     """
     Return ``{block: [(name, fit, shipped)]}`` of every number in :mod:`cgags_ros.fitted`.
 
@@ -111,7 +110,7 @@ def constants(gates: list[dict], records: list[dict],
     record's rows (:func:`refused_right`).
     """
     chosen = trust_shift.shipped(gates)
-    shares, other = refused_right(refusals or [])
+    shares, other = refused_right(refusals)
     limit, rho, apart, promising = chosen['twins']
     valid = np.array([r['valid'] for r in records], dtype=bool)
     g, k, ft, fr = loso_trust_study.shipped_covariance(records, valid)
@@ -191,10 +190,15 @@ def read_record(path: Path) -> list[dict]:
 
 def write_record(records: list[dict], path: Path) -> None:
     """Write ``records`` trimmed (:func:`trimmed`) as a record."""
+    write_rows([trimmed(r) for r in records], path)
+
+
+def write_rows(rows: list[dict], path: Path) -> None:
+    """Write ``rows`` as a record: gzipped JSON lines, as :func:`read_record` reads them."""
     path.parent.mkdir(parents=True, exist_ok=True)
     with gzip.open(path, 'wt', encoding='utf-8', compresslevel=9) as f:
-        for r in records:
-            f.write(json.dumps(trimmed(r), separators=(',', ':')) + '\n')
+        for r in rows:
+            f.write(json.dumps(r, separators=(',', ':')) + '\n')
 
 
 def benchmark_refusals(run: list[dict], trusted: list[dict]) -> list[dict]:
@@ -209,14 +213,6 @@ def benchmark_refusals(run: list[dict], trusted: list[dict]) -> list[dict]:
              'target': r['target'], 'success': bool(r['success']), 'refusal': r['refusal']}
             for r in run]
     return [r for r in rows if (r['benchmark'], r['scene'], r['source'], r['target']) in keys]
-
-
-def write_refusals(rows: list[dict], path: Path) -> None:
-    """Write :func:`benchmark_refusals`' ``rows`` as a refusals record."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with gzip.open(path, 'wt', encoding='utf-8', compresslevel=9) as f:
-        for r in rows:
-            f.write(json.dumps(r, separators=(',', ':')) + '\n')
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -260,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
         run = [json.loads(line) for line in args.benchmark.read_text().splitlines() if line]
         refusals = benchmark_refusals(run, gates)
         if args.write_refusals:
-            write_refusals(refusals, args.write_refusals)
+            write_rows(refusals, args.write_refusals)
             print(f'# wrote {args.write_refusals}: {len(refusals)} pairs')
     else:
         refusals = read_record(args.refusals)

@@ -27,8 +27,8 @@ from __future__ import annotations
 from typing import Any, Protocol, Sequence
 
 from .consensus import Consensus, tilt_refusal
-from .shared import (said_over_ambiguity, seen_through, Shared,  # noqa: F401 (the API)
-                     shared_surface_refusal, unalike)
+from .shared import (met_surface_refusal, said_over_ambiguity,  # noqa: F401 (the API)
+                     seen_through_refusal, Shared, shared_surface_refusal, unalike)
 from .. import fitted
 from ..config.node import NodeConfig
 from ..config.pipeline import PipelineConfig
@@ -109,7 +109,7 @@ def free_space_limit(cfg: PipelineConfig, unsettled: bool = False) -> float:
 
 def gate_refusal(e: Estimate, cfg: PipelineConfig, unsettled: bool = False) -> Refusal | None:
     """Return why the refined estimate must not be trusted, or None when every gate passes."""
-    if surface := shared_surface_refusal(e, cfg, seen=False):
+    if surface := met_surface_refusal(e, cfg):
         return surface
     if cfg.gates.significance > 0 and not e.num_inliers > e.chance_bound:
         return Refusal(Code.CHANCE_LEVEL, (
@@ -117,7 +117,7 @@ def gate_refusal(e: Estimate, cfg: PipelineConfig, unsettled: bool = False) -> R
             f'than chance (random pairing gives {e.chance_inliers:.2g} per estimate; the best '
             f'of {max(e.num_hypotheses, 1)} hypotheses reaches {e.chance_bound:.0f}): the '
             'clouds probably do not overlap'))
-    return overlap_refusal(e, cfg, unsettled) or shared_surface_refusal(e, cfg)
+    return overlap_refusal(e, cfg, unsettled) or seen_through_refusal(e)
 
 
 def overlap_refusal(e: Overlap, cfg: PipelineConfig, unsettled: bool = False) -> Refusal | None:

@@ -50,34 +50,57 @@ def unalike(descriptor_ratio: float, observability: float, cfg: PipelineConfig) 
             and observability >= gates.min_observability)
 
 
-def shared_surface_refusal(e: Shared, cfg: PipelineConfig,
-                           seen: bool = True) -> Refusal | None:
+def shared_surface_refusal(e: Shared, cfg: PipelineConfig) -> Refusal | None:
     """
     Return why the clouds share no surface under the estimate, or None (NaN passes).
 
     Clouds of different places still meet under some pose (a floor on a floor, a corner):
-    too small a shared surface, one whose descriptors differ as random pairs do (unless
-    the overlap is degenerate: there all descriptors look alike, or none do), or, with
-    ``seen``, a thin overlap that puts surfaces where both sensors saw free space
-    (:func:`seen_through`). The gates judge that last, after the free-space gate: clouds
-    not in their sensor frames read free space too, and ``free_space`` names their fix.
+    what they share is too small or unalike (:func:`met_surface_refusal`), or a thin overlap
+    stands surfaces where both sensors saw free space (:func:`seen_through_refusal`). The
+    gates judge the two apart, the second after the free-space gate
+    (:func:`cgags_ros.validity.gate_refusal`).
+    """
+    return met_surface_refusal(e, cfg) or seen_through_refusal(e)
+
+
+def met_surface_refusal(e: Shared, cfg: PipelineConfig) -> Refusal | None:
+    """
+    Return why the surface the clouds meet over is no shared one, or None (NaN passes).
+
+    Too small a shared surface, or one whose descriptors differ as random pairs do (unless
+    the overlap is degenerate: there all descriptors look alike, or none do).
     """
     gates, v2 = cfg.gates, e.voxel_size ** 2
     if gates.min_shared_area > 0 and (cells := e.shared_area / v2) < gates.min_shared_area:
-        shown = (f'the best pose makes the clouds share {e.shared_area:.3g} m^2 ({cells:.0f} '
-                 f'voxels; < gates.min_shared_area {gates.min_shared_area:g} voxels, '
-                 f'{gates.min_shared_area * v2:.3g} m^2): too little to tell one place')
-    elif unalike(e.descriptor_ratio, e.observability, cfg):
-        shown = (f'the {e.shared_area:.3g} m^2 the best pose makes the clouds share look '
-                 f'unalike (descriptor ratio {e.descriptor_ratio:.2f} > gates.max_descriptor'
-                 f'_ratio {gates.max_descriptor_ratio:g}): different surfaces that only meet')
-    elif seen and seen_through(e.free_space_surface, e.overlap):
-        shown = (f'the best pose puts {100 * e.free_space_surface:.0f} % of the points each '
-                 'sensor saw of the other cloud where it saw free space, as whole surfaces '
-                 f'(> {100 * MAX_FREE_SPACE_SURFACE:g} %, both sensors): two places that only '
-                 'meet along a floor or a corner')
-    else:
+        return _no_shared_surface(
+            f'the best pose makes the clouds share {e.shared_area:.3g} m^2 ({cells:.0f} '
+            f'voxels; < gates.min_shared_area {gates.min_shared_area:g} voxels, '
+            f'{gates.min_shared_area * v2:.3g} m^2): too little to tell one place')
+    if unalike(e.descriptor_ratio, e.observability, cfg):
+        return _no_shared_surface(
+            f'the {e.shared_area:.3g} m^2 the best pose makes the clouds share look '
+            f'unalike (descriptor ratio {e.descriptor_ratio:.2f} > gates.max_descriptor'
+            f'_ratio {gates.max_descriptor_ratio:g}): different surfaces that only meet')
+    return None
+
+
+def seen_through_refusal(e: Shared) -> Refusal | None:
+    """
+    Return why a thin overlap stands where both sensors saw free space, or None (NaN passes).
+
+    Judged after the free-space gate: clouds not in their sensor frames read free space
+    too, and ``free_space`` names their fix.
+    """
+    if not seen_through(e.free_space_surface, e.overlap):
         return None
+    return _no_shared_surface(
+        f'the best pose puts {100 * e.free_space_surface:.0f} % of the points each '
+        'sensor saw of the other cloud where it saw free space, as whole surfaces '
+        f'(> {100 * MAX_FREE_SPACE_SURFACE:g} %, both sensors): two places that only '
+        'meet along a floor or a corner')
+
+
+def _no_shared_surface(shown: str) -> Refusal:
     return Refusal(Code.NO_SHARED_SURFACE, f'no shared surface: {shown}; no pose found shows '
                    'one place: different places (a wrong map, a scan outside it)?')
 
