@@ -20,24 +20,22 @@ refusals, with the defaults). Command: ``python -m bench.studies.fit`` prints wh
 records give, as this module writes it. Records: ``bench/studies/records/trust.jsonl.gz``
 and ``refusals.jsonl.gz`` (their README says how they were measured, and their licence:
 3DMatch's, research and non-commercial). ``test/test_fitted.py`` re-fits from the records
-and fails when a number here is neither what its record gives nor listed in
-:data:`DRIFTED` with what it gives.
+and fails when a number here is not what its record gives.
 """
 
-import math
 
 # The confidence's logistic model on its raw inputs (:data:`.pipeline.confidence.FEATURES`).
-CONFIDENCE_WEIGHTS = {'log_margin': 1.007, 'log_sigma': -4.209, 'free_space': -19.09}
-CONFIDENCE_INTERCEPT = 5.614
+CONFIDENCE_WEIGHTS = {'log_margin': 1.154, 'log_sigma': -3.719, 'free_space': -17.43}
+CONFIDENCE_INTERCEPT = 5.015
 MIN_CONFIDENCE = 0.5  # the default of gates.min_confidence
 
 # A twin is settled when its start fits this share of the estimate's fitness ...
-TWIN_PROMISING = 0.45
+TWIN_PROMISING = 0.5
 # ... and makes the estimate ambiguous when it settles this many voxels from it, fits about
 # as well (within this ratio) and stacks no more than this share in free space.
-TWIN_APART = 4.0
-TWIN_OVERLAP_RATIO = 1.25
-TWIN_MAX_VIOLATION = 0.1
+TWIN_APART = 3.0
+TWIN_OVERLAP_RATIO = 2.0
+TWIN_MAX_VIOLATION = 0.05
 
 # The overlap covariance: cells of this many voxels, this scale, floors in voxels.
 COVARIANCE_CELL_FACTOR = 4
@@ -46,10 +44,10 @@ COVARIANCE_FLOOR_POSITION = 0.5
 COVARIANCE_FLOOR_ROTATION = 0.5
 # A wrong estimate's error spread (metres a position axis, radians a rotation axis), and how
 # fast the chance of a wrong pose falls with the confidence.
-WRONG_POSITION = 4.0
-WRONG_ROTATION = math.pi
+WRONG_POSITION = 3.179
+WRONG_ROTATION = 1.414
 DOUBT_EXPONENT = 1.5
-MAX_POSITION_SIGMA = 34.0  # voxels: the default of gates.max_position_sigma
+MAX_POSITION_SIGMA = 19.77  # voxels: the default of gates.max_position_sigma
 
 # The share of right estimates among the gates' refusals of each kind with enough of them
 # (refusal code: share), and among all the gates' refusals (for the other kinds): a refused
@@ -57,18 +55,3 @@ MAX_POSITION_SIGMA = 34.0  # voxels: the default of gates.max_position_sigma
 REFUSED_RIGHT = {'ambiguous': 0.59, 'no_shared_surface': 0.096, 'free_space': 0.28,
                  'degenerate_axis': 0.33, 'chance_level': 0.36}
 REFUSED_RIGHT_OTHER = 0.34
-
-# What the record gives where it differs from the number above: the pipeline these numbers
-# were fitted on has changed since (docs/confidence.md, "The fitted numbers and their
-# record"). A number leaves this list when it ships as its record gives it.
-DRIFTED = {
-    'CONFIDENCE_WEIGHTS': {'log_margin': 1.154, 'log_sigma': -3.719, 'free_space': -17.43},
-    'CONFIDENCE_INTERCEPT': 5.016,
-    'TWIN_PROMISING': 0.5,
-    'TWIN_APART': 3.0,
-    'TWIN_OVERLAP_RATIO': 2.0,
-    'TWIN_MAX_VIOLATION': 0.05,
-    'WRONG_POSITION': 3.179,
-    'WRONG_ROTATION': 1.414,
-    'MAX_POSITION_SIGMA': 24.81,
-}

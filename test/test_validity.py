@@ -323,12 +323,12 @@ class _Twin:
 def test_a_plausible_twin_makes_the_estimate_ambiguous():
     """Apart, as good a fit and clear of free space: each test read only when the last passed."""
     voxel, fitness = 0.05, 0.8
-    good = _Twin(0.79, 0.05)
+    good = _Twin(0.79, 0.02)
     assert validity.plausible_twin(90.0, 0.0, good, fitness, voxel, 10.0)
     assert good.read == ['fitness', 'free_space']
-    back = _Twin(0.79, 0.05)  # settled back onto the estimate: nothing else is measured
+    back = _Twin(0.79, 0.02)  # settled back onto the estimate: nothing else is measured
     assert not validity.plausible_twin(2.0, 0.1, back, fitness, voxel, 10.0) and not back.read
-    worse = _Twin(0.5, 0.05)
+    worse = _Twin(0.3, 0.02)
     assert not validity.plausible_twin(0.0, 0.5, worse, fitness, voxel, 10.0)
     assert worse.read == ['fitness']
     assert not validity.plausible_twin(90.0, 0.0, _Twin(0.79, 0.2), fitness, voxel, 10.0)

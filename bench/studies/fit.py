@@ -172,6 +172,7 @@ def _rounded(value):
 def trimmed(r: dict) -> dict:
     """Return what the fit reads of a record, floats at :data:`DIGITS` significant digits."""
     out = {k: r[k] for k in FIELDS}
+    out['doubt'] = list(r.get('doubt', loso_trust_study.EARLIER_DOUBT))
     out['candidates'] = [{'fitness': c['fitness']} for c in r['candidates']]
     if r.get('overlap_info'):
         out['overlap_info'] = {k: r['overlap_info'][k] for k in OVERLAP

@@ -51,6 +51,7 @@ import time
 
 from bench.common import add_set_option, argument_parser, parse_overrides
 from bench.datasets import threedmatch as tdm
+from cgags_ros import fitted
 from cgags_ros.config import GatesConfig, PipelineConfig
 from cgags_ros.config.fields import update_from_flat
 from cgags_ros.frontend.refine import evaluate_alignment
@@ -169,6 +170,7 @@ def measure_pair(src: np.ndarray, tgt: np.ndarray, pair: tdm.GtPair,
         'coarse_te_m': translation_error(result.coarse_transform, gt),
         'time_s': elapsed, 'timings': {k: float(x) for k, x in result.timings.items()},
         'covariance': np.asarray(result.covariance).tolist(),
+        'doubt': [fitted.WRONG_POSITION, fitted.WRONG_ROTATION, fitted.DOUBT_EXPONENT],
         'ambiguous': bool(result.ambiguous), 'refined': bool(result.refined),
         'confidence': float(result.confidence), 'refusal': result.refusal.code.value
         if result.refusal else None,

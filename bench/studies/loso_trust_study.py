@@ -45,7 +45,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 from bench.common import argument_parser, markdown_table
-from cgags_ros import fitted, validity
+from cgags_ros import validity
 from cgags_ros.pipeline import confidence, twins
 from cgags_ros.pipeline.candidates import MIN_ROTATION_DEG  # the records' default too
 import numpy as np
@@ -419,11 +419,22 @@ def twins_study(records: list[dict], valid: np.ndarray) -> dict:
 FEATURES = confidence.FEATURES
 
 
+# The doubt (wrong pose's position and rotation spread, exponent) that records without their
+# own ``doubt`` were reported with: the numbers that shipped from the covariance's opening
+# by the confidence until the records carried them.
+EARLIER_DOUBT = (4.0, math.pi, 1.5)
+
+
 def overlap_covariance(r: dict) -> np.ndarray:
-    """Return the overlap's covariance of a record: the reported one less its doubt."""
-    W = np.diag([fitted.WRONG_POSITION ** 2] * 3 + [fitted.WRONG_ROTATION ** 2] * 3)
-    return np.asarray(r['covariance']) \
-        - (1.0 - r['confidence']) ** fitted.DOUBT_EXPONENT * W
+    """
+    Return the overlap's covariance of a record: the reported one less its doubt.
+
+    The doubt the record was reported with (its ``doubt``), not what ships now: the fit of
+    the doubt's numbers must not change the records it is fit on.
+    """
+    position, rotation, exponent = r.get('doubt', EARLIER_DOUBT)
+    W = np.diag([position ** 2] * 3 + [rotation ** 2] * 3)
+    return np.asarray(r['covariance']) - (1.0 - r['confidence']) ** exponent * W
 
 
 def as_result(r: dict) -> SimpleNamespace:
