@@ -42,12 +42,12 @@ COVARIANCE_CELL_FACTOR = 4
 COVARIANCE_SCALE = 12.7
 COVARIANCE_FLOOR_POSITION = 0.5
 COVARIANCE_FLOOR_ROTATION = 0.5
-# A wrong estimate's error spread (metres a position axis, radians a rotation axis), and how
-# fast the chance of a wrong pose falls with the confidence.
-WRONG_POSITION = 3.179
+# A wrong estimate's error spread (voxel sizes a position axis, radians a rotation axis), and
+# how fast the chance of a wrong pose falls with the confidence.
+WRONG_POSITION_VOXELS = 63.59
 WRONG_ROTATION = 1.414
 DOUBT_EXPONENT = 1.5
-MAX_POSITION_SIGMA = 19.77  # voxels: the default of gates.max_position_sigma
+MAX_POSITION_SIGMA = 19.78  # voxels: the default of gates.max_position_sigma
 
 # The share of right estimates among the gates' refusals of each kind with enough of them
 # (refusal code: share), and among all the gates' refusals (for the other kinds): a refused

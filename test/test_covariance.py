@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from cgags_ros.fitted import COVARIANCE_FLOOR_POSITION, WRONG_POSITION, WRONG_ROTATION
+from cgags_ros.fitted import COVARIANCE_FLOOR_POSITION, WRONG_POSITION_VOXELS, WRONG_ROTATION
 from cgags_ros.pipeline.covariance import overlap_covariance, pose_covariance, with_confidence
 import numpy as np
 import pytest
@@ -71,7 +71,7 @@ def test_the_pipeline_result_carries_the_covariance_of_its_estimate():
     ft = cached_features(target, 0.15, config.frontend, 'target')
     expected = overlap_covariance(fs.points, ft.points, ft.normals, ft.tree, result.transform,
                                   1.5 * 0.15, 0.15)
-    np.testing.assert_allclose(cov, with_confidence(expected, result.confidence))
+    np.testing.assert_allclose(cov, with_confidence(expected, result.confidence, 0.15))
     assert np.array(result.summary()['covariance']) == pytest.approx(cov)
     # No estimate: no support, the "unknown" variances
     empty = register_clouds(source[:5], target, config=PipelineConfig(voxel_size=0.15))
@@ -80,18 +80,22 @@ def test_the_pipeline_result_carries_the_covariance_of_its_estimate():
 
 def test_the_covariance_opens_by_the_chance_that_the_pose_is_wrong():
     """A sure pose keeps its covariance; a doubtful one opens towards a wrong pose's spread."""
-    cov = np.diag([1e-4] * 3 + [1e-5] * 3)
-    np.testing.assert_array_equal(with_confidence(cov, 1.0), cov)
-    W = np.diag([WRONG_POSITION ** 2] * 3 + [WRONG_ROTATION ** 2] * 3)
-    assert WRONG_POSITION > 0 and WRONG_ROTATION > 0
-    np.testing.assert_allclose(with_confidence(cov, 0.0), cov + W)
-    doubt = [np.trace(with_confidence(cov, p) - cov) for p in (0.5, 0.9, 0.99, 0.999)]
+    cov, voxel = np.diag([1e-4] * 3 + [1e-5] * 3), 0.05
+    np.testing.assert_array_equal(with_confidence(cov, 1.0, voxel), cov)
+    W = np.diag([(WRONG_POSITION_VOXELS * voxel) ** 2] * 3 + [WRONG_ROTATION ** 2] * 3)
+    assert WRONG_POSITION_VOXELS > 0 and WRONG_ROTATION > 0
+    np.testing.assert_allclose(with_confidence(cov, 0.0, voxel), cov + W)
+    doubt = [np.trace(with_confidence(cov, p, voxel) - cov) for p in (0.5, 0.9, 0.99, 0.999)]
     assert doubt == sorted(doubt, reverse=True) and doubt[-1] < 1e-3 * doubt[0]
     # Wrong by a metre and 90 degrees: far outside a sure pose's ellipsoid, inside that of
     # a pose which is as likely wrong as right.
     e = np.array([1.0, 0, 0, 0, 0, np.pi / 2])
-    assert e @ np.linalg.solve(with_confidence(cov, 1.0), e) > 1e3
-    assert e @ np.linalg.solve(with_confidence(cov, 0.5), e) < CHI2_6_95
+    assert e @ np.linalg.solve(with_confidence(cov, 1.0, voxel), e) > 1e3
+    assert e @ np.linalg.solve(with_confidence(cov, 0.5, voxel), e) < CHI2_6_95
+    # The position's doubt goes with the voxel: a tenth of it, a tenth of the spread.
+    fine = with_confidence(cov, 0.0, voxel / 10) - cov
+    np.testing.assert_allclose(np.sqrt(np.diag(fine)[:3]), WRONG_POSITION_VOXELS * voxel / 10)
+    np.testing.assert_allclose(np.diag(fine)[3:], WRONG_ROTATION ** 2)
 
 
 def test_4dof_covariance_has_no_roll_or_pitch_and_matches_the_yaw_only_fit():

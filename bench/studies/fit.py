@@ -134,7 +134,7 @@ def constants(gates: list[dict], records: list[dict], refusals: list[dict]) -> d
             ('COVARIANCE_SCALE', k, fitted.COVARIANCE_SCALE),
             ('COVARIANCE_FLOOR_POSITION', ft, fitted.COVARIANCE_FLOOR_POSITION),
             ('COVARIANCE_FLOOR_ROTATION', fr, fitted.COVARIANCE_FLOOR_ROTATION),
-            ('WRONG_POSITION', wt, fitted.WRONG_POSITION),
+            ('WRONG_POSITION_VOXELS', wt / loso_trust_study.VOXEL, fitted.WRONG_POSITION_VOXELS),
             ('WRONG_ROTATION', wr, fitted.WRONG_ROTATION),
             ('DOUBT_EXPONENT', gamma, fitted.DOUBT_EXPONENT),
             ('MAX_POSITION_SIGMA', chosen['sigma_voxels'], fitted.MAX_POSITION_SIGMA)],

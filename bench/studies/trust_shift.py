@@ -122,7 +122,7 @@ def fit_monotone(X: np.ndarray, y: np.ndarray, names: list[str]) -> dict:
 
 def reported_sigma(r: dict, p: float) -> float:
     """Return the loosest position sigma of the covariance reported at confidence ``p``."""
-    return covariance.loosest_sigma(covariance.with_confidence(overlap_covariance(r), p))
+    return covariance.loosest_sigma(covariance.with_confidence(overlap_covariance(r), p, VOXEL))
 
 
 def covariance_figures(records: list[dict], p: np.ndarray, valid: np.ndarray) -> dict:
@@ -131,7 +131,7 @@ def covariance_figures(records: list[dict], p: np.ndarray, valid: np.ndarray) ->
     for r, q, v in zip(records, p, valid):
         if not v:
             continue
-        S = covariance.with_confidence(overlap_covariance(r), q)
+        S = covariance.with_confidence(overlap_covariance(r), q, VOXEL)
         e = np.asarray(r['error'])
         out['nees_right' if r['success'] else 'nees_wrong'].append(
             float(e @ np.linalg.solve(S, e)))

@@ -152,13 +152,15 @@ def overlap_covariance(source: np.ndarray, target: np.ndarray, target_normals: n
     return B @ (scale * np.linalg.inv(info) + B.T @ floor @ B) @ B.T
 
 
-def with_confidence(cov: np.ndarray, confidence: float) -> np.ndarray:
+def with_confidence(cov: np.ndarray, confidence: float, voxel_size: float) -> np.ndarray:
     """
     Return the covariance of a pose's error when the pose is right with ``confidence``.
 
     A right pose errs as ``cov`` says; a wrong one (a slide along a wall, a turn a
-    near-symmetric room allows) by far more, with the spread ``W = diag(WRONG_POSITION^2 I,
-    WRONG_ROTATION^2 I)`` (these numbers and ``DOUBT_EXPONENT``: :mod:`cgags_ros.fitted`). With
+    near-symmetric room allows) by far more, with the spread ``W = diag((WRONG_POSITION_VOXELS
+    v)^2 I, WRONG_ROTATION^2 I)`` at voxel size ``v`` (these numbers and ``DOUBT_EXPONENT``:
+    :mod:`cgags_ros.fitted`): a scene's size, and so how far off a wrong pose lands in it,
+    goes with the voxel it wants, as the bound on the sigma does (in voxels). With
     ``q`` the chance of a wrong pose the mixture's second moment is ``cov + q W``: a pose the
     pipeline is sure of keeps its ellipsoid, one it calls valid with less to spare opens, so
     that the error of the wrong ones among them lies inside it rather than far outside. ``q =
@@ -166,7 +168,8 @@ def with_confidence(cov: np.ndarray, confidence: float) -> np.ndarray:
     are right more often than it says), so the chance of a wrong pose falls faster than ``1 -
     confidence``. ``confidence`` 0 (no estimate) opens it by the whole of ``W``.
     """
-    W = np.diag([fitted.WRONG_POSITION ** 2] * 3 + [fitted.WRONG_ROTATION ** 2] * 3)
+    position = fitted.WRONG_POSITION_VOXELS * voxel_size
+    W = np.diag([position ** 2] * 3 + [fitted.WRONG_ROTATION ** 2] * 3)
     doubt = (1.0 - min(max(confidence, 0.0), 1.0)) ** fitted.DOUBT_EXPONENT
     return np.asarray(cov, dtype=np.float64) + doubt * W
 

@@ -158,7 +158,7 @@ def _judged(result: PipelineResult, fs: CloudFeatures, ft: CloudFeatures,
         result.confidence = min(result.confidence, refused_at_most(refusal.code.value))
     if map_target or four_dof:
         return result.finish(start, refusal)
-    result.covariance = with_confidence(result.covariance, result.confidence)
+    result.covariance = with_confidence(result.covariance, result.confidence, cfg.voxel_size)
     return result.finish(start, refusal
                          or confidence_refusal(result, cfg.gates.min_confidence)
                          or uncertainty_refusal(loosest_sigma(result.covariance), cfg))
