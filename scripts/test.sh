@@ -9,7 +9,13 @@
 #   bash scripts/test.sh --fast    the inner loop: the pinned stack only, without the tests marked
 #                                  ros, subprocess or slow (setup.cfg lists the markers)
 #
-# CGAGS_STACKS="pinned" (or "jazzy") runs one stack. Other arguments go to pytest.
+# With both stacks and no other arguments, the tests that run in the pytest process alone (not
+# marked ros or subprocess) run in the two stacks side by side, each printing when both end; the
+# tests with DDS or processes of their own then run one stack after the other, so that no two
+# contend for the cores or a DDS domain.
+#
+# CGAGS_STACKS="pinned" (or "jazzy") runs one stack. Other arguments go to pytest, and run the
+# stacks one after the other.
 # Outside CI a machine without a CPython 3.12 (or without the FreeType/Qhull headers and no apt to
 # install them) runs the pinned stack and says the Jazzy stack was skipped; under CI (CI=true)
 # both stacks are required.
@@ -17,6 +23,7 @@ set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
 stacks="${CGAGS_STACKS:-pinned jazzy}"
+jazzy="${JAZZY_ROOT:-$root/.jazzy}"
 args=()
 for arg in "$@"; do
   if [ "$arg" = "--fast" ]; then
@@ -32,20 +39,22 @@ jazzy_missing() {
   if [ -z "${JAZZY_PYTHON:-}" ] && ! ls -d "${PYENV_ROOT:-$HOME/.pyenv}"/versions/3.12.* >/dev/null 2>&1 \
       && ! command -v python3.12 >/dev/null; then
     echo "no CPython 3.12 (pyenv install 3.12, apt install python3.12, or set JAZZY_PYTHON)"
-  elif [ ! -d "${JAZZY_ROOT:-$root/.jazzy}/system" ] && ! command -v apt-get >/dev/null \
+  elif [ ! -d "$jazzy/system" ] && ! command -v apt-get >/dev/null \
       && { [ ! -f /usr/include/libqhull_r/libqhull_r.h ] || ! pkg-config --exists freetype2 2>/dev/null; }; then
     echo "no FreeType/Qhull headers to build matplotlib 3.6.3 (apt install libfreetype-dev libqhull-dev pkg-config)"
   fi
 }
 
-for stack in $stacks; do
-  case "$stack" in
+# Set a stack up and say which it is; fail (status 1) when the Jazzy stack is skipped here. Called
+# as a condition, where `set -e` does not apply: a failed setup exits by itself.
+prepare() {
+  case "$1" in
     pinned)
-      "$root/scripts/setup_env.sh"
+      "$root/scripts/setup_env.sh" || exit 1
       echo "[test] pinned stack: $("$root/.venv/bin/python" -c 'import sys, numpy; print(sys.version.split()[0], "numpy", numpy.__version__)')"
-      "$root/.venv/bin/python" -m pytest test ${args[@]+"${args[@]}"}
       ;;
     jazzy)
+      local missing
       missing="$(jazzy_missing)"
       if [ -n "$missing" ]; then
         if [ "${CI:-}" = "true" ]; then
@@ -54,24 +63,68 @@ for stack in $stacks; do
         fi
         echo "[test] SKIPPED the Jazzy stack (Python 3.12, apt's numpy 1.26.4): $missing." >&2
         echo "[test] Only the pinned stack ran; CI runs both." >&2
-        continue
+        return 1
       fi
-      "$root/scripts/jazzy_env.sh"
-      jazzy="${JAZZY_ROOT:-$root/.jazzy}"
-      # shellcheck source=/dev/null
-      source "$jazzy/setup.bash"
-      echo "[test] jazzy stack: $("$jazzy/venv/bin/python" -c 'import sys, numpy; print(sys.version.split()[0], "numpy", numpy.__version__)')"
-      # The tests marked source_only read the repository's text and syntax (docs, comments,
-      # layers, generated files), which no Python stack changes: when the pinned stack runs them,
-      # the Jazzy one need not run them again. A -m of the arguments comes later and wins.
-      only=()
-      case " $stacks " in *" pinned "*) only=(-m "not source_only") ;; esac
-      CGAGS_JAZZY_STACK=1 "$jazzy/venv/bin/python" -m pytest test -p no:cacheprovider \
-          ${only[@]+"${only[@]}"} ${args[@]+"${args[@]}"}
+      "$root/scripts/jazzy_env.sh" || exit 1
+      echo "[test] jazzy stack: $(source "$jazzy/setup.bash"; "$jazzy/venv/bin/python" -c 'import sys, numpy; print(sys.version.split()[0], "numpy", numpy.__version__)')"
       ;;
     *)
-      echo "[test] unknown stack '$stack' (pinned, jazzy)" >&2
+      echo "[test] unknown stack '$1' (pinned, jazzy)" >&2
       exit 2
       ;;
   esac
+}
+
+# Run pytest in a stack (in a subshell: the Jazzy stack's setup.bash changes the environment).
+run() {
+  local stack="$1"
+  shift
+  case "$stack" in
+    pinned) "$root/.venv/bin/python" -m pytest test "$@" ;;
+    jazzy)
+      ( # shellcheck source=/dev/null
+        source "$jazzy/setup.bash"
+        CGAGS_JAZZY_STACK=1 "$jazzy/venv/bin/python" -m pytest test -p no:cacheprovider "$@" )
+      ;;
+  esac
+}
+
+ready=()
+for stack in $stacks; do
+  if prepare "$stack"; then ready+=("$stack"); fi
+done
+
+# The tests marked source_only read the repository's text and syntax (docs, comments, layers,
+# generated files), which no Python stack changes: when the pinned stack runs them, the Jazzy one
+# need not run them again. A -m of the arguments comes later and wins.
+only=""
+case " ${ready[*]} " in *" pinned "*" jazzy "*) only=" and not source_only" ;; esac
+
+if [ "${#ready[@]}" -eq 2 ] && [ "${#args[@]}" -eq 0 ]; then
+  logs="$(mktemp -d)"
+  trap 'rm -rf "$logs"' EXIT
+  alone="not ros and not subprocess"
+  echo "[test] both stacks side by side: the tests not marked ros or subprocess (output when both end)"
+  run pinned -m "$alone" --basetemp "$logs/pinned" >"$logs/pinned.log" 2>&1 &
+  pinned_pid=$!
+  run jazzy -m "$alone$only" --basetemp "$logs/jazzy" >"$logs/jazzy.log" 2>&1 &
+  jazzy_pid=$!
+  status=0
+  wait "$pinned_pid" || status=1
+  wait "$jazzy_pid" || status=1
+  echo "[test] pinned stack, $alone:"
+  cat "$logs/pinned.log"
+  echo "[test] jazzy stack, $alone$only:"
+  cat "$logs/jazzy.log"
+  echo "[test] pinned stack: the tests marked ros or subprocess"
+  run pinned -m "ros or subprocess" || status=1
+  echo "[test] jazzy stack: the tests marked ros or subprocess"
+  run jazzy -m "(ros or subprocess)$only" || status=1
+  exit "$status"
+fi
+
+for stack in "${ready[@]}"; do
+  marks=()
+  if [ "$stack" = "jazzy" ] && [ -n "$only" ]; then marks=(-m "not source_only"); fi
+  run "$stack" ${marks[@]+"${marks[@]}"} ${args[@]+"${args[@]}"}
 done
