@@ -98,7 +98,9 @@ done
 # generated files), which no Python stack changes: when the pinned stack runs them, the Jazzy one
 # need not run them again. A -m of the arguments comes later and wins.
 only=""
-case " ${ready[*]} " in *" pinned "*" jazzy "*) only=" and not source_only" ;; esac
+if [[ " ${ready[*]} " == *" pinned "* && " ${ready[*]} " == *" jazzy "* ]]; then
+  only=" and not source_only"
+fi
 
 if [ "${#ready[@]}" -eq 2 ] && [ "${#args[@]}" -eq 0 ]; then
   logs="$(mktemp -d)"
