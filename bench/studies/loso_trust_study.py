@@ -46,7 +46,7 @@ from types import SimpleNamespace
 
 from bench.common import argument_parser, markdown_table
 from cgags_ros import validity
-from cgags_ros.pipeline import confidence, twins
+from cgags_ros.pipeline import confidence, covariance, twins
 from cgags_ros.pipeline.candidates import MIN_ROTATION_DEG  # the records' default too
 import numpy as np
 
@@ -432,9 +432,8 @@ def overlap_covariance(r: dict) -> np.ndarray:
     The doubt the record was reported with (its ``doubt``), not what ships now: the fit of
     the doubt's numbers must not change the records it is fit on.
     """
-    position, rotation, exponent = r.get('doubt', EARLIER_DOUBT)
-    W = np.diag([position ** 2] * 3 + [rotation ** 2] * 3)
-    return np.asarray(r['covariance']) - (1.0 - r['confidence']) ** exponent * W
+    return np.asarray(r['covariance']) - covariance.doubt(r['confidence'],
+                                                          *r.get('doubt', EARLIER_DOUBT))
 
 
 def as_result(r: dict) -> SimpleNamespace:

@@ -168,10 +168,20 @@ def with_confidence(cov: np.ndarray, confidence: float, voxel_size: float) -> np
     are right more often than it says), so the chance of a wrong pose falls faster than ``1 -
     confidence``. ``confidence`` 0 (no estimate) opens it by the whole of ``W``.
     """
-    position = fitted.WRONG_POSITION_VOXELS * voxel_size
-    W = np.diag([position ** 2] * 3 + [fitted.WRONG_ROTATION ** 2] * 3)
-    doubt = (1.0 - min(max(confidence, 0.0), 1.0)) ** fitted.DOUBT_EXPONENT
-    return np.asarray(cov, dtype=np.float64) + doubt * W
+    return np.asarray(cov, dtype=np.float64) + doubt(
+        confidence, fitted.WRONG_POSITION_VOXELS * voxel_size, fitted.WRONG_ROTATION,
+        fitted.DOUBT_EXPONENT)
+
+
+def doubt(confidence: float, position: float, rotation: float, exponent: float) -> np.ndarray:
+    """
+    Return ``q W`` of :func:`with_confidence` for these spreads and exponent.
+
+    ``position`` metres a position axis, ``rotation`` radians a rotation axis: what a
+    record's covariance was opened with, to take it off again, as well as what ships.
+    """
+    W = np.diag([position ** 2] * 3 + [rotation ** 2] * 3)
+    return (1.0 - min(max(confidence, 0.0), 1.0)) ** exponent * W
 
 
 def loosest_sigma(cov: np.ndarray) -> float:
