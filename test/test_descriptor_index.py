@@ -1,7 +1,7 @@
 """The exact descriptor index against plain numpy brute force (frontend/descriptor_index.py)."""
 
 from cgags_ros.config.frontend import FrontEndConfig
-from cgags_ros.frontend.descriptor_index import DescriptorIndex
+from cgags_ros.frontend.descriptor_index import Cells, DescriptorIndex
 from cgags_ros.frontend.matching import informative_index, match_features
 import numpy as np
 import pytest
@@ -42,15 +42,31 @@ def test_index_equals_brute_force(seed, k):
                                rtol=1e-12, atol=1e-12)
 
 
-def test_a_brief_partition_gives_the_same_answers():
+def test_an_index_on_cells_fitted_to_more_rows_gives_the_same_answers():
     rng = np.random.default_rng(7)
     ref = _clustered(rng, 3000)
+    cells = Cells.fit(ref, 500, workers=2)
+    assert len(cells.centres) < DescriptorIndex(ref).centres.shape[0]  # sized for a part
     query = np.vstack([_clustered(rng, 500), ref[:20]])
-    full, brief = DescriptorIndex(ref, 2), DescriptorIndex(ref, 2, brief=True)
-    assert not np.array_equal(full.centres, brief.centres)  # another partition
-    for k in (1, 2):
-        np.testing.assert_array_equal(brief.query(query, k, 2)[0], _brute(query, ref, k))
-        np.testing.assert_array_equal(brief.query(query, k, 2)[0], full.query(query, k, 2)[0])
+    for keep in (rng.random(len(ref)) < 0.2, np.arange(len(ref)) >= 2990):
+        part = ref[keep]
+        index = DescriptorIndex.on_cells(cells, keep, ref, np.arange(len(ref)))
+        assert index.size == len(part)
+        for k in (1, 2):
+            got = index.query(query, k, 2)[0]
+            np.testing.assert_array_equal(got, _brute(query, part, k))
+            np.testing.assert_array_equal(got, DescriptorIndex(part).query(query, k)[0])
+        rows = rng.integers(0, len(part), len(query))
+        np.testing.assert_array_equal(index.is_nearest(query, rows),
+                                      _brute(query, part, 1)[:, 0] == rows)
+    # the descriptors read through a map of rows: the cells' rows are rows 5, 6, ... of these
+    shifted = np.vstack([np.zeros((5, ref.shape[1])), ref])
+    keep = rng.random(len(ref)) < 0.3
+    np.testing.assert_array_equal(
+        DescriptorIndex.on_cells(cells, keep, shifted, np.arange(len(ref)) + 5).query(query)[0],
+        _brute(query, ref[keep], 1))
+    with pytest.raises(ValueError):
+        DescriptorIndex.on_cells(cells, np.zeros(len(ref), dtype=bool), ref, np.arange(len(ref)))
 
 
 def test_index_result_independent_of_seed_and_workers():

@@ -14,7 +14,7 @@ import json
 from bench.datasets import threedmatch as tdm
 from cgags_ros.config import pipeline_config_from
 from cgags_ros.errors import InvalidInputError
-from cgags_ros.frontend.descriptor_index import DescriptorIndex
+from cgags_ros.frontend.descriptor_index import Cells, DescriptorIndex
 from cgags_ros.frontend.features import CloudFeatures, estimate_normals
 from cgags_ros.geometry import apply_transform, make_transform, rotation_error_deg
 from cgags_ros.geometry import translation_error
@@ -203,7 +203,8 @@ def test_places_are_ranked_by_votes_less_chance_not_by_raw_votes():
     descriptors = rng.random((len(points), 33))
     centres = np.array([[0.0, 0.0, 0.0], [200.0, 0.0, 0.0]])
     vote_place = (np.arange(len(points)) >= len(small)).astype(np.int64)
-    index = PlaceIndex(centres, vote_place, DescriptorIndex(descriptors), spacing=3.0)
+    index = PlaceIndex(centres, vote_place, DescriptorIndex(descriptors), spacing=3.0,
+                       cells=Cells.fit(descriptors, 400))
     own = rng.choice(len(small), 120, replace=False)
     scan_descriptors = np.vstack([descriptors[own], rng.random((380, 33))])
     scan = CloudFeatures(rng.uniform(-5, 5, (500, 3)), np.tile([0.0, 0.0, 1.0], (500, 1)),

@@ -10,6 +10,7 @@ computing a small share of those distances; a latched target or a map builds it 
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Mapping
 
 import numpy as np
@@ -25,10 +26,6 @@ _CELLS_PER_SQRT = 0.4
 _MAX_CELLS = 256
 _SAMPLE_PER_CELL = 64  # k-means runs on at most this many rows a cell
 _ITERATIONS = 8
-# A brief partition (``brief``) divides the sample and the iterations by this: an index
-# queried once by a few thousand rows (a place's submap) gains less from a finer partition
-# than it costs (measured in docs/maps.md).
-_BRIEF = 2
 _PROJECTED = 12  # principal directions of the screening distance (float32)
 
 
@@ -42,51 +39,72 @@ class DescriptorIndex:
     """
 
     def __init__(self, reference: np.ndarray, workers: int = 1, seed: int = 0,
-                 like: DescriptorIndex | None = None, brief: bool = False) -> None:
+                 like: DescriptorIndex | None = None) -> None:
         """
         Build the index over the (M, D) ``reference`` rows (finite), on ``workers`` threads.
 
         ``like``: an index of similar descriptors (the other cloud's) whose cell centres
         and principal directions are reused instead of computing them (k-means) again.
-        ``brief``: a quicker k-means (for an index queried once; the answers are the same).
         """
-        self.rows: np.ndarray | None = None  # which rows of a cloud's descriptors it holds
-        ref = c_array(reference, np.float64)
-        if ref.ndim != 2 or len(ref) == 0:
-            raise ValueError(f'reference must be a non-empty (M, D) array, got {ref.shape}')
-        self.size, self.dim = ref.shape
-        if like is not None and like.dim == self.dim:
+        ref = _reference(reference)
+        if like is not None and like.dim == ref.shape[1]:
             centres, basis = like.centres, like.basis
         else:
-            centres, basis = self._partition(ref, seed, _BRIEF if brief else 1)
-        cells = len(centres)
-        labels = np.empty(self.size, dtype=np.int64)
-        ring = np.empty(self.size)
-        centresT = np.ascontiguousarray(centres.T)
-        run_chunks(lambda a, b: compiled.assign(ref[a:b], centresT, labels[a:b], ring[a:b]),
-                   self.size, workers)
+            centres, basis = _partition(ref, _cell_count(len(ref)), seed)
+        labels, ring = _assign(ref, centres, workers)
+        order = _stored_order(labels, ring)
+        self._store(ref[order], labels[order], ring[order], order, centres, basis)
+
+    @classmethod
+    def on_cells(cls, cells: Cells, keep: np.ndarray, descriptors: np.ndarray,
+                 rows: np.ndarray) -> DescriptorIndex:
+        """
+        Return the index of the rows of ``cells`` where ``keep`` is True, numbered as they come.
+
+        ``descriptors[rows]`` are the rows ``cells`` was fitted to (only the kept ones are
+        read). Their cells and order are already known: building it computes no distance
+        and sorts nothing, so an index over a few of many rows (a place of a map) costs
+        little more than copying them.
+        """
+        keep = np.asarray(keep, dtype=bool)
+        stored = cells.order[keep[cells.order]]
+        if len(stored) == 0:
+            raise ValueError('keep holds no row')
+        index = cls.__new__(cls)
+        index._store(_reference(descriptors[rows[stored]]), cells.label[stored],
+                     cells.ring[stored], (np.cumsum(keep) - 1)[stored], cells.centres,
+                     cells.basis)
+        return index
+
+    def _store(self, points: np.ndarray, labels: np.ndarray, ring: np.ndarray,
+               order: np.ndarray, centres: np.ndarray, basis: np.ndarray) -> None:
+        """
+        Hold the reference rows by cell (the arrays the search reads).
+
+        ``points``: the rows in stored order (by cell, then ring, then row); ``labels``,
+        ``ring``: their cells among ``centres`` and distances to them; ``order``: their rows.
+        """
+        self.rows: np.ndarray | None = None  # which rows of a cloud's descriptors it holds
+        self.size, self.dim = points.shape
         # Drop cells without members: a centre that duplicates another gets none (ties go
         # to the lower one), so every pair of centres left is apart and the plane bound
         # never divides by zero.
-        used = np.bincount(labels, minlength=cells) > 0
-        renumber = np.cumsum(used) - 1
-        labels = renumber[labels]
+        used = np.bincount(labels, minlength=len(centres)) > 0
+        labels = (np.cumsum(used) - 1)[labels]
         self.centres = np.ascontiguousarray(centres[used])
         self.basis = basis
-        order = np.lexsort((np.arange(self.size), ring, labels))
+        starts = np.searchsorted(labels, np.arange(len(self.centres) + 1))
+        radius = np.ascontiguousarray(ring[starts[1:] - 1])  # the last of a cell is farthest
         slot_of = np.empty(self.size, dtype=np.int64)
         slot_of[order] = np.arange(self.size)
-        points = np.ascontiguousarray(ref[order])
-        radius = np.zeros(len(self.centres))
-        np.maximum.at(radius, labels, ring)
         diff = self.centres[:, None, :] - self.centres[None, :, :]
         self.arrays = compiled.IndexArrays(
             self.centres, np.ascontiguousarray(self.centres.T),
             c_array(np.sqrt(np.einsum('ijk,ijk->ij', diff, diff)), np.float64), radius,
-            np.searchsorted(labels[order], np.arange(len(self.centres) + 1)),
-            np.ascontiguousarray(ring[order]), points, basis,
+            starts, c_array(ring, np.float64), points, basis,
             np.ascontiguousarray(basis @ points.T, dtype=np.float32),
-            float(np.sqrt(np.einsum('ij,ij->i', ref, ref).max())), order, slot_of)
+            float(np.sqrt(np.einsum('ij,ij->i', points, points).max())),
+            c_array(order, np.int64), slot_of)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Return the index as named arrays (:meth:`from_arrays` builds it back, as it was)."""
@@ -112,26 +130,6 @@ class DescriptorIndex:
         index.centres, index.basis = index.arrays.centres, index.arrays.basis
         index.rows = arrays.get('rows')
         return index
-
-    def _partition(self, ref: np.ndarray, seed: int,
-                   less: int = 1) -> tuple[np.ndarray, np.ndarray]:
-        """
-        Return k-means cell centres of ``ref`` and its leading principal directions.
-
-        ``less``: the sample and the iterations divided by it.
-        """
-        cells = int(np.clip(round(_CELLS_PER_SQRT * np.sqrt(len(ref))), 1, _MAX_CELLS))
-        rng = np.random.default_rng(seed)
-        pick = rng.permutation(len(ref))[:min(len(ref), _SAMPLE_PER_CELL // less * cells)]
-        sample = ref[np.sort(pick)]
-        centres = sample[rng.permutation(len(sample))[:cells]].copy()
-        compiled.kmeans(sample, centres, _ITERATIONS // less)
-        # Distances along the leading principal directions bound the full distance from
-        # below and cost a fraction of it to compute.
-        spread = sample - sample.mean(axis=0)
-        _, vectors = np.linalg.eigh(spread.T @ spread)
-        basis = np.ascontiguousarray(vectors[:, ::-1][:, :min(_PROJECTED, self.dim)].T)
-        return centres, basis
 
     def query(self, queries: np.ndarray, k: int = 1,
               workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -165,3 +163,81 @@ class DescriptorIndex:
         run_chunks(lambda a, b: compiled.nearest_is(self.arrays, q[a:b], rows[a:b], out[a:b]),
                    len(q), workers)
         return out
+
+
+@dataclasses.dataclass
+class Cells:
+    """
+    A partition of many descriptor rows, fitted once: the cells of any few of them.
+
+    An index over a part of the rows (:meth:`DescriptorIndex.on_cells`) takes their cells
+    from here instead of fitting and assigning its own.
+
+    :ivar centres: (C, D) the cells' centres.
+    :ivar basis: (P, D) the rows' leading principal directions.
+    :ivar label: (M,) each row's cell (its nearest centre).
+    :ivar ring: (M,) each row's distance to its centre.
+    :ivar order: (M,) the rows by cell, then ring, then row: as an index stores them.
+    """
+
+    centres: np.ndarray
+    basis: np.ndarray
+    label: np.ndarray
+    ring: np.ndarray
+    order: np.ndarray
+
+    @classmethod
+    def fit(cls, reference: np.ndarray, part_rows: int, workers: int = 1,
+            seed: int = 0) -> Cells:
+        """
+        Return cells of the (M, D) ``reference`` rows for indexes of about ``part_rows``.
+
+        As many cells as :class:`DescriptorIndex` fits to that many rows: an index over a
+        part visits all of its cells, and cells fitted to all the rows would be too many.
+        """
+        ref = _reference(reference)
+        centres, basis = _partition(ref, _cell_count(part_rows), seed)
+        labels, ring = _assign(ref, centres, workers)
+        return cls(centres, basis, labels, ring, _stored_order(labels, ring))
+
+
+def _reference(reference: np.ndarray) -> np.ndarray:
+    ref = c_array(reference, np.float64)
+    if ref.ndim != 2 or len(ref) == 0:
+        raise ValueError(f'reference must be a non-empty (M, D) array, got {ref.shape}')
+    return ref
+
+
+def _cell_count(rows: int) -> int:
+    return int(np.clip(round(_CELLS_PER_SQRT * np.sqrt(rows)), 1, _MAX_CELLS))
+
+
+def _assign(ref: np.ndarray, centres: np.ndarray,
+            workers: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return each row's nearest centre (ties to the lower) and its distance to it."""
+    labels = np.empty(len(ref), dtype=np.int64)
+    ring = np.empty(len(ref))
+    centresT = np.ascontiguousarray(centres.T)
+    run_chunks(lambda a, b: compiled.assign(ref[a:b], centresT, labels[a:b], ring[a:b]),
+               len(ref), workers)
+    return labels, ring
+
+
+def _stored_order(labels: np.ndarray, ring: np.ndarray) -> np.ndarray:
+    """Return the rows by cell, then distance to its centre, then row: as an index stores them."""
+    return np.lexsort((np.arange(len(labels)), ring, labels))
+
+
+def _partition(ref: np.ndarray, cells: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return ``cells`` k-means centres of ``ref`` and its leading principal directions."""
+    rng = np.random.default_rng(seed)
+    pick = rng.permutation(len(ref))[:min(len(ref), _SAMPLE_PER_CELL * cells)]
+    sample = ref[np.sort(pick)]
+    centres = sample[rng.permutation(len(sample))[:cells]].copy()
+    compiled.kmeans(sample, centres, _ITERATIONS)
+    # Distances along the leading principal directions bound the full distance from
+    # below and cost a fraction of it to compute.
+    spread = sample - sample.mean(axis=0)
+    _, vectors = np.linalg.eigh(spread.T @ spread)
+    basis = np.ascontiguousarray(vectors[:, ::-1][:, :min(_PROJECTED, ref.shape[1])].T)
+    return centres, basis

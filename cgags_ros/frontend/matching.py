@@ -91,19 +91,18 @@ def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfi
 
 
 def informative_index(descriptors: np.ndarray, workers: int = 1,
-                      like: DescriptorIndex | None = None,
-                      brief: bool = False) -> DescriptorIndex | None:
+                      like: DescriptorIndex | None = None) -> DescriptorIndex | None:
     """
     Return the index :func:`match_features` searches as ``target_index``, or None.
 
     It holds the informative rows of ``descriptors`` (:func:`informative_rows`), in order,
     and knows which they are (``rows``; a map's cache keeps them); None when there are
-    none. ``like``, ``brief``: as for :class:`DescriptorIndex`.
+    none. ``like``: as for :class:`DescriptorIndex`.
     """
     rows = informative_rows(descriptors)
     if len(rows) == 0:
         return None
-    index = DescriptorIndex(descriptors[rows], workers, like=like, brief=brief)
+    index = DescriptorIndex(descriptors[rows], workers, like=like)
     index.rows = rows
     return index
 

@@ -29,8 +29,8 @@ from ..errors import InvalidInputError
 # Bump when the stored arrays change meaning or how they are computed: 2 = FPFH from our
 # compiled code (equal to Open3D's to rounding, not to the bit), not Open3D's; 3 = one
 # directory of memory-mapped arrays an entry, the descriptor index and local origin with them;
-# 4 = the map's places (pipeline/places.py) with them.
-CACHE_FORMAT = 4
+# 4 = the map's places (pipeline/places.py) with them; 5 = the cells of the places' submaps.
+CACHE_FORMAT = 5
 PREFIX = 'map_features_'
 META = 'meta.json'
 _CHUNK = 1 << 20

@@ -38,7 +38,7 @@ import numpy as np
 from .cache import cached_features
 from .hint import Hint
 from .map import PreparedMap
-from .places import Place, Ranked, submap_features, with_tree
+from .places import Place, Ranked, with_tree
 from .result import PipelineResult
 from ..config.pipeline import PipelineConfig
 from ..coordinates import local_origin, moved
@@ -87,7 +87,7 @@ def locate(src: np.ndarray, prepared: PreparedMap, cfg: PipelineConfig, hint: Hi
     with timed(timings, 'places_test'), single_blas_thread():
         places = _with_consensus(scan, ranked, prepared, cfg) if hint is None else ranked.places
         if len(places) == 1:  # a hint covering one place: nothing to rank, nothing to test
-            parts = [submap_features(prepared.features, places[0].rows, DEFAULT_WORKERS)]
+            parts = [prepared.places.submap(prepared.features, places[0].rows)]
             scores = [None]
         else:  # each place on a thread of its own: building its index is mostly serial
             tested = map_ordered(lambda p: _test_place(scan, ranked.keypoints, prepared, p, cfg),
@@ -125,7 +125,7 @@ def _with_consensus(scan: CloudFeatures, ranked: Ranked, prepared: PreparedMap,
 def _test_place(scan: CloudFeatures, keypoints: np.ndarray, prepared: PreparedMap,
                 place: Place, cfg: PipelineConfig) -> tuple[CloudFeatures, int]:
     """Return a place's submap features and what its test scored (one thread)."""
-    part = submap_features(prepared.features, place.rows, 1)
+    part = prepared.places.submap(prepared.features, place.rows)
     return part, _tested(scan, keypoints, part, cfg, 1)[0]
 
 

@@ -19,6 +19,9 @@ query look only where it may be:
   the more where the map has more voting points).
 - a **hint** (:class:`~.hint.Hint`: a position with a radius, e.g. ``initialpose`` with its
   covariance) leaves only the places it covers.
+- **cells**: the map's descriptors partitioned once more, into cells sized for a submap
+  (:class:`~..frontend.descriptor_index.Cells`), so that a submap's descriptor index is
+  cut from them at query time (:meth:`PlaceIndex.submap`) instead of fitted.
 
 Numpy and the front end only: :mod:`.locate` tests and registers the ranked places.
 All positions are in the map's local frame (the features', :class:`~.map.PreparedMap`).
@@ -33,10 +36,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .hint import Hint
-from ..frontend.descriptor_index import DescriptorIndex
+from ..frontend.descriptor_index import Cells, DescriptorIndex
 from ..frontend.features import CloudFeatures
 from ..frontend.keypoints import select_keypoints
-from ..frontend.matching import informative_index, informative_rows
+from ..frontend.matching import informative_rows
 from ..geometry import bounds, grid_cells
 
 TILE_VOXELS = 10.0  # the place grid's spacing: fine beside the smallest reach, ~26 voxels
@@ -44,6 +47,7 @@ VOTE_CELL_VOXELS = 3.0  # one voting point a cell: a ninth of a surface's points
 KEYPOINTS = 1000  # scan keypoints that vote for places and test them
 CHANCE_SHARE = 0.5  # of a place's chance votes not counted (docs/maps.md: how chosen)
 REACH_QUANTILE = 90.0  # a scan's reach: this percentile of its points' distance to their centroid
+SUBMAP_SHARE = 8  # the submaps' cells suit this share of the map
 
 
 @dataclasses.dataclass
@@ -88,10 +92,10 @@ class PlaceIndex:
     PREFIX = 'places.'
 
     def __init__(self, centres: np.ndarray, vote_place: np.ndarray, index: DescriptorIndex,
-                 spacing: float) -> None:
+                 spacing: float, cells: Cells) -> None:
         """Hold the arrays (as they are: memory-mapped ones stay so)."""
         self.centres, self.vote_place = centres, vote_place
-        self.index, self.spacing = index, float(spacing)
+        self.index, self.spacing, self.cells = index, float(spacing), cells
         self._voter_tree: cKDTree | None = None
         low, high = centres.min(axis=0), centres.max(axis=0)
         self._middle = 0.5 * (low + high)
@@ -122,13 +126,16 @@ class PlaceIndex:
         rows = np.sort(first)
         rows = rows[informative_rows(features.descriptors[rows])]
         index = DescriptorIndex(features.descriptors[rows], workers, like=map_index)
-        return cls(centres, place_of[rows], index, spacing)
+        cells = Cells.fit(features.descriptors[map_index.rows],
+                          len(map_index.rows) // SUBMAP_SHARE, workers)
+        return cls(centres, place_of[rows], index, spacing, cells)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Return the index as named arrays for the map cache (:meth:`from_arrays`)."""
         out = {'centres': self.centres, 'vote_place': self.vote_place,
                'spacing': np.array([self.spacing])}
         out.update({f'index.{k}': v for k, v in self.index.to_arrays().items()})
+        out.update({f'cells.{k}': v for k, v in dataclasses.asdict(self.cells).items()})
         return {self.PREFIX + k: v for k, v in out.items()}
 
     @classmethod
@@ -139,7 +146,8 @@ class PlaceIndex:
             return None
         index = DescriptorIndex.from_arrays(
             {k[len('index.'):]: v for k, v in mine.items() if k.startswith('index.')})
-        return cls(mine['centres'], mine['vote_place'], index, float(mine['spacing'][0]))
+        cells = Cells(**{k[len('cells.'):]: v for k, v in mine.items() if k.startswith('cells.')})
+        return cls(mine['centres'], mine['vote_place'], index, float(mine['spacing'][0]), cells)
 
     def rank(self, scan: CloudFeatures, voxel_size: float, count: int, map_tree: cKDTree,
              hint: Hint | None = None, workers: int = 1) -> Ranked:
@@ -191,8 +199,10 @@ class PlaceIndex:
         raw counts favour where the map has most voting points (a larger street) over where
         the scan is, yet a room's own place is where most of its chance votes land too.
         """
-        around = cKDTree(self.centres[voted]).query_ball_point(self.centres[candidates], near)
-        got = np.array([votes[voted[a]].sum() for a in around])
+        pairs = cKDTree(self.centres[candidates]).sparse_distance_matrix(
+            cKDTree(self.centres[voted]), near, output_type='ndarray')  # within near, 0 too
+        got = np.bincount(pairs['i'], weights=votes[voted[pairs['j']]],
+                          minlength=len(candidates)).astype(np.int64)
         share = self._voters().query_ball_point(self.centres[candidates], near,
                                                 return_length=True) / len(self.vote_place)
         expected = cast * share
@@ -202,7 +212,8 @@ class PlaceIndex:
             if any(np.linalg.norm(self.centres[candidates[i]] - p.centre) <= near
                    for p in places):
                 continue
-            members = voted[around[i]]
+            # Sorted: the weighted centre sums them in one order, however the pairs come.
+            members = voted[np.sort(pairs['j'][pairs['i'] == i])]
             centre = np.average(self.centres[members], axis=0, weights=votes[members])
             place = self._place(centre, int(got[i]), radius, map_tree)
             if any(_within(place.rows, p.rows) for p in places):
@@ -211,6 +222,30 @@ class PlaceIndex:
             if len(places) == count:
                 break
         return places
+
+    def submap(self, features: CloudFeatures, rows: np.ndarray) -> CloudFeatures:
+        """
+        Return the features of the map's sorted ``rows`` (copied), their descriptor index built.
+
+        ``features``: the map's. The map's resolution is kept (its gates and thresholds are
+        the map's). The index takes its rows' cells from :attr:`cells`, fitted to the map
+        once, instead of fitting its own for the one query it serves. The k-d tree is left
+        to :func:`with_tree`: only a submap that is registered needs one.
+        """
+        descriptors = np.ascontiguousarray(features.descriptors[rows])
+        sub = CloudFeatures(np.ascontiguousarray(features.points[rows]),
+                            np.ascontiguousarray(features.normals[rows]), descriptors,
+                            features.resolution, None, features.sensor_at_origin)
+        whole = features.descriptor_index().rows  # the rows the cells partition
+        inside = np.zeros(len(features.points), dtype=bool)
+        inside[rows] = True
+        keep = inside[whole]
+        index = None  # nothing here can match
+        if keep.any():
+            index = DescriptorIndex.on_cells(self.cells, keep, features.descriptors, whole)
+            index.rows = np.searchsorted(rows, whole[keep])
+        sub._index.append(index)
+        return sub
 
     def near(self, reach: float) -> float:
         """Return how near a place a scan of ``reach`` votes for it (metres)."""
@@ -256,25 +291,6 @@ def _within(rows: np.ndarray, other: np.ndarray) -> bool:
         return False
     at = np.minimum(np.searchsorted(other, rows), len(other) - 1)
     return bool(np.all(other[at] == rows))
-
-
-def submap_features(features: CloudFeatures, rows: np.ndarray,
-                    workers: int = 1) -> CloudFeatures:
-    """
-    Return the features of the map's ``rows`` (copied), their descriptor index built.
-
-    The map's resolution is kept (its gates and thresholds are the map's). The descriptor
-    index gets cells of its own, briefly fitted (it serves one query): the whole map's,
-    fitted to many more descriptors, are too many for a submap and make each query visit
-    them all. The k-d tree is left to
-    :func:`with_tree`: only a submap that is registered needs one.
-    """
-    descriptors = np.ascontiguousarray(features.descriptors[rows])
-    sub = CloudFeatures(np.ascontiguousarray(features.points[rows]),
-                        np.ascontiguousarray(features.normals[rows]), descriptors,
-                        features.resolution, None, features.sensor_at_origin)
-    sub._index.append(informative_index(descriptors, workers, brief=True))
-    return sub
 
 
 def with_tree(sub: CloudFeatures) -> CloudFeatures:
