@@ -45,4 +45,6 @@ any other bench module: they may import the tools of :mod:`bench`, never the rev
   each sensor and both) from recorded transforms, against the right low-overlap poses.
 - :mod:`.place_ranking`: the share of chance votes a place's score discounts
   (``cgags_ros/pipeline/places.py``), on the maps of ``bench.maps``.
+- :mod:`.submap_index`: a place's submap index cut from the map's cells or fitted to it,
+  and the cells' size (``SUBMAP_SHARE``, ``cgags_ros/pipeline/places.py``).
 """

@@ -224,28 +224,8 @@ class PlaceIndex:
         return places
 
     def submap(self, features: CloudFeatures, rows: np.ndarray) -> CloudFeatures:
-        """
-        Return the features of the map's sorted ``rows`` (copied), their descriptor index built.
-
-        ``features``: the map's. The map's resolution is kept (its gates and thresholds are
-        the map's). The index takes its rows' cells from :attr:`cells`, fitted to the map
-        once, instead of fitting its own for the one query it serves. The k-d tree is left
-        to :func:`with_tree`: only a submap that is registered needs one.
-        """
-        descriptors = np.ascontiguousarray(features.descriptors[rows])
-        sub = CloudFeatures(np.ascontiguousarray(features.points[rows]),
-                            np.ascontiguousarray(features.normals[rows]), descriptors,
-                            features.resolution, None, features.sensor_at_origin)
-        whole = features.descriptor_index().rows  # the rows the cells partition
-        inside = np.zeros(len(features.points), dtype=bool)
-        inside[rows] = True
-        keep = inside[whole]
-        index = None  # nothing here can match
-        if keep.any():
-            index = DescriptorIndex.on_cells(self.cells, keep, features.descriptors, whole)
-            index.rows = np.searchsorted(rows, whole[keep])
-        sub._index.append(index)
-        return sub
+        """Return :func:`submap_features` of the map's ``features``, its index on our cells."""
+        return submap_features(features, rows, self.cells)
 
     def near(self, reach: float) -> float:
         """Return how near a place a scan of ``reach`` votes for it (metres)."""
@@ -291,6 +271,35 @@ def _within(rows: np.ndarray, other: np.ndarray) -> bool:
         return False
     at = np.minimum(np.searchsorted(other, rows), len(other) - 1)
     return bool(np.all(other[at] == rows))
+
+
+def submap_features(features: CloudFeatures, rows: np.ndarray,
+                    cells: Cells | None = None) -> CloudFeatures:
+    """
+    Return the features of the map's sorted ``rows`` (copied), their descriptor index built.
+
+    ``features``: the map's. The map's resolution is kept (its gates and thresholds are the
+    map's). The index takes its rows' cells from ``cells`` (:attr:`PlaceIndex.cells`, fitted
+    to the map's informative rows once) instead of fitting its own for the one query it
+    serves; without them it is fitted when first asked for. The k-d tree is left to
+    :func:`with_tree`: only a submap that is registered needs one.
+    """
+    descriptors = np.ascontiguousarray(features.descriptors[rows])
+    sub = CloudFeatures(np.ascontiguousarray(features.points[rows]),
+                        np.ascontiguousarray(features.normals[rows]), descriptors,
+                        features.resolution, None, features.sensor_at_origin)
+    if cells is None:
+        return sub
+    whole = features.descriptor_index().rows  # the rows the cells partition
+    inside = np.zeros(len(features.points), dtype=bool)
+    inside[rows] = True
+    keep = inside[whole]
+    index = None  # nothing here can match
+    if keep.any():
+        index = DescriptorIndex.on_cells(cells, keep, features.descriptors, whole)
+        index.rows = np.searchsorted(rows, whole[keep])
+    sub._index.append(index)
+    return sub
 
 
 def with_tree(sub: CloudFeatures) -> CloudFeatures:

@@ -42,7 +42,7 @@ from ..errors import InvalidInputError
 from ..frontend.features import CloudFeatures, finite_points
 from ..frontend.refine import evaluate_alignment
 from ..geometry import apply_transform, translation_error
-from ..parallel import DEFAULT_WORKERS
+from ..parallel import DEFAULT_WORKERS, map_ordered
 from ..pipeline.cache import cached_features
 from ..pipeline.candidates import distinct
 from ..pipeline.covariance import loosest_sigma, overlap_covariance
@@ -186,19 +186,27 @@ class Relocalizer:
 
     def _checked(self) -> Answer:
         """Check every hypothesis not yet checked on every scan, then decide."""
-        for h in self.hypotheses:
-            # Its own scan first: a pose that does not explain the scan that proposed it is
-            # no pose at all. Then every other scan, so that a scan no hypothesis explains
-            # (one taken outside the map) is known as such (see :func:`judge`).
-            for i in [h.scan] + [i for i in range(len(self.scans)) if i != h.scan]:
-                if i not in h.checks:
-                    h.checks[i] = self._check(h, i)
-                    if i == h.scan:
-                        self._anchor(h)
-                if i == h.scan and not h.checks[i].explains(self.sequence, self.config):
-                    break
+        todo = [h for h in self.hypotheses
+                if any(i not in h.checks for i in range(len(self.scans)))]
+        # Hypotheses side by side, each on a thread (a check is mostly k-d tree queries and
+        # numpy on the scan's points): each touches only its own checks.
+        workers = 1 if len(todo) > 1 else DEFAULT_WORKERS
+        map_ordered(lambda h: self._check_all(h, workers), todo, DEFAULT_WORKERS)
         return judge(self.hypotheses, [s.result for s in self.scans],
                      [s.odom for s in self.scans], self.config, self.sequence)
+
+    def _check_all(self, h: Hypothesis, workers: int) -> None:
+        """Check ``h`` on every scan it was not checked on, its own first."""
+        # Its own scan first: a pose that does not explain the scan that proposed it is no
+        # pose at all. Then every other scan, so that a scan no hypothesis explains (one
+        # taken outside the map) is known as such (see :func:`judge`).
+        for i in [h.scan] + [i for i in range(len(self.scans)) if i != h.scan]:
+            if i not in h.checks:
+                h.checks[i] = self._check(h, i, workers)
+                if i == h.scan:
+                    self._anchor(h)
+            if i == h.scan and not h.checks[i].explains(self.sequence, self.config):
+                break
 
     def _propose_all(self, result: PipelineResult, index: int, source: str) -> None:
         """
@@ -232,7 +240,7 @@ class Relocalizer:
         h.map_from_odom = c.transform @ np.linalg.inv(self.scans[h.scan].odom)
         h.checks[h.scan] = dataclasses.replace(c, moved_deg=0.0, moved_m=0.0)
 
-    def _check(self, h: Hypothesis, index: int) -> Check:
+    def _check(self, h: Hypothesis, index: int, workers: int) -> Check:
         """Put scan ``index`` where ``h`` predicts it and refine it against the map."""
         scan, cfg, seq = self.scans[index], self.config, self.sequence
         ft = self.prepared.features
@@ -244,15 +252,14 @@ class Relocalizer:
         reach = seq.drift_m * max(steps, 1) + seq.drift_fraction * travelled
         # Where the prediction leaves too little of the scan near the map even at the drift
         # allowance, no refinement can make the scan explain it: skip the refinement.
-        loose = evaluate_alignment(points, ft.tree, predicted, reach + final,
-                                   DEFAULT_WORKERS).fitness
+        loose = evaluate_alignment(points, ft.tree, predicted, reach + final, workers).fitness
         if loose < seq.min_fitness:
             return Check(self.prepared.to_map(predicted), 0.0, 0.0, steps, travelled, loose,
                          float('nan'))
         # Settled on the map's own k-d tree and normals, built once with its features: a
         # check costs its few Gauss-Newton steps, not a tree of the map near the scan.
         s = settle(Pair(scan.features, ft, cfg, map_target=True), predicted,
-                   reach + final, CHECK, DEFAULT_WORKERS)
+                   reach + final, CHECK, workers)
         # What the scan shares with the map there, as a single registration measures it.
         align = s.alignment
         return Check(self.prepared.to_map(s.transform), s.moved_deg, s.moved_m, steps,
