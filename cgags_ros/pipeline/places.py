@@ -276,7 +276,7 @@ def _within(rows: np.ndarray, other: np.ndarray) -> bool:
 def submap_features(features: CloudFeatures, rows: np.ndarray,
                     cells: Cells | None = None) -> CloudFeatures:
     """
-    Return the features of the map's sorted ``rows`` (copied), their descriptor index built.
+    Return the features of the map's sorted ``rows`` (copied), with a descriptor index.
 
     ``features``: the map's. The map's resolution is kept (its gates and thresholds are the
     map's). The index takes its rows' cells from ``cells`` (:attr:`PlaceIndex.cells`, fitted
