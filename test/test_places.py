@@ -16,6 +16,7 @@ from cgags_ros.config import pipeline_config_from
 from cgags_ros.errors import InvalidInputError
 from cgags_ros.frontend.descriptor_index import Cells, DescriptorIndex
 from cgags_ros.frontend.features import CloudFeatures, estimate_normals
+from cgags_ros.frontend.matching import match_features
 from cgags_ros.geometry import apply_transform, make_transform, rotation_error_deg
 from cgags_ros.geometry import translation_error
 from cgags_ros.io.clouds import write_cloud
@@ -23,7 +24,7 @@ from cgags_ros.pipeline import register_clouds
 from cgags_ros.pipeline.hint import Hint, HINT_SIGMAS
 from cgags_ros.pipeline.locate import TESTED
 from cgags_ros.pipeline.map import load_map
-from cgags_ros.pipeline.places import PlaceIndex
+from cgags_ros.pipeline.places import PlaceIndex, submap_features
 from cgags_ros.refusal import RefusalCode as Code
 from cgags_ros.relocalization.relocalizer import Relocalizer
 from cgags_ros.tools import map_cli, relocalize_cli
@@ -78,7 +79,8 @@ def test_places_are_stored_with_the_map_and_memory_mapped(floor, capsys):
     assert again.cache == 'hit'
     places = again.places
     assert len(places) > 2 * len(ROOMS)  # many places a room
-    for array in (places.centres, places.vote_place, places.index.arrays.points):
+    for array in (places.centres, places.vote_place, places.index.arrays.points,
+                  places.cells.label, places.cells.order):
         assert isinstance(array.base, np.memmap)  # a view of the cache, not a copy
     assert np.array_equal(places.centres, prepared.places.centres)
     assert map_cli.main(['inspect', str(path), '--cache-dir',
@@ -107,6 +109,25 @@ def test_a_query_is_registered_in_its_own_place_as_against_the_whole_map(floor):
     assert np.linalg.norm(np.array(first['centre']) - rooms[QUERY[0]][1]) < 5.0
     assert rotation_error_deg(located.transform, whole.transform) < 0.5
     assert translation_error(located.transform, whole.transform) < 0.02
+
+
+def test_a_submap_index_cut_from_the_maps_cells_matches_as_one_fitted_to_it(floor):
+    prepared, cfg, _, rooms, _ = floor
+    features = prepared.features
+    centre = rooms[QUERY[0]][1] - prepared.origin
+    rows = np.sort(np.asarray(features.tree.query_ball_point(centre, 3.0), dtype=np.int64))
+    cut, fitted = prepared.places.submap(features, rows), submap_features(features, rows)
+    index = cut.descriptor_index()
+    assert len(index.centres) > 1  # the pruning bounds are exercised
+    assert all((prepared.places.cells.centres == c).all(axis=1).any() for c in index.centres)
+    np.testing.assert_array_equal(index.rows, fitted.descriptor_index().rows)
+    others = np.setdiff1d(np.arange(len(features.points)), rows)[::40]
+    a = match_features(features.descriptors[others], cut.descriptors, cfg.frontend, 2, index)
+    b = match_features(features.descriptors[others], fitted.descriptors, cfg.frontend, 2,
+                       fitted.descriptor_index())
+    assert len(a) > 100
+    np.testing.assert_array_equal(a.source_index, b.source_index)
+    np.testing.assert_array_equal(a.target_index, b.target_index)
 
 
 def test_a_hint_ranks_only_the_places_it_covers(floor):
