@@ -62,9 +62,9 @@ class DescriptorIndex:
         Return the index of the rows of ``cells`` where ``keep`` is True, numbered as they come.
 
         ``descriptors[rows]`` are the rows ``cells`` was fitted to (only the kept ones are
-        read). Their cells and order are already known: building it computes no distance
-        and sorts nothing, so an index over a few of many rows (a place of a map) costs
-        little more than copying them.
+        read). Their cells and order are already known: building it computes no row's
+        distance to a centre and sorts nothing, so an index over a few of many rows (a place
+        of a map) costs little more than copying them.
         """
         keep = np.asarray(keep, dtype=bool)
         stored = cells.order[keep[cells.order]]
