@@ -90,19 +90,18 @@ def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfi
     return _best(src_ok[keep], dst_ok[nn[keep, 0]], dist[keep, 0], config.max_correspondences)
 
 
-def informative_index(descriptors: np.ndarray, workers: int = 1,
-                      like: DescriptorIndex | None = None) -> DescriptorIndex | None:
+def informative_index(descriptors: np.ndarray, workers: int = 1) -> DescriptorIndex | None:
     """
     Return the index :func:`match_features` searches as ``target_index``, or None.
 
     It holds the informative rows of ``descriptors`` (:func:`informative_rows`), in order,
     and knows which they are (``rows``; a map's cache keeps them); None when there are
-    none. ``like``: as for :class:`DescriptorIndex`.
+    none.
     """
     rows = informative_rows(descriptors)
     if len(rows) == 0:
         return None
-    index = DescriptorIndex(descriptors[rows], workers, like=like)
+    index = DescriptorIndex(descriptors[rows], workers)
     index.rows = rows
     return index
 
