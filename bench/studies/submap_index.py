@@ -3,13 +3,13 @@ A submap's descriptor index: cut from cells fitted once to the map, or fitted to
 
 Run by hand from the repository root (~2 min a map; one thread, nothing registered)::
 
-    .venv/bin/python -m bench.studies.submap_index [--maps campus floor] [--queries 6] \
-        [--shares 2 4 8 16 32]
+    .venv/bin/python -m bench.studies.submap_index [--maps campus floor growth12] \
+        [--queries 6] [--shares 2 4 8 16 32]
 
-For ``bench.maps``' campus and four-room floor, and each map's first ``--queries``
-queries, the places :mod:`cgags_ros.pipeline.locate` tests are ranked as it ranks them
-(without the consensus place). Each submap's index is built three ways: as the map's cache
-holds it
+For ``bench.maps``' campus and four-room floor (and ``growth12``, its twelve look-alike
+rooms, on which the share was not chosen), and each map's first ``--queries`` queries, the
+places :mod:`cgags_ros.pipeline.locate` tests are ranked as it ranks them (without the
+consensus place). Each submap's index is built three ways: as the map's cache holds it
 (:meth:`~cgags_ros.pipeline.places.PlaceIndex.submap`, cells for
 :data:`~cgags_ros.pipeline.places.SUBMAP_SHARE` of the map), fitted to the submap alone (a
 :class:`~cgags_ros.frontend.descriptor_index.DescriptorIndex` of its rows), and cut from cells
@@ -96,14 +96,15 @@ def _same(answers: list[tuple], ways: int) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argument_parser('bench.studies.submap_index', __doc__)
     parser.add_argument('--maps', nargs='+', default=['campus', 'floor'],
-                        choices=['campus', 'floor'])
+                        choices=['campus', 'floor', 'growth12'])
     parser.add_argument('--queries', type=int, default=6)
     parser.add_argument('--shares', nargs='+', type=int, default=[2, 4, 8, 16, 32])
     args = parser.parse_args(argv)
     data = shared_data_dir()
     for name in args.maps:
-        built = (built_maps.campus(data) if name == 'campus'
-                 else built_maps.floor(data, 5, built_maps.four_rooms(data)))
+        rooms = (built_maps.growth_rooms(data, 12)[0] if name == 'growth12'
+                 else built_maps.four_rooms(data))
+        built = built_maps.campus(data) if name == 'campus' else built_maps.floor(data, 5, rooms)
         for way, rows in measure(built, args.queries, args.shares).items():
             build, test, register, points = np.median(np.array(rows), axis=0)
             print(f'{name:7s} {way:9s} {len(rows)} submaps of {points:,.0f} points (median): '
