@@ -266,12 +266,17 @@ def relocalize(prepared, cfg, label: str, scans: list[np.ndarray], truth: list[n
 
 
 def _tests(places: dict | None) -> dict:
-    """Return what the places' tests scored (``result.stats['places']``; empty: whole map)."""
+    """
+    Return what the places' tests scored (``result.stats['places']``; empty: whole map).
+
+    An untested consensus place's inliers are None; ``consensus`` is what the whole map's
+    search found in it.
+    """
     if not places:
-        return {'by': [], 'inliers': [], 'registered': None}
+        return {'by': [], 'inliers': [], 'consensus': None, 'registered': None}
     return {'by': [p['by'] for p in places['ranked']],
             'inliers': [p['tested_inliers'] for p in places['ranked']],
-            'registered': places['registered']}
+            'consensus': places['consensus_inliers'], 'registered': places['registered']}
 
 
 def outcome(result, truth: np.ndarray | None, limits: tuple[float, float]) -> str:

@@ -15,12 +15,12 @@ from bench.datasets import threedmatch as tdm
 from cgags_ros.config import pipeline_config_from
 from cgags_ros.errors import InvalidInputError
 from cgags_ros.frontend.descriptor_index import Cells, DescriptorIndex
-from cgags_ros.frontend.features import CloudFeatures, estimate_normals
+from cgags_ros.frontend.features import CloudFeatures, estimate_normals, extract_features
 from cgags_ros.frontend.matching import match_features
 from cgags_ros.geometry import apply_transform, make_transform, rotation_error_deg
 from cgags_ros.geometry import translation_error
 from cgags_ros.io.clouds import write_cloud
-from cgags_ros.pipeline import register_clouds
+from cgags_ros.pipeline import locate, register_clouds
 from cgags_ros.pipeline.hint import Hint, HINT_SIGMAS
 from cgags_ros.pipeline.locate import TESTED
 from cgags_ros.pipeline.map import load_map
@@ -109,6 +109,19 @@ def test_a_query_is_registered_in_its_own_place_as_against_the_whole_map(floor):
     assert np.linalg.norm(np.array(first['centre']) - rooms[QUERY[0]][1]) < 5.0
     assert rotation_error_deg(located.transform, whole.transform) < 0.5
     assert translation_error(located.transform, whole.transform) < 0.02
+
+
+def test_the_consensus_place_scores_at_least_its_bound_in_its_own_test(floor):
+    # Untested unless another place scores more: its own test must reach the bound.
+    prepared, cfg, _, rooms, query = floor
+    for scene in rooms:
+        points, _ = query(scene, 5)
+        scan = extract_features(points - points.mean(axis=0), VOXEL, cfg.frontend)
+        ranked = prepared.places.rank(scan, VOXEL, TESTED, prepared.features.tree)
+        places, bound = locate._with_consensus(scan, ranked, prepared, cfg)
+        assert places[0].by == 'consensus' and bound > 0
+        part = prepared.places.submap(prepared.features, places[0].rows)
+        assert locate._tested(scan, ranked.keypoints, part, cfg)[0] >= bound
 
 
 def test_a_submap_index_cut_from_the_maps_cells_matches_as_one_fitted_to_it(floor):

@@ -12,15 +12,18 @@ and the other places' matches drown its own; here:
    alone miss a scan's place among look-alikes, docs/maps.md);
 2. **test**: each is matched against the scan's keypoints and searched by the core for at
    most ``TEST_ITERATIONS`` hypotheses (the places side by side, a thread each): its own
-   place gives a consensus within a few hundred, a wrong one none that stands out. A hint
-   that leaves one place leaves nothing to test;
+   place gives a consensus within a few hundred, a wrong one none that stands out. The
+   consensus place is tested only when another scores more than the whole map's search
+   found in it, which its own test reaches anyway. A hint that leaves one place leaves
+   nothing to test;
 3. **register**: the place with the largest consensus goes through the whole pipeline as
    a map of its own (its submap, in the map's local frame), matching at most
    ``PLACE_KEYPOINTS`` of the scan's points (unless ``frontend.max_keypoints`` bounds them:
    matching a LiDAR scan's every point cost more than the rest of its registration). The
    result is that registration's, in the map frame as against the whole map; its
    ``map_info`` is the whole map's with the place's beside it, its ``stats['places']`` what
-   was ranked and tested (``tested_inliers`` None: not tested).
+   was ranked and tested (``tested_inliers`` None: not tested; ``consensus_inliers`` the
+   whole map's search's in the consensus place, None without one).
 
 A map within one submap of the scan, or whose best place holds half its points, is
 registered whole, as without places: testing would cost more than it saves. So is a scan too
@@ -85,53 +88,78 @@ def locate(src: np.ndarray, prepared: PreparedMap, cfg: PipelineConfig, hint: Hi
     if not ranked.places:
         return _uncovered(prepared, cfg, hint, start)
     with timed(timings, 'places_test'), single_blas_thread():
-        places = _with_consensus(scan, ranked, prepared, cfg) if hint is None else ranked.places
+        places, bound = (_with_consensus(scan, ranked, prepared, cfg) if hint is None
+                         else (ranked.places, None))
         if len(places) == 1:  # a hint covering one place: nothing to rank, nothing to test
             parts = [prepared.places.submap(prepared.features, places[0].rows)]
             scores = [None]
-        else:  # each place on a thread of its own: building its index is mostly serial
-            tested = map_ordered(lambda p: _test_place(scan, ranked.keypoints, prepared, p, cfg),
-                                 places, DEFAULT_WORKERS)
-            parts, scores = [t[0] for t in tested], [t[1] for t in tested]
-    best = int(np.argmax(scores)) if len(parts) > 1 else 0  # ties: the first
-    bounded = dataclasses.replace(cfg.frontend, max_keypoints=(
-        cfg.frontend.max_keypoints or PLACE_KEYPOINTS))
-    result = register(prepared.part(with_tree(parts[best])),
-                      dataclasses.replace(cfg, frontend=bounded))
+        else:
+            parts, scores = _test_all(scan, ranked.keypoints, prepared, places, bound, cfg)
+    # An untested consensus place scores its bound; ties go to the first.
+    best = (int(np.argmax([bound if s is None else s for s in scores])) if len(parts) > 1
+            else 0)
+    result = register(prepared.part(with_tree(parts[best])), _bounded(cfg))
     result.stats['places'] = {'ranked': [_summary(prepared, p, s)
                                          for p, s in zip(places, scores)],
-                              'registered': best}
+                              'consensus_inliers': bound, 'registered': best}
     return _noted(result, prepared, places[best], scores[best], timings, start)
 
 
+def _bounded(cfg: PipelineConfig) -> PipelineConfig:
+    """Return ``cfg`` matching at most ``PLACE_KEYPOINTS`` scan points, unless it bounds them."""
+    return dataclasses.replace(cfg, frontend=dataclasses.replace(
+        cfg.frontend, max_keypoints=cfg.frontend.max_keypoints or PLACE_KEYPOINTS))
+
+
 def _with_consensus(scan: CloudFeatures, ranked: Ranked, prepared: PreparedMap,
-                    cfg: PipelineConfig) -> list[Place]:
+                    cfg: PipelineConfig) -> tuple[list[Place], int | None]:
     """
-    Return the places to test: the whole map's consensus place first, then the best voted.
+    Return the places to test, the whole map's consensus place first, and that place's bound.
 
     The scan's keypoints matched against the whole map and searched briefly put it where
-    the most of them agree; that place is tested with the best voted ones not near it.
+    the most of them agree; that place is tested with the best voted ones not near it. Its
+    bound is the consensus's inliers that lie in it: its own test scores at least as many
+    (the whole map's mutual matches that land in a submap are among the submap's), so it
+    needs no test unless another place scores more. No consensus: the voted places, None.
     """
-    inliers, T = _tested(scan, ranked.keypoints, prepared.features, cfg)
+    inliers, T, targets = _tested(scan, ranked.keypoints, prepared.features, cfg)
     if inliers == 0:
-        return ranked.places
+        return ranked.places, None
     centre = apply_transform(T, scan.points.mean(axis=0)[None])[0]
     near = prepared.places.near(ranked.reach)
     voted = [p for p in ranked.places if np.linalg.norm(p.centre - centre) > near]
-    return [prepared.places.place_at(centre, ranked.reach, prepared.features.tree),
-            *voted][:TESTED]
+    place = prepared.places.place_at(centre, ranked.reach, prepared.features.tree)
+    bound = int(np.count_nonzero(np.isin(targets, place.rows)))
+    return [place, *voted][:TESTED], bound
 
 
-def _test_place(scan: CloudFeatures, keypoints: np.ndarray, prepared: PreparedMap,
-                place: Place, cfg: PipelineConfig) -> tuple[CloudFeatures, int]:
-    """Return a place's submap features and what its test scored (one thread)."""
-    part = prepared.places.submap(prepared.features, place.rows)
-    return part, _tested(scan, keypoints, part, cfg, 1)[0]
+def _test_all(scan: CloudFeatures, keypoints: np.ndarray, prepared: PreparedMap,
+              places: list[Place], bound: int | None,
+              cfg: PipelineConfig) -> tuple[list[CloudFeatures], list[int | None]]:
+    """
+    Return the places' submaps and what their tests scored (None: not tested).
+
+    Each place on a thread of its own: building its index is mostly serial. With a
+    ``bound``, the first place is the consensus place: its submap is built beside the
+    others' tests and tested only when one of them scores more than the bound.
+    """
+    def test(place: Place) -> tuple[CloudFeatures, int | None]:
+        part = prepared.places.submap(prepared.features, place.rows)
+        if bound is not None and place is places[0]:
+            return part, None
+        return part, _tested(scan, keypoints, part, cfg, 1)[0]
+
+    tested = map_ordered(test, places, DEFAULT_WORKERS)
+    parts, scores = [t[0] for t in tested], [t[1] for t in tested]
+    if bound is not None and max(scores[1:]) > bound:
+        scores[0] = _tested(scan, keypoints, parts[0], cfg)[0]
+    return parts, scores
 
 
 def _tested(scan: CloudFeatures, keypoints: np.ndarray, part: CloudFeatures,
-            cfg: PipelineConfig, workers: int = DEFAULT_WORKERS) -> tuple[int, np.ndarray]:
-    """Return the inliers of a short search of the keypoints' matches in ``part``, and its pose."""
+            cfg: PipelineConfig,
+            workers: int = DEFAULT_WORKERS) -> tuple[int, np.ndarray, np.ndarray]:
+    """Return a short search of the keypoints' matches in ``part``: inliers, pose, their rows."""
     corr = match_features(scan.descriptors[keypoints], part.descriptors, cfg.frontend,
                           workers, part.descriptor_index(workers))
     core = dataclasses.replace(cfg.core,
@@ -143,8 +171,8 @@ def _tested(scan: CloudFeatures, keypoints: np.ndarray, part: CloudFeatures,
             resolution=0.5 * (scan.resolution + part.resolution), config=core, seed=cfg.seed,
             workers=workers)
     except DegenerateCorrespondencesError:
-        return 0, np.eye(4)
-    return int(found.num_inliers), found.transform
+        return 0, np.eye(4), np.zeros(0, dtype=np.int64)
+    return int(found.num_inliers), found.transform, corr.target_index[found.inliers]
 
 
 def _summary(prepared: PreparedMap, place: Place, score: int | None) -> dict:
