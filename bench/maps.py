@@ -9,20 +9,23 @@ Run by hand::
 ``street``: the 16 KITTI scans (``kitti/seq00_16scans``), every fourth (0, 4, 8, 12) fused by
 the pseudo ground truth into scan 0's frame (normals facing each scan's sensor, as a mapper
 writes them); the 12 between are the queries, in their own sensor frames (voxel 0.3 m, the
-README's LiDAR value; right: 5 deg, 0.6 m).
+README's LiDAR value; right: 5 deg, 0.6 m). It also relocalizes three held-out scans with
+odometry (``SEQUENCES``, each also reversed; drift as ``bench.relocalize_sequences``') with a
+``Relocalizer``, until it answers.
 ``floor``: the four 3DMatch scenes, each fused from its even fragments (normals facing the
 fragment's sensor, as a mapper writes them), turned by a seeded yaw and placed as rooms 30 m
 apart on one floor; the queries are ``--per-room`` odd fragments a room (seeded), in their own
-frames (voxel 5 cm; right: 15 deg, 0.3 m). Each is also moved to UTM coordinates (512345.678
-E, 5412345.678 N, 265.4 m up) and queried again, and ``--kiss N`` queries a map are given to
-KISS-Matcher on the same scan and raw map (its ``estimate``; no flag, every estimate counts).
+frames (voxel 5 cm; right: 15 deg, 0.3 m), and ``FLOOR_SEQUENCES`` runs of three consecutive
+odd fragments a room, each also reversed, are relocalized as the street's scans are. Each map
+is also moved to UTM coordinates (512345.678 E, 5412345.678 N, 265.4 m up) and queried
+again, and ``--kiss N`` queries a map are given to KISS-Matcher on the same scan and raw map
+(its ``estimate``; no flag, every estimate counts).
 
 ``campus``: the street among seven look-alikes and the floor as a building, 250 m apart on a
 grid (6.0 M raw points), each turned by a seeded yaw; the look-alikes are the street
 mirrored, and shrunk or enlarged (0.8, 1.25, 1.5) as is and mirrored: no query fits them
-under a rigid motion. Queries: the street's, and the two small_gicp scans (in no map). It
-also relocalizes three held-out scans with odometry (``SEQUENCES``, each also reversed;
-drift as ``bench.relocalize_sequences``') with a ``Relocalizer``, until it answers.
+under a rigid motion. Queries: the street's, and the two small_gicp scans (in no map); its
+sequences are the street's.
 
 ``growth``: floors of 1, 3, 6 and 12 rooms at the origin. The first three are three of the
 scenes (redkitchen, home_at, hotel_uc); then the same three mirrored, then all six enlarged
@@ -79,6 +82,7 @@ CAMPUS_SPACING = 250.0  # metres between the campus's blocks: more than a street
 LOOK_ALIKES = [(True, 1.0)] + [(m, s) for s in (0.8, 1.25, 1.5) for m in (False, True)]
 SEQUENCES = [(1, 2, 3), (5, 6, 7), (9, 10, 11), (13, 14, 15)]  # held-out scans, and reversed
 DRIFT = (0.5, 0.02, 0.01)  # degrees, metres and step fraction, as bench.relocalize_sequences
+FLOOR_SEQUENCES = 2  # runs of three odd fragments a room of the four-room floor, and reversed
 
 
 def street(data: Path) -> dict:
@@ -92,24 +96,29 @@ def street(data: Path) -> dict:
     normals = np.vstack([estimate_normals(scans[k], 0.3, cfg.frontend) @ truth[k][:3, :3].T
                          for k in in_map])
     queries = [(f'scan {k}', scans[k], truth[k]) for k in range(16) if k not in in_map]
+    runs = [ids for seq in SEQUENCES for ids in (seq, seq[::-1])]
     return {'points': points, 'normals': normals, 'queries': queries, 'outside': [],
             'voxel': 0.3, 'right': (5.0, 0.6), 'hint': HINT_RADIUS['street'],
-            'rooms': 1}
+            'rooms': 1,
+            'sequences': [('scans ' + '-'.join(map(str, ids)), [scans[k] for k in ids],
+                           [truth[k] for k in ids]) for ids in runs]}
 
 
 def floor(data: Path, per_room: int, rooms: list[tuple[str, bool, float]],
-          outside: str | None = None, seed: int = 0) -> dict:
+          outside: str | None = None, seed: int = 0, sequences: int = 0) -> dict:
     """
     Return a floor of ``rooms`` (scene, mirrored, scale) and its queries (``per_room`` a room).
 
     Only rooms as the scene was (not mirrored, scale 1) have queries; ``outside``: a scene
     of none of the rooms whose ``per_room`` fragments are queries from outside the map.
     ``sites``: (scene, fragment, the room's placement scene -> floor) of each query.
+    ``sequences``: runs of three consecutive odd fragments a room (seeded apart from the
+    queries), each also reversed, for the relocalizer.
     """
     root = data / '3dmatch_benchmark'
     cfg = pipeline_config_from({'voxel_size': 0.05})
-    rng = np.random.default_rng(seed)
-    points, normals, queries, centres, sites = [], [], [], [], []
+    rng, starts = np.random.default_rng(seed), np.random.default_rng(seed + 1)
+    points, normals, queries, centres, sites, runs = [], [], [], [], [], []
     for r, (scene, mirrored, scale) in enumerate(rooms):
         poses, fragments = tdm.fragment_poses(root, scene), tdm.Fragments(root, scene)
         place = make_transform(Rotation.from_euler('z', rng.uniform(0, 360),
@@ -132,6 +141,11 @@ def floor(data: Path, per_room: int, rooms: list[tuple[str, bool, float]],
         for k in sorted(rng.choice(odd, min(per_room, len(odd)), replace=False)):
             queries.append((f'{scene[:20]} {k}', fragments[k], place @ poses[k]))
             sites.append((scene, int(k), place))
+        for i in sorted(starts.choice(len(odd) - 2, min(sequences, len(odd) - 2),
+                                      replace=False)):
+            for ids in (odd[i:i + 3], odd[i:i + 3][::-1]):
+                runs.append((f'{scene[:12]} ' + '-'.join(map(str, ids)),
+                             [fragments[k] for k in ids], [place @ poses[k] for k in ids]))
     away = []
     if outside:
         fragments = tdm.Fragments(root, outside)
@@ -140,7 +154,7 @@ def floor(data: Path, per_room: int, rooms: list[tuple[str, bool, float]],
                 for k in sorted(rng.choice(odd, min(per_room, len(odd)), replace=False))]
     return {'points': np.vstack(points), 'normals': np.vstack(normals), 'queries': queries,
             'outside': away, 'voxel': 0.05, 'right': (15.0, 0.3), 'hint': HINT_RADIUS['floor'],
-            'rooms': len(rooms), 'first_room': centres[0], 'sites': sites}
+            'rooms': len(rooms), 'first_room': centres[0], 'sites': sites, 'sequences': runs}
 
 
 def campus(data: Path, seed: int = 0) -> dict:
@@ -163,14 +177,8 @@ def campus(data: Path, seed: int = 0) -> dict:
         sides.append(side / np.linalg.norm(side, axis=1, keepdims=True))
     away = [(f'small_gicp {n}', read_cloud(data / 'lidar' / 'small_gicp' / f'{n}.ply'), None)
             for n in ('source', 'target')]
-    truth = np.loadtxt(data / 'kitti' / 'seq00_16scans' / 'pseudo_gt.txt').reshape(-1, 4, 4)
-    scans = dict(zip(range(16), kitti_scans(data, list(range(16)))))
-    runs = [ids for seq in SEQUENCES for ids in (seq, seq[::-1])]
     return {**own, 'points': np.vstack(blocks), 'normals': np.vstack(sides), 'outside': away,
-            'rooms': len(blocks),
-            'first_room': np.zeros(3),
-            'sequences': [('scans ' + '-'.join(map(str, ids)), [scans[k] for k in ids],
-                           [truth[k] for k in ids]) for ids in runs]}
+            'rooms': len(blocks), 'first_room': np.zeros(3)}
 
 
 def four_rooms(data: Path) -> list[tuple[str, bool, float]]:
@@ -360,8 +368,8 @@ def main(argv: list[str] | None = None) -> int:
         elif name == 'campus':
             rows += run('campus', campus(data), args.kiss, args.output)
         elif name == 'floor':
-            rows += run('floor', floor(data, args.per_room, four_rooms(data)), args.kiss,
-                        args.output)
+            rows += run('floor', floor(data, args.per_room, four_rooms(data),
+                                       sequences=FLOOR_SEQUENCES), args.kiss, args.output)
         else:
             for rooms in GROWTH:
                 shapes, outside = growth_rooms(data, rooms)
