@@ -144,8 +144,10 @@ def floor(data: Path, per_room: int, rooms: list[tuple[str, bool, float]],
         for i in sorted(starts.choice(len(odd) - 2, min(sequences, len(odd) - 2),
                                       replace=False)):
             for ids in (odd[i:i + 3], odd[i:i + 3][::-1]):
+                # Odometry is a rigid motion: 7-Scenes' logged rotations are not quite.
                 runs.append((f'{scene[:12]} ' + '-'.join(map(str, ids)),
-                             [fragments[k] for k in ids], [place @ poses[k] for k in ids]))
+                             [fragments[k] for k in ids],
+                             [tdm.nearest_rigid(place @ poses[k]) for k in ids]))
     away = []
     if outside:
         fragments = tdm.Fragments(root, outside)

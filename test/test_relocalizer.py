@@ -181,6 +181,42 @@ def test_scans_that_fit_a_pose_only_on_a_degenerate_overlap_do_not_confirm_it():
     assert judged(ratio=0.5, observability=0.1).confirmed
 
 
+def test_a_scan_that_fits_a_rival_better_out_of_its_allowance_does_not_refute_it():
+    """
+    A contender whose check moves a scan out of the allowance, to where it fits the map
+    better than under the best, is not refuted by that scan: the pose stays ambiguous.
+
+    The checks are those of a wrong pose two RGB-D scans confirmed on a floor of rooms
+    (mit_lab 9-11, bench.maps floor): their fused submap was placed 0.67 m off, and both
+    scans fit it; the right pose fits both better, but its check moved the second scan,
+    whose own registration is 0.26 m off, 3 cm beyond the allowance. With that scan fitting
+    the right pose no better than the wrong one, it refutes it and the pose is confirmed.
+    """
+    cfg, seq = pipeline_config_from({'voxel_size': 0.05}), SequenceConfig()
+    odom = [np.eye(4), make_transform(np.eye(3), [0.8, 0.2, 0.0])]
+    wrong = make_transform(Rotation.from_euler('z', 70, degrees=True).as_matrix(),
+                           [60.0, 2.0, 0.5])
+    right_pose = wrong @ make_transform(Rotation.from_euler('z', 3, degrees=True).as_matrix(),
+                                        [0.6, 0.3, 0.0])
+    results = [PipelineResult(voxel_size=0.05) for _ in odom]
+    # scan: moved deg, moved m, steps, travelled m, fitness, free space, ratio, observability
+    best = {1: (0.0, 0.0, 0, 0.0, 0.839, 0.262, 0.814, 0.0895),
+            0: (2.22, 0.114, 1, 0.83, 0.773, 0.263, 0.821, 0.046)}
+
+    def judged(second_fitness):
+        rival = {0: (0.0, 0.0, 0, 0.0, 0.993, 0.052, 0.603, 0.0733),
+                 1: (4.49, 0.266, 1, 0.83, second_fitness, 0.168, 0.649, 0.0952)}
+        hypotheses = [Hypothesis(pose, scan, 0, 30, source, {
+            i: Check(pose @ odom[i], *measured) for i, measured in checks.items()})
+            for pose, scan, source, checks in ((wrong, 1, 'submap', best),
+                                               (right_pose, 0, 'scan', rival))]
+        return judge(hypotheses, results, odom, cfg, seq)
+
+    answer = judged(0.902)
+    assert not answer.confirmed and answer.refusal.code is Code.AMBIGUOUS, answer.reason
+    assert judged(0.8).confirmed
+
+
 @pytest.fixture(scope='module')
 def near(data_dir, tmp_path_factory):
     """

@@ -44,7 +44,7 @@ class SequenceConfig:
     :ivar drift_fraction: ...plus this share of the distance travelled.
     :ivar min_fitness: a scan explains a hypothesis only with at least this fitness.
     :ivar refute_ratio: a contender is refuted by a scan that the best hypothesis fits this
-        many times better.
+        many times better (or, one the contender does not explain, fits at all better).
     """
 
     max_scans: int = 3
@@ -204,9 +204,19 @@ def judge(hypotheses: list[Hypothesis], results: list[PipelineResult], odom: lis
     last = latest(best)
     misses = [i for i, ok in zip(used, explained(best)) if not ok]
     refusal = unexplained_refusal(misses) if misses else None
+
+    def refutes(i: int, ok: bool, contender: Hypothesis) -> bool:
+        # A scan the contender does not explain refutes it only when it fits the best no
+        # worse: moved out of the allowance to where it fits the map better than under the
+        # best, it says the best is no better placed (a scan whose own registration is off).
+        if i not in contender.checks:
+            return True
+        fitness, best_fitness = contender.checks[i].fitness, best.checks[i].fitness
+        return (fitness * seq.refute_ratio < best_fitness if ok
+                else fitness <= best_fitness)
+
     for contender in ranked[1:] if not refusal else ():
-        if any(not ok or contender.checks[i].fitness * seq.refute_ratio
-               < best.checks[i].fitness for i, ok in zip(used, explained(contender))):
+        if any(refutes(i, ok, contender) for i, ok in zip(used, explained(contender))):
             continue  # refuted
         pose = latest(contender)
         if distinct(pose, last, config):

@@ -17,8 +17,8 @@ hypothesis and the odometry predict and refined locally against the map
 odometry's drift and the error of the registration the hypothesis came from), the fitness
 is at least ``min_fitness`` and the pose passes a single registration's gates on what the
 scan shares with the map (free space, degeneracy, alike descriptors). A hypothesis that
-explains a scan much worse than the best one does (its fitness ``refute_ratio`` times lower)
-or does not explain it is **refuted** by that scan.
+explains a scan much worse than the best one does (its fitness ``refute_ratio`` times lower),
+or does not explain it and fits it no better than the best, is **refuted** by that scan.
 
 The answer is **confirmed** when one hypothesis explains every scan used and every distinct
 rival is refuted, over at least ``min_scans`` scans; until then it asks for another scan,
