@@ -183,11 +183,12 @@ def test_scans_that_fit_a_pose_only_on_a_degenerate_overlap_do_not_confirm_it():
 
 def test_a_scan_that_fits_a_rival_better_out_of_its_allowance_does_not_refute_it():
     """
-    A contender whose check moves a scan out of the allowance, to where it fits the map
-    better than under the best, is not refuted by that scan: the pose stays ambiguous.
+    A scan that fits a rival better, out of its allowance, leaves the pose ambiguous.
 
-    The checks are those of a wrong pose two RGB-D scans confirmed on a floor of rooms
-    (mit_lab 9-11, bench.maps floor): their fused submap was placed 0.67 m off, and both
+    A contender whose check moves a scan out of the allowance, to where it fits the map
+    better than under the best, is not refuted by that scan. The checks are those of a
+    wrong pose two RGB-D scans confirmed on a floor of rooms (mit_lab 9-11, bench.maps
+    floor): their fused submap was placed 0.67 m off, and both
     scans fit it; the right pose fits both better, but its check moved the second scan,
     whose own registration is 0.26 m off, 3 cm beyond the allowance. With that scan fitting
     the right pose no better than the wrong one, it refutes it and the pose is confirmed.
