@@ -167,7 +167,8 @@ def judge(hypotheses: list[Hypothesis], results: list[PipelineResult], odom: lis
     nothing, or too little of it in view. It says nothing for or against any hypothesis and
     is left out. With one scan left the answer is that scan's own verdict when it is the
     latest (else refused: the latest scan is not in the map); with none, refused. A scan
-    that fits somewhere, but not where the odometry puts it under a hypothesis, refutes it.
+    that fits somewhere, but not where the odometry puts it under a hypothesis, refutes it,
+    unless it fits where that hypothesis's check moved it better than under the best.
 
     A pure function of the checks, so that thresholds can be studied on recorded ones.
     """
