@@ -82,7 +82,7 @@ CAMPUS_SPACING = 250.0  # metres between the campus's blocks: more than a street
 LOOK_ALIKES = [(True, 1.0)] + [(m, s) for s in (0.8, 1.25, 1.5) for m in (False, True)]
 SEQUENCES = [(1, 2, 3), (5, 6, 7), (9, 10, 11), (13, 14, 15)]  # held-out scans, and reversed
 DRIFT = (0.5, 0.02, 0.01)  # degrees, metres and step fraction, as bench.relocalize_sequences
-FLOOR_SEQUENCES = 2  # runs of three odd fragments a room of the four-room floor, and reversed
+FLOOR_SEQUENCES = 4  # runs of three odd fragments a room of the four-room floor, and reversed
 
 
 def street(data: Path) -> dict:
