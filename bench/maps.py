@@ -4,7 +4,7 @@ Maps robots carry: a street, floors of rooms and a campus built from the shared 
 Run by hand::
 
     .venv/bin/python -m bench.maps [--maps street floor campus growth] [--per-room 5] \
-        [--kiss 3] [--output out/bench/maps]
+        [--floor-voxel 0.05] [--kiss 3] [--output out/bench/maps]
 
 ``street``: the 16 KITTI scans (``kitti/seq00_16scans``), every fourth (0, 4, 8, 12) fused by
 the pseudo ground truth into scan 0's frame (normals facing each scan's sensor, as a mapper
@@ -15,11 +15,11 @@ odometry (``SEQUENCES``, each also reversed; drift as ``bench.relocalize_sequenc
 ``floor``: the four 3DMatch scenes, each fused from its even fragments (normals facing the
 fragment's sensor, as a mapper writes them), turned by a seeded yaw and placed as rooms 30 m
 apart on one floor; the queries are ``--per-room`` odd fragments a room (seeded), in their own
-frames (voxel 5 cm; right: 15 deg, 0.3 m), and ``FLOOR_SEQUENCES`` runs of three consecutive
-odd fragments a room, each also reversed, are relocalized as the street's scans are. Each map
-is also moved to UTM coordinates (512345.678 E, 5412345.678 N, 265.4 m up) and queried
-again, and ``--kiss N`` queries a map are given to KISS-Matcher on the same scan and raw map
-(its ``estimate``; no flag, every estimate counts).
+frames (voxel 5 cm, or ``--floor-voxel``; right: 15 deg, 0.3 m), and ``FLOOR_SEQUENCES`` runs of
+three consecutive odd fragments a room, each also reversed, are relocalized as the street's
+scans are. Each map is also moved to UTM coordinates (512345.678 E, 5412345.678 N, 265.4 m
+up) and queried again, and ``--kiss N`` queries a map are given to KISS-Matcher on the same
+scan and raw map (its ``estimate``; no flag, every estimate counts).
 
 ``campus``: the street among seven look-alikes and the floor as a building, 250 m apart on a
 grid (6.0 M raw points), each turned by a seeded yaw; the look-alikes are the street
@@ -105,20 +105,24 @@ def street(data: Path) -> dict:
 
 
 def floor(data: Path, per_room: int, rooms: list[tuple[str, bool, float]],
-          outside: str | None = None, seed: int = 0, sequences: int = 0) -> dict:
+          outside: str | None = None, seed: int = 0, sequences: int = 0,
+          voxel: float = 0.05) -> dict:
     """
     Return a floor of ``rooms`` (scene, mirrored, scale) and its queries (``per_room`` a room).
 
     Only rooms as the scene was (not mirrored, scale 1) have queries; ``outside``: a scene
     of none of the rooms whose ``per_room`` fragments are queries from outside the map.
-    ``sites``: (scene, fragment, the room's placement scene -> floor) of each query.
+    ``sites``: (scene, fragment, the room's placement scene -> floor) of each query;
+    ``spans``: each room's rows (start, stop) in ``points`` and ``normals``.
     ``sequences``: runs of three consecutive odd fragments a room (seeded apart from the
-    queries), each also reversed, for the relocalizer.
+    queries), each also reversed, for the relocalizer. ``voxel``: the queries' (the map's
+    normals are a mapper's, at 5 cm, whatever it is).
     """
     root = data / '3dmatch_benchmark'
     cfg = pipeline_config_from({'voxel_size': 0.05})
     rng, starts = np.random.default_rng(seed), np.random.default_rng(seed + 1)
     points, normals, queries, centres, sites, runs = [], [], [], [], [], []
+    spans, rows = [], 0
     for r, (scene, mirrored, scale) in enumerate(rooms):
         poses, fragments = tdm.fragment_poses(root, scene), tdm.Fragments(root, scene)
         place = make_transform(Rotation.from_euler('z', rng.uniform(0, 360),
@@ -134,6 +138,8 @@ def floor(data: Path, per_room: int, rooms: list[tuple[str, bool, float]],
                     A[:3, :3])
                 normals.append(side / np.linalg.norm(side, axis=1, keepdims=True))
         points += room
+        spans.append((rows, rows + sum(len(p) for p in room)))
+        rows = spans[-1][1]
         centres.append(np.vstack(room).mean(axis=0))
         if mirrored or scale != 1.0:
             continue
@@ -155,8 +161,9 @@ def floor(data: Path, per_room: int, rooms: list[tuple[str, bool, float]],
         away = [(f'{outside[:20]} {k}', fragments[k], None)
                 for k in sorted(rng.choice(odd, min(per_room, len(odd)), replace=False))]
     return {'points': np.vstack(points), 'normals': np.vstack(normals), 'queries': queries,
-            'outside': away, 'voxel': 0.05, 'right': (15.0, 0.3), 'hint': HINT_RADIUS['floor'],
-            'rooms': len(rooms), 'first_room': centres[0], 'sites': sites, 'sequences': runs}
+            'outside': away, 'voxel': voxel, 'right': (15.0, 0.3), 'hint': HINT_RADIUS['floor'],
+            'rooms': len(rooms), 'first_room': centres[0], 'sites': sites, 'sequences': runs,
+            'spans': spans}
 
 
 def campus(data: Path, seed: int = 0) -> dict:
@@ -244,6 +251,7 @@ def run(name: str, built: dict, kiss: int, out_dir: Path,
                     for i, (label, scans, truth) in enumerate(built.get('sequences', []))]
         rows.append({
             'map': name, 'frame': frame, 'rooms': built['rooms'], 'sequences': runs,
+            'voxel': built['voxel'],
             'queries': len(built['queries']), 'outside': len(built['outside']),
             'raw_points': len(built['points']), 'map_points': len(prepared.features.points),
             'map_places': len(prepared.places) if prepared.places is not None else 0,
@@ -280,13 +288,16 @@ def _tests(places: dict | None) -> dict:
     Return what the places' tests scored (``result.stats['places']``; empty: whole map).
 
     An untested consensus place's inliers are None; ``consensus`` is what the whole map's
-    search found in it.
+    search found in it; ``whole_map``: the whole map's matches' support of the pose and of
+    the consensus (None without a consensus).
     """
     if not places:
-        return {'by': [], 'inliers': [], 'consensus': None, 'registered': None}
+        return {'by': [], 'inliers': [], 'consensus': None, 'registered': None,
+                'whole_map': None}
     return {'by': [p['by'] for p in places['ranked']],
             'inliers': [p['tested_inliers'] for p in places['ranked']],
-            'consensus': places['consensus_inliers'], 'registered': places['registered']}
+            'consensus': places['consensus_inliers'], 'registered': places['registered'],
+            'whole_map': places['whole_map_support']}
 
 
 def outcome(result, truth: np.ndarray | None, limits: tuple[float, float]) -> str:
@@ -317,9 +328,10 @@ def right(T: np.ndarray, truth: np.ndarray, limits: tuple[float, float]) -> bool
 
 def table(rows: list[dict]) -> str:
     """Return the Markdown tables of ``rows``: outcomes and times, then the maps."""
-    lines = ['| map | frame | queries (+ outside) | found / wrong / refused: whole · places · '
-             'hint | outside refused (median s): whole · places | median / p90 s: whole · '
-             'places · hint | whole / places time (median) |', '|---|---|---|---|---|---|---|']
+    lines = ['| map (voxel m) | frame | queries (+ outside) | found / wrong / refused: whole · '
+             'places · hint | outside refused (median s): whole · places | median / p90 s: '
+             'whole · places · hint | whole / places time (median) |',
+             '|---|---|---|---|---|---|---|']
     for r in rows:
         counts = ' · '.join(f"{r[w]['found']} / {r[w]['wrong']} / {r[w]['refused']}"
                             for w in WAYS)
@@ -327,8 +339,8 @@ def table(rows: list[dict]) -> str:
                               for w in WAYS[:2]) if r['outside'] else '')
         times = ' · '.join(f"{r[w]['median_s']:.2f} / {r[w]['p90_s']:.2f}" for w in WAYS)
         queries = f"{r['queries']}" + (f" (+ {r['outside']})" if r['outside'] else '')
-        lines.append(f"| {r['map']} | {r['frame']} | {queries} | {counts} | {outside} "
-                     f"| {times} | {r['ratio']:.2f} |")
+        lines.append(f"| {r['map']} ({r['voxel']:g}) | {r['frame']} | {queries} | {counts} "
+                     f"| {outside} | {times} | {r['ratio']:.2f} |")
     lines += ['', '| map | frame | raw / map points | places | load cold / cached s | cache MB '
               '| max RSS MB | KISS-Matcher right, median s |', '|---|---|---|---|---|---|---|---|']
     for r in rows:
@@ -358,6 +370,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--maps', nargs='+', default=['street', 'floor'],
                         choices=['street', 'floor', 'campus', 'growth'])
     parser.add_argument('--per-room', type=int, default=5, help='queries a room of the floor')
+    parser.add_argument('--floor-voxel', type=float, default=0.05,
+                        help="the four-room floor's voxel (m)")
     parser.add_argument('--kiss', type=int, default=3, help='KISS-Matcher queries a map')
     parser.add_argument('--output', type=Path, default=Path('out/bench/maps'))
     args = parser.parse_args(argv)
@@ -370,8 +384,9 @@ def main(argv: list[str] | None = None) -> int:
         elif name == 'campus':
             rows += run('campus', campus(data), args.kiss, args.output)
         elif name == 'floor':
-            rows += run('floor', floor(data, args.per_room, four_rooms(data),
-                                       sequences=FLOOR_SEQUENCES), args.kiss, args.output)
+            built = floor(data, args.per_room, four_rooms(data), sequences=FLOOR_SEQUENCES,
+                          voxel=args.floor_voxel)
+            rows += run('floor', built, args.kiss, args.output)
         else:
             for rooms in GROWTH:
                 shapes, outside = growth_rooms(data, rooms)

@@ -47,4 +47,6 @@ any other bench module: they may import the tools of :mod:`bench`, never the rev
   (``cgags_ros/pipeline/places.py``), on the maps of ``bench.maps``.
 - :mod:`.submap_index`: a place's submap index cut from the map's cells or fitted to it,
   and the cells' size (``SUBMAP_SHARE``, ``cgags_ros/pipeline/places.py``).
+- :mod:`.room_alone`: each query of ``bench.maps``' four-room floor against the floor and
+  against its own room alone: what the places lose beyond the front end's limit.
 """
