@@ -118,10 +118,37 @@ def test_the_consensus_place_scores_at_least_its_bound_in_its_own_test(floor):
         points, _ = query(scene, 5)
         scan = extract_features(points - points.mean(axis=0), VOXEL, cfg.frontend)
         ranked = prepared.places.rank(scan, VOXEL, TESTED, prepared.features.tree)
-        places, bound = locate._with_consensus(scan, ranked, prepared, cfg)
+        places, bound, _ = locate._with_consensus(scan, ranked, prepared, cfg)
         assert places[0].by == 'consensus' and bound > 0
         part = prepared.places.submap(prepared.features, places[0].rows)
-        assert locate._tested(scan, ranked.keypoints, part, cfg)[0] >= bound
+        assert locate._tested(scan, ranked.keypoints, part, cfg).inliers >= bound
+
+
+def test_a_pose_in_another_room_is_refused_by_the_whole_maps_matches(floor):
+    # A place's registration sees no other room; the whole map's matches see them all.
+    prepared, cfg, _, rooms, query = floor
+    scan_points, truth = query(*QUERY)
+    located = register_clouds(scan_points, prepared, config=cfg)
+    said = located.stats['places']['whole_map_support']
+    assert located.valid and not said['distinct'] and said['pose'] > said['chance_bound'], said
+    scan = extract_features(scan_points, VOXEL, cfg.frontend)
+    ranked = prepared.places.rank(scan, VOXEL, TESTED, prepared.features.tree)
+    _, _, whole = locate._with_consensus(scan, ranked, prepared, cfg)
+    local = make_transform(np.eye(3), -prepared.origin) @ truth
+    assert whole.support(local) >= 10
+    (scene, _), (other, _) = QUERY, next(r for r in rooms.items() if r[0] != QUERY[0])
+    # The same spot in another room: the pose a look-alike surface there would give.
+    elsewhere = make_transform(np.eye(3), -prepared.origin) @ rooms[other][0] @ np.linalg.inv(
+        rooms[scene][0]) @ truth
+    for pose in (local, elsewhere):
+        result = register_clouds(scan_points, prepared, config=cfg)
+        said = locate._judged_elsewhere(result, whole, pose, cfg)
+        assert said['distinct'] is (pose is elsewhere)
+        assert result.valid is (pose is local), result.reason
+    assert said['pose'] <= said['chance_bound'] < said['consensus'], said
+    assert result.refusal.code is Code.AMBIGUOUS
+    assert result.ambiguous
+    assert 'elsewhere' in result.reason
 
 
 def test_a_submap_index_cut_from_the_maps_cells_matches_as_one_fitted_to_it(floor):

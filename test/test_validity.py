@@ -291,6 +291,16 @@ def test_ambiguity_names_the_rival():
         refusal.message)
 
 
+def test_a_place_the_whole_map_backs_no_more_than_chance_is_ambiguous_if_it_backs_another():
+    # Above the chance bound, or no better supported elsewhere: not judged ambiguous.
+    assert validity.elsewhere_refusal(3, 2, 20, 90.0, 30.0, CFG) is None
+    assert validity.elsewhere_refusal(2, 2, 2, 90.0, 30.0, CFG) is None
+    refusal = validity.elsewhere_refusal(2, 2, 5, 90.0, 30.0, CFG)
+    assert refusal.code is Code.AMBIGUOUS
+    assert '90 deg, 30.00 m away' in refusal.message and 'has 2 of them' in refusal.message
+    assert validity.elsewhere_refusal(0, 1, 1, 90.0, 30.0, CFG).code is Code.AMBIGUOUS
+
+
 def test_only_a_collinear_core_refusal_is_left_to_the_gates():
     collinear = Refusal(Code.COLLINEAR, 'the inliers are nearly collinear')
     core = RegistrationResult(inliers=np.arange(20), refusal=collinear)

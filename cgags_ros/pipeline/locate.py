@@ -23,7 +23,13 @@ and the other places' matches drown its own; here:
    result is that registration's, in the map frame as against the whole map; its
    ``map_info`` is the whole map's with the place's beside it, its ``stats['places']`` what
    was ranked and tested (``tested_inliers`` None: not tested; ``consensus_inliers`` the
-   whole map's search's in the consensus place, None without one).
+   whole map's search's in the consensus place, None without one);
+4. **judge elsewhere**: the place's registration sees no other place, and a scan that fits
+   a look-alike surface in a wrong one passes every gate there. The whole map's matches
+   (the consensus search's) count the support of the pose: no more than chance gives it
+   (``gates.significance``), while their consensus, a distinct pose, has more, it is
+   ambiguous (``stats['places']['whole_map_support']``: the counts, the chance bound and
+   whether the poses are distinct; None with a hint, which searches no consensus).
 
 A map within one submap of the scan, or whose best place holds half its points, is
 registered whole, as without places: testing would cost more than it saves. So is a scan too
@@ -39,26 +45,53 @@ from typing import Callable
 import numpy as np
 
 from .cache import cached_features
+from .candidates import distinct
+from .gates import chance_bound, chance_inliers
 from .hint import Hint
 from .map import PreparedMap
 from .places import Place, Ranked, with_tree
 from .result import PipelineResult
 from ..config.pipeline import PipelineConfig
-from ..coordinates import local_origin, moved
+from ..coordinates import local_origin, moved, to_local
 from ..errors import DegenerateCorrespondencesError, EmptyCloudError
 from ..frontend.features import CloudFeatures
 from ..frontend.matching import match_features
-from ..geometry import apply_transform
+from ..geometry import apply_transform, rotation_error_deg, translation_error
 from ..parallel import DEFAULT_WORKERS, map_ordered
 from ..refusal import Refusal, RefusalCode
 from ..registration import register_correspondences, single_blas_thread
 from ..timing import timed
+from ..validity import elsewhere_refusal
 
 TESTED = 3  # places tested a query: its own is among the first three ranked, mostly
 TEST_ITERATIONS = 10_000  # the core's hypotheses a test draws at most
 PLACE_KEYPOINTS = 5000  # scan points matched against the registered place (docs/maps.md)
 
 Register = Callable[[PreparedMap, PipelineConfig], PipelineResult]
+
+
+@dataclasses.dataclass(frozen=True)
+class ShortSearch:
+    """
+    A short search of the scan's keypoints matched against a map or a submap.
+
+    :ivar inliers: the consensus's size; ``transform`` its pose (scan -> map, local
+        frames), ``rows`` the map rows of its inliers.
+    :ivar source, target: the matched keypoints and their map points (local frames), and
+        ``tau`` the search's inlier threshold: what :meth:`support` counts on.
+    """
+
+    inliers: int
+    transform: np.ndarray
+    rows: np.ndarray
+    source: np.ndarray
+    target: np.ndarray
+    tau: float
+
+    def support(self, transform: np.ndarray) -> int:
+        """Return how many of the matches ``transform`` brings within ``tau``."""
+        moved = apply_transform(transform, self.source)
+        return int(np.count_nonzero(np.linalg.norm(moved - self.target, axis=1) < self.tau))
 
 
 def locate(src: np.ndarray, prepared: PreparedMap, cfg: PipelineConfig, hint: Hint | None,
@@ -88,8 +121,8 @@ def locate(src: np.ndarray, prepared: PreparedMap, cfg: PipelineConfig, hint: Hi
     if not ranked.places:
         return _uncovered(prepared, cfg, hint, start)
     with timed(timings, 'places_test'), single_blas_thread():
-        places, bound = (_with_consensus(scan, ranked, prepared, cfg) if hint is None
-                         else (ranked.places, None))
+        places, bound, whole = (_with_consensus(scan, ranked, prepared, cfg) if hint is None
+                                else (ranked.places, None, None))
         if len(places) == 1:  # a hint covering one place: nothing to rank, nothing to test
             parts = [prepared.places.submap(prepared.features, places[0].rows)]
             scores = [None]
@@ -99,10 +132,43 @@ def locate(src: np.ndarray, prepared: PreparedMap, cfg: PipelineConfig, hint: Hi
     best = (int(np.argmax([bound if s is None else s for s in scores])) if len(parts) > 1
             else 0)
     result = register(prepared.part(with_tree(parts[best])), _bounded(cfg))
+    said = (None if whole is None or whole.inliers == 0
+            else _judged_elsewhere(result, whole, to_local(result.transform, origin,
+                                                           prepared.origin), cfg))
     result.stats['places'] = {'ranked': [_summary(prepared, p, s)
                                          for p, s in zip(places, scores)],
-                              'consensus_inliers': bound, 'registered': best}
+                              'consensus_inliers': bound, 'registered': best,
+                              'whole_map_support': said}
     return _noted(result, prepared, places[best], scores[best], timings, start)
+
+
+def _judged_elsewhere(result: PipelineResult, whole: ShortSearch, pose: np.ndarray,
+                      cfg: PipelineConfig) -> dict:
+    """
+    Refuse ``result`` when the whole map's matches back its ``pose`` no more than chance.
+
+    ``pose``: the result's, in the local frames. Returns what the whole map's matches
+    said: their support of the pose, the most chance gives it
+    (:func:`~.gates.chance_bound` of one pose), their consensus's support, and whether
+    the two poses are distinct (:func:`~.candidates.distinct`); only a valid result is
+    judged (:func:`~cgags_ros.validity.elsewhere_refusal`), and only with the chance gate
+    on (``gates.significance`` 0: no bound, None).
+    """
+    gated = cfg.gates.significance > 0
+    said = {'pose': whole.support(pose),
+            'chance_bound': (chance_bound(chance_inliers(whole.source, whole.target, pose,
+                                                         whole.tau),
+                                          1, cfg.gates.significance, members=0)
+                             if gated else None),
+            'consensus': whole.support(whole.transform),
+            'distinct': distinct(pose, whole.transform, cfg)}
+    if gated and result.valid and said['distinct']:
+        refusal = elsewhere_refusal(said['pose'], said['chance_bound'], said['consensus'],
+                                    rotation_error_deg(pose, whole.transform),
+                                    translation_error(pose, whole.transform), cfg)
+        if refusal is not None:
+            result.refusal, result.ambiguous = refusal, True
+    return said
 
 
 def _bounded(cfg: PipelineConfig) -> PipelineConfig:
@@ -112,9 +178,9 @@ def _bounded(cfg: PipelineConfig) -> PipelineConfig:
 
 
 def _with_consensus(scan: CloudFeatures, ranked: Ranked, prepared: PreparedMap,
-                    cfg: PipelineConfig) -> tuple[list[Place], int | None]:
+                    cfg: PipelineConfig) -> tuple[list[Place], int | None, ShortSearch]:
     """
-    Return the places to test, the whole map's consensus place first, and that place's bound.
+    Return the places to test, the whole map's consensus place first, its bound, the search.
 
     The scan's keypoints matched against the whole map and searched briefly put it where
     the most of them agree; that place is tested with the best voted ones not near it. Its
@@ -122,15 +188,15 @@ def _with_consensus(scan: CloudFeatures, ranked: Ranked, prepared: PreparedMap,
     (the whole map's mutual matches that land in a submap are among the submap's), so it
     needs no test unless another place scores more. No consensus: the voted places, None.
     """
-    inliers, T, targets = _tested(scan, ranked.keypoints, prepared.features, cfg)
-    if inliers == 0:
-        return ranked.places, None
-    centre = apply_transform(T, scan.points.mean(axis=0)[None])[0]
+    whole = _tested(scan, ranked.keypoints, prepared.features, cfg)
+    if whole.inliers == 0:
+        return ranked.places, None, whole
+    centre = apply_transform(whole.transform, scan.points.mean(axis=0)[None])[0]
     near = prepared.places.near(ranked.reach)
     voted = [p for p in ranked.places if np.linalg.norm(p.centre - centre) > near]
     place = prepared.places.place_at(centre, ranked.reach, prepared.features.tree)
-    bound = int(np.count_nonzero(np.isin(targets, place.rows)))
-    return [place, *voted][:TESTED], bound
+    bound = int(np.count_nonzero(np.isin(whole.rows, place.rows)))
+    return [place, *voted][:TESTED], bound, whole
 
 
 def _test_all(scan: CloudFeatures, keypoints: np.ndarray, prepared: PreparedMap,
@@ -147,32 +213,33 @@ def _test_all(scan: CloudFeatures, keypoints: np.ndarray, prepared: PreparedMap,
         part = prepared.places.submap(prepared.features, place.rows)
         if bound is not None and place is places[0]:
             return part, None
-        return part, _tested(scan, keypoints, part, cfg, 1)[0]
+        return part, _tested(scan, keypoints, part, cfg, 1).inliers
 
     tested = map_ordered(test, places, DEFAULT_WORKERS)
     parts, scores = [t[0] for t in tested], [t[1] for t in tested]
     if bound is not None and max(scores[1:]) > bound:
-        scores[0] = _tested(scan, keypoints, parts[0], cfg)[0]
+        scores[0] = _tested(scan, keypoints, parts[0], cfg).inliers
     return parts, scores
 
 
 def _tested(scan: CloudFeatures, keypoints: np.ndarray, part: CloudFeatures,
-            cfg: PipelineConfig,
-            workers: int = DEFAULT_WORKERS) -> tuple[int, np.ndarray, np.ndarray]:
-    """Return a short search of the keypoints' matches in ``part``: inliers, pose, their rows."""
+            cfg: PipelineConfig, workers: int = DEFAULT_WORKERS) -> ShortSearch:
+    """Return a short search of the keypoints' matches in ``part``."""
     corr = match_features(scan.descriptors[keypoints], part.descriptors, cfg.frontend,
                           workers, part.descriptor_index(workers))
     core = dataclasses.replace(cfg.core,
                                max_iterations=min(cfg.core.max_iterations, TEST_ITERATIONS))
+    source, target = scan.points[keypoints[corr.source_index]], part.points[corr.target_index]
     try:
         found = register_correspondences(
-            scan.points[keypoints[corr.source_index]], part.points[corr.target_index],
-            inlier_threshold=cfg.core.inlier_threshold or None,
+            source, target, inlier_threshold=cfg.core.inlier_threshold or None,
             resolution=0.5 * (scan.resolution + part.resolution), config=core, seed=cfg.seed,
             workers=workers)
     except DegenerateCorrespondencesError:
-        return 0, np.eye(4), np.zeros(0, dtype=np.int64)
-    return int(found.num_inliers), found.transform, corr.target_index[found.inliers]
+        return ShortSearch(0, np.eye(4), np.zeros(0, dtype=np.int64), source, target, 0.0)
+    return ShortSearch(int(found.num_inliers), found.transform,
+                       corr.target_index[found.inliers], source, target,
+                       float(found.inlier_threshold))
 
 
 def _summary(prepared: PreparedMap, place: Place, score: int | None) -> dict:

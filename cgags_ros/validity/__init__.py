@@ -14,8 +14,10 @@ tilt in 4-DoF mode: :mod:`.consensus`); then, on the refined estimate, too littl
 surface (or an unalike one), chance-level inliers, a degenerate axis, low fitness, a
 free-space violation, a tilt, surfaces in the free space both sensors saw (:mod:`.shared`);
 an ambiguity among the candidates overrides all but the shared surface (also said of
-the core's ambiguity or chance level). The node adds stricter guards
-(:func:`quality_refusal`).
+the core's ambiguity or chance level). A pose found in one place of a map is then also
+ambiguous when the whole map's matches back it no more than chance and another pose more
+(:func:`elsewhere_refusal`).
+The node adds stricter guards (:func:`quality_refusal`).
 
 Ambiguity is decided here only: the stages that propose other poses (the correspondences'
 candidates, the estimate's twins: :mod:`cgags_ros.pipeline.settle`) measure them, and the
@@ -291,6 +293,28 @@ def ambiguity_refusal(e: Estimate, cfg: PipelineConfig) -> Refusal | None:
         f'{runner.num_inliers} inliers against {best.num_inliers} of the best (within '
         f'gates.ambiguity_ratio {cfg.gates.ambiguity_ratio:g}){geometry}; the scene looks '
         'alike in both poses'))
+
+
+def elsewhere_refusal(support: int, bound: float, elsewhere: int, turned_deg: float,
+                      moved_m: float, cfg: PipelineConfig) -> Refusal | None:
+    """
+    Return why a pose found in one place of a map is ambiguous with another, or None.
+
+    A place's registration sees no other place. The scan's keypoints matched against the
+    whole map support its pose with ``support`` matches, no more than chance gives when at
+    most ``bound`` (:func:`~cgags_ros.pipeline.gates.chance_bound` of one pose at
+    ``gates.significance``), and a distinct pose, ``turned_deg`` and ``moved_m`` from it,
+    with ``elsewhere``: a pose the whole map backs no more than chance while it backs
+    another more is a look-alike surface fitted in the wrong place, which passes every gate
+    of its own (docs/maps.md, the judgement).
+    """
+    if support > bound or elsewhere <= support:
+        return None
+    return Refusal(Code.AMBIGUOUS, (
+        f"the whole map's matches put the scan elsewhere: its pose has {support} of them, "
+        f'no more than chance gives ({bound:g} at gates.significance '
+        f'{cfg.gates.significance:g}), a distinct pose ({turned_deg:.0f} deg, {moved_m:.2f} m '
+        f'away) {elsewhere}; the places look alike'))
 
 
 # --- the relocalizer over a few scans -----------------------------------------------------
