@@ -56,8 +56,9 @@ class GatesConfig:
     significance: float = option(
         0.01, 'Chance-inlier gate: the estimate is invalid unless its inlier count is above '
         'what the best of the generated hypotheses would reach with probability '
-        '`significance` if every correspondence were an outlier (Poisson model of the '
-        'correspondences that fall within tau of the estimate by chance). 0 disables.',
+        '`significance` if every correspondence were an outlier (Poisson model). A pose in '
+        "one place of a prepared map is ambiguous when the whole map's matches back it no "
+        'more than chance and another pose more (docs/maps.md). 0 disables both.',
         low=0.0, high=1.0)
     min_shared_area: float = option(
         480.0, 'Shared-surface gate: the estimate is invalid when the surface the clouds share '
