@@ -1,7 +1,7 @@
 r"""
 What places lose: each query of the four-room floor against the floor and against its room alone.
 
-Run by hand from the repository root (~3 min a voxel at 10 queries a room)::
+Run by hand from the repository root (about a minute a voxel at 10 queries a room)::
 
     .venv/bin/python -m bench.studies.room_alone [--per-room 10] [--voxels 0.05 0.075]
 
