@@ -51,6 +51,7 @@ from .hint import Hint
 from .map import PreparedMap
 from .places import Place, Ranked, with_tree
 from .result import PipelineResult
+from .settle import support
 from ..config.pipeline import PipelineConfig
 from ..coordinates import local_origin, moved, to_local
 from ..errors import DegenerateCorrespondencesError, EmptyCloudError
@@ -90,8 +91,7 @@ class ShortSearch:
 
     def support(self, transform: np.ndarray) -> int:
         """Return how many of the matches ``transform`` brings within ``tau``."""
-        moved = apply_transform(transform, self.source)
-        return int(np.count_nonzero(np.linalg.norm(moved - self.target, axis=1) < self.tau))
+        return int(np.count_nonzero(support(self.source, self.target, transform, self.tau)))
 
 
 def locate(src: np.ndarray, prepared: PreparedMap, cfg: PipelineConfig, hint: Hint | None,

@@ -16,8 +16,7 @@ free-space violation, a tilt, surfaces in the free space both sensors saw (:mod:
 an ambiguity among the candidates overrides all but the shared surface (also said of
 the core's ambiguity or chance level). A pose found in one place of a map is then also
 ambiguous when the whole map's matches back it no more than chance and another pose more
-(:func:`elsewhere_refusal`).
-The node adds stricter guards (:func:`quality_refusal`).
+(:func:`elsewhere_refusal`). The node adds stricter guards (:func:`quality_refusal`).
 
 Ambiguity is decided here only: the stages that propose other poses (the correspondences'
 candidates, the estimate's twins: :mod:`cgags_ros.pipeline.settle`) measure them, and the
