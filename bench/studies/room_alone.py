@@ -3,7 +3,8 @@ What places lose: each query of the four-room floor against the floor and agains
 
 Run by hand from the repository root (about a minute a voxel at 10 queries a room)::
 
-    .venv/bin/python -m bench.studies.room_alone [--per-room 10] [--voxels 0.05 0.075]
+    .venv/bin/python -m bench.studies.room_alone [--per-room 10] [--voxels 0.05 0.075] \
+        [--set frontend.fpfh_radius_factor=4]
 
 The floor is ``bench.maps``' four-room floor (its rooms 30 m apart, the queries held-out odd
 fragments). Each query is registered onto the prepared floor (its places ranked, tested and
@@ -11,7 +12,8 @@ one registered) and onto a map of its own room alone (the same points and normal
 on their own: a map within one place, registered whole). The room alone is what the front
 end and the gates find with the place known and the room whole: the most the floor's places
 could find. Prints, per voxel, found / wrong / refused each way and the queries the two ways
-answer differently.
+answer differently. ``--set`` changes a parameter for both ways (a front-end one changes the
+map's features too: each setting is prepared on its own).
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from __future__ import annotations
 from pathlib import Path
 import tempfile
 
-from bench.common import argument_parser
+from bench.common import add_set_option, argument_parser, parse_overrides
 import bench.maps as built_maps
 from cgags_ros.config import pipeline_config_from
 from cgags_ros.io.clouds import write_cloud
@@ -28,9 +30,10 @@ from cgags_ros.pipeline import clear_feature_cache, register_clouds
 from cgags_ros.pipeline.map import load_map
 
 
-def outcomes(built: dict, voxel: float, tmp: Path) -> dict[str, list[str]]:
+def outcomes(built: dict, voxel: float, tmp: Path,
+             overrides: dict | None = None) -> dict[str, list[str]]:
     """Return each query's outcome on the floor's places and on its room alone."""
-    cfg = pipeline_config_from({'voxel_size': voxel})
+    cfg = pipeline_config_from({'voxel_size': voxel, **(overrides or {})})
     scenes = [scene for scene, _, _ in built['sites']]
     paths = {'floor': tmp / 'floor.ply'}
     write_cloud(paths['floor'], built['points'], built['normals'])
@@ -53,13 +56,15 @@ def main(argv: list[str] | None = None) -> int:
     parser = argument_parser('bench.studies.room_alone', __doc__)
     parser.add_argument('--per-room', type=int, default=10, help='queries a room')
     parser.add_argument('--voxels', type=float, nargs='+', default=[0.05, 0.075])
+    add_set_option(parser)
     args = parser.parse_args(argv)
+    overrides = parse_overrides(args.set)
     data = shared_data_dir()
     built = built_maps.floor(data, args.per_room, built_maps.four_rooms(data))
     labels = [label for label, _, _ in built['queries']]
     for voxel in args.voxels:
         with tempfile.TemporaryDirectory() as tmp:
-            got = outcomes(built, voxel, Path(tmp))
+            got = outcomes(built, voxel, Path(tmp), overrides)
         for way, seen in got.items():
             print(f'voxel {voxel:g} {way:10s}: found {seen.count("found")} wrong '
                   f'{seen.count("WRONG")} refused {seen.count("refused")} of {len(seen)}')
