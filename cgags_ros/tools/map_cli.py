@@ -36,7 +36,7 @@ cgags-relocalize and cgags-replay read with --map-cache-dir; give the same --vox
 --config/--set of the front end) they will use, or they compute the features again under
 their own settings. A map wants the voxel of the scans that query it, not of its own size:
 cgags-relocalize MAP SCAN chooses and prints it; without --voxel-size, prepare uses the
-default ({PipelineConfig().voxel_size:g} m, the node's too) and says so (docs/maps.md).
+default ({PipelineConfig().voxel_size:g} m, the node's too) and says so (docs/map_voxel.md).
 """
 
 

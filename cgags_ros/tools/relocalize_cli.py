@@ -36,7 +36,7 @@ normals facing the sensors that saw each surface (as mappers write them) signs t
 frame when that scan was taken (p_odom = R p_sensor + t); needed with more than one scan.
 The transform maps the last scan used into the map: p_map = R p_scan + t.
 Without --voxel-size (or voxel_size in --config/--set) the scans choose it: the median voxel
-that leaves each about {MAP_SCAN_VOXELS} voxels (printed; docs/maps.md, the voxel for a map).
+that leaves each about {MAP_SCAN_VOXELS} voxels (printed; docs/map_voxel.md).
 Prepare the map (cgags-map prepare) and start the node with that voxel.
 Exit status: 0 confirmed, {EXIT_NOT_CONFIRMED} not confirmed (see 'refusal': code and message,
 docs/refusals.md), {EXIT_ERROR} bad input or option.

@@ -27,7 +27,7 @@ Voxel size (metres), first match wins: ``--voxel-size``; ``--set voxel_size=V``;
 the voxel at which it keeps about 5000 points after voxel downsampling (rounded to two
 significant digits; 2.5 mm for the bunny, 5 cm for the redkitchen fragment, 0.3 m for the
 LiDAR scan). With ``--map``, :func:`map_voxel_size` of the first source scans: the median
-voxel at which each keeps about 2000 (a map wants its scans' voxel, docs/maps.md). The
+voxel at which each keeps about 2000 (a map wants its scans' voxel, docs/map_voxel.md). The
 chosen value is printed.
 
 Broken messages (undeserializable, or a PointCloud2 that cannot be decoded) are reported,
