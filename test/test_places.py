@@ -21,6 +21,7 @@ from cgags_ros.geometry import apply_transform, make_transform, rotation_error_d
 from cgags_ros.geometry import translation_error
 from cgags_ros.io.clouds import write_cloud
 from cgags_ros.pipeline import locate, register_clouds
+from cgags_ros.pipeline.confidence import refused_at_most
 from cgags_ros.pipeline.hint import Hint, HINT_SIGMAS
 from cgags_ros.pipeline.locate import TESTED
 from cgags_ros.pipeline.map import load_map
@@ -149,6 +150,7 @@ def test_a_pose_in_another_room_is_refused_by_the_whole_maps_matches(floor):
     assert result.refusal.code is Code.AMBIGUOUS
     assert result.ambiguous
     assert 'elsewhere' in result.reason
+    assert result.confidence <= refused_at_most(Code.AMBIGUOUS.value)  # as the gates cap it
 
 
 def test_a_submap_index_cut_from_the_maps_cells_matches_as_one_fitted_to_it(floor):

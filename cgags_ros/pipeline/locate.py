@@ -46,6 +46,7 @@ import numpy as np
 
 from .cache import cached_features
 from .candidates import distinct
+from .confidence import refused_at_most
 from .gates import chance_bound, chance_inliers
 from .hint import Hint
 from .map import PreparedMap
@@ -152,7 +153,8 @@ def _judged_elsewhere(result: PipelineResult, whole: ShortSearch, pose: np.ndarr
     (:func:`~.gates.chance_bound` of one pose), their consensus's support, and whether
     the two poses are distinct (:func:`~.candidates.distinct`); only a valid result is
     judged (:func:`~cgags_ros.validity.elsewhere_refusal`), and only with the chance gate
-    on (``gates.significance`` 0: no bound, None).
+    on (``gates.significance`` 0: no bound, None). A refused result's confidence is capped
+    as the gates' refusals' are (:func:`~.confidence.refused_at_most`).
     """
     gated = cfg.gates.significance > 0
     said = {'pose': whole.support(pose),
@@ -166,8 +168,9 @@ def _judged_elsewhere(result: PipelineResult, whole: ShortSearch, pose: np.ndarr
         refusal = elsewhere_refusal(said['pose'], said['chance_bound'], said['consensus'],
                                     rotation_error_deg(pose, whole.transform),
                                     translation_error(pose, whole.transform), cfg)
-        if refusal is not None:
+        if refusal is not None:  # its confidence then says no more, as for the gates' refusals
             result.refusal, result.ambiguous = refusal, True
+            result.confidence = min(result.confidence, refused_at_most(refusal.code.value))
     return said
 
 
