@@ -77,10 +77,10 @@ def test_a_named_tuple_with_a_wrong_field_raises():
     index = DescriptorIndex(np.random.default_rng(2).random((300, 33)))
     queries = np.random.default_rng(3).random((4, 33))
     found, dist = np.empty((4, 1), np.int64), np.empty((4, 1))
-    compiled.search(index.arrays, queries, 1, found, dist)
+    compiled.search(index.arrays, queries, 1, 0, found, dist)
     wrong_index = index.arrays._replace(points=np.asfortranarray(index.arrays.points))
     with pytest.raises(TypeError):
-        compiled.search(wrong_index, queries, 1, found, dist)
+        compiled.search(wrong_index, queries, 1, 0, found, dist)
     assert all(len(fn.signatures) == 1 for fn in _compiled_functions())
 
 

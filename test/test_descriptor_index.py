@@ -80,6 +80,31 @@ def test_index_result_independent_of_seed_and_workers():
     np.testing.assert_array_equal(a, c)
 
 
+def test_a_search_of_the_nearest_cells_answers_the_nearest_of_their_members():
+    rng = np.random.default_rng(5)
+    ref, query = _clustered(rng, 3000), _clustered(rng, 400)
+    index = DescriptorIndex(ref, workers=2)
+    arrays = index.arrays
+    exact = index.query(query, 2, 2)[0]
+    np.testing.assert_array_equal(index.query(query, 2, 2, cells=len(index.centres))[0], exact)
+    for cells in (1, 3):
+        for k in (1, 2):
+            got, dist = index.query(query, k, 2, cells)
+            for i, q in enumerate(query):
+                # the cells nearest the query's, as many as asked and enough to hold k rows
+                near = np.argsort(((arrays.centres - q) ** 2).sum(axis=1), kind='stable')
+                sizes = np.diff(arrays.starts)[near]
+                visited = near[:max(cells, int(np.searchsorted(np.cumsum(sizes), k)) + 1)]
+                members = np.sort(np.concatenate(
+                    [arrays.order[arrays.starts[j]:arrays.starts[j + 1]] for j in visited]))
+                np.testing.assert_array_equal(got[i], members[_brute(q[None], ref[members], k)[0]])
+            np.testing.assert_allclose(dist, np.linalg.norm(query[:, None] - ref[got], axis=2))
+            assert (dist >= index.query(query, k)[1] - 1e-12).all()
+        assert (index.query(query, 1, 2, cells)[0] != exact[:, :1]).any()  # approximate
+    with pytest.raises(ValueError):
+        index.query(query, 1, cells=-1)
+
+
 def test_index_of_identical_rows_and_tiny_references():
     same = np.ones((300, 5))
     np.testing.assert_array_equal(DescriptorIndex(same).query(same, 2)[0][:, :2],

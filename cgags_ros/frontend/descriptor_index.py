@@ -5,7 +5,9 @@ Brute force compares every source descriptor with every target descriptor, so it
 grows with source x target points. This index (k-means cells with exact pruning bounds,
 compiled in :mod:`.compiled.descriptor_index`) answers the same queries, exactly, while
 computing a small share of those distances; a latched target or a map builds it once and reuses it
-(:meth:`~.features.CloudFeatures.descriptor_index`).
+(:meth:`~.features.CloudFeatures.descriptor_index`). Asked to, it searches only the cells
+nearest each query: approximate, for a search that needs most right matches, not all (a
+map's consensus search, docs/maps.md).
 """
 
 from __future__ import annotations
@@ -35,7 +37,8 @@ class DescriptorIndex:
 
     The answer equals brute force: nearest first by Euclidean distance (float64), ties to
     the lower reference row. The k-means partition only decides how fast it is found; it is
-    seeded, so building is deterministic too.
+    seeded, so building is deterministic too. :meth:`query` with ``cells`` searches only the
+    nearest cells instead: approximate, and deterministic as well.
     """
 
     def __init__(self, reference: np.ndarray, workers: int = 1, seed: int = 0,
@@ -131,21 +134,27 @@ class DescriptorIndex:
         index.rows = arrays.get('rows')
         return index
 
-    def query(self, queries: np.ndarray, k: int = 1,
-              workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    def query(self, queries: np.ndarray, k: int = 1, workers: int = 1,
+              cells: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """
         Return the (len(queries), k) reference rows nearest each query and their distances.
 
         ``k`` is 1 or 2 (the index holds at least k rows); ``workers`` threads share the
-        queries, with the same result for any number of them.
+        queries, with the same result for any number of them. ``cells`` > 0 makes the search
+        approximate: it visits that many cells, nearest centre first (more only until it has
+        ``k`` rows), and answers the nearest of their members; 0, every cell a bound does not
+        rule out: exact.
         """
+        if cells < 0:
+            raise ValueError(f'cells must be 0 (exact) or positive, got {cells}')
         if k not in (1, 2) or k > self.size:
             raise ValueError(f'k must be 1 or 2 and at most {self.size}, got {k}')
         q = c_array(queries, np.float64).reshape(-1, self.dim)
         index = np.empty((len(q), k), dtype=np.int64)
         dist = np.empty((len(q), k))
-        run_chunks(lambda a, b: compiled.search(self.arrays, q[a:b], k, index[a:b], dist[a:b]),
-                   len(q), workers)
+        run_chunks(
+            lambda a, b: compiled.search(self.arrays, q[a:b], k, cells, index[a:b], dist[a:b]),
+            len(q), workers)
         return index, dist
 
     def is_nearest(self, queries: np.ndarray, rows: np.ndarray, workers: int = 1) -> np.ndarray:

@@ -37,7 +37,8 @@ class Correspondences:
 
 def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfig,
                    workers: int = 1, target_index: DescriptorIndex | None = None, *,
-                   mutual: bool = True, ratio: float = 1.0) -> Correspondences:
+                   mutual: bool = True, ratio: float = 1.0,
+                   cells: int = 0) -> Correspondences:
     """
     Match descriptors by nearest neighbour, source -> target, best first.
 
@@ -50,7 +51,10 @@ def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfi
     float64); among exactly equidistant descriptors the lowest index wins. ``workers``
     threads share the rows; the result does not depend on it. ``target_index`` is
     :func:`informative_index` of ``target``, when the caller keeps one (a latched target,
-    a map); it is built here otherwise. Either way the result is the same.
+    a map); it is built here otherwise. Either way the result is the same. ``cells`` > 0
+    searches only that many of the target index's cells nearest each source descriptor
+    (:meth:`~.descriptor_index.DescriptorIndex.query`): an approximate nearest neighbour,
+    for a search that needs most right matches, not all; the mutual check stays exact.
     """
     src_ok = np.flatnonzero(_informative(source))
     # A kept index knows its target's informative rows: a map's are not scanned again.
@@ -65,7 +69,7 @@ def match_features(source: np.ndarray, target: np.ndarray, config: FrontEndConfi
         raise ValueError(f'target_index holds {target_index.size} rows, the target '
                          f'{len(dst_ok)} informative ones: not an index of this target')
     k = 2 if ratio < 1.0 and len(dst_ok) > 1 else 1
-    nn = target_index.query(src, k, workers)[0]
+    nn = target_index.query(src, k, workers, cells)[0]
     # The index's own distances can differ in the last bit (another summation order); these
     # keep the best-first order of equal-looking matches what it always was.
     # Rows are read where they are: a map's target is large and need not be copied whole.

@@ -14,8 +14,9 @@ and the other places' matches drown its own; here:
    most ``TEST_ITERATIONS`` hypotheses (the places side by side, a thread each): its own
    place gives a consensus within a few hundred, a wrong one none that stands out. The
    consensus place is tested only when another scores more than the whole map's search
-   found in it, which its own test reaches anyway. A hint that leaves one place leaves
-   nothing to test;
+   found in it, which its own test reaches anyway (or nearly: that search matches each
+   keypoint in the nearest few of the map's descriptor cells, ``CONSENSUS_CELLS``, not
+   exactly). A hint that leaves one place leaves nothing to test;
 3. **register**: the place with the largest consensus goes through the whole pipeline as
    a map of its own (its submap, in the map's local frame), matching at most
    ``PLACE_KEYPOINTS`` of the scan's points (unless ``frontend.max_keypoints`` bounds them:
@@ -68,6 +69,9 @@ from ..validity import elsewhere_refusal
 TESTED = 3  # places tested a query: its own is among the first three ranked, mostly
 TEST_ITERATIONS = 10_000  # the core's hypotheses a test draws at most
 PLACE_KEYPOINTS = 5000  # scan points matched against the registered place (docs/maps.md)
+# The cells of the whole map's descriptor index a keypoint's consensus match visits, nearest
+# centre first: nearly every exact match for a fraction of the exact search (docs/maps.md).
+CONSENSUS_CELLS = 8
 
 Register = Callable[[PreparedMap, PipelineConfig], PipelineResult]
 
@@ -187,11 +191,12 @@ def _with_consensus(scan: CloudFeatures, ranked: Ranked, prepared: PreparedMap,
 
     The scan's keypoints matched against the whole map and searched briefly put it where
     the most of them agree; that place is tested with the best voted ones not near it. Its
-    bound is the consensus's inliers that lie in it: its own test scores at least as many
-    (the whole map's mutual matches that land in a submap are among the submap's), so it
-    needs no test unless another place scores more. No consensus: the voted places, None.
+    bound is the consensus's inliers that lie in it: its own test scores about as many or
+    more (the whole map's mutual matches that land in a submap are among the submap's, but
+    for the few whose nearest row the approximate search, ``CONSENSUS_CELLS``, missed), so
+    it needs no test unless another place scores more. No consensus: the voted places, None.
     """
-    whole = _tested(scan, ranked.keypoints, prepared.features, cfg)
+    whole = _tested(scan, ranked.keypoints, prepared.features, cfg, cells=CONSENSUS_CELLS)
     if whole.inliers == 0:
         return ranked.places, None, whole
     centre = apply_transform(whole.transform, scan.points.mean(axis=0)[None])[0]
@@ -226,10 +231,15 @@ def _test_all(scan: CloudFeatures, keypoints: np.ndarray, prepared: PreparedMap,
 
 
 def _tested(scan: CloudFeatures, keypoints: np.ndarray, part: CloudFeatures,
-            cfg: PipelineConfig, workers: int = DEFAULT_WORKERS) -> ShortSearch:
-    """Return a short search of the keypoints' matches in ``part``."""
+            cfg: PipelineConfig, workers: int = DEFAULT_WORKERS, cells: int = 0) -> ShortSearch:
+    """
+    Return a short search of the keypoints' matches in ``part``.
+
+    ``cells`` > 0: the matches are approximate nearest neighbours, each searched in that
+    many of the part's descriptor cells (:func:`~..frontend.matching.match_features`).
+    """
     corr = match_features(scan.descriptors[keypoints], part.descriptors, cfg.frontend,
-                          workers, part.descriptor_index(workers))
+                          workers, part.descriptor_index(workers), cells=cells)
     core = dataclasses.replace(cfg.core,
                                max_iterations=min(cfg.core.max_iterations, TEST_ITERATIONS))
     source, target = scan.points[keypoints[corr.source_index]], part.points[corr.target_index]

@@ -7,7 +7,8 @@ cells by k-means (:func:`kmeans`, :func:`assign`); a query visits the cells near
 and skips a cell when a lower bound on the distance to any of its members already exceeds
 the k-th best distance found (:func:`search`). The bounds are exact, so the search returns
 what brute force would, at a fraction of its distance computations (measurements in
-docs/design.md, "Front end").
+docs/design.md, "Front end"); asked to, it visits only the few nearest cells instead, an
+approximate answer at a fraction of that (a map's consensus search, docs/maps.md).
 
 Distances are float64 sums of squared differences in dimension order; they are compared as
 squares and ties go to the lower reference row. Every function is ``nogil`` (the caller
@@ -125,15 +126,17 @@ def _screen_limit(b2, slack):
     return r * r
 
 
-@njit((INDEX_ARRAYS, SCRATCH, F64_1D, INT, FLOAT, INT, FLOAT, INT, BOOL), cache=True,
+@njit((INDEX_ARRAYS, SCRATCH, F64_1D, INT, FLOAT, INT, FLOAT, INT, BOOL, INT), cache=True,
       nogil=True)
-def _nearest(index, scratch, q, k, d1, i1, d2, i2, stop_when_beaten):
+def _nearest(index, scratch, q, k, d1, i1, d2, i2, stop_when_beaten, cells):
     """
     Return ``(d1, i1, d2, i2)``: the squared distances and rows of the ``k`` nearest to ``q``.
 
     The search starts from the given best (``d1``, ``i1``) and second (``d2``, ``i2``) and
     only looks for rows that beat them; with ``stop_when_beaten`` it returns as soon as one
-    row beats the first.
+    row beats the first. ``cells`` > 0 visits no more cells, nearest centre first, once
+    ``k`` rows are found: the rows found are then the nearest among those cells' members,
+    not necessarily the nearest of all.
     """
     (centres, centresT, centre_gap, radius, starts, ring, points, basis, projectedT, max_norm,
      order, _) = index
@@ -160,6 +163,8 @@ def _nearest(index, scratch, q, k, d1, i1, d2, i2, stop_when_beaten):
     c0 = visit[0]
     start = i1
     for v in range(ncell):
+        if 0 < cells <= v and (i2 if k == 2 else i1) >= 0:
+            break
         j = visit[v]
         b2 = d1 if k == 1 else d2  # squared k-th best so far
         b = np.sqrt(b2)
@@ -222,10 +227,10 @@ def _scratch(index):
                    np.empty(nrow, np.float32), np.empty(nrow, np.int64))
 
 
-@njit((INDEX_ARRAYS, F64_2D, INT, I64_2D, F64_2D), cache=True, nogil=True)
-def search(index, queries, k, out_index, out_dist):
+@njit((INDEX_ARRAYS, F64_2D, INT, INT, I64_2D, F64_2D), cache=True, nogil=True)
+def search(index, queries, k, cells, out_index, out_dist):
     """
-    Find the ``k`` (1 or 2) nearest reference rows of each query, exactly (see module doc).
+    Find the ``k`` (1 or 2) nearest reference rows of each query (see module doc).
 
     Reference rows are stored by cell (``index.starts``: cell j holds rows starts[j] ..
     starts[j+1] of ``index.points``, M x dim) and within a cell by ``ring``, their distance
@@ -238,11 +243,14 @@ def search(index, queries, k, out_index, out_dist):
     (``basis``, orthonormal rows; ``projectedT`` = basis @ points.T in float32), which
     never exceeds the full distance up to the float32 rounding the screen allows for
     (``max_norm``: the largest reference row norm); only the members that pass get their
-    exact distance.
+    exact distance. The answer is exact with ``cells`` 0; ``cells`` > 0 visits that many
+    cells (nearest centre first, more only until ``k`` rows are found): an approximate
+    search, the nearest among those cells' members.
     """
     scratch = _scratch(index)
     for i in range(queries.shape[0]):
-        d1, i1, d2, i2 = _nearest(index, scratch, queries[i], k, np.inf, -1, np.inf, -1, False)
+        d1, i1, d2, i2 = _nearest(index, scratch, queries[i], k, np.inf, -1, np.inf, -1, False,
+                                  cells)
         out_index[i, 0] = i1
         out_dist[i, 0] = np.sqrt(d1)
         if k == 2:
@@ -265,5 +273,5 @@ def nearest_is(index, queries, rows, out):
         row = rows[i]
         # its stored copy, as search would compute
         s = _squared(q, index.points, index.slot_of[row])
-        _, i1, _, _ = _nearest(index, scratch, q, 1, s, row, np.inf, -1, True)
+        _, i1, _, _ = _nearest(index, scratch, q, 1, s, row, np.inf, -1, True, 0)
         out[i] = i1 == row
