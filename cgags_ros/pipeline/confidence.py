@@ -40,6 +40,11 @@ def refused_at_most(code: str) -> float:
     return fitted.REFUSED_RIGHT.get(code, fitted.REFUSED_RIGHT_OTHER)
 
 
+def capped(confidence: float, code: str) -> float:
+    """Return ``confidence`` for an estimate refused as ``code``: ``refused_at_most`` at most."""
+    return min(confidence, refused_at_most(code))
+
+
 def features(result: Any, significance: float, members: int = 3) -> dict[str, float] | None:
     """
     Return the model's inputs for ``result`` (a :class:`~.result.PipelineResult`).

@@ -47,7 +47,7 @@ import numpy as np
 
 from .cache import cached_features
 from .candidates import distinct
-from .confidence import refused_at_most
+from .confidence import capped
 from .gates import chance_bound, chance_inliers
 from .hint import Hint
 from .map import PreparedMap
@@ -158,7 +158,7 @@ def _judged_elsewhere(result: PipelineResult, whole: ShortSearch, pose: np.ndarr
     the two poses are distinct (:func:`~.candidates.distinct`); only a valid result is
     judged (:func:`~cgags_ros.validity.elsewhere_refusal`), and only with the chance gate
     on (``gates.significance`` 0: no bound, None). A refused result's confidence is capped
-    as the gates' refusals' are (:func:`~.confidence.refused_at_most`).
+    as the gates' refusals' are (:func:`~.confidence.capped`).
     """
     gated = cfg.gates.significance > 0
     said = {'pose': whole.support(pose),
@@ -174,7 +174,7 @@ def _judged_elsewhere(result: PipelineResult, whole: ShortSearch, pose: np.ndarr
                                     translation_error(pose, whole.transform), cfg)
         if refusal is not None:  # its confidence then says no more, as for the gates' refusals
             result.refusal, result.ambiguous = refusal, True
-            result.confidence = min(result.confidence, refused_at_most(refusal.code.value))
+            result.confidence = capped(result.confidence, refusal.code.value)
     return said
 
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from .cache import cached_features
 from .candidates import rank_candidates, search_candidates, settle_candidates
-from .confidence import features, probability, refused_at_most
+from .confidence import capped, features, probability
 from .covariance import loosest_sigma, result_covariance, with_confidence
 from .gates import measure, measure_shared_surface
 from .hint import Hint
@@ -155,7 +155,7 @@ def _judged(result: PipelineResult, fs: CloudFeatures, ft: CloudFeatures,
     result.confidence = probability(features(result, cfg.gates.significance,
                                              2 if four_dof else 3))
     if refusal is not None:  # refused before the confidence: the pose may be right, not trusted
-        result.confidence = min(result.confidence, refused_at_most(refusal.code.value))
+        result.confidence = capped(result.confidence, refusal.code.value)
     if map_target or four_dof:
         return result.finish(start, refusal)
     result.covariance = with_confidence(result.covariance, result.confidence, cfg.voxel_size)
