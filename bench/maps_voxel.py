@@ -15,8 +15,10 @@ their even fragments; queries ``--per-room`` odd fragments a room; 15 deg, 0.3 m
 the same floor map, queried by a simulated 32-beam spinning LiDAR standing level at the same
 odd fragments' sensor positions and ray-cast on the rooms' odd fragments fused
 (:mod:`bench.datasets.indoor_lidar`); right: 5 deg, 0.3 m, a LiDAR's rotation as the street's
-and the floor's translation. ``rooms`` (not by default: its map is 6.6 M raw points): the
-twelve-room growth floor of ``bench.maps``, its 15 queries and 5 from outside the map.
+and the floor's translation; on the floor and the LiDAR, of the logged pose or of where the
+query settles on the map from it (:mod:`bench.map_truth`). ``rooms`` (not by default: its
+map is 6.6 M raw points): the twelve-room growth floor of ``bench.maps``, its 15 queries
+and 5 from outside the map.
 
 At each voxel size the map is prepared (``load_map`` without a cache: read, grid, normals,
 FPFH, index, places; its seconds) and every query registered, the feature cache cleared
@@ -42,6 +44,7 @@ from pathlib import Path
 import tempfile
 import time
 
+from bench import map_truth
 from bench.common import argument_parser, write_text
 from bench.datasets import indoor_lidar
 from bench.maps import floor, four_rooms, growth_rooms, outcome, street, tally
@@ -71,7 +74,8 @@ def lidar(data: Path, per_room: int) -> dict:
         place = next(p for s, _, p in built['sites'] if s == scene)
         queries += [(f'{scene[:20]} {k} lidar', scan, place @ pose)
                     for k, scan, pose in indoor_lidar.scans(root, scene, ks)]
-    return {**built, 'queries': queries, 'right': LIDAR_RIGHT}
+    return {**built, 'queries': queries, 'right': LIDAR_RIGHT,
+            'settled': map_truth.settled(built['points'], built['normals'], queries)}
 
 
 def curve(name: str, built: dict, voxels: list[float], ways: tuple[str, ...],
@@ -93,7 +97,8 @@ def curve(name: str, built: dict, voxels: list[float], ways: tuple[str, ...],
                     t0 = time.perf_counter()
                     result = register_clouds(scan, target, config=cfg)
                     seconds = time.perf_counter() - t0
-                    got = outcome(result, truth, built['right'])
+                    got = outcome(result, truth, built['right'],
+                                  built.get('settled', {}).get(label))
                     re, te = ((np.nan, np.nan) if truth is None else
                               (rotation_error_deg(result.transform, truth),
                                translation_error(result.transform, truth)))
