@@ -52,6 +52,11 @@ def settled(points: np.ndarray, normals: np.ndarray,
     return out
 
 
+def with_settled(built: dict) -> dict:
+    """Return a map of ``bench.maps`` with its queries' settled truths (``'settled'``)."""
+    return {**built, 'settled': settled(built['points'], built['normals'], built['queries'])}
+
+
 def _cloud(points: np.ndarray) -> o3d.geometry.PointCloud:
     return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
         np.ascontiguousarray(points, dtype=np.float64)))

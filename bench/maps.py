@@ -162,11 +162,10 @@ def floor(data: Path, per_room: int, rooms: list[tuple[str, bool, float]],
         odd = sorted(k for k in tdm.fragment_poses(root, outside) if k % 2)
         away = [(f'{outside[:20]} {k}', fragments[k], None)
                 for k in sorted(rng.choice(odd, min(per_room, len(odd)), replace=False))]
-    points, normals = np.vstack(points), np.vstack(normals)
-    return {'points': points, 'normals': normals, 'queries': queries,
+    return {'points': np.vstack(points), 'normals': np.vstack(normals), 'queries': queries,
             'outside': away, 'voxel': voxel, 'right': (15.0, 0.3), 'hint': HINT_RADIUS['floor'],
             'rooms': len(rooms), 'first_room': centres[0], 'sites': sites, 'sequences': runs,
-            'spans': spans, 'settled': map_truth.settled(points, normals, queries)}
+            'spans': spans}
 
 
 def campus(data: Path, seed: int = 0) -> dict:
@@ -399,12 +398,12 @@ def main(argv: list[str] | None = None) -> int:
         elif name == 'floor':
             built = floor(data, args.per_room, four_rooms(data), sequences=FLOOR_SEQUENCES,
                           voxel=args.floor_voxel)
-            rows += run('floor', built, args.kiss, args.output)
+            rows += run('floor', map_truth.with_settled(built), args.kiss, args.output)
         else:
             for rooms in GROWTH:
                 shapes, outside = growth_rooms(data, rooms)
-                rows += run(f'{rooms} rooms', floor(data, args.per_room, shapes, outside), 0,
-                            args.output, ('origin',))
+                built = map_truth.with_settled(floor(data, args.per_room, shapes, outside))
+                rows += run(f'{rooms} rooms', built, 0, args.output, ('origin',))
                 # Kept after each map: a long run that fails later loses nothing.
                 write_text(args.output / 'maps.json', json.dumps(rows, indent=1) + '\n')
         write_text(args.output / 'maps.json', json.dumps(rows, indent=1) + '\n')

@@ -74,8 +74,7 @@ def lidar(data: Path, per_room: int) -> dict:
         place = next(p for s, _, p in built['sites'] if s == scene)
         queries += [(f'{scene[:20]} {k} lidar', scan, place @ pose)
                     for k, scan, pose in indoor_lidar.scans(root, scene, ks)]
-    return {**built, 'queries': queries, 'right': LIDAR_RIGHT,
-            'settled': map_truth.settled(built['points'], built['normals'], queries)}
+    return {**built, 'queries': queries, 'right': LIDAR_RIGHT}
 
 
 def curve(name: str, built: dict, voxels: list[float], ways: tuple[str, ...],
@@ -225,6 +224,8 @@ def main(argv: list[str] | None = None) -> int:
                  floor(data, args.per_room, four_rooms(data)) if name == 'floor' else
                  floor(data, args.per_room, *growth_rooms(data, 12)) if name == 'rooms' else
                  lidar(data, args.per_room))
+        if name != 'street':
+            built = map_truth.with_settled(built)
         rules[name] = scan_voxels(built, args.counts)
         voxels = sorted(set(getattr(args, name)) | set(rule_voxels(rules[name])))
         ways = ('places',) if name in ('street', 'rooms') else ('places', 'whole')

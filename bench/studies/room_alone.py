@@ -24,6 +24,7 @@ from pathlib import Path
 import tempfile
 
 from bench.common import add_set_option, argument_parser, parse_overrides
+from bench.map_truth import with_settled
 import bench.maps as built_maps
 from bench.maps_voxel import lidar
 from cgags_ros.config import pipeline_config_from
@@ -66,8 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     overrides = parse_overrides(args.set)
     data = shared_data_dir()
-    built = (lidar(data, args.per_room) if args.lidar
-             else built_maps.floor(data, args.per_room, built_maps.four_rooms(data)))
+    built = with_settled(lidar(data, args.per_room) if args.lidar
+                         else built_maps.floor(data, args.per_room, built_maps.four_rooms(data)))
     labels = [label for label, _, _ in built['queries']]
     for voxel in args.voxels:
         with tempfile.TemporaryDirectory() as tmp:
