@@ -53,8 +53,20 @@ def settled(points: np.ndarray, normals: np.ndarray,
 
 
 def with_settled(built: dict) -> dict:
-    """Return a map of ``bench.maps`` with its queries' settled truths (``'settled'``)."""
-    return {**built, 'settled': settled(built['points'], built['normals'], built['queries'])}
+    """
+    Return a map of ``bench.maps`` with its queries' settled truths (``'settled'``).
+
+    A map's sequences get theirs too (``'settled_sequences'``: a list of each sequence's
+    scans' settled truths, in the sequences' order).
+    """
+    points, normals = built['points'], built['normals']
+    runs = built.get('sequences', [])
+    asked = [(f'{i} {k}', scan, truth) for i, (_, scans, truths) in enumerate(runs)
+             for k, (scan, truth) in enumerate(zip(scans, truths))]
+    found = settled(points, normals, asked)
+    return {**built, 'settled': settled(points, normals, built['queries']),
+            'settled_sequences': [[found[f'{i} {k}'] for k in range(len(scans))]
+                                  for i, (_, scans, _) in enumerate(runs)]}
 
 
 def _cloud(points: np.ndarray) -> o3d.geometry.PointCloud:

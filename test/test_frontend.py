@@ -3,10 +3,11 @@
 from bench.datasets.gt_pairs import find_pair
 from cgags_ros.config.frontend import FrontEndConfig, RefineConfig
 from cgags_ros.errors import EmptyCloudError, InvalidInputError
-from cgags_ros.frontend import features
+from cgags_ros.frontend import features, refine
 from cgags_ros.frontend.features import downsample, extract_features, finite_points
 from cgags_ros.frontend.matching import match_features
-from cgags_ros.frontend.refine import evaluate_alignment, point_to_plane_6dof, refine_transform
+from cgags_ros.frontend.refine import evaluate_alignment, point_to_plane_6dof, refine_finer
+from cgags_ros.frontend.refine import refine_transform
 from cgags_ros.geometry import point_resolution, rotation_error_deg, translation_error
 from cgags_ros.io.clouds import read_cloud
 import numpy as np
@@ -203,6 +204,32 @@ def test_point_to_plane_6dof_converges_like_the_refinement(bunny):
     assert rotation_error_deg(refined, opened) < 0.1
     assert translation_error(refined, opened) < 0.2 * VOXEL
     np.testing.assert_allclose(refined[:3, :3] @ refined[:3, :3].T, np.eye(3), atol=1e-9)
+
+
+def test_a_source_of_few_voxels_is_refined_again_with_its_own_points(data_dir, monkeypatch):
+    """At a voxel that leaves the bunny a few hundred centroids, they settle a degree off."""
+    src, dst, T = find_pair(data_dir / 'objects/stanford_bunny_scans/gt_pairs.txt',
+                            'bun045.ply', 'bun000.ply')
+    source, voxel = read_cloud(src), 0.01
+    fs = extract_features(source, voxel, FrontEndConfig())
+    ft = extract_features(read_cloud(dst), voxel, FrontEndConfig())
+    delta = np.eye(4)
+    delta[:3, :3] = Rotation.from_euler('xz', [2, -3], degrees=True).as_matrix()
+    delta[:3, 3] = [0.01, -0.005, 0.005]
+    coarse = refine_transform(fs.points, ft.points, delta @ T, voxel_size=voxel,
+                              config=RefineConfig(), target_normals=ft.normals,
+                              coarse_distance=3 * voxel)
+    assert len(fs.points) < refine.FINER_MAX_VOXELS
+    assert rotation_error_deg(coarse, T) > 0.8  # the centroids' own minimum
+    finer = refine_finer(source, len(fs.points), ft.points, ft.normals, ft.tree, coarse,
+                         voxel_size=voxel, config=RefineConfig())
+    assert rotation_error_deg(finer, T) < 0.3 and translation_error(finer, T) < 0.1 * voxel
+    # More voxels than the bound, or another method: the estimate as it was.
+    monkeypatch.setattr(refine, 'FINER_MAX_VOXELS', len(fs.points))
+    for method in ('point_to_plane', 'gicp'):
+        again = refine_finer(source, len(fs.points), ft.points, ft.normals, ft.tree, coarse,
+                             voxel_size=voxel, config=RefineConfig(method=method))
+        np.testing.assert_array_equal(again, coarse)
 
 
 def test_refinement_none_is_identity_operation(bunny):

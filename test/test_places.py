@@ -17,10 +17,11 @@ from cgags_ros.errors import InvalidInputError
 from cgags_ros.frontend.descriptor_index import Cells, DescriptorIndex
 from cgags_ros.frontend.features import CloudFeatures, estimate_normals, extract_features
 from cgags_ros.frontend.matching import match_features
+from cgags_ros.frontend.refine import refine_finer
 from cgags_ros.geometry import apply_transform, make_transform, rotation_error_deg
 from cgags_ros.geometry import translation_error
 from cgags_ros.io.clouds import write_cloud
-from cgags_ros.pipeline import locate, register_clouds
+from cgags_ros.pipeline import locate, polish, register_clouds
 from cgags_ros.pipeline.confidence import refused_at_most
 from cgags_ros.pipeline.hint import Hint, HINT_SIGMAS
 from cgags_ros.pipeline.locate import TESTED
@@ -223,6 +224,26 @@ def test_a_scan_from_outside_the_map_is_refused_against_one_place(floor):
     # Cheap: one place's registration, not the whole map's.
     assert 0 < result.num_target_points < 0.7 * len(prepared.features.points)
     assert result.map_info['place']['points'] == result.num_target_points
+
+
+def test_a_scan_of_few_voxels_is_refined_again_with_its_own_points(floor, monkeypatch):
+    prepared, cfg, _, _, query = floor
+    scan, truth = query(*QUERY)
+    seen = []
+
+    def spy(source, voxels, *args, **kwargs):
+        seen.append((len(source), voxels))
+        return refine_finer(source, voxels, *args, **kwargs)
+
+    monkeypatch.setattr(polish, 'refine_finer', spy)
+    result = register_clouds(scan, prepared, config=cfg)
+    assert result.valid and rotation_error_deg(result.transform, truth) < RIGHT[0]
+    # The scan's own points (not its voxel centroids), in the place's registration.
+    assert seen == [(len(scan), result.num_source_points)]
+    assert np.array_equal(result.candidates[0].transform, result.transform)
+    seen.clear()
+    pair = register_clouds(scan, apply_transform(truth, scan), config=cfg)
+    assert pair.valid and seen == []  # a pair of clouds is not (pipeline/polish.py)
 
 
 def test_a_pose_hint_covers_its_position_to_three_standard_deviations():

@@ -11,7 +11,6 @@ from cgags_ros.geometry import apply_transform, rotation_error_deg, translation_
 from cgags_ros.pipeline import clear_feature_cache, register_clouds
 from cgags_ros.pipeline import regenerate
 from cgags_ros.pipeline.cache import cached_features
-from cgags_ros.pipeline.register import _regenerates
 from cgags_ros.refusal import Refusal, RefusalCode as Code
 from cgags_ros.registration import register_correspondences, RegistrationResult
 import numpy as np
@@ -117,16 +116,17 @@ def test_the_stage_runs_on_refused_estimates_of_six_dof_pairs_only():
                                    inliers=np.arange(40))
     trusted = RegistrationResult(refusal=None)
     on = _config(**{'regenerate.enabled': True})
-    assert _regenerates(refused, on, map_target=False)
-    assert not _regenerates(trusted, on, map_target=False)
-    assert _regenerates(collinear, on, map_target=False)
-    assert _regenerates(trusted, _config(**{'regenerate.enabled': True,
-                                            'regenerate.when': 'always'}), map_target=False)
-    assert not _regenerates(refused, on, map_target=True)
+    runs = regenerate.regenerates
+    assert runs(refused, on, map_target=False)
+    assert not runs(trusted, on, map_target=False)
+    assert runs(collinear, on, map_target=False)
+    assert runs(trusted, _config(**{'regenerate.enabled': True,
+                                    'regenerate.when': 'always'}), map_target=False)
+    assert not runs(refused, on, map_target=True)
     for other in ({'core.motion_model': '4dof'}, {'refine.method': 'none'},
                   {'regenerate.enabled': False}):
-        assert not _regenerates(refused, _config(**{'regenerate.enabled': True, **other}),
-                                map_target=False)
+        assert not runs(refused, _config(**{'regenerate.enabled': True, **other}),
+                        map_target=False)
 
 
 def test_a_sphere_pose_needs_consistent_matches():

@@ -15,6 +15,7 @@ from cgags_ros.config import PipelineConfig
 from cgags_ros.errors import EmptyCloudError
 from cgags_ros.io.clouds import write_cloud
 from cgags_ros.pipeline import register_clouds
+from cgags_ros.pipeline.map import load_map
 from cgags_ros.pipeline.register import terrain_patch
 from cgags_ros.relocalization.sequence import StepAnswer
 from cgags_ros.runtime.jobs import (CheckScan, CheckVerdict, MapReady, MapRef, PairDone,
@@ -242,7 +243,7 @@ def test_the_checks_lane_loads_its_map_and_checks_without_ever_waiting(pair, map
                  'the map loaded')
         assert lane.offer(source, ref, CONFIG, 3.0)
         verdict = wait_for(lambda: lane.landed(), 300, 'the check')
-        local = register_clouds(source, target, config=CONFIG)
+        local = register_clouds(source, load_map(ref.path, CONFIG), config=CONFIG)
         assert verdict.stamp == 3.0 and not verdict.code
         np.testing.assert_allclose(verdict.transform, local.transform, atol=1e-6)
         stats = lane.statistics()

@@ -206,3 +206,31 @@ def test_icp_settles_a_perturbed_truth_where_the_truth_settles(redkitchen_pair):
     assert rotation_error_deg(T, settled) < 0.1 and translation_error(T, settled) < 0.005
     assert row['fitness_after'] > row['fitness_before']
     assert row['moved_deg'] > 2.0 and row['moved_m'] > 0.05
+
+
+def test_a_map_query_and_a_sequence_settle_where_the_truth_settles(redkitchen_pair):
+    """bench.map_truth: a query's pose settled on the map, the same from a perturbed start."""
+    from bench import map_truth
+    from bench.maps import right
+    import open3d as o3d
+
+    src, tgt, truth = redkitchen_pair(0, 2)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(tgt))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.05, max_nn=30))
+    start = _turn(3.0, np.random.default_rng(0), about=src.mean(axis=0)) @ truth
+    start[:3, 3] += [0.08, 0.0, 0.0]
+    built = {'points': tgt, 'normals': np.asarray(cloud.normals),
+             'queries': [('logged', src, truth), ('off', src, start), ('outside', src, None)],
+             'sequences': [('run', [src, src], [truth, start])]}
+    out = map_truth.with_settled(built)
+    settled, runs = out['settled'], out['settled_sequences']
+    assert sorted(settled) == ['logged', 'off']  # a query from outside has no truth
+    T = settled['logged']
+    for again in (settled['off'], *runs[0]):
+        assert rotation_error_deg(again, T) < 0.1 and translation_error(again, T) < 0.005
+    assert rotation_error_deg(T, truth) < tc.AGREE_DEG
+    # Right within the limits of the logged truth or of the settled one.
+    logged = truth.copy()
+    logged[:3, 3] += [0.5, 0.0, 0.0]  # a logged pose the map disagrees with
+    assert right(T, logged, (2.0, 0.05), T) and not right(T, logged, (2.0, 0.05))
+    assert right(logged, logged, (2.0, 0.05), T)

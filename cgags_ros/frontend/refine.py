@@ -21,6 +21,11 @@ from ..open3d_import import open3d as o3d
 # keeps Open3D's 1e-6.
 COARSE_STAGE_TOLERANCE = 1e-4
 MAX_ITERATIONS = 50  # iterations of each refinement stage, at most
+# A source of fewer voxels than this is refined once more at half the voxel (refine_finer):
+# more voxels constrain the pose at the voxel, and the denser points would only cost time.
+FINER_MAX_VOXELS = 5000
+FINER_DISTANCE_FACTOR = 0.5  # the finer stage's last correspondence distance, in voxels
+FINER_ITERATIONS = 10  # a finer stage's, at most: it starts within the basin it settles in
 
 
 @dataclasses.dataclass
@@ -100,6 +105,40 @@ def refine_transform(source: np.ndarray, target: np.ndarray, initial: np.ndarray
         elif config.method == 'gicp':
             T = _gicp(source, target, T, distance, voxel_size, config)
     return T
+
+
+def refine_finer(source: np.ndarray, source_voxels: int, target: np.ndarray,
+                 target_normals: np.ndarray, tree: cKDTree, initial: np.ndarray, *,
+                 voxel_size: float, config: RefineConfig, workers: int = 1) -> np.ndarray:
+    """
+    Refine :func:`refine_transform`'s ``initial`` once more with the source's own points.
+
+    ``source``: its points as given (N, 3), not the voxel centroids ``initial`` was refined
+    with, which are ``source_voxels``. With few centroids (fewer than
+    :data:`FINER_MAX_VOXELS`) point-to-plane can settle degrees from where the source's
+    surfaces fit the target, and no more iterations move it; the source downsampled at half
+    the voxel settles it (:func:`staged_point_to_plane` against the target's ``tree``,
+    :data:`FINER_ITERATIONS` a stage), at the refinement's final distance and then at
+    :data:`FINER_DISTANCE_FACTOR` voxels.
+    Returns ``initial`` unchanged for more voxels and for a method other than
+    point-to-plane (:func:`refines_finer`).
+    """
+    if not refines_finer(source_voxels, config):
+        return np.asarray(initial, dtype=np.float64)
+    finer = np.asarray(_o3d_points(source).voxel_down_sample(voxel_size / 2).points)
+    return staged_point_to_plane(finer, target, target_normals, tree, initial,
+                                 config.max_correspondence_distance_factor * voxel_size,
+                                 FINER_DISTANCE_FACTOR * voxel_size, FINER_ITERATIONS, workers)
+
+
+def refines_finer(source_voxels: int, config: RefineConfig) -> bool:
+    """Tell whether :func:`refine_finer` refines a source of ``source_voxels`` voxels."""
+    return config.method == 'point_to_plane' and source_voxels < FINER_MAX_VOXELS
+
+
+def _o3d_points(points: np.ndarray) -> o3d.geometry.PointCloud:
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
+        np.ascontiguousarray(points, dtype=np.float64)))
 
 
 def _point_to_plane(source: np.ndarray, target: np.ndarray, target_normals: np.ndarray | None,

@@ -177,6 +177,20 @@ def settled_support(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
                        starts, workers)
 
 
+def regenerates(core: RegistrationResult, cfg: PipelineConfig, map_target: bool) -> bool:
+    """
+    Tell whether the regenerated correspondences run (this module).
+
+    6-DoF pairs of clouds, when enabled; by default (``when: refused``) only for an estimate
+    the core refuses, a collinear consensus included: the stage's proposals put right more
+    of those than the gates settle.
+    """
+    if not (cfg.regenerate.enabled and not map_target and cfg.core.motion_model == '6dof'
+            and cfg.refine.method != 'none'):
+        return False
+    return cfg.regenerate.when == 'always' or core.refusal is not None
+
+
 def regenerated_estimate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences,
                          core: RegistrationResult, cfg: PipelineConfig,
                          workers: int = 1) -> RegistrationResult | None:

@@ -5,9 +5,10 @@ Clouds in, result out: the one registration path of the node, the CLIs and bench
 FPFH -> mutual-nearest-neighbour correspondences -> the CGAGS core (global, no initial
 guess) -> where the core refuses its estimate, poses proposed by re-matching the
 descriptors locally (:mod:`.regenerate`) -> optional ICP/GICP refinement -> validity
-gating with the candidates and twins settled (:mod:`.settle`). An estimate the core still
-refuses is refined (``refine.refused``) but not gated: nothing after the core lifts its
-refusal. Numpy in, numpy out; transforms are 4x4 source->target
+gating with the candidates and twins settled (:mod:`.settle`) -> against a map, an accepted
+scan of few voxels refined once more with its own points (:mod:`.polish`). An estimate the
+core still refuses is refined (``refine.refused``) but not gated: nothing after the core
+lifts its refusal. Numpy in, numpy out; transforms are 4x4 source->target
 (``p_target = R p_source + t``), metres. With ``core.motion_model='4dof'`` the core, the
 refinement and the gates solve yaw + translation only (roll and pitch stay zero about the
 gravity axis) and a tilt between the clouds is reported.
@@ -30,7 +31,8 @@ from .gates import measure, measure_shared_surface
 from .hint import Hint
 from .locate import locate
 from .map import matches_config, PreparedMap
-from .regenerate import regenerated_estimate
+from .polish import polished
+from .regenerate import regenerated_estimate, regenerates
 from .result import PipelineResult
 from .twins import add_twin, find_twin
 from ..config import fields
@@ -216,7 +218,7 @@ def _register_clouds(src: np.ndarray, target: np.ndarray | PreparedMap, cfg: Pip
     except DegenerateCorrespondencesError as exc:
         result.num_correspondences = len(corr)
         return result.finish(start, exc.refusal)
-    if _regenerates(core, cfg, map_target):
+    if regenerates(core, cfg, map_target):
         with timed(result.timings, 'regeneration'):
             replaced = regenerated_estimate(fs, ft, corr, core, cfg, workers)
         core = replaced or core
@@ -261,6 +263,8 @@ def _register_clouds(src: np.ndarray, target: np.ndarray | PreparedMap, cfg: Pip
             add_twin(result, twin)
             result.ambiguous = True
             refusal = ambiguity_refusal(result, cfg)
+    if not refusal and map_target:
+        overlap = polished(src, fs, ft, corr, result, cfg, overlap, left_to_gates, workers)
     return _judged(result, fs, ft, cfg, start, refusal, map_target, overlap)
 
 
@@ -373,20 +377,6 @@ def _global_estimate(fs: CloudFeatures, ft: CloudFeatures, corr: Correspondences
     except DegenerateCorrespondencesError as exc:
         raise DegenerateCorrespondencesError(f'degenerate correspondences: {exc}',
                                              code=exc.code) from exc
-
-
-def _regenerates(core: RegistrationResult, cfg: PipelineConfig, map_target: bool) -> bool:
-    """
-    Tell whether the regenerated correspondences run (:mod:`.regenerate`).
-
-    6-DoF pairs of clouds, when enabled; by default (``when: refused``) only for an estimate
-    the core refuses, a collinear consensus included: the stage's proposals put right more
-    of those than the gates settle.
-    """
-    if not (cfg.regenerate.enabled and not map_target and cfg.core.motion_model == '6dof'
-            and cfg.refine.method != 'none'):
-        return False
-    return cfg.regenerate.when == 'always' or core.refusal is not None
 
 
 def _copy_core(core: RegistrationResult, result: PipelineResult) -> None:

@@ -2,7 +2,8 @@
 A scan refined from a predicted pose and judged: the tracked path, without the stream's state.
 
 :func:`refine_prediction` downsamples the scan, refines the prediction against the target's
-features (no FPFH, no matching, no core) and judges the pose by the gates a global result
+features (no FPFH, no matching, no core; against a map, a scan of few voxels once more with
+its own points, as the global path does) and judges the pose by the gates a global result
 passes on its overlap (:func:`~cgags_ros.validity.overlap_refusal`), the tracked pose's own
 (:func:`~cgags_ros.validity.tracking_refusal`) and the usable-covariance bound. The
 :class:`~.tracker.Tracker` calls it for each scan it tracks. Transforms are 4x4
@@ -20,7 +21,7 @@ from ..config.pipeline import PipelineConfig
 from ..coordinates import local_origin, moved, sensor_at_origin, to_local
 from ..errors import EmptyCloudError
 from ..frontend.features import CloudFeatures, downsample, finite_points, MIN_POINTS
-from ..frontend.refine import refine_transform
+from ..frontend.refine import refine_finer, refine_transform
 from ..geometry import cross_spread
 from ..parallel import DEFAULT_WORKERS
 from ..pipeline.cache import cached_features
@@ -103,6 +104,10 @@ def _refined(source: np.ndarray, ft: CloudFeatures, prediction: np.ndarray,
             points, ft.points, prediction, voxel_size=v, config=cfg.refine,
             target_normals=ft.normals,
             gravity=gravity, workers=DEFAULT_WORKERS, tolerance=REFINE_TOLERANCE)
+        if map_target and gravity is None:  # the global path's last stage (pipeline/polish.py)
+            result.transform = refine_finer(source, len(points), ft.points, ft.normals, ft.tree,
+                                            result.transform, voxel_size=v, config=cfg.refine,
+                                            workers=DEFAULT_WORKERS)
         result.refined = True
     with timed(result.timings, 'validation'):
         # no source tree: the target side of the overlap is for settling candidates only
