@@ -228,3 +228,38 @@ def test_a_jump_is_found_by_the_global_search_and_tracked_after(kitti):
     assert jump.path == 'global' and jump.valid and _within(jump, truth[12])
     assert jump.voxel_size == VOXEL and jump.num_inliers > 0
     assert tracker.register(scans[13], scans[0], 4 * PERIOD, config=config).path == 'tracked'
+
+
+def test_a_scan_of_few_voxels_is_tracked_onto_a_map_where_the_global_path_puts_it(
+        tmp_path, monkeypatch):
+    """Both paths refine it once more with its own points (pipeline/polish.py): one pose."""
+    from pathlib import Path
+
+    from cgags_ros.frontend import refine
+    from cgags_ros.pipeline.map import load_map
+    from cgags_ros.tracking import refined
+
+    fixture = Path(__file__).resolve().parent / 'fixtures' / 'small_gicp'
+    source = np.load(fixture / 'source.npy').astype(np.float64)
+    np.save(tmp_path / 'map.npy', np.load(fixture / 'target.npy').astype(np.float64))
+    truth = np.loadtxt(fixture / 'T_target_source.txt')
+    config = PipelineConfig(voxel_size=0.3)
+    prepared = load_map(tmp_path / 'map.npy', config)
+    calls = []
+
+    def spy(*args, **kwargs):
+        calls.append(args[1])
+        return refine.refine_finer(*args, **kwargs)
+
+    monkeypatch.setattr(refined, 'refine_finer', spy)
+    tracker = Tracker()
+    first, second = _run(tracker, [source, source], [0, 1], prepared, config)
+    assert (first.path, second.path) == ('global', 'tracked') and second.valid, second.reason
+    assert calls and calls[0] < refine.FINER_MAX_VOXELS
+    assert _within(first, truth) and _within(second, truth)
+    assert rotation_error_deg(second.transform, first.transform) < 0.01
+    assert translation_error(second.transform, first.transform) < 0.01
+    # A pair of clouds is not refined again, on either path.
+    calls.clear()
+    pair = _run(Tracker(), [source, source], [0, 1], np.load(tmp_path / 'map.npy'), config)
+    assert [r.path for r in pair] == ['global', 'tracked'] and calls == []
