@@ -76,7 +76,7 @@ def on_map_at_origin(pair, tmp_path_factory):
     cfg = pipeline_config_from({'voxel_size': VOXEL})
     result = register_clouds(source, load_map(path, cfg), config=cfg)
     assert result.valid, result.reason
-    # Within the refinement's reach of the pair's answer, and no further from the truth.
+    # Within the refinement's reach of the pair's answer, and right as the pair's is.
     assert rotation_error_deg(result.transform, at_origin.transform) < 1.0
     assert translation_error(result.transform, at_origin.transform) < 0.1
     assert translation_error(result.transform, truth) < 0.1
