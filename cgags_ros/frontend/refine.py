@@ -12,6 +12,7 @@ import dataclasses
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .features import downsample, MIN_POINTS
 from ..config.frontend import RefineConfig
 from ..geometry import apply_transform, GravityFrame
 from ..open3d_import import open3d as o3d
@@ -125,7 +126,8 @@ def refine_finer(source: np.ndarray, source_voxels: int, target: np.ndarray,
     """
     if not refines_finer(source_voxels, config):
         return np.asarray(initial, dtype=np.float64)
-    finer = np.asarray(_o3d_points(source).voxel_down_sample(voxel_size / 2).points)
+    # At least as many points as the source's voxels, which were MIN_POINTS or more.
+    finer = downsample(source, voxel_size / 2, MIN_POINTS, 'source')
     return staged_point_to_plane(finer, target, target_normals, tree, initial,
                                  config.max_correspondence_distance_factor * voxel_size,
                                  FINER_DISTANCE_FACTOR * voxel_size, FINER_ITERATIONS, workers)
@@ -134,11 +136,6 @@ def refine_finer(source: np.ndarray, source_voxels: int, target: np.ndarray,
 def refines_finer(source_voxels: int, config: RefineConfig) -> bool:
     """Tell whether :func:`refine_finer` refines a source of ``source_voxels`` voxels."""
     return config.method == 'point_to_plane' and source_voxels < FINER_MAX_VOXELS
-
-
-def _o3d_points(points: np.ndarray) -> o3d.geometry.PointCloud:
-    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
-        np.ascontiguousarray(points, dtype=np.float64)))
 
 
 def _point_to_plane(source: np.ndarray, target: np.ndarray, target_normals: np.ndarray | None,
