@@ -14,6 +14,8 @@ not fitted to any estimate.
 
 from __future__ import annotations
 
+from collections.abc import Hashable
+
 import numpy as np
 import open3d as o3d
 
@@ -23,9 +25,10 @@ ITERATIONS = 200  # each stage's, at most
 
 
 def settled(points: np.ndarray, normals: np.ndarray,
-            queries: list[tuple[str, np.ndarray, np.ndarray | None]]) -> dict[str, np.ndarray]:
+            queries: list[tuple[Hashable, np.ndarray, np.ndarray | None]]
+            ) -> dict[Hashable, np.ndarray]:
     """
-    Return each query's settled truth (4x4, map frame) by its label.
+    Return each query's settled truth (4x4, map frame) by its label (any hashable).
 
     ``points``, ``normals``: the map's (N, 3); ``queries``: (label, scan in its sensor frame,
     logged truth sensor -> map); a query without a truth (from outside the map) has none.
@@ -59,13 +62,14 @@ def with_settled(built: dict) -> dict:
     A map's sequences get theirs too (``'settled_sequences'``: a list of each sequence's
     scans' settled truths, in the sequences' order).
     """
-    points, normals = built['points'], built['normals']
     runs = built.get('sequences', [])
-    asked = [(f'{i} {k}', scan, truth) for i, (_, scans, truths) in enumerate(runs)
+    steps = [(('sequence', i, k), scan, truth) for i, (_, scans, truths) in enumerate(runs)
              for k, (scan, truth) in enumerate(zip(scans, truths))]
-    found = settled(points, normals, asked)
-    return {**built, 'settled': settled(points, normals, built['queries']),
-            'settled_sequences': [[found[f'{i} {k}'] for k in range(len(scans))]
+    # One call: the map's fine grid is built once for the queries and the sequences.
+    found = settled(built['points'], built['normals'], built['queries'] + steps)
+    return {**built, 'settled': {label: T for label, T in found.items()
+                                 if not isinstance(label, tuple)},
+            'settled_sequences': [[found['sequence', i, k] for k in range(len(scans))]
                                   for i, (_, scans, _) in enumerate(runs)]}
 
 
